@@ -1,0 +1,92 @@
+import math
+
+import pytest
+import torch
+
+from torchmcmcpf import resampling as rs
+
+WEIGHTS = torch.tensor([0.05, 0.4, 0.0, 0.15, 0.3, 0.1], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("method", ["systematic", "stratified", "multinomial"])
+def test_resampling_is_unbiased(method, gen):
+    # R independent resamplings of the same weights, batched as R runs.
+    # E[count_i] = N w_i for every scheme. Var(count_i) <= N w_i (1 - w_i) (multinomial is
+    # the largest of the three), so the mean over R runs has standard error at most
+    # sqrt(N w (1 - w) / R); we allow 5 of those.
+    R, N = 4000, WEIGHTS.numel()
+    log_w = WEIGHTS.log().expand(R, N)
+    idx = rs.resample(log_w, method, generator=gen)
+    counts = torch.zeros(R, N, dtype=torch.float64).scatter_add_(1, idx, torch.ones_like(idx, dtype=torch.float64))
+    expected = N * WEIGHTS
+    se = torch.sqrt(N * WEIGHTS * (1 - WEIGHTS) / R)
+    assert torch.all((counts.mean(0) - expected).abs() <= 5 * se + 1e-12)
+    assert torch.all(counts[:, 2] == 0)  # a zero weight is never drawn
+
+
+def test_systematic_offspring_counts_are_floor_or_ceil(gen):
+    # Systematic resampling gives each particle floor(N w) or ceil(N w) offspring.
+    N = 1000
+    w = torch.rand(8, N, generator=gen, dtype=torch.float64)
+    w = w / w.sum(-1, keepdim=True)
+    idx = rs.resample(w.log(), "systematic", generator=gen)
+    counts = torch.zeros_like(w).scatter_add_(1, idx, torch.ones_like(w))
+    assert torch.all(counts >= torch.floor(N * w) - 1e-9)
+    assert torch.all(counts <= torch.ceil(N * w) + 1e-9)
+
+
+def test_resample_indices_shape_and_range(gen):
+    log_w = torch.randn(3, 50, generator=gen)
+    idx = rs.resample(log_w, generator=gen, num_samples=20)
+    assert idx.shape == (3, 20) and idx.dtype == torch.int64
+    assert int(idx.min()) >= 0 and int(idx.max()) < 50
+
+
+def test_resample_same_seed_same_indices():
+    log_w = torch.randn(4, 100, generator=torch.Generator().manual_seed(0))
+    a = rs.resample(log_w, "stratified", generator=torch.Generator().manual_seed(7))
+    b = rs.resample(log_w, "stratified", generator=torch.Generator().manual_seed(7))
+    assert torch.equal(a, b)
+
+
+def test_ess_values():
+    n = 10
+    assert torch.allclose(rs.ess(torch.zeros(2, n)), torch.full((2,), float(n)))
+    one_hot = torch.full((1, n), -math.inf)
+    one_hot[0, 3] = 0.0
+    assert torch.allclose(rs.ess(one_hot), torch.ones(1))
+    w = torch.tensor([[0.5, 0.25, 0.25]])
+    assert torch.allclose(rs.ess(w.log() + 3.0), torch.tensor([1 / (0.25 + 0.0625 + 0.0625)]))
+
+
+def test_normalize_survives_total_underflow():
+    # Weights that are all numerically zero in linear space (the "numerically zero weights"
+    # of Maroulas and Stinis) stay finite in log space.
+    log_w = torch.tensor([[-1e4, -1e4 - 1.0, -1e4 - 2.0], [-math.inf] * 3])
+    log_w_n, log_mean = rs.normalize(log_w)
+    assert torch.isfinite(log_w_n).all()
+    assert torch.allclose(log_w_n.exp().sum(-1), torch.ones(2))
+    assert torch.isclose(log_mean[0], torch.logsumexp(log_w[0], 0) - math.log(3))
+    assert torch.isneginf(log_mean[1])
+    idx = rs.resample(log_w_n, generator=torch.Generator().manual_seed(0))
+    assert int(idx.max()) < 3
+
+
+def test_gather_particles():
+    x = torch.arange(2 * 4 * 3).reshape(2, 4, 3)
+    idx = torch.tensor([[3, 3, 0, 1], [2, 2, 2, 2]])
+    out = rs.gather_particles(x, idx)
+    assert torch.equal(out[0, 0], x[0, 3]) and torch.equal(out[1, 3], x[1, 2])
+
+
+def test_resample_bad_input(gen):
+    with pytest.raises(ValueError, match="method"):
+        rs.resample(torch.zeros(1, 3), "bogus", generator=gen)
+    with pytest.raises(ValueError, match="log_w has shape"):
+        rs.resample(torch.zeros(3), generator=gen)
+    with pytest.raises(ValueError, match="log_w has shape"):
+        rs.resample(torch.zeros(0, 3), generator=gen)
+    with pytest.raises(ValueError, match="generator"):
+        rs.resample(torch.zeros(1, 3), generator=None)
+    with pytest.raises(ValueError, match="num_samples"):
+        rs.resample(torch.zeros(1, 3), generator=gen, num_samples=0)

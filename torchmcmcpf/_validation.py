@@ -1,0 +1,78 @@
+"""Input checks shared by every public entry point.
+
+Each raises ``ValueError`` naming the argument, what was seen and what was expected. They
+synchronise with the device (``.item()``), so they run once per public call in eager code,
+never inside a step function's hot path.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+
+from .typing import Tensor
+
+
+def _fmt(shape: Sequence[Optional[int]]) -> str:
+    return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
+
+
+def check_tensor(value, name: str) -> Tensor:
+    if not isinstance(value, torch.Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    return value
+
+
+def check_shape(t: Tensor, name: str, expected: Sequence[Optional[int]]) -> Tensor:
+    """Check ``t.shape`` against ``expected`` (``None`` matches any size)."""
+    check_tensor(t, name)
+    ok = t.dim() == len(expected) and all(e is None or s == e for s, e in zip(t.shape, expected))
+    if not ok:
+        raise ValueError(f"{name} has shape {tuple(t.shape)}, expected {_fmt(expected)}")
+    return t
+
+
+def check_finite(t: Tensor, name: str) -> Tensor:
+    check_tensor(t, name)
+    if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+        bad = int((~torch.isfinite(t)).sum())
+        raise ValueError(f"{name} contains {bad} NaN/inf value(s); expected finite values")
+    return t
+
+
+def check_nonnegative(t: Tensor, name: str) -> Tensor:
+    if bool((t < 0).any()):
+        raise ValueError(f"{name} has negative value(s) (min {float(t.min()):.4g}); expected >= 0")
+    return t
+
+
+def check_positive_int(value, name: str, minimum: int = 1) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return value
+
+
+def check_positive(value, name: str, allow_zero: bool = False) -> float:
+    v = float(value)
+    if not (v > 0 or (allow_zero and v == 0)) or v != v or v == float("inf"):
+        raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
+    return v
+
+
+def check_generator(generator, name: str = "generator") -> torch.Generator:
+    if not isinstance(generator, torch.Generator):
+        raise ValueError(
+            f"{name} must be a torch.Generator (randomness is explicit in torchmcmcpf), "
+            f"got {type(generator).__name__}"
+        )
+    return generator
+
+
+def check_batch(t: Tensor, name: str, batch_size: int) -> Tensor:
+    if t.dim() == 0 or t.shape[0] != batch_size:
+        raise ValueError(
+            f"{name} has batch size {t.shape[0] if t.dim() else 'none'} (shape {tuple(t.shape)}), "
+            f"expected {batch_size} to match the particle state"
+        )
+    return t

@@ -1,0 +1,109 @@
+"""Motion models.
+
+``ConstantVelocity``: nearly constant velocity in 2-D with an optional random-walk target
+amplitude, Bocquel, Driessen and Bagchi (2012) eqs. 15-17 (paper 000).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+
+from .._validation import check_positive
+from ..typing import Tensor
+from .base import MotionModel
+
+__all__ = ["ConstantVelocity", "LinearGaussianMotion"]
+
+
+class LinearGaussianMotion(MotionModel):
+    """``x_k = F x_{k-1} + v``, ``v ~ N(0, Q)``, per target slot.
+
+    Parameters
+    ----------
+    F : (D, D) transition matrix.
+    Q : (D, D) symmetric positive definite process noise covariance.
+
+    Attributes ``F``, ``Q`` and ``L`` (lower Cholesky factor of Q) are buffers, so
+    ``.to(device)`` moves them with the filter. Used directly for Kalman cross-checks.
+    """
+
+    def __init__(self, F: Tensor, Q: Tensor):
+        super().__init__()
+        F = torch.as_tensor(F, dtype=torch.get_default_dtype() if not torch.is_tensor(F) else F.dtype)
+        Q = torch.as_tensor(Q, dtype=F.dtype)
+        d = F.shape[-1]
+        if F.shape != (d, d) or Q.shape != (d, d):
+            raise ValueError(f"F and Q must be square (D, D); got F {tuple(F.shape)}, Q {tuple(Q.shape)}")
+        try:
+            L = torch.linalg.cholesky(Q)
+        except RuntimeError as err:  # pragma: no cover - message path
+            raise ValueError(f"Q must be symmetric positive definite: {err}") from err
+        self.register_buffer("F", F)
+        self.register_buffer("Q", Q)
+        self.register_buffer("L", L)
+        self.dim = d
+        self.noise_dim = d
+        # log-density constant: -0.5 * (D log 2pi + log det Q)
+        self._log_norm = -0.5 * (d * math.log(2 * math.pi)) - float(torch.log(torch.diagonal(L)).sum())
+
+    def mean(self, x: Tensor) -> Tensor:
+        """``F x``: ``(*S, K, D) -> (*S, K, D)``."""
+        return x @ self.F.to(x.dtype).mT
+
+    def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
+        """``F x + L eps``: ``(*S, K, D), (*S, K, D) -> (*S, K, D)``."""
+        return self.mean(x) + eps @ self.L.to(x.dtype).mT
+
+    def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
+        """``log N(x_next; F x, Q)``: ``(*S, K, D), (*S, K, D) -> (*S, K)``."""
+        r = (x_next - self.mean(x)).unsqueeze(-1)
+        L = self.L.to(x.dtype).expand(r.shape[:-2] + self.L.shape)
+        white = torch.linalg.solve_triangular(L, r, upper=False).squeeze(-1)
+        return self._log_norm - 0.5 * white.square().sum(-1)
+
+
+def cv_matrices(dt: float, q: float, amplitude_q: Optional[float] = None, dtype=None):
+    """F and Q of paper 000 eqs. 16-17 for ``[x, vx, y, vy(, rho)]``.
+
+    ``F = diag(F1, F1(, 1))`` with ``F1 = [[1, T], [0, 1]]``;
+    ``Q = diag(q G1, q G1(, a_rho T))`` with ``G1 = [[T^3/3, T^2/2], [T^2/2, T]]``.
+    """
+    dtype = dtype or torch.get_default_dtype()
+    F1 = torch.tensor([[1.0, dt], [0.0, 1.0]], dtype=dtype)
+    G1 = torch.tensor([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]], dtype=dtype)
+    Fs, Qs = [F1, F1], [q * G1, q * G1]
+    if amplitude_q is not None:
+        Fs.append(torch.ones(1, 1, dtype=dtype))
+        Qs.append(torch.full((1, 1), amplitude_q * dt, dtype=dtype))
+    return torch.block_diag(*Fs), torch.block_diag(*Qs)
+
+
+class ConstantVelocity(LinearGaussianMotion):
+    """Nearly constant velocity in 2-D, paper 000 eqs. 15-17.
+
+    State per target ``[x, vx, y, vy]`` (D = 4), or ``[x, vx, y, vy, rho]`` (D = 5) when
+    ``amplitude_q`` is given; SI units.
+
+    Parameters
+    ----------
+    dt : sampling time T [s].
+    q : acceleration noise level ``a_x = a_y`` [m^2 s^-3] (the power spectral density of
+        the white acceleration; paper 000 uses a 1 m/s^2 acceleration standard deviation,
+        ``q = 1``).
+    amplitude_q : random-walk level ``a_rho`` of the amplitude; ``None`` for no amplitude.
+    """
+
+    def __init__(self, dt: float = 1.0, q: float = 1.0, amplitude_q: Optional[float] = None):
+        check_positive(dt, "dt")
+        check_positive(q, "q")
+        if amplitude_q is not None:
+            check_positive(amplitude_q, "amplitude_q")
+        F, Q = cv_matrices(dt, q, amplitude_q)
+        super().__init__(F, Q)
+        self.dt, self.q, self.amplitude_q = float(dt), float(q), amplitude_q
+
+    def extra_repr(self) -> str:
+        return f"dt={self.dt}, q={self.q}, amplitude_q={self.amplitude_q}"

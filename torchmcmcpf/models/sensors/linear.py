@@ -1,0 +1,88 @@
+"""Linear-Gaussian point measurement with known association.
+
+One measurement per target slot, ``z_k = H x_k + w``, ``w ~ N(0, R)``: Maroulas and Stinis
+(2010) eq. 14 (paper 003) with the association given. Measurements are ``(B, K, d)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import torch
+
+from ..._validation import check_positive
+from ...typing import Tensor
+from ..base import SensorModel
+
+__all__ = ["LinearGaussian"]
+
+
+class LinearGaussian(SensorModel):
+    """``z_{k,j} = H x_{k,j} + w_j``, ``w_j ~ N(0, R)``, one measurement per target.
+
+    Parameters
+    ----------
+    H : (d, D) observation matrix.
+    R : (d, d) symmetric positive definite noise covariance.
+
+    ``log_likelihood`` returns the full Gaussian log density (constants included), so a
+    filter's evidence is the true ``log p(z_{1:T})``, comparable across ``R``.
+    """
+
+    def __init__(self, H: Tensor, R: Tensor):
+        super().__init__()
+        H = torch.as_tensor(H, dtype=torch.get_default_dtype() if not torch.is_tensor(H) else H.dtype)
+        R = torch.as_tensor(R, dtype=H.dtype)
+        d = H.shape[0]
+        if H.dim() != 2 or R.shape != (d, d):
+            raise ValueError(f"H must be (d, D) and R (d, d); got H {tuple(H.shape)}, R {tuple(R.shape)}")
+        try:
+            L = torch.linalg.cholesky(R)
+        except RuntimeError as err:
+            raise ValueError(f"R must be symmetric positive definite: {err}") from err
+        self.register_buffer("H", H)
+        self.register_buffer("R", R)
+        self.register_buffer("L", L)
+        self.meas_dim = d
+        self.state_dim = H.shape[1]
+        self.frame_shape = (None, d)
+        self._log_norm = -0.5 * d * math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
+
+    @classmethod
+    def position(cls, noise_std: float, dim: int = 4) -> "LinearGaussian":
+        """Observe ``(x, y)`` of ``[x, vx, y, vy(, rho)]`` with isotropic noise ``noise_std`` [m]."""
+        check_positive(noise_std, "noise_std")
+        if dim < 4:
+            raise ValueError(f"dim must be >= 4 for the [x, vx, y, vy] layout, got {dim}")
+        H = torch.zeros(2, dim)
+        H[0, 0] = 1.0
+        H[1, 2] = 1.0
+        return cls(H, noise_std**2 * torch.eye(2))
+
+    def log_likelihood(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+        """Sum over slots of ``log N(z_j; H x_j, R)``.
+
+        Parameters
+        ----------
+        x : (B, *S, K, D); z : (B, K, d); exists : (B, *S, K) bool, optional.
+
+        Returns
+        -------
+        (B, *S).
+        """
+        zb = z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:])
+        r = (zb - x @ self.H.to(x.dtype).mT).unsqueeze(-1)
+        L = self.L.to(x.dtype).expand(r.shape[:-2] + self.L.shape)
+        white = torch.linalg.solve_triangular(L, r, upper=False).squeeze(-1)
+        per_target = self._log_norm - 0.5 * white.square().sum(-1)
+        if exists is not None:
+            per_target = torch.where(exists, per_target, torch.zeros_like(per_target))
+        return per_target.sum(-1)
+
+    def simulate(
+        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+    ) -> Tensor:
+        """``x (B, K, D) -> z (B, K, d)``."""
+        eps = torch.randn(x.shape[:-1] + (self.meas_dim,), generator=generator, device=x.device, dtype=x.dtype)
+        return x @ self.H.to(x.dtype).mT + eps @ self.L.to(x.dtype).mT

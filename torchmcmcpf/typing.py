@@ -1,0 +1,48 @@
+"""Shape vocabulary used in every docstring of torchmcmcpf.
+
+Particles, chains and targets are tensor dimensions; batch first, as in torch.
+
+====  ================================================================================
+name  meaning
+====  ================================================================================
+B     Monte Carlo runs: independent problems filtered side by side in one batch
+N     particles (per run)
+C     MCMC chains (per run)
+K     target slots: the known number of targets, or N_max with existence flags
+D     per-target state size; the layout is ``[x, vx, y, vy]`` (+ ``rho`` last for the
+      amplitude-carrying radar models), SI units, angles in radians
+T     time steps
+S     kept MCMC samples per chain (a chain history is ``(S, B, C, K, D)``)
+*G    the sensor grid: ``(Nr, Nd, Nb)`` range-doppler-bearing cells, ``(H, W)`` pixels
+M     point measurements per frame (padded to a common M, with a ``(B, M)`` mask)
+*S    any leading sample dims between B and K (``N`` for particles, ``C`` for chains)
+====  ================================================================================
+
+Conventions
+-----------
+- particle states ``(B, N, K, D)``, log-weights ``(B, N)``, existence ``(B, N, K)`` bool
+- chain states ``(B, C, K, D)``
+- a TBD frame ``(B, *G)``; a sequence of frames ``(T, B, *G)``
+- point measurements ``(B, M, d)`` with ``mask (B, M)``
+- models accept any leading dims ``(*S, K, D)`` and reduce only trailing ones.
+
+Randomness only through an explicit keyword-only ``generator: torch.Generator``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Union
+
+import torch
+
+Tensor = torch.Tensor
+Generator = torch.Generator
+#: A measurement for one time step: a tensor, or a tuple/NamedTuple of tensors that share
+#: the batch dim (e.g. point measurements and their mask).
+Measurement = Union[Tensor, tuple[Any, ...]]
+
+# Indices into the per-target state ``[x, vx, y, vy, (rho)]``.
+X, VX, Y, VY, RHO = 0, 1, 2, 3, 4
+POSITION = (X, Y)
+
+__all__ = ["Tensor", "Generator", "Measurement", "X", "VX", "Y", "VY", "RHO", "POSITION"]
