@@ -94,3 +94,47 @@ def test_bad_input(gen):
         filt(zs, init=init, generator=0)
     with pytest.raises(ValueError, match="motion must be a MotionModel"):
         SIRFilter("cv", sensor, 10)
+
+
+@pytest.mark.slow
+def test_posterior_matches_exact_kalman_filter():
+    # Single target, linear-Gaussian model: the SIR posterior mean must converge to the
+    # Kalman mean. B runs filter the SAME measurement sequence with independent particles,
+    # so e_b = (SIR mean)_b - (Kalman mean) are iid draws of the SIR error.
+    # (1) Consistency: the mean of e over runs is within 5 standard errors sd(e)/sqrt(B) of
+    #     zero (the O(1/N) bias of SIR is far below the standard error ~ 1/sqrt(N B)).
+    # (2) Rate: sd(e) shrinks as 1/sqrt(N): sd(N=500) / sd(N=2000) ~ 2. The log of one sd
+    #     estimated from B runs has standard error ~ 1/sqrt(2B), so a log-ratio has
+    #     ~ 1/sqrt(B) = 0.1; the geometric mean over the T*D entries is at least as precise.
+    #     We allow 4 of those: ratio in [2 e^-0.4, 2 e^0.4].
+    # (3) Posterior variance: the weighted particle variance, averaged over runs, matches the
+    #     Kalman variance within 5% (its relative MC error is ~ sqrt(2 / (ESS B)) < 1%).
+    gen = torch.Generator().manual_seed(11)
+    dt = torch.float64
+    motion = ConstantVelocity(1.0, 0.5).to(dt)
+    sensor = LinearGaussian.position(3.0).to(dt)
+    T, B = 10, 100
+    m0 = torch.tensor([0.0, 1.0, 0.0, -0.5], dtype=dt)
+    P0 = torch.diag(torch.tensor([25.0, 1.0, 25.0, 1.0], dtype=dt))
+    x = m0 + torch.linalg.cholesky(P0) @ torch.randn(4, generator=gen, dtype=dt)
+    zs = []
+    for _ in range(T):
+        x = motion.sample(x[None, None], generator=gen)[0, 0]
+        zs.append(sensor.simulate(x[None, None], generator=gen)[0])
+    z = torch.stack(zs)  # (T, 1, 2)
+    from _kalman import kalman_filter
+
+    km, kP = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0, P0, z[:, 0])
+    P = torch.diagonal(kP, dim1=-2, dim2=-1)  # (T, D)
+    sds = {}
+    for N in (500, 2000):
+        init = m0 + torch.randn(B, N, 1, 4, generator=gen, dtype=dt) @ torch.linalg.cholesky(P0).mT
+        res = SIRFilter(motion, sensor, N)(z.unsqueeze(1).expand(T, B, 1, 2), init=init, generator=gen)
+        err = res.mean[:, :, 0] - km.unsqueeze(1)  # (T, B, D)
+        sds[N] = err.std(dim=1)
+        assert torch.all(err.mean(dim=1).abs() <= 5 * sds[N] / B**0.5)
+    ratio = torch.exp(torch.log(sds[500] / sds[2000]).mean())
+    assert 2 * math.exp(-0.4) <= ratio <= 2 * math.exp(0.4), ratio
+    w = torch.softmax(res.state.log_w, -1)
+    var = torch.einsum("bn,bnd->bd", w, (res.state.x[:, :, 0] - res.mean[-1, :, 0, None]) ** 2)
+    assert torch.allclose(var.mean(0), P[-1], rtol=0.05)
