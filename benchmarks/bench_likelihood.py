@@ -1,0 +1,59 @@
+"""Radar TBD likelihood: windowed fast path vs whole-grid reference, eager vs torch.compile.
+
+Table-I-like grid (2300-3300 m at 10 m, -20..20 m/s at 2 m/s, -15..15 deg at 1 deg:
+101 x 21 x 31 cells), K = 10 targets, B = 1 run, float32, window 3 (the default).
+Groups are per particle count, so the ratios window / grid / compiled read off one table.
+
+    pytest benchmarks/bench_likelihood.py --benchmark-group-by=group
+    pytest benchmarks/bench_likelihood.py -m "not compile"     # eager only
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
+
+K = 10
+DEG = math.pi / 180
+
+
+def problem(n: int):
+    sens = RangeDopplerBearingTBD.uniform((2300, 3300), (-20, 20), (-15 * DEG, 15 * DEG))
+    g = torch.Generator().manual_seed(0)
+    r = 2400 + 800 * torch.rand(1, K, generator=g)
+    b = (-12 + 24 * torch.rand(1, K, generator=g)) * DEG
+    v = 5 * torch.randn(2, 1, K, generator=g)
+    xt = torch.stack([r * torch.cos(b), v[0], r * torch.sin(b), v[1], torch.full((1, K), sens.amplitude_from_snr(13.0))], -1)
+    z = sens.simulate(xt, generator=g)
+    x = xt[:, None] + torch.tensor([5.0, 1.0, 5.0, 1.0, 0.5]) * torch.randn(1, n, K, 5, generator=g)
+    return sens, x, z
+
+
+def _run(benchmark, fn, x, z, rounds):
+    with torch.no_grad():
+        fn(x, z)  # warm-up (and compilation)
+        out = benchmark.pedantic(fn, args=(x, z), rounds=rounds, iterations=1)
+    assert out.shape == (1, x.shape[1]) and torch.isfinite(out).all()
+
+
+@pytest.mark.parametrize("n", [500, 5000])
+@pytest.mark.parametrize("path", ["window", "grid"])
+def test_likelihood_eager(benchmark, path, n):
+    sens, x, z = problem(n)
+    benchmark.group = f"radar-likelihood-N{n}-K{K}"
+    fn = getattr(sens, f"log_likelihood_{path}")
+    _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
+
+
+@pytest.mark.compile
+@pytest.mark.parametrize("n", [500, 5000])
+@pytest.mark.parametrize("path", ["window", "grid"])
+def test_likelihood_compiled(benchmark, path, n):
+    sens, x, z = problem(n)
+    benchmark.group = f"radar-likelihood-N{n}-K{K}"
+    fn = torch.compile(getattr(sens, f"log_likelihood_{path}"), dynamic=False)
+    _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
