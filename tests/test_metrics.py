@@ -1,0 +1,168 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.optimize import linear_sum_assignment
+
+from torchmcmcpf.metrics import (
+    match_tracks,
+    optimal_assignment,
+    position_error,
+    position_rmse,
+    track_loss,
+    track_loss_rate,
+)
+
+
+def _tracks(T, B, K, D=4):
+    return torch.zeros(T, B, K, D, dtype=torch.float64)
+
+
+# -- RMSE and track loss on hand-made tracks ---------------------------------------------
+
+def test_position_rmse_known_values():
+    # Errors (x, y): run 0 has (3, 4) on target 0 at t = 0 only; run 1 has (1, 0) everywhere.
+    # Squared errors [t, b, k]: t0 = [[25, 0], [1, 1]], t1 = [[0, 0], [1, 1]].
+    truth = _tracks(2, 2, 2)
+    est = truth.clone()
+    est[0, 0, 0, 0], est[0, 0, 0, 2] = 3.0, 4.0
+    est[:, 1, :, 0] = 1.0
+    est[..., 1] = 100.0  # velocities must not count
+    est[..., 3] = -7.0
+    r = position_rmse(est, truth)
+    assert torch.allclose(r.per_step, torch.tensor([math.sqrt(27 / 4), math.sqrt(2 / 4)], dtype=torch.float64))
+    assert torch.allclose(r.per_run, torch.tensor([math.sqrt(25 / 4), 1.0], dtype=torch.float64))
+    assert torch.allclose(r.overall, torch.tensor(math.sqrt(29 / 8), dtype=torch.float64))
+    assert torch.allclose(position_error(est, truth)[0, 0], torch.tensor([5.0, 0.0], dtype=torch.float64))
+
+
+def test_track_loss_on_crafted_runs():
+    # run 0: one 25 m error once (lost); run 1: at most exactly 20 m (kept, the rule is > 20);
+    # run 2: 19 m everywhere (kept); run 3: a NaN estimate (lost).
+    truth = _tracks(3, 4, 2)
+    est = truth.clone()
+    est[1, 0, 1, 2] = 25.0
+    est[2, 1, 0, 0] = 20.0
+    est[:, 2, :, 0] = 19.0
+    est[0, 3, 0, 0] = float("nan")
+    assert track_loss(est, truth).tolist() == [True, False, False, True]
+    assert track_loss_rate(est, truth).item() == pytest.approx(0.5)
+    assert track_loss(est, truth, threshold=18.0).tolist() == [True, True, True, True]
+
+
+def _shuffled(gen, T=6, B=4, K=5):
+    # well-separated straight tracks, estimates = truth + 0.5 m noise, labels shuffled per run
+    start = 200.0 * torch.randn(B, K, 2, generator=gen, dtype=torch.float64)
+    vel = 5.0 * torch.randn(B, K, 2, generator=gen, dtype=torch.float64)
+    t = torch.arange(T, dtype=torch.float64)[:, None, None, None]
+    pos = start + t * vel  # (T, B, K, 2)
+    truth = torch.stack([pos[..., 0], vel[..., 0].expand(T, B, K), pos[..., 1], vel[..., 1].expand(T, B, K)], -1)
+    noisy = truth + 0.5 * torch.randn(truth.shape, generator=gen, dtype=torch.float64)
+    sigma = torch.stack([torch.randperm(K, generator=gen) for _ in range(B)])  # (B, K)
+    est = noisy.gather(2, sigma[None, :, :, None].expand(truth.shape))  # est[:, b, j] = noisy[:, b, sigma[b, j]]
+    return truth, noisy, est, sigma
+
+
+def test_match_tracks_recovers_shuffled_labels(gen):
+    truth, noisy, est, sigma = _shuffled(gen)
+    matched, perm = match_tracks(est, truth)
+    assert torch.equal(perm, torch.argsort(sigma, dim=-1))
+    assert torch.equal(matched, noisy)
+    ref = position_rmse(noisy, truth)
+    got = position_rmse(est, truth, match=True)
+    assert torch.allclose(got.overall, ref.overall) and torch.allclose(got.per_step, ref.per_step)
+    assert position_rmse(est, truth).overall > 10 * ref.overall  # unmatched labels are wrong
+    assert not track_loss(est, truth, match=True).any()
+
+
+def test_match_tracks_whole_track_vs_per_step():
+    # Two targets far apart whose estimates swap labels at t = 2 (of 4): the whole-track
+    # assignment keeps one labelling, so half the steps carry the swap error; per step,
+    # every frame is matched exactly.
+    truth = _tracks(4, 1, 2)
+    truth[:, 0, 1, 0] = 100.0
+    est = truth.clone()
+    est[2:, 0] = truth[2:, 0].flip(1)  # swap the two slots
+    matched, perm = match_tracks(est, truth)
+    assert perm.shape == (1, 2)
+    assert position_rmse(matched, truth).overall.item() == pytest.approx(math.sqrt(0.5 * 100.0**2))
+    matched_t, perm_t = match_tracks(est, truth, per_step=True)
+    assert perm_t.shape == (4, 1, 2)
+    assert torch.equal(matched_t, truth)
+
+
+def test_metric_shape_errors():
+    with pytest.raises(ValueError, match="estimate"):
+        position_rmse(_tracks(2, 1, 2), _tracks(2, 1, 3))
+    with pytest.raises(ValueError, match="truth"):
+        track_loss(torch.zeros(2, 2, 4), torch.zeros(2, 2, 4))
+    with pytest.raises(ValueError, match="threshold"):
+        track_loss(_tracks(2, 1, 2), _tracks(2, 1, 2), threshold=-1.0)
+
+
+# -- optimal assignment ------------------------------------------------------------------
+
+def _total(cost, perm):
+    rows = np.nonzero(perm >= 0)[0]
+    return cost[rows, perm[rows]].sum()
+
+
+@pytest.mark.parametrize("shape", [(3, 3), (5, 5), (9, 9), (4, 6), (6, 4)])
+@pytest.mark.parametrize("method", ["auto", "dp", "auction"])
+def test_assignment_matches_scipy(gen, shape, method):
+    n, m = shape
+    cost = torch.rand((40, n, m), generator=gen, dtype=torch.float64) * 10 - 3
+    perm = optimal_assignment(cost, method=method)
+    assert perm.shape == (40, n) and perm.dtype == torch.long
+    for c, p in zip(cost.numpy(), perm.numpy()):
+        rows, cols = linear_sum_assignment(c)
+        assigned = p[p >= 0]
+        assert len(assigned) == min(n, m) and len(set(assigned.tolist())) == len(assigned)
+        # Continuous random costs have a unique optimum almost surely: same assignment.
+        ref = np.full(n, -1)
+        ref[rows] = cols
+        assert np.array_equal(p, ref)
+
+
+@pytest.mark.parametrize("method", ["dp", "auction"])
+def test_assignment_with_ties_reaches_optimal_total(gen, method):
+    # integer costs with many ties (several optimal assignments): compare the total cost
+    cost = torch.randint(0, 3, (50, 7, 7), generator=gen).double()
+    cost[0] = 0.0
+    perm = optimal_assignment(cost, method=method)
+    for c, p in zip(cost.numpy(), perm.numpy()):
+        rows, cols = linear_sum_assignment(c)
+        assert sorted(p.tolist()) == list(range(7))
+        assert _total(c, p) == c[rows, cols].sum()
+
+
+def test_auction_tolerance_bound(gen):
+    # With a loose rtol the auction's total cost is within rtol * (max - min cost) of the
+    # optimum (epsilon-complementary slackness, see metrics._auction).
+    rtol = 0.05
+    cost = torch.rand((100, 12, 12), generator=gen, dtype=torch.float64)
+    perm = optimal_assignment(cost, method="auction", rtol=rtol)
+    for c, p in zip(cost.numpy(), perm.numpy()):
+        rows, cols = linear_sum_assignment(c)
+        assert _total(c, p) <= c[rows, cols].sum() + rtol * (c.max() - c.min()) + 1e-12
+
+
+def test_assignment_batched_leading_dims_and_float32(gen):
+    cost = torch.rand((2, 3, 5, 5), generator=gen)
+    perm = optimal_assignment(cost)
+    assert perm.shape == (2, 3, 5)
+    flat = optimal_assignment(cost.reshape(6, 5, 5))
+    assert torch.equal(perm.reshape(6, 5), flat)
+    assert torch.equal(optimal_assignment(torch.ones(3, 1)), torch.tensor([0, -1, -1]))
+
+
+def test_assignment_bad_input():
+    with pytest.raises(ValueError, match="cost"):
+        optimal_assignment(torch.ones(4))
+    with pytest.raises(ValueError, match="cost"):
+        optimal_assignment(torch.tensor([[0.0, float("nan")], [1.0, 2.0]]))
+    with pytest.raises(ValueError, match="method"):
+        optimal_assignment(torch.ones(2, 2), method="greedy")
+    with pytest.raises(ValueError, match="dp"):
+        optimal_assignment(torch.ones(17, 17), method="dp")

@@ -1,0 +1,453 @@
+"""Tracking metrics, batched over Monte Carlo runs and time: position RMSE, track loss,
+optimal assignment and track-to-truth matching.
+
+Conventions: estimates and truths are ``(T, B, K, D)`` with the state layout
+``[x, vx, y, vy, ...]`` (positions at indices 0 and 2, :mod:`torchmcmcpf.typing`).
+Every function takes and returns torch tensors and keeps the input's device.
+
+Which labelling the RMSE uses
+-----------------------------
+A filter for a known number of targets returns one estimate per target *slot*; with
+``match=False`` slot ``k`` is compared with true target ``k`` (the labels the filter was
+initialised with). With ``match=True`` the estimates of each run are first relabelled by
+:func:`match_tracks` on the *whole-track* cost (sum over time of squared position error),
+so the labels are fixed per run: a track swap in the middle of a run still costs error,
+as it does for a user who follows track labels. ``match_tracks(..., per_step=True)``
+relabels every frame independently (the label-free error of an OSPA-like metric).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from ._validation import check_finite, check_positive, check_shape, check_tensor
+from .typing import X, Y, Tensor
+
+__all__ = [
+    "RMSE",
+    "position_rmse",
+    "position_error",
+    "track_loss",
+    "track_loss_rate",
+    "optimal_assignment",
+    "match_tracks",
+    "ospa",
+    "gospa",
+    "cardinality_error",
+]
+
+
+class RMSE(NamedTuple):
+    """Position root-mean-square error (Ling 2012, paper 002 eq. 16).
+
+    Attributes
+    ----------
+    per_step : (T,)
+        ``sqrt(mean over runs and targets of the squared position error at step t)``.
+    per_run : (B,)
+        ``sqrt(mean over time and targets)`` for each Monte Carlo run.
+    overall : ()
+        ``sqrt(mean over runs, time and targets)``: eq. 16 itself.
+    """
+
+    per_step: Tensor
+    per_run: Tensor
+    overall: Tensor
+
+
+def _check_tracks(estimate: Tensor, truth: Tensor) -> None:
+    check_tensor(truth, "truth")
+    if truth.dim() != 4 or truth.shape[-1] < 3:
+        raise ValueError(f"truth has shape {tuple(truth.shape)}, expected (T, B, K, D) with D >= 3")
+    check_shape(estimate, "estimate", tuple(truth.shape))
+
+
+def _positions(x: Tensor) -> Tensor:
+    return x[..., [X, Y]]
+
+
+def position_error(estimate: Tensor, truth: Tensor) -> Tensor:
+    """Euclidean position error of every slot: ``(T, B, K, D), (T, B, K, D) -> (T, B, K)``."""
+    _check_tracks(estimate, truth)
+    return torch.linalg.vector_norm(_positions(estimate) - _positions(truth), dim=-1)
+
+
+def position_rmse(estimate: Tensor, truth: Tensor, *, match: bool = False) -> RMSE:
+    """Position RMSE over runs, time and targets, Ling (2012) paper 002 eq. 16:
+
+    ``RMSE = sqrt( 1/(I E K) sum_i sum_k sum_j (x - x_hat)^2 + (y - y_hat)^2 )``
+
+    with I runs, K frames, E targets. ``per_step`` keeps the time index (the curves of
+    paper 000 figs. 3 and 6), ``per_run`` the run index.
+
+    Parameters
+    ----------
+    estimate, truth : (T, B, K, D) with positions at indices 0 (x) and 2 (y).
+    match : relabel the estimates of each run to the truth first (:func:`match_tracks`,
+        whole-track assignment).
+
+    Returns
+    -------
+    RMSE with ``per_step (T,)``, ``per_run (B,)``, ``overall ()``.
+    """
+    if match:
+        estimate, _ = match_tracks(estimate, truth)
+    se = position_error(estimate, truth).square()  # (T, B, K)
+    return RMSE(
+        per_step=se.mean(dim=(1, 2)).sqrt(),
+        per_run=se.mean(dim=(0, 2)).sqrt(),
+        overall=se.mean().sqrt(),
+    )
+
+
+def track_loss(estimate: Tensor, truth: Tensor, *, threshold: float = 20.0, match: bool = False
+               ) -> Tensor:
+    """Which runs lost track: Bocquel et al. (2012), paper 000 sec. VI (Table II): a run is
+    lost when its maximum position error, over time and targets, exceeds ``threshold``.
+
+    Parameters
+    ----------
+    estimate, truth : (T, B, K, D).
+    threshold : [m], 20 m in paper 000.
+    match : relabel estimates first (:func:`match_tracks`, whole-track assignment).
+
+    Returns
+    -------
+    (B,) bool. A NaN error counts as lost.
+    """
+    check_positive(threshold, "threshold")
+    if match:
+        estimate, _ = match_tracks(estimate, truth)
+    err = position_error(estimate, truth)
+    worst = err.amax(dim=(0, 2))
+    return ~(worst <= threshold)
+
+
+def track_loss_rate(estimate: Tensor, truth: Tensor, *, threshold: float = 20.0,
+                    match: bool = False) -> Tensor:
+    """Track loss rate (TLR), paper 000 sec. VI: the fraction of runs that lost track
+    (:func:`track_loss`). Returns a scalar tensor in [0, 1]."""
+    return track_loss(estimate, truth, threshold=threshold, match=match).float().mean()
+
+
+# -- optimal assignment -----------------------------------------------------------------
+
+#: Largest number of columns for which ``method="auto"`` solves exactly by dynamic
+#: programming (``2^m`` subsets); above it the auction algorithm runs.
+DP_MAX_COLUMNS = 8
+
+
+def optimal_assignment(cost: Tensor, *, method: str = "auto", rtol: float = 1e-9) -> Tensor:
+    """Minimum-cost assignment of rows to columns, batched over leading dims.
+
+    ``perm[..., i]`` is the column assigned to row ``i``; the total
+    ``sum_i cost[..., i, perm[..., i]]`` is minimal over all one-to-one assignments.
+
+    Parameters
+    ----------
+    cost : (..., n, m) finite costs. Rectangular costs are allowed: with ``n <= m`` every
+        row gets a distinct column; with ``n > m`` only ``m`` rows are assigned and the
+        others get ``-1`` (solved on the transpose).
+    method : ``"dp"`` exact dynamic programming over column subsets (``O(n m 2^m)`` per
+        problem), ``"auction"`` (Bertsekas' auction with epsilon scaling), or ``"auto"``
+        (``"dp"`` when ``min(n, m) <= 8``, else ``"auction"``).
+    rtol : auction only: the total cost found is within ``rtol * (max cost - min cost)``
+        of the minimum of each problem (see :func:`_auction`); the assignment is the
+        exact optimum whenever the optimum is unique by more than that margin.
+
+    Returns
+    -------
+    (..., n) int64 column indices (``-1`` for unassigned rows when ``n > m``).
+
+    No Python loop runs over the batch: the dynamic programme loops over the n rows
+    (stages), the auction over bidding rounds, each vectorised over every problem.
+    Compare :func:`scipy.optimize.linear_sum_assignment`, which solves one problem.
+    """
+    check_tensor(cost, "cost")
+    if cost.dim() < 2 or cost.shape[-1] == 0 or cost.shape[-2] == 0:
+        raise ValueError(f"cost has shape {tuple(cost.shape)}, expected (..., n, m) with n, m >= 1")
+    if not cost.is_floating_point():
+        cost = cost.double()
+    check_finite(cost, "cost")
+    if method not in ("auto", "dp", "auction"):
+        raise ValueError(f"method must be 'auto', 'dp' or 'auction', got {method!r}")
+    n, m = cost.shape[-2:]
+    if n > m:  # assign each column a row on the transpose, then invert
+        rows = optimal_assignment(cost.mT, method=method, rtol=rtol)  # (..., m)
+        perm = torch.full(cost.shape[:-1], -1, dtype=torch.long, device=cost.device)
+        cols = torch.arange(m, device=cost.device).expand_as(rows)
+        return perm.scatter(-1, rows, cols)
+    if method == "auto":
+        method = "dp" if m <= DP_MAX_COLUMNS else "auction"
+    if method == "dp" and m > 16:
+        raise ValueError(f"method='dp' needs 2^m subsets; cost has m = {m} > 16 columns, use 'auction'")
+    batch = cost.shape[:-2]
+    flat = cost.reshape((-1, n, m))
+    if flat.shape[0] == 0:
+        return torch.empty(batch + (n,), dtype=torch.long, device=cost.device)
+    if method == "dp":
+        perm = _assignment_dp(flat)
+    else:
+        check_positive(rtol, "rtol")
+        if m > n:  # dummy rows of one constant cost absorb the spare columns: same optimum
+            fill = flat.amin(dim=(1, 2), keepdim=True).expand(-1, m - n, m)
+            flat = torch.cat([flat, fill], dim=1)
+        perm = _auction(flat, rtol)[:, :n]
+    return perm.reshape(batch + (n,))
+
+
+def _assignment_dp(cost: Tensor) -> Tensor:
+    """Exact assignment by dynamic programming over column subsets.
+
+    ``V_i(S)`` = least cost of assigning rows ``0..i-1`` to the column set ``S`` with
+    ``|S| = i``; ``V_{i+1}(S) = min_{j in S} V_i(S - {j}) + cost[i, j]``. The minimiser
+    ``j`` is stored per stage and subset, and the assignment read back from the best final
+    subset. ``cost (P, n, m)`` with ``n <= m`` -> ``(P, n)``.
+    """
+    p, n, m = cost.shape
+    dev = cost.device
+    masks = torch.arange(2**m, device=dev)  # (2^m,)
+    bits = torch.arange(m, device=dev)
+    has = (masks[:, None] >> bits) & 1 == 1  # (2^m, m): column j in subset S
+    prev = masks[:, None] ^ (1 << bits)  # (2^m, m): S - {j}
+    inf = torch.tensor(float("inf"), dtype=cost.dtype, device=dev)
+    value = torch.full((p, 2**m), float("inf"), dtype=cost.dtype, device=dev)
+    value[:, 0] = 0.0
+    choices = []
+    for i in range(n):  # stages: rows, each vectorised over problems and subsets
+        cand = value[:, prev] + cost[:, i, None, :]  # (P, 2^m, m)
+        cand = torch.where(has, cand, inf)
+        value, choice = cand.min(dim=-1)
+        choices.append(choice)
+    subset = value.argmin(dim=-1)  # (P,) best final subset (only |S| = n are finite)
+    perm = torch.empty((p, n), dtype=torch.long, device=dev)
+    for i in reversed(range(n)):
+        j = choices[i].gather(1, subset[:, None]).squeeze(1)
+        perm[:, i] = j
+        subset = subset ^ (1 << j)
+    return perm
+
+
+def _auction(cost: Tensor, rtol: float) -> Tensor:
+    """Bertsekas' auction algorithm (Jacobi form: every unassigned row bids at once) with
+    epsilon scaling, on square problems ``cost (P, n, n)`` -> ``(P, n)``.
+
+    Rows are bidders maximising the benefit ``a_ij = -c_ij`` (scaled to [-1, 0] per
+    problem) against column prices ``p_j``. Each unassigned row bids for its best column
+    ``j* = argmax_j a_ij - p_j`` with increment ``v1 - v2 + eps`` (best minus second-best
+    value); each column goes to its highest bidder (lowest row index on ties) and its
+    previous owner is unassigned (Bertsekas 1988, "The auction algorithm: a distributed
+    relaxation method for the assignment problem", Ann. Oper. Res. 14).
+
+    Optimality within ``n * eps``: every assigned row keeps eps-complementary slackness,
+    ``a_{i,j_i} - p_{j_i} >= max_k (a_ik - p_k) - eps`` (it held when the row won its column
+    at the bid price, and later rounds only raise other prices). At termination all rows are
+    assigned, so for the found assignment ``{j_i}`` and any other ``{k_i}``:
+    ``sum_i a_{i,j_i} = sum_i (a_{i,j_i} - p_{j_i}) + sum_j p_j
+    >= sum_i (a_{i,k_i} - p_{k_i} - eps) + sum_j p_j = sum_i a_{i,k_i} - n eps``.
+    The Jacobi form (all unassigned rows bid at once, each column keeps the best bid)
+    keeps the property and terminates like the sequential one (each winning bid raises a
+    price by at least eps, and benefits are bounded).
+
+    Epsilon scaling runs phases with ``eps = 1/8, 1/64, ...`` down to ``rtol / n``,
+    keeping the prices between phases (the assignment restarts empty); the final phase
+    leaves a total cost within ``n * (rtol / n) * (max c - min c) = rtol * (max c - min c)``
+    of the minimum.
+    Runs in float64.
+    """
+    p, n, _ = cost.shape
+    dev = cost.device
+    c = cost.double()
+    lo = c.amin(dim=(1, 2), keepdim=True)
+    span = (c.amax(dim=(1, 2), keepdim=True) - lo).clamp_min(torch.finfo(torch.float64).tiny)
+    benefit = -(c - lo) / span  # (P, n, n) in [-1, 0]
+    if n == 1:
+        return torch.zeros((p, 1), dtype=torch.long, device=dev)
+    prices = torch.zeros((p, n), dtype=torch.float64, device=dev)
+    rows = torch.arange(n, device=dev).expand(p, n)
+    neg_inf = torch.tensor(float("-inf"), dtype=torch.float64, device=dev)
+    eps_final = rtol / n
+    num_phases = max(1, math.ceil(math.log(0.125 / eps_final) / math.log(8.0)) + 1)
+    for phase in range(num_phases):
+        eps = max(0.125 / 8.0**phase, eps_final)
+        row_col = torch.full((p, n), -1, dtype=torch.long, device=dev)  # column of each row
+        col_row = torch.full((p, n), -1, dtype=torch.long, device=dev)  # row owning each column
+        while True:  # bidding rounds (each vectorised over every problem and row)
+            bidding = row_col < 0
+            if not bool(bidding.any()):
+                break
+            values = benefit - prices[:, None, :]  # (P, n, n)
+            top, arg = values.topk(2, dim=-1)
+            target = arg[..., 0]  # (P, n)
+            bid = prices.gather(1, target) + (top[..., 0] - top[..., 1]) + eps
+            bid = torch.where(bidding, bid, neg_inf)
+            best = torch.full((p, n), float("-inf"), dtype=torch.float64, device=dev)
+            best = best.scatter_reduce(1, target, bid, "amax")
+            candidate = bidding & (bid == best.gather(1, target))
+            winner = torch.full((p, n), n, dtype=torch.long, device=dev)
+            winner = winner.scatter_reduce(1, target, torch.where(candidate, rows, n), "amin")
+            won = winner < n  # (P, n) columns that received a winning bid
+            # unassign the previous owners (column n of the padded tensor is a sink)
+            sink = torch.full((p, 1), -1, dtype=torch.long, device=dev)
+            old = torch.where(won & (col_row >= 0), col_row, n)
+            row_col = torch.cat([row_col, sink], 1).scatter(1, old, -1)[:, :n]
+            new = torch.where(won, winner, n)
+            cols = torch.arange(n, device=dev).expand(p, n)
+            row_col = torch.cat([row_col, sink], 1).scatter(1, new, cols)[:, :n]
+            col_row = torch.where(won, winner, col_row)
+            prices = torch.where(won, best, prices)
+    return row_col
+
+
+def match_tracks(estimate: Tensor, truth: Tensor, *, per_step: bool = False
+                 ) -> tuple[Tensor, Tensor]:
+    """Relabel estimated tracks to the true targets by an optimal assignment.
+
+    Parameters
+    ----------
+    estimate, truth : (T, B, K, D).
+    per_step : ``False`` (default): one assignment per run on the whole-track cost
+        ``C[b, k, j] = sum_t |p_truth[t, b, k] - p_est[t, b, j]|^2``, so labels are fixed
+        within a run (what :func:`position_rmse` and :func:`track_loss` use with
+        ``match=True``). ``True``: one assignment per run and step on the squared
+        position error of that step.
+
+    Returns
+    -------
+    matched : (T, B, K, D) with ``matched[t, b, k]`` the estimate assigned to true target k.
+    perm : (B, K) (or (T, B, K) with ``per_step``): ``matched[t, b, k] =
+        estimate[t, b, perm[b, k]]``.
+    """
+    _check_tracks(estimate, truth)
+    diff = _positions(truth)[:, :, :, None, :] - _positions(estimate)[:, :, None, :, :]
+    cost = diff.square().sum(-1)  # (T, B, K, K): truth k vs estimate j
+    if not per_step:
+        cost = cost.sum(0)  # (B, K, K)
+    perm = optimal_assignment(cost)
+    idx = perm if per_step else perm.expand(estimate.shape[:3])
+    matched = estimate.gather(2, idx[..., None].expand(estimate.shape))
+    return matched, perm
+
+
+# -- set metrics: OSPA, GOSPA, cardinality ------------------------------------------------
+
+
+def _set_distance_sum(x: Tensor, y: Tensor, x_mask, y_mask, c: float, p: float, miss: float,
+                      name: str) -> tuple[Tensor, Tensor, Tensor]:
+    """Minimum over assignments of ``sum min(d, c)^p`` plus ``miss`` per unassigned point.
+
+    Both sets are padded to ``P = max(m, n)`` slots; the square cost is ``min(d, c)^p``
+    between two real points, ``miss`` between a real point and a padding slot and 0
+    between two padding slots. With ``miss >= c^p / 2`` an optimal assignment never pairs
+    a real point with padding while a real point of the other set is left to padding (the
+    two ``miss`` terms cost at least ``min(d, c)^p``), so the padded optimum is the
+    optimum over assignments of the smaller set into the larger one plus ``miss`` times
+    the cardinality difference. Returns ``(total (...), |X| (...), |Y| (...))``.
+    """
+    check_tensor(x, f"{name} x")
+    check_tensor(y, f"{name} y")
+    if x.dim() < 2 or y.dim() != x.dim() or x.shape[-1] != y.shape[-1] or x.shape[:-2] != y.shape[:-2]:
+        raise ValueError(f"{name}: x has shape {tuple(x.shape)} and y {tuple(y.shape)}, expected "
+                         "(..., m, d) and (..., n, d) with the same leading dims and d")
+    check_finite(x, f"{name} x")
+    check_finite(y, f"{name} y")
+    check_positive(c, "c")
+    p = check_positive(p, "p")
+    if p < 1:
+        raise ValueError(f"p must be >= 1, got {p!r}")
+    lead, m, n = x.shape[:-2], x.shape[-2], y.shape[-2]
+    dtype = torch.promote_types(x.dtype, y.dtype)
+    if not dtype.is_floating_point:
+        dtype = torch.get_default_dtype()
+    x, y = x.to(dtype), y.to(dtype)
+    xm = torch.ones(lead + (m,), dtype=torch.bool, device=x.device) if x_mask is None else x_mask
+    ym = torch.ones(lead + (n,), dtype=torch.bool, device=x.device) if y_mask is None else y_mask
+    check_shape(xm, "x_mask", tuple(x.shape[:-1]))
+    check_shape(ym, "y_mask", tuple(y.shape[:-1]))
+    xm, ym = xm.to(torch.bool), ym.to(torch.bool)
+    size = max(m, n)
+    if size == 0:
+        zero = torch.zeros(lead, dtype=dtype, device=x.device)
+        return zero, zero, zero
+    pad_x, pad_y = size - m, size - n
+    x = torch.nn.functional.pad(x, (0, 0, 0, pad_x))
+    y = torch.nn.functional.pad(y, (0, 0, 0, pad_y))
+    xm = torch.nn.functional.pad(xm, (0, pad_x))
+    ym = torch.nn.functional.pad(ym, (0, pad_y))
+    dist = torch.linalg.vector_norm(x.unsqueeze(-2) - y.unsqueeze(-3), dim=-1)  # (..., P, P)
+    both = xm.unsqueeze(-1) & ym.unsqueeze(-2)
+    one = xm.unsqueeze(-1) ^ ym.unsqueeze(-2)
+    cost = torch.where(both, dist.clamp(max=c).pow(p), torch.zeros_like(dist))
+    cost = torch.where(one, torch.full_like(cost, miss), cost)
+    perm = optimal_assignment(cost.detach())
+    total = cost.gather(-1, perm.unsqueeze(-1)).squeeze(-1).sum(-1)
+    return total, xm.sum(-1).to(dtype), ym.sum(-1).to(dtype)
+
+
+def ospa(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | None = None,
+         y_mask: Tensor | None = None) -> Tensor:
+    """OSPA distance of order ``p`` with cut-off ``c`` (Schuhmacher, Vo and Vo 2008, eq. 3).
+
+    For ``|X| = m <= n = |Y|``::
+
+        d_p^c(X, Y) = ( (1/n) (min_pi sum_{i<=m} min(c, |x_i - y_pi(i)|)^p + c^p (n - m)) )^(1/p)
+
+    (symmetric in X, Y); 0 when both sets are empty, ``c`` when exactly one is.
+
+    Parameters
+    ----------
+    x : (..., m, d) points of the first set (e.g. estimated positions), padded.
+    y : (..., n, d) points of the second set (e.g. true positions), padded.
+    c : cut-off > 0 [m]; p : order >= 1.
+    x_mask, y_mask : (..., m), (..., n) bool, True for a real point (default: all real).
+
+    Returns
+    -------
+    (...) distances, batched over the leading dims (e.g. ``(T, B)``).
+    """
+    total, nx, ny = _set_distance_sum(x, y, x_mask, y_mask, c, float(p), float(c) ** float(p), "ospa")
+    big = torch.maximum(nx, ny)
+    return torch.where(big > 0, total / big.clamp(min=1), torch.zeros_like(total)).pow(1.0 / float(p))
+
+
+def gospa(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | None = None,
+          y_mask: Tensor | None = None) -> Tensor:
+    """GOSPA distance with ``alpha = 2`` (Rahmathullah, Garcia-Fernandez and Svensson 2017,
+    eq. 2): for ``|X| = m <= n = |Y|``::
+
+        d_p^(c,2)(X, Y) = ( min_pi sum_{i<=m} min(c, |x_i - y_pi(i)|)^p + (c^p / 2) (n - m) )^(1/p),
+
+    equivalently localisation error of the assigned pairs plus ``c^p / 2`` per missed or
+    false target (pairs farther apart than ``c`` count as one of each). Not normalised by
+    the cardinality: 0 for two empty sets, ``(n c^p / 2)^(1/p)`` against an empty set.
+
+    Parameters and returns as :func:`ospa`.
+    """
+    miss = float(c) ** float(p) / 2.0
+    total, _, _ = _set_distance_sum(x, y, x_mask, y_mask, c, float(p), miss, "gospa")
+    return total.pow(1.0 / float(p))
+
+
+def cardinality_error(estimated_count: Tensor, true_count: Tensor) -> Tensor:
+    """Absolute error of the number of targets, ``|n_hat - n|``, elementwise.
+
+    Parameters
+    ----------
+    estimated_count : (...) estimated numbers (e.g. the expected number of targets, the
+        sum of existence probabilities, or the number of reported slots).
+    true_count : (...) true numbers, same shape.
+
+    Returns
+    -------
+    (...) float.
+    """
+    check_tensor(estimated_count, "estimated_count")
+    check_tensor(true_count, "true_count")
+    if estimated_count.shape != true_count.shape:
+        raise ValueError(f"estimated_count has shape {tuple(estimated_count.shape)}, expected "
+                         f"{tuple(true_count.shape)} (the shape of true_count)")
+    est = estimated_count if estimated_count.is_floating_point() else estimated_count.to(torch.get_default_dtype())
+    return (est - true_count.to(est.dtype)).abs()

@@ -1,0 +1,215 @@
+"""Matplotlib helpers: tracks, particle clouds, RMSE curves, cardinality, radar frames.
+
+Every helper draws on a given ``ax`` (``f(ax, data, **kw)``) and returns what it created,
+so figures compose freely. Tensors may live on any device (they are moved to the CPU);
+numpy arrays are accepted too. matplotlib is imported only inside the functions that need
+it, so ``import torchmcmcpf`` stays light.
+
+Positions follow the state layout ``[x, vx, y, vy, ...]`` (x at index 0, y at index 2).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Mapping, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from .typing import X, Y
+
+__all__ = ["plot_tracks", "plot_particles", "plot_rmse", "plot_cardinality", "plot_frame"]
+
+ArrayLike = Union[torch.Tensor, np.ndarray, Sequence[float]]
+
+
+def _np(a: ArrayLike) -> np.ndarray:
+    if torch.is_tensor(a):
+        return a.detach().cpu().double().numpy()
+    return np.asarray(a, dtype=float)
+
+
+def _tracks(data: ArrayLike, run: int, name: str) -> np.ndarray:
+    a = _np(data)
+    if a.ndim == 4:
+        if not -a.shape[1] <= run < a.shape[1]:
+            raise ValueError(f"run={run} is out of range for {name} with {a.shape[1]} runs")
+        a = a[:, run]
+    if a.ndim != 3 or a.shape[-1] <= Y:
+        raise ValueError(f"{name} has shape {a.shape}, expected (T, K, D) or (T, B, K, D) with D >= 3")
+    return a
+
+
+def plot_tracks(
+    ax,
+    truth: ArrayLike,
+    estimate: Optional[ArrayLike] = None,
+    *,
+    run: int = 0,
+    truth_style: Optional[dict] = None,
+    estimate_style: Optional[dict] = None,
+    mark_start: bool = True,
+    legend: bool = True,
+) -> dict:
+    """True (and estimated) tracks in the x-y plane (paper 000 figs. 1, 4, 5).
+
+    Parameters
+    ----------
+    ax : matplotlib Axes.
+    truth : (T, K, D) or (T, B, K, D) states; with B, ``run`` picks the run.
+    estimate : same layout, optional; drawn dashed in the colour of its true target.
+    run : Monte Carlo run to draw when a B dim is present.
+    truth_style, estimate_style : extra keyword arguments of ``ax.plot``.
+    mark_start : put a marker at the first position of each true track.
+    legend : add a legend (one entry per kind).
+
+    Returns
+    -------
+    dict with ``"truth"`` (K lines), ``"estimate"`` (K lines or []), ``"start"`` (markers).
+    """
+    tr = _tracks(truth, run, "truth")
+    k = tr.shape[1]
+    colors = [f"C{j % 10}" for j in range(k)]
+    out = {"truth": [], "estimate": [], "start": []}
+    for j in range(k):  # one artist per target: plotting, not computation
+        (line,) = ax.plot(tr[:, j, X], tr[:, j, Y], "-", color=colors[j], lw=1.5,
+                          label="truth" if j == 0 else None, **(truth_style or {}))
+        out["truth"].append(line)
+    if mark_start:
+        out["start"] = ax.scatter(tr[0, :, X], tr[0, :, Y], c=colors, marker="o", s=18, zorder=3)
+    if estimate is not None:
+        est = _tracks(estimate, run, "estimate")
+        if est.shape[1] != k:
+            raise ValueError(f"estimate has {est.shape[1]} targets, truth has {k}")
+        for j in range(k):
+            (line,) = ax.plot(est[:, j, X], est[:, j, Y], "--", color=colors[j], lw=1.2,
+                              label="estimate" if j == 0 else None, **(estimate_style or {}))
+            out["estimate"].append(line)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if legend:
+        ax.legend(loc="best", fontsize="small")
+    return out
+
+
+def plot_particles(ax, particles: ArrayLike, *, weights: Optional[ArrayLike] = None, size: float = 2.0,
+                   alpha: float = 0.3, **kw) -> list:
+    """Scatter a particle cloud in the x-y plane, one colour per target slot (paper 000 fig. 2).
+
+    Parameters
+    ----------
+    ax : matplotlib Axes.
+    particles : (N, K, D).
+    weights : (N,) normalised weights, optional; marker areas scale with ``N * w``.
+    size, alpha : marker size and transparency; ``kw`` go to ``ax.scatter``.
+
+    Returns
+    -------
+    list of K PathCollections.
+    """
+    p = _np(particles)
+    if p.ndim != 3 or p.shape[-1] <= Y:
+        raise ValueError(f"particles has shape {p.shape}, expected (N, K, D) with D >= 3")
+    s = size
+    if weights is not None:
+        w = _np(weights)
+        if w.shape != p.shape[:1]:
+            raise ValueError(f"weights has shape {w.shape}, expected ({p.shape[0]},)")
+        s = size * p.shape[0] * w
+    return [ax.scatter(p[:, j, X], p[:, j, Y], s=s, alpha=alpha, color=f"C{j % 10}", linewidths=0, **kw)
+            for j in range(p.shape[1])]
+
+
+def plot_rmse(ax, rmse: Union[ArrayLike, Mapping[str, ArrayLike]], *, dt: float = 1.0,
+              ylabel: str = "position RMSE [m]", **kw) -> list:
+    """RMSE over time (paper 000 figs. 3 and 6).
+
+    Parameters
+    ----------
+    ax : matplotlib Axes.
+    rmse : (T,) per-step RMSE, or a mapping name -> (T,) (one labelled line each).
+    dt : time between steps [s]; the x axis is ``dt * (1..T)``.
+    kw : passed to every ``ax.plot``.
+
+    Returns
+    -------
+    list of Line2D, one per curve.
+    """
+    curves = dict(rmse) if isinstance(rmse, Mapping) else {None: rmse}
+    lines = []
+    for name, values in curves.items():
+        v = _np(values)
+        if v.ndim != 1:
+            raise ValueError(f"rmse{'' if name is None else f'[{name!r}]'} has shape {v.shape}, expected (T,)")
+        (line,) = ax.plot(dt * np.arange(1, v.size + 1), v, label=name, **kw)
+        lines.append(line)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    if any(name is not None for name in curves):
+        ax.legend(loc="best", fontsize="small")
+    return lines
+
+
+def plot_cardinality(ax, true_count: ArrayLike, est_count: ArrayLike, *, dt: float = 1.0,
+                     est_label: str = "estimated") -> list:
+    """True and estimated number of targets over time.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes.
+    true_count : (T,) true number of targets.
+    est_count : (T,) estimated number (e.g. the sum of existence probabilities).
+    dt : time between steps [s].
+
+    Returns
+    -------
+    [true Line2D (steps), estimated Line2D].
+    """
+    tc, ec = _np(true_count), _np(est_count)
+    if tc.ndim != 1 or ec.shape != tc.shape:
+        raise ValueError(f"true_count and est_count must both be (T,), got {tc.shape} and {ec.shape}")
+    t = dt * np.arange(1, tc.size + 1)
+    (true_line,) = ax.step(t, tc, where="mid", color="k", label="true")
+    (est_line,) = ax.plot(t, ec, "o-", color="C3", ms=3, label=est_label)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("number of targets")
+    ax.legend(loc="best", fontsize="small")
+    return [true_line, est_line]
+
+
+def plot_frame(ax, frame: ArrayLike, *, range_bins: Optional[ArrayLike] = None,
+               bearing_bins: Optional[ArrayLike] = None, degrees: bool = True, colorbar: bool = False,
+               **kw):
+    """Range-bearing image of one radar power frame, summed over doppler.
+
+    Parameters
+    ----------
+    ax : matplotlib Axes.
+    frame : (Nr, Nd, Nb) powers (e.g. ``scenario.measurements[t, b]``).
+    range_bins : (Nr,) range cell centres [m], optional (cell indices otherwise).
+    bearing_bins : (Nb,) bearing cell centres [rad], optional.
+    degrees : label bearings in degrees.
+    colorbar : add a colour bar.
+    kw : passed to ``ax.pcolormesh``.
+
+    Returns
+    -------
+    the QuadMesh; its array is the (Nr, Nb) doppler-summed image.
+    """
+    f = _np(frame)
+    if f.ndim != 3:
+        raise ValueError(f"frame has shape {f.shape}, expected (Nr, Nd, Nb)")
+    image = f.sum(axis=1)  # (Nr, Nb)
+    nr, nb = image.shape
+    r = _np(range_bins) if range_bins is not None else np.arange(nr, dtype=float)
+    b = _np(bearing_bins) if bearing_bins is not None else np.arange(nb, dtype=float)
+    if r.shape != (nr,) or b.shape != (nb,):
+        raise ValueError(f"range_bins {r.shape} and bearing_bins {b.shape} must be ({nr},) and ({nb},)")
+    if degrees and bearing_bins is not None:
+        b = b * 180.0 / math.pi
+    mesh = ax.pcolormesh(b, r, image, shading="nearest", **kw)
+    ax.set_xlabel("bearing [deg]" if degrees and bearing_bins is not None else "bearing cell")
+    ax.set_ylabel("range [m]" if range_bins is not None else "range cell")
+    if colorbar:
+        ax.figure.colorbar(mesh, ax=ax, label="power (summed over doppler)")
+    return mesh
