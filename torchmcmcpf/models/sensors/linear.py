@@ -71,6 +71,21 @@ class LinearGaussian(SensorModel):
         -------
         (B, *S).
         """
+        return self.log_likelihood_per_target(x, z, exists).sum(-1)
+
+    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+        """Per-slot terms ``log N(z_j; H x_j, R)`` of :meth:`log_likelihood` (targets do not
+        interact: the per-target refinement of the MCMC filter caches them, see
+        ``torchmcmcpf.kernels.moves``).
+
+        Parameters
+        ----------
+        x : (B, *S, K, D); z : (B, K, d); exists : (B, *S, K) bool, optional (absent: 0).
+
+        Returns
+        -------
+        (B, *S, K).
+        """
         zb = z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:])
         r = (zb - x @ self.H.to(x.dtype).mT).unsqueeze(-1)
         L = self.L.to(x.dtype).expand(r.shape[:-2] + self.L.shape)
@@ -78,7 +93,7 @@ class LinearGaussian(SensorModel):
         per_target = self._log_norm - 0.5 * white.square().sum(-1)
         if exists is not None:
             per_target = torch.where(exists, per_target, torch.zeros_like(per_target))
-        return per_target.sum(-1)
+        return per_target
 
     def simulate(
         self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None

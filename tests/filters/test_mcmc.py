@@ -1,0 +1,168 @@
+"""MCMCFilter against the exact Kalman filter, sample bookkeeping, determinism, settings."""
+
+import math
+
+import pytest
+import torch
+from _kalman import kalman_filter
+
+import torchmcmcpf.filters.mcmc as mcmc_module
+from torchmcmcpf import ConstantVelocity, LinearGaussian, ParticleState
+from torchmcmcpf.filters.mcmc import MCMCFilter, mcmc_step
+
+DT = torch.float64
+
+
+def _problem(gen, B=16, K=2, T=3, N=200):
+    """One measurement sequence (the same for all B runs) of K independent CV targets, the
+    initial cloud drawn from N(m0, P0), and the Kalman filter of each target."""
+    motion = ConstantVelocity(1.0, 1.0).to(DT)
+    sensor = LinearGaussian.position(2.0).to(DT)
+    m0 = torch.tensor([[0.0, 1.0, 0.0, 0.5], [20.0, -1.0, 5.0, 0.0]], dtype=DT)
+    P0 = torch.diag(torch.tensor([1.0, 0.25, 1.0, 0.25], dtype=DT))
+    x = m0 + torch.randn(K, 4, generator=gen, dtype=DT) @ P0.sqrt()
+    zs = []
+    for _ in range(T):
+        x = motion.sample(x, generator=gen)
+        zs.append(sensor.simulate(x.unsqueeze(0), generator=gen))
+    zs = torch.cat(zs).unsqueeze(1).expand(T, B, K, 2).contiguous()
+    init = m0 + torch.randn(B, N, K, 4, generator=gen, dtype=DT) @ P0.sqrt()
+    means, covs = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0, P0, zs[:, 0])
+    return motion, sensor, zs, init, means, covs
+
+
+def _burn_in(motion, sensor, zs, means, covs, xi, tv=1e-2):
+    """Burn-in from the Doeblin bound of the joint draw (see tests/kernels/test_moves.py):
+    ``(1 - xi eps)^m <= tv`` with ``eps = min_k p(z_k | z_{1:k-1}) / max_x p(z_k | x)``. The
+    evidence is that of the particle mixture; we use the Kalman predictive density halved
+    (the N = 200 particle estimate is within a factor 2 of it with overwhelming probability)."""
+    K = zs.shape[2]
+    H, R = sensor.H, sensor.R
+    zero = torch.zeros(2, dtype=DT)
+    m = torch.tensor([[0.0, 1.0, 0.0, 0.5], [20.0, -1.0, 5.0, 0.0]], dtype=DT)
+    P = torch.diag(torch.tensor([1.0, 0.25, 1.0, 0.25], dtype=DT))
+    eps = 1.0
+    for k in range(zs.shape[0]):
+        mp, Pp = m @ motion.F.mT, motion.F @ P @ motion.F.mT + motion.Q
+        S = H @ Pp @ H.mT + R
+        log_eps = (torch.distributions.MultivariateNormal(zero, S).log_prob(zs[k, 0] - mp @ H.mT).sum()
+                   - K * torch.distributions.MultivariateNormal(zero, R).log_prob(zero))
+        eps = min(eps, 0.5 * float(log_eps.exp()))
+        m, P = means[k], covs[k]
+    return math.ceil(math.log(tv) / math.log1p(-xi * eps))
+
+
+SETTINGS = {
+    "mixture": dict(moves="mixture"),  # joint draw w.p. 0.75, else a refinement sweep
+    "joint_random_walk": dict(moves=[("joint", 0.75), ("random_walk", 0.25)], rw_scale=0.5),
+}
+
+
+@pytest.mark.parametrize("name", list(SETTINGS))
+def test_matches_the_kalman_filter(name, gen):
+    """Posterior mean and variance of every target component at every step vs Kalman.
+
+    All B = 16 runs filter the same measurements with independent randomness, so their
+    errors e_b = (estimate_b - kalman) / kalman_sd are i.i.d. with mean equal to the
+    filter's bias. A correct filter's bias is O(1/N) (a ratio-estimator effect of the
+    particle approximation, about 0.005 sd at N = 200) plus the burn-in bias, at most 1e-2
+    times a few sd by the choice of burn-in (:func:`_burn_in`): ~0.03 sd. We test |mean_b e_b| <= 5 se with se =
+    std_b(e_b) / sqrt(B), estimated from the runs themselves, so the MCMC correlation and the
+    error carried over from earlier steps (both of which inflate std_b(e_b)) are accounted
+    for without a model of them. 24 comparisons: chance failure < 24 x 6e-7 (the t-statistic
+    with 15 dof has heavier tails: < 24 x 1.3e-4 = 3e-3 for |t| > 5, a conservative bound).
+    The same with the particle variance against the Kalman variance.
+    Power: a filter that skipped the update would be off by the Kalman correction, which is
+    checked to exceed 10 se.
+    """
+    motion, sensor, zs, init, km, kP = _problem(gen)
+    burn_in = _burn_in(motion, sensor, zs, km, kP, xi=0.75)
+    assert burn_in < 1000
+    filt = MCMCFilter(motion, sensor, 200, num_chains=20, burn_in=burn_in, thinning=2, **SETTINGS[name]).to(DT)
+    res = filt(zs, init=init, generator=gen)
+    sd = torch.diagonal(kP, dim1=-2, dim2=-1).sqrt().unsqueeze(1)  # (T, 1, K, D)
+    B = zs.shape[1]
+
+    e = (res.mean - km.unsqueeze(1)) / sd  # (T, B, K, D)
+    se = e.std(1) / math.sqrt(B)
+    assert (e.mean(1).abs() <= 5 * se).all(), f"bias in se: {(e.mean(1).abs() / se).max():.2f}"
+
+    var = res.state.x.var(1)  # final step (B, K, D)
+    rel = var / torch.diagonal(kP[-1], dim1=-2, dim2=-1) - 1
+    assert (rel.mean(0).abs() <= 5 * rel.std(0) / math.sqrt(B)).all()
+
+    correction = (km[1:] - km[:-1] @ motion.F.mT) / sd[1:, 0]  # what the update step adds
+    assert (correction.abs() / se[1:]).max() > 10
+
+    acc = res.info.acceptance
+    assert set(acc) == {n for n, _ in filt.moves}
+    for rate in acc.values():
+        assert rate.shape == (zs.shape[0], B) and ((rate > 0) & (rate < 1)).all()
+
+
+def test_kept_samples_honour_burn_in_and_thinning(monkeypatch, gen):
+    """Instrumented run: a fake iteration writes its iteration number m into the chain, so
+    the output shows which iterations were kept (chain-major order)."""
+    motion, sensor, zs, init, _, _ = _problem(gen, B=2, N=12)
+    calls = []
+
+    def fake_iteration(chain, noise, **kwargs):
+        calls.append(1)
+        sel = {n: torch.ones(chain.x.shape[:2], dtype=torch.bool) for n, _ in kwargs["moves"]}
+        acc = {n: torch.zeros(chain.x.shape[:2], dtype=DT) for n, _ in kwargs["moves"]}
+        return chain._replace(x=torch.full_like(chain.x, float(len(calls)))), acc, sel
+
+    monkeypatch.setattr(mcmc_module, "mcmc_iteration", fake_iteration)
+    state = ParticleState(init[:, :12], torch.full((2, 12), -math.log(12), dtype=DT))
+    burn_in, thinning, C = 7, 3, 4
+    out, info = mcmc_step(state, zs[0], motion=motion, sensor=sensor, generator=gen, num_chains=C,
+                          burn_in=burn_in, thinning=thinning)
+    S = 12 // C
+    assert len(calls) == burn_in + thinning * S
+    assert out.x.shape == (2, 12, 2, 4)
+    expected = torch.tensor([burn_in + thinning * (s + 1) for s in range(S)], dtype=DT)
+    kept = out.x[..., 0, 0].reshape(2, C, S)
+    assert torch.equal(kept, expected.expand(2, C, S))
+    torch.testing.assert_close(out.log_w, torch.full((2, 12), -math.log(12), dtype=DT))
+
+
+def test_same_seed_same_result(gen):
+    motion, sensor, zs, init, _, _ = _problem(gen, B=2, T=2, N=40)
+    filt = MCMCFilter(motion, sensor, 40, num_chains=4, burn_in=5, thinning=2).to(DT)
+    a = filt(zs, init=init, generator=torch.Generator().manual_seed(3))
+    b = filt(zs, init=init, generator=torch.Generator().manual_seed(3))
+    assert torch.equal(a.state.x, b.state.x) and torch.equal(a.mean, b.mean)
+    for name in a.info.acceptance:
+        assert torch.equal(a.info.acceptance[name], b.info.acceptance[name])
+    c = filt(zs, init=init, generator=torch.Generator().manual_seed(4))
+    assert not torch.equal(a.state.x, c.state.x)
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(thinning=0), "thinning"),
+        (dict(thinning=1.5), "thinning"),
+        (dict(burn_in=-1), "burn_in"),
+        (dict(num_chains=3), "num_particles"),
+        (dict(num_chains=0), "num_chains"),
+        (dict(moves="hmc"), "moves"),
+        (dict(moves=[("joint", 0.5), ("refine", 0.4)]), "moves"),
+        (dict(moves=[("joint", 0.5), ("jump", 0.5)]), "moves"),
+        (dict(moves=[("refine", 1.0)]), "refine"),
+        (dict(moves="random_walk"), "rw_scale"),
+        (dict(moves="random_walk", rw_scale=-1.0), "rw_scale"),
+        (dict(moves="random_walk", rw_scale=torch.ones(3)), "rw_scale"),
+    ],
+)
+def test_bad_settings_raise(kwargs, name):
+    motion, sensor = ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0)
+    with pytest.raises(ValueError, match=name):
+        MCMCFilter(motion, sensor, 10, **{"num_chains": 2, **kwargs})
+
+
+def test_step_rejects_existence_flags(gen):
+    motion, sensor, zs, init, _, _ = _problem(gen, B=2, N=8)
+    state = ParticleState(init[:, :8], torch.full((2, 8), -math.log(8), dtype=DT), torch.ones(2, 8, 2, dtype=torch.bool))
+    with pytest.raises(ValueError, match="exists"):
+        mcmc_step(state, zs[0], motion=motion, sensor=sensor, generator=gen)

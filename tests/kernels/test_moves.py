@@ -1,0 +1,362 @@
+"""Every MCMC move leaves the exact posterior of a linear-Gaussian problem invariant.
+
+Target: ``pi(x, a) ∝ N(z; H vec(x), R) w_a prod_k N(x_k; F x_{a,k}, Q)`` over a fixed cloud of
+N = 20 weighted previous particles (K = 2 targets, D = 4), whose moments are exact
+(``_kalman.mixture_posterior``). C = 1000 independent chains per run, B = 2 runs.
+
+Tolerance (all tests): the final states of the C chains are independent, so the sample
+mean of any statistic f has standard error ``se = std(f) / sqrt(C)``; we require ``|mean -
+exact| <= 5 se`` for f = each component of x (mean), each product of two components'
+deviations from the exact mean (covariance, the 36 pairs i <= j), each component of the
+ancestor x_prev and the products ``(x_j - E x_j)(x_prev_j - E x_prev_j)`` (the dependence
+between a state and its ancestor), each centred on its exact mean. A two-sided 5-sigma miss has
+probability 5.7e-7, so the 2 x 60 comparisons of a test fail by chance with probability < 7e-5.
+
+Burn-in bias. Tests that start away from pi bound it with the Doeblin minorisation of the
+joint draw, an independence sampler with proposal ``w_a p(x | x_a)``: ``pi / q = p(z | x) /
+p(z) <= max_x p(z | x) / p(z) = 1 / eps``, so one joint draw satisfies ``P(x, .) >= eps
+pi(.)`` and a mixture that picks it with probability xi satisfies ``P >= xi eps pi``; if every
+component is pi-invariant, ``P^m = (1 - (1 - xi eps)^m) pi + (1 - xi eps)^m R_m``, so the mean
+is off by at most ``(1 - xi eps)^m`` times the distance between the start and the target
+(a few posterior sds). We run m iterations with ``(1 - xi eps)^m <= 1e-4``: bias <= 0.001 sd,
+against 5 se = 5 / sqrt(1000) = 0.16 sd. Each such test also checks that the start is more
+than 10 se away from pi, so a move that does not move fails. Tests that start at pi exactly
+(moves without a closed-form bound) check instead that the chains moved many times.
+"""
+
+import math
+
+import pytest
+import torch
+from _kalman import mixture_posterior
+
+from torchmcmcpf import ConstantVelocity, LinearGaussian
+from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration
+from torchmcmcpf.kernels.moves import (
+    ChainState,
+    JointNoise,
+    RefineNoise,
+    evaluate,
+    init_chains,
+    log_transition,
+    previous_cloud,
+    propose_joint,
+    refine_move,
+)
+from torchmcmcpf.models.base import MotionModel, SensorModel
+from torchmcmcpf.resampling import gather_particles, multinomial
+
+DT = torch.float64
+B, N, K, D, C = 2, 20, 2, 4, 1000
+Z_TOL = 5.0  # tolerance in standard errors (see the module docstring)
+TV_TARGET = 1e-4  # burn-in: (1 - xi eps)^m <= TV_TARGET
+
+
+# -- models ----------------------------------------------------------------------------------
+class CoupledPositions(SensorModel):
+    """``z = A vec(p) + N(0, s^2 I)`` with ``p (K, 2)`` the positions: the targets interact
+    (through the sum of the positions), so the likelihood is not a sum over targets."""
+
+    def __init__(self, A: torch.Tensor, std: float):
+        super().__init__()
+        self.register_buffer("A", A)
+        self.std = std
+        self.frame_shape = (A.shape[0],)
+
+    def log_likelihood(self, x, z, exists=None):
+        r = self._residual(x, z)
+        return -0.5 * (r / self.std).square().sum(-1) - r.shape[-1] * (math.log(self.std) + 0.5 * math.log(2 * math.pi))
+
+    def _residual(self, x, z):
+        pos = x[..., [0, 2]].flatten(-2)
+        return z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:]) - pos @ self.A.mT
+
+    def observation(self):
+        """(H (m, K*D), R (m, m)) on the stacked state."""
+        sel = torch.zeros(2 * K, K * D, dtype=DT)
+        for k in range(K):
+            sel[2 * k, k * D] = sel[2 * k + 1, k * D + 2] = 1.0
+        return self.A @ sel, self.std**2 * torch.eye(self.A.shape[0], dtype=DT)
+
+
+class CoupledWithDelta(CoupledPositions):
+    """The same sensor with the ``log_likelihood_delta`` hook: only slot n's columns of A."""
+
+    def log_likelihood_delta(self, x, x_n, n, z):
+        r = self._residual(x, z)
+        shift = (x_n[..., [0, 2]] - x[..., n, [0, 2]]) @ self.A[:, 2 * n:2 * n + 2].mT
+        return -0.5 * ((r - shift).square().sum(-1) - r.square().sum(-1)) / self.std**2
+
+
+class Opaque(SensorModel):
+    """Hides every hook of ``inner``: only ``log_likelihood`` (the generic fallback)."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner = inner
+
+    def log_likelihood(self, x, z, exists=None):
+        return self.inner.log_likelihood(x, z, exists)
+
+
+class PerTargetAsDelta(Opaque):
+    """``log_likelihood_delta`` computed from per-target terms (the sequential hook path)."""
+
+    def log_likelihood_delta(self, x, x_n, n, z):
+        new = self.inner.log_likelihood_per_target(x_n.unsqueeze(-2), z[:, n:n + 1]).squeeze(-1)
+        return new - self.inner.log_likelihood_per_target(x, z)[..., n]
+
+
+class GenericMotion(MotionModel):
+    """A motion model that is not a LinearGaussianMotion: forces the generic code paths."""
+
+    def __init__(self, inner):
+        super().__init__()
+        self.inner, self.dim, self.noise_dim = inner, inner.dim, inner.noise_dim
+
+    def propagate(self, x, eps):
+        return self.inner.propagate(x, eps)
+
+    def log_prob(self, x_next, x):
+        return self.inner.log_prob(x_next, x)
+
+
+def _coupled(cls=CoupledPositions, std=2.0, sum_only=False):
+    """Observe the sum of the positions (and, unless ``sum_only``, the position of target
+    1): ``A'A`` is not block diagonal. A has full row rank, so every z is reachable."""
+    A = torch.tensor([[1.0, 0, 1, 0], [0, 1, 0, 1], [1, 0, 0, 0], [0, 1, 0, 0]], dtype=DT)
+    return cls(A[:2] if sum_only else A, std)
+
+
+def _problem(sensor, gen, q=0.5):
+    """Motion (process noise level q), previous weighted cloud ``(B, N, K, D)``, frame z and
+    the exact posterior."""
+    motion = ConstantVelocity(1.0, q).to(DT)
+    centre = torch.tensor([[0.0, 1.0, 0.0, 1.0], [6.0, -1.0, 3.0, 0.0]], dtype=DT)
+    spread = torch.tensor([1.0, 0.5, 1.0, 0.5], dtype=DT)
+    prev = centre + spread * torch.randn(B, N, K, D, generator=gen, dtype=DT)
+    log_w = torch.log_softmax(0.5 * torch.randn(B, N, generator=gen, dtype=DT), -1)
+    truth = motion.sample(centre + spread * torch.randn(B, K, D, generator=gen, dtype=DT), generator=gen)
+    # The posterior is exact for any z; a noise-free frame keeps the burn-in bound short.
+    if isinstance(sensor, LinearGaussian):
+        H, R = torch.block_diag(*[sensor.H] * K), torch.block_diag(*[sensor.R] * K)
+        z = truth @ sensor.H.mT  # (B, K, 2)
+        post = mixture_posterior(prev, log_w, motion.F, motion.Q, H, R, z.reshape(B, -1))
+    else:
+        H, R = sensor.observation()
+        z = truth.reshape(B, K * D) @ H.mT  # (B, m)
+        post = mixture_posterior(prev, log_w, motion.F, motion.Q, H, R, z)
+    return motion, previous_cloud(prev, log_w), z, post
+
+
+def _iterations(bound) -> int:
+    """Smallest m with ``bound(m) <= TV_TARGET`` (bound decreasing in m)."""
+    m = 1
+    while bound(m) > TV_TARGET:
+        m += 1
+    assert m < 2000, "test problem too hard for the burn-in bound"
+    return m
+
+
+def _joint_eps(post) -> float:
+    """Doeblin constant of the joint draw, ``min_b p(z) / max_x p(z | x)``."""
+    return float(torch.exp(post.log_evidence - post.log_lik_max).min())
+
+
+# -- checks ----------------------------------------------------------------------------------
+def _discrepancies(chain: ChainState, post, cloud) -> dict:
+    """Largest |estimate - exact| / se over the components of each statistic."""
+    xs = chain.x.flatten(2)  # (B, C, K*D), C independent chains
+    root_c = math.sqrt(xs.shape[1])
+    dev = xs - post.mean.unsqueeze(1)
+    i, j = torch.triu_indices(dev.shape[-1], dev.shape[-1])
+    dev2 = dev[..., i] * dev[..., j]  # E[dev2] = Cov(x)_ij exactly (centred on the exact mean)
+    ps = chain.x_prev.flatten(2)
+    prev_mean = torch.einsum("bn,bnj->bj", post.ancestor_log_w.exp(), cloud.x.flatten(2))
+    # Cov(x_j, x_prev_j) = sum_a p(a | z) (m_{a,j} - E x_j)(x_{a,j} - E x_prev_j): the
+    # dependence between a state and its ancestor
+    w = post.ancestor_log_w.exp()
+    cross = torch.einsum("bn,bnj->bj", w, (post.component_means - post.mean.unsqueeze(1))
+                         * (cloud.x.flatten(2) - prev_mean.unsqueeze(1)))
+    stats = {
+        "mean of x": (xs, post.mean),
+        "covariance of x": (dev2, post.cov[:, i, j]),
+        "mean of the ancestor": (ps, prev_mean),
+        "covariance of x and its ancestor": (
+            (xs - post.mean.unsqueeze(1)) * (ps - prev_mean.unsqueeze(1)), cross),
+    }
+    return {k: float(((f.mean(1) - exact).abs() / (f.std(1) / root_c)).max()) for k, (f, exact) in stats.items()}
+
+
+def _assert_pi(chain: ChainState, post, cloud):
+    worst = _discrepancies(chain, post, cloud)
+    assert max(worst.values()) <= Z_TOL, f"standard errors off (tolerance {Z_TOL}): {worst}"
+    # x_prev is always one of the previous particles
+    ps = chain.x_prev.flatten(2)
+    assert (ps.unsqueeze(2) == cloud.x.flatten(2).unsqueeze(1)).all(-1).any(-1).all()
+
+
+def _assert_far(chain: ChainState, post, cloud):
+    """The start is > 10 se from pi in some statistic: a move that does not move would fail."""
+    assert max(_discrepancies(chain, post, cloud).values()) > 10
+
+
+def _run(chain, moves, iters, *, cloud, z, motion, sensor, gen, rw_scale=None):
+    accepted = {name: torch.zeros(B, dtype=DT) for name, _ in moves}
+    for _ in range(iters):
+        noise = draw_iteration_noise(moves, chain.x, motion, generator=gen)
+        chain, acc, _ = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor,
+                                       moves=moves, rw_scale=rw_scale)
+        for name in accepted:
+            accepted[name] += acc[name].mean(1)
+    return chain, accepted  # accepted: expected number of accepted moves per chain
+
+
+def _exact_chains(post, cloud, z, sensor, gen):
+    """C independent exact draws of pi: a ~ p(a | z), then x | a ~ N(m_a, P)."""
+    a = multinomial(post.ancestor_log_w, torch.rand(B, C, generator=gen, dtype=DT))
+    noise = torch.randn(B, C, K * D, generator=gen, dtype=DT) @ torch.linalg.cholesky(post.component_cov).mT
+    x = (gather_particles(post.component_means, a) + noise).reshape(B, C, K, D)
+    return ChainState(x, gather_particles(cloud.x, a), *evaluate(x, z, sensor))
+
+
+def _prior_chains(cloud, z, motion, sensor, gen):
+    template = cloud.x.new_empty(B, C, K, D)
+    return init_chains(cloud, JointNoise.draw(template, motion, generator=gen), z, motion=motion, sensor=sensor)
+
+
+# -- tests -----------------------------------------------------------------------------------
+def test_joint_draw_converges_to_the_posterior(gen):
+    sensor = LinearGaussian.position(2.0).to(DT)
+    motion, cloud, z, post = _problem(sensor, gen)
+    eps = _joint_eps(post)
+    iters = _iterations(lambda m: (1 - eps) ** m)
+    chain = _prior_chains(cloud, z, motion, sensor, gen)
+    _assert_far(chain, post, cloud)
+    chain, acc = _run(chain, (("joint", 1.0),), iters, cloud=cloud, z=z, motion=motion, sensor=sensor, gen=gen)
+    _assert_pi(chain, post, cloud)
+
+
+def test_refine_keeps_the_posterior(gen):
+    """Separable sensor (vectorised sweep). Start at pi exactly, 40 sweeps. Refine never
+    moves the ancestor, so it cannot converge from an arbitrary start on its own (the
+    mixture test covers convergence); a wrong conditional target would drift away from pi
+    within the > 10 accepted updates per target that the chains must make."""
+    sensor = LinearGaussian.position(1.0).to(DT)
+    motion, cloud, z, post = _problem(sensor, gen, q=3.0)  # given a, only Q spreads x: make it matter
+    chain = _exact_chains(post, cloud, z, sensor, gen)
+    chain, acc = _run(chain, (("refine", 1.0),), 40, cloud=cloud, z=z, motion=motion, sensor=sensor, gen=gen)
+    assert (acc["refine"] > 10).all()
+    assert chain.log_lik_terms is not None
+    torch.testing.assert_close(chain.log_lik, sensor.log_likelihood(chain.x, z))
+    _assert_pi(chain, post, cloud)
+
+
+@pytest.mark.parametrize("cls", [CoupledPositions, CoupledWithDelta], ids=["full-recompute", "delta-hook"])
+def test_refine_sequential_sweep_keeps_the_coupled_posterior(cls, gen):
+    """Coupled sensor: the sweep must be sequential. Start at pi exactly, 60 sweeps; a
+    parallel (Jacobi) update or a wrong conditional would drift away from pi. The chains must
+    have accepted > 10 target updates each on average, so that doing nothing fails."""
+    sensor = _coupled(cls, std=0.5, sum_only=True).to(DT)  # x_1 + x_2 pinned: strongly coupled
+    motion, cloud, z, post = _problem(sensor, gen, q=3.0)
+    chain = _exact_chains(post, cloud, z, sensor, gen)
+    chain, acc = _run(chain, (("refine", 1.0),), 60, cloud=cloud, z=z, motion=motion, sensor=sensor, gen=gen)
+    assert (acc["refine"] > 10).all()
+    torch.testing.assert_close(chain.log_lik, sensor.log_likelihood(chain.x, z))
+    _assert_pi(chain, post, cloud)
+
+
+def test_random_walk_keeps_the_posterior(gen):
+    """Start at pi exactly, 60 random-walk moves with the Gibbs redraw of the ancestor."""
+    sensor = LinearGaussian.position(1.0).to(DT)
+    # wide components (large Q) let the walk move between ancestors: the redraw matters
+    motion, cloud, z, post = _problem(sensor, gen, q=3.0)
+    chain = _exact_chains(post, cloud, z, sensor, gen)
+    scale = torch.tensor([0.3, 0.5, 0.3, 0.5], dtype=DT)
+    chain, acc = _run(chain, (("random_walk", 1.0),), 60, cloud=cloud, z=z, motion=motion, sensor=sensor,
+                      gen=gen, rw_scale=scale)
+    assert (acc["random_walk"] > 10).all()
+    _assert_pi(chain, post, cloud)
+
+
+def test_mixture_of_all_moves_converges_on_a_coupled_sensor(gen):
+    """Joint draw (xi = 0.4), sequential refinement and random walk per chain, from the
+    prior: the Doeblin bound with xi eps holds only if refine and random walk are
+    pi-invariant too, so a wrong one fails the moments."""
+    sensor = _coupled().to(DT)
+    motion, cloud, z, post = _problem(sensor, gen)
+    xi = 0.4
+    eps = _joint_eps(post)
+    iters = _iterations(lambda m: (1 - xi * eps) ** m)
+    chain = _prior_chains(cloud, z, motion, sensor, gen)
+    _assert_far(chain, post, cloud)
+    moves = (("joint", xi), ("refine", 0.3), ("random_walk", 0.3))
+    chain, acc = _run(chain, moves, iters, cloud=cloud, z=z, motion=motion, sensor=sensor, gen=gen,
+                      rw_scale=torch.tensor(0.3, dtype=DT))
+    _assert_pi(chain, post, cloud)
+
+
+def test_refine_vectorised_and_sequential_paths_agree(gen):
+    """Given the same noise, the vectorised sweep of a separable sensor, the sequential sweep
+    with full re-evaluation and the sequential sweep with a delta hook accept the same
+    updates (the conditional of slot n does not depend on the other slots)."""
+    inner = LinearGaussian.position(1.0).to(DT)
+    motion, cloud, z, _ = _problem(inner, gen, q=3.0)
+    results = []
+    for sensor in (inner, Opaque(inner), PerTargetAsDelta(inner)):
+        g = torch.Generator().manual_seed(7)
+        chain = _prior_chains(cloud, z, motion, sensor, g)
+        chain, accepted = refine_move(chain, RefineNoise.draw(chain.x, motion, generator=g), z=z, motion=motion,
+                                      sensor=sensor)
+        results.append((chain, accepted))
+    (ref, acc_ref), others = results[0], results[1:]
+    assert acc_ref.any() and not acc_ref.all()  # a mix of accepts and rejects
+    for chain, acc in others:
+        assert torch.equal(acc, acc_ref)
+        assert torch.equal(chain.x, ref.x) and torch.equal(chain.x_prev, ref.x_prev)
+        torch.testing.assert_close(chain.log_lik, ref.log_lik)
+
+
+class Recording(CoupledPositions):
+    """Records every state the sweep scores (full re-evaluation path)."""
+
+    def log_likelihood(self, x, z, exists=None):
+        self.calls.append(x.clone())
+        return super().log_likelihood(x, z, exists)
+
+
+def test_sequential_sweep_scores_slot_n_against_the_updated_slots(gen):
+    """Gibbs, not Jacobi: the candidate of slot 1 carries the already updated slot 0. (The
+    moment tests have little power against a parallel update on Gaussian targets.)"""
+    sensor = Recording(_coupled().A, 0.5).to(DT)
+    sensor.calls = []
+    motion, cloud, z, _ = _problem(sensor, gen, q=3.0)
+    chain = _prior_chains(cloud, z, motion, sensor, gen)
+    sensor.calls = []
+    new, accepted = refine_move(chain, RefineNoise.draw(chain.x, motion, generator=gen), z=z, motion=motion,
+                                sensor=sensor)
+    assert len(sensor.calls) == K and accepted[..., 0].any() and not accepted[..., 0].all()
+    assert torch.equal(sensor.calls[1][..., 0, :], new.x[..., 0, :])
+    assert torch.equal(sensor.calls[0][..., 1, :], chain.x[..., 1, :])
+
+
+def test_log_transition_fast_path_matches_generic(gen):
+    motion = ConstantVelocity(1.0, 0.5).to(DT)
+    x = torch.randn(B, 3, K, D, generator=gen, dtype=DT)
+    prev = torch.randn(B, 5, K, D, generator=gen, dtype=DT)
+    fast = log_transition(x, prev, motion=motion)
+    generic = log_transition(x, prev, motion=GenericMotion(motion))
+    assert fast.shape == (B, 3, 5)
+    # the generic path's constant comes from motion._log_norm, computed at float32 before .to()
+    torch.testing.assert_close(fast, generic, rtol=0, atol=1e-6)
+    direct = motion.log_prob(x[:, 1], prev[:, 4]).sum(-1)
+    torch.testing.assert_close(fast[:, 1, 4], direct, rtol=0, atol=1e-6)
+
+
+def test_joint_proposal_shapes_and_ratio(gen):
+    motion, cloud, z, _ = _problem(LinearGaussian.position(2.0).to(DT), gen)
+    noise = JointNoise.draw(cloud.x.new_empty(B, 7, K, D), motion, generator=gen)
+    x, x_prev, log_ratio = propose_joint(cloud, noise, motion=motion)
+    assert x.shape == x_prev.shape == (B, 7, K, D)
+    assert torch.equal(log_ratio, torch.zeros(B, 7, dtype=DT))
+    torch.testing.assert_close(x, motion.propagate(x_prev, noise.eps))

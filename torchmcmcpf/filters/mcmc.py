@@ -1,0 +1,332 @@
+"""Sequential MCMC-based particle filter with C parallel chains per run.
+
+Khan, Balch and Dellaert (2005); Septier, Pang, Carmi and Godsill (paper 001; paper 004
+sec. 4); Ling (paper 002 sec. 3). The importance sampling and resampling of the SIR filter
+are replaced by an MCMC run whose target is the approximate filtering density
+
+    ``p(x_k | z_{1:k}) ∝ p(z_k | x_k) sum_i w_{k-1}^i p(x_k | x_{k-1}^i)``    (paper 002 eq. 11)
+
+sampled jointly with the ancestor index (see :mod:`torchmcmcpf.kernels.moves`). Chains are a
+tensor dimension: ``num_chains = 1`` is the classic single long chain (paper 002: B + M N
+iterations), ``num_chains = N`` many short chains with one sample each, and everything in
+between runs the same code. Each chain keeps every ``thinning``-th state after ``burn_in``
+iterations until it holds ``N / C`` samples; the new cloud has equal weights.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence, Union
+
+import torch
+
+from .._validation import check_generator, check_positive_int
+from ..kernels.moves import (
+    MOVES,
+    ChainState,
+    JointNoise,
+    PreviousCloud,
+    RandomWalkNoise,
+    RefineNoise,
+    init_chains,
+    joint_move,
+    previous_cloud,
+    random_walk_move,
+    refine_move,
+)
+from ..kernels.mh import mh_select
+from ..models.base import MotionModel, SensorModel
+from ..state import ParticleState, StepInfo
+from ..typing import Measurement, Tensor
+from .base import Filter
+
+__all__ = ["MCMCFilter", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "parse_moves",
+           "MOVE_PRESETS"]
+
+MoveSpec = Union[str, Sequence[tuple[str, float]]]
+
+#: Named kernels: ``"mixture"`` is paper 004's (joint draw with probability xi = 0.75, else
+#: a refinement sweep); ``"joint"`` the pure joint draw (an independence sampler);
+#: ``"random_walk"`` paper 002's kernel.
+MOVE_PRESETS: dict[str, tuple[tuple[str, float], ...]] = {
+    "mixture": (("joint", 0.75), ("refine", 0.25)),
+    "joint": (("joint", 1.0),),
+    "random_walk": (("random_walk", 1.0),),
+}
+
+_NOISE = {"joint": JointNoise, "refine": RefineNoise, "random_walk": RandomWalkNoise}
+
+
+def parse_moves(moves: MoveSpec) -> tuple[tuple[str, float], ...]:
+    """Normalise a kernel choice to ``((name, probability), ...)``.
+
+    Parameters
+    ----------
+    moves : a preset name (``"mixture"``, ``"joint"``, ``"random_walk"``, see
+        :data:`MOVE_PRESETS`), or a sequence of ``(name, probability)`` pairs over the
+        primitive moves ``"joint"``, ``"refine"``, ``"random_walk"``; probabilities > 0,
+        summing to 1. Each iteration, each chain picks one move with these probabilities
+        (a mixture kernel, paper 004 sec. 4). ``"refine"`` never moves the ancestor, so it
+        must be mixed with ``"joint"`` or ``"random_walk"``.
+
+    Returns
+    -------
+    tuple of ``(name, probability)``.
+    """
+    if isinstance(moves, str):
+        if moves not in MOVE_PRESETS:
+            raise ValueError(
+                f"moves must be one of {sorted(MOVE_PRESETS)} or a sequence of (name, probability) "
+                f"pairs over {list(MOVES)}, got {moves!r}"
+            )
+        return MOVE_PRESETS[moves]
+    try:
+        pairs = tuple((name, float(p)) for name, p in moves)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"moves must be a preset name or (name, probability) pairs, got {moves!r}") from err
+    names = [name for name, _ in pairs]
+    if not pairs or any(name not in MOVES for name in names) or len(set(names)) != len(names):
+        raise ValueError(f"moves must name distinct moves among {list(MOVES)}, got {names}")
+    probs = [p for _, p in pairs]
+    if any(not p > 0 for p in probs) or not math.isclose(sum(probs), 1.0, abs_tol=1e-9):
+        raise ValueError(f"moves probabilities must be > 0 and sum to 1, got {probs}")
+    if set(names) == {"refine"}:
+        raise ValueError(
+            "moves=('refine',) alone never changes a chain's ancestor x_{k-1}, so it does not target "
+            "p(x_k | z_1:k); mix it with 'joint' or 'random_walk' (e.g. moves='mixture')"
+        )
+    return pairs
+
+
+def _check_settings(num_particles: int, num_chains: int, burn_in: int, thinning: int, moves: MoveSpec,
+                    rw_scale, dim: int) -> tuple[tuple[tuple[str, float], ...], Optional[Tensor]]:
+    """Validate the MCMC settings (eager, once per call); returns parsed moves and rw_scale."""
+    check_positive_int(num_particles, "num_particles")
+    check_positive_int(num_chains, "num_chains")
+    check_positive_int(burn_in, "burn_in", minimum=0)
+    check_positive_int(thinning, "thinning")
+    if num_particles % num_chains:
+        raise ValueError(
+            f"num_particles ({num_particles}) must be a multiple of num_chains ({num_chains}): "
+            "each chain keeps num_particles / num_chains samples"
+        )
+    pairs = parse_moves(moves)
+    if rw_scale is None:
+        if any(name == "random_walk" for name, _ in pairs):
+            raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
+        return pairs, None
+    scale = torch.as_tensor(rw_scale)
+    if scale.dim() > 1 or (scale.dim() == 1 and scale.shape[0] != dim):
+        raise ValueError(f"rw_scale has shape {tuple(scale.shape)}, expected () or ({dim},)")
+    if not bool(torch.isfinite(scale).all()) or not bool((scale > 0).all()):
+        raise ValueError(f"rw_scale must be > 0 and finite, got {rw_scale!r}")
+    return pairs, scale
+
+
+def draw_iteration_noise(moves: tuple[tuple[str, float], ...], x: Tensor, motion: MotionModel, *,
+                         generator: torch.Generator) -> dict[str, object]:
+    """All the noise of one MCMC iteration, drawn in eager code from ``generator``.
+
+    Parameters
+    ----------
+    moves : parsed moves (:func:`parse_moves`); x : (B, C, K, D) chain states (for shape,
+    dtype, device); motion : MotionModel (noise size); generator : the randomness.
+
+    Returns
+    -------
+    dict: move name -> its noise NamedTuple, plus ``"select" (B, C)`` uniforms that pick
+    each chain's move when there is more than one.
+    """
+    noise: dict[str, object] = {name: _NOISE[name].draw(x, motion, generator=generator) for name, _ in moves}
+    if len(moves) > 1:
+        noise["select"] = torch.rand(x.shape[:2], generator=generator, device=x.device, dtype=x.dtype)
+    return noise
+
+
+def mcmc_iteration(
+    chain: ChainState,
+    noise: dict,
+    *,
+    cloud: PreviousCloud,
+    z: Measurement,
+    motion: MotionModel,
+    sensor: SensorModel,
+    moves: tuple[tuple[str, float], ...],
+    rw_scale: Optional[Tensor] = None,
+) -> tuple[ChainState, dict[str, Tensor], dict[str, Tensor]]:
+    """One MCMC iteration of every chain: a mixture kernel, branch-free.
+
+    Every move in ``moves`` is computed for every chain from the same current state and each
+    chain keeps the result of its own pick (``torch.where``), so the cost is the sum of the
+    moves' costs and nothing depends on data-dependent control flow: pure, no generator, no
+    ``.item()``, ready for ``torch.compile`` (K and ``moves`` static).
+
+    Parameters
+    ----------
+    chain : ChainState ``(B, C, K, D)``.
+    noise : from :func:`draw_iteration_noise`.
+    cloud : the previous particles; z : frame ``(B, *G)``; motion, sensor : the models.
+    moves : parsed moves; rw_scale : (D,) or scalar step of the random walk.
+
+    Returns
+    -------
+    chain : the new ChainState.
+    accepted : name -> (B, C) fraction of the move's accept/reject decisions that accepted
+        (per target for ``refine``); 0 where the chain did not pick the move.
+    selected : name -> (B, C) bool, whether the chain picked the move.
+    """
+    if len(moves) > 1:
+        edges = torch.tensor([p for _, p in moves[:-1]], dtype=torch.float64).cumsum(0)
+        choice = (noise["select"].to(torch.float64).unsqueeze(-1) >= edges.to(chain.x.device)).sum(-1)
+    else:
+        choice = torch.zeros(chain.x.shape[:2], dtype=torch.int64, device=chain.x.device)
+    new, accepted, selected = chain, {}, {}
+    for i, (name, _) in enumerate(moves):
+        if name == "joint":
+            cand, acc = joint_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor)
+        elif name == "refine":
+            cand, acc = refine_move(chain, noise[name], z=z, motion=motion, sensor=sensor)
+            acc = acc.to(chain.x.dtype).mean(-1)
+        else:
+            cand, acc = random_walk_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
+                                         scale=rw_scale)
+        sel = choice == i
+        new = mh_select(sel, cand, new)
+        selected[name] = sel
+        accepted[name] = torch.where(sel, acc.to(chain.x.dtype), torch.zeros_like(chain.log_lik))
+    return new, accepted, selected
+
+
+def mcmc_step(
+    state: ParticleState,
+    z: Measurement,
+    *,
+    motion: MotionModel,
+    sensor: SensorModel,
+    generator: torch.Generator,
+    num_chains: int = 1,
+    burn_in: int = 100,
+    thinning: int = 1,
+    moves: MoveSpec = "mixture",
+    rw_scale: Optional[Union[float, Tensor]] = None,
+) -> tuple[ParticleState, StepInfo]:
+    """One time step of the sequential MCMC particle filter.
+
+    Each of the C chains of each run starts from a previous particle drawn by weight and
+    moved by the prior (paper 002, steps 1-2), runs ``burn_in + thinning * N / C``
+    iterations of the kernel ``moves`` and keeps its state after iterations ``burn_in +
+    thinning * j``, ``j = 1 .. N / C`` (the initial state is never kept).
+
+    Parameters
+    ----------
+    state : ParticleState ``x (B, N, K, D)``, ``log_w (B, N)`` at time k-1 (weights are
+        honoured: the target mixes over ``w^i p(x | x^i)``). Known number of targets:
+        ``state.exists`` must be ``None``.
+    z : one frame per run ``(B, *G)``.
+    motion, sensor : the models.
+    generator : the only source of randomness.
+    num_chains : C >= 1, a divisor of N.
+    burn_in : iterations discarded per chain, >= 0.
+    thinning : keep every ``thinning``-th state after the burn-in, >= 1.
+    moves : the kernel, see :func:`parse_moves` (default paper 004's mixture, xi = 0.75).
+    rw_scale : per-component random-walk step ``s``, float or ``(D,)`` (``S = diag(s^2)``,
+        paper 002 eq. 13); required by ``"random_walk"``.
+
+    Returns
+    -------
+    state : ParticleState with ``x (B, N, K, D)`` ordered chain by chain (particles
+        ``c * N/C .. (c+1) * N/C - 1`` are chain c's kept states in order) and equal weights.
+    info : StepInfo with ``acceptance``: move name -> (B,) acceptance rate over all
+        iterations (burn-in included) of the chains that picked it (per target update for
+        ``"refine"``); NaN for a run where no chain ever picked the move.
+    """
+    check_generator(generator)
+    x_prev = state.x
+    b, n, k, d = x_prev.shape
+    pairs, scale = _check_settings(n, num_chains, burn_in, thinning, moves, rw_scale, d)
+    if state.exists is not None:
+        raise ValueError("state.exists must be None: MCMCFilter tracks a known number of targets")
+    if scale is not None:
+        scale = scale.to(device=x_prev.device, dtype=x_prev.dtype)
+    cloud = previous_cloud(x_prev, state.log_w)
+    template = x_prev.new_empty((b, num_chains, k, d))
+    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator), z,
+                        motion=motion, sensor=sensor)
+
+    per_chain = n // num_chains
+    acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
+    sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
+    kept = []
+    for m in range(1, burn_in + thinning * per_chain + 1):
+        noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator)
+        chain, accepted, selected = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion,
+                                                   sensor=sensor, moves=pairs, rw_scale=scale)
+        for name, _ in pairs:
+            acc_sum[name] = acc_sum[name] + accepted[name].sum(1)
+            sel_sum[name] = sel_sum[name] + selected[name].sum(1)
+        if m > burn_in and (m - burn_in) % thinning == 0:
+            kept.append(chain.x)
+    x = torch.stack(kept, dim=2).reshape(b, n, k, d)  # (B, C, N/C, K, D) -> chain-major (B, N, K, D)
+    log_w = x.new_full((b, n), -math.log(n))
+    acceptance = {name: acc_sum[name] / sel_sum[name] for name, _ in pairs}
+    return ParticleState(x, log_w), StepInfo(acceptance=acceptance)
+
+
+class MCMCFilter(Filter):
+    """Sequential MCMC-based particle filter for a known number of targets.
+
+    Parameters
+    ----------
+    motion : MotionModel applied to every target slot.
+    sensor : SensorModel; a ``log_likelihood_per_target`` or ``log_likelihood_delta``
+        method speeds up the per-target refinement (:mod:`torchmcmcpf.kernels.moves`).
+    num_particles : N >= 1, a multiple of ``num_chains``.
+    num_chains : C >= 1 chains per run, run in parallel; each keeps N / C samples.
+    burn_in : iterations discarded per chain and time step, >= 0.
+    thinning : keep every ``thinning``-th state after the burn-in, >= 1.
+    moves : ``"mixture"`` (default: joint draw w.p. 0.75, else a per-target refinement
+        sweep; paper 004), ``"joint"``, ``"random_walk"`` (paper 002), or a sequence of
+        ``(name, probability)`` pairs over ``"joint"``, ``"refine"``, ``"random_walk"``.
+    rw_scale : float or ``(D,)`` tensor, the random-walk step (needed by ``"random_walk"``).
+
+    Each time step runs ``burn_in + thinning * N / C`` iterations of every chain.
+
+    Example
+    -------
+    >>> filt = MCMCFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 500,
+    ...                   num_chains=50, burn_in=20, thinning=2)
+    >>> result = filt(z, init=x0, generator=torch.Generator().manual_seed(0))  # doctest: +SKIP
+    >>> result.info.acceptance["joint"].shape                                 # (T, B)
+    """
+
+    def __init__(
+        self,
+        motion: MotionModel,
+        sensor: SensorModel,
+        num_particles: int,
+        num_chains: int = 1,
+        *,
+        burn_in: int = 100,
+        thinning: int = 1,
+        moves: MoveSpec = "mixture",
+        rw_scale: Optional[Union[float, Tensor]] = None,
+    ):
+        super().__init__(motion, sensor)
+        self.moves, scale = _check_settings(num_particles, num_chains, burn_in, thinning, moves, rw_scale,
+                                            motion.dim)
+        self.num_particles, self.num_chains = num_particles, num_chains
+        self.burn_in, self.thinning = burn_in, thinning
+        self.register_buffer("rw_scale", scale)
+
+    def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
+             ) -> tuple[ParticleState, StepInfo]:
+        """One MCMC time step (see :func:`mcmc_step`); ``state.x`` is ``(B, N, K, D)``."""
+        return mcmc_step(
+            state, z, motion=self.motion, sensor=self.sensor, generator=generator,
+            num_chains=self.num_chains, burn_in=self.burn_in, thinning=self.thinning,
+            moves=self.moves, rw_scale=self.rw_scale,
+        )
+
+    def extra_repr(self) -> str:
+        return (f"num_particles={self.num_particles}, num_chains={self.num_chains}, burn_in={self.burn_in}, "
+                f"thinning={self.thinning}, moves={self.moves}")

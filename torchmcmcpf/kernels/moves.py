@@ -1,0 +1,459 @@
+"""MCMC moves of the sequential MCMC-based particle filter, batched over runs and chains.
+
+Target
+------
+At time k the chains sample the joint posterior of the multitarget state and its ancestor
+in the previous particle cloud (paper 001, "Target distribution"; paper 004 eq. 59-60):
+
+    ``pi(x_k, a) ∝ p(z_k | x_k) w_{k-1}^a p(x_k | x_{k-1}^a)``,    ``a in {1..N}``,
+
+whose ``x_k``-marginal is the approximate filtering density ``p(z_k | x_k) sum_a
+w^a p(x_k | x_{k-1}^a)`` (paper 002 eq. 11; the weights ``w^a`` are ``1/N`` after an MCMC
+step). A chain's state is :class:`ChainState`: the multitarget state ``x (B, C, K, D)``, its
+ancestor ``x_prev = x_{k-1}^a (B, C, K, D)`` and the cached log-likelihood.
+
+Moves (each leaves ``pi`` invariant)
+------------------------------------
+* ``joint``: draw ``a' ~ w`` and ``x' ~ p(. | x_{k-1}^{a'})`` for every target (paper 001
+  q1; paper 004 Alg. 1 without its auxiliary part, eq. 61 with ``P_a = 0``). The proposal is
+  the prior part of ``pi``, which cancels: ``alpha = p(z | x') / p(z | x)``.
+* ``refine``: MH-within-Gibbs over the targets (paper 001 Alg. 1; paper 004 Alg. 2): for slot
+  n, ``x'_n ~ p(. | x_{prev,n})`` given the chain's ancestor, other slots fixed; the transition
+  cancels again and ``alpha = p(z | x_{-n}, x'_n) / p(z | x)``. The ancestor does not move, so
+  ``refine`` alone is not irreducible: mix it with ``joint`` (paper 004 uses ``xi = 0.75``).
+* ``random_walk``: ``x' = x + s * eps`` on the joint state (paper 002 eq. 13, ``S =
+  diag(s^2)``), symmetric, so ``alpha`` is the ratio of ``p(z | x) sum_a w^a p(x | x^a)`` at
+  ``x'`` and ``x`` (eq. 14), the mixture prior summed over all N previous particles by
+  ``logsumexp``. The move acts on the ``x``-marginal; afterwards the ancestor is redrawn
+  from its full conditional ``p(a | x) ∝ w^a p(x | x^a)`` (a Gibbs step on ``a``), which keeps
+  the chain state a draw of ``pi`` so the move mixes freely with the two others.
+
+Each move has a pure ``propose_*`` function returning the proposal and its log ratio
+(everything of ``log alpha`` except the likelihood ratio: target prior times reverse over
+forward proposal density) and a ``*_move`` function that proposes, scores and accepts. All
+randomness comes in as pre-drawn noise (the ``*Noise.draw`` constructors take the explicit
+generator, in eager code), so a whole MCMC iteration can run under ``torch.compile``.
+
+Sensor hooks for the per-target refinement (optional, duck-typed)
+-----------------------------------------------------------------
+``refine`` recomputes only the likelihood terms that change where the sensor says how. A
+sensor may define one of:
+
+``log_likelihood_per_target(x, z) -> (B, *S, K)``
+    For sensors whose log-likelihood is a sum of per-target terms, term n depending on
+    ``x[..., n, :]`` only (targets do not interact, e.g. ``LinearGaussian`` with known
+    association); ``log_likelihood(x, z) == log_likelihood_per_target(x, z).sum(-1)``. The
+    chains cache the K terms (``ChainState.log_lik_terms``) and one call scores the
+    proposals of all K slots. The conditional of slot n then does not depend on the other
+    slots, so the K single-target updates of a Gibbs sweep are independent and run at once
+    (vectorised over K; given the same noise the result equals the sequential sweep's,
+    which is tested).
+
+``log_likelihood_delta(x, x_n, n, z) -> (B, *S)``
+    For sensors whose targets interact (radar TBD, where the amplitudes of nearby targets
+    add in a cell): ``log p(z | x with slot n set to x_n) - log p(z | x)`` with ``x (B, *S, K,
+    D)`` the current states, ``x_n (B, *S, D)`` the proposed state of slot n and ``n`` a
+    Python ``int`` (static under ``torch.compile``). It should evaluate only the cells near
+    the old and the new position of slot n (with the other slots' contributions in those
+    cells), equal the difference of two ``log_likelihood`` calls to within round-off
+    (ideally within the same stated tolerance as the sensor's windowed path), be finite
+    wherever both are, and be pure (no ``.item()``, no data-dependent Python branching).
+    The sweep is then sequential over the K slots: slot n sees the accepted updates of
+    slots ``< n`` (a Python loop over K, the only loop over targets in this module, needed
+    because each update's acceptance depends on the previous ones).
+
+Without either, the sweep is sequential and scores each slot's proposal by a full
+``log_likelihood`` call (exact; K full evaluations per sweep).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional
+
+import torch
+
+from ..models.base import MotionModel, SensorModel
+from ..models.motion import LinearGaussianMotion
+from ..resampling import gather_particles
+from ..typing import Measurement, Tensor
+from .mh import mh_accept, mh_select
+
+__all__ = [
+    "MOVES",
+    "ChainState",
+    "PreviousCloud",
+    "JointNoise",
+    "RefineNoise",
+    "RandomWalkNoise",
+    "previous_cloud",
+    "evaluate",
+    "init_chains",
+    "propose_joint",
+    "joint_move",
+    "propose_refine",
+    "refine_move",
+    "log_transition",
+    "propose_random_walk",
+    "random_walk_move",
+]
+
+#: Names of the primitive moves.
+MOVES = ("joint", "refine", "random_walk")
+
+#: Elements of one ``(B, C, n, K, D)`` chunk in :func:`log_transition` (bounds its memory).
+_CHUNK_ELEMENTS = 1 << 22
+
+
+class ChainState(NamedTuple):
+    """The state of C chains in each of B runs.
+
+    Attributes
+    ----------
+    x : (B, C, K, D)
+        Multitarget state at time k.
+    x_prev : (B, C, K, D)
+        Its ancestor ``x_{k-1}^a`` in the previous particle cloud.
+    log_lik : (B, C)
+        ``sensor.log_likelihood(x, z)``.
+    log_lik_terms : (B, C, K), optional
+        Per-target terms of ``log_lik`` for sensors with ``log_likelihood_per_target``;
+        ``None`` otherwise.
+    """
+
+    x: Tensor
+    x_prev: Tensor
+    log_lik: Tensor
+    log_lik_terms: Optional[Tensor] = None
+
+
+class PreviousCloud(NamedTuple):
+    """The particle approximation of ``p(x_{k-1} | z_{1:k-1})`` that the target mixes over.
+
+    Attributes
+    ----------
+    x : (B, N, K, D) particles.
+    log_w : (B, N) normalised log-weights (``-log N`` after an MCMC step).
+    cdf : (B, N) float64 cumulative weights, last entry exactly 1 (ancestor draws by
+        inversion, ``searchsorted``).
+    """
+
+    x: Tensor
+    log_w: Tensor
+    cdf: Tensor
+
+
+def previous_cloud(x: Tensor, log_w: Tensor) -> PreviousCloud:
+    """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)`` and ``log_w (B, N)``."""
+    w = torch.softmax(log_w.to(torch.float64), dim=-1)
+    cdf = torch.cumsum(w, dim=-1)
+    cdf = torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
+    return PreviousCloud(x, log_w, cdf)
+
+
+def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
+    """Ancestor indices ``(B, C)`` with ``P(a) = w^a``, by inversion of uniforms ``u (B, C)``."""
+    idx = torch.searchsorted(cloud.cdf, u.to(torch.float64).contiguous(), right=True)
+    return idx.clamp_(max=cloud.cdf.shape[-1] - 1)
+
+
+def _uniform(shape, x: Tensor, generator: torch.Generator) -> Tensor:
+    return torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
+
+
+def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
+    return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
+
+
+class JointNoise(NamedTuple):
+    """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
+    K, noise_dim)`` standard normals (the transition noise of every target)."""
+
+    u_ancestor: Tensor
+    eps: Tensor
+    u: Tensor
+
+    @classmethod
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> "JointNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``)."""
+        b, c, k, _ = x.shape
+        return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
+                   _uniform((b, c), x, generator))
+
+
+class RefineNoise(NamedTuple):
+    """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
+    slot) and ``u (B, C, K)`` uniforms (one accept/reject per slot)."""
+
+    eps: Tensor
+    u: Tensor
+
+    @classmethod
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> "RefineNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)``."""
+        b, c, k, _ = x.shape
+        return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator))
+
+
+class RandomWalkNoise(NamedTuple):
+    """Noise of one random-walk move: ``eps (B, C, K, D)`` normals, ``u (B, C)`` uniforms for
+    the accept/reject and ``u_ancestor (B, C)`` for the Gibbs redraw of the ancestor."""
+
+    eps: Tensor
+    u: Tensor
+    u_ancestor: Tensor
+
+    @classmethod
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> "RandomWalkNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)``."""
+        b, c = x.shape[:2]
+        return cls(_normal(x.shape, x, generator), _uniform((b, c), x, generator), _uniform((b, c), x, generator))
+
+
+# -- likelihood ------------------------------------------------------------------------------
+def _separable(sensor: SensorModel) -> bool:
+    return callable(getattr(sensor, "log_likelihood_per_target", None))
+
+
+def evaluate(x: Tensor, z: Measurement, sensor: SensorModel) -> tuple[Tensor, Optional[Tensor]]:
+    """Log-likelihood of chain states, with per-target terms when the sensor has them.
+
+    Parameters
+    ----------
+    x : (B, C, K, D); z : one frame per run (B, *G); sensor : the SensorModel.
+
+    Returns
+    -------
+    log_lik : (B, C).
+    log_lik_terms : (B, C, K), or ``None`` for a sensor without ``log_likelihood_per_target``.
+    """
+    if _separable(sensor):
+        terms = sensor.log_likelihood_per_target(x, z)
+        return terms.sum(-1), terms
+    return sensor.log_likelihood(x, z), None
+
+
+# -- joint draw ------------------------------------------------------------------------------
+def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionModel
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """Joint draw (paper 001 q1; paper 004 Alg. 1 steps 1 and 4): an ancestor ``a' ~ w``
+    per chain, then every target moved by the transition.
+
+    Parameters
+    ----------
+    cloud : the previous particles ``(B, N, K, D)``.
+    noise : :class:`JointNoise` for ``(B, C)`` chains.
+    motion : MotionModel.
+
+    Returns
+    -------
+    x : (B, C, K, D) proposed states ``x' ~ p(. | x_{k-1}^{a'})``.
+    x_prev : (B, C, K, D) their ancestors ``x_{k-1}^{a'}``.
+    log_ratio : (B, C) zeros: ``q(x', a') = w^{a'} p(x' | x^{a'})`` equals the prior part of
+        ``pi``, so prior and proposal cancel (paper 004 eq. 60 with ``P_a = 0``).
+    """
+    x_prev = gather_particles(cloud.x, _draw_ancestors(cloud, noise.u_ancestor))
+    x = motion.propagate(x_prev, noise.eps)
+    return x, x_prev, torch.zeros_like(noise.u)
+
+
+def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, motion: MotionModel,
+                sensor: SensorModel) -> ChainState:
+    """Start each chain from a previous particle drawn by weight and moved by the prior
+    (paper 002, "MCMC-based PF-TBD steps" 1): one joint-draw proposal, always kept.
+
+    Parameters
+    ----------
+    cloud : previous particles ``(B, N, K, D)``; noise : :class:`JointNoise` for ``(B, C)``
+    chains (its ``u`` is unused); z : frame ``(B, *G)``; motion, sensor : the models.
+
+    Returns
+    -------
+    ChainState with ``x (B, C, K, D)``.
+    """
+    x, x_prev, _ = propose_joint(cloud, noise, motion=motion)
+    return ChainState(x, x_prev, *evaluate(x, z, sensor))
+
+
+def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z: Measurement,
+               motion: MotionModel, sensor: SensorModel) -> tuple[ChainState, Tensor]:
+    """One joint-draw Metropolis-Hastings step (paper 004 Alg. 1, eq. 60).
+
+    Parameters
+    ----------
+    chain : ChainState ``(B, C, K, D)``; noise : :class:`JointNoise`; cloud : previous
+    particles; z : frame ``(B, *G)``; motion, sensor : the models.
+
+    Returns
+    -------
+    chain : the new ChainState.
+    accepted : (B, C) bool.
+    """
+    x, x_prev, log_ratio = propose_joint(cloud, noise, motion=motion)
+    log_lik, terms = evaluate(x, z, sensor)
+    accepted = mh_accept(log_lik - chain.log_lik + log_ratio, noise.u)
+    return mh_select(accepted, ChainState(x, x_prev, log_lik, terms), chain), accepted
+
+
+# -- per-target refinement -------------------------------------------------------------------
+def propose_refine(x_prev: Tensor, eps: Tensor, *, motion: MotionModel) -> tuple[Tensor, Tensor]:
+    """Per-target proposals from the transition given the chain's ancestor (paper 001 Alg. 1
+    step 6; paper 004 Alg. 2 step 7): ``x'_n ~ p(. | x_{prev,n})`` for every slot n at once.
+
+    The proposal of slot n depends on ``x_prev`` only, which the sweep does not change, so
+    all K proposals can be drawn before the sweep.
+
+    Parameters
+    ----------
+    x_prev : (B, C, K, D) the chains' ancestors; eps : (B, C, K, noise_dim) normals.
+
+    Returns
+    -------
+    x : (B, C, K, D), slot n holding the proposal for target n.
+    log_ratio : (B, C, K) zeros: the proposal is the transition factor of ``pi``'s conditional
+        for slot n, which cancels (paper 004 eq. 66).
+    """
+    x = motion.propagate(x_prev, eps)
+    return x, torch.zeros_like(x[..., 0])
+
+
+def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion: MotionModel,
+                sensor: SensorModel) -> tuple[ChainState, Tensor]:
+    """One MH-within-Gibbs sweep over the K targets (paper 004 Alg. 2; paper 001 Alg. 1).
+
+    Vectorised over K for sensors with ``log_likelihood_per_target``; sequential over K
+    (``log_likelihood_delta`` or full re-evaluation) otherwise: see the module docstring.
+
+    Parameters
+    ----------
+    chain : ChainState ``(B, C, K, D)``; noise : :class:`RefineNoise`; z : frame ``(B, *G)``;
+    motion, sensor : the models.
+
+    Returns
+    -------
+    chain : the new ChainState (ancestor unchanged).
+    accepted : (B, C, K) bool, one flag per target update.
+    """
+    x_prop, log_ratio = propose_refine(chain.x_prev, noise.eps, motion=motion)
+    if chain.log_lik_terms is not None:
+        terms_prop = sensor.log_likelihood_per_target(x_prop, z)
+        accepted = mh_accept(terms_prop - chain.log_lik_terms + log_ratio, noise.u)
+        x = mh_select(accepted, x_prop, chain.x)
+        terms = torch.where(accepted, terms_prop, chain.log_lik_terms)
+        return ChainState(x, chain.x_prev, terms.sum(-1), terms), accepted
+
+    delta_fn = getattr(sensor, "log_likelihood_delta", None)
+    x, log_lik = chain.x, chain.log_lik
+    slots = torch.arange(x.shape[-2], device=x.device)
+    flags = []
+    for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)
+        x_cand = torch.where((slots == n).unsqueeze(-1), x_prop, x)
+        if callable(delta_fn):
+            delta = delta_fn(x, x_prop[..., n, :], n, z)
+            log_lik_cand = log_lik + delta
+        else:
+            log_lik_cand = sensor.log_likelihood(x_cand, z)
+            delta = log_lik_cand - log_lik
+        acc = mh_accept(delta + log_ratio[..., n], noise.u[..., n])
+        x = mh_select(acc, x_cand, x)
+        log_lik = torch.where(acc, log_lik_cand, log_lik)
+        flags.append(acc)
+    return ChainState(x, chain.x_prev, log_lik, None), torch.stack(flags, dim=-1)
+
+
+# -- random walk on the joint state ----------------------------------------------------------
+def log_transition(x: Tensor, prev_x: Tensor, *, motion: MotionModel) -> Tensor:
+    """Joint log transition density from every previous particle to every chain state,
+    ``sum_k log p(x_k | x_{k-1,k}^i)``.
+
+    For a :class:`~torchmcmcpf.models.LinearGaussianMotion` the density is a Gaussian in
+    whitened coordinates, ``log N(x; F x^i, Q) = c - |L^-1 x - L^-1 F x^i|^2 / 2``: both sides
+    are whitened once and ``torch.cdist`` (direct differences, no ``|a|^2 - 2ab + |b|^2``
+    cancellation) gives all ``(C, N)`` distances without a ``(B, C, N, K, D)`` intermediate
+    (100x faster than the generic path at ``C = 40, N = 200``). Any other motion goes through
+    ``motion.log_prob`` in chunks of previous particles, each holding about
+    ``_CHUNK_ELEMENTS`` elements of ``(B, C, n, K, D)`` (a memory bound: one chunk for small
+    problems).
+
+    Parameters
+    ----------
+    x : (B, C, K, D) chain states; prev_x : (B, N, K, D) previous particles.
+
+    Returns
+    -------
+    (B, C, N).
+    """
+    b, c, k, d = x.shape
+    n = prev_x.shape[1]
+    if isinstance(motion, LinearGaussianMotion):
+        L = motion.L.to(x.dtype)
+        L_inv = torch.linalg.solve_triangular(L, torch.eye(d, dtype=x.dtype, device=x.device), upper=False)
+        log_norm = -0.5 * d * math.log(2 * math.pi) - torch.log(torch.diagonal(L)).sum()
+        white = (x @ L_inv.mT).flatten(2)
+        white_prev = (motion.mean(prev_x) @ L_inv.mT).flatten(2)
+        dist = torch.cdist(white, white_prev, compute_mode="donot_use_mm_for_euclid_dist")
+        return k * log_norm - 0.5 * dist.square()
+    step = max(1, _CHUNK_ELEMENTS // max(1, b * c * k * d))
+    out = []
+    for i in range(0, n, step):
+        p = prev_x[:, i:i + step]
+        shape = (b, c, p.shape[1], k, d)
+        out.append(motion.log_prob(x.unsqueeze(2).expand(shape), p.unsqueeze(1).expand(shape)).sum(-1))
+    return torch.cat(out, dim=-1)
+
+
+def propose_random_walk(x: Tensor, eps: Tensor, scale: Tensor, *, cloud: PreviousCloud,
+                        motion: MotionModel) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gaussian random walk on the joint state (paper 002 eq. 13) and its log ratio (eq. 14
+    without the likelihood).
+
+    Parameters
+    ----------
+    x : (B, C, K, D) current states; eps : (B, C, K, D) normals.
+    scale : (D,) or scalar tensor, the per-component step ``s`` (``S = diag(s^2)``).
+    cloud : previous particles ``(B, N, K, D)`` with log-weights ``(B, N)``.
+
+    Returns
+    -------
+    x_prop : (B, C, K, D) ``x + s * eps``.
+    log_ratio : (B, C) ``log sum_i w^i p(x' | x^i) - log sum_i w^i p(x | x^i)`` (the
+        proposal is symmetric).
+    log_joint_prop, log_joint_cur : (B, C, N) ``log w^i + log p(. | x^i)`` at ``x'`` and ``x``
+        (the ancestors' full conditionals, reused by :func:`random_walk_move`).
+    """
+    x_prop = x + scale * eps
+    lt = log_transition(torch.cat([x, x_prop], dim=1), cloud.x, motion=motion)
+    lt = lt + cloud.log_w.unsqueeze(1).to(lt.dtype)
+    log_joint_cur, log_joint_prop = lt.chunk(2, dim=1)
+    log_ratio = torch.logsumexp(log_joint_prop, -1) - torch.logsumexp(log_joint_cur, -1)
+    return x_prop, log_ratio, log_joint_prop, log_joint_cur
+
+
+def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: PreviousCloud,
+                     z: Measurement, motion: MotionModel, sensor: SensorModel, scale: Tensor
+                     ) -> tuple[ChainState, Tensor]:
+    """One random-walk MH step on ``x`` (paper 002 eqs. 13-14), then a Gibbs redraw of the
+    ancestor from ``p(a | x) ∝ w^a p(x | x^a)``.
+
+    Parameters
+    ----------
+    chain : ChainState ``(B, C, K, D)``; noise : :class:`RandomWalkNoise`; cloud : previous
+    particles; z : frame ``(B, *G)``; motion, sensor : the models; scale : (D,) or scalar
+    random-walk step.
+
+    Returns
+    -------
+    chain : the new ChainState.
+    accepted : (B, C) bool.
+    """
+    x_prop, log_ratio, lj_prop, lj_cur = propose_random_walk(chain.x, noise.eps, scale, cloud=cloud,
+                                                             motion=motion)
+    log_lik, terms = evaluate(x_prop, z, sensor)
+    accepted = mh_accept(log_lik - chain.log_lik + log_ratio, noise.u)
+    new = mh_select(accepted, ChainState(x_prop, chain.x_prev, log_lik, terms), chain)
+    # Gibbs step on the ancestor: inversion of the conditional's CDF with one uniform per chain.
+    lj = torch.where(accepted.unsqueeze(-1), lj_prop, lj_cur)
+    cdf = torch.cumsum(torch.softmax(lj.to(torch.float64), dim=-1), dim=-1)
+    u = noise.u_ancestor.to(torch.float64).unsqueeze(-1) * cdf[..., -1:]
+    idx = torch.searchsorted(cdf, u.contiguous(), right=True).clamp_(max=cdf.shape[-1] - 1)
+    return new._replace(x_prev=gather_particles(cloud.x, idx.squeeze(-1))), accepted
