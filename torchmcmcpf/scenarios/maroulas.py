@@ -1,0 +1,297 @@
+"""The multi-target scenario of Maroulas and Stinis (2010, paper 003, sec. 2), batched over runs.
+
+- Motion (eqs. 11-13): ``x_t = A x_{t-1} + B v_t``, ``v ~ N(0, diag(s_x^2, s_y^2))``,
+  ``T = 1``, ``s_x^2 = s_y^2 = 1``: :class:`WhiteAccelerationMotion`.
+- Targets: ``K_t = 2, 2, 1, 2, 3`` for ``t = 0..4``, then 4 up to ``t = 200``; newborn
+  positions ``U[-100, 100]^2``, velocities ``U[-1, 1]^2``.
+- Observations: one per target, no clutter, shuffled (unknown association); linear
+  position with ``s_obs^2 = 1`` (eqs. 14, 16) or bearing-range with ``s_theta^2 = 1e-4``,
+  ``s_r^2 = 1`` (eqs. 15, 17).
+
+Design for the known, time-varying number of targets (the paper's filter knows K_t): the
+state has ``K_max = 4`` slots and an ``exists (B, N, K)`` mask dictated by the scenario's
+schedule ``alive (T+1, K)``. Slot 0 lives throughout; slot 1 holds the second initial
+target (t = 0, 1), dies at t = 2 and is reused by the target born at t = 3; slots 2 and 3
+are born at t = 4 and t = 5. :func:`track` runs a filter over the scenario: before each
+step the slots that died are switched off; after it, the newborn slots get particles
+from the birth density. Birth density (paper 003 sec. 2: "the perturbed bearing and range
+were transformed back to xy space to create the position of the newborn target"): per
+particle, the newborn's own measurement perturbed by the measurement noise and mapped to
+xy, and a velocity ``U[-1, 1]^2``. Which measurement belongs to the newborn is taken from
+the simulation (the paper's filter is told about births as well); every later
+association is unknown to the filter.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+
+from .._validation import check_generator, check_positive, check_positive_int
+from ..filters.base import Filter
+from ..models.base import MotionModel
+from ..models.sensors.association import (
+    AssociationBearingRange,
+    AssociationPosition,
+    AssociationSensor,
+    PointFrame,
+    shuffle,
+)
+from ..state import ParticleState
+from ..typing import Tensor, VX, VY, X, Y
+
+__all__ = [
+    "WhiteAccelerationMotion",
+    "MaroulasData",
+    "target_counts",
+    "alive_schedule",
+    "paper_sensor",
+    "simulate",
+    "birth_particles",
+    "track",
+    "TrackResult",
+    "rmse_per_target",
+    "OBSERVATIONS",
+    "K_MAX",
+]
+
+K_MAX = 4
+OBSERVATIONS = ("linear", "bearing_range")
+
+
+class WhiteAccelerationMotion(MotionModel):
+    """2-D nearly constant velocity with a piecewise constant white acceleration.
+
+    Paper 003 eqs. 11-13: ``x_t = A x_{t-1} + B v_t``, state ``[x, vx, y, vy]``,
+    ``A = diag(F1, F1)``, ``F1 = [[1, T], [0, 1]]``, ``B = [[T^2/2, 0], [T, 0], [0, T^2/2],
+    [0, T]]``, ``v ~ N(0, diag(s_x^2, s_y^2))``. The noise is 2-D (``noise_dim = 2``), so
+    the 4-D transition density is singular and ``log_prob`` is not defined; filters use
+    ``propagate`` (the HMC move of paper 003 acts on its noise).
+
+    Parameters
+    ----------
+    dt : T > 0 (paper: 1).
+    sigma : ``(s_x, s_y)`` acceleration standard deviations, or one float for both
+        (paper: 1).
+    """
+
+    def __init__(self, dt: float = 1.0, sigma=1.0):
+        super().__init__()
+        check_positive(dt, "dt")
+        s = torch.as_tensor(sigma, dtype=torch.get_default_dtype()).expand(2).clone()
+        for i, v in enumerate(s.tolist()):
+            check_positive(v, f"sigma[{i}]")
+        f1 = torch.tensor([[1.0, dt], [0.0, 1.0]])
+        g1 = torch.tensor([[dt**2 / 2], [dt]])
+        self.register_buffer("A", torch.block_diag(f1, f1))
+        self.register_buffer("G", torch.block_diag(g1 * s[0], g1 * s[1]))  # B sigma, (4, 2)
+        self.dim, self.noise_dim, self.dt = 4, 2, float(dt)
+
+    def mean(self, x: Tensor) -> Tensor:
+        """``A x``: ``(*S, K, 4) -> (*S, K, 4)``."""
+        return x @ self.A.to(x.dtype).mT
+
+    def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
+        """``A x + B sigma eps``: ``(*S, K, 4), (*S, K, 2) -> (*S, K, 4)``."""
+        return self.mean(x) + eps @ self.G.to(x.dtype).mT
+
+    def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
+        raise NotImplementedError("the transition of paper 003 eq. 11 is rank 2 in 4-D: no density")
+
+    def extra_repr(self) -> str:
+        return f"dt={self.dt}"
+
+
+def target_counts(num_steps: int) -> list[int]:
+    """``K_t`` for ``t = 0..num_steps``: 2, 2, 1, 2, 3, 4, 4, ... (paper 003 sec. 2)."""
+    return alive_schedule(num_steps).sum(-1).tolist()
+
+
+def alive_schedule(num_steps: int) -> Tensor:
+    """``(num_steps + 1, K_MAX)`` bool: which slot holds a target at each time (module doc)."""
+    t = torch.arange(num_steps + 1).unsqueeze(-1)
+    return torch.cat([t >= 0, (t <= 1) | (t >= 3), t >= 4, t >= 5], -1)
+
+
+def paper_sensor(observation: str) -> AssociationSensor:
+    """The sensor of paper 003: ``"linear"`` (eq. 14, s_obs = 1) or ``"bearing_range"``
+    (eq. 15, s_theta = 1e-2, s_r = 1)."""
+    if observation == "linear":
+        return AssociationPosition(1.0)
+    if observation == "bearing_range":
+        return AssociationBearingRange(1e-2, 1.0)
+    raise ValueError(f"observation must be one of {OBSERVATIONS}, got {observation!r}")
+
+
+class MaroulasData(NamedTuple):
+    """A simulated scenario.
+
+    Attributes
+    ----------
+    x : (T+1, B, K, 4) true states (meaningless where ``alive`` is False).
+    alive : (T+1, B, K) bool.
+    frames : ``PointFrame(z (T+1, B, K, d), mask (T+1, B, K))``, shuffled per run and time.
+    z_slot : (T+1, B, K, d) the same measurements in slot order (for births and plots).
+    """
+
+    x: Tensor
+    alive: Tensor
+    frames: PointFrame
+    z_slot: Tensor
+
+
+def _uniform(shape, low, high, *, generator, dtype, device):
+    return low + (high - low) * torch.rand(shape, generator=generator, dtype=dtype, device=device)
+
+
+def _new_targets(shape, *, generator, dtype, device) -> Tensor:
+    """Positions ``U[-100, 100]^2``, velocities ``U[-1, 1]^2``: ``(*shape, 4)``."""
+    pos = _uniform(shape + (2,), -100.0, 100.0, generator=generator, dtype=dtype, device=device)
+    vel = _uniform(shape + (2,), -1.0, 1.0, generator=generator, dtype=dtype, device=device)
+    return torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
+
+
+def simulate(
+    num_runs: int,
+    num_steps: int = 200,
+    *,
+    sensor: AssociationSensor,
+    generator: torch.Generator,
+    motion: Optional[MotionModel] = None,
+    dtype: torch.dtype = torch.float64,
+    device=None,
+) -> MaroulasData:
+    """Simulate ``num_runs`` independent realisations of the paper-003 scenario.
+
+    Parameters
+    ----------
+    num_runs : B >= 1.
+    num_steps : T >= 0; times ``0..T`` (the paper: T = 200).
+    sensor : :func:`paper_sensor` ``("linear")`` or ``("bearing_range")``.
+    generator : source of randomness.
+    motion : default ``WhiteAccelerationMotion()`` (T = 1, s = 1).
+    dtype, device : of the returned tensors.
+
+    Returns
+    -------
+    :class:`MaroulasData`.
+    """
+    check_positive_int(num_runs, "num_runs")
+    check_positive_int(num_steps, "num_steps", minimum=0)
+    check_generator(generator)
+    if not isinstance(sensor, AssociationSensor):
+        raise ValueError(f"sensor must be an AssociationSensor, got {type(sensor).__name__}")
+    motion = motion or WhiteAccelerationMotion().to(device)
+    alive = alive_schedule(num_steps).to(device).unsqueeze(1).expand(-1, num_runs, -1)
+    xs, frames, z_slot = [], [], []
+    x = _new_targets((num_runs, K_MAX), generator=generator, dtype=dtype, device=device)
+    for t in range(num_steps + 1):
+        if t > 0:
+            x = motion.sample(x, generator=generator)
+            born = alive[t] & ~alive[t - 1]
+            fresh = _new_targets((num_runs, K_MAX), generator=generator, dtype=dtype, device=device)
+            x = torch.where(born.unsqueeze(-1), fresh, x)
+        zs = sensor.measure_noisy(x, generator=generator)
+        frames.append(shuffle(zs, alive[t], generator=generator))
+        xs.append(x)
+        z_slot.append(zs)
+    return MaroulasData(
+        x=torch.stack(xs),
+        alive=alive,
+        frames=PointFrame(torch.stack([f.z for f in frames]), torch.stack([f.mask for f in frames])),
+        z_slot=torch.stack(z_slot),
+    )
+
+
+def birth_particles(sensor: AssociationSensor, z: Tensor, num_particles: int, *,
+                    generator: torch.Generator) -> Tensor:
+    """Birth density (module docstring): ``z (B, K, d) -> particles (B, N, K, 4)``.
+
+    Per particle: ``z + w``, ``w ~ N(0, diag(noise_std^2))``, mapped to xy by
+    ``sensor.to_position``; velocity ``U[-1, 1]^2``.
+    """
+    b, k, d = z.shape
+    w = torch.randn((b, num_particles, k, d), generator=generator, dtype=z.dtype, device=z.device)
+    pos = sensor.to_position(z.unsqueeze(1) + w * sensor.noise_std.to(z.dtype))
+    vel = _uniform((b, num_particles, k, 2), -1.0, 1.0, generator=generator, dtype=z.dtype, device=z.device)
+    return torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
+
+
+class TrackResult(NamedTuple):
+    """What :func:`track` returns.
+
+    Attributes
+    ----------
+    mean : (T+1, B, K, 4) estimates (time 0: the mean of the initial cloud).
+    ess : (T, B) effective sample size of each step's weights.
+    acceptance : (T, B) HMC acceptance, or None for filters without a move.
+    """
+
+    mean: Tensor
+    ess: Tensor
+    acceptance: Optional[Tensor]
+
+
+def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
+          progress: bool = False) -> TrackResult:
+    """Run ``filt`` over a simulated scenario with the scenario's births and deaths.
+
+    Parameters
+    ----------
+    filt : a Filter whose sensor is an AssociationSensor (e.g. ResampleMoveFilter, or
+        SIRFilter).
+    data : from :func:`simulate`.
+    generator : source of randomness.
+    progress : tqdm bar over time.
+
+    Returns
+    -------
+    :class:`TrackResult`.
+    """
+    check_generator(generator)
+    n = filt.num_particles
+    alive = data.alive
+    sensor = filt.sensor
+    x0 = birth_particles(sensor, data.z_slot[0], n, generator=generator)
+    x0 = torch.where(alive[0].unsqueeze(1).unsqueeze(-1), x0, torch.zeros_like(x0))
+    state = filt.init(x0, alive[0].unsqueeze(1).expand(-1, n, -1))
+    means, esss, accs = [state.mean()], [], []
+    steps = range(1, alive.shape[0])
+    if progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc=type(filt).__name__, leave=False)
+    for t in steps:
+        state = state._replace(exists=state.exists & alive[t].unsqueeze(1))  # deaths
+        frame = PointFrame(data.frames.z[t], data.frames.mask[t])
+        state, info = filt.step(state, frame, generator=generator)
+        born = alive[t] & ~alive[t - 1]  # (B, K), the same for every run
+        if bool(born.any()):
+            xb = birth_particles(sensor, data.z_slot[t], n, generator=generator)
+            bn = born.unsqueeze(1)
+            state = ParticleState(torch.where(bn.unsqueeze(-1), xb, state.x), state.log_w, state.exists | bn)
+        means.append(filt.estimate(state))
+        esss.append(info.ess)
+        if info.acceptance is not None:
+            accs.append(info.acceptance["hmc"])
+    return TrackResult(torch.stack(means), torch.stack(esss), torch.stack(accs) if accs else None)
+
+
+def rmse_per_target(mean: Tensor, x_true: Tensor, alive: Tensor) -> Tensor:
+    """RMS error per target, paper 003 eq. 31, over position and velocity.
+
+    ``RMSE(t) = sqrt(1/K_t sum_k ||x_{k,t} - E[x_{k,t} | Z_1..Z_t]||^2)``, the norm over
+    ``[x, vx, y, vy]``.
+
+    Parameters
+    ----------
+    mean, x_true : (T, B, K, 4); alive : (T, B, K) bool.
+
+    Returns
+    -------
+    (T, B).
+    """
+    sq = (mean - x_true)[..., [X, VX, Y, VY]].square().sum(-1)
+    a = alive.to(sq.dtype)
+    return torch.sqrt((sq * a).sum(-1) / a.sum(-1).clamp(min=1))
