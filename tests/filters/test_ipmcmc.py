@@ -1,0 +1,169 @@
+"""IP-MCMC-PF (paper 000 Alg. 1-2): exact invariance of the exchange move, R-hat driven
+extensions, agreement with the Kalman filter for one target, determinism, bad input."""
+
+import math
+
+import pytest
+import torch
+
+from _kalman import kalman_filter
+from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, draw_exchange_noise, exchange_iteration
+from torchmcmcpf.models.motion import ConstantVelocity, LinearGaussianMotion
+from torchmcmcpf.models.sensors.linear import LinearGaussian
+
+DT = torch.float64
+
+
+def _scalar_models(q, r):
+    motion = LinearGaussianMotion(torch.eye(1, dtype=DT), q * torch.eye(1, dtype=DT))
+    sensor = LinearGaussian(torch.eye(1, dtype=DT), r * torch.eye(1, dtype=DT))
+    return motion, sensor
+
+
+def _factorised_posterior(x_prev, z, q, r):
+    """Exact moments of pi(y) ∝ prod_j N(z_j; y_j, r) (1/N) sum_i N(y_j; x^i_j, q), per slot.
+
+    Per slot a Gaussian mixture: component i has weight ∝ N(z_j; x^i_j, q + r), mean
+    (r x^i_j + q z_j) / (q + r) and variance q r / (q + r).
+    Returns (B, K) mean and variance, and the component weights/means for sampling.
+    """
+    xp = x_prev[..., 0]  # (B, N, K)
+    zz = z[..., 0].unsqueeze(1)  # (B, 1, K)
+    log_w = -0.5 * (zz - xp) ** 2 / (q + r)
+    w = torch.softmax(log_w, dim=1)
+    mu = (r * xp + q * zz) / (q + r)
+    v = q * r / (q + r)
+    mean = (w * mu).sum(1)
+    var = (w * (v + mu**2)).sum(1) - mean**2
+    return mean, var, w, mu, v
+
+
+def _check_moments(samples, mean, var, n_sigma=4.5):
+    """samples (M, B, K) independent draws; mean/var (B, K) exact.
+
+    MC errors of M independent samples: sd(sample mean) = sqrt(var / M);
+    sd(sample variance) = sqrt((mu4 - var^2) / M) with mu4 the (empirical) fourth central
+    moment. n_sigma = 4.5 over 2 x B x K checks keeps the false-alarm rate below 1e-4.
+    """
+    m = samples.shape[0]
+    s_mean = samples.mean(0)
+    s_var = samples.var(0)
+    mu4 = ((samples - s_mean) ** 4).mean(0)
+    assert ((s_mean - mean).abs() <= n_sigma * (var / m).sqrt()).all(), (s_mean, mean)
+    assert ((s_var - var).abs() <= n_sigma * ((mu4 - var**2) / m).sqrt()).all(), (s_var, var)
+
+
+@pytest.mark.parametrize("start", ["target", "prior"])
+def test_exchange_move_targets_factorised_posterior(gen, start):
+    # K = 2 slots, N = 3 previous particles per run, B = 2 runs with different z; the
+    # previous cloud couples the slots (particle i carries both), the target factorises.
+    q, r = 1.0, 1.0
+    motion, sensor = _scalar_models(q, r)
+    x_prev = torch.tensor([[[-2.0, 3.0], [0.0, 0.5], [1.5, -1.0]],
+                           [[4.0, 0.0], [-1.0, 2.0], [0.5, 0.5]]], dtype=DT).unsqueeze(-1)  # (2, 3, 2, 1)
+    z = torch.tensor([[1.0, 0.0], [-0.5, 2.5]], dtype=DT).unsqueeze(-1)  # (2, 2, 1)
+    mean, var, w, mu, v = _factorised_posterior(x_prev, z, q, r)
+    b, n, k, _ = x_prev.shape
+    c = 6000  # independent chains; the final states are M = C independent samples
+    if start == "target":  # invariance: start exactly in pi, a few iterations
+        comp = torch.multinomial(w.permute(0, 2, 1).reshape(b * k, n), c, replacement=True, generator=gen)
+        comp = comp.reshape(b, k, c).permute(0, 2, 1)  # (B, C, K)
+        centre = torch.take_along_dim(mu, comp, dim=1)
+        y = centre + math.sqrt(v) * torch.randn(b, c, k, generator=gen, dtype=DT)
+        iters = 6
+    else:  # convergence: start in the prior mixture, run long enough to forget it
+        # pi / m_j = p(z|y) / p(z) <= 2.3 here, so the independence sampler of each slot
+        # forgets its start geometrically, at rate <= 1 - 1/2.3 per update of the slot;
+        # 60 iterations give ~30 updates per slot: (0.57)^30 ~ 5e-8.
+        src = torch.randint(n, (b, c, k), generator=gen)
+        y = torch.take_along_dim(x_prev[..., 0], src, dim=1) + math.sqrt(q) * torch.randn(b, c, k, generator=gen, dtype=DT)
+        iters = 60
+    y = y.unsqueeze(-1)
+    ll = sensor.log_likelihood(y, z)
+    noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), iters, c, k, 1, generator=gen, dtype=DT)
+    acc = 0.0
+    for t in range(iters):
+        y, ll, a = exchange_iteration(y, ll, x_prev, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t],
+                                      motion=motion, sensor=sensor)
+        acc += a.double().mean().item() / iters
+    assert 0.2 < acc < 0.95  # the chains really move (an always-reject kernel is invariant too)
+    torch.testing.assert_close(ll, sensor.log_likelihood(y, z))  # cached log-likelihoods stay exact
+    _check_moments(y[..., 0].permute(1, 0, 2), mean, var)
+
+
+def _lg_problem(gen, b=40, steps=4, sigma=4.0):
+    motion = ConstantVelocity(1.0, q=1.0).to(DT)
+    sensor = LinearGaussian.position(sigma).to(DT)
+    m0 = torch.tensor([0.0, 5.0, 0.0, -3.0], dtype=DT).expand(b, 1, 4)
+    P0 = torch.diag(torch.tensor([25.0, 1.0, 25.0, 1.0], dtype=DT))
+    x = m0 + torch.randn(b, 1, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    zs = []
+    for _ in range(steps):
+        x = motion.sample(x, generator=gen)
+        zs.append(sensor.simulate(x, generator=gen))
+    return motion, sensor, m0, P0, torch.stack(zs)
+
+
+def test_ipmcmc_matches_kalman_single_target(gen):
+    # One target: the factorised prior is the exact prediction of the particle cloud, so the
+    # filter approximates the exact (Kalman) posterior.
+    b, n, c = 40, 600, 20
+    motion, sensor, m0, P0, zs = _lg_problem(gen, b=b)
+    x0 = m0.unsqueeze(1) + torch.randn(b, n, 1, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    filt = IPMCMCFilter(motion, sensor, n, num_chains=c, burn_in=30, max_extensions=1)
+    res = filt(zs, init=x0, generator=gen)
+    means, covs = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0[:, 0], P0, zs[:, :, 0])
+    sd = torch.diagonal(covs, dim1=-2, dim2=-1).sqrt()  # (T, B, 4)
+    zerr = (res.mean[:, :, 0] - means) / sd  # standardised estimation error (T, B, 4)
+    # (a) no bias: runs are independent; per run average over time and components, then
+    # |mean over runs| <= 4 x its standard error (sd over runs / sqrt(B)).
+    per_run = zerr.mean((0, 2))
+    assert per_run.mean().abs() <= 4 * per_run.std() / math.sqrt(b)
+    # (b) the particle spread matches the Kalman posterior variance: per run the ratio of
+    # the sample variance of the last cloud to P; its mean over runs within 4 standard
+    # errors of 1 (plus the O(1/N) sample-variance bias, negligible).
+    ratio = (res.state.x[:, :, 0].var(1) / torch.diagonal(covs[-1], dim1=-2, dim2=-1)).mean(-1)  # (B,)
+    assert (ratio.mean() - 1).abs() <= 4 * ratio.std() / math.sqrt(b) + 0.02
+    # (c) accurate: an estimator worth >= 4 independent posterior draws has E[z^2] <= 1/4
+    # (N = 600 correlated draws give far more than 4 effective ones).
+    assert zerr.square().mean() <= 0.25
+    info = res.info
+    assert info.rhat.shape == (4, b) and info.extensions.shape == (4, b)
+    assert info.acceptance["exchange"].shape == (4, b)
+    assert ((info.acceptance["exchange"] > 0) & (info.acceptance["exchange"] < 1)).all()
+
+
+def test_extensions_follow_rhat_threshold(gen):
+    b, n = 3, 40
+    motion, sensor, m0, P0, zs = _lg_problem(gen, b=b, steps=2)
+    x0 = m0.unsqueeze(1) + torch.randn(b, n, 1, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    # threshold below any R-hat (>= ~0.9 for 4 chains of 10): every run extends every time
+    always = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=5, rhat_threshold=1e-3, max_extensions=2)
+    res = always(zs, init=x0, generator=gen)
+    assert (res.info.extensions == 2).all()
+    # a huge threshold never extends
+    never = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=5, rhat_threshold=1e9, max_extensions=2)
+    res = never(zs, init=x0, generator=gen)
+    assert (res.info.extensions == 0).all()
+    # R-hat is reported and an extension happened exactly where R-hat of the first pass was
+    # >= threshold: in between, the runs that still exceed it are those with extensions
+    mid = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=0, rhat_threshold=1.05, max_extensions=3)
+    res = mid(zs, init=x0, generator=gen)
+    ext, r = res.info.extensions, res.info.rhat
+    assert ((ext == 3) | (r < 1.05)).all()  # stopped early only once converged
+
+
+def test_same_seed_same_result_and_errors(gen):
+    b, n = 2, 20
+    motion, sensor, m0, P0, zs = _lg_problem(gen, b=b, steps=2)
+    x0 = m0.unsqueeze(1).expand(b, n, 1, 4).clone()
+    filt = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=3)
+    r1 = filt(zs, init=x0, generator=torch.Generator().manual_seed(7))
+    r2 = filt(zs, init=x0, generator=torch.Generator().manual_seed(7))
+    assert torch.equal(r1.mean, r2.mean) and torch.equal(r1.info.rhat, r2.info.rhat)
+    with pytest.raises(ValueError, match="num_chains"):
+        IPMCMCFilter(motion, sensor, 21, num_chains=4)
+    with pytest.raises(ValueError, match="burn_in"):
+        IPMCMCFilter(motion, sensor, 20, num_chains=4, burn_in=-1)
+    with pytest.raises(ValueError, match="init"):
+        filt(zs, init=x0[:, :10], generator=gen)

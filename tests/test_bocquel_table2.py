@@ -1,0 +1,40 @@
+"""The quick reproduction of Table II (paper 000) runs end to end and writes its outputs."""
+
+import argparse
+import json
+
+import torch
+
+from torchmcmcpf.experiments import bocquel_table2 as exp
+
+
+def test_quick_reproduction_end_to_end(tmp_path):
+    args = argparse.Namespace(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
+                              progress=False, runs=None, steps=3, particles=None, max_extensions=None,
+                              pmmh_iterations=2, pmmh_burn_in=1)
+    payload = exp.run(args)
+    for f in ("table2.md", "metrics.json", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png"):
+        assert (tmp_path / f).stat().st_size > 0, f
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["device"].startswith("cpu")
+    for scenario in ("1 targets", "10 targets"):
+        rows = saved["results"][scenario]
+        assert {r["algorithm"] for r in rows.values()} == {"SIR PF", "PMMH", "IP-MCMC-PF"}
+        for r in rows.values():
+            assert 0 < r["rmse"] < 100  # finite, and the filters track (initialised on the truth)
+            assert 0 <= r["tlr"] <= 1 and r["seconds_per_step"] > 0
+            assert len(r["rmse_per_step"]) == 3
+    table = (tmp_path / "table2.md").read_text()
+    assert "IP-MCMC-PF" in table and "4.84" in table  # our rows next to the paper's
+    assert payload["config"]["quick"]
+
+
+def test_settings_validate_particles():
+    args = argparse.Namespace(quick=True, particles=[45], runs=None, steps=None, max_extensions=None,
+                              pmmh_iterations=None, pmmh_burn_in=None)
+    try:
+        exp.settings(args)
+    except ValueError as err:
+        assert "particles" in str(err)
+    else:
+        raise AssertionError("expected ValueError")
