@@ -15,6 +15,7 @@ import torch
 
 from .._validation import check_positive_int
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath, existence_estimate
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement
@@ -32,6 +33,7 @@ def sir_step(
     generator: torch.Generator,
     resample_method: str = "systematic",
     ess_threshold: float = 1.0,
+    existence: Optional[BirthDeath] = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One SIR step: resample (when ESS < ``ess_threshold * N``), propagate, weight.
 
@@ -44,6 +46,10 @@ def sir_step(
     resample_method : ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
     ess_threshold : resample when ``ESS < ess_threshold * N``; 1.0 resamples at every
         step (Boers and Driessen), 0.0 never.
+    existence : BirthDeath, optional: an unknown number of targets. ``(x, exists)`` are
+        propagated jointly by ``existence.propose`` (births near the points of ``z`` when it
+        draws them so, with the weight correction ``p_0 / q_0``); ``state.exists`` None
+        means every slot starts inactive (paper 004 sec. 5).
 
     Returns
     -------
@@ -67,8 +73,14 @@ def sir_step(
         exists = gather_particles(exists, idx)
     log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
 
-    x = motion.sample(x, generator=generator)
-    log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
+    if existence is None:
+        x = motion.sample(x, generator=generator)
+        log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
+    else:
+        if exists is None:
+            exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+        x, exists, log_ratio = existence.propose(x, exists, motion=motion, generator=generator, z=z)
+        log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N)
     log_w_new, log_mean = normalize(log_w + log_lik)
     # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
     log_evidence = log_mean + math.log(n)
@@ -76,7 +88,8 @@ def sir_step(
 
 
 class SIRFilter(Filter):
-    """Multitarget SIR TBD particle filter for a known number of targets.
+    """Multitarget SIR TBD particle filter for a known number of targets, or for an unknown
+    one with ``existence`` (K = N_max slots with existence flags).
 
     Parameters
     ----------
@@ -85,6 +98,9 @@ class SIRFilter(Filter):
     num_particles : N >= 1.
     resample_method : ``"systematic"`` (default), ``"stratified"``, ``"multinomial"``.
     ess_threshold : resample when ESS < ``ess_threshold * N`` (1.0: every step).
+    existence : BirthDeath, optional: births and deaths (see :func:`sir_step`); the
+        estimate of a slot is then its mean given existence
+        (:func:`torchmcmcpf.models.existence.existence_estimate`).
 
     Example
     -------
@@ -100,8 +116,12 @@ class SIRFilter(Filter):
         *,
         resample_method: str = "systematic",
         ess_threshold: float = 1.0,
+        existence: Optional[BirthDeath] = None,
     ):
         super().__init__(motion, sensor)
+        if existence is not None and not isinstance(existence, BirthDeath):
+            raise ValueError(f"existence must be a BirthDeath model or None, got {type(existence).__name__}")
+        self.existence = existence
         self.num_particles = check_positive_int(num_particles, "num_particles")
         if resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {resample_method!r}")
@@ -116,7 +136,14 @@ class SIRFilter(Filter):
         return sir_step(
             state, z, motion=self.motion, sensor=self.sensor, generator=generator,
             resample_method=self.resample_method, ess_threshold=self.ess_threshold,
+            existence=self.existence,
         )
+
+    def estimate(self, state: ParticleState):
+        """MMSE estimate ``(B, K, D)``; with existence, each slot's mean given that it exists."""
+        if self.existence is None or state.exists is None:
+            return state.mean()
+        return existence_estimate(state, x_death=self.existence.x_death).mean
 
     def extra_repr(self) -> str:
         return f"num_particles={self.num_particles}, resample_method={self.resample_method!r}"

@@ -1,0 +1,120 @@
+"""Point measurements in Poisson clutter (paper 001, DESIGN.md association-free likelihood)."""
+
+import math
+
+import pytest
+import torch
+
+from torchmcmcpf.models.sensors.points import PointFrame, PoissonClutterPoints
+
+AREA = ((0.0, 200.0), (-50.0, 50.0))  # V = 2e4
+
+
+def sensor(**kw):
+    kw = {"noise_std": 3.0, **kw}
+    return PoissonClutterPoints(kw.pop("clutter_rate", 5.0), kw.pop("detection_rate", 2.0), AREA, **kw).double()
+
+
+def brute_force(s, x, z, exists):
+    """The formula term by term for one state (K, D) and one set of points (M, 2)."""
+    R = s.R
+    norm = 1 / (2 * math.pi * torch.linalg.det(R).sqrt())
+    total = -(s.clutter_rate + s.detection_rate * float(exists.sum()))
+    for zm in z:
+        lam = s.clutter_rate / s.volume
+        for xn, en in zip(x, exists):
+            if en:
+                r = zm - torch.stack([xn[0], xn[2]])
+                lam = lam + s.detection_rate * norm * torch.exp(-0.5 * r @ torch.linalg.solve(R, r))
+        total = total + torch.log(torch.as_tensor(lam, dtype=torch.float64))
+    return total
+
+
+def test_likelihood_matches_the_formula(gen):
+    s = sensor(R=torch.tensor([[9.0, 2.0], [2.0, 4.0]], dtype=torch.float64), noise_std=None)
+    x = torch.randn(2, 3, 4, 4, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0, 0, 0])
+    exists = torch.rand(2, 3, 4, generator=gen) < 0.6
+    z = torch.randn(2, 5, 2, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0])
+    ll = s.log_likelihood(x, PointFrame(z, torch.ones(2, 5, dtype=torch.bool)), exists)
+    assert ll.shape == (2, 3)
+    ref = torch.stack([torch.stack([brute_force(s, x[b, n], z[b], exists[b, n]) for n in range(3)]) for b in range(2)])
+    assert torch.allclose(ll, ref, rtol=1e-10, atol=1e-10)
+    # no exists: every slot live; a plain tensor frame: every point valid
+    assert torch.allclose(s.log_likelihood(x, z), s.log_likelihood(x, z, torch.ones_like(exists)))
+
+
+def test_padding_with_mask_changes_nothing(gen):
+    s = sensor()
+    x = torch.rand(3, 6, 2, 4, generator=gen, dtype=torch.float64) * 100
+    exists = torch.rand(3, 6, 2, generator=gen) < 0.5
+    z = torch.rand(3, 4, 2, generator=gen, dtype=torch.float64) * 100
+    pad = torch.cat([z, torch.randn(3, 3, 2, generator=gen, dtype=torch.float64) * 1e3], 1)
+    mask = torch.cat([torch.ones(3, 4, dtype=torch.bool), torch.zeros(3, 3, dtype=torch.bool)], 1)
+    perm = torch.randperm(7, generator=gen)
+    a = s.log_likelihood(x, z, exists)
+    b = s.log_likelihood(x, PointFrame(pad[:, perm], mask[:, perm]), exists)
+    assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
+    # a run with no valid point at all: -(L_C + L_x n)
+    empty = s.log_likelihood(x, PointFrame(pad, torch.zeros(3, 7, dtype=torch.bool)), exists)
+    assert torch.allclose(empty, -(5.0 + 2.0 * exists.double().sum(-1)))
+
+
+def test_likelihood_is_differentiable(gen):
+    s = sensor()
+    x = (torch.rand(1, 2, 2, 4, generator=gen, dtype=torch.float64) * 50 + 20).requires_grad_()
+    z = PointFrame(x.detach()[0, 0, :, [0, 2]].unsqueeze(0) + 1.0, torch.ones(1, 2, dtype=torch.bool))
+    assert torch.autograd.gradcheck(lambda v: s.log_likelihood(v, z), (x,))
+
+
+def test_simulate_counts_and_positions(gen):
+    s = sensor(clutter_rate=3.0, detection_rate=4.0, noise_std=1.0)
+    b = 4000
+    x = torch.tensor([[50.0, 0, 10, 0], [150.0, 0, -20, 0]], dtype=torch.float64).expand(b, 2, 4)
+    exists = torch.tensor([True, False]).expand(b, 2)
+    frame = s.simulate(x, exists=exists, generator=gen)
+    z, mask = frame
+    assert z.shape[:2] == mask.shape and z.shape[-1] == 2 and mask.dtype == torch.bool
+    assert torch.equal(z[~mask], torch.zeros_like(z[~mask]))
+    # Poisson(3 + 4) points per frame: mean 7, variance 7; 5 standard errors
+    count = mask.sum(-1).double()
+    assert abs(count.mean().item() - 7.0) < 5 * math.sqrt(7.0 / b)
+    assert abs(count.var().item() - 7.0) < 5 * 7.0 * math.sqrt(2.0 / b) + 0.5
+    pts = z[mask]
+    near_live = (pts - torch.tensor([50.0, 10.0], dtype=torch.float64)).norm(dim=-1) < 5
+    # points within 5 sd of the live target: its 4 per frame (+ clutter there, 3 * 25 pi / 2e4)
+    expected = (4.0 + 3.0 * 25 * math.pi / 2e4) / 7.0
+    assert abs(near_live.double().mean().item() - expected) < 5 * math.sqrt(expected * (1 - expected) / len(pts))
+    near_dead = (pts - torch.tensor([150.0, -20.0], dtype=torch.float64)).norm(dim=-1) < 5
+    assert near_dead.double().mean().item() < 0.01
+    # same seed, same frame
+    f1 = s.simulate(x[:5], exists=exists[:5], generator=torch.Generator().manual_seed(3))
+    f2 = s.simulate(x[:5], exists=exists[:5], generator=torch.Generator().manual_seed(3))
+    assert torch.equal(f1.z, f2.z) and torch.equal(f1.mask, f2.mask)
+
+
+def test_validate_rejects_bad_input():
+    s = sensor()
+    z = torch.zeros(2, 3, 2)
+    good = PointFrame(z, torch.ones(2, 3, dtype=torch.bool))
+    assert s.validate(good, 2) is good
+    with pytest.raises(ValueError, match="mask"):
+        s.validate(PointFrame(z, torch.ones(2, 4, dtype=torch.bool)), 2)
+    with pytest.raises(ValueError, match="mask"):
+        s.validate(PointFrame(z, torch.ones(2, 3)), 2)
+    bad = z.clone()
+    bad[1, 2, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        s.validate(PointFrame(bad, torch.ones(2, 3, dtype=torch.bool)), 2)
+    with pytest.raises(ValueError, match="batch size"):
+        s.validate(good, 3)
+    with pytest.raises(ValueError, match=r"\(\*, \*, 2\)"):
+        s.validate(torch.zeros(2, 3, 3), 2)
+
+
+@pytest.mark.parametrize("kw, match", [
+    (dict(clutter_rate=-1.0), "clutter_rate"), (dict(detection_rate=-0.5), "detection_rate"),
+    (dict(noise_std=-1.0), "noise_std"), (dict(noise_std=None, R=torch.tensor([[1.0, 2.0], [2.0, 1.0]])), "R"),
+])
+def test_bad_settings_raise(kw, match):
+    with pytest.raises(ValueError, match=match):
+        sensor(**kw)

@@ -1,0 +1,328 @@
+"""Births and deaths: a per-slot existence Markov chain and the birth densities.
+
+The multitarget state has ``K = N_max`` slots, each with an existence flag ``e_n``
+(Septier et al., paper 001 "Existence vector"; Pang et al., paper 004 sec. 3):
+
+- existence chain, independent per slot (paper 004 eq. 25)::
+
+      p(e_k = 1 | e_{k-1} = 0) = P_B,   p(e_k = 0 | e_{k-1} = 1) = P_D,
+
+  with stationary existence probability ``P_B / (P_B + P_D)`` (:meth:`BirthDeath.stationary`);
+- surviving slot (``e_{k-1} = e_k = 1``): the motion model ``p(x_k | x_{k-1})``;
+- newborn slot (``e_{k-1} = 0, e_k = 1``): ``p_0(x)`` of paper 004 eqs. 32-33, a position
+  uniform over the surveillance area and a velocity ``N(0, s_v^2 I)``;
+- inactive slot (``e_k = 0``): ``x_k = x_death`` (paper 004 eq. 36).
+
+``x_death`` convention
+----------------------
+An inactive slot holds exactly ``x_death`` (default the zero vector), a point mass, so the
+transition density of a slot that dies or stays dead is ``p(e_k | e_{k-1})`` alone. Sensors
+never read an inactive slot (``exists`` masks it), and estimates condition on existence
+(:func:`existence_estimate`), so the value only has to be finite.
+
+Birth proposals
+---------------
+Uniform births almost never land on a target in a 5000 x 5000 m area, so births can be
+drawn near the measurements instead: the point-measurement analogue of paper 004
+eqs. 64-65,
+
+    q_0(pos) = P_I U(pos; area) + (1 - P_I) (1 / M) sum_m N(pos; z_m, s_b^2 I)     (M > 0)
+    q_0(pos) = U(pos; area)                                                        (M = 0)
+
+over the ``M`` valid points of the current frame (the velocity keeps its prior). A filter
+that draws births from ``q_0`` multiplies by ``p_0 / q_0`` (:meth:`BirthDeath.propose`
+returns its log per slot); that ratio is ``-inf`` for a proposal outside the area.
+
+Filters propagate ``(x, exists)`` jointly with one call, :meth:`BirthDeath.propose`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Optional
+
+import torch
+from torch import nn
+
+from .._validation import check_positive
+from ..state import ParticleState
+from ..typing import Tensor, VX, VY, X, Y
+from .base import MotionModel
+from .sensors.association import PointMeasurement, _split
+from .sensors.points import AreaLike, as_area
+
+__all__ = ["BirthDeath", "ExistenceEstimate", "existence_estimate"]
+
+
+def _probability(value, name: str) -> float:
+    v = float(value)
+    if not 0.0 <= v <= 1.0:
+        raise ValueError(f"{name} must be a probability in [0, 1], got {value!r}")
+    return v
+
+
+class BirthDeath(nn.Module):
+    """Existence Markov chain with births and deaths per target slot (module docstring).
+
+    Parameters
+    ----------
+    p_birth : ``P_B``, probability that an inactive slot becomes active at the next step.
+    p_death : ``P_D``, probability that an active slot becomes inactive.
+    area : ``((x_lo, x_hi), (y_lo, y_hi))`` [m], where targets are born.
+    velocity_std : ``s_v`` [m/s], standard deviation of a newborn's velocity components
+        (paper 004 eq. 32).
+    dim : per-target state size D (layout ``[x, vx, y, vy, ...]``; births set the first
+        four components and copy the others from ``x_death``).
+    x_death : (D,) state of an inactive slot (default zeros).
+    birth_std : ``s_b`` [m]: draw births near the measurements (eq. 64 analogue) with this
+        spread; ``None`` (default) draws births from the prior ``p_0``.
+    p_uniform : ``P_I``, weight of the uniform component of the measurement-driven
+        proposal (paper 004 uses 1e-2).
+    """
+
+    def __init__(
+        self,
+        p_birth: float,
+        p_death: float,
+        area: AreaLike,
+        *,
+        velocity_std: float,
+        dim: int = 4,
+        x_death: Optional[Tensor] = None,
+        birth_std: Optional[float] = None,
+        p_uniform: float = 0.01,
+    ):
+        super().__init__()
+        self.p_birth = _probability(p_birth, "p_birth")
+        self.p_death = _probability(p_death, "p_death")
+        self.velocity_std = check_positive(velocity_std, "velocity_std")
+        if dim < 4:
+            raise ValueError(f"dim must be >= 4 for the [x, vx, y, vy] layout, got {dim}")
+        self.dim = dim
+        if x_death is None:
+            x_death = torch.zeros(dim)
+        x_death = torch.as_tensor(x_death, dtype=torch.get_default_dtype())
+        if x_death.shape != (dim,) or not bool(torch.isfinite(x_death).all()):
+            raise ValueError(f"x_death must be a finite ({dim},) vector, got shape {tuple(x_death.shape)}")
+        self.register_buffer("x_death", x_death)
+        area_t = as_area(area)
+        self.register_buffer("area", area_t.to(torch.get_default_dtype()))
+        self.log_volume = float(torch.log(area_t[:, 1] - area_t[:, 0]).sum())
+        self.birth_std = None if birth_std is None else check_positive(birth_std, "birth_std")
+        self.p_uniform = _probability(p_uniform, "p_uniform")
+
+    # -- the existence chain (paper 004 eq. 25) ------------------------------------------
+    def stationary(self) -> float:
+        """Stationary existence probability ``P_B / (P_B + P_D)`` of one slot (1/2 when
+        ``P_B = P_D = 0``, where every distribution is stationary)."""
+        total = self.p_birth + self.p_death
+        return 0.5 if total == 0 else self.p_birth / total
+
+    def transition_matrix(self) -> Tensor:
+        """``P[i, j] = p(e_k = j | e_{k-1} = i)``, ``(2, 2)``."""
+        pb, pd = self.p_birth, self.p_death
+        return torch.tensor([[1 - pb, pb], [pd, 1 - pd]], dtype=torch.float64)
+
+    def log_prob_exists(self, exists_next: Tensor, exists: Tensor) -> Tensor:
+        """``log p(e_k | e_{k-1})`` per slot, eq. 25: ``(*S, K), (*S, K) -> (*S, K)``."""
+        f64 = dict(dtype=torch.float64, device=exists.device)
+        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
+        return torch.where(exists_next, p_on, 1.0 - p_on).log()
+
+    def sample_exists(self, exists: Tensor, *, generator: torch.Generator,
+                      dtype: torch.dtype = torch.float64) -> Tensor:
+        """Draw ``e_k ~ p(. | e_{k-1})`` per slot: ``(*S, K) bool -> (*S, K) bool``."""
+        u = torch.rand(exists.shape, generator=generator, device=exists.device, dtype=dtype)
+        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, dtype=dtype, device=exists.device),
+                           torch.tensor(self.p_birth, dtype=dtype, device=exists.device))
+        return u < p_on
+
+    # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
+    def _in_area(self, pos: Tensor) -> Tensor:
+        a = self.area.to(pos.dtype)
+        return ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
+
+    def _log_uniform(self, pos: Tensor) -> Tensor:
+        return torch.where(self._in_area(pos), -self.log_volume, -math.inf).to(pos.dtype)
+
+    def birth_log_prob(self, x: Tensor) -> Tensor:
+        """``log p_0(x)`` of a newborn, eq. 33: ``(*S, K, D) -> (*S, K)`` (the components
+        beyond ``[x, vx, y, vy]`` are fixed to ``x_death`` and not scored)."""
+        pos = torch.stack([x[..., X], x[..., Y]], -1)
+        vel = torch.stack([x[..., VX], x[..., VY]], -1)
+        s = self.velocity_std
+        log_vel = (-0.5 * (vel / s).square() - math.log(s) - 0.5 * math.log(2 * math.pi)).sum(-1)
+        return self._log_uniform(pos) + log_vel
+
+    def _newborn(self, pos: Tensor, vel_eps: Tensor) -> Tensor:
+        x = self.x_death.to(pos.dtype).expand(pos.shape[:-1] + (self.dim,)).clone()
+        x[..., X], x[..., Y] = pos[..., 0], pos[..., 1]
+        x[..., VX], x[..., VY] = self.velocity_std * vel_eps[..., 0], self.velocity_std * vel_eps[..., 1]
+        return x
+
+    def sample_birth(self, shape, *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
+                     device=None) -> Tensor:
+        """Draw newborn states from ``p_0`` (eqs. 32-33): ``-> (*shape, D)``."""
+        x, _ = self._draw_births(tuple(shape), None, generator=generator, dtype=dtype, device=device)
+        return x
+
+    def _draw_births(self, shape, z: Optional[PointMeasurement], *, generator: torch.Generator,
+                     dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+        """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
+        ``(*shape)``; ``shape = (B, *S, K)``."""
+        a = self.area.to(dtype)
+        u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
+        pos = a[:, 0] + (a[:, 1] - a[:, 0]) * u
+        vel_eps = torch.randn(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
+        if z is None or self.birth_std is None:
+            return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
+        pts, mask = _split(z)
+        b, m = pts.shape[:2]
+        if m == 0:
+            return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
+        if mask is None:
+            mask = torch.ones((b, m), dtype=torch.bool, device=device)
+        pts = pts.to(dtype)
+        n_valid = mask.sum(-1)  # (B,)
+        lead = (b,) + (1,) * (len(shape) - 1)
+        # pick a valid point uniformly: the (j+1)-th valid one, j = floor(u n_valid)
+        u_pick = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
+        j = (u_pick[..., 0] * n_valid.reshape(lead)).floor().long()
+        j = torch.minimum(j, (n_valid - 1).clamp(min=0).reshape(lead))
+        cum = mask.long().cumsum(-1)  # (B, M)
+        idx = torch.searchsorted(cum, (j + 1).reshape(b, -1)).clamp(max=m - 1).reshape(shape)
+        centre = torch.take_along_dim(pts, idx.reshape(b, -1, 1), dim=1).reshape(tuple(shape) + (2,))
+        near = centre + self.birth_std * torch.randn(tuple(shape) + (2,), generator=generator,
+                                                     device=device, dtype=dtype)
+        use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)
+        pos = torch.where(use_near.unsqueeze(-1), near, pos)
+        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask)
+
+    def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor) -> Tensor:
+        """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue)."""
+        b, m = mask.shape
+        lead = (b,) + (1,) * (pos.dim() - 2)
+        zb = pts.reshape(lead[:-1] + (1, m, 2))  # (B, 1.., 1, M, 2)
+        s = self.birth_std
+        d2 = (pos.unsqueeze(-2) - zb).square().sum(-1) / s**2  # (B, *S, K, M)
+        log_g = -0.5 * d2 - 2 * math.log(s) - math.log(2 * math.pi)
+        mk = mask.reshape(lead[:-1] + (1, m))
+        log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
+        n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
+        log_near = torch.logsumexp(log_g, -1) - torch.log(n_valid.clamp(min=1))
+        log_u = self._log_uniform(pos)
+        log_pi = math.log(self.p_uniform) if self.p_uniform > 0 else -math.inf
+        log_pn = math.log1p(-self.p_uniform) if self.p_uniform < 1 else -math.inf
+        log_q = torch.logaddexp(log_pi - self.log_volume + torch.zeros_like(log_near), log_pn + log_near)
+        log_q = torch.where(n_valid > 0, log_q, torch.full_like(log_q, -self.log_volume))
+        return log_u - log_q
+
+    # -- the joint transition of (x, e) ---------------------------------------------------
+    def log_prob(self, x_next: Tensor, exists_next: Tensor, x: Tensor, exists: Tensor, *,
+                 motion: MotionModel) -> Tensor:
+        """``log p(x_k, e_k | x_{k-1}, e_{k-1})`` per slot (paper 004 eqs. 24-25, 33, 36):
+        ``log p(e_k | e_{k-1})`` plus ``log p(x_k | x_{k-1})`` for a survivor, ``log p_0(x_k)``
+        for a newborn and nothing for an inactive slot (the point mass at ``x_death``).
+
+        Parameters
+        ----------
+        x_next, x : (*S, K, D); exists_next, exists : (*S, K) bool; motion : MotionModel.
+
+        Returns
+        -------
+        (*S, K).
+        """
+        log_e = self.log_prob_exists(exists_next, exists).to(x.dtype)
+        survive = exists & exists_next
+        born = ~exists & exists_next
+        log_x = torch.where(survive, motion.log_prob(x_next, x), torch.zeros_like(log_e))
+        log_x = torch.where(born, self.birth_log_prob(x_next), log_x)
+        return log_e + log_x
+
+    def propose(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator,
+                z: Optional[PointMeasurement] = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Propagate every slot: ``e_k ~ p(e_k | e_{k-1})`` (eq. 25), survivors by ``motion``,
+        newborns from the birth proposal (``q_0`` near the points of ``z`` when
+        ``birth_std`` is set and ``z`` given, else ``p_0``), inactive slots to ``x_death``.
+
+        Parameters
+        ----------
+        x : (B, *S, K, D); exists : (B, *S, K) bool; motion : MotionModel.
+        generator : source of randomness.
+        z : the current frame ``PointFrame(z (B, M, 2), mask (B, M))``, optional.
+
+        Returns
+        -------
+        x_next : (B, *S, K, D); exists_next : (B, *S, K) bool;
+        log_ratio : (B, *S, K) the importance correction ``log p_0(x) - log q_0(x)`` of
+            each newborn slot (0 for the other slots and for prior births).
+        """
+        exists_next = self.sample_exists(exists, generator=generator, dtype=x.dtype)
+        moved = motion.sample(x, generator=generator)
+        born, log_ratio = self._draw_births(exists.shape, z, generator=generator, dtype=x.dtype,
+                                            device=x.device)
+        is_born = (~exists & exists_next).unsqueeze(-1)
+        x_next = torch.where(is_born, born, moved)
+        x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
+        log_ratio = torch.where(is_born.squeeze(-1), log_ratio, torch.zeros_like(log_ratio))
+        return x_next, exists_next, log_ratio
+
+    def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator
+               ) -> tuple[Tensor, Tensor]:
+        """Draw ``(x_k, e_k) ~ p(. | x_{k-1}, e_{k-1})`` from the prior (births from ``p_0``):
+        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``."""
+        x_next, exists_next, _ = self.propose(x, exists, motion=motion, generator=generator)
+        return x_next, exists_next
+
+    def extra_repr(self) -> str:
+        return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
+                f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
+
+
+class ExistenceEstimate(NamedTuple):
+    """Point estimates of a weighted cloud with existence flags.
+
+    Attributes
+    ----------
+    exists_prob : (B, K) posterior existence probability of each slot.
+    expected_count : (B,) expected number of targets, ``sum_k exists_prob``.
+    mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
+        no particle has it).
+    present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
+    """
+
+    exists_prob: Tensor
+    expected_count: Tensor
+    mean: Tensor
+    present: Tensor
+
+
+def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
+                       x_death: Optional[Tensor] = None) -> ExistenceEstimate:
+    """Existence probabilities, expected count and the state of every slot whose existence
+    probability exceeds ``threshold`` (0.5: the marginal MAP existence).
+
+    Parameters
+    ----------
+    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)``, ``exists (B, N, K)``.
+    threshold : in [0, 1).
+    x_death : (D,) value for slots that exist in no particle (default zeros).
+
+    Returns
+    -------
+    ExistenceEstimate.
+    """
+    if state.exists is None:
+        raise ValueError("state.exists is None; existence_estimate needs a state with existence flags")
+    if not 0.0 <= float(threshold) < 1.0:
+        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+    w = torch.softmax(state.log_w, -1).to(state.x.dtype)  # (B, N)
+    we = w.unsqueeze(-1) * state.exists.to(w.dtype)  # (B, N, K)
+    prob = we.sum(1)  # (B, K)
+    num = torch.einsum("bnk,bnkd->bkd", we, torch.where(state.exists.unsqueeze(-1), state.x,
+                                                        torch.zeros_like(state.x)))
+    fill = torch.zeros(state.x.shape[-1], dtype=state.x.dtype, device=state.x.device) \
+        if x_death is None else x_death.to(state.x)
+    mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
+                       fill)
+    return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)

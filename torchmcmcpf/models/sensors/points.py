@@ -1,0 +1,218 @@
+"""Point measurements in Poisson clutter, without data association.
+
+Septier, Pang, Carmi and Godsill (paper 001, "Observation model"; after Gilholm et al.
+2005): at every step the sensor returns an unordered set of ``M_k`` points in a
+rectangular surveillance area of size ``V``:
+
+- clutter: a Poisson process of rate ``L_C`` per frame, uniform over the area
+  (``p_C(z) = 1 / V``);
+- targets: every live target ``n`` (``e_n = 1``) yields ``Poisson(L_x)`` points
+  ``z = H x_n + v``, ``v ~ N(0, R)``.
+
+The superposition is a Poisson process of intensity ``lambda(z) = L_C / V + L_x sum_n e_n
+N(z; H x_n, R)``, whose density, association-free (DESIGN.md), is
+
+    log p(Z | x, e) = -(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R)).
+
+:meth:`PoissonClutterPoints.log_likelihood` returns exactly this (the density of the set
+with respect to the unit-rate Poisson process on the area, up to the constant ``V``), so a
+filter's evidence is comparable across models.
+
+Frames with different numbers of points are batched as a padded
+:class:`~torchmcmcpf.models.sensors.association.PointFrame` ``(z (B, M, 2), mask (B, M))``;
+padded rows (``mask`` False) contribute nothing. A sequence is the same NamedTuple with a
+leading ``T``: ``z (T, B, M, 2)``, ``mask (T, B, M)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Sequence, Union
+
+import torch
+
+from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
+from ...typing import Tensor, X, Y
+from ..base import SensorModel
+from .association import PointFrame, PointMeasurement, _split
+
+__all__ = ["PoissonClutterPoints", "PointFrame", "as_area"]
+
+AreaLike = Union[Tensor, Sequence[Sequence[float]]]
+
+
+def as_area(area: AreaLike, name: str = "area") -> Tensor:
+    """``((x_lo, x_hi), (y_lo, y_hi))`` -> a ``(2, 2)`` float64 tensor, checked (lo < hi)."""
+    a = torch.as_tensor(area, dtype=torch.float64)
+    if a.shape != (2, 2) or not bool(torch.isfinite(a).all()) or not bool((a[:, 1] > a[:, 0]).all()):
+        raise ValueError(
+            f"{name} must be ((x_lo, x_hi), (y_lo, y_hi)) with finite lo < hi, got {area!r}"
+        )
+    return a
+
+
+class PoissonClutterPoints(SensorModel):
+    """Association-free likelihood of point measurements in Poisson clutter (module docstring).
+
+    Parameters
+    ----------
+    clutter_rate : ``L_C >= 0``, mean number of clutter points per frame.
+    detection_rate : ``L_x >= 0``, mean number of points per live target and frame.
+    area : ``((x_lo, x_hi), (y_lo, y_hi))`` [m]; clutter is uniform on it, ``V`` its size.
+    noise_std : measurement noise standard deviation [m] (``R = noise_std^2 I``), or pass
+        ``R``.
+    R : (2, 2) symmetric positive definite noise covariance (instead of ``noise_std``).
+    dim : per-target state size D (layout ``[x, vx, y, vy, ...]``; ``H`` picks x and y).
+
+    Example
+    -------
+    >>> sensor = PoissonClutterPoints(10.0, 2.0, ((0, 5000), (0, 5000)), noise_std=10.0)
+    >>> frame = sensor.simulate(x_true, exists=alive, generator=g)   # doctest: +SKIP
+    >>> sensor.log_likelihood(particles, frame, exists)              # (B, N)  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        clutter_rate: float,
+        detection_rate: float,
+        area: AreaLike,
+        *,
+        noise_std: Optional[float] = None,
+        R: Optional[Tensor] = None,
+        dim: int = 4,
+    ):
+        super().__init__()
+        self.clutter_rate = check_positive(clutter_rate, "clutter_rate", allow_zero=True)
+        self.detection_rate = check_positive(detection_rate, "detection_rate", allow_zero=True)
+        if dim < 4:
+            raise ValueError(f"dim must be >= 4 for the [x, vx, y, vy] layout, got {dim}")
+        if (noise_std is None) == (R is None):
+            raise ValueError("give exactly one of noise_std and R")
+        if R is None:
+            R = check_positive(noise_std, "noise_std") ** 2 * torch.eye(2, dtype=torch.float64)
+        R = torch.as_tensor(R, dtype=torch.float64)
+        if R.shape != (2, 2):
+            raise ValueError(f"R has shape {tuple(R.shape)}, expected (2, 2)")
+        try:
+            L = torch.linalg.cholesky(R)
+        except RuntimeError as err:
+            raise ValueError(f"R must be symmetric positive definite: {err}") from err
+        area_t = as_area(area)
+        dtype = torch.get_default_dtype()
+        self.register_buffer("area", area_t.to(dtype))
+        self.register_buffer("R", R.to(dtype))
+        self.volume = float((area_t[:, 1] - area_t[:, 0]).prod())
+        self.dim = dim
+        self.meas_dim = 2
+        self.frame_shape = (None, 2)
+        self._log_norm = -math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
+
+    # -- likelihood ---------------------------------------------------------------------
+    def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
+        """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
+        -> (B, *S, K, M)``."""
+        pos = torch.stack([x[..., X], x[..., Y]], -1)  # (B, *S, K, 2)
+        zb = z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:]).to(x.dtype)  # (B, 1.., M, 2)
+        r = zb.unsqueeze(-3) - pos.unsqueeze(-2)  # (B, *S, K, M, 2)
+        L = torch.linalg.cholesky(self.R.to(x.dtype))
+        # L lower triangular 2x2: whiten r by forward substitution (closed form, no solve).
+        w0 = r[..., 0] / L[0, 0]
+        w1 = (r[..., 1] - L[1, 0] * w0) / L[1, 1]
+        log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
+        return log_rate + self._log_norm - 0.5 * (w0.square() + w1.square())
+
+    def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Optional[Tensor] = None) -> Tensor:
+        """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
+        (paper 001, DESIGN.md), summed over the valid points only.
+
+        Parameters
+        ----------
+        x : (B, *S, K, D) multitarget states.
+        z : ``PointFrame(z (B, M, 2), mask (B, M))`` or a tensor ``(B, M, 2)`` (all valid).
+        exists : (B, *S, K) bool, optional (all slots live when absent).
+
+        Returns
+        -------
+        (B, *S). Differentiable in ``x``; a frame with ``M = 0`` gives ``-(L_C + L_x n)``.
+        """
+        pts, mask = _split(z)
+        terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
+        if exists is not None:
+            terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
+            n_live = exists.to(x.dtype).sum(-1)
+        else:
+            n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
+        log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
+        clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
+        per_point = torch.logsumexp(torch.cat([clutter, terms], -2), dim=-2)  # (B, *S, M)
+        if mask is not None:
+            m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
+            per_point = torch.where(m, per_point, torch.zeros_like(per_point))
+        return per_point.sum(-1) - (self.clutter_rate + self.detection_rate * n_live)
+
+    # -- simulation ---------------------------------------------------------------------
+    def simulate(
+        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+    ) -> PointFrame:
+        """Draw one frame per run: ``Poisson(L_C)`` clutter points uniform on the area and
+        ``Poisson(L_x)`` noisy positions of every live target, in random order.
+
+        Parameters
+        ----------
+        x : (B, K, D) true states; exists : (B, K) bool, optional (all live).
+
+        Returns
+        -------
+        PointFrame ``(z (B, M, 2), mask (B, M))`` with ``M`` the largest number of points
+        over the runs; padded rows are zero and masked out.
+        """
+        b, k = x.shape[:2]
+        dev, dt = x.device, x.dtype
+        if exists is None:
+            exists = torch.ones((b, k), dtype=torch.bool, device=dev)
+        n_clutter = torch.poisson(torch.full((b,), self.clutter_rate, dtype=torch.float64, device=dev),
+                                  generator=generator).long()
+        rate = torch.where(exists, self.detection_rate, 0.0).to(torch.float64)
+        n_target = torch.poisson(rate, generator=generator).long()  # (B, K)
+        c_max, t_max = int(n_clutter.max()), int(n_target.max()) if k else 0
+        lo, hi = self.area[:, 0].to(dt), self.area[:, 1].to(dt)
+        clutter = lo + (hi - lo) * torch.rand((b, c_max, 2), generator=generator, device=dev, dtype=dt)
+        clutter_mask = torch.arange(c_max, device=dev) < n_clutter[:, None]
+        noise = torch.randn((b, k, t_max, 2), generator=generator, device=dev, dtype=dt) \
+            @ torch.linalg.cholesky(self.R.to(dt)).mT
+        pos = torch.stack([x[..., X], x[..., Y]], -1)
+        target = (pos.unsqueeze(-2) + noise).reshape(b, k * t_max, 2)
+        target_mask = (torch.arange(t_max, device=dev) < n_target[..., None]).reshape(b, k * t_max)
+        pts = torch.cat([clutter, target], 1)
+        mask = torch.cat([clutter_mask, target_mask], 1)
+        # valid points first, in a uniformly random order
+        key = torch.rand(mask.shape, generator=generator, device=dev, dtype=torch.float64)
+        order = torch.argsort(torch.where(mask, key, key + 2.0), dim=-1)
+        m = int(mask.sum(-1).max()) if b else 0
+        order = order[:, :m]
+        pts = torch.take_along_dim(pts, order.unsqueeze(-1), dim=1)
+        mask = torch.take_along_dim(mask, order, dim=1)
+        return PointFrame(torch.where(mask.unsqueeze(-1), pts, torch.zeros_like(pts)), mask)
+
+    # -- input checks -------------------------------------------------------------------
+    def validate(self, z: PointMeasurement, batch_size: Optional[int] = None, name: str = "z"):
+        """Check a frame: points ``(B, M, 2)`` finite (padding included), ``mask (B, M)``
+        bool of the same ``B, M``. Returns ``z``."""
+        if not torch.is_tensor(z) and not (isinstance(z, tuple) and len(z) == 2):
+            raise ValueError(f"{name} must be a PointFrame (z, mask) or a tensor (B, M, 2), got "
+                             f"{type(z).__name__}")
+        pts, mask = _split(z)
+        check_shape(pts, name if mask is None else f"{name}.z", (None, None, 2))
+        if batch_size is not None:
+            check_batch(pts, f"{name}.z", batch_size)
+        check_finite(pts, f"{name}.z")
+        if mask is not None:
+            check_tensor(mask, f"{name}.mask")
+            check_shape(mask, f"{name}.mask", tuple(pts.shape[:2]))
+            if mask.dtype != torch.bool:
+                raise ValueError(f"{name}.mask has dtype {mask.dtype}, expected torch.bool")
+        return z
+
+    def extra_repr(self) -> str:
+        return (f"clutter_rate={self.clutter_rate}, detection_rate={self.detection_rate}, "
+                f"volume={self.volume:g}")
