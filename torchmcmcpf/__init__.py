@@ -1,0 +1,57 @@
+"""torchmcmcpf: MCMC-based particle filters for multi-target track-before-detect.
+
+Particles, chains and targets are tensor dimensions (see :mod:`torchmcmcpf.typing`);
+each algorithm is a pure step function wrapped by a thin ``nn.Module`` Filter.
+"""
+
+from . import diagnostics, kernels, metrics, models, plotting, resampling, scenarios
+from .filters import (
+    Filter,
+    IPMCMCFilter,
+    MCMCFilter,
+    ResampleMoveFilter,
+    SIRFilter,
+    ipmcmc_step,
+    mcmc_step,
+    pmmh,
+    resample_move_step,
+    sir_step,
+)
+from .models import (
+    BirthDeath,
+    ConstantVelocity,
+    LinearGaussian,
+    PoissonClutterPoints,
+    RangeDopplerBearingTBD,
+)
+from .state import FilterResult, ParticleState, StepInfo
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Filter",
+    "SIRFilter",
+    "sir_step",
+    "MCMCFilter",
+    "mcmc_step",
+    "IPMCMCFilter",
+    "ipmcmc_step",
+    "pmmh",
+    "ResampleMoveFilter",
+    "resample_move_step",
+    "ConstantVelocity",
+    "LinearGaussian",
+    "RangeDopplerBearingTBD",
+    "PoissonClutterPoints",
+    "BirthDeath",
+    "ParticleState",
+    "StepInfo",
+    "FilterResult",
+    "diagnostics",
+    "kernels",
+    "metrics",
+    "models",
+    "plotting",
+    "resampling",
+    "scenarios",
+]

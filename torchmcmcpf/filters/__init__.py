@@ -1,0 +1,34 @@
+"""One module per algorithm: a Filter subclass and its pure step function.
+
+- :class:`SIRFilter` / :func:`sir_step`: multitarget SIR TBD (Boers and Driessen 2004).
+- :class:`MCMCFilter` / :func:`mcmc_step`: sequential MCMC-based PF (Khan et al.; Septier
+  et al. 2009; Ling).
+- :class:`IPMCMCFilter` / :func:`ipmcmc_step`: interacting population-based MCMC-PF
+  (Bocquel et al. 2012).
+- :func:`pmmh`: particle marginal Metropolis-Hastings driven by the SIR log-evidence.
+- :class:`ResampleMoveFilter` / :func:`resample_move_step`: SIR + HMC move over the
+  Brownian increments (Maroulas and Stinis 2010).
+"""
+
+from .base import Filter
+from .ipmcmc import IPMCMCFilter, ipmcmc_step
+from .mcmc import MCMCFilter, mcmc_step
+from .pmmh import PMMHResult, ProcessNoiseScale, pmmh, sir_log_evidence
+from .resample_move import ResampleMoveFilter, resample_move_step
+from .sir import SIRFilter, sir_step
+
+__all__ = [
+    "Filter",
+    "SIRFilter",
+    "sir_step",
+    "MCMCFilter",
+    "mcmc_step",
+    "IPMCMCFilter",
+    "ipmcmc_step",
+    "pmmh",
+    "PMMHResult",
+    "ProcessNoiseScale",
+    "sir_log_evidence",
+    "ResampleMoveFilter",
+    "resample_move_step",
+]

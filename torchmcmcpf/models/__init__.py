@@ -1,0 +1,19 @@
+"""Models by role: motion (transition densities), existence (births and deaths) and
+sensors (likelihoods)."""
+
+from .base import MotionModel, SensorModel
+from .existence import BirthDeath, ExistenceEstimate, existence_estimate
+from .motion import ConstantVelocity, LinearGaussianMotion
+from .sensors import *  # noqa: F401,F403
+from .sensors import __all__ as _sensors
+
+__all__ = [
+    "MotionModel",
+    "SensorModel",
+    "ConstantVelocity",
+    "LinearGaussianMotion",
+    "BirthDeath",
+    "ExistenceEstimate",
+    "existence_estimate",
+    *_sensors,
+]

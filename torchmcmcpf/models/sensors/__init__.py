@@ -1,0 +1,26 @@
+"""Sensor models, one file per family (DESIGN.md).
+
+- :class:`LinearGaussian`: one point measurement per target, known association.
+- :class:`SeparableGridSensor`: the shared machinery of TBD sensors on a cell grid.
+- :class:`RangeDopplerBearingTBD`: radar power, Rician (Bocquel et al. 2012, eqs. 18-21).
+- :class:`AssociationPosition`, :class:`AssociationBearingRange`: point measurements with
+  unknown association (Maroulas and Stinis 2010, eqs. 14-17).
+- :class:`PoissonClutterPoints`: point measurements in Poisson clutter, association-free.
+"""
+
+from .association import AssociationBearingRange, AssociationPosition, AssociationSensor, PointFrame
+from .grid import SeparableGridSensor
+from .linear import LinearGaussian
+from .points import PoissonClutterPoints
+from .radar import RangeDopplerBearingTBD
+
+__all__ = [
+    "LinearGaussian",
+    "SeparableGridSensor",
+    "RangeDopplerBearingTBD",
+    "AssociationSensor",
+    "AssociationPosition",
+    "AssociationBearingRange",
+    "PoissonClutterPoints",
+    "PointFrame",
+]
