@@ -11,7 +11,7 @@ from torchmcmcpf.filters.sir import SIRFilter
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.sensors.association import AssociationBearingRange, AssociationPosition, PointFrame
 from torchmcmcpf.models.sensors.linear import LinearGaussian
-from torchmcmcpf.scenarios.maroulas import WhiteAccelerationMotion
+from torchmcmcpf.models import WhiteAccelerationMotion
 from torchmcmcpf.state import ParticleState
 
 D64 = torch.float64

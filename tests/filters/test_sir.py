@@ -3,8 +3,7 @@ import math
 import pytest
 import torch
 
-from torchmcmcpf import ConstantVelocity, LinearGaussian, ParticleState, SIRFilter
-from torchmcmcpf.filters.sir import sir_step
+from torchmcmcpf import ConstantVelocity, LinearGaussian, SIRFilter
 
 
 def _problem(gen, B=3, K=2, T=6, N=200, dtype=torch.float64):

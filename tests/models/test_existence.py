@@ -65,7 +65,6 @@ def test_births_from_prior_are_uniform_over_the_area(gen):
 
 def test_measurement_driven_births_are_importance_weighted_correctly(gen):
     """E_q[p_0/q_0 f] = E_{p_0}[f]: the weight of a birth drawn near the points is right."""
-    bd = model(birth_std=20.0, p_uniform=0.2)
     motion = ConstantVelocity(1.0, 1.0).double()
     pts = torch.tensor([[[100.0, 100.0], [900.0, 400.0], [0.0, 0.0]]], dtype=torch.float64)
     frame = PointFrame(pts, torch.tensor([[True, True, False]]))

@@ -25,7 +25,6 @@ truth one step before frame 0, labels kept); RMSE and TLR (20 m) use the slot la
 from __future__ import annotations
 
 import argparse
-import math
 import os
 
 import torch

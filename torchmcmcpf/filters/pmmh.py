@@ -29,11 +29,11 @@ total PMMH time divided by T (see ``experiments/bocquel_table2.py``).
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, Callable, NamedTuple
 
 import torch
 
-from .._validation import check_generator, check_positive, check_positive_int, check_shape
+from .._validation import check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.motion import LinearGaussianMotion

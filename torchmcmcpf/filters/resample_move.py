@@ -154,7 +154,7 @@ class ResampleMoveFilter(Filter):
     Parameters
     ----------
     motion : MotionModel (e.g. the paper-003 model,
-        :class:`torchmcmcpf.scenarios.maroulas.WhiteAccelerationMotion`).
+        :class:`torchmcmcpf.models.WhiteAccelerationMotion`).
     sensor : SensorModel differentiable in ``x`` (for unknown association,
         :class:`~torchmcmcpf.models.sensors.association.AssociationPosition` or
         :class:`~torchmcmcpf.models.sensors.association.AssociationBearingRange`).

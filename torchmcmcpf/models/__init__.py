@@ -3,7 +3,7 @@ sensors (likelihoods)."""
 
 from .base import MotionModel, SensorModel
 from .existence import BirthDeath, ExistenceEstimate, existence_estimate
-from .motion import ConstantVelocity, LinearGaussianMotion
+from .motion import ConstantVelocity, LinearGaussianMotion, WhiteAccelerationMotion
 from .sensors import *  # noqa: F401,F403
 from .sensors import __all__ as _sensors
 
@@ -12,6 +12,7 @@ __all__ = [
     "SensorModel",
     "ConstantVelocity",
     "LinearGaussianMotion",
+    "WhiteAccelerationMotion",
     "BirthDeath",
     "ExistenceEstimate",
     "existence_estimate",

@@ -1,7 +1,9 @@
 """Motion models.
 
-``ConstantVelocity``: nearly constant velocity in 2-D with an optional random-walk target
-amplitude, Bocquel, Driessen and Bagchi (2012) eqs. 15-17 (paper 000).
+- ``ConstantVelocity``: nearly constant velocity in 2-D with an optional random-walk target
+  amplitude, Bocquel, Driessen and Bagchi (2012) eqs. 15-17 (paper 000).
+- ``WhiteAccelerationMotion``: the rank-2 white-acceleration model of Maroulas and Stinis
+  (2010) eqs. 11-13 (paper 003), whose noise the HMC move samples.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from .._validation import check_positive
 from ..typing import Tensor
 from .base import MotionModel
 
-__all__ = ["ConstantVelocity", "LinearGaussianMotion"]
+__all__ = ["ConstantVelocity", "LinearGaussianMotion", "WhiteAccelerationMotion"]
 
 
 class LinearGaussianMotion(MotionModel):
@@ -107,3 +109,46 @@ class ConstantVelocity(LinearGaussianMotion):
 
     def extra_repr(self) -> str:
         return f"dt={self.dt}, q={self.q}, amplitude_q={self.amplitude_q}"
+
+
+class WhiteAccelerationMotion(MotionModel):
+    """2-D nearly constant velocity with a piecewise constant white acceleration.
+
+    Paper 003 eqs. 11-13: ``x_t = A x_{t-1} + B v_t``, state ``[x, vx, y, vy]``,
+    ``A = diag(F1, F1)``, ``F1 = [[1, T], [0, 1]]``, ``B = [[T^2/2, 0], [T, 0], [0, T^2/2],
+    [0, T]]``, ``v ~ N(0, diag(s_x^2, s_y^2))``. The noise is 2-D (``noise_dim = 2``), so
+    the 4-D transition density is singular and ``log_prob`` is not defined; filters use
+    ``propagate`` (the HMC move of paper 003 acts on its noise).
+
+    Parameters
+    ----------
+    dt : T > 0 (paper: 1).
+    sigma : ``(s_x, s_y)`` acceleration standard deviations, or one float for both
+        (paper: 1).
+    """
+
+    def __init__(self, dt: float = 1.0, sigma=1.0):
+        super().__init__()
+        check_positive(dt, "dt")
+        s = torch.as_tensor(sigma, dtype=torch.get_default_dtype()).expand(2).clone()
+        for i, v in enumerate(s.tolist()):
+            check_positive(v, f"sigma[{i}]")
+        f1 = torch.tensor([[1.0, dt], [0.0, 1.0]])
+        g1 = torch.tensor([[dt**2 / 2], [dt]])
+        self.register_buffer("A", torch.block_diag(f1, f1))
+        self.register_buffer("G", torch.block_diag(g1 * s[0], g1 * s[1]))  # B sigma, (4, 2)
+        self.dim, self.noise_dim, self.dt = 4, 2, float(dt)
+
+    def mean(self, x: Tensor) -> Tensor:
+        """``A x``: ``(*S, K, 4) -> (*S, K, 4)``."""
+        return x @ self.A.to(x.dtype).mT
+
+    def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
+        """``A x + B sigma eps``: ``(*S, K, 4), (*S, K, 2) -> (*S, K, 4)``."""
+        return self.mean(x) + eps @ self.G.to(x.dtype).mT
+
+    def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
+        raise NotImplementedError("the transition of paper 003 eq. 11 is rank 2 in 4-D: no density")
+
+    def extra_repr(self) -> str:
+        return f"dt={self.dt}"
