@@ -18,6 +18,7 @@ from .filters import (
     sir_step,
 )
 from .models import (
+    AzimuthRangeSwerlingTBD,
     BirthDeath,
     ConstantVelocity,
     LinearGaussian,
@@ -42,6 +43,7 @@ __all__ = [
     "ConstantVelocity",
     "LinearGaussian",
     "RangeDopplerBearingTBD",
+    "AzimuthRangeSwerlingTBD",
     "PoissonClutterPoints",
     "BirthDeath",
     "ParticleState",

@@ -1,12 +1,14 @@
 """Scenario simulators that reproduce each paper's setup, batched over Monte Carlo runs.
 
 - :func:`ground_radar`: range-doppler-bearing TBD, Bocquel et al. (2012) Table I.
+- :func:`ling`: three targets on an azimuth-range Swerling-I grid (Ling, paper 002).
 - :func:`septier`: births and deaths in Poisson clutter, after Septier et al. (paper 001).
 - :mod:`maroulas`: the time-varying target count of Maroulas and Stinis (2010).
 """
 
 from . import maroulas
 from .ground_radar import Scenario, ground_radar
+from .ling import LingScenario, ling
 from .septier import SeptierScenario, septier
 
-__all__ = ["Scenario", "ground_radar", "SeptierScenario", "septier", "maroulas"]
+__all__ = ["Scenario", "ground_radar", "LingScenario", "ling", "SeptierScenario", "septier", "maroulas"]
