@@ -6,6 +6,10 @@ Groups are per particle count, so the ratios window / grid / compiled read off o
 
     pytest benchmarks/bench_likelihood.py --benchmark-group-by=group
     pytest benchmarks/bench_likelihood.py -m "not compile"     # eager only
+
+Also: ``log I0`` of float32 arguments, ``i0e`` vs the polynomial approximation (eager and
+compiled), and the change of the likelihood when one slot of 50 chains moves
+(``log_likelihood_delta`` vs two windowed calls).
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ import math
 import pytest
 import torch
 
-from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
+from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0_approx
 
 K = 10
 DEG = math.pi / 180
@@ -57,3 +61,45 @@ def test_likelihood_compiled(benchmark, path, n):
     benchmark.group = f"radar-likelihood-N{n}-K{K}"
     fn = torch.compile(getattr(sens, f"log_likelihood_{path}"), dynamic=False)
     _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
+
+
+# ----------------------------------------------------------------------------- log I0
+def _log_i0_exact(u):
+    a = u.abs()
+    return torch.log(torch.special.i0e(a)) + a
+
+
+@pytest.mark.parametrize("n", [70_000, 17_000_000])  # one delta at C = 50; one windowed call at N = 5000
+@pytest.mark.parametrize("variant", ["i0e-eager", "approx-eager", "approx-compiled"])
+def test_log_i0(benchmark, variant, n):
+    """``log I0`` of float32 arguments: ``torch.special.i0e`` (the float64 path) against the
+    Abramowitz-Stegun polynomial used for float32 (:func:`~torchmcmcpf.models.sensors.radar.log_i0_approx`)."""
+    u = 60 * torch.rand(n, generator=torch.Generator().manual_seed(0))
+    fn = {"i0e-eager": _log_i0_exact, "approx-eager": log_i0_approx,
+          "approx-compiled": torch.compile(log_i0_approx, dynamic=False)}[variant]
+    benchmark.group = f"log-i0-{n}"
+    fn(u)
+    benchmark.pedantic(fn, args=(u,), rounds=5, iterations=1)
+
+
+# ----------------------------------------------------------------------------- one-slot delta
+@pytest.mark.parametrize("variant", ["delta-eager", "delta-compiled", "window-eager-twice"])
+def test_one_slot_change(benchmark, variant):
+    """Change of the log-likelihood when one of K = 10 slots moves, for C = 50 chains: the
+    ``log_likelihood_delta`` hook against two windowed evaluations."""
+    sens, x, z = problem(50)
+    x_n = x[:, :, 3] + torch.tensor([3.0, 0.5, 3.0, 0.5, 0.0])
+    x_new = x.clone()
+    x_new[:, :, 3] = x_n
+    slot = torch.tensor(3)
+    benchmark.group = "one-slot-change-C50-K10"
+    if variant == "window-eager-twice":
+        fn = lambda: sens.log_likelihood_window(x_new, z) - sens.log_likelihood_window(x, z)  # noqa: E731
+    else:
+        delta = sens.log_likelihood_delta
+        if variant == "delta-compiled":
+            delta = torch.compile(delta, dynamic=False, fullgraph=True)
+        fn = lambda: delta(x, x_n, slot, z)  # noqa: E731
+    with torch.no_grad():
+        fn()
+        benchmark.pedantic(fn, rounds=20, iterations=1)

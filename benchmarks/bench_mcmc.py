@@ -9,8 +9,15 @@ Fewer, wider iterations amortise the per-iteration overhead of eager PyTorch: th
 between the C values within one run are the result. Timings on a shared machine are noisy.
 
 Adding a sensor: write a function ``(generator) -> Problem`` and register it in
-``PROBLEMS``; every benchmark here is parametrised over that dict (e.g. the radar grid with
-10 targets, whose per-target refinement uses the sensor's ``log_likelihood_delta``).
+``PROBLEMS``; every benchmark here is parametrised over that dict. ``radar-window`` is the
+ground radar of paper 000 (10 targets, 87 x 22 x 32 cells, float32, windowed likelihood with
+truncated spreads): its per-target refinement scores each slot by the sensor's
+``log_likelihood_delta`` (the cells of the slot's old and new box). ``radar-grid`` is the same
+with the whole-grid reference (each delta two whole-grid evaluations): it runs only the
+C values with few iterations (C >= 50), one round.
+
+``mcmc-step-radar-target``: the issue-3 setting, C = 50 chains and N = 5000 (100 iterations
+per step), windowed likelihood, eager.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import torch
 from torchmcmcpf import ConstantVelocity, LinearGaussian
 from torchmcmcpf.filters.mcmc import mcmc_step
 from torchmcmcpf.models.base import MotionModel, SensorModel
+from torchmcmcpf.scenarios.ground_radar import ground_radar
 from torchmcmcpf.state import ParticleState
 
 N = int(os.environ.get("BENCH_MCMC_PARTICLES", "1000"))
@@ -49,9 +57,19 @@ def linear_gaussian(generator: torch.Generator, B: int = 1, K: int = 10) -> Prob
     return Problem(motion, sensor, ParticleState(x, torch.full((B, N), -math.log(N))), z)
 
 
-#: sensor name -> problem factory; extend with other sensors (radar grid, ...).
+def radar(generator: torch.Generator, method: str = "window", n: int = N) -> Problem:
+    """The ground radar of paper 000 with 10 targets; the cloud is the scenario's initial one."""
+    scn = ground_radar(10, 20, 1, generator=generator)
+    scn.sensor.method = method
+    x = scn.initial_particles(n, generator=generator)
+    return Problem(scn.motion, scn.sensor, ParticleState(x, torch.full((1, n), -math.log(n))), scn.measurements[0])
+
+
+#: sensor name -> problem factory.
 PROBLEMS: dict[str, Callable[[torch.Generator], Problem]] = {
     "linear-gaussian": linear_gaussian,
+    "radar-window": radar,
+    "radar-grid": lambda generator: radar(generator, "grid"),
 }
 
 
@@ -63,13 +81,27 @@ def problem(request):
 @pytest.mark.parametrize("num_chains", CHAINS)
 def test_mcmc_step(benchmark, problem, num_chains):
     name, (motion, sensor, state, z) = problem
-    benchmark.group = f"mcmc-step-{name}"
-    benchmark.extra_info.update(N=N, C=num_chains, iterations=N // num_chains, K=state.num_targets)
+    if name == "radar-grid" and num_chains < 50:
+        pytest.skip("whole grid: N / C iterations of full-grid evaluations take minutes; C >= 50 only")
+    _bench_step(benchmark, f"mcmc-step-{name}", motion, sensor, state, z, num_chains,
+                rounds=1 if name == "radar-grid" else 3)
+
+
+def _bench_step(benchmark, group, motion, sensor, state, z, num_chains, rounds):
+    n = state.x.shape[1]
+    benchmark.group = group
+    benchmark.extra_info.update(N=n, C=num_chains, iterations=n // num_chains, K=state.x.shape[2])
     g = torch.Generator().manual_seed(1)
 
     def step():
         return mcmc_step(state, z, motion=motion, sensor=sensor, generator=g, num_chains=num_chains,
                          burn_in=0, thinning=1, moves="mixture")
 
-    out, info = benchmark.pedantic(step, rounds=3, iterations=1, warmup_rounds=1)
+    with torch.no_grad():
+        out, info = benchmark.pedantic(step, rounds=rounds, iterations=1, warmup_rounds=1)
     assert out.x.shape == state.x.shape
+
+
+def test_mcmc_step_radar_target(benchmark):
+    motion, sensor, state, z = radar(torch.Generator().manual_seed(0), n=5000)
+    _bench_step(benchmark, "mcmc-step-radar-target", motion, sensor, state, z, 50, rounds=3)

@@ -13,7 +13,7 @@ import pytest
 import torch
 from scipy import special, stats
 
-from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0
+from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0, log_i0_approx
 
 DEG = math.pi / 180
 
@@ -117,6 +117,27 @@ def test_log_i0_large_arguments_and_gradient():
     torch.testing.assert_close(grad, torch.special.i1e(u) / torch.special.i0e(u), rtol=1e-10, atol=1e-12)
 
 
+def test_log_i0_approx_against_i0e_and_its_gradient():
+    """Abramowitz-Stegun polynomials (float32 path): |error| <= 5e-7 in log I0 over [0, 1e6]
+    (the polynomials' stated bounds, 1.6e-7 relative on I0 below 3.75 and 1.9e-7 absolute on
+    sqrt(u) e^-u I0 >= 0.39 above, give <= 4.9e-7), gradient I1/I0 within 2e-6, exactly 0
+    with zero slope at u = 0, even in u; float32 log_i0 uses it on tensors up to 2**20
+    elements (eager), float64 stays exact."""
+    u = torch.cat([torch.linspace(0, 10, 20001, dtype=torch.float64), torch.logspace(1, 6, 2001, dtype=torch.float64)])
+    exact = torch.log(torch.special.i0e(u)) + u
+    assert (log_i0_approx(u) - exact).abs().max() <= 5e-7
+    assert torch.equal(log_i0_approx(-u), log_i0_approx(u))
+    v = torch.linspace(0, 60, 6001, dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(log_i0_approx(v).sum(), v)
+    torch.testing.assert_close(grad, torch.special.i1e(v.detach()) / torch.special.i0e(v.detach()), rtol=0, atol=2e-6)
+    assert grad[0] == 0 and log_i0_approx(v)[0] == 0
+    u32 = u.to(torch.float32)
+    assert torch.equal(log_i0(u32), log_i0_approx(u32)) and log_i0(u32).dtype == torch.float32
+    assert torch.equal(log_i0(u), exact)
+    big = torch.full((2**20 + 1,), 7.5)  # above the eager size limit: i0e, where it is faster
+    assert torch.equal(log_i0(big), torch.log(torch.special.i0e(big)) + big)
+
+
 def test_snr_convention():
     sens = small_sensor(noise_std=2.0)
     # SNR = rho^2 / (2 sigma^2): 0 dB is rho = sigma sqrt(2); 20 dB is rho^2 = 100 * 2 sigma^2
@@ -129,10 +150,11 @@ def test_snr_convention():
 
 # ----------------------------------------------------------------------------- window vs grid
 def test_window_matches_grid_on_table1_scenario():
-    """Stated tolerance of the default window (3): over particles near the targets,
-    max |(win - grid) - mean(win - grid)| <= 1e-3 * std(grid) per run (the study in the
-    RangeDopplerBearingTBD docstring measured <= 4e-5). Two of the targets are
-    2 range cells and 1 doppler cell apart, so their boxes overlap (cells counted once)."""
+    """Stated tolerance of the default window (3, point spreads truncated to the boxes):
+    over particles near the targets, max |(win - grid) - mean(win - grid)| <= 5e-3 * std(grid)
+    per run (the study in the RangeDopplerBearingTBD docstring measured 2e-5 - 3e-3; this
+    frame 3.5e-3). Two of the targets are 2 range cells and 1 doppler cell apart, so their
+    boxes overlap (cells counted once)."""
     sens = table1_sensor()
     assert sens.window == 3
     g = torch.Generator().manual_seed(3)
@@ -143,7 +165,7 @@ def test_window_matches_grid_on_table1_scenario():
     x = particles_near(xt, 150, g)
     win, grid = sens.log_likelihood_window(x, z), sens.log_likelihood_grid(x, z)
     diff = win - grid
-    assert ((diff - diff.mean(1, keepdim=True)).abs().amax(1) <= 1e-3 * grid.std(1)).all()
+    assert ((diff - diff.mean(1, keepdim=True)).abs().amax(1) <= 5e-3 * grid.std(1)).all()
     # the boxes of the first two targets of run 0 really overlap in every particle
     u = sens.measurement_coords(x[0])
     cells = torch.round((u - torch.tensor(sens.origins, dtype=u.dtype)) / torch.tensor(sens.cell_sizes, dtype=u.dtype))
@@ -175,6 +197,114 @@ def test_window_counts_overlapping_cells_once():
     box = tuple(slice(c - 1, c + 2) for c in cell)
     ref = sens.cell_log_ratio(A[0][box], sens.prepare_frame(z)[0][box]).sum()
     torch.testing.assert_close(sens.log_likelihood_window(xt, z)[0], ref, rtol=1e-12, atol=1e-12)
+
+
+def _truncated_grid_reference(sens, x, z):
+    """Sum over every cell of the grid of cell_log_ratio(A~), with A~ built from per-axis
+    profiles cut to each target's box by hand: ``x (B, P, K, D) -> (B, P)``."""
+    u = sens.measurement_coords(x)
+    s = sens.signal(x)
+    W = sens.window_sizes()
+    factors = []
+    for a in range(sens.n_axes):
+        c = sens.bins(a).to(x.dtype)
+        centre = torch.round((u[..., a] - sens.origins[a]) / sens.cell_sizes[a])
+        first = (centre - sens.window).clamp(0, sens.frame_shape[a] - W[a])
+        idx = torch.arange(sens.frame_shape[a], dtype=x.dtype)
+        inside = (idx >= first[..., None]) & (idx < first[..., None] + W[a])
+        factors.append(torch.exp(-((c - u[..., a, None]) ** 2) / (2 * sens.widths[a] ** 2)) * inside)
+    A = torch.einsum("bpk,bpki,bpkj,bpkl->bpijl", s, *factors)
+    return sens.cell_log_ratio(A, sens.prepare_frame(z)[:, None]).flatten(2).sum(-1)
+
+
+def test_window_is_exact_for_truncated_point_spread():
+    """The windowed path is the exact log-likelihood of the sensor whose spreads are cut to
+    the boxes: equal (round-off) to a whole-grid sum with hand-truncated profiles, with
+    partially overlapping boxes and one box pushed against the grid edge."""
+    sens = small_sensor(window=2)
+    g = torch.Generator().manual_seed(11)
+    xt = target_states([[2790, 2815, 2742]], [[1, 2, -7]], [[0.2, 1.0, -4.8]], [[4, 5, 6]])
+    z = sens.simulate(xt, generator=g)
+    x = particles_near(xt, 30, g, pos=8.0, vel=2.0)
+    torch.testing.assert_close(sens.log_likelihood_window(x, z), _truncated_grid_reference(sens, x, z),
+                               rtol=1e-12, atol=1e-10)
+
+
+def _replace_slot(x, x_n, slot):
+    here = (torch.arange(x.shape[-2]) == slot[..., None])[..., None]
+    return torch.where(here, x_n[..., None, :], x)
+
+
+@pytest.mark.parametrize("window", [1, 3])
+def test_log_likelihood_delta_equals_difference_of_window_calls(window):
+    """log_likelihood_delta(x, x_n, n, z) == window(x with slot n = x_n) - window(x) to
+    round-off, for an int slot and a per-sample slot tensor, with sample dims (3, 10), boxes
+    that overlap other targets' and the old box (small moves) or not (large moves)."""
+    sens = small_sensor(window=window)
+    g = torch.Generator().manual_seed(12)
+    xt = target_states([[2790, 2805, 2830]], [[1, 2, -3]], [[0.2, 0.6, -2.0]], [[4, 5, 6]])
+    z = sens.simulate(xt, generator=g)
+    x = particles_near(xt, 30, g, pos=6.0).reshape(1, 3, 10, 3, 5)
+    x_n = particles_near(xt, 30, g, pos=20.0, vel=3.0)[:, :, 1].reshape(1, 3, 10, 5)
+    base = sens.log_likelihood_window(x, z)
+    for n in range(3):
+        ref = sens.log_likelihood_window(_replace_slot(x, x_n, torch.tensor(n)), z) - base
+        torch.testing.assert_close(sens.log_likelihood_delta(x, x_n, n, z), ref, rtol=1e-10, atol=1e-9)
+    slot = torch.randint(3, (1, 3, 10), generator=g)
+    ref = sens.log_likelihood_window(_replace_slot(x, x_n, slot), z) - base
+    torch.testing.assert_close(sens.log_likelihood_delta(x, x_n, slot, z), ref, rtol=1e-10, atol=1e-9)
+    assert ref.abs().min() > 1e-3  # the moves do change the likelihood
+
+
+def test_log_likelihood_delta_with_existence_and_float32():
+    """exists / exists_n: births (absent -> present), deaths and moves of absent slots equal the
+    difference of two windowed calls with the flags; float32 within its round-off: the
+    delta sums 4 * 7^3 = 1372 cell terms, each |f| <= u = A sqrt(z) / sigma^2 <~ 40 here and
+    rounded to ~2 eps_32 |f| = 1e-5, so the worst case (all errors aligned) is 1.4e-2."""
+    sens = small_sensor()
+    g = torch.Generator().manual_seed(13)
+    xt = target_states([[2790, 2805, 2830]], [[1, 2, -3]], [[0.2, 0.6, -2.0]], [[4, 5, 6]])
+    z = sens.simulate(xt, generator=g)
+    x = particles_near(xt, 40, g)
+    x_n = particles_near(xt, 40, g, pos=10.0)[:, :, 0]
+    exists = torch.rand(1, 40, 3, generator=g) < 0.6
+    exists_n = torch.rand(1, 40, generator=g) < 0.5
+    slot = torch.randint(3, (1, 40), generator=g)
+    here = torch.arange(3) == slot[..., None]
+    ref = (sens.log_likelihood_window(_replace_slot(x, x_n, slot), z, torch.where(here, exists_n[..., None], exists))
+           - sens.log_likelihood_window(x, z, exists))
+    out = sens.log_likelihood_delta(x, x_n, slot, z, exists=exists, exists_n=exists_n)
+    torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-9)
+    same = sens.log_likelihood_delta(x, x_n, slot, z, exists=exists)  # exists_n defaults to the slot's flag
+    ref_same = sens.log_likelihood_window(_replace_slot(x, x_n, slot), z, exists) - sens.log_likelihood_window(x, z, exists)
+    torch.testing.assert_close(same, ref_same, rtol=1e-10, atol=1e-9)
+    out32 = sens.log_likelihood_delta(x.float(), x_n.float(), slot, z.float(), exists=exists, exists_n=exists_n)
+    assert (out32.double() - ref).abs().max() <= 1.4e-2
+
+
+def test_log_likelihood_delta_follows_method_grid():
+    """With method="grid" the delta is that of the whole-grid reference (what log_likelihood
+    returns), so chains that cache log_likelihood and add deltas stay consistent."""
+    sens = small_sensor(method="grid")
+    g = torch.Generator().manual_seed(14)
+    xt = target_states([[2790, 2805]], [[1, 2]], [[0.2, 0.6]], [[4, 5]])
+    z = sens.simulate(xt, generator=g)
+    x = particles_near(xt, 6, g)
+    x_n = particles_near(xt, 6, g, pos=10.0)[:, :, 1]
+    ref = sens.log_likelihood_grid(_replace_slot(x, x_n, torch.tensor(1)), z) - sens.log_likelihood_grid(x, z)
+    torch.testing.assert_close(sens.log_likelihood_delta(x, x_n, 1, z), ref, rtol=1e-12, atol=1e-10)
+
+
+def test_log_likelihood_delta_rejects_bad_input():
+    sens = small_sensor()
+    x = target_states([[2790, 2805]], [[1, 2]], [[0.2, 0.6]], [[4, 5]])[:, None].expand(1, 4, 2, 5)
+    z = torch.ones(1, *sens.frame_shape, dtype=torch.float64)
+    with pytest.raises(ValueError, match="n must be"):
+        sens.log_likelihood_delta(x, x[..., 0, :], 2, z)
+    with pytest.raises(ValueError, match="x_n has shape"):
+        sens.log_likelihood_delta(x, x[..., 0, :4], 0, z)
+    with pytest.raises(ValueError, match="exists_n has shape"):
+        sens.log_likelihood_delta(x, x[..., 0, :], 0, z, exists_n=torch.ones(1, 3, dtype=torch.bool))
 
 
 # ----------------------------------------------------------------------------- chunking and memory
@@ -373,3 +503,24 @@ def test_constructor_rejects_bad_bins_and_settings():
     sens = RangeDopplerBearingTBD.uniform((2300, 3300), (-20, 20), (-15 * DEG, 15 * DEG))
     assert sens.frame_shape == (101, 21, 31)
     assert sens.widths == pytest.approx((10.0, 2.0, DEG))
+
+
+@pytest.mark.parametrize("method", ["window", "grid"])
+def test_inactive_slot_parked_at_the_radar_stays_finite(method):
+    # An inactive slot parked at x_death = 0 (the existence model's default) sits at the
+    # radar itself, where range is 0 and doppler 0/0: values and gradients must stay finite
+    # and the slot must contribute nothing.
+    sensor = RangeDopplerBearingTBD.uniform((2700.0, 2800.0), (-10.0, 10.0), (-0.05, 0.05), method=method).double()
+    live = torch.tensor([[[[2750.0, 1.0, 10.0, 0.5, 5.0]]]], dtype=torch.float64)  # (1, 1, 1, 5)
+    x = torch.cat([live, torch.zeros_like(live)], dim=2).requires_grad_(True)  # slot 1 at origin
+    exists = torch.tensor([[[True, False]]])
+    z = sensor.simulate(live[:, 0], generator=torch.Generator().manual_seed(0))
+    ll = sensor.log_likelihood(x, z, exists)
+    (grad,) = torch.autograd.grad(ll.sum(), x)
+    assert torch.isfinite(ll).all() and torch.isfinite(grad).all()
+    assert torch.allclose(ll, sensor.log_likelihood(live, z))
+    assert torch.all(grad[..., 1, :] == 0)
+    if method == "window":
+        delta = sensor.log_likelihood_delta(x.detach(), live[..., 0, :], 1, z, exists=exists,
+                                            exists_n=torch.ones(1, 1, dtype=torch.bool))
+        assert torch.isfinite(delta).all()

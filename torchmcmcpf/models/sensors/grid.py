@@ -17,12 +17,15 @@ log-likelihood is its sum over cells.
 - :meth:`~SeparableGridSensor.log_likelihood_grid`, the reference: every cell of the grid,
   ``A`` by a contraction of per-axis profiles, in chunks of the sample dims sized from
   ``memory_budget`` (autograd-checkpointed per chunk, so gradients stay within it too);
-- :meth:`~SeparableGridSensor.log_likelihood_window`, the fast path: only the cells of a box of
-  ``2 * window + 1`` cells per axis around each target's nearest cell. ``A`` there is exact
-  (every target's full Gaussian contributes) and a cell inside several boxes is counted once,
-  so the result is the reference restricted to the union of the boxes. Dropping the cells
-  outside the union is the only approximation; with ``window`` at least the grid size the two
-  paths agree to round-off.
+- :meth:`~SeparableGridSensor.log_likelihood_window`, the fast path: each target's point
+  spread is truncated to a box of ``2 * window + 1`` cells per axis around its nearest cell,
+  and the result is the exact log-likelihood of that truncated-spread sensor (a sum over the
+  union of the boxes, a cell inside several boxes counted once). The truncation is the only
+  approximation (spread values below ``exp(-(window + 1/2)^2 / 2)`` of the peak are dropped);
+  with ``window`` at least the grid size the two paths agree to round-off.
+- :meth:`~SeparableGridSensor.log_likelihood_delta`: the change of the windowed
+  log-likelihood when one target slot moves, from the cells of its old and new box only
+  (the per-target refinement of the MCMC filter, the exchange move of IP-MCMC-PF).
 
 Subclasses implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
 (optionally :meth:`prepare_frame`) and :meth:`simulate`.
@@ -31,7 +34,7 @@ Subclasses implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -40,7 +43,33 @@ from ..._validation import check_nonnegative, check_positive, check_positive_int
 from ...typing import Tensor
 from ..base import SensorModel
 
-__all__ = ["SeparableGridSensor"]
+__all__ = ["SeparableGridSensor", "polar"]
+
+
+def polar(px: Tensor, py: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Range and bearing of positions seen from a sensor at the origin, safe at the origin.
+
+    Parameters
+    ----------
+    px, py : (...) Cartesian position [m].
+
+    Returns
+    -------
+    r, b : (...) range ``sqrt(x^2 + y^2)`` and bearing ``atan2(y, x)`` [rad];
+    ux, uy : (...) the unit line-of-sight vector ``(x, y) / r``.
+
+    A position within 1e-6 m of the sensor (e.g. an inactive slot parked at ``x_death = 0``)
+    is mapped to range 0, bearing 0 and line of sight ``(1, 0)`` with zero gradient, so
+    neither the values nor autograd produce NaN (``sqrt``, ``atan2`` and ``/ r`` all divide
+    by zero there). Elsewhere the map is exact.
+    """
+    r2 = px * px + py * py
+    far = r2 > 1e-12
+    one = torch.ones_like(px)
+    sx = torch.where(far, px, one)  # double-where: the unused branch gets no gradient
+    sy = torch.where(far, py, torch.zeros_like(py))
+    r = torch.sqrt(sx * sx + sy * sy)
+    return torch.where(far, r, torch.zeros_like(r)), torch.atan2(sy, sx), sx / r, sy / r
 
 _METHODS = ("window", "grid")
 
@@ -96,9 +125,10 @@ class SeparableGridSensor(SensorModel):
 
     #: temporaries of one sample held at once by the whole-grid path, in units of the grid
     #: size G (the amplitude, the gathered frame term and the cell log-ratio with its
-    #: intermediates), on top of the ``K * prod(N_1..N_{n-1})`` outer-product buffer.
+    #: intermediates, those of the float32 log I0 polynomial included), on top of the
+    #: ``K * prod(N_1..N_{n-1})`` outer-product buffer.
     #: Checked against a measured peak in tests/models/test_radar.py.
-    _GRID_TEMPS = 6
+    _GRID_TEMPS = 9
 
     def __init__(
         self,
@@ -315,16 +345,60 @@ class SeparableGridSensor(SensorModel):
         """Cells per axis of one target's box: ``min(2 * window + 1, N_a)``."""
         return tuple(min(2 * self.window + 1, n) for n in self.frame_shape)
 
-    def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
-        """Fast path: :meth:`cell_log_ratio` summed over the union of the targets' boxes.
+    def _box_first(self, ua: Tensor, axis: int) -> Tensor:
+        """First cell (float index) of the box on ``axis`` of targets at coordinates ``ua``:
+        the nearest cell minus ``window``, shifted to lie inside the grid. Same shape as ``ua``."""
+        N, W = self.frame_shape[axis], self.window_sizes()[axis]
+        nearest = torch.round((ua.detach() - self.origins[axis]) / self.cell_sizes[axis])
+        return (nearest - self.window).clamp(0, N - W)
 
-        Each existing target ``j`` gets a box of ``W_a = min(2 * window + 1, N_a)`` cells per
-        axis, centred on its nearest cell and shifted to lie inside the grid. The signal at a
-        box cell is exact, ``A = sum_k e_k s_k h_k(cell)`` over all targets: profiles of every
-        target ``k`` at the box indices of ``j`` (``(K, K, W_a)`` per axis), contracted by one
-        bmm. A cell inside ``n_c`` boxes is weighted ``1 / n_c``; ``n_c`` is the same
-        contraction with 0/1 box indicators in place of the profiles. Hence the result equals
-        :meth:`log_likelihood_grid` restricted to the union of the boxes.
+    def _box_profiles(self, first_q: Tensor, ua: Tensor, first_k: Tensor, axis: int) -> tuple[Tensor, Tensor]:
+        """Truncated profiles of targets ``k`` at the cells of boxes ``q`` on one axis.
+
+        ``first_q (..., Q)`` first cells of the boxes evaluated; ``ua, first_k (..., K)`` the
+        targets' coordinates and box starts. Returns ``profile (..., Q, K, W)``, the Gaussian of
+        target ``k`` at cell ``t`` of box ``q`` times the indicator that the cell lies in box
+        ``k``, and that indicator ``(..., Q, K, W)`` (0/1, dtype of ``ua``).
+        """
+        W = self.window_sizes()[axis]
+        c0, delta = self.origins[axis], self.cell_sizes[axis]
+        scale = 1.0 / (math.sqrt(2.0) * self.widths[axis])
+        offsets = torch.arange(W, device=ua.device, dtype=ua.dtype)
+        centre = (c0 + delta * (first_q[..., None] + offsets)) * scale  # (..., Q, W)
+        dist = centre[..., :, None, :] - (ua * scale)[..., None, :, None]  # (..., Q, K, W)
+        # cell t of box q lies in box k iff 0 <= first_q - first_k + t < W
+        lag = (first_q[..., :, None] - first_k[..., None, :])[..., None] + offsets  # (..., Q, K, W)
+        inside = ((lag >= 0) & (lag < W)).to(ua.dtype)
+        return torch.exp(-dist.square()) * inside, inside
+
+    def _gather_cells(self, zc: Tensor, firsts: Sequence[Tensor]) -> Tensor:
+        """``zc (B, *G)`` at the cells of boxes with first cells ``firsts[a] (B, P, Q)`` ->
+        ``(B, P, Q, *W)`` by broadcast advanced indexing (no index blow-up)."""
+        B, P, Q = firsts[0].shape
+        n = self.n_axes
+        index = [torch.arange(B, device=zc.device).reshape((B,) + (1,) * (2 + n))]
+        for a, (first, W) in enumerate(zip(firsts, self.window_sizes())):
+            cells = first.long()[..., None] + torch.arange(W, device=zc.device)  # (B, P, Q, W)
+            index.append(cells.reshape((B, P, Q) + tuple(-1 if b == a else 1 for b in range(n))))
+        return zc[tuple(index)]
+
+    def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+        """Fast path: the exact log-likelihood of the sensor with *truncated* point spreads.
+
+        Each target ``k`` gets a box of ``W_a = min(2 * window + 1, N_a)`` cells per axis,
+        centred on its nearest cell and shifted to lie inside the grid, and its point spread
+        is cut to that box: ``h~_k(c) = prod_a h_{k,a}(c_a) 1[c_a in box_{k,a}]``. Then
+        ``A = sum_k e_k s_k h~_k`` vanishes outside the union of the boxes and the
+        log-likelihood is the sum of :meth:`cell_log_ratio` over that union, computed box by
+        box: at the cells of box ``j``, ``A`` is the contraction of the truncated per-axis
+        profiles of every target (``(K, K, W_a)`` per axis, one bmm), and a cell inside
+        ``n_c`` boxes is weighted ``1 / n_c`` (``n_c`` the same contraction with the 0/1
+        indicators). The cut drops ``h`` below ``exp(-(window + 1/2)^2 / 2)`` of the peak
+        (2e-3 at ``window = 3`` and widths equal to the cell size): the difference to
+        :meth:`log_likelihood_grid` is stated in the subclass (tests/models/test_radar.py).
+
+        Because the spread is truncated the likelihood is local: moving one target changes
+        only the cells of its old and new box, which :meth:`log_likelihood_delta` exploits.
 
         Cost per sample: ``2 * K^2 * prod(W_a)`` multiply-adds and ``K * prod(W_a)`` cell
         log-ratios, independent of the grid size.
@@ -341,40 +415,113 @@ class SeparableGridSensor(SensorModel):
         B, K = x.shape[0], x.shape[-2]
         u, s, e = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
         P = u.shape[1]
-        profiles, indicators, cells = [], [], []
-        for a, (N, W) in enumerate(zip(self.frame_shape, self.window_sizes())):
-            c0, delta = self.origins[a], self.cell_sizes[a]
-            scale = 1.0 / (math.sqrt(2.0) * self.widths[a])
-            ua = u[..., a]
-            nearest = torch.round((ua.detach() - c0) / delta)
-            first = (nearest - self.window).clamp(0, N - W)  # (B, P, K) first cell of each box
-            offsets = torch.arange(W, device=x.device, dtype=x.dtype)
-            # profile of target k at the cells of box j: (B, P, J, K, W)
-            centre = (c0 + delta * (first[..., None] + offsets)) * scale  # (B, P, J, W)
-            dist = centre[..., :, None, :] - (ua * scale)[..., None, :, None]
-            profiles.append(torch.exp(-dist.square()))
-            # cell t of box j lies in box k iff 0 <= first_j - first_k + t < W: look the
-            # (B, P, J, K) shift up in a (2W + 1, W) table instead of comparing W-vectors
-            shift = (first[..., :, None] - first[..., None, :]).clamp(-W, W).long() + W
-            lags = torch.arange(-W, W + 1, device=x.device)[:, None] + offsets.long()
-            table = ((lags >= 0) & (lags < W)).to(x.dtype)
-            indicators.append(table[shift])
-            cells.append(first.long()[..., None] + offsets.long())  # (B, P, J, W)
+        firsts = [self._box_first(u[..., a], a) for a in range(self.n_axes)]  # (B, P, K) each
+        profiles, indicators = [], []
+        for a, first in enumerate(firsts):
+            profile, inside = self._box_profiles(first, u[..., a], first, a)  # (B, P, J, K, W)
+            profiles.append(profile)
+            indicators.append(inside)
         lead = (B, P, K)  # J = K: one box per target slot
         A = self._contract(s[..., None, :].expand(*lead, K), profiles)  # (B, P, J, *W)
         n_boxes = self._contract(e[..., None, :].expand(*lead, K), indicators)
-        # gather prepare_frame(z) at the box cells by broadcast advanced indexing (no index blow-up)
-        zc = self.prepare_frame(z.to(x.dtype))
+        zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)  # (B, P, J, *W)
         n = self.n_axes
-        index = [torch.arange(B, device=x.device).reshape((B,) + (1,) * (2 + n))]
-        for a, idx in enumerate(cells):
-            index.append(idx.reshape((B, P, K) + tuple(-1 if b == a else 1 for b in range(n))))
-        zw = zc[tuple(index)]  # (B, P, J, *W)
         # weight 1 / n_c; an absent box j has n_c >= 0, so add (1 - e_j) before dividing and
         # zero its sum afterwards
         n_boxes = n_boxes + (1.0 - e).reshape(lead + (1,) * n)
         per_box = (self.cell_log_ratio(A, zw) / n_boxes).flatten(3).sum(-1)  # (B, P, J)
         return (per_box * e).sum(-1).reshape(x.shape[:-2])
+
+    def log_likelihood_delta(
+        self,
+        x: Tensor,
+        x_n: Tensor,
+        n: Union[int, Tensor],
+        z: Tensor,
+        exists: Optional[Tensor] = None,
+        exists_n: Optional[Tensor] = None,
+    ) -> Tensor:
+        """Change of :meth:`log_likelihood_window` when slot ``n`` of ``x`` is set to ``x_n``.
+
+        With truncated point spreads (see :meth:`log_likelihood_window`) only the cells of
+        slot ``n``'s old box and of its new box change, so the difference is
+        ``sum over box_old ∪ box_new of cell_log_ratio(A') - cell_log_ratio(A)`` (a cell in
+        both boxes counted once), with ``A`` and ``A'`` the current and the new amplitude
+        there (every other target's truncated spread included). Cost per sample:
+        ``4 * (K + 2) * prod(W_a)`` multiply-adds and ``4 * prod(W_a)`` cell log-ratios,
+        against ``4 * K^2 * prod(W_a)`` and ``2 * K * prod(W_a)`` for two full windowed
+        evaluations (``K / 2`` times fewer log-ratios). This is the
+        ``log_likelihood_delta`` hook of :mod:`torchmcmcpf.kernels.moves` (per-target
+        refinement) and of :func:`torchmcmcpf.filters.ipmcmc.exchange_iteration`; it equals
+        ``log_likelihood_window(x') - log_likelihood_window(x)`` to round-off (tested).
+        Pure and branch-free (``torch.compile`` friendly). With ``method="grid"`` it is the
+        difference of two :meth:`log_likelihood_grid` calls instead (consistent with
+        :meth:`log_likelihood`, no speed-up).
+
+        Parameters
+        ----------
+        x : (B, *S, K, D) current states.
+        x_n : (B, *S, D) the new state of slot ``n``.
+        n : int in ``[0, K)``, or an int64 tensor broadcastable to ``(B, *S)``: the slot moved
+            in each sample (values not checked: no device sync).
+        z : (B, *G) the frame.
+        exists : (B, *S, K) bool, optional: existence of the current slots.
+        exists_n : (B, *S) bool, optional: existence of slot ``n`` after the move (default: as
+            before it).
+
+        Returns
+        -------
+        (B, *S): ``log p(z | x with slot n = x_n) - log p(z | x)``.
+        """
+        self._check_inputs(x, z, exists)
+        B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+        S = tuple(x.shape[1:-2])
+        if tuple(x_n.shape) != (B,) + S + (D,):
+            raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {(B,) + S + (D,)} to match x {tuple(x.shape)}")
+        if exists_n is not None and tuple(exists_n.shape) != (B,) + S:
+            raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {(B,) + S}")
+        if torch.is_tensor(n):
+            slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S).reshape(B, -1)
+        else:
+            if isinstance(n, bool) or not isinstance(n, int) or not 0 <= n < K:
+                raise ValueError(f"n must be an int in [0, {K}) or an int64 tensor, got {n!r}")
+            slot = torch.full((B, math.prod(S)), n, device=x.device, dtype=torch.int64)
+        if self.method == "grid":  # consistent with log_likelihood: two reference evaluations
+            here = torch.arange(K, device=x.device) == slot.reshape((B,) + S + (1,))
+            e_old = torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device) if exists is None else exists
+            e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
+            x_new = torch.where(here[..., None], x_n[..., None, :], x)
+            return self.log_likelihood_grid(x_new, z, e_new) - self.log_likelihood_grid(x, z, e_old)
+        u, s, e = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
+        P = u.shape[1]
+        at = slot[..., None]  # (B, P, 1)
+        x_new = x_n.reshape(B, P, 1, D)
+        e_new = torch.take_along_dim(e, at, 2) if exists_n is None else exists_n.reshape(B, P, 1).to(x.dtype)
+        s_old = torch.take_along_dim(s, at, 2)  # (B, P, 1)
+        s_new = self.signal(x_new) * e_new
+        s_rest = torch.where(torch.arange(K, device=x.device) == at, torch.zeros_like(s), s)
+        # targets: the K slots (slot n silenced), slot n before and after the move: K + 2
+        u_all = torch.cat([u, torch.take_along_dim(u, at[..., None], 2), self.measurement_coords(x_new)], 2)
+        zero = torch.zeros_like(s_old)
+        s_cur = torch.cat([s_rest, s_old, zero], -1)  # (B, P, K + 2)
+        s_prop = torch.cat([s_rest, zero, s_new], -1)
+        firsts, profiles, in_old = [], [], []
+        for a in range(self.n_axes):
+            first = self._box_first(u_all[..., a], a)  # (B, P, K + 2)
+            boxes = first[..., K:]  # (B, P, 2): old and new box of slot n
+            profile, inside = self._box_profiles(boxes, u_all[..., a], first, a)  # (B, P, 2, K + 2, W)
+            firsts.append(boxes)
+            profiles.append(profile)
+            in_old.append(inside[:, :, 1, K])  # (B, P, W): cells of the new box inside the old one
+        signals = torch.stack([s_cur, s_prop], 2)[:, :, :, None].expand(B, P, 2, 2, K + 2)  # (B, P, 2v, 2q, K+2)
+        factors = [f[:, :, None].expand(B, P, 2, *f.shape[2:]) for f in profiles]
+        A = self._contract(signals, factors)  # (B, P, 2 (cur, prop), 2 (old box, new box), *W)
+        zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)[:, :, None]  # (B, P, 1, 2, *W)
+        ratio = self.cell_log_ratio(A, zw)
+        diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
+        both = self._contract(torch.ones_like(s_old), [f[..., None, :] for f in in_old])  # (B, P, *W)
+        out = diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
+        return out.reshape((B,) + S)
 
     # ---------------------------------------------------------------- checks
     def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:

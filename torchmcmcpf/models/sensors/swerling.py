@@ -26,7 +26,7 @@ import torch
 
 from ..._validation import check_finite, check_generator, check_nonnegative, check_positive, check_shape
 from ...typing import RHO, X, Y, Tensor
-from .grid import SeparableGridSensor
+from .grid import SeparableGridSensor, polar
 
 __all__ = ["AzimuthRangeSwerlingTBD", "POWER"]
 
@@ -150,8 +150,8 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:
         """Eq. 6: ``(..., K, 5) -> (..., K, 2)`` as ``[a, r]``, ``a = atan2(y, x)``."""
-        px, py = x[..., X], x[..., Y]
-        return torch.stack((torch.atan2(py, px), torch.sqrt(px * px + py * py)), dim=-1)
+        r, a, _, _ = polar(x[..., X], x[..., Y])
+        return torch.stack((a, r), dim=-1)
 
     def signal(self, x: Tensor) -> Tensor:
         """Target power ``P``: ``(..., K, 5) -> (..., K)``."""
