@@ -360,3 +360,183 @@ def test_joint_proposal_shapes_and_ratio(gen):
     assert x.shape == x_prev.shape == (B, 7, K, D)
     assert torch.equal(log_ratio, torch.zeros(B, 7, dtype=DT))
     torch.testing.assert_close(x, motion.propagate(x_prev, noise.eps))
+
+
+# -- existence: births and deaths --------------------------------------------------------------
+# Exact target (module "Existence" docstring of torchmcmcpf.kernels.moves) on a problem small
+# enough to enumerate: K = 2 slots, N0 = 4 distinct previous particles (every existence
+# pattern), one point z per run in Poisson clutter. The likelihood of one point,
+#   p(z | x, e) = exp(-(L_C + L_x |e|)) (L_C / V + L_x sum_n e_n N(z; H x_n, R)),
+# is linear in each N(z; H x_n, R), and given (a, e) the slots are independent under the
+# prior, so every expectation below is a closed form:
+#   E[N(z; H x_n, R) | a, e_n = 1] = g_n(a) = N(z; H F x^a_n, H Q H' + R)   (survivor)
+#                                            = P_box(z) / V                  (newborn, p_0)
+#   W(a, e) = w_a p(e | e^a) exp(-(L_C + L_x |e|)) (L_C / V + L_x sum_{n: e_n} g_n(a))
+# and E[e_n pos_n | a, e] W(a, e) / (...) uses the prior mean m_n and the posterior mean mu_n
+# of pos_n given the point (Kalman for a survivor, truncated normal for a newborn).
+EX_AREA = ((0.0, 100.0), (0.0, 100.0))
+EX_C = 1000  # independent chains per run
+EX_STATS = ("P(e_0)", "P(e_1)", "P(e_0 e_1)", "E[e_0 x_0]", "E[e_0 y_0]", "E[e_1 x_1]", "E[e_1 y_1]",
+            "P(e^a_0)")
+
+
+def _existence_problem(birth_std):
+    from torchmcmcpf.models.existence import BirthDeath
+    from torchmcmcpf.models.sensors.points import PointFrame, PoissonClutterPoints
+
+    motion = ConstantVelocity(1.0, 3.0).to(DT)
+    # dense clutter and a wide point spread keep the Doeblin constant of the joint draw large
+    sensor = PoissonClutterPoints(10.0, 2.0, EX_AREA, noise_std=4.0).to(DT)
+    existence = BirthDeath(0.3, 0.2, EX_AREA, velocity_std=1.0, birth_std=birth_std, p_uniform=0.5).to(DT)
+    flags = torch.tensor([[1, 1], [1, 0], [0, 1], [0, 0]], dtype=torch.bool)
+    live = torch.tensor([[40.0, 1.0, 50.0, 0.0], [60.0, 0.0, 52.0, -1.0]], dtype=DT)  # slot 0, slot 1
+    x0 = torch.where(flags.unsqueeze(-1), live, existence.x_death)  # (4, K, D)
+    x0 = x0.expand(B, 4, K, D)
+    log_w0 = torch.log_softmax(torch.tensor([[0.3, -0.2, 0.1, 0.0], [0.0, 0.5, -0.3, 0.2]], dtype=DT), -1)
+    # run 0: a point next to slot 0's prediction (41, 50); run 1: a point far from both
+    pts = torch.tensor([[[43.0, 50.5]], [[80.0, 20.0]]], dtype=DT)
+    z = PointFrame(pts, torch.ones(B, 1, dtype=torch.bool))
+    # the cloud: each distinct particle repeated N / 4 times (N = C: one kept state per chain)
+    rep = EX_C // 4
+    x = x0.repeat_interleave(rep, 1)
+    log_w = log_w0.repeat_interleave(rep, 1) - math.log(rep)
+    cloud = previous_cloud(x, log_w, flags.expand(B, 4, K).repeat_interleave(rep, 1))
+    exact, evidence = _existence_exact(x0, log_w0, flags, pts[:, 0], motion, sensor, existence)
+    return motion, sensor, existence, cloud, z, exact, evidence
+
+
+def _existence_exact(x0, log_w0, flags, z, motion, sensor, existence):
+    """Exact expectations of EX_STATS under pi ``(B, len(EX_STATS))`` and the evidence
+    ``p(z) = sum_{a, e} W(a, e)`` (B,)."""
+    normal = torch.distributions.Normal(torch.tensor(0.0, dtype=DT), torch.tensor(1.0, dtype=DT))
+    L_C, L_x, V = sensor.clutter_rate, sensor.detection_rate, sensor.volume
+    s2 = float(sensor.R[0, 0])
+    idx = [0, 2]  # x, y
+    q = torch.diagonal(motion.Q)[idx]  # position variances of the transition (independent x and y)
+    m_surv = motion.mean(x0)[..., idx]  # (B, 4, K, 2)
+    zb = z[:, None, None, :]  # (B, 1, 1, 2)
+    S = q + s2
+    g_surv = (torch.exp(-0.5 * (zb - m_surv).square() / S) / torch.sqrt(2 * math.pi * S)).prod(-1)
+    mu_surv = m_surv + q / S * (zb - m_surv)
+    lo, hi = existence.area[:, 0], existence.area[:, 1]
+    s = math.sqrt(s2)
+    al, be = (lo - z) / s, (hi - z) / s  # (B, 2)
+    mass = normal.cdf(be) - normal.cdf(al)
+    g_born = mass.prod(-1) / V  # (B,)
+    mu_born = z + s * (normal.log_prob(al).exp() - normal.log_prob(be).exp()) / mass
+    alive_a = flags.unsqueeze(0)  # (1, 4, K)
+    g = torch.where(alive_a, g_surv, g_born[:, None, None])  # (B, 4, K)
+    m = torch.where(alive_a.unsqueeze(-1), m_surv, ((lo + hi) / 2).expand_as(m_surv))
+    mu = torch.where(alive_a.unsqueeze(-1), mu_surv, mu_born[:, None, None, :])
+    combos = torch.tensor([[0, 0], [0, 1], [1, 0], [1, 1]], dtype=torch.bool)  # (E, K)
+    log_pe = existence.log_prob_exists(combos[None, None], alive_a[:, :, None]).sum(-1)  # (1, 4, E)
+    e = combos.to(DT)[None, None]  # (1, 1, E, K)
+    ge = e * g[:, :, None, :]  # (B, 4, E, K)
+    base = math.exp(-L_C) * torch.exp(-L_x * e.sum(-1))  # (1, 1, E)
+    lin = L_C / V + L_x * ge.sum(-1)  # (B, 4, E)
+    W = log_w0.exp()[:, :, None] * log_pe.exp() * base * lin  # (B, 4, E)
+    # E[e_n pos_n (...)]: m_n (L_C/V + L_x sum_{j != n} e_j g_j) + L_x g_n mu_n, for e_n = 1
+    other = lin.unsqueeze(-1) - L_x * ge  # (B, 4, E, K)
+    pos = e.unsqueeze(-1) * (m[:, :, None] * other.unsqueeze(-1) + L_x * ge.unsqueeze(-1) * mu[:, :, None])
+    pos = pos * (log_w0.exp()[:, :, None] * log_pe.exp() * base)[..., None, None]  # (B, 4, E, K, 2)
+    Z = W.sum((1, 2))
+    e_prev0 = alive_a[..., 0].to(DT).expand(W.shape[:2])  # (B, 4)
+    stats = torch.stack([
+        (W * e[..., 0]).sum((1, 2)) / Z,
+        (W * e[..., 1]).sum((1, 2)) / Z,
+        (W * e[..., 0] * e[..., 1]).sum((1, 2)) / Z,
+        pos[..., 0, 0].sum((1, 2)) / Z, pos[..., 0, 1].sum((1, 2)) / Z,
+        pos[..., 1, 0].sum((1, 2)) / Z, pos[..., 1, 1].sum((1, 2)) / Z,
+        (W.sum(-1) * e_prev0).sum(1) / Z,
+    ], -1)
+    return stats, Z
+
+
+def _existence_samples(chain: ChainState) -> torch.Tensor:
+    """The statistics EX_STATS of each chain, (B, C, len(EX_STATS))."""
+    e = chain.exists.to(DT)
+    ex = e.unsqueeze(-1) * chain.x[..., [0, 2]]  # (B, C, K, 2)
+    return torch.stack([e[..., 0], e[..., 1], e[..., 0] * e[..., 1], ex[..., 0, 0], ex[..., 0, 1],
+                        ex[..., 1, 0], ex[..., 1, 1], chain.exists_prev[..., 0].to(DT)], -1)
+
+
+def _existence_discrepancy(chain: ChainState, exact) -> torch.Tensor:
+    """|mean - exact| / se per run and statistic (C independent chains)."""
+    f = _existence_samples(chain)
+    se = f.std(1) / math.sqrt(f.shape[1])
+    return (f.mean(1) - exact).abs() / se
+
+
+@pytest.mark.parametrize("xi, birth_std", [(1.0, None), (1.0, 6.0), (0.5, 6.0)],
+                         ids=["joint-prior-births", "joint-births-near-points", "mixture-births-near-points"])
+def test_existence_moves_converge_to_the_exact_posterior(xi, birth_std, gen):
+    """Joint draw alone, and a mixture dominated by the per-slot refinement, from the prior.
+
+    Burn-in bound: the joint draw is an independence sampler with proposal ``q`` and ``pi /
+    q = p(z | x, e) prod_n r_n / p(z)`` (module docstring of the moves), bounded by ``1 /
+    eps``: with n live slots, ``p(z | x, e) <= exp(-(L_C + n L_x)) (L_C / V + n L_x N(0; 0,
+    R))`` (all of them on the point) and at most n newborns, each with ``r = p_0 / q_0 <= 1 /
+    P_I`` (uniform weight ``P_I`` of q_0), so ``eps = p(z) / max_n [bound_n / P_I^n]`` (no
+    ``P_I`` factor for prior births), ``p(z)`` the exact normaliser of ``W``. As in the
+    Gaussian tests, ``(1 - xi eps)^m <= 1e-4`` (bias <= 1e-4 times the range of each
+    statistic, against 5 se). The mixture converges to pi only if the refinement (half the
+    iterations) is pi-invariant too: e.g. dropping ``r_n`` from its ratio inflates births
+    near the point.
+    """
+    motion, sensor, existence, cloud, z, exact, evidence = _existence_problem(birth_std)
+    L_C, L_x, V = sensor.clutter_rate, sensor.detection_rate, sensor.volume
+    r_max = 1.0 if birth_std is None else 1 / existence.p_uniform
+    peak = 1 / (2 * math.pi * float(sensor.R[0, 0]))  # N(0; 0, R)
+    bound = max(math.exp(-(L_C + n * L_x)) * (L_C / V + n * L_x * peak) * r_max**n for n in range(K + 1))
+    eps = float(evidence.min()) / bound
+    iters = _iterations(lambda m: (1 - xi * eps) ** m)
+    moves = (("joint", 1.0),) if xi == 1.0 else (("joint", xi), ("refine", 1 - xi))
+    template = cloud.x.new_empty(B, EX_C, K, D)
+    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=gen, existence=existence, z=z), z,
+                        motion=motion, sensor=sensor, existence=existence)
+    assert float(_existence_discrepancy(chain, exact).max()) > 10  # the start is far from pi
+    for _ in range(iters):
+        noise = draw_iteration_noise(moves, chain.x, motion, generator=gen, existence=existence, z=z)
+        chain, acc, _ = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor,
+                                       moves=moves, existence=existence)
+    worst = _existence_discrepancy(chain, exact)
+    assert float(worst.max()) <= Z_TOL, dict(zip(EX_STATS, worst.max(0).values.tolist()))
+    # the cache is the likelihood of the flags and states; dead slots hold x_death
+    torch.testing.assert_close(chain.log_lik, sensor.log_likelihood(chain.x, z, chain.exists))
+    assert torch.equal(chain.x[~chain.exists], existence.x_death.expand(int((~chain.exists).sum()), D))
+
+
+
+def test_existence_refine_uses_the_delta_hook_with_flags(gen):
+    """A grid sensor's ``log_likelihood_delta`` (which takes ``exists``/``exists_n``) gives
+    the same sweep as full evaluations of ``log p(z | x, e)``: same accept/reject decisions
+    and cached log-likelihoods equal to round-off."""
+    from torchmcmcpf.models.existence import BirthDeath
+    from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
+
+    radar = RangeDopplerBearingTBD.uniform((2300, 3300), (-20, 20), (-15 * math.pi / 180, 15 * math.pi / 180)).to(DT)
+    motion = ConstantVelocity(1.0, 2.0, amplitude_q=0.01).to(DT)
+    # x_death inside the grid: the delta hook computes the cell coordinates of dead slots too
+    existence = BirthDeath(0.3, 0.3, ((2300.0, 3200.0), (-800.0, 800.0)), velocity_std=5.0, dim=5,
+                           x_death=torch.tensor([2800.0, 0, 0, 0, 3.0])).to(DT)
+    truth = torch.tensor([[[2800.0, -5.0, 100.0, 3.0, 3.0], [2600.0, 4.0, -200.0, 0.0, 3.0]]], dtype=DT)
+    z = radar.simulate(truth, generator=gen)
+    c = 64
+    flags = torch.tensor([[True, False], [True, True], [False, True], [False, False]]).repeat(16, 1)  # (c, K)
+    prev = truth.expand(1, c, 2, 5) + torch.randn(1, c, 2, 5, generator=gen, dtype=DT) * torch.tensor(
+        [10.0, 1.0, 10.0, 1.0, 0.1], dtype=DT)
+    prev = torch.where(flags.unsqueeze(-1), prev, existence.x_death)
+    cloud = previous_cloud(prev, torch.full((1, c), -math.log(c), dtype=DT), flags.unsqueeze(0))
+    results = []
+    for sensor in (radar, Opaque(radar)):
+        g = torch.Generator().manual_seed(5)
+        template = prev.new_empty(1, c, 2, 5)
+        chain = init_chains(cloud, JointNoise.draw(template, motion, generator=g, existence=existence, z=z), z,
+                            motion=motion, sensor=sensor, existence=existence)
+        noise = RefineNoise.draw(chain.x, motion, generator=g, existence=existence, z=z)
+        results.append(refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence))
+    (ref, acc_ref), (full, acc_full) = results
+    assert acc_ref.any() and not acc_ref.all()
+    assert torch.equal(acc_ref, acc_full) and torch.equal(ref.exists, full.exists)
+    torch.testing.assert_close(ref.log_lik, full.log_lik)
+    torch.testing.assert_close(ref.log_lik, radar.log_likelihood(ref.x, z, ref.exists))

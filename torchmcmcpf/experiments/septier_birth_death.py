@@ -6,7 +6,14 @@ What runs
 ---------
 - SIR PF with existence (:class:`~torchmcmcpf.filters.sir.SIRFilter` with a
   :class:`~torchmcmcpf.models.existence.BirthDeath` model, births near the measurements),
-  every particle starting with all slots inactive.
+- MCMC-PF (:class:`~torchmcmcpf.filters.mcmc.MCMCFilter`, paper 001's adapted algorithm:
+  joint draw w.p. 0.75, else a refinement sweep over the slots; ``N / 2`` chains keeping 2
+  samples each after ``burn_in`` iterations),
+- IP-MCMC-PF (:class:`~torchmcmcpf.filters.ipmcmc.IPMCMCFilter`, exchange moves with the
+  existence chain; ``N / 10`` chains, ``2 burn_in`` iterations of burn-in, R-hat
+  extensions),
+
+all with the same birth proposal, every particle starting with all slots inactive.
 
 Estimates: per slot the existence probability, the expected number of targets (their sum)
 and, for the slots with existence probability > 0.5, the mean given existence
@@ -25,8 +32,9 @@ import argparse
 import torch
 
 from .. import metrics
+from ..filters.ipmcmc import IPMCMCFilter
+from ..filters.mcmc import MCMCFilter
 from ..filters.sir import SIRFilter
-from ..models.existence import existence_estimate
 from ..scenarios.septier import septier
 from ..typing import X, Y
 from ._common import StepTimer, generator, positive_int, save_figure, write_metrics
@@ -34,8 +42,8 @@ from ._common import StepTimer, generator, positive_int, save_figure, write_metr
 NAME = "septier-birth-death"
 DESCRIPTION = "Septier et al. setting: up to 5 targets with births/deaths in Poisson clutter (OSPA, GOSPA, cardinality)"
 
-QUICK = dict(runs=3, steps=25, particles=300)
-FULL = dict(runs=20, steps=60, particles=2000)
+QUICK = dict(runs=3, steps=25, particles=300, burn_in=10)
+FULL = dict(runs=20, steps=60, particles=2000, burn_in=20)
 CUTOFF, ORDER = 100.0, 2.0
 
 
@@ -43,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=positive_int, help="Monte Carlo runs (default 20, quick 3)")
     parser.add_argument("--steps", type=positive_int, help="time steps (default 60, quick 25)")
     parser.add_argument("--particles", type=positive_int, help="particles (default 2000, quick 300)")
+    parser.add_argument("--burn-in", dest="burn_in", type=positive_int,
+                        help="MCMC-PF burn-in per step (default 20, quick 10; IP-MCMC-PF uses twice it)")
 
 
 def _config(args) -> dict:
@@ -51,6 +61,11 @@ def _config(args) -> dict:
         if getattr(args, key, None) is not None:
             cfg[key] = getattr(args, key)
     return cfg
+
+
+def _divisor_at_most(n: int, c: int) -> int:
+    """The largest divisor of ``n`` that is ``<= c`` (a chain count that divides N)."""
+    return max(d for d in range(1, max(1, min(n, c)) + 1) if n % d == 0)
 
 
 def _masked_positions(x: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
@@ -76,7 +91,14 @@ def run(args: argparse.Namespace) -> dict:
     b, k = scn.alive.shape[1:]
     init = torch.zeros((b, cfg["particles"], k, 4), dtype=torch.float64, device=device)
 
-    filters = {"SIR PF": SIRFilter(motion, sensor, cfg["particles"], existence=existence)}
+    n, burn_in = cfg["particles"], cfg["burn_in"]
+    filters = {
+        "SIR PF": SIRFilter(motion, sensor, n, existence=existence),
+        "MCMC-PF": MCMCFilter(motion, sensor, n, _divisor_at_most(n, n // 2), burn_in=burn_in,
+                              existence=existence),
+        "IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, max(2, _divisor_at_most(n, n // 10)), burn_in=2 * burn_in,
+                                   existence=existence),
+    }
     results, curves = {}, {"ospa": {}, "gospa": {}, "count": {}}
     estimates = {}
     for name, filt in filters.items():

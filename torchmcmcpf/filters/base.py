@@ -14,10 +14,18 @@ from torch.utils._pytree import tree_map
 
 from .._validation import check_finite, check_generator, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath, existence_estimate
 from ..state import FilterResult, ParticleState, StepInfo, stack_infos
 from ..typing import Measurement, Tensor
 
-__all__ = ["Filter"]
+__all__ = ["Filter", "check_existence"]
+
+
+def check_existence(existence) -> Optional[BirthDeath]:
+    """``existence`` must be a :class:`~torchmcmcpf.models.existence.BirthDeath` or ``None``."""
+    if existence is not None and not isinstance(existence, BirthDeath):
+        raise ValueError(f"existence must be a BirthDeath model or None, got {type(existence).__name__}")
+    return existence
 
 
 def _num_steps(measurements: Measurement) -> int:
@@ -36,7 +44,8 @@ def _num_steps(measurements: Measurement) -> int:
 class Filter(nn.Module):
     """Base of every particle filter in torchmcmcpf.
 
-    Subclasses set ``motion``, ``sensor``, ``num_particles`` and implement :meth:`step`.
+    Subclasses set ``motion``, ``sensor``, ``num_particles`` (and ``existence``, a
+    ``BirthDeath`` model, for an unknown number of targets) and implement :meth:`step`.
 
     Usage
     -----
@@ -47,6 +56,7 @@ class Filter(nn.Module):
     motion: MotionModel
     sensor: SensorModel
     num_particles: int
+    existence: Optional[BirthDeath]  # set by filters with births and deaths (None: known K)
 
     def __init__(self, motion: MotionModel, sensor: SensorModel):
         super().__init__()
@@ -90,8 +100,12 @@ class Filter(nn.Module):
         return self.init(check_tensor(init, "init"))
 
     def estimate(self, state: ParticleState) -> Tensor:
-        """MMSE estimate ``(B, K, D)`` of a state (paper 000 eq. 6)."""
-        return state.mean()
+        """MMSE estimate ``(B, K, D)`` of a state (paper 000 eq. 6); with existence, each
+        slot's mean given that it exists (:func:`~torchmcmcpf.models.existence.existence_estimate`)."""
+        existence = getattr(self, "existence", None)
+        if existence is None or state.exists is None:
+            return state.mean()
+        return existence_estimate(state, x_death=existence.x_death).mean
 
     # -- one step ------------------------------------------------------------------------
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator

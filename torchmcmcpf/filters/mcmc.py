@@ -11,6 +11,12 @@ tensor dimension: ``num_chains = 1`` is the classic single long chain (paper 002
 iterations), ``num_chains = N`` many short chains with one sample each, and everything in
 between runs the same code. Each chain keeps every ``thinning``-th state after ``burn_in``
 iterations until it holds ``N / C`` samples; the new cloud has equal weights.
+
+With a :class:`~torchmcmcpf.models.existence.BirthDeath` model (``existence=``) the number of
+targets is unknown: K = N_max slots with existence flags, and the chains sample
+``p(x_k, e_k, x_{k-1}, e_{k-1} | z_{1:k})`` by paper 001's adapted algorithm (joint draw of
+``(x_k, e_k, x_{k-1}, e_{k-1})``, then a refinement of ``(x_{k,n}, e_{k,n})`` per slot from
+the existence and motion priors; acceptance ratios in :mod:`torchmcmcpf.kernels.moves`).
 """
 
 from __future__ import annotations
@@ -36,9 +42,10 @@ from ..kernels.moves import (
 )
 from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from .base import Filter
+from .base import Filter, check_existence
 
 __all__ = ["MCMCFilter", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "parse_moves",
            "MOVE_PRESETS"]
@@ -99,8 +106,10 @@ def parse_moves(moves: MoveSpec) -> tuple[tuple[str, float], ...]:
 
 
 def _check_settings(num_particles: int, num_chains: int, burn_in: int, thinning: int, moves: MoveSpec,
-                    rw_scale, dim: int) -> tuple[tuple[tuple[str, float], ...], Optional[Tensor]]:
+                    rw_scale, dim: int, existence: Optional[BirthDeath] = None
+                    ) -> tuple[tuple[tuple[str, float], ...], Optional[Tensor]]:
     """Validate the MCMC settings (eager, once per call); returns parsed moves and rw_scale."""
+    check_existence(existence)
     check_positive_int(num_particles, "num_particles")
     check_positive_int(num_chains, "num_chains")
     check_positive_int(burn_in, "burn_in", minimum=0)
@@ -111,6 +120,11 @@ def _check_settings(num_particles: int, num_chains: int, burn_in: int, thinning:
             "each chain keeps num_particles / num_chains samples"
         )
     pairs = parse_moves(moves)
+    if existence is not None and any(name == "random_walk" for name, _ in pairs):
+        raise ValueError(
+            f"moves={[name for name, _ in pairs]}: 'random_walk' is not available with existence (it has no "
+            "move on the existence flags); use 'joint' and 'refine' (e.g. moves='mixture')"
+        )
     if rw_scale is None:
         if any(name == "random_walk" for name, _ in pairs):
             raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
@@ -124,20 +138,25 @@ def _check_settings(num_particles: int, num_chains: int, burn_in: int, thinning:
 
 
 def draw_iteration_noise(moves: tuple[tuple[str, float], ...], x: Tensor, motion: MotionModel, *,
-                         generator: torch.Generator) -> dict[str, object]:
+                         generator: torch.Generator, existence: Optional[BirthDeath] = None,
+                         z: Optional[Measurement] = None) -> dict[str, object]:
     """All the noise of one MCMC iteration, drawn in eager code from ``generator``.
 
     Parameters
     ----------
     moves : parsed moves (:func:`parse_moves`); x : (B, C, K, D) chain states (for shape,
     dtype, device); motion : MotionModel (noise size); generator : the randomness.
+    existence, z : with a BirthDeath model, the birth noise of the moves (births may be
+    drawn near the points of the frame ``z``).
 
     Returns
     -------
     dict: move name -> its noise NamedTuple, plus ``"select" (B, C)`` uniforms that pick
     each chain's move when there is more than one.
     """
-    noise: dict[str, object] = {name: _NOISE[name].draw(x, motion, generator=generator) for name, _ in moves}
+    births = {} if existence is None else dict(existence=existence, z=z)
+    noise: dict[str, object] = {name: _NOISE[name].draw(x, motion, generator=generator, **births)
+                                for name, _ in moves}
     if len(moves) > 1:
         noise["select"] = torch.rand(x.shape[:2], generator=generator, device=x.device, dtype=x.dtype)
     return noise
@@ -153,6 +172,7 @@ def mcmc_iteration(
     sensor: SensorModel,
     moves: tuple[tuple[str, float], ...],
     rw_scale: Optional[Tensor] = None,
+    existence: Optional[BirthDeath] = None,
 ) -> tuple[ChainState, dict[str, Tensor], dict[str, Tensor]]:
     """One MCMC iteration of every chain: a mixture kernel, branch-free.
 
@@ -167,6 +187,7 @@ def mcmc_iteration(
     noise : from :func:`draw_iteration_noise`.
     cloud : the previous particles; z : frame ``(B, *G)``; motion, sensor : the models.
     moves : parsed moves; rw_scale : (D,) or scalar step of the random walk.
+    existence : BirthDeath, optional: chains with existence flags (``noise`` drawn with it).
 
     Returns
     -------
@@ -183,9 +204,10 @@ def mcmc_iteration(
     new, accepted, selected = chain, {}, {}
     for i, (name, _) in enumerate(moves):
         if name == "joint":
-            cand, acc = joint_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor)
+            cand, acc = joint_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
+                                   existence=existence)
         elif name == "refine":
-            cand, acc = refine_move(chain, noise[name], z=z, motion=motion, sensor=sensor)
+            cand, acc = refine_move(chain, noise[name], z=z, motion=motion, sensor=sensor, existence=existence)
             acc = acc.to(chain.x.dtype).mean(-1)
         else:
             cand, acc = random_walk_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
@@ -209,6 +231,7 @@ def mcmc_step(
     thinning: int = 1,
     moves: MoveSpec = "mixture",
     rw_scale: Optional[Union[float, Tensor]] = None,
+    existence: Optional[BirthDeath] = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One time step of the sequential MCMC particle filter.
 
@@ -220,8 +243,8 @@ def mcmc_step(
     Parameters
     ----------
     state : ParticleState ``x (B, N, K, D)``, ``log_w (B, N)`` at time k-1 (weights are
-        honoured: the target mixes over ``w^i p(x | x^i)``). Known number of targets:
-        ``state.exists`` must be ``None``.
+        honoured: the target mixes over ``w^i p(x | x^i)``). Known number of targets
+        (``existence`` None): ``state.exists`` must be ``None``.
     z : one frame per run ``(B, *G)``.
     motion, sensor : the models.
     generator : the only source of randomness.
@@ -231,11 +254,16 @@ def mcmc_step(
     moves : the kernel, see :func:`parse_moves` (default paper 004's mixture, xi = 0.75).
     rw_scale : per-component random-walk step ``s``, float or ``(D,)`` (``S = diag(s^2)``,
         paper 002 eq. 13); required by ``"random_walk"``.
+    existence : BirthDeath, optional: an unknown number of targets (paper 001's adapted
+        algorithm; :mod:`torchmcmcpf.kernels.moves`, "Existence"). ``state.exists (B, N, K)``
+        None means every slot starts inactive; births are drawn near the points of ``z``
+        when ``existence`` draws them so. ``moves`` may not use ``"random_walk"``.
 
     Returns
     -------
     state : ParticleState with ``x (B, N, K, D)`` ordered chain by chain (particles
-        ``c * N/C .. (c+1) * N/C - 1`` are chain c's kept states in order) and equal weights.
+        ``c * N/C .. (c+1) * N/C - 1`` are chain c's kept states in order) and equal weights;
+        with existence also ``exists (B, N, K)``.
     info : StepInfo with ``acceptance``: move name -> (B,) acceptance rate over all
         iterations (burn-in included) of the chains that picked it (per target update for
         ``"refine"``); NaN for a run where no chain ever picked the move.
@@ -243,37 +271,46 @@ def mcmc_step(
     check_generator(generator)
     x_prev = state.x
     b, n, k, d = x_prev.shape
-    pairs, scale = _check_settings(n, num_chains, burn_in, thinning, moves, rw_scale, d)
-    if state.exists is not None:
-        raise ValueError("state.exists must be None: MCMCFilter tracks a known number of targets")
+    pairs, scale = _check_settings(n, num_chains, burn_in, thinning, moves, rw_scale, d, existence)
+    exists = state.exists
+    if existence is None and exists is not None:
+        raise ValueError("state.exists must be None without an existence model: pass existence= for an "
+                         "unknown number of targets")
+    if existence is not None and exists is None:
+        exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
     if scale is not None:
         scale = scale.to(device=x_prev.device, dtype=x_prev.dtype)
-    cloud = previous_cloud(x_prev, state.log_w)
+    cloud = previous_cloud(x_prev, state.log_w, exists)
     template = x_prev.new_empty((b, num_chains, k, d))
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator), z,
-                        motion=motion, sensor=sensor)
+    births = {} if existence is None else dict(existence=existence, z=z)
+    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, **births), z,
+                        motion=motion, sensor=sensor, existence=existence)
 
     per_chain = n // num_chains
     acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
-    kept = []
+    kept, kept_exists = [], []
     for m in range(1, burn_in + thinning * per_chain + 1):
-        noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator)
+        noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator, **births)
         chain, accepted, selected = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion,
-                                                   sensor=sensor, moves=pairs, rw_scale=scale)
+                                                   sensor=sensor, moves=pairs, rw_scale=scale,
+                                                   existence=existence)
         for name, _ in pairs:
             acc_sum[name] = acc_sum[name] + accepted[name].sum(1)
             sel_sum[name] = sel_sum[name] + selected[name].sum(1)
         if m > burn_in and (m - burn_in) % thinning == 0:
             kept.append(chain.x)
+            kept_exists.append(chain.exists)
     x = torch.stack(kept, dim=2).reshape(b, n, k, d)  # (B, C, N/C, K, D) -> chain-major (B, N, K, D)
+    exists = None if existence is None else torch.stack(kept_exists, dim=2).reshape(b, n, k)
     log_w = x.new_full((b, n), -math.log(n))
     acceptance = {name: acc_sum[name] / sel_sum[name] for name, _ in pairs}
-    return ParticleState(x, log_w), StepInfo(acceptance=acceptance)
+    return ParticleState(x, log_w, exists), StepInfo(acceptance=acceptance)
 
 
 class MCMCFilter(Filter):
-    """Sequential MCMC-based particle filter for a known number of targets.
+    """Sequential MCMC-based particle filter for a known number of targets, or for an
+    unknown one with ``existence`` (K = N_max slots with existence flags, paper 001).
 
     Parameters
     ----------
@@ -288,6 +325,9 @@ class MCMCFilter(Filter):
         sweep; paper 004), ``"joint"``, ``"random_walk"`` (paper 002), or a sequence of
         ``(name, probability)`` pairs over ``"joint"``, ``"refine"``, ``"random_walk"``.
     rw_scale : float or ``(D,)`` tensor, the random-walk step (needed by ``"random_walk"``).
+    existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
+        estimate of a slot is then its mean given existence
+        (:func:`torchmcmcpf.models.existence.existence_estimate`).
 
     Each time step runs ``burn_in + thinning * N / C`` iterations of every chain.
 
@@ -310,10 +350,12 @@ class MCMCFilter(Filter):
         thinning: int = 1,
         moves: MoveSpec = "mixture",
         rw_scale: Optional[Union[float, Tensor]] = None,
+        existence: Optional[BirthDeath] = None,
     ):
         super().__init__(motion, sensor)
         self.moves, scale = _check_settings(num_particles, num_chains, burn_in, thinning, moves, rw_scale,
-                                            motion.dim)
+                                            motion.dim, existence)
+        self.existence = existence
         self.num_particles, self.num_chains = num_particles, num_chains
         self.burn_in, self.thinning = burn_in, thinning
         self.register_buffer("rw_scale", scale)
@@ -324,7 +366,7 @@ class MCMCFilter(Filter):
         return mcmc_step(
             state, z, motion=self.motion, sensor=self.sensor, generator=generator,
             num_chains=self.num_chains, burn_in=self.burn_in, thinning=self.thinning,
-            moves=self.moves, rw_scale=self.rw_scale,
+            moves=self.moves, rw_scale=self.rw_scale, existence=self.existence,
         )
 
     def extra_repr(self) -> str:

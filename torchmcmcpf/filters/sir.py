@@ -15,11 +15,11 @@ import torch
 
 from .._validation import check_positive_int
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, existence_estimate
+from ..models.existence import BirthDeath
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement
-from .base import Filter
+from .base import Filter, check_existence
 
 __all__ = ["SIRFilter", "sir_step"]
 
@@ -119,9 +119,7 @@ class SIRFilter(Filter):
         existence: Optional[BirthDeath] = None,
     ):
         super().__init__(motion, sensor)
-        if existence is not None and not isinstance(existence, BirthDeath):
-            raise ValueError(f"existence must be a BirthDeath model or None, got {type(existence).__name__}")
-        self.existence = existence
+        self.existence = check_existence(existence)
         self.num_particles = check_positive_int(num_particles, "num_particles")
         if resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {resample_method!r}")
@@ -138,12 +136,6 @@ class SIRFilter(Filter):
             resample_method=self.resample_method, ess_threshold=self.ess_threshold,
             existence=self.existence,
         )
-
-    def estimate(self, state: ParticleState):
-        """MMSE estimate ``(B, K, D)``; with existence, each slot's mean given that it exists."""
-        if self.existence is None or state.exists is None:
-            return state.mean()
-        return existence_estimate(state, x_death=self.existence.x_death).mean
 
     def extra_repr(self) -> str:
         return f"num_particles={self.num_particles}, resample_method={self.resample_method!r}"

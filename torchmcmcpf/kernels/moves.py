@@ -64,16 +64,55 @@ sensor may define one of:
 
 Without either, the sweep is sequential and scores each slot's proposal by a full
 ``log_likelihood`` call (exact; K full evaluations per sweep).
+
+Existence: births and deaths (paper 001, "MCMC-based particle algorithm adapted")
+---------------------------------------------------------------------------------
+With a :class:`~torchmcmcpf.models.existence.BirthDeath` model ``existence`` the K slots
+carry flags ``e (B, C, K)`` and the target is
+
+    ``pi(x, e, a) ∝ p(z | x, e) w^a prod_n p(x_n, e_n | x^a_n, e^a_n)``
+
+(paper 001, "Target distribution"; ``p(x_n, e_n | .)`` is :meth:`BirthDeath.log_prob`:
+``p(e_n | e^a_n)`` of paper 004 eq. 25 times the motion density for a survivor, the birth
+density ``p_0`` for a newborn, the point mass at ``x_death`` for an inactive slot). Both
+moves propose slot n from ``q_n(x_n, e_n | x^a_n, e^a_n) = p(e_n | e^a_n) g(x_n)`` with
+``g`` the motion density (survivor), the birth proposal ``q_0`` (newborn: ``p_0``, or
+near the points of ``z``, :class:`~torchmcmcpf.models.existence.BirthDeath`) or the point
+mass at ``x_death``, so that ``p(x_n, e_n | .) / q_n(x_n, e_n | .) = r_n`` with ``r_n =
+p_0(x_n) / q_0(x_n)`` for a newborn slot and ``r_n = 1`` otherwise. Then:
+
+* ``joint`` proposes ``(x', e', a')`` from ``q(x, e, a) = w^a prod_n q_n``, independent of
+  the current state, and ``pi / q = p(z | x, e) prod_n r_n``, so
+
+      ``log alpha = log p(z | x', e') - log p(z | x, e) + sum_n (log r'_n - log r_n)``;
+
+* ``refine`` proposes slot n's ``(x'_n, e'_n) ~ q_n(. | x^a_n, e^a_n)`` (paper 001 Alg. 1,
+  steps 2-9: ``e'_n ~ p(e_n | e^a_n)``, then the motion, a birth or ``x_death``) and the
+  conditional target of slot n is ``p(z | x, e) p(x_n, e_n | x^a_n, e^a_n)``, so
+
+      ``log alpha_n = log p(z | x', e') - log p(z | x, e) + log r'_n - log r_n``.
+
+With births from the prior ``r_n = 1`` and both ratios are likelihood ratios. Chains cache
+``log r_n`` per slot (``ChainState.log_birth``); the birth candidates and the existence
+uniforms are pre-drawn noise (:class:`BirthNoise`) like everything else. The likelihood is
+``sensor.log_likelihood(x, z, exists)``; the sweep is sequential, and uses the delta hook
+when it also takes the keywords ``exists`` (current flags ``(B, *S, K)``) and ``exists_n``
+(slot n's new flag ``(B, *S)``), as
+:meth:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor.log_likelihood_delta` does
+(:func:`existence_delta`), otherwise full evaluations. ``random_walk`` is not defined on the
+discrete flags and is refused with existence.
 """
 
 from __future__ import annotations
 
+import inspect
 import math
-from typing import NamedTuple, Optional
+from typing import Callable, NamedTuple, Optional
 
 import torch
 
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath
 from ..models.motion import LinearGaussianMotion
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
@@ -86,10 +125,13 @@ __all__ = [
     "JointNoise",
     "RefineNoise",
     "RandomWalkNoise",
+    "BirthNoise",
     "previous_cloud",
     "evaluate",
     "init_chains",
     "propose_joint",
+    "propose_existence",
+    "existence_delta",
     "joint_move",
     "propose_refine",
     "refine_move",
@@ -119,12 +161,21 @@ class ChainState(NamedTuple):
     log_lik_terms : (B, C, K), optional
         Per-target terms of ``log_lik`` for sensors with ``log_likelihood_per_target``;
         ``None`` otherwise.
+    exists, exists_prev : (B, C, K) bool, optional
+        With existence: the flags of ``x`` and of its ancestor (``None`` for a known number
+        of targets; ``log_lik`` is then ``sensor.log_likelihood(x, z, exists)``).
+    log_birth : (B, C, K), optional
+        With existence: ``log r_n = log p_0(x_n) - log q_0(x_n)`` for a slot born between
+        the ancestor and ``x``, 0 for the others (module docstring).
     """
 
     x: Tensor
     x_prev: Tensor
     log_lik: Tensor
     log_lik_terms: Optional[Tensor] = None
+    exists: Optional[Tensor] = None
+    exists_prev: Optional[Tensor] = None
+    log_birth: Optional[Tensor] = None
 
 
 class PreviousCloud(NamedTuple):
@@ -136,19 +187,22 @@ class PreviousCloud(NamedTuple):
     log_w : (B, N) normalised log-weights (``-log N`` after an MCMC step).
     cdf : (B, N) float64 cumulative weights, last entry exactly 1 (ancestor draws by
         inversion, ``searchsorted``).
+    exists : (B, N, K) bool, optional: the particles' existence flags.
     """
 
     x: Tensor
     log_w: Tensor
     cdf: Tensor
+    exists: Optional[Tensor] = None
 
 
-def previous_cloud(x: Tensor, log_w: Tensor) -> PreviousCloud:
-    """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)`` and ``log_w (B, N)``."""
+def previous_cloud(x: Tensor, log_w: Tensor, exists: Optional[Tensor] = None) -> PreviousCloud:
+    """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)``, ``log_w (B, N)`` and
+    optionally their existence flags ``exists (B, N, K)``."""
     w = torch.softmax(log_w.to(torch.float64), dim=-1)
     cdf = torch.cumsum(w, dim=-1)
     cdf = torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
-    return PreviousCloud(x, log_w, cdf)
+    return PreviousCloud(x, log_w, cdf, exists)
 
 
 def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
@@ -165,34 +219,69 @@ def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
+class BirthNoise(NamedTuple):
+    """Existence part of a proposal for every slot (module docstring, "Existence"):
+    ``u (B, C, K)`` uniforms for ``e'_n ~ p(. | e^a_n)``, newborn candidates ``x (B, C, K, D)``
+    from the birth proposal ``q_0`` and their ``log_ratio = log p_0 - log q_0 (B, C, K)``."""
+
+    u: Tensor
+    x: Tensor
+    log_ratio: Tensor
+
+    @classmethod
+    def draw(cls, x: Tensor, existence: BirthDeath, z: Measurement, *, generator: torch.Generator
+             ) -> "BirthNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)``; births near the points of ``z``
+        when ``existence`` draws them so."""
+        b, c, k, _ = x.shape
+        u = _uniform((b, c, k), x, generator)
+        born, log_ratio = existence._draw_births((b, c, k), z, generator=generator, dtype=x.dtype,
+                                                 device=x.device)
+        return cls(u, born, log_ratio)
+
+
+def _births(x: Tensor, existence: Optional[BirthDeath], z: Measurement, generator: torch.Generator
+            ) -> Optional[BirthNoise]:
+    return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
+
+
 class JointNoise(NamedTuple):
     """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
-    K, noise_dim)`` standard normals (the transition noise of every target)."""
+    K, noise_dim)`` standard normals (the transition noise of every target) and, with
+    existence, ``birth`` (:class:`BirthNoise`)."""
 
     u_ancestor: Tensor
     eps: Tensor
     u: Tensor
+    birth: Optional[BirthNoise] = None
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> "JointNoise":
-        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``)."""
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
+             existence: Optional[BirthDeath] = None, z: Optional[Measurement] = None) -> "JointNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``); the
+        birth noise only with ``existence`` (which needs the frame ``z``)."""
         b, c, k, _ = x.shape
         return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
-                   _uniform((b, c), x, generator))
+                   _uniform((b, c), x, generator), _births(x, existence, z, generator))
 
 
 class RefineNoise(NamedTuple):
     """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
-    slot) and ``u (B, C, K)`` uniforms (one accept/reject per slot)."""
+    slot), ``u (B, C, K)`` uniforms (one accept/reject per slot) and, with existence,
+    ``birth`` (:class:`BirthNoise`)."""
 
     eps: Tensor
     u: Tensor
+    birth: Optional[BirthNoise] = None
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> "RefineNoise":
-        """Draw for chains shaped like ``x (B, C, K, D)``."""
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
+             existence: Optional[BirthDeath] = None, z: Optional[Measurement] = None) -> "RefineNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``: as
+        :meth:`JointNoise.draw`)."""
         b, c, k, _ = x.shape
-        return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator))
+        return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator),
+                   _births(x, existence, z, generator))
 
 
 class RandomWalkNoise(NamedTuple):
@@ -209,24 +298,44 @@ class RandomWalkNoise(NamedTuple):
         b, c = x.shape[:2]
         return cls(_normal(x.shape, x, generator), _uniform((b, c), x, generator), _uniform((b, c), x, generator))
 
+    # no existence variant: ``random_walk`` is refused with existence (module docstring)
+
 
 # -- likelihood ------------------------------------------------------------------------------
+def existence_delta(sensor: SensorModel) -> Optional[Callable]:
+    """The sensor's ``log_likelihood_delta`` hook if it takes the ``exists`` and ``exists_n``
+    keywords (usable with existence flags), else ``None``."""
+    fn = getattr(sensor, "log_likelihood_delta", None)
+    if not callable(fn):
+        return None
+    try:
+        params = inspect.signature(fn).parameters
+    except (TypeError, ValueError):
+        return None
+    return fn if {"exists", "exists_n"} <= params.keys() else None
+
+
 def _separable(sensor: SensorModel) -> bool:
     return callable(getattr(sensor, "log_likelihood_per_target", None))
 
 
-def evaluate(x: Tensor, z: Measurement, sensor: SensorModel) -> tuple[Tensor, Optional[Tensor]]:
+def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Optional[Tensor] = None
+             ) -> tuple[Tensor, Optional[Tensor]]:
     """Log-likelihood of chain states, with per-target terms when the sensor has them.
 
     Parameters
     ----------
     x : (B, C, K, D); z : one frame per run (B, *G); sensor : the SensorModel.
+    exists : (B, C, K) bool, optional: existence flags (then no per-target terms).
 
     Returns
     -------
     log_lik : (B, C).
-    log_lik_terms : (B, C, K), or ``None`` for a sensor without ``log_likelihood_per_target``.
+    log_lik_terms : (B, C, K), or ``None`` for a sensor without ``log_likelihood_per_target``
+        or with ``exists``.
     """
+    if exists is not None:
+        return sensor.log_likelihood(x, z, exists), None
     if _separable(sensor):
         terms = sensor.log_likelihood_per_target(x, z)
         return terms.sum(-1), terms
@@ -257,8 +366,47 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
     return x, x_prev, torch.zeros_like(noise.u)
 
 
+def propose_existence(x_prev: Tensor, exists_prev: Tensor, eps: Tensor, birth: BirthNoise, *,
+                      motion: MotionModel, existence: BirthDeath) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-slot proposal ``q_n`` of the existence moves (module docstring; paper 001 Alg. 1
+    steps 2-9): ``e_n ~ p(. | e_prev,n)`` (paper 004 eq. 25), then a survivor moved by the
+    motion, a newborn from the birth proposal, an inactive slot set to ``x_death``; every
+    slot at once (the same law as :meth:`BirthDeath.propose`, from pre-drawn noise).
+
+    Parameters
+    ----------
+    x_prev : (B, C, K, D) ancestors; exists_prev : (B, C, K) bool their flags.
+    eps : (B, C, K, noise_dim) motion noise; birth : :class:`BirthNoise`.
+    motion : MotionModel; existence : BirthDeath.
+
+    Returns
+    -------
+    x : (B, C, K, D); exists : (B, C, K) bool;
+    log_birth : (B, C, K) ``log r_n = log p_0(x_n) - log q_0(x_n)`` of newborn slots, else 0.
+    """
+    log_on = existence.log_prob_exists(torch.ones_like(exists_prev), exists_prev)  # log p(e = 1 | e_prev)
+    exists = torch.log(birth.u).to(log_on.dtype) < log_on
+    born = exists & ~exists_prev
+    x = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x_prev, eps))
+    x = torch.where(exists.unsqueeze(-1), x, existence.x_death.to(x.dtype))
+    return x, exists, torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
+
+
+def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
+                     sensor: SensorModel, existence: Optional[BirthDeath]) -> ChainState:
+    """The joint-draw proposal as a scored :class:`ChainState`."""
+    if existence is None:
+        x, x_prev, _ = propose_joint(cloud, noise, motion=motion)
+        return ChainState(x, x_prev, *evaluate(x, z, sensor))
+    a = _draw_ancestors(cloud, noise.u_ancestor)
+    x_prev, exists_prev = gather_particles(cloud.x, a), gather_particles(cloud.exists, a)
+    x, exists, log_birth = propose_existence(x_prev, exists_prev, noise.eps, noise.birth, motion=motion,
+                                             existence=existence)
+    return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev, log_birth)
+
+
 def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, motion: MotionModel,
-                sensor: SensorModel) -> ChainState:
+                sensor: SensorModel, existence: Optional[BirthDeath] = None) -> ChainState:
     """Start each chain from a previous particle drawn by weight and moved by the prior
     (paper 002, "MCMC-based PF-TBD steps" 1): one joint-draw proposal, always kept.
 
@@ -266,33 +414,39 @@ def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, moti
     ----------
     cloud : previous particles ``(B, N, K, D)``; noise : :class:`JointNoise` for ``(B, C)``
     chains (its ``u`` is unused); z : frame ``(B, *G)``; motion, sensor : the models.
+    existence : BirthDeath, optional: births and deaths (``cloud.exists`` and
+    ``noise.birth`` needed; module docstring).
 
     Returns
     -------
-    ChainState with ``x (B, C, K, D)``.
+    ChainState with ``x (B, C, K, D)`` (and, with existence, ``exists (B, C, K)``).
     """
-    x, x_prev, _ = propose_joint(cloud, noise, motion=motion)
-    return ChainState(x, x_prev, *evaluate(x, z, sensor))
+    return _joint_candidate(cloud, noise, z, motion, sensor, existence)
 
 
 def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z: Measurement,
-               motion: MotionModel, sensor: SensorModel) -> tuple[ChainState, Tensor]:
-    """One joint-draw Metropolis-Hastings step (paper 004 Alg. 1, eq. 60).
+               motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath] = None
+               ) -> tuple[ChainState, Tensor]:
+    """One joint-draw Metropolis-Hastings step (paper 004 Alg. 1, eq. 60; with existence
+    paper 001 step (a), ``log alpha`` of the module docstring).
 
     Parameters
     ----------
     chain : ChainState ``(B, C, K, D)``; noise : :class:`JointNoise`; cloud : previous
-    particles; z : frame ``(B, *G)``; motion, sensor : the models.
+    particles; z : frame ``(B, *G)``; motion, sensor : the models; existence : BirthDeath,
+    optional.
 
     Returns
     -------
     chain : the new ChainState.
     accepted : (B, C) bool.
     """
-    x, x_prev, log_ratio = propose_joint(cloud, noise, motion=motion)
-    log_lik, terms = evaluate(x, z, sensor)
-    accepted = mh_accept(log_lik - chain.log_lik + log_ratio, noise.u)
-    return mh_select(accepted, ChainState(x, x_prev, log_lik, terms), chain), accepted
+    cand = _joint_candidate(cloud, noise, z, motion, sensor, existence)
+    log_alpha = cand.log_lik - chain.log_lik  # the prior parts cancel (eq. 60, P_a = 0)
+    if existence is not None:
+        log_alpha = log_alpha + cand.log_birth.sum(-1) - chain.log_birth.sum(-1)
+    accepted = mh_accept(log_alpha, noise.u)
+    return mh_select(accepted, cand, chain), accepted
 
 
 # -- per-target refinement -------------------------------------------------------------------
@@ -318,22 +472,29 @@ def propose_refine(x_prev: Tensor, eps: Tensor, *, motion: MotionModel) -> tuple
 
 
 def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion: MotionModel,
-                sensor: SensorModel) -> tuple[ChainState, Tensor]:
+                sensor: SensorModel, existence: Optional[BirthDeath] = None) -> tuple[ChainState, Tensor]:
     """One MH-within-Gibbs sweep over the K targets (paper 004 Alg. 2; paper 001 Alg. 1).
 
     Vectorised over K for sensors with ``log_likelihood_per_target``; sequential over K
     (``log_likelihood_delta`` or full re-evaluation) otherwise: see the module docstring.
+    With ``existence`` each slot proposes ``(x'_n, e'_n)`` (:func:`propose_existence`) and the
+    sweep is sequential with full evaluations of ``log p(z | x, e)``.
 
     Parameters
     ----------
     chain : ChainState ``(B, C, K, D)``; noise : :class:`RefineNoise`; z : frame ``(B, *G)``;
-    motion, sensor : the models.
+    motion, sensor : the models; existence : BirthDeath, optional.
 
     Returns
     -------
     chain : the new ChainState (ancestor unchanged).
     accepted : (B, C, K) bool, one flag per target update.
     """
+    if existence is not None:
+        x_prop, e_prop, birth_prop = propose_existence(chain.x_prev, chain.exists_prev, noise.eps, noise.birth,
+                                                       motion=motion, existence=existence)
+        log_ratio = birth_prop - chain.log_birth  # slot n's log r'_n - log r_n
+        return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, birth_prop)
     x_prop, log_ratio = propose_refine(chain.x_prev, noise.eps, motion=motion)
     if chain.log_lik_terms is not None:
         terms_prop = sensor.log_likelihood_per_target(x_prop, z)
@@ -341,24 +502,44 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
         x = mh_select(accepted, x_prop, chain.x)
         terms = torch.where(accepted, terms_prop, chain.log_lik_terms)
         return ChainState(x, chain.x_prev, terms.sum(-1), terms), accepted
+    return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor)
 
-    delta_fn = getattr(sensor, "log_likelihood_delta", None)
-    x, log_lik = chain.x, chain.log_lik
+
+def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: Tensor, z: Measurement,
+                      sensor: SensorModel, e_prop: Optional[Tensor] = None, birth_prop: Optional[Tensor] = None
+                      ) -> tuple[ChainState, Tensor]:
+    """Sequential Gibbs sweep over the K slots with proposals ``x_prop (B, C, K, D)`` (and
+    ``e_prop``, ``birth_prop (B, C, K)`` with existence), ``log_ratio (B, C, K)`` and
+    uniforms ``u (B, C, K)``: slot n sees the accepted updates of slots ``< n``."""
+    existence = e_prop is not None
+    delta_fn = existence_delta(sensor) if existence else getattr(sensor, "log_likelihood_delta", None)
+    x, log_lik, e, log_birth = chain.x, chain.log_lik, chain.exists, chain.log_birth
     slots = torch.arange(x.shape[-2], device=x.device)
     flags = []
     for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)
-        x_cand = torch.where((slots == n).unsqueeze(-1), x_prop, x)
+        here = slots == n
+        x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
+        if existence:
+            e_cand = torch.where(here, e_prop, e)
         if callable(delta_fn):
-            delta = delta_fn(x, x_prop[..., n, :], n, z)
+            extra = dict(exists=e, exists_n=e_prop[..., n]) if existence else {}
+            delta = delta_fn(x, x_prop[..., n, :], n, z, **extra)
             log_lik_cand = log_lik + delta
         else:
-            log_lik_cand = sensor.log_likelihood(x_cand, z)
+            if existence:
+                log_lik_cand = sensor.log_likelihood(x_cand, z, e_cand)
+            else:
+                log_lik_cand = sensor.log_likelihood(x_cand, z)
             delta = log_lik_cand - log_lik
-        acc = mh_accept(delta + log_ratio[..., n], noise.u[..., n])
+        acc = mh_accept(delta + log_ratio[..., n], u[..., n])
         x = mh_select(acc, x_cand, x)
         log_lik = torch.where(acc, log_lik_cand, log_lik)
+        if existence:
+            e = mh_select(acc, e_cand, e)
+            log_birth = torch.where(acc.unsqueeze(-1) & here, birth_prop, log_birth)
         flags.append(acc)
-    return ChainState(x, chain.x_prev, log_lik, None), torch.stack(flags, dim=-1)
+    return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_birth=log_birth), \
+        torch.stack(flags, dim=-1)
 
 
 # -- random walk on the joint state ----------------------------------------------------------
