@@ -25,7 +25,6 @@ truth one step before frame 0, labels kept); RMSE and TLR (20 m) use the slot la
 from __future__ import annotations
 
 import argparse
-import os
 
 import torch
 
@@ -63,7 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def settings(args: argparse.Namespace) -> dict:
     """Quick or full defaults, overridden by the command-line options given."""
-    quick = bool(getattr(args, "quick", False)) or os.environ.get("TORCHMCMCPF_QUICK") == "1"
+    quick = bool(getattr(args, "quick", False))
     cfg = dict(QUICK if quick else FULL)
     for key in ("runs", "steps", "particles", "max_extensions", "pmmh_iterations", "pmmh_burn_in"):
         value = getattr(args, key, None)

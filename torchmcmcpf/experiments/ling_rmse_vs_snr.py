@@ -37,7 +37,6 @@ the whole-track optimal assignment (a swap of targets 2 and 3 is then not counte
 from __future__ import annotations
 
 import argparse
-import os
 
 import torch
 
@@ -70,9 +69,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def settings(args: argparse.Namespace) -> dict:
-    """Quick or full defaults (quick also when ``TORCHMCMCPF_QUICK=1``), overridden by the
+    """Quick or full defaults, overridden by the
     command-line options given."""
-    quick = bool(getattr(args, "quick", False)) or os.environ.get("TORCHMCMCPF_QUICK") == "1"
+    quick = bool(getattr(args, "quick", False))
     cfg = dict(QUICK if quick else FULL)
     for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves"):
         value = getattr(args, key, None)
