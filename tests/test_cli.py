@@ -27,6 +27,15 @@ def test_demo_small_writes_metrics_and_figure(tmp_path, capsys):
     assert "position RMSE" in printed and "track loss rate" in printed
 
 
+def test_demo_runs_ipmcmc(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--filter", "ipmcmc", "--particles", "40", "--runs", "1", "--steps", "2",
+                 "--targets", "2", "--out", out, "--no-progress"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["filter"] == "IPMCMCFilter" and len(m["rmse_per_step_m"]) == 2
+    assert "IPMCMCFilter" in capsys.readouterr().out
+
+
 def test_bad_arguments_name_the_argument(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["demo", "--particles", "0"])
@@ -38,6 +47,9 @@ def test_bad_arguments_name_the_argument(capsys):
     with pytest.raises(SystemExit):
         main(["reproduce", "no-such-experiment"])
     assert "no-such-experiment" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["demo", "--filter", "kalman"])
+    assert "--filter" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([])
 
