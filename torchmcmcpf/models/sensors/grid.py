@@ -43,7 +43,29 @@ from ..._validation import check_nonnegative, check_positive, check_positive_int
 from ...typing import Tensor
 from ..base import SensorModel
 
-__all__ = ["SeparableGridSensor", "polar"]
+__all__ = ["SeparableGridSensor", "polar", "lattice"]
+
+
+def lattice(limits: tuple[float, float], cell: float, name: str) -> Tensor:
+    """Uniform cell centres ``first + i * cell``, ``i = 0 .. floor((last - first) / cell)``.
+
+    Parameters
+    ----------
+    limits : ``(first, last)``: the first centre and an upper limit (``last`` is included
+        when it lies on the lattice).
+    cell : cell size > 0.
+    name : axis name for error messages (``f"{name}_limits"``, ``f"{name}_cell"``).
+
+    Returns
+    -------
+    (N,) float64 centres.
+    """
+    check_positive(cell, f"{name}_cell")
+    lo, hi = (float(v) for v in limits)
+    if not (math.isfinite(lo) and math.isfinite(hi) and hi >= lo):
+        raise ValueError(f"{name}_limits must be finite (first, last) with last >= first, got {limits!r}")
+    n = int(math.floor((hi - lo) / cell + 1e-9)) + 1
+    return lo + cell * torch.arange(n, dtype=torch.float64)
 
 
 def polar(px: Tensor, py: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:

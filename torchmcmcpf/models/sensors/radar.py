@@ -28,7 +28,7 @@ import torch
 
 from ..._validation import check_generator, check_positive, check_shape
 from ...typing import RHO, VX, VY, X, Y, Tensor
-from .grid import SeparableGridSensor, polar
+from .grid import SeparableGridSensor, lattice, polar
 
 __all__ = ["RangeDopplerBearingTBD", "log_i0", "log_i0_approx"]
 
@@ -203,19 +203,12 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) / cell)``
         (``last`` included when it lies on the lattice). Other keywords go to the constructor.
         """
-        axes = []
-        for limits, cell, name in (
-            (range_limits, range_cell, "range"),
-            (doppler_limits, doppler_cell, "doppler"),
-            (bearing_limits, bearing_cell, "bearing"),
-        ):
-            check_positive(cell, f"{name}_cell")
-            lo, hi = (float(v) for v in limits)
-            if not (math.isfinite(lo) and math.isfinite(hi) and hi >= lo):
-                raise ValueError(f"{name}_limits must be finite (first, last) with last >= first, got {limits!r}")
-            n = int(math.floor((hi - lo) / cell + 1e-9)) + 1
-            axes.append(lo + cell * torch.arange(n, dtype=torch.float64))
-        return cls(*axes, **kw)
+        return cls(
+            lattice(range_limits, range_cell, "range"),
+            lattice(doppler_limits, doppler_cell, "doppler"),
+            lattice(bearing_limits, bearing_cell, "bearing"),
+            **kw,
+        )
 
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:

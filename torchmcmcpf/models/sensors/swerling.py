@@ -26,23 +26,13 @@ import torch
 
 from ..._validation import check_finite, check_generator, check_nonnegative, check_positive, check_shape
 from ...typing import RHO, X, Y, Tensor
-from .grid import SeparableGridSensor, polar
+from .grid import SeparableGridSensor, lattice, polar
 
 __all__ = ["AzimuthRangeSwerlingTBD", "POWER"]
 
 #: Index of the target power ``P`` in the per-target state ``[x, vx, y, vy, P]`` (the slot
 #: the radar models use for the amplitude ``rho``).
 POWER = RHO
-
-
-def _lattice(limits: tuple[float, float], cell: float, name: str) -> Tensor:
-    """Centres ``first + i * cell``, ``i = 0 .. floor((last - first) / cell)`` (float64)."""
-    check_positive(cell, f"{name}_cell")
-    lo, hi = (float(v) for v in limits)
-    if not (math.isfinite(lo) and math.isfinite(hi) and hi >= lo):
-        raise ValueError(f"{name}_limits must be finite (first, last) with last >= first, got {limits!r}")
-    n = int(math.floor((hi - lo) / cell + 1e-9)) + 1
-    return lo + cell * torch.arange(n, dtype=torch.float64)
 
 
 class AzimuthRangeSwerlingTBD(SeparableGridSensor):
@@ -144,7 +134,7 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         upper limit; centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) /
         cell)``. Default cells 1 deg and 10 m. Other keywords go to the constructor."""
         return cls(
-            _lattice(azimuth_limits, azimuth_cell, "azimuth"), _lattice(range_limits, range_cell, "range"), **kw
+            lattice(azimuth_limits, azimuth_cell, "azimuth"), lattice(range_limits, range_cell, "range"), **kw
         )
 
     # ------------------------------------------------------------------ model pieces
