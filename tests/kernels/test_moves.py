@@ -346,6 +346,9 @@ def test_log_transition_fast_path_matches_generic(gen):
     prev = torch.randn(B, 5, K, D, generator=gen, dtype=DT)
     fast = log_transition(x, prev, motion=motion)
     generic = log_transition(x, prev, motion=GenericMotion(motion))
+    cloud = previous_cloud(prev, torch.zeros(B, 5, dtype=DT), motion=motion)  # caches L^-1 F x^i
+    assert torch.equal(log_transition(x, prev, motion=motion, white_prev=cloud.white_mean), fast)
+    assert previous_cloud(prev, torch.zeros(B, 5, dtype=DT), motion=GenericMotion(motion)).white_mean is None
     assert fast.shape == (B, 3, 5)
     # the generic path's constant comes from motion._log_norm, computed at float32 before .to()
     torch.testing.assert_close(fast, generic, rtol=0, atol=1e-6)

@@ -280,7 +280,7 @@ def mcmc_step(
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
     if scale is not None:
         scale = scale.to(device=x_prev.device, dtype=x_prev.dtype)
-    cloud = previous_cloud(x_prev, state.log_w, exists)
+    cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
     births = {} if existence is None else dict(existence=existence, z=z)
     chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, **births), z,

@@ -188,21 +188,28 @@ class PreviousCloud(NamedTuple):
     cdf : (B, N) float64 cumulative weights, last entry exactly 1 (ancestor draws by
         inversion, ``searchsorted``).
     exists : (B, N, K) bool, optional: the particles' existence flags.
+    white_mean : (B, N, K * D), optional: the whitened predicted means ``L^-1 F x^i`` of a
+        linear-Gaussian motion, computed once per frame for :func:`log_transition`.
     """
 
     x: Tensor
     log_w: Tensor
     cdf: Tensor
     exists: Optional[Tensor] = None
+    white_mean: Optional[Tensor] = None
 
 
-def previous_cloud(x: Tensor, log_w: Tensor, exists: Optional[Tensor] = None) -> PreviousCloud:
+def previous_cloud(x: Tensor, log_w: Tensor, exists: Optional[Tensor] = None, *,
+                   motion: Optional[MotionModel] = None) -> PreviousCloud:
     """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)``, ``log_w (B, N)`` and
-    optionally their existence flags ``exists (B, N, K)``."""
+    optionally their existence flags ``exists (B, N, K)``. With a linear-Gaussian ``motion``
+    the whitened predicted means are cached, so the random walk does not recompute them at
+    every iteration of the frame."""
     w = torch.softmax(log_w.to(torch.float64), dim=-1)
     cdf = torch.cumsum(w, dim=-1)
     cdf = torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
-    return PreviousCloud(x, log_w, cdf, exists)
+    white = _whiten(motion.mean(x), motion) if isinstance(motion, LinearGaussianMotion) else None
+    return PreviousCloud(x, log_w, cdf, exists, white)
 
 
 def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
@@ -543,7 +550,15 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
 
 
 # -- random walk on the joint state ----------------------------------------------------------
-def log_transition(x: Tensor, prev_x: Tensor, *, motion: MotionModel) -> Tensor:
+def _whiten(v: Tensor, motion: LinearGaussianMotion) -> Tensor:
+    """``L^-1 v`` per target, flattened: ``(B, M, K, D) -> (B, M, K * D)`` (``Q = L L^T``)."""
+    L = motion.L.to(v.dtype)
+    L_inv = torch.linalg.solve_triangular(L, torch.eye(L.shape[0], dtype=v.dtype, device=v.device), upper=False)
+    return (v @ L_inv.mT).flatten(2)
+
+
+def log_transition(x: Tensor, prev_x: Tensor, *, motion: MotionModel,
+                   white_prev: Optional[Tensor] = None) -> Tensor:
     """Joint log transition density from every previous particle to every chain state,
     ``sum_k log p(x_k | x_{k-1,k}^i)``.
 
@@ -559,6 +574,8 @@ def log_transition(x: Tensor, prev_x: Tensor, *, motion: MotionModel) -> Tensor:
     Parameters
     ----------
     x : (B, C, K, D) chain states; prev_x : (B, N, K, D) previous particles.
+    white_prev : (B, N, K * D), optional: ``PreviousCloud.white_mean`` (linear-Gaussian
+        motion), the whitened predicted means of ``prev_x`` when already computed.
 
     Returns
     -------
@@ -567,12 +584,10 @@ def log_transition(x: Tensor, prev_x: Tensor, *, motion: MotionModel) -> Tensor:
     b, c, k, d = x.shape
     n = prev_x.shape[1]
     if isinstance(motion, LinearGaussianMotion):
-        L = motion.L.to(x.dtype)
-        L_inv = torch.linalg.solve_triangular(L, torch.eye(d, dtype=x.dtype, device=x.device), upper=False)
-        log_norm = -0.5 * d * math.log(2 * math.pi) - torch.log(torch.diagonal(L)).sum()
-        white = (x @ L_inv.mT).flatten(2)
-        white_prev = (motion.mean(prev_x) @ L_inv.mT).flatten(2)
-        dist = torch.cdist(white, white_prev, compute_mode="donot_use_mm_for_euclid_dist")
+        log_norm = -0.5 * d * math.log(2 * math.pi) - torch.log(torch.diagonal(motion.L.to(x.dtype))).sum()
+        if white_prev is None:
+            white_prev = _whiten(motion.mean(prev_x), motion)
+        dist = torch.cdist(_whiten(x, motion), white_prev, compute_mode="donot_use_mm_for_euclid_dist")
         return k * log_norm - 0.5 * dist.square()
     step = max(1, _CHUNK_ELEMENTS // max(1, b * c * k * d))
     out = []
@@ -603,7 +618,7 @@ def propose_random_walk(x: Tensor, eps: Tensor, scale: Tensor, *, cloud: Previou
         (the ancestors' full conditionals, reused by :func:`random_walk_move`).
     """
     x_prop = x + scale * eps
-    lt = log_transition(torch.cat([x, x_prop], dim=1), cloud.x, motion=motion)
+    lt = log_transition(torch.cat([x, x_prop], dim=1), cloud.x, motion=motion, white_prev=cloud.white_mean)
     lt = lt + cloud.log_w.unsqueeze(1).to(lt.dtype)
     log_joint_cur, log_joint_prop = lt.chunk(2, dim=1)
     log_ratio = torch.logsumexp(log_joint_prop, -1) - torch.logsumexp(log_joint_cur, -1)
