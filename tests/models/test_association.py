@@ -94,9 +94,9 @@ def test_gradcheck_every_likelihood_hmc_uses(sensor, gen):
     mask = torch.tensor([[True, True, False]])
     frame = PointFrame(z, mask)
     assignment = torch.tensor([[[1, 0, 2], [0, 2, 1]]])
-    torch.autograd.gradcheck(lambda x: sensor.pair_log_likelihood(x, z), (x,))
-    torch.autograd.gradcheck(lambda x: sensor.log_likelihood(x, frame, exists), (x,))
-    torch.autograd.gradcheck(lambda x: sensor.assigned_log_likelihood(x, frame, assignment, exists), (x,))
+    assert torch.autograd.gradcheck(lambda x: sensor.pair_log_likelihood(x, z), (x,))
+    assert torch.autograd.gradcheck(lambda x: sensor.log_likelihood(x, frame, exists), (x,))
+    assert torch.autograd.gradcheck(lambda x: sensor.assigned_log_likelihood(x, frame, assignment, exists), (x,))
 
 
 def test_simulate_shuffles_the_measurements(gen):
