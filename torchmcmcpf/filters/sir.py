@@ -46,25 +46,27 @@ class SIRSettings:
             raise ValueError(f"ess_threshold must be in [0, 1], got {self.ess_threshold!r}")
 
 
-def sir_kernel(x: Tensor, log_w: Tensor, exists: Optional[Tensor], z: Measurement, u: Tensor, eps: Tensor,
-               birth: Optional[BirthNoise], *, motion: MotionModel, sensor: SensorModel, settings: SIRSettings,
-               existence: Optional[BirthDeath] = None) -> tuple[ParticleState, StepInfo]:
+def sir_kernel(x: Tensor, log_w: Tensor, exists: Optional[Tensor], z: Measurement, need: Tensor, u: Tensor,
+               eps: Tensor, birth: Optional[BirthNoise], *, motion: MotionModel, sensor: SensorModel,
+               settings: SIRSettings, existence: Optional[BirthDeath] = None
+               ) -> tuple[Tensor, Optional[Tensor], Tensor]:
     """The noise-free part of one SIR step (pure; what ``compile_step=True`` compiles).
 
     Parameters
     ----------
     x : (B, N, K, D); log_w : (B, N) normalised; exists : (B, N, K) bool or None.
-    z : the frame ``(B, *G)``; u : the resampling uniforms (``(B, 1)`` systematic, ``(B, N)``
+    z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling uniforms (``(B, 1)`` systematic, ``(B, N)``
     otherwise); eps : (B, N, K, noise_dim) motion noise; birth : :class:`BirthNoise` for
     ``(B, N)`` (with ``existence``) or None.
 
     Returns
     -------
-    As :func:`sir_step`.
+    x : (B, N, K, D) propagated; exists : (B, N, K) or None;
+    log_w : (B, N) unnormalised new log-weights ``log w_{k-1} + log p(z | x)`` (normalised
+    in eager code, so that compiled and eager steps agree bit for bit).
     """
     n = x.shape[1]
     # Resample the previous cloud where its ESS is low; where not, keep it and its weights.
-    need = ess(log_w) < settings.ess_threshold * n  # (B,)
     idx = RESAMPLERS[settings.resample_method][1](log_w, u, n)
     keep = torch.arange(n, device=x.device).expand_as(idx)
     idx = torch.where(need.unsqueeze(-1), idx, keep)
@@ -77,11 +79,7 @@ def sir_kernel(x: Tensor, log_w: Tensor, exists: Optional[Tensor], z: Measuremen
         x, exists, log_ratio = propose_existence(x, gather_particles(exists, idx), eps, birth, motion=motion,
                                                  existence=existence)
         log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N)
-    log_w_new, log_mean = normalize(log_w + log_lik)
-    # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
-    log_evidence = log_mean + math.log(n)
-    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess(log_w_new),
-                                                              log_evidence=log_evidence)
+    return x, exists, log_w + log_lik
 
 
 def sir_step(
@@ -131,10 +129,26 @@ def sir_step(
         if exists is None:
             exists = torch.zeros((b, n, k), dtype=torch.bool, device=x.device)
         eps, birth = existence.draw_noise(x, motion, z, generator=generator)
+    # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
+    if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
+        need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)
+    else:
+        need = ess(log_w) < settings.ess_threshold * n  # (B,)
     if kernel is None:
-        return sir_kernel(x, log_w, exists, z, u, eps, birth, motion=motion, sensor=sensor, settings=settings,
-                          existence=existence)
-    return kernel(x, log_w, exists, z, u, eps, birth)
+        kernel = _bind(motion, sensor, settings, existence)
+    x, exists, log_w = kernel(x, log_w, exists, z, need, u, eps, birth)
+    log_w_new, log_mean = normalize(log_w)
+    # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
+    log_evidence = log_mean + math.log(n)
+    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess(log_w_new),
+                                                              log_evidence=log_evidence)
+
+
+def _bind(motion: MotionModel, sensor: SensorModel, settings: SIRSettings, existence: Optional[BirthDeath]
+          ) -> Callable:
+    def kernel(*args):
+        return sir_kernel(*args, motion=motion, sensor=sensor, settings=settings, existence=existence)
+    return kernel
 
 
 class SIRFilter(Filter):
@@ -174,11 +188,7 @@ class SIRFilter(Filter):
                          existence=existence, compile_step=compile_step)
 
     def _kernel(self) -> Callable:
-        motion, sensor, settings, existence = self.motion, self.sensor, self.settings, self.existence
-
-        def kernel(*args):
-            return sir_kernel(*args, motion=motion, sensor=sensor, settings=settings, existence=existence)
-        return kernel
+        return _bind(self.motion, self.sensor, self.settings, self.existence)
 
     def _step(self, state, z, generator):
         return sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
