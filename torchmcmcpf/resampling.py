@@ -117,7 +117,7 @@ def systematic(log_w: Tensor, u: Tensor, num_samples: Optional[int] = None) -> T
     Parameters
     ----------
     log_w : (B, N) log-weights (normalised or not).
-    u : (B, 1) uniforms in [0, 1).
+    u : (B, 1) uniforms in [0, 1) (or (B, M): stratified).
     num_samples : M, defaults to N.
 
     Returns
@@ -130,7 +130,8 @@ def systematic(log_w: Tensor, u: Tensor, num_samples: Optional[int] = None) -> T
 
 
 def stratified(log_w: Tensor, u: Tensor) -> Tensor:
-    """Stratified resampling: one uniform per stratum, points ``(i + u_i) / M``.
+    """Stratified resampling: one uniform per stratum, points ``(i + u_i) / M`` (the
+    systematic points with a uniform per stratum).
 
     Parameters
     ----------
@@ -140,9 +141,7 @@ def stratified(log_w: Tensor, u: Tensor) -> Tensor:
     -------
     (B, M) int64 ancestor indices.
     """
-    m = u.shape[-1]
-    grid = torch.arange(m, device=log_w.device, dtype=torch.float64)
-    return inverse_cdf(cdf(log_w), (grid + u.to(torch.float64)) / m)
+    return systematic(log_w, u, u.shape[-1])
 
 
 def multinomial(log_w: Tensor, u: Tensor) -> Tensor:

@@ -16,7 +16,8 @@ import torch
 
 from .typing import Tensor
 
-__all__ = ["ParticleState", "StepInfo", "FilterResult", "stack_infos", "summary"]
+__all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
+           "summary"]
 
 
 def summary(value: Any) -> str:
@@ -172,4 +173,53 @@ def stack_infos(infos: list[StepInfo]) -> StepInfo:
     )
 
 
-torch.serialization.add_safe_globals([ParticleState, StepInfo, FilterResult])
+class ExistenceEstimate(NamedTuple):
+    """Point estimates of a weighted cloud with existence flags.
+
+    Attributes
+    ----------
+    exists_prob : (B, K) posterior existence probability of each slot.
+    expected_count : (B,) expected number of targets, ``sum_k exists_prob``.
+    mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
+        no particle has it).
+    present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
+    """
+
+    exists_prob: Tensor
+    expected_count: Tensor
+    mean: Tensor
+    present: Tensor
+
+
+def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
+                       x_death: Optional[Tensor] = None) -> ExistenceEstimate:
+    """Existence probabilities, expected count and the state of every slot whose existence
+    probability exceeds ``threshold`` (0.5: the marginal MAP existence).
+
+    Parameters
+    ----------
+    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)``, ``exists (B, N, K)``.
+    threshold : in [0, 1).
+    x_death : (D,) value for slots that exist in no particle (default zeros).
+
+    Returns
+    -------
+    ExistenceEstimate.
+    """
+    if state.exists is None:
+        raise ValueError("state.exists is None; existence_estimate needs a state with existence flags")
+    if not 0.0 <= float(threshold) < 1.0:
+        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+    w = torch.softmax(state.log_w, -1).to(state.x.dtype)  # (B, N)
+    we = w.unsqueeze(-1) * state.exists.to(w.dtype)  # (B, N, K)
+    prob = we.sum(1)  # (B, K)
+    num = torch.einsum("bnk,bnkd->bkd", we, torch.where(state.exists.unsqueeze(-1), state.x,
+                                                        torch.zeros_like(state.x)))
+    fill = torch.zeros(state.x.shape[-1], dtype=state.x.dtype, device=state.x.device) \
+        if x_death is None else x_death.to(state.x)
+    mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
+                       fill)
+    return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)
+
+
+torch.serialization.add_safe_globals([ParticleState, StepInfo, FilterResult, ExistenceEstimate])

@@ -30,7 +30,8 @@ import torch
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from torchmcmcpf.filters.mcmc import MCMCFilter, MCMCSettings, mcmc_step
 from torchmcmcpf.filters.sir import SIRFilter
-from torchmcmcpf.models.existence import BirthDeath, existence_estimate
+from torchmcmcpf.models.existence import BirthDeath
+from torchmcmcpf.state import existence_estimate
 from torchmcmcpf.models.motion import ConstantVelocity
 from torchmcmcpf.models.sensors.points import PoissonClutterPoints
 from torchmcmcpf.scenarios.septier import stack_frames

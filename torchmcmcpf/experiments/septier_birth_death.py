@@ -17,7 +17,7 @@ all with the same birth proposal, every particle starting with all slots inactiv
 
 Estimates: per slot the existence probability, the expected number of targets (their sum)
 and, for the slots with existence probability > 0.5, the mean given existence
-(:func:`~torchmcmcpf.models.existence.existence_estimate`).
+(:func:`~torchmcmcpf.state.existence_estimate`).
 
 Writes ``metrics.json`` (per-step OSPA and GOSPA, c = 100 m, p = 2, averaged over the runs;
 mean true and expected number of targets per step; their time averages; the mean

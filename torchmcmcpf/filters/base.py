@@ -30,8 +30,8 @@ from torch.utils._pytree import tree_flatten, tree_map
 
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, existence_estimate
-from ..state import FilterResult, ParticleState, StepInfo, stack_infos
+from ..models.existence import BirthDeath
+from ..state import FilterResult, ParticleState, StepInfo, existence_estimate, stack_infos
 from ..typing import Measurement, Tensor
 
 __all__ = ["Filter", "check_existence"]
@@ -183,7 +183,7 @@ class Filter(nn.Module):
 
     def estimate(self, state: ParticleState) -> Tensor:
         """MMSE estimate ``(B, K, D)`` of a state (paper 000 eq. 6); with existence, each
-        slot's mean given that it exists (:func:`~torchmcmcpf.models.existence.existence_estimate`)."""
+        slot's mean given that it exists (:func:`~torchmcmcpf.state.existence_estimate`)."""
         if self.existence is None or state.exists is None:
             return state.mean()
         return existence_estimate(state, x_death=self.existence.x_death).mean

@@ -354,7 +354,7 @@ class MCMCFilter(Filter):
     rw_scale : float or ``(D,)`` tensor, the random-walk step (needed by ``"random_walk"``).
     existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
         estimate of a slot is then its mean given existence
-        (:func:`torchmcmcpf.models.existence.existence_estimate`).
+        (:func:`torchmcmcpf.state.existence_estimate`).
 
     Each time step runs ``burn_in + thinning * N / C`` iterations of every chain.
 

@@ -106,7 +106,7 @@ discrete flags and is refused with existence.
 from __future__ import annotations
 
 import math
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple, Optional
 
 import torch
 

@@ -2,7 +2,8 @@
 sensors (likelihoods)."""
 
 from .base import MotionModel, SensorModel
-from .existence import BirthDeath, ExistenceEstimate, existence_estimate
+from ..state import ExistenceEstimate, existence_estimate
+from .existence import BirthDeath
 from .motion import ConstantVelocity, LinearGaussianMotion, WhiteAccelerationMotion
 from .sensors import *  # noqa: F401,F403
 from .sensors import __all__ as _sensors

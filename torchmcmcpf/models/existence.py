@@ -18,7 +18,7 @@ The multitarget state has ``K = N_max`` slots, each with an existence flag ``e_n
 An inactive slot holds exactly ``x_death`` (default the zero vector), a point mass, so the
 transition density of a slot that dies or stays dead is ``p(e_k | e_{k-1})`` alone. Sensors
 never read an inactive slot (``exists`` masks it), and estimates condition on existence
-(:func:`existence_estimate`), so the value only has to be finite.
+(:func:`torchmcmcpf.state.existence_estimate`), so the value only has to be finite.
 
 Birth proposals
 ---------------
@@ -45,13 +45,12 @@ import torch
 from torch import nn
 
 from .._validation import check_positive
-from ..state import ParticleState
 from ..typing import Tensor, VX, VY, X, Y
 from .base import MotionModel
 from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area
 
-__all__ = ["BirthDeath", "BirthNoise", "ExistenceEstimate", "existence_estimate"]
+__all__ = ["BirthDeath", "BirthNoise"]
 
 
 class BirthNoise(NamedTuple):
@@ -315,52 +314,3 @@ class BirthDeath(nn.Module):
     def extra_repr(self) -> str:
         return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
                 f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
-
-
-class ExistenceEstimate(NamedTuple):
-    """Point estimates of a weighted cloud with existence flags.
-
-    Attributes
-    ----------
-    exists_prob : (B, K) posterior existence probability of each slot.
-    expected_count : (B,) expected number of targets, ``sum_k exists_prob``.
-    mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
-        no particle has it).
-    present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
-    """
-
-    exists_prob: Tensor
-    expected_count: Tensor
-    mean: Tensor
-    present: Tensor
-
-
-def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
-                       x_death: Optional[Tensor] = None) -> ExistenceEstimate:
-    """Existence probabilities, expected count and the state of every slot whose existence
-    probability exceeds ``threshold`` (0.5: the marginal MAP existence).
-
-    Parameters
-    ----------
-    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)``, ``exists (B, N, K)``.
-    threshold : in [0, 1).
-    x_death : (D,) value for slots that exist in no particle (default zeros).
-
-    Returns
-    -------
-    ExistenceEstimate.
-    """
-    if state.exists is None:
-        raise ValueError("state.exists is None; existence_estimate needs a state with existence flags")
-    if not 0.0 <= float(threshold) < 1.0:
-        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
-    w = torch.softmax(state.log_w, -1).to(state.x.dtype)  # (B, N)
-    we = w.unsqueeze(-1) * state.exists.to(w.dtype)  # (B, N, K)
-    prob = we.sum(1)  # (B, K)
-    num = torch.einsum("bnk,bnkd->bkd", we, torch.where(state.exists.unsqueeze(-1), state.x,
-                                                        torch.zeros_like(state.x)))
-    fill = torch.zeros(state.x.shape[-1], dtype=state.x.dtype, device=state.x.device) \
-        if x_death is None else x_death.to(state.x)
-    mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
-                       fill)
-    return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)
