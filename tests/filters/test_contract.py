@@ -206,3 +206,52 @@ def test_negative_radar_amplitude_is_refused(name):
     z = torch.zeros((1, B) + tuple(sensor.frame_shape), dtype=DT)
     with pytest.raises(ValueError, match="init .signal component. has negative value"):
         filt(z, init=init, generator=torch.Generator().manual_seed(0))
+
+
+# ----------------------------------------------------------------------------- births and deaths
+def existence_problem():
+    from torchmcmcpf.models.existence import BirthDeath
+    from torchmcmcpf.models.sensors.points import PoissonClutterPoints
+    from torchmcmcpf.scenarios.septier import stack_frames
+
+    area = ((0.0, 5000.0), (0.0, 5000.0))
+    motion = ConstantVelocity(1.0, 1.0).to(DT)
+    sensor = PoissonClutterPoints(10.0, 4.0, area, noise_std=10.0).to(DT)
+    existence = BirthDeath(0.05, 0.05, area, velocity_std=5.0, birth_std=10.0).to(DT)
+    g = torch.Generator().manual_seed(0)
+    x = torch.tensor([2000.0, 3.0, 2500.0, -2.0], dtype=DT).expand(B, 1, 4)
+    frames = []
+    for _ in range(T):
+        x = motion.sample(x, generator=g)
+        frames.append(sensor.simulate(x, exists=torch.ones(B, 1, dtype=torch.bool), generator=g))
+    z = stack_frames(frames)  # padded to a common M
+    return motion, sensor, existence, z, torch.zeros(B, N, K, 4, dtype=DT)
+
+
+EXISTENCE_FILTERS = {
+    "sir": lambda m, s, e: SIRFilter(m, s, N, existence=e),
+    "mcmc": lambda m, s, e: MCMCFilter(m, s, N, num_chains=4, burn_in=3, existence=e),
+    "ipmcmc": lambda m, s, e: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, existence=e),
+    "resample_move": lambda m, s, e: ResampleMoveFilter(m, s, N, num_hmc_steps=2, existence=e),
+}
+
+
+@pytest.mark.parametrize("name", EXISTENCE_FILTERS)
+def test_births_and_deaths_same_contract(name, tmp_path):
+    """Every filter takes a BirthDeath model the same way: shapes, same seed -> same bits,
+    checkpoint/resume -> same bits (the flags travel in the ParticleState)."""
+    motion, sensor, existence, z, init = existence_problem()
+    filt = EXISTENCE_FILTERS[name](motion, sensor, existence)
+    whole = filt(z, init=init, generator=torch.Generator().manual_seed(2))
+    again = filt(z, init=init, generator=torch.Generator().manual_seed(2))
+    assert whole.exists_prob.shape == (T, B, K) and whole.state.exists.shape == (B, N, K)
+    assert torch.equal(whole.exists_prob, again.exists_prob) and torch.equal(whole.state.x, again.state.x)
+    g = torch.Generator().manual_seed(2)
+    first = filt(type(z)(z.z[:2], z.mask[:2]), init=init, generator=g)
+    torch.save({"state": first.state, "generator": g.get_state()}, tmp_path / "ckpt.pt")
+    ckpt = torch.load(tmp_path / "ckpt.pt")
+    g2 = torch.Generator()
+    g2.set_state(ckpt["generator"])
+    rest = filt(type(z)(z.z[2:], z.mask[2:]), init=ckpt["state"], generator=g2)
+    assert torch.equal(torch.cat([first.exists_prob, rest.exists_prob]), whole.exists_prob)
+    assert torch.equal(rest.state.x, whole.state.x) and torch.equal(rest.state.exists, whole.state.exists)
