@@ -117,18 +117,19 @@ class Filter(nn.Module):
         self._compiled: Optional[Callable] = None
 
     # -- the compiled kernel -------------------------------------------------------------
-    def _kernel(self) -> Optional[Callable]:
-        """The eager kernel this filter compiles (pure, no generator); ``None``: the step
-        function's default."""
-        return None
+    def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
+        """The kernel passed to the step function with ``compile`` applied to the pure parts
+        that should be compiled (one iteration / one step, never the loops over them)."""
+        raise NotImplementedError
 
     def kernel(self) -> Optional[Callable]:
-        """The kernel passed to the step function: compiled once (``fullgraph=True``, static
-        shapes) when ``compile_step=True``, else ``None`` (the step function's eager one)."""
+        """The kernel passed to the step function: built once with its parts compiled
+        (``torch.compile(fullgraph=True, dynamic=False)``) when ``compile_step=True``, else
+        ``None`` (the step function's eager one)."""
         if not self.compile_step:
             return None
         if self._compiled is None:
-            self._compiled = torch.compile(self._kernel(), fullgraph=True, dynamic=False)
+            self._compiled = self._kernel(lambda f: torch.compile(f, fullgraph=True, dynamic=False))
         return self._compiled
 
     # -- state ---------------------------------------------------------------------------

@@ -318,8 +318,8 @@ class IPMCMCFilter(Filter):
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles)
 
-    def _kernel(self) -> Callable:
-        return _bind(self.motion, self.sensor, self.existence)
+    def _kernel(self, compile: Callable) -> Callable:
+        return compile(_bind(self.motion, self.sensor, self.existence))
 
     def _step(self, state, z, generator):
         return ipmcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

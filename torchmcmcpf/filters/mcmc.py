@@ -40,6 +40,7 @@ from ..kernels.moves import (
     previous_cloud,
     random_walk_move,
     refine_move,
+    refine_slot,
 )
 from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
@@ -194,6 +195,7 @@ def mcmc_iteration(
     moves: tuple[tuple[str, float], ...],
     rw_scale: Optional[Tensor] = None,
     existence: Optional[BirthDeath] = None,
+    compiled: Optional[dict] = None,
 ) -> tuple[ChainState, dict[str, Tensor], dict[str, Tensor]]:
     """One MCMC iteration of every chain: a mixture kernel, branch-free.
 
@@ -209,6 +211,7 @@ def mcmc_iteration(
     cloud : the previous particles; z : frame ``(B, *G)``; motion, sensor : the models.
     moves : parsed moves; rw_scale : (D,) or scalar step of the random walk.
     existence : BirthDeath, optional: chains with existence flags (``noise`` drawn with it).
+    compiled : move name -> its compiled move (``MCMCFilter(compile_step=True)``), optional.
 
     Returns
     -------
@@ -224,15 +227,21 @@ def mcmc_iteration(
         choice = torch.zeros(chain.x.shape[:2], dtype=torch.int64, device=chain.x.device)
     new, accepted, selected = chain, {}, {}
     for i, (name, _) in enumerate(moves):
-        if name == "joint":
+        if compiled is not None:
+            fn = compiled[name]
+            cand, acc = (fn(chain, noise[name], z) if name == "refine" else
+                         fn(chain, noise[name], cloud, z, rw_scale) if name == "random_walk" else
+                         fn(chain, noise[name], cloud, z))
+        elif name == "joint":
             cand, acc = joint_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
                                    existence=existence)
         elif name == "refine":
             cand, acc = refine_move(chain, noise[name], z=z, motion=motion, sensor=sensor, existence=existence)
-            acc = acc.to(chain.x.dtype).mean(-1)
         else:
             cand, acc = random_walk_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
                                          scale=rw_scale)
+        if name == "refine":
+            acc = acc.to(chain.x.dtype).mean(-1)
         sel = choice == i
         new = mh_select(sel, cand, new)
         selected[name] = sel
@@ -324,12 +333,36 @@ def mcmc_step(
     return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: Optional[BirthDeath]
-          ) -> Callable:
-    """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, cloud, z, rw_scale)``."""
+def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: Optional[BirthDeath],
+          compile: Optional[Callable] = None) -> Callable:
+    """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, cloud, z, rw_scale)``.
+
+    With ``compile``, each move is compiled on its own (the joint draw; the refinement whole
+    when the sensor is separable, else its one-slot update, one graph for every slot; the
+    random walk), so the graph never holds K unrolled slot updates; the mixture's choice
+    between them is a few ``torch.where`` in eager code."""
+    moves = None
+    if compile is not None:
+        names = {name for name, _ in settings.moves}
+        moves = {}
+        if "joint" in names:
+            moves["joint"] = compile(lambda chain, noise, cloud, z: joint_move(
+                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence))
+        if "refine" in names:
+            if sensor.separable and existence is None:
+                moves["refine"] = compile(lambda chain, noise, z: refine_move(
+                    chain, noise, z=z, motion=motion, sensor=sensor))
+            else:
+                slot = compile(lambda *args: refine_slot(*args, sensor=sensor))
+                moves["refine"] = lambda chain, noise, z: refine_move(
+                    chain, noise, z=z, motion=motion, sensor=sensor, existence=existence, slot_kernel=slot)
+        if "random_walk" in names:
+            moves["random_walk"] = compile(lambda chain, noise, cloud, z, scale: random_walk_move(
+                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=scale))
+
     def kernel(chain, noise, cloud, z, rw_scale):
         return mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, moves=settings.moves,
-                              rw_scale=rw_scale, existence=existence)
+                              rw_scale=rw_scale, existence=existence, compiled=moves)
     return kernel
 
 
@@ -388,8 +421,8 @@ class MCMCFilter(Filter):
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles, motion.dim, existence)
 
-    def _kernel(self) -> Callable:
-        return _bind(self.motion, self.sensor, self.settings, self.existence)
+    def _kernel(self, compile: Callable) -> Callable:
+        return _bind(self.motion, self.sensor, self.settings, self.existence, compile)
 
     def _step(self, state, z, generator):
         return mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

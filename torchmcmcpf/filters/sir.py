@@ -187,8 +187,8 @@ class SIRFilter(Filter):
         super().__init__(motion, sensor, num_particles, SIRSettings(resample_method, float(ess_threshold)),
                          existence=existence, compile_step=compile_step)
 
-    def _kernel(self) -> Callable:
-        return _bind(self.motion, self.sensor, self.settings, self.existence)
+    def _kernel(self, compile: Callable) -> Callable:
+        return compile(_bind(self.motion, self.sensor, self.settings, self.existence))
 
     def _step(self, state, z, generator):
         return sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

@@ -1,11 +1,14 @@
-"""Pure, batched MCMC kernels: Metropolis-Hastings accept/reject (:mod:`.mh`), the moves of
-the sequential MCMC particle filter (:mod:`.moves`) and Hamiltonian Monte Carlo (:mod:`.hmc`).
+"""Pure, batched MCMC kernels: Metropolis-Hastings accept/reject (:mod:`.mh`); the moves of
+the sequential MCMC particle filter, by concern: chain states and noise (:mod:`.chains`),
+joint draw and per-target refinement (:mod:`.moves`), random walk (:mod:`.random_walk`); the
+IP-MCMC exchange move (:mod:`.exchange`); Hamiltonian Monte Carlo (:mod:`.hmc`).
 
 Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decides with
 ``torch.where``, so chains, targets and runs are tensor dimensions.
 """
 
-from .hmc import HMCInfo, hmc, leapfrog, value_and_grad
+from .exchange import ExchangeNoise, draw_exchange_noise, exchange_existence_iteration, exchange_iteration
+from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .mh import mh_accept, mh_select
 from .moves import (
     MOVES,
@@ -24,6 +27,7 @@ from .moves import (
     propose_refine,
     random_walk_move,
     refine_move,
+    refine_slot,
 )
 
 __all__ = [
@@ -42,11 +46,17 @@ __all__ = [
     "joint_move",
     "propose_refine",
     "refine_move",
+    "refine_slot",
     "log_transition",
     "propose_random_walk",
     "random_walk_move",
+    "ExchangeNoise",
+    "draw_exchange_noise",
+    "exchange_iteration",
+    "exchange_existence_iteration",
     "HMCInfo",
     "hmc",
+    "hmc_transition",
     "leapfrog",
     "value_and_grad",
 ]

@@ -1,0 +1,166 @@
+"""Chain states, the previous cloud and the pre-drawn noise of the sequential MCMC moves
+(:mod:`torchmcmcpf.kernels.moves` describes the target and the moves)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+
+from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath, BirthNoise
+from ..models.motion import LinearGaussianMotion
+from ..resampling import cdf, inverse_cdf
+from ..typing import Measurement, Tensor
+
+__all__ = ["ChainState", "PreviousCloud", "previous_cloud", "JointNoise", "RefineNoise", "evaluate"]
+
+
+class ChainState(NamedTuple):
+    """The state of C chains in each of B runs.
+
+    Attributes
+    ----------
+    x : (B, C, K, D)
+        Multitarget state at time k.
+    x_prev : (B, C, K, D)
+        Its ancestor ``x_{k-1}^a`` in the previous particle cloud.
+    log_lik : (B, C)
+        ``sensor.log_likelihood(x, z)``.
+    log_lik_terms : (B, C, K), optional
+        Per-target terms of ``log_lik`` for sensors with ``log_likelihood_per_target``;
+        ``None`` otherwise.
+    exists, exists_prev : (B, C, K) bool, optional
+        With existence: the flags of ``x`` and of its ancestor (``None`` for a known number
+        of targets; ``log_lik`` is then ``sensor.log_likelihood(x, z, exists)``).
+    log_birth : (B, C, K), optional
+        With existence: ``log r_n = log p_0(x_n) - log q_0(x_n)`` for a slot born between
+        the ancestor and ``x``, 0 for the others (module docstring).
+    """
+
+    x: Tensor
+    x_prev: Tensor
+    log_lik: Tensor
+    log_lik_terms: Optional[Tensor] = None
+    exists: Optional[Tensor] = None
+    exists_prev: Optional[Tensor] = None
+    log_birth: Optional[Tensor] = None
+
+
+class PreviousCloud(NamedTuple):
+    """The particle approximation of ``p(x_{k-1} | z_{1:k-1})`` that the target mixes over.
+
+    Attributes
+    ----------
+    x : (B, N, K, D) particles.
+    log_w : (B, N) normalised log-weights (``-log N`` after an MCMC step).
+    cdf : (B, N) float64 cumulative weights, last entry exactly 1 (ancestor draws by
+        inversion, ``searchsorted``).
+    exists : (B, N, K) bool, optional: the particles' existence flags.
+    white_mean : (B, N, K * D), optional: the whitened predicted means ``L^-1 F x^i`` of a
+        linear-Gaussian motion, computed once per frame for :func:`log_transition`.
+    """
+
+    x: Tensor
+    log_w: Tensor
+    cdf: Tensor
+    exists: Optional[Tensor] = None
+    white_mean: Optional[Tensor] = None
+
+
+def previous_cloud(x: Tensor, log_w: Tensor, exists: Optional[Tensor] = None, *,
+                   motion: Optional[MotionModel] = None) -> PreviousCloud:
+    """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)``, ``log_w (B, N)`` and
+    optionally their existence flags ``exists (B, N, K)``. With a linear-Gaussian ``motion``
+    the whitened predicted means are cached, so the random walk does not recompute them at
+    every iteration of the frame."""
+    white = whiten(motion.mean(x), motion) if isinstance(motion, LinearGaussianMotion) else None
+    return PreviousCloud(x, log_w, cdf(log_w), exists, white)
+
+
+def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
+    """Ancestor indices ``(B, C)`` with ``P(a) = w^a``, by inversion of uniforms ``u (B, C)``."""
+    return inverse_cdf(cloud.cdf, u)
+
+
+def _uniform(shape, x: Tensor, generator: torch.Generator) -> Tensor:
+    return torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
+
+
+def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
+    return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
+
+
+def _births(x: Tensor, existence: Optional[BirthDeath], z: Measurement, generator: torch.Generator
+            ) -> Optional[BirthNoise]:
+    return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
+
+
+class JointNoise(NamedTuple):
+    """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
+    K, noise_dim)`` standard normals (the transition noise of every target) and, with
+    existence, ``birth`` (:class:`BirthNoise`)."""
+
+    u_ancestor: Tensor
+    eps: Tensor
+    u: Tensor
+    birth: Optional[BirthNoise] = None
+
+    @classmethod
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
+             existence: Optional[BirthDeath] = None, z: Optional[Measurement] = None) -> "JointNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``); the
+        birth noise only with ``existence`` (which needs the frame ``z``)."""
+        b, c, k, _ = x.shape
+        return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
+                   _uniform((b, c), x, generator), _births(x, existence, z, generator))
+
+
+class RefineNoise(NamedTuple):
+    """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
+    slot), ``u (B, C, K)`` uniforms (one accept/reject per slot) and, with existence,
+    ``birth`` (:class:`BirthNoise`)."""
+
+    eps: Tensor
+    u: Tensor
+    birth: Optional[BirthNoise] = None
+
+    @classmethod
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
+             existence: Optional[BirthDeath] = None, z: Optional[Measurement] = None) -> "RefineNoise":
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``: as
+        :meth:`JointNoise.draw`)."""
+        b, c, k, _ = x.shape
+        return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator),
+                   _births(x, existence, z, generator))
+
+
+# -- likelihood ------------------------------------------------------------------------------
+def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Optional[Tensor] = None
+             ) -> tuple[Tensor, Optional[Tensor]]:
+    """Log-likelihood of chain states, with per-target terms when the sensor has them.
+
+    Parameters
+    ----------
+    x : (B, C, K, D); z : one frame per run (B, *G); sensor : the SensorModel.
+    exists : (B, C, K) bool, optional: existence flags (then no per-target terms).
+
+    Returns
+    -------
+    log_lik : (B, C).
+    log_lik_terms : (B, C, K), or ``None`` for a sensor without ``log_likelihood_per_target``
+        or with ``exists``.
+    """
+    if exists is not None:
+        return sensor.log_likelihood(x, z, exists), None
+    if sensor.separable:
+        terms = sensor.log_likelihood_per_target(x, z)
+        return terms.sum(-1), terms
+    return sensor.log_likelihood(x, z), None
+
+
+def whiten(v: Tensor, motion: LinearGaussianMotion) -> Tensor:
+    """``L^-1 v`` per target, flattened: ``(B, M, K, D) -> (B, M, K * D)`` (``Q = L L^T``)."""
+    L = motion.L.to(v.dtype)
+    L_inv = torch.linalg.solve_triangular(L, torch.eye(L.shape[0], dtype=v.dtype, device=v.device), upper=False)
+    return (v @ L_inv.mT).flatten(2)
