@@ -45,6 +45,7 @@ import torch
 from torch import nn
 
 from .._validation import check_positive
+from ..resampling import cdf, inverse_cdf
 from ..typing import Tensor, VX, VY, X, Y
 from .base import MotionModel
 from .sensors.association import PointMeasurement, _split
@@ -195,12 +196,10 @@ class BirthDeath(nn.Module):
         pts = pts.to(dtype)
         n_valid = mask.sum(-1)  # (B,)
         lead = (b,) + (1,) * (len(shape) - 1)
-        # pick a valid point uniformly: the (j+1)-th valid one, j = floor(u n_valid)
+        # pick a valid point uniformly: inversion of the CDF of equal weights on the valid points
         u_pick = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
-        j = (u_pick[..., 0] * n_valid.reshape(lead)).floor().long()
-        j = torch.minimum(j, (n_valid - 1).clamp(min=0).reshape(lead))
-        cum = mask.long().cumsum(-1)  # (B, M)
-        idx = torch.searchsorted(cum, (j + 1).reshape(b, -1)).clamp(max=m - 1).reshape(shape)
+        log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M); none valid: unused
+        idx = inverse_cdf(cdf(log_pick), u_pick[..., 0].reshape(b, -1)).reshape(shape)
         centre = torch.take_along_dim(pts, idx.reshape(b, -1, 1), dim=1).reshape(tuple(shape) + (2,))
         near = centre + self.birth_std * torch.randn(tuple(shape) + (2,), generator=generator,
                                                      device=device, dtype=dtype)
