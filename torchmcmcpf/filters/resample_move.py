@@ -43,7 +43,7 @@ import torch
 
 from .._validation import check_positive, check_positive_int
 from ..kernels.hmc import hmc_transition, value_and_grad
-from ..models.existence import BirthDeath, BirthNoise
+from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.base import MotionModel, SensorModel
 from ..models.sensors.association import (
     AssociationSensor,
@@ -94,12 +94,10 @@ class ResampleMoveSettings:
 
 def _predict(x_prev: Tensor, exists: Optional[Tensor], eps: Tensor, birth: Optional[BirthNoise], motion: MotionModel,
              existence: Optional[BirthDeath]) -> tuple[Tensor, Optional[Tensor], Tensor]:
-    """``x_k = f(x_{k-1}, u)`` (with births and deaths: the birth/death law of
-    :meth:`BirthDeath.propagate`); returns ``x``, ``exists`` and the per-particle birth
-    weight correction ``(B, N)``."""
-    if existence is None:
-        return motion.propagate(x_prev, eps), exists, torch.zeros_like(x_prev[..., 0, 0])
-    x, e, log_ratio = existence.propagate(x_prev, exists, eps, birth, motion=motion)
+    """``x_k = f(x_{k-1}, u)`` through :class:`TargetDynamics` (one path with or without
+    births and deaths); returns ``x``, ``exists`` and the per-particle birth weight
+    correction ``(B, N)``."""
+    x, e, log_ratio = TargetDynamics(motion, existence).propagate(x_prev, exists, eps, birth)
     return x, e, log_ratio.sum(-1)
 
 
@@ -142,14 +140,9 @@ def resample_move_step(
     """
     x_prev, log_w_prev, exists = state
     b, n, k, _ = x_prev.shape
-    if existence is None:
-        eps = torch.randn((b, n, k, motion.noise_dim), generator=generator, device=x_prev.device,
-                          dtype=x_prev.dtype)
-        birth = None
-    else:
-        if exists is None:
-            exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
-        eps, birth = existence.draw_noise(x_prev, motion, z, generator=generator)
+    if existence is not None and exists is None:
+        exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
+    eps, birth = TargetDynamics(motion, existence).draw_noise(x_prev, z, generator=generator)
     x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, motion, existence)
 
     assignment = None
@@ -172,8 +165,9 @@ def resample_move_step(
     # existence draws.
     idx = resample(log_w, settings.resample_method, generator=generator)
     x_prev, eps = gather_particles(x_prev, idx), gather_particles(eps, idx)
-    if existence is not None:
+    if exists is not None:
         exists = gather_particles(exists, idx)
+    if birth is not None:
         birth = BirthNoise(*(gather_particles(t, idx) for t in birth))
     uniform = torch.full_like(log_w, -math.log(n))
     if settings.num_hmc_steps == 0:

@@ -14,9 +14,8 @@ from typing import Callable, Optional
 
 import torch
 
-from ..kernels.moves import BirthNoise, propose_existence
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -72,13 +71,11 @@ def sir_kernel(x: Tensor, log_w: Tensor, exists: Optional[Tensor], z: Measuremen
     idx = torch.where(need.unsqueeze(-1), idx, keep)
     x = gather_particles(x, idx)
     log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
-    if existence is None:
-        x = motion.propagate(x, eps)
-        log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
-    else:
-        x, exists, log_ratio = propose_existence(x, gather_particles(exists, idx), eps, birth, motion=motion,
-                                                 existence=existence)
-        log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N)
+    if exists is not None:
+        exists = gather_particles(exists, idx)
+    # (x, exists) propagated jointly: one code path whatever the number of targets
+    x, exists, log_ratio = TargetDynamics(motion, existence).propagate(x, exists, eps, birth)
+    log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N), with the birth correction
     return x, exists, log_w + log_lik
 
 
@@ -102,7 +99,7 @@ def sir_step(
     motion, sensor : the models; settings : :class:`SIRSettings`.
     generator : source of randomness (every draw is made here, in eager code).
     existence : BirthDeath, optional: an unknown number of targets. ``(x, exists)`` are
-        propagated jointly (:func:`~torchmcmcpf.kernels.moves.propose_existence`, births near
+        propagated jointly (:class:`~torchmcmcpf.models.existence.TargetDynamics`, births near
         the points of ``z`` when it draws them so, with the weight correction ``p_0 / q_0``);
         ``state.exists`` None means every slot starts inactive (paper 004 sec. 5).
     kernel : :func:`sir_kernel` with the models bound (compiled by ``SIRFilter(compile_step=True)``);
@@ -122,13 +119,7 @@ def sir_step(
     b, n, k, _ = x.shape
     draw, _ = RESAMPLERS[settings.resample_method]
     u = draw(b, n, generator=generator, device=x.device)
-    if existence is None:
-        eps = torch.randn((b, n, k, motion.noise_dim), generator=generator, device=x.device, dtype=x.dtype)
-        birth = None
-    else:
-        if exists is None:
-            exists = torch.zeros((b, n, k), dtype=torch.bool, device=x.device)
-        eps, birth = existence.draw_noise(x, motion, z, generator=generator)
+    eps, birth = TargetDynamics(motion, existence).draw_noise(x, z, generator=generator)
     # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
     if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
         need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)

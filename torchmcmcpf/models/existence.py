@@ -51,7 +51,7 @@ from .base import MotionModel
 from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area
 
-__all__ = ["BirthDeath", "BirthNoise"]
+__all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
 
 
 class BirthNoise(NamedTuple):
@@ -313,3 +313,39 @@ class BirthDeath(nn.Module):
     def extra_repr(self) -> str:
         return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
                 f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
+
+
+class TargetDynamics(NamedTuple):
+    """The joint model of ``(x, exists)``: the motion composed with a birth/death model, or
+    the motion alone (``existence=None``, a known number of targets, flags passed through).
+    Step functions draw and propagate through it, one code path whatever the number of
+    targets.
+
+    Attributes
+    ----------
+    motion : MotionModel; existence : BirthDeath or None.
+    """
+
+    motion: MotionModel
+    existence: Optional[BirthDeath] = None
+
+    def draw_noise(self, x: Tensor, z=None, *, generator: torch.Generator) -> tuple[Tensor, Optional[BirthNoise]]:
+        """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise and, with
+        births and deaths, :class:`BirthNoise` (births near the points of ``z`` when the
+        model draws them so)."""
+        if self.existence is None:
+            eps = torch.randn(x.shape[:-1] + (self.motion.noise_dim,), generator=generator, device=x.device,
+                              dtype=x.dtype)
+            return eps, None
+        return self.existence.draw_noise(x, self.motion, z, generator=generator)
+
+    def propagate(self, x: Tensor, exists: Optional[Tensor], eps: Tensor, birth: Optional[BirthNoise]
+                  ) -> tuple[Tensor, Optional[Tensor], Tensor]:
+        """``(x, exists) -> (x', exists', log_ratio (B, *S, K))`` from pre-drawn noise (pure):
+        :meth:`BirthDeath.propagate`, or the motion with the flags unchanged and
+        ``log_ratio = 0``."""
+        if self.existence is None:
+            return self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
+        if exists is None:
+            exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+        return self.existence.propagate(x, exists, eps, birth, motion=self.motion)
