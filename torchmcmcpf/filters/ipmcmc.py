@@ -46,7 +46,7 @@ also carries an existence flag and the per-slot prediction is that of ``(y_j, e_
 ``m_j(y_j, e_j) = sum_i w^i p(y_j, e_j | x^i_j, e^i_j)`` (paper 004 eq. 25 and the birth
 density ``p_0``). The exchange move of slot ``j`` draws a previous particle ``i ~ w`` and
 propagates its slot ``j`` as :meth:`BirthDeath.propose` does (existence chain, then motion,
-a birth or ``x_death``; :func:`torchmcmcpf.kernels.moves.propose_existence`, from pre-drawn
+a birth or ``x_death``; :meth:`BirthDeath.propagate`, from pre-drawn
 noise). With births from ``p_0`` the proposal is ``m_j`` itself and eq. 12 holds unchanged.
 With births drawn near the measurements from ``q_0``, the chains sample the target extended
 by each slot's source ``i_j`` (whose ``i_j``-marginal is the one above):

@@ -15,7 +15,6 @@ from ..models.existence import BirthDeath, BirthNoise
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
-from .moves import propose_existence
 
 __all__ = ["ExchangeNoise", "draw_exchange_noise", "exchange_iteration", "exchange_existence_iteration"]
 
@@ -143,8 +142,8 @@ def exchange_existence_iteration(
     parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), at.unsqueeze(-1), dim=1)  # (B, C, D)
     parent_e = torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1)  # (B, C)
     one = BirthNoise(birth.u.unsqueeze(-1), birth.x.unsqueeze(-2), birth.log_ratio.unsqueeze(-1))
-    moved, e_new, lb_new = propose_existence(parent.unsqueeze(-2), parent_e.unsqueeze(-1), eps.unsqueeze(-2), one,
-                                             motion=motion, existence=existence)  # (B, C, 1, D), (B, C, 1) x2
+    moved, e_new, lb_new = existence.propagate(parent.unsqueeze(-2), parent_e.unsqueeze(-1), eps.unsqueeze(-2), one,
+                                               motion=motion)  # (B, C, 1, D), (B, C, 1) x2
     here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
     proposal = torch.where(here.unsqueeze(-1), moved, y)
     e_prop = torch.where(here, e_new, exists)

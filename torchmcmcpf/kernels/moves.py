@@ -105,7 +105,7 @@ from typing import Callable, Optional
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise
+from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
 from .chains import (  # noqa: F401  (re-exported: the chain state of these moves)
@@ -138,9 +138,7 @@ __all__ = [
     "evaluate",
     "init_chains",
     "propose_joint",
-    "propose_existence",
     "joint_move",
-    "propose_refine",
     "refine_move",
     "refine_slot",
     "log_transition",
@@ -178,35 +176,16 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
     return x, x_prev, torch.zeros_like(noise.u)
 
 
-def propose_existence(x_prev: Tensor, exists_prev: Tensor, eps: Tensor, birth: BirthNoise, *,
-                      motion: MotionModel, existence: BirthDeath) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-slot proposal ``q_n`` of the existence moves (module docstring; paper 001 Alg. 1
-    steps 2-9): the birth/death law :meth:`BirthDeath.propagate` from pre-drawn noise.
-
-    Parameters
-    ----------
-    x_prev : (B, C, K, D) ancestors; exists_prev : (B, C, K) bool their flags.
-    eps : (B, C, K, noise_dim) motion noise; birth : :class:`BirthNoise`.
-
-    Returns
-    -------
-    x : (B, C, K, D); exists : (B, C, K) bool;
-    log_birth : (B, C, K) ``log r_n = log p_0(x_n) - log q_0(x_n)`` of newborn slots, else 0.
-    """
-    return existence.propagate(x_prev, exists_prev, eps, birth, motion=motion)
-
-
 def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
                      sensor: SensorModel, existence: Optional[BirthDeath]) -> ChainState:
-    """The joint-draw proposal as a scored :class:`ChainState`."""
-    if existence is None:
-        x, x_prev, _ = propose_joint(cloud, noise, motion=motion)
-        return ChainState(x, x_prev, *evaluate(x, z, sensor))
+    """The joint-draw proposal as a scored :class:`ChainState`: an ancestor by weight, then
+    ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births)."""
     a = _draw_ancestors(cloud, noise.u_ancestor)
-    x_prev, exists_prev = gather_particles(cloud.x, a), gather_particles(cloud.exists, a)
-    x, exists, log_birth = propose_existence(x_prev, exists_prev, noise.eps, noise.birth, motion=motion,
-                                             existence=existence)
-    return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev, log_birth)
+    x_prev = gather_particles(cloud.x, a)
+    exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
+    x, exists, log_birth = TargetDynamics(motion, existence).propagate(x_prev, exists_prev, noise.eps, noise.birth)
+    return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev,
+                      None if existence is None else log_birth)
 
 
 def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, motion: MotionModel,
@@ -254,36 +233,15 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
 
 
 # -- per-target refinement -------------------------------------------------------------------
-def propose_refine(x_prev: Tensor, eps: Tensor, *, motion: MotionModel) -> tuple[Tensor, Tensor]:
-    """Per-target proposals from the transition given the chain's ancestor (paper 001 Alg. 1
-    step 6; paper 004 Alg. 2 step 7): ``x'_n ~ p(. | x_{prev,n})`` for every slot n at once.
-
-    The proposal of slot n depends on ``x_prev`` only, which the sweep does not change, so
-    all K proposals can be drawn before the sweep.
-
-    Parameters
-    ----------
-    x_prev : (B, C, K, D) the chains' ancestors; eps : (B, C, K, noise_dim) normals.
-
-    Returns
-    -------
-    x : (B, C, K, D), slot n holding the proposal for target n.
-    log_ratio : (B, C, K) zeros: the proposal is the transition factor of ``pi``'s conditional
-        for slot n, which cancels (paper 004 eq. 66).
-    """
-    x = motion.propagate(x_prev, eps)
-    return x, torch.zeros_like(x[..., 0])
-
-
 def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion: MotionModel,
                 sensor: SensorModel, existence: Optional[BirthDeath] = None,
                 slot_kernel: Optional[Callable] = None) -> tuple[ChainState, Tensor]:
     """One MH-within-Gibbs sweep over the K targets (paper 004 Alg. 2; paper 001 Alg. 1).
 
-    Vectorised over K for sensors with ``log_likelihood_per_target``; sequential over K
-    (``log_likelihood_delta`` or full re-evaluation) otherwise: see the module docstring.
-    With ``existence`` each slot proposes ``(x'_n, e'_n)`` (:func:`propose_existence`) and the
-    sweep is sequential with full evaluations of ``log p(z | x, e)``.
+    Every slot proposes ``(x'_n, e'_n)`` from its ancestor by :class:`TargetDynamics` (the
+    motion alone without births). Vectorised over K for a separable sensor without flags;
+    otherwise sequential over K through the declared hook ``log_likelihood_slot`` (module
+    docstring).
 
     Parameters
     ----------
@@ -295,19 +253,18 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
     chain : the new ChainState (ancestor unchanged).
     accepted : (B, C, K) bool, one flag per target update.
     """
-    if existence is not None:
-        x_prop, e_prop, birth_prop = propose_existence(chain.x_prev, chain.exists_prev, noise.eps, noise.birth,
-                                                       motion=motion, existence=existence)
-        log_ratio = birth_prop - chain.log_birth  # slot n's log r'_n - log r_n
-        return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, birth_prop, slot_kernel)
-    x_prop, log_ratio = propose_refine(chain.x_prev, noise.eps, motion=motion)
-    if chain.log_lik_terms is not None:
+    # every slot's proposal (x'_n, e'_n) from its ancestor, by TargetDynamics; log_ratio is
+    # slot n's log r'_n - log r_n (zeros without births: the transition cancels, eq. 66)
+    x_prop, e_prop, birth_prop = TargetDynamics(motion, existence).propagate(chain.x_prev, chain.exists_prev,
+                                                                             noise.eps, noise.birth)
+    log_ratio = birth_prop if chain.log_birth is None else birth_prop - chain.log_birth
+    if chain.log_lik_terms is not None:  # separable sensor, no flags: all K slots at once
         terms_prop = sensor.log_likelihood_per_target(x_prop, z)
         accepted = mh_accept(terms_prop - chain.log_lik_terms + log_ratio, noise.u)
         x = mh_select(accepted, x_prop, chain.x)
         terms = torch.where(accepted, terms_prop, chain.log_lik_terms)
         return ChainState(x, chain.x_prev, terms.sum(-1), terms), accepted
-    return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, slot_kernel=slot_kernel)
+    return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, birth_prop, slot_kernel)
 
 
 def refine_slot(x: Tensor, log_lik: Tensor, e: Optional[Tensor], log_birth: Optional[Tensor], x_prop: Tensor,
