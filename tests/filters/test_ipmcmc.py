@@ -85,8 +85,8 @@ def test_exchange_move_targets_factorised_posterior(gen, start):
     noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), iters, c, k, 1, generator=gen, dtype=DT)
     acc = 0.0
     for t in range(iters):
-        y, ll, a = exchange_iteration(y, ll, x_prev, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t],
-                                      motion=motion, sensor=sensor)
+        (y, ll, _, _), a = exchange_iteration((y, ll, None, None), x_prev, None, z, noise.source[t],
+                                              noise.slot[t], noise.eps[t], noise.u[t], motion=motion, sensor=sensor)
         acc += a.double().mean().item() / iters
     assert 0.2 < acc < 0.95  # the chains really move (an always-reject kernel is invariant too)
     torch.testing.assert_close(ll, sensor.log_likelihood(y, z))  # cached log-likelihoods stay exact
@@ -214,8 +214,9 @@ def test_exchange_delta_path_equals_full_reevaluation():
     for name, sens in (("delta", sensor), ("full", _FullLikelihoodOnly(sensor))):
         y, log_lik, accepted = y0, sensor.log_likelihood(y0, z), []
         for t in range(noise.u.shape[0]):
-            y, log_lik, acc = exchange_iteration(y, log_lik, x_prev, z, noise.source[t], noise.slot[t], noise.eps[t],
-                                                 noise.u[t], motion=motion, sensor=sens)
+            (y, log_lik, _, _), acc = exchange_iteration((y, log_lik, None, None), x_prev, None, z, noise.source[t],
+                                                         noise.slot[t], noise.eps[t], noise.u[t], motion=motion,
+                                                         sensor=sens)
             accepted.append(acc)
         runs[name] = y, log_lik, torch.stack(accepted)
     (y_d, ll_d, acc_d), (y_f, ll_f, acc_f) = runs["delta"], runs["full"]
@@ -240,9 +241,9 @@ def test_exchange_iteration_compiles_with_radar_delta():
     compiled = torch.compile(iterate, fullgraph=True, dynamic=False)
     log_lik = sensor.log_likelihood(y, z)
     for t in range(noise.u.shape[0]):
-        args = (y, log_lik, x_prev, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t])
-        y_e, ll_e, acc_e = iterate(*args)
-        y_c, ll_c, acc_c = compiled(*args)
+        args = ((y, log_lik, None, None), x_prev, None, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t])
+        (y_e, ll_e, _, _), acc_e = iterate(*args)
+        (y_c, ll_c, _, _), acc_c = compiled(*args)
         assert torch.equal(acc_e, acc_c) and torch.equal(y_e, y_c)
         torch.testing.assert_close(ll_c, ll_e, rtol=1e-4, atol=1e-3)
         y, log_lik = y_e, ll_e

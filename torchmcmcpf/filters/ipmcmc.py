@@ -93,18 +93,17 @@ from ..diagnostics import RHAT_METHODS, rhat
 from ..kernels.exchange import (
     ExchangeNoise,
     draw_exchange_noise,
-    exchange_existence_iteration,
     exchange_iteration,
 )
 from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, TargetDynamics
 from ..resampling import gather_particles, systematic
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration", "exchange_existence_iteration", "ExchangeNoise",
+__all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration", "ExchangeNoise",
            "draw_exchange_noise"]
 
 
@@ -121,7 +120,7 @@ def _run_chains(chain: tuple, noise: ExchangeNoise, keep: int, step: Callable):
         accepted_count = accepted_count + acc.to(accepted_count.dtype)
         if t >= steps - keep:
             kept.append(chain)
-    return chain, tree_map(lambda *a: torch.stack(a), *kept), accepted_count
+    return chain, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *kept), accepted_count
 
 
 def _max_rhat(history: Tensor, method: str) -> Tensor:
@@ -191,8 +190,8 @@ def ipmcmc_step(
     existence : BirthDeath, optional: births and deaths (module docstring); the starting
         points are predicted by :meth:`BirthDeath.propose` (births near the points of ``z``
         when it draws them so).
-    kernel : the iteration kernel, :func:`exchange_iteration` with the models bound (with
-        ``existence``: :func:`exchange_existence_iteration`); ``IPMCMCFilter(compile_step=True)``
+    kernel : the iteration kernel, :func:`exchange_iteration` with the models bound;
+        ``IPMCMCFilter(compile_step=True)``
         passes a compiled one; default eager.
 
     Returns
@@ -219,20 +218,14 @@ def ipmcmc_step(
     kw = dict(generator=generator, device=x_prev.device)
     # 1. starting points: C previous particles (systematic: one per stratum), predicted
     start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, **kw), num_chains)
-    if existence is None:
-        y = motion.sample(gather_particles(x_prev, start), generator=generator)  # (B, C, K, D)
-        chain = (y, sensor.log_likelihood(y, z))
+    dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly: one path with or without births
+    x0 = gather_particles(x_prev, start)
+    e0 = None if exists is None else gather_particles(exists, start)
+    y, e, log_birth = dynamics.propagate(x0, e0, *dynamics.draw_noise(x0, z, generator=generator))  # (B, C, K, D)
+    chain = (y, sensor.log_likelihood(y, z, e), e, None if existence is None else log_birth)
 
-        def step(ch, nz):
-            y, ll, acc = iterate(*ch, x_prev, z, nz.source, nz.slot, nz.eps, nz.u)
-            return (y, ll), acc
-    else:
-        y, e, log_birth = existence.propose(gather_particles(x_prev, start), gather_particles(exists, start),
-                                            motion=motion, generator=generator, z=z)
-        chain = (y, sensor.log_likelihood(y, z, e), e, log_birth)
-
-        def step(ch, nz):
-            return iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)
+    def step(ch, nz):
+        return iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)
 
     # 2. burn-in + S kept iterations
     births = {} if existence is None else dict(existence=existence, z=z)
@@ -250,7 +243,7 @@ def ipmcmc_step(
             break
         chain_e, hist_e, acc_e = _run_chains(chain, draw(keep), keep, step)
         chain = mh_select(need, chain_e, chain)
-        history = tuple(torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
+        history = tuple(None if h is None else torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
                         for he, h in zip(hist_e, history))
         accepted = accepted + torch.where(need.unsqueeze(-1), acc_e, torch.zeros_like(acc_e))
         iterations = iterations + need.to(iterations.dtype) * keep
@@ -267,13 +260,9 @@ def ipmcmc_step(
 
 
 def _bind(motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath]) -> Callable:
-    """The iteration kernel with the models bound (eager)."""
-    if existence is None:
-        def iterate(*args):
-            return exchange_iteration(*args, motion=motion, sensor=sensor)
-    else:
-        def iterate(*args):
-            return exchange_existence_iteration(*args, motion=motion, sensor=sensor, existence=existence)
+    """:func:`exchange_iteration` with the models bound."""
+    def iterate(*args):
+        return exchange_iteration(*args, motion=motion, sensor=sensor, existence=existence)
     return iterate
 
 

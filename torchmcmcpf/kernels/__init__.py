@@ -7,7 +7,7 @@ Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decide
 ``torch.where``, so chains, targets and runs are tensor dimensions.
 """
 
-from .exchange import ExchangeNoise, draw_exchange_noise, exchange_existence_iteration, exchange_iteration
+from .exchange import ExchangeNoise, draw_exchange_noise, exchange_iteration
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .mh import mh_accept, mh_select
 from .moves import (
@@ -51,7 +51,6 @@ __all__ = [
     "ExchangeNoise",
     "draw_exchange_noise",
     "exchange_iteration",
-    "exchange_existence_iteration",
     "HMCInfo",
     "hmc",
     "hmc_transition",

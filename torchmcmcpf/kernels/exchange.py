@@ -11,12 +11,12 @@ from typing import NamedTuple, Optional
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise
+from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
 
-__all__ = ["ExchangeNoise", "draw_exchange_noise", "exchange_iteration", "exchange_existence_iteration"]
+__all__ = ["ExchangeNoise", "draw_exchange_noise", "exchange_iteration"]
 
 
 class ExchangeNoise(NamedTuple):
@@ -69,88 +69,57 @@ def draw_exchange_noise(
 
 
 def exchange_iteration(
-    y: Tensor, log_lik: Tensor, x_prev: Tensor, z: Measurement,
-    source: Tensor, slot: Tensor, eps: Tensor, u: Tensor,
-    *, motion: MotionModel, sensor: SensorModel,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12).
+    chain: tuple, x_prev: Tensor, exists_prev: Optional[Tensor], z: Measurement,
+    source: Tensor, slot: Tensor, eps: Tensor, u: Tensor, birth: Optional[BirthNoise] = None,
+    *, motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath] = None,
+) -> tuple[tuple, Tensor]:
+    """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12), with or
+    without births and deaths (one code path: the slot is propagated by
+    :class:`~torchmcmcpf.models.existence.TargetDynamics`).
 
-    Chain ``c`` of run ``b`` replaces slot ``j = slot[b, c]`` by
-    ``motion.propagate(x_prev[b, source[b, c], j], eps[b, c])`` and accepts with
-    ``log u < log p(z | y') - log p(z | y)``. Exact MH for the factorised-prior posterior
-    described in the module docstring. Pure and branch-free (``torch.compile`` friendly).
-
-    The proposal is scored by the declared hook :meth:`SensorModel.log_likelihood_slot`: a
-    sensor that overrides ``log_likelihood_delta`` (e.g.
-    :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives the ratio from the
-    cells near the old and new position of the slot only, carried as ``log_lik + delta``;
+    Chain ``c`` of run ``b`` replaces slot ``j = slot[b, c]`` by slot ``j`` of previous
+    particle ``source[b, c]`` propagated (motion; with ``existence`` the existence chain, a
+    birth or ``x_death``) and accepts with ``log u < log p(z | y') - log p(z | y)`` (plus
+    ``log r'_j - log r_j`` for births from ``q_0``, see :mod:`torchmcmcpf.filters.ipmcmc`).
+    Exact MH for the factorised-prior posterior. Pure and branch-free (``torch.compile``
+    friendly). The proposal is scored by the declared hook
+    :meth:`SensorModel.log_likelihood_slot`: a sensor that overrides ``log_likelihood_delta``
+    (e.g. :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives the ratio from
+    the cells near the old and new position of the slot only, carried as ``log_lik + delta``;
     any other sensor scores the whole proposal with ``log_likelihood``.
 
     Parameters
     ----------
-    y : (B, C, K, D) chain states; log_lik : (B, C) their ``log p(z | y)``.
-    x_prev : (B, N, K, D) previous particles.
-    z : the frame ``(B, *G)`` (or a measurement tuple the sensor understands).
-    source : (B, C) int64 in [0, N); slot : (B, C) int64 in [0, K).
-    eps : (B, C, noise_dim) standard normals; u : (B, C) uniforms in [0, 1).
-    motion, sensor : the models.
-
-    Returns
-    -------
-    y : (B, C, K, D), log_lik : (B, C), accepted : (B, C) bool.
-    """
-    b, n, k, d = x_prev.shape
-    flat = x_prev.reshape(b, n * k, d)
-    parent = torch.take_along_dim(flat, (source * k + slot).unsqueeze(-1), dim=1)  # (B, C, D)
-    moved = motion.propagate(parent.unsqueeze(-2), eps.unsqueeze(-2))  # (B, C, 1, D)
-    here = (torch.arange(k, device=y.device) == slot.unsqueeze(-1)).unsqueeze(-1)  # (B, C, K, 1)
-    proposal = torch.where(here, moved, y)
-    # a grid sensor scores only the cells near the old and new position of the slot
-    log_lik_prop = sensor.log_likelihood_slot(y, moved.squeeze(-2), slot, z, log_lik)
-    log_ratio = log_lik_prop - log_lik
-    accepted = mh_accept(log_ratio, u)
-    y, log_lik = mh_select(accepted, (proposal, log_lik_prop), (y, log_lik))
-    return y, log_lik, accepted
-
-
-def exchange_existence_iteration(
-    chain: tuple[Tensor, Tensor, Tensor, Tensor], x_prev: Tensor, exists_prev: Tensor, z: Measurement,
-    source: Tensor, slot: Tensor, eps: Tensor, u: Tensor, birth: BirthNoise,
-    *, motion: MotionModel, sensor: SensorModel, existence: BirthDeath,
-) -> tuple[tuple[Tensor, Tensor, Tensor, Tensor], Tensor]:
-    """One exchange/mutation MH iteration with births and deaths (module docstring, "Births
-    and deaths"): chain ``c`` of run ``b`` replaces slot ``j = slot[b, c]`` by slot ``j`` of
-    previous particle ``source[b, c]`` propagated through the existence chain, the motion or
-    a birth. Pure and branch-free (``torch.compile`` friendly).
-
-    Parameters
-    ----------
-    chain : ``(y (B, C, K, D), log_lik (B, C), exists (B, C, K) bool, log_birth (B, C, K))``
-        with ``log_lik = log p(z | y, exists)`` and ``log_birth`` the cached ``log r_j``.
-    x_prev : (B, N, K, D), exists_prev : (B, N, K) the previous particles.
-    z : the frame; source, slot : (B, C) int64; eps : (B, C, noise_dim); u : (B, C).
-    birth : :class:`~torchmcmcpf.kernels.moves.BirthNoise` with leading ``(B, C)``.
+    chain : ``(y (B, C, K, D), log_lik (B, C), exists, log_birth)`` with ``log_lik = log p(z
+        | y, exists)``; ``exists (B, C, K)`` bool and ``log_birth (B, C, K)`` (the cached
+        ``log r_j``) with ``existence``, else ``None``.
+    x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
+    z : the frame; source, slot : (B, C) int64; eps : (B, C, noise_dim) standard normals;
+    u : (B, C) uniforms; birth : :class:`BirthNoise` with leading ``(B, C)`` (with existence).
     motion, sensor, existence : the models.
 
     Returns
     -------
-    chain : the new ``(y, log_lik, exists, log_birth)``; accepted : (B, C) bool.
+    chain : the new chain tuple; accepted : (B, C) bool.
     """
     y, log_lik, exists, log_birth = chain
     b, n, k, d = x_prev.shape
     at = source * k + slot  # (B, C)
     parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), at.unsqueeze(-1), dim=1)  # (B, C, D)
-    parent_e = torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1)  # (B, C)
-    one = BirthNoise(birth.u.unsqueeze(-1), birth.x.unsqueeze(-2), birth.log_ratio.unsqueeze(-1))
-    moved, e_new, lb_new = existence.propagate(parent.unsqueeze(-2), parent_e.unsqueeze(-1), eps.unsqueeze(-2), one,
-                                               motion=motion)  # (B, C, 1, D), (B, C, 1) x2
+    parent_e = None if exists_prev is None else torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1)
+    one = None if birth is None else BirthNoise(birth.u.unsqueeze(-1), birth.x.unsqueeze(-2),
+                                                birth.log_ratio.unsqueeze(-1))
+    moved, e_new, lb_new = TargetDynamics(motion, existence).propagate(
+        parent.unsqueeze(-2), None if parent_e is None else parent_e.unsqueeze(-1), eps.unsqueeze(-2), one)
     here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
     proposal = torch.where(here.unsqueeze(-1), moved, y)
-    e_prop = torch.where(here, e_new, exists)
-    lb_prop = torch.where(here, lb_new, log_birth)
     log_lik_prop = sensor.log_likelihood_slot(y, moved.squeeze(-2), slot, z, log_lik, exists=exists,
-                                              exists_n=e_new.squeeze(-1))
-    log_alpha = log_lik_prop - log_lik + (lb_new.squeeze(-1) - torch.where(here, log_birth, 0.0).sum(-1))
+                                              exists_n=None if e_new is None else e_new.squeeze(-1))
+    log_alpha = log_lik_prop - log_lik
+    if existence is None:
+        new = (proposal, log_lik_prop, None, None)
+    else:
+        new = (proposal, log_lik_prop, torch.where(here, e_new, exists), torch.where(here, lb_new, log_birth))
+        log_alpha = log_alpha + (lb_new.squeeze(-1) - torch.where(here, log_birth, 0.0).sum(-1))
     accepted = mh_accept(log_alpha, u)
-    new = mh_select(accepted, (proposal, log_lik_prop, e_prop, lb_prop), chain)
-    return new, accepted
+    return mh_select(accepted, new, chain), accepted
