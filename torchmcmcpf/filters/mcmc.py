@@ -377,8 +377,8 @@ class MCMCFilter(Filter):
         method speeds up the per-target refinement (:mod:`torchmcmcpf.kernels.moves`).
     num_particles : N >= 1, a multiple of ``num_chains``.
     num_chains : C >= 1 chains per run, run in parallel; each keeps N / C samples.
-    compile_step : compile one MCMC iteration (:func:`mcmc_iteration`, every move of the
-        mixture) with ``torch.compile(fullgraph=True)``.
+    compile_step : compile each move of one MCMC iteration (the refinement as one slot
+        update) with ``torch.compile(fullgraph=True)`` (see ``_bind``).
     burn_in : iterations discarded per chain and time step, >= 0.
     thinning : keep every ``thinning``-th state after the burn-in, >= 1.
     moves : ``"mixture"`` (default: joint draw w.p. 0.75, else a per-target refinement
