@@ -190,7 +190,7 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
     module = found[known.name]
     parser = argparse.ArgumentParser(prog=f"python -m torchmcmcpf reproduce {known.name}",
                                      description=module.DESCRIPTION)
-    add_common_arguments(parser, name=known.name, shards=hasattr(module, "run_shard"))
+    add_common_arguments(parser, name=known.name, shards=hasattr(module, "run_shard"), study=module)
     if hasattr(module, "add_arguments"):
         module.add_arguments(parser.add_argument_group(f"options of {known.name}"))
     args = parser.parse_args(rest + (["--help"] if known.help else []))

@@ -159,10 +159,11 @@ def np_label(name: str, num_particles: int) -> str:
 
 
 def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: bool = True,
-                         shards: bool = True) -> argparse.ArgumentParser:
+                         shards: bool = True, study=None) -> argparse.ArgumentParser:
     """Add the options every experiment shares (see the module docstring); ``quick=False``
     leaves out ``--quick`` (for commands without a small version, like ``demo``),
-    ``shards=False`` the shard and Ray options."""
+    ``shards=False`` the shard and Ray options; ``study`` (a module with ``FULL`` and
+    ``QUICK`` settings) puts its default shard size in the help."""
     group = parser.add_argument_group("options common to all studies")
     if quick:
         group.add_argument("--quick", action="store_true", help="small version (seconds on a CPU)")
@@ -172,14 +173,18 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: b
                        help="cpu (default), cuda, cuda:N or auto")
     group.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     group.add_argument("--threads", type=positive_int, default=None,
-                       help="torch intra-op threads per process (default: torch's choice; 1 in Ray workers)")
+                       help="torch intra-op threads of every shard, here or in a Ray worker (default: this "
+                            "process's torch threads, so both compute alike; with --workers on one machine "
+                            "use cores / workers)")
     group.add_argument("--no-progress", dest="progress", action="store_false",
                        help="hide the progress bars")
     if shards:
         group.add_argument("--shard-size", type=positive_int, default=None,
                            help="Monte Carlo runs per shard; each shard has its own random stream "
                                 "from (seed, shard index), so results depend on it, never on --workers "
-                                "(default: the study's, see metrics.json)")
+                                + ("(default: the study's, see metrics.json)"
+                                   if study is None or "shard_size" not in getattr(study, "FULL", {}) else
+                                   defaults_help(study.FULL, study.QUICK, "shard_size", "")[1:]))
         group.add_argument("--workers", type=positive_int, default=None,
                            help="run the shards on Ray with this many in flight (a local cluster "
                                 "started for the command unless --ray-address); without it Ray is "
@@ -475,7 +480,7 @@ def _package_root() -> str:
     return str(Path(__file__).resolve().parents[2])
 
 
-def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device, on_done) -> None:
+def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device, threads: int, on_done) -> None:
     """Run the shards ``todo`` [(index, runs, key)] as Ray tasks, at most ``args.workers``
     in flight; ``on_done(index, runs, key, result)`` as each finishes. The first failure
     cancels the rest and raises :class:`ShardError` naming the shard."""
@@ -496,7 +501,6 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
     try:
         gpus = float(getattr(args, "gpus_per_shard", 1.0)) if device.type == "cuda" else 0
         task = ray.remote(_compute_shard).options(num_cpus=1, num_gpus=gpus, max_retries=0)
-        threads = getattr(args, "threads", None)
         queue, running = list(todo), {}
         while queue or running:
             while queue and len(running) < args.workers:
@@ -552,14 +556,15 @@ def run_shards(module, cfg: dict, args: argparse.Namespace) -> Shards:
         bar.update(1)
 
     workers = getattr(args, "workers", None)
+    threads = getattr(args, "threads", None) or torch.get_num_threads()
     try:
         if workers:
-            _run_on_ray(todo, module.__name__, name, cfg, args, device, on_done)
+            _run_on_ray(todo, module.__name__, name, cfg, args, device, threads, on_done)
         else:
             for index, runs, key in todo:
                 try:
                     result = _compute_shard(module.__name__, cfg, seed, index, runs.start, runs.stop, str(device),
-                                            getattr(args, "threads", None))
+                                            threads)
                 except Exception as err:
                     raise _shard_failed(name, index, runs, err) from err
                 on_done(index, runs, key, result)
