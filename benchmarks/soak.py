@@ -145,9 +145,10 @@ def soak(variant: str, args) -> dict:
         print(f"{done:>9} {row[error_key]:>10.2f} {other:>10.3f} {bad:>10} {row['seconds_per_step']:>8.3f} "
               f"{rss:>9.0f} {peak:>9.0f}", flush=True)
     later = [r[error_key] for r in rows[1:]] or [rows[0][error_key]]
+    mean_later = sum(later) / len(later)
     verdict = {
         "non_finite_total": sum(r["non_finite"] for r in rows),
-        "error_last_over_mean_after_first_chunk": rows[-1][error_key] / (sum(later) / len(later)),
+        "error_last_over_mean_after_first_chunk": rows[-1][error_key] / mean_later if mean_later > 0 else None,
         "rss_growth_mib_after_first_chunk": rows[-1]["rss_mib"] - rows[0]["rss_mib"],
         "peak_rss_mib": rows[-1]["peak_rss_mib"],
     }

@@ -176,14 +176,17 @@ def study_figures(tmp_path_factory):
         mp.setattr(module, "save_figure", capture)
         args = argparse.Namespace(name=name, quick=True, out=tmp_path_factory.mktemp(name), device=torch.device("cpu"),
                                   seed=0, progress=False, **extra)
-        module.run(args)
+        figures[(name, "summary")] = module.summary(module.run(args))
     mp.undo()
     return figures
 
 
 def test_study_figures_are_labelled(study_figures):
-    assert len(study_figures) == 3 + 2 + 6 + 3
-    for (study, filename), fig in study_figures.items():
+    summaries = {k: v for k, v in study_figures.items() if k[1] == "summary"}
+    assert len(summaries) == 4 and all(v.count("|") > 8 for v in summaries.values())  # headline tables
+    figures = {k: v for k, v in study_figures.items() if k[1] != "summary"}
+    assert len(figures) == 3 + 2 + 6 + 3
+    for (study, filename), fig in figures.items():
         where = f"{study}/{filename}"
         assert fig["quick"], where  # quick-mode figures are stamped (test_save_figure_stamps_quick_mode)
         for ax in fig["axes"]:
