@@ -138,8 +138,8 @@ def run(args: argparse.Namespace) -> dict:
                                      device=device)
             n_rm, n_gen = PAPER[obs]["particles"]
             filters = {
-                "improved": ResampleMoveFilter(motion, sensor, n_rm, num_hmc_steps=cfg["hmc_steps"]),
-                "generic": ResampleMoveFilter(motion, sensor, n_gen, num_hmc_steps=0),
+                "improved": ResampleMoveFilter(motion, sensor, num_particles=n_rm, num_hmc_steps=cfg["hmc_steps"]),
+                "generic": ResampleMoveFilter(motion, sensor, num_particles=n_gen, num_hmc_steps=0),
             }
             results, times = {}, {}
             for name, filt in filters.items():
@@ -150,7 +150,7 @@ def run(args: argparse.Namespace) -> dict:
                 results[name]["track_mean"] = res.mean[:, 0]
             ratio = times["improved"] / times["generic"]
             n_eq = min(int(n_gen * ratio), cfg["max_equal_time_particles"])
-            filt = ResampleMoveFilter(motion, sensor, n_eq, num_hmc_steps=0)
+            filt = ResampleMoveFilter(motion, sensor, num_particles=n_eq, num_hmc_steps=0)
             with StepTimer(device, cfg["steps"]) as timer:
                 res = scenario.track(filt, data, generator=g, progress=args.progress)
             results["generic_equal_time"] = _summary(res, data, n_eq, timer.seconds)
