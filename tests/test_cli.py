@@ -256,6 +256,10 @@ def test_ray_failing_shard_names_the_shard(ray_cluster, tmp_path):
     args = _toy_args(tmp_path, workers=2)
     with pytest.raises(ShardError, match=r"shard 1 \(runs 2\.\.3\) failed: FloatingPointError"):
         run_shards(toy, {"runs": 6, "shard_size": 2, "fail_run": 3}, args)
+    # shards that could never be placed (a GPU each, none in the cluster) fail at once, no hang
+    with pytest.raises(ShardError, match="GPUs"):
+        run_shards(toy, {"runs": 2, "shard_size": 1}, _toy_args(tmp_path / "gpu", workers=2,
+                                                                device=torch.device("cuda")))
     here = run_shards(toy, {"runs": 6, "shard_size": 2}, _toy_args(tmp_path / "here"))
     there = run_shards(toy, {"runs": 6, "shard_size": 2}, _toy_args(tmp_path / "there", workers=2))
     assert torch.equal(here.per_run["draws"], there.per_run["draws"])

@@ -500,6 +500,10 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
         started = True
     try:
         gpus = float(getattr(args, "gpus_per_shard", 1.0)) if device.type == "cuda" else 0
+        have = ray.cluster_resources()
+        if have.get("CPU", 0) < 1 or have.get("GPU", 0) < gpus:  # a task that can never be placed waits forever
+            raise ShardError(f"{name}: the Ray cluster has {have.get('CPU', 0):g} CPUs and {have.get('GPU', 0):g} "
+                             f"GPUs; each shard needs 1 CPU and {gpus:g} GPUs (--gpus-per-shard)")
         task = ray.remote(_compute_shard).options(num_cpus=1, num_gpus=gpus, max_retries=0)
         queue, running = list(todo), {}
         while queue or running:
