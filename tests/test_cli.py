@@ -61,6 +61,8 @@ def test_demo_rejects_particles_not_divisible_by_chains(capsys):
     _one_line_error(capsys, ["demo", "--particles", "100", "--chains", "30"], "--particles", "--chains 30")
     _one_line_error(capsys, ["demo", "--particles", "50"], "--particles", "--chains 50", "at least 2")
     _one_line_error(capsys, ["demo", "--chains", "0"], "--chains")
+    _one_line_error(capsys, ["demo", "--burn-in", "-1"], "--burn-in")
+    _one_line_error(capsys, ["reproduce", "bocquel-table2", "--particles", "45"], "--particles", "chains")
 
 
 def test_out_errors_and_replacement_note(tmp_path, capsys):
@@ -139,7 +141,7 @@ def test_study_help_states_the_settings_that_run(name, capsys):
         main(["reproduce", name, "--help"])
     assert exc.value.code == 0
     text = " ".join(capsys.readouterr().out.split())  # undo argparse's line wrapping
-    assert "--workers" in text if hasattr(module, "run_shard") else "--workers" not in text
+    assert ("--shard-size" in text) == hasattr(module, "run_shard")
     checked = 0
     for key in module.QUICK:
         option = "--" + key.replace("_", "-")

@@ -22,6 +22,7 @@ from .experiments._common import (
     StepTimer,
     add_common_arguments,
     generator,
+    nonnegative_int,
     np_label,
     positive_int,
     prepare_out,
@@ -81,7 +82,7 @@ def _demo_parser(sub) -> None:
     p.add_argument("--chains", type=positive_int, default=DEMO_DEFAULTS["chains"],
                    help="IP-MCMC-PF chains C; --particles must be a multiple of it, with at least 2 "
                         "particles per chain (default: %(default)s)")
-    p.add_argument("--burn-in", type=int, default=DEMO_DEFAULTS["burn_in"],
+    p.add_argument("--burn-in", type=nonnegative_int, default=DEMO_DEFAULTS["burn_in"],
                    help="IP-MCMC-PF burn-in iterations per step (default: %(default)s)")
     add_common_arguments(p, name="demo", quick=False, shards=False)
     p.set_defaults(command=_demo)
@@ -111,7 +112,11 @@ def _demo(args: argparse.Namespace) -> dict:
     from .metrics import position_rmse, track_loss
     from .scenarios import ground_radar
 
+    import torch
+
     out = prepare_out(args.out, DEMO_OUTPUTS)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     g = generator(args.device, args.seed)
     scenario = ground_radar(args.targets, args.steps, args.runs, generator=g, device=args.device)
     filt = _build_filter(args, scenario).to(args.device)
@@ -196,6 +201,11 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
     args = parser.parse_args(rest + (["--help"] if known.help else []))
     if getattr(args, "ray_address", None) and not args.workers:
         parser.error("argument --ray-address: needs --workers N (how many shards run at once)")
+    if hasattr(module, "settings"):  # inconsistent settings: a one-line argument error, not a traceback
+        try:
+            module.settings(args)
+        except ValueError as err:
+            parser.error(str(err))
     args.name = known.name
     args.command_line = command_line
     args.started = started

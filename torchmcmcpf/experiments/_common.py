@@ -82,6 +82,7 @@ import torch
 __all__ = [
     "add_common_arguments",
     "positive_int",
+    "nonnegative_int",
     "device_arg",
     "prepare_out",
     "generator",
@@ -109,6 +110,17 @@ def positive_int(text: str) -> int:
         value = None
     if value is None or value < 1:
         raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
     return value
 
 
