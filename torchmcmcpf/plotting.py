@@ -99,8 +99,13 @@ def plot_tracks(
             out["estimate"].append(line)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    if legend:
-        ax.legend(loc="best", fontsize="small")
+    if legend:  # neutral grey handles: the colours name targets, the line styles the kinds
+        from matplotlib.lines import Line2D
+
+        handles = [Line2D([], [], color="0.3", ls="-", lw=1.5, label=truth_label)]
+        if out["estimate"]:
+            handles.append(Line2D([], [], color="0.3", ls="--", lw=1.2, label=estimate_label))
+        ax.legend(handles=handles, loc="best", fontsize="small")
     return out
 
 
