@@ -434,14 +434,15 @@ def _num_threads(threads: Optional[int]):
 
 
 def _compute_shard(module_name: str, cfg: dict, seed: int, index: int, start: int, stop: int, device: str,
-                   threads: Optional[int]) -> dict:
-    """Run one shard (in this process or in a Ray worker); CPU tensors out."""
+                   threads: Optional[int], progress: bool = False) -> dict:
+    """Run one shard (in this process or in a Ray worker); CPU tensors out. ``progress``:
+    the filters' own bars (only for a lone shard in this process; else one bar over shards)."""
     module = importlib.import_module(module_name)
     device = torch.device(device)
     with _num_threads(threads):
         t0 = time.perf_counter()
         per_run, seconds = module.run_shard(cfg, range(start, stop), generator=shard_generator(device, seed, index),
-                                            device=device, progress=False)
+                                            device=device, progress=progress)
         wall = time.perf_counter() - t0
         used = torch.get_num_threads()
     for key, value in per_run.items():
@@ -573,6 +574,7 @@ def run_shards(module, cfg: dict, args: argparse.Namespace) -> Shards:
 
     workers = getattr(args, "workers", None)
     threads = getattr(args, "threads", None) or torch.get_num_threads()
+    lone = bool(getattr(args, "progress", False)) and len(layout) == 1  # then the filters show progress
     try:
         if workers:
             _run_on_ray(todo, module.__name__, name, cfg, args, device, threads, on_done)
@@ -580,7 +582,7 @@ def run_shards(module, cfg: dict, args: argparse.Namespace) -> Shards:
             for index, runs, key in todo:
                 try:
                     result = _compute_shard(module.__name__, cfg, seed, index, runs.start, runs.stop, str(device),
-                                            threads)
+                                            threads, progress=lone)
                 except Exception as err:
                     raise _shard_failed(name, index, runs, err) from err
                 on_done(index, runs, key, result)

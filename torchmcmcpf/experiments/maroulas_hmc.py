@@ -165,7 +165,8 @@ def run(args: argparse.Namespace) -> dict:
 
 def summary(payload: dict) -> str:
     """Headline table: time-averaged RMSE per target and ESS per observation model and filter."""
-    lines = ["| observation | filter | Np | RMSE per target [m] | ESS [% of Np] | s / step |", "|---|---|---|---|---|---|"]
+    lines = ["| observation | filter | Np | RMSE per target [m] | ESS [% of Np] | s / step |",
+             "|---|---|---|---|---|---|"]
     for obs in scenario.OBSERVATIONS:
         for name, r in payload[obs].items():
             if isinstance(r, dict):
