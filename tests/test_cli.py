@@ -1,21 +1,30 @@
+import argparse
 import json
 import math
+import re
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
+import torch
 
 from torchmcmcpf import experiments
 from torchmcmcpf.__main__ import main
+from torchmcmcpf.experiments import _common
+from torchmcmcpf.experiments._common import ShardError, run_shards
+
+TESTS = Path(__file__).resolve().parent
 
 
 def test_demo_small_writes_metrics_and_figure(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--particles", "64", "--runs", "1", "--steps", "5", "--targets", "2",
-                 "--out", out, "--no-progress"]) == 0
+    assert main(["demo", "--particles", "64", "--chains", "8", "--burn-in", "10", "--runs", "1", "--steps", "5",
+                 "--targets", "2", "--out", out, "--no-progress"]) == 0
     m = json.loads((out / "metrics.json").read_text())
     s = m["settings"]
-    assert (s["particles"], s["runs"], s["steps"], s["targets"], s["seed"]) == (64, 1, 5, 2, 0)
+    assert m["filter"] == "IPMCMCFilter"  # the default is the flagship filter
+    assert (s["particles"], s["runs"], s["steps"], s["targets"], s["seed"], s["chains"]) == (64, 1, 5, 2, 0, 8)
     assert m["device"].startswith("cpu")
     assert len(m["rmse_per_step_m"]) == 5 and len(m["lost_runs"]) == 1
     # overall RMSE^2 is the mean of the per-step RMSE^2 (equal counts per step)
@@ -27,13 +36,48 @@ def test_demo_small_writes_metrics_and_figure(tmp_path, capsys):
     assert "position RMSE" in printed and "track loss rate" in printed
 
 
-def test_demo_runs_ipmcmc(tmp_path, capsys):
+def test_demo_runs_sir_baseline(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--filter", "ipmcmc", "--particles", "40", "--runs", "1", "--steps", "2",
+    assert main(["demo", "--filter", "sir", "--particles", "40", "--runs", "1", "--steps", "2",
                  "--targets", "2", "--out", out, "--no-progress"]) == 0
     m = json.loads((out / "metrics.json").read_text())
-    assert m["filter"] == "IPMCMCFilter" and len(m["rmse_per_step_m"]) == 2
-    assert "IPMCMCFilter" in capsys.readouterr().out
+    assert m["filter"] == "SIRFilter" and len(m["rmse_per_step_m"]) == 2
+    assert "SIRFilter" in capsys.readouterr().out
+
+
+def _one_line_error(capsys, argv, *words):
+    """argv exits with status 2 and a single ``error:`` line holding every word (no traceback)."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if "error:" in line]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+
+
+def test_demo_rejects_particles_not_divisible_by_chains(capsys):
+    _one_line_error(capsys, ["demo", "--particles", "100", "--chains", "30"], "--particles", "--chains 30")
+    _one_line_error(capsys, ["demo", "--particles", "50"], "--particles", "--chains 50", "at least 2")
+    _one_line_error(capsys, ["demo", "--chains", "0"], "--chains")
+    _one_line_error(capsys, ["demo", "--burn-in", "-1"], "--burn-in")
+    _one_line_error(capsys, ["reproduce", "bocquel-table2", "--particles", "45"], "--particles", "chains")
+
+
+def test_out_errors_and_replacement_note(tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    _one_line_error(capsys, ["demo", "--out", afile], "--out", "existing file")
+    _one_line_error(capsys, ["demo", "--out", afile / "sub"], "--out", "is a file")
+    _one_line_error(capsys, ["reproduce", "bocquel-table2", "--out", afile], "--out", "existing file")
+    out = tmp_path / "demo"
+    argv = ["demo", "--filter", "sir", "--particles", "20", "--runs", "1", "--steps", "2", "--targets", "1",
+            "--out", out, "--no-progress"]
+    assert main(argv) == 0
+    assert "replacing" not in capsys.readouterr().out
+    assert main(argv) == 0
+    assert "replacing metrics.json, tracks.png" in capsys.readouterr().out
 
 
 def test_bad_arguments_name_the_argument(capsys):
@@ -79,6 +123,36 @@ def fake_experiment(tmp_path, monkeypatch):
     sys.modules.pop("torchmcmcpf.experiments.fake_study", None)
 
 
+def test_reproduce_help_lists_the_common_options(capsys):
+    assert main(["reproduce", "--help"]) == 0
+    text = capsys.readouterr().out
+    for option in ("--list", "--quick", "--out", "--device", "--seed", "--threads", "--no-progress",
+                   "--shard-size", "--workers", "--ray-address"):
+        assert option in text, option
+    for name in experiments.discover():
+        assert name in text
+
+
+@pytest.mark.parametrize("name", ["bocquel-table2", "ling-rmse-vs-snr", "maroulas-hmc", "septier-birth-death"])
+def test_study_help_states_the_settings_that_run(name, capsys):
+    """Every ``(default X, quick Y)`` in a study's --help is read from its FULL and QUICK."""
+    module = experiments.discover()[name]
+    with pytest.raises(SystemExit) as exc:
+        main(["reproduce", name, "--help"])
+    assert exc.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # undo argparse's line wrapping
+    assert ("--shard-size" in text) == hasattr(module, "run_shard")
+    checked = 0
+    for key in module.QUICK:
+        option = "--" + key.replace("_", "-")
+        if option in text:
+            expected = _common.defaults_help(module.FULL, module.QUICK, key, "")
+            assert expected.strip() in text, (option, expected)
+            checked += 1
+    assert checked >= 3
+    assert re.search(r"quick \d", text)
+
+
 def test_reproduce_list_and_run(fake_experiment, tmp_path, capsys):
     assert main(["reproduce", "--list"]) == 0
     listed = capsys.readouterr().out
@@ -89,8 +163,138 @@ def test_reproduce_list_and_run(fake_experiment, tmp_path, capsys):
     m = json.loads((out / "metrics.json").read_text())
     assert (m["quick"], m["level"], m["seed"], m["device_type"], m["progress"]) == (True, 3, 5, "cpu", False)
     assert m["settings"]["name"] == "fake-study" and m["device"].startswith("cpu")
+    p = m["provenance"]  # what traces the file to the run that made it
+    assert p["command"].endswith("reproduce fake-study --quick --out " + str(out) + " --seed 5 --level 3 --no-progress")
+    assert p["seed"] == 5 and p["threads"] >= 1 and p["wall_seconds"] > 0 and p["device"].startswith("cpu")
+    assert p["versions"]["torch"] == torch.__version__ and p["versions"]["torchmcmcpf"]
+    assert "fake-study" in capsys.readouterr().out
 
 
 def test_bench_points_to_pytest_benchmark(capsys):
     assert main(["bench"]) == 0
     assert "pytest benchmarks/ --benchmark-only" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------ shards and Ray
+
+
+def _toy_args(tmp_path, **kw):
+    base = dict(seed=3, out=tmp_path, device=torch.device("cpu"), progress=False, shard_size=None, workers=None,
+                ray_address=None, threads=None)
+    return argparse.Namespace(**{**base, **kw})
+
+
+def test_shard_streams_depend_on_shard_size_not_grouping(tmp_path):
+    import _shard_study as toy
+
+    a = run_shards(toy, {"runs": 5, "shard_size": 2}, _toy_args(tmp_path / "a"))
+    assert a.layout["num_shards"] == 3 and a.layout["shard_size"] == 2
+    assert torch.equal(a.per_run["run"], torch.arange(5)) and a.per_run["draws"].shape == (5, 3)
+    assert a.seconds == {"toy": 1.5}
+    # shard i draws from the generator of (seed, i), whatever ran before it
+    first = torch.rand(2, 3, generator=_common.shard_generator("cpu", 3, 1))
+    assert torch.equal(a.per_run["draws"][2:4], first)
+    b = run_shards(toy, {"runs": 5, "shard_size": 1}, _toy_args(tmp_path / "b"))
+    assert not torch.equal(a.per_run["draws"], b.per_run["draws"])  # a different layout is a different study
+    assert len(list((tmp_path / "a" / "shards").glob("shard-*.pt"))) == 3
+
+
+def test_interrupted_study_resumes_from_its_shards(tmp_path):
+    import _shard_study as toy
+
+    with pytest.raises(ShardError, match=r"shard-toy: shard 2 \(runs 4\.\.4\) failed: FloatingPointError: run 4"):
+        run_shards(toy, {"runs": 5, "shard_size": 2, "fail_run": 4}, _toy_args(tmp_path))
+    # the two shards written before the failure are stored, but under other settings: rerun
+    args = _toy_args(tmp_path)
+    full = run_shards(toy, {"runs": 5, "shard_size": 2}, args)
+    assert full.layout["resumed"] == 0
+    again = run_shards(toy, {"runs": 5, "shard_size": 2}, args)
+    assert again.layout["resumed"] == 3 and torch.equal(again.per_run["draws"], full.per_run["draws"])
+    other_seed = run_shards(toy, {"runs": 5, "shard_size": 2}, _toy_args(tmp_path, seed=4))
+    assert other_seed.layout["resumed"] == 0
+
+
+@pytest.fixture(scope="module")
+def ray_cluster():
+    """One local Ray cluster of 2 CPUs for the tests below (no dashboard); run_shards joins
+    it instead of starting its own. Workers import the package and tests/_shard_study.py."""
+    ray = pytest.importorskip("ray")
+    root = str(TESTS.parent)
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": f"{root}:{TESTS}", "OMP_NUM_THREADS": "1"}})
+    yield ray
+    ray.shutdown()
+
+
+def _strip_timings(obj):
+    """metrics.json without what legitimately differs between two runs of one study: the
+    provenance, the settings (--out, --workers) and every time in seconds."""
+    if isinstance(obj, dict):
+        return {k: _strip_timings(v) for k, v in obj.items()
+                if k not in ("provenance", "settings") and "seconds" not in k}
+    if isinstance(obj, list):
+        return [_strip_timings(v) for v in obj]
+    return obj
+
+
+def test_ray_workers_write_the_same_metrics(ray_cluster, tmp_path, capsys):
+    """Done-when of issue 14: reproduce bocquel-table2 --quick with and without --workers 2."""
+    common = ["reproduce", "bocquel-table2", "--quick", "--no-progress", "--steps", "2"]
+    assert main([*common, "--out", tmp_path / "here"]) == 0
+    assert main([*common, "--out", tmp_path / "ray", "--workers", "2"]) == 0
+    printed = capsys.readouterr().out
+    assert "| IP-MCMC-PF |" in printed and "paper RMSE" in printed  # the headline table
+    here = json.loads((tmp_path / "here" / "metrics.json").read_text())
+    ray_ = json.loads((tmp_path / "ray" / "metrics.json").read_text())
+    assert _strip_timings(here) == _strip_timings(ray_)
+    layout = ray_["provenance"]["shards"]
+    assert (layout["num_shards"], layout["shard_size"], layout["workers"]) == (2, 1, 2)
+    assert here["provenance"]["shards"]["workers"] is None and ray_["provenance"]["versions"]["ray"]
+
+
+def test_ray_failing_shard_names_the_shard(ray_cluster, tmp_path):
+    import _shard_study as toy
+
+    args = _toy_args(tmp_path, workers=2)
+    with pytest.raises(ShardError, match=r"shard 1 \(runs 2\.\.3\) failed: FloatingPointError"):
+        run_shards(toy, {"runs": 6, "shard_size": 2, "fail_run": 3}, args)
+    # shards that could never be placed (a GPU each, none in the cluster) fail at once, no hang
+    with pytest.raises(ShardError, match="GPUs"):
+        run_shards(toy, {"runs": 2, "shard_size": 1}, _toy_args(tmp_path / "gpu", workers=2,
+                                                                device=torch.device("cuda")))
+    here = run_shards(toy, {"runs": 6, "shard_size": 2}, _toy_args(tmp_path / "here"))
+    there = run_shards(toy, {"runs": 6, "shard_size": 2}, _toy_args(tmp_path / "there", workers=2))
+    assert torch.equal(here.per_run["draws"], there.per_run["draws"])
+
+
+def test_without_workers_ray_is_not_imported(tmp_path):
+    """A fresh interpreter: a study without --workers never imports Ray."""
+    import subprocess
+
+    code = ("import sys; from torchmcmcpf.__main__ import main; "
+            f"main(['reproduce', 'bocquel-table2', '--quick', '--runs', '1', '--steps', '1', '--no-progress', "
+            f"'--out', {str(tmp_path)!r}]); print('ray' in sys.modules)")
+    done = subprocess.run([sys.executable, "-c", code], cwd=TESTS.parent, capture_output=True, text=True,
+                          timeout=300, env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "False"
+
+
+def test_soak_script_runs_at_a_tiny_size(tmp_path):
+    """benchmarks/soak.py stays runnable (its real sizes take hours; see benchmarks/README.md)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("soak", TESTS.parent / "benchmarks" / "soak.py")
+    soak = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(soak)
+    out = tmp_path / "soak.json"
+    assert soak.main(["--runs", "1", "--steps", "4", "--particles", "20", "--chains", "10", "--burn-in", "2",
+                      "--targets", "2", "--every", "2", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    for variant in ("fixed", "birth-death"):
+        rows = report["variants"][variant]["rows"]
+        assert [r["steps"] for r in rows] == [2, 4]
+        assert all(r["non_finite"] == 0 and r["rss_mib"] > 0 and r["peak_rss_mib"] >= r["rss_mib"] for r in rows)
+    assert report["provenance"]["command"].startswith("python benchmarks/soak.py")
+    current, peak = soak.rss_mib()
+    assert 0 < current <= peak

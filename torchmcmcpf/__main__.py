@@ -1,52 +1,72 @@
 """Command line: ``python -m torchmcmcpf {demo, reproduce, bench}``.
 
 - ``demo``: the 10-target ground-radar scenario of Bocquel et al. (2012) filtered by the
-  multitarget SIR TBD particle filter (``--filter ipmcmc``: the IP-MCMC-PF); prints the position RMSE and the track loss rate
-  and writes ``metrics.json`` and ``tracks.png``.
+  IP-MCMC-PF (``--filter sir``: the multitarget SIR baseline, which loses the targets);
+  prints the position RMSE and the track loss rate and writes ``metrics.json`` and
+  ``tracks.png``.
 - ``reproduce NAME``: run one of the studies in :mod:`torchmcmcpf.experiments`
-  (``reproduce --list`` lists them).
+  (``reproduce --list`` lists them, ``reproduce --help`` the common options) and print
+  its headline table; ``--workers N`` runs its shards of runs on Ray.
 - ``bench``: how to run the benchmarks.
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
+import time
 from typing import Optional, Sequence
 
 from .experiments._common import (
     StepTimer,
     add_common_arguments,
     generator,
+    nonnegative_int,
+    np_label,
     positive_int,
     prepare_out,
     save_figure,
     write_metrics,
 )
 
-DEMO_DEFAULTS = dict(particles=1000, runs=2, steps=20, targets=10)
+DEMO_DEFAULTS = dict(particles=1000, runs=2, steps=20, targets=10, chains=50, burn_in=100)
+DEMO_OUTPUTS = ("metrics.json", "tracks.png")
+FILTER_NAMES = {"ipmcmc": "IP-MCMC-PF", "sir": "SIR PF"}
 
 
-def _build_filter(name: str, scenario, num_particles: int):
-    """The demo's filters: the SIR baseline, or IP-MCMC-PF with paper 000's 50 chains and
-    burn-in 100 (N/2 chains when N < 100: R-hat needs two kept samples per chain)."""
+def _build_filter(args: argparse.Namespace, scenario):
+    """The demo's filters: IP-MCMC-PF with paper 000's 50 chains and burn-in 100 (by
+    default), or the SIR baseline."""
     from .filters import IPMCMCFilter, SIRFilter
 
-    if name == "sir":
-        return SIRFilter(scenario.motion, scenario.sensor, num_particles)
-    return IPMCMCFilter(scenario.motion, scenario.sensor, num_particles,
-                        num_chains=min(50, max(1, num_particles // 2)), burn_in=100)
+    if args.filter == "sir":
+        return SIRFilter(scenario.motion, scenario.sensor, num_particles=args.particles)
+    return IPMCMCFilter(scenario.motion, scenario.sensor, num_particles=args.particles,
+                        num_chains=args.chains, burn_in=args.burn_in)
+
+
+def _check_demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Errors argparse cannot see option by option (one line each, exit status 2)."""
+    if args.filter == "ipmcmc":
+        if args.particles % args.chains:
+            parser.error(f"argument --particles: {args.particles} particles do not divide into "
+                         f"--chains {args.chains}; use a multiple of {args.chains}")
+        if args.particles // args.chains < 2:
+            parser.error(f"argument --particles: {args.particles} particles in --chains {args.chains} leave "
+                         f"{args.particles // args.chains} per chain; R-hat needs at least 2")
 
 
 def _demo_parser(sub) -> None:
     p = sub.add_parser(
         "demo",
-        help="SIR particle filter on the 10-target ground-radar scenario",
+        help="IP-MCMC-PF on the 10-target ground-radar scenario (--filter sir: the SIR baseline)",
         description=(
             "Filter the ground-radar TBD scenario of Bocquel, Driessen and Bagchi (2012, Table I) "
-            "with the multitarget SIR particle filter, print the position RMSE (labels matched) "
-            "and the track loss rate, and write metrics.json and tracks.png. The defaults "
-            "(1000 particles, 2 runs, 20 steps, 10 targets) take well under a minute on 2 CPU cores."
+            "with the IP-MCMC-PF (or, --filter sir, the multitarget SIR particle filter, which "
+            "loses these targets), print the position RMSE (labels matched) and the track loss "
+            "rate, and write metrics.json and tracks.png. Defaults: 1000 particles in 50 chains, "
+            "burn-in 100, 2 runs, 20 steps, 10 targets."
         ),
     )
     p.add_argument("--particles", type=positive_int, default=DEMO_DEFAULTS["particles"],
@@ -57,27 +77,49 @@ def _demo_parser(sub) -> None:
                    help="time steps T (default: %(default)s)")
     p.add_argument("--targets", type=positive_int, default=DEMO_DEFAULTS["targets"],
                    help="targets K (default: %(default)s)")
-    p.add_argument("--filter", choices=("sir", "ipmcmc"), default="sir",
-                   help="sir: multitarget SIR PF (default); ipmcmc: IP-MCMC-PF, 50 chains, "
-                        "burn-in 100 (N must be a multiple of the chains)")
-    add_common_arguments(p, name="demo", quick=False)
+    p.add_argument("--filter", choices=("ipmcmc", "sir"), default="ipmcmc",
+                   help="ipmcmc: IP-MCMC-PF (default); sir: multitarget SIR PF, the baseline")
+    p.add_argument("--chains", type=positive_int, default=DEMO_DEFAULTS["chains"],
+                   help="IP-MCMC-PF chains C; --particles must be a multiple of it, with at least 2 "
+                        "particles per chain (default: %(default)s)")
+    p.add_argument("--burn-in", type=nonnegative_int, default=DEMO_DEFAULTS["burn_in"],
+                   help="IP-MCMC-PF burn-in iterations per step (default: %(default)s)")
+    add_common_arguments(p, name="demo", quick=False, shards=False)
     p.set_defaults(command=_demo)
+
+
+def demo_figure(scenario, result, rmse, args: argparse.Namespace):
+    """The demo's figure: run 0's true and estimated tracks, and the RMSE over time."""
+    import matplotlib.pyplot as plt
+
+    from .plotting import plot_rmse, plot_tracks
+
+    label = np_label(FILTER_NAMES[args.filter], args.particles)
+    fig, (ax_tracks, ax_rmse) = plt.subplots(1, 2, figsize=(12, 4.8), layout="constrained")
+    plot_tracks(ax_tracks, scenario.truth, result.mean, run=0, estimate_label=label)
+    ax_tracks.set_title("run 0: true (solid), estimated (dashed)")
+    plot_rmse(ax_rmse, {label: rmse.per_step}, dt=scenario.dt)
+    ax_rmse.set_title(f"position RMSE, {args.runs} run(s), labels matched")
+    fig.suptitle(f"{args.targets} targets, {args.steps} steps, {label}")
+    return fig
 
 
 def _demo(args: argparse.Namespace) -> dict:
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     from .metrics import position_rmse, track_loss
-    from .plotting import plot_rmse, plot_tracks
     from .scenarios import ground_radar
 
-    out = prepare_out(args.out)
+    import torch
+
+    out = prepare_out(args.out, DEMO_OUTPUTS)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     g = generator(args.device, args.seed)
     scenario = ground_radar(args.targets, args.steps, args.runs, generator=g, device=args.device)
-    filt = _build_filter(args.filter, scenario, args.particles).to(args.device)
+    filt = _build_filter(args, scenario).to(args.device)
     init = scenario.initial_particles(args.particles, generator=g)
     with StepTimer(args.device, steps=args.steps) as timer:
         result = filt(scenario.measurements, init=init, generator=g, progress=args.progress)
@@ -96,17 +138,12 @@ def _demo(args: argparse.Namespace) -> dict:
         "seconds_per_step": timer.seconds_per_step,
     }
     path = write_metrics(out, metrics, args=args)
+    save_figure(demo_figure(scenario, result, rmse, args), out, "tracks.png")
 
-    fig, (ax_tracks, ax_rmse) = plt.subplots(1, 2, figsize=(11, 4.5))
-    plot_tracks(ax_tracks, scenario.truth, result.mean, run=0)
-    ax_tracks.set_title(f"run 0: true (solid) and {type(filt).__name__} estimates (dashed), N = {args.particles}")
-    plot_rmse(ax_rmse, rmse.per_step, dt=scenario.dt)
-    ax_rmse.set_title(f"position RMSE over {args.runs} run(s), labels matched")
-    save_figure(fig, out, "tracks.png")
-
+    chains = f" in {args.chains} chains" if args.filter == "ipmcmc" else ""
     print(f"ground radar: K={args.targets} targets, T={args.steps} steps, B={args.runs} runs, "
-          f"N={args.particles} particles, {type(filt).__name__}, grid {'x'.join(map(str, scenario.sensor.frame_shape))}, "
-          f"device {args.device}")
+          f"N={args.particles} particles{chains}, {type(filt).__name__}, "
+          f"grid {'x'.join(map(str, scenario.sensor.frame_shape))}, device {args.device}")
     print(f"position RMSE (labels matched): {float(rmse.overall):.2f} m")
     print(f"track loss rate (max error > 20 m): {float(lost.float().mean()):.0%} "
           f"({int(lost.sum())}/{args.runs} runs)")
@@ -115,15 +152,29 @@ def _demo(args: argparse.Namespace) -> dict:
     return metrics
 
 
-def _reproduce(argv: Sequence[str]) -> dict:
+def _reproduce_help_parser(found: dict) -> argparse.ArgumentParser:
+    """``reproduce --help``: the name, --list and the options common to every study."""
+    width = max((len(n) for n in found), default=0)
+    listing = "\n".join(f"  {n:<{width}}  {m.DESCRIPTION}" for n, m in found.items())
+    parser = argparse.ArgumentParser(
+        prog="python -m torchmcmcpf reproduce",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Run a Monte Carlo study of torchmcmcpf.experiments, write metrics.json and its "
+                    "figures, and print its headline table.",
+        epilog=f"studies:\n{listing}\n\nstudy options: python -m torchmcmcpf reproduce NAME --help",
+    )
+    parser.add_argument("name", nargs="?", help="study NAME (see --list)")
+    parser.add_argument("--list", action="store_true", help="list the studies and exit")
+    add_common_arguments(parser, name="NAME")
+    return parser
+
+
+def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
     from . import experiments
 
-    pre = argparse.ArgumentParser(
-        prog="python -m torchmcmcpf reproduce", add_help=False,
-        description="Run a study of torchmcmcpf.experiments; --list shows them.",
-    )
-    pre.add_argument("name", nargs="?", help="experiment NAME (see --list)")
-    pre.add_argument("--list", action="store_true", help="list the experiments and exit")
+    pre = argparse.ArgumentParser(prog="python -m torchmcmcpf reproduce", add_help=False)
+    pre.add_argument("name", nargs="?")
+    pre.add_argument("--list", action="store_true")
     pre.add_argument("-h", "--help", action="store_true")
     known, rest = pre.parse_known_args(argv)
     found = experiments.discover()
@@ -137,24 +188,39 @@ def _reproduce(argv: Sequence[str]) -> dict:
             pre.error("the experiment NAME is required (listed above)")
         return {}
     if known.name is None:
-        pre.print_help()
+        _reproduce_help_parser(found).print_help()
         return {}
     if known.name not in found:
         pre.error(f"argument name: unknown experiment {known.name!r}; choose from {sorted(found)}")
     module = found[known.name]
     parser = argparse.ArgumentParser(prog=f"python -m torchmcmcpf reproduce {known.name}",
                                      description=module.DESCRIPTION)
-    add_common_arguments(parser, name=known.name)
+    add_common_arguments(parser, name=known.name, shards=hasattr(module, "run_shard"), study=module)
     if hasattr(module, "add_arguments"):
-        module.add_arguments(parser)
+        module.add_arguments(parser.add_argument_group(f"options of {known.name}"))
     args = parser.parse_args(rest + (["--help"] if known.help else []))
+    if getattr(args, "ray_address", None) and not args.workers:
+        parser.error("argument --ray-address: needs --workers N (how many shards run at once)")
+    if hasattr(module, "settings"):  # inconsistent settings: a one-line argument error, not a traceback
+        try:
+            module.settings(args)
+        except ValueError as err:
+            parser.error(str(err))
     args.name = known.name
-    args.out = prepare_out(args.out)
+    args.command_line = command_line
+    args.started = started
+    try:
+        args.out = prepare_out(args.out, getattr(module, "OUTPUTS", ()))
+    except ValueError as err:
+        parser.error(f"argument --{err}")
     result = module.run(args)
-    print(f"{known.name}: wrote {args.out}")
-    for key, value in result.items():
-        if isinstance(value, (int, float, str)):
-            print(f"  {key}: {value}")
+    print(f"\n{known.name}: wrote {args.out}")
+    if hasattr(module, "summary"):
+        print(module.summary(result))
+    else:
+        for key, value in result.items():
+            if isinstance(value, (int, float, str)):
+                print(f"  {key}: {value}")
     return result
 
 
@@ -171,10 +237,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     Returns 0 on success (results are in the output directory's ``metrics.json``);
     argument errors exit with status 2 and a message naming the argument.
     """
+    started = time.perf_counter()
     argv = list(sys.argv[1:] if argv is None else argv)
     argv = [str(a) for a in argv]  # allow Path arguments in-process
+    command_line = shlex.join(["python", "-m", "torchmcmcpf", *argv])
     if argv[:1] == ["reproduce"]:
-        _reproduce(argv[1:])
+        _reproduce(argv[1:], command_line, started)
         return 0
     parser = argparse.ArgumentParser(
         prog="python -m torchmcmcpf",
@@ -185,6 +253,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     sub.add_parser("reproduce", help="run a study of torchmcmcpf.experiments (reproduce --list)")
     sub.add_parser("bench", help="how to run the benchmarks").set_defaults(command=_bench)
     args = parser.parse_args(argv)
+    args.command_line, args.started = command_line, started
+    if args.cmd == "demo":
+        _check_demo(sub.choices["demo"], args)
     args.command(args)
     return 0
 

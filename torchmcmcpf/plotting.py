@@ -50,6 +50,9 @@ def plot_tracks(
     estimate_style: Optional[dict] = None,
     mark_start: bool = True,
     legend: bool = True,
+    truth_label: str = "truth",
+    estimate_label: str = "estimate",
+    match_colors: bool = True,
 ) -> dict:
     """True (and estimated) tracks in the x-y plane (paper 000 figs. 1, 4, 5).
 
@@ -57,23 +60,30 @@ def plot_tracks(
     ----------
     ax : matplotlib Axes.
     truth : (T, K, D) or (T, B, K, D) states; with B, ``run`` picks the run.
-    estimate : same layout, optional; drawn dashed in the colour of its true target.
+    estimate : same layout, optional; drawn dashed in the colour of the true target it
+        follows. NaN entries (e.g. absent targets) break the lines.
     run : Monte Carlo run to draw when a B dim is present.
     truth_style, estimate_style : extra keyword arguments of ``ax.plot``.
     mark_start : put a marker at the first position of each true track.
     legend : add a legend (one entry per kind).
+    truth_label, estimate_label : legend entries (e.g. ``"IP-MCMC-PF, Np = 500"``).
+    match_colors : colour each estimated slot like the true track it stays closest to (the
+        whole-track optimal assignment of the mean distance over the frames where both are
+        defined), so a label swap shows as a colour that follows its target; ``False``
+        colours slot ``j`` like true slot ``j``.
 
     Returns
     -------
-    dict with ``"truth"`` (K lines), ``"estimate"`` (K lines or []), ``"start"`` (markers).
+    dict with ``"truth"`` (K lines), ``"estimate"`` (K lines or []), ``"start"`` (markers)
+    and ``"followed"`` (K ints: the true slot each estimate is coloured after, or []).
     """
     tr = _tracks(truth, run, "truth")
     k = tr.shape[1]
     colors = [f"C{j % 10}" for j in range(k)]
-    out = {"truth": [], "estimate": [], "start": []}
+    out = {"truth": [], "estimate": [], "start": [], "followed": []}
     for j in range(k):  # one artist per target: plotting, not computation
         (line,) = ax.plot(tr[:, j, X], tr[:, j, Y], "-", color=colors[j], lw=1.5,
-                          label="truth" if j == 0 else None, **(truth_style or {}))
+                          label=truth_label if j == 0 else None, **(truth_style or {}))
         out["truth"].append(line)
     if mark_start:
         out["start"] = ax.scatter(tr[0, :, X], tr[0, :, Y], c=colors, marker="o", s=18, zorder=3)
@@ -81,15 +91,36 @@ def plot_tracks(
         est = _tracks(estimate, run, "estimate")
         if est.shape[1] != k:
             raise ValueError(f"estimate has {est.shape[1]} targets, truth has {k}")
+        followed = _followed(tr, est) if match_colors else list(range(k))
+        out["followed"] = followed
         for j in range(k):
-            (line,) = ax.plot(est[:, j, X], est[:, j, Y], "--", color=colors[j], lw=1.2,
-                              label="estimate" if j == 0 else None, **(estimate_style or {}))
+            (line,) = ax.plot(est[:, j, X], est[:, j, Y], "--", color=colors[followed[j]], lw=1.2,
+                              label=estimate_label if j == 0 else None, **(estimate_style or {}))
             out["estimate"].append(line)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    if legend:
-        ax.legend(loc="best", fontsize="small")
+    if legend:  # neutral grey handles: the colours name targets, the line styles the kinds
+        from matplotlib.lines import Line2D
+
+        handles = [Line2D([], [], color="0.3", ls="-", lw=1.5, label=truth_label)]
+        if out["estimate"]:
+            handles.append(Line2D([], [], color="0.3", ls="--", lw=1.2, label=estimate_label))
+        ax.legend(handles=handles, loc="best", fontsize="small")
     return out
+
+
+def _followed(truth: np.ndarray, est: np.ndarray) -> list[int]:
+    """For (T, K, D) truth and estimate: the true slot each estimated slot follows (optimal
+    assignment of the mean x-y distance over the frames where both are finite)."""
+    from .metrics import optimal_assignment
+
+    d = np.linalg.norm(est[:, :, None, [X, Y]] - truth[:, None, :, [X, Y]], axis=-1)  # (T, K est, K true)
+    finite = np.isfinite(d)
+    count = finite.sum(0)
+    mean = np.where(finite, d, 0.0).sum(0) / np.maximum(count, 1)
+    big = (np.nanmax(mean[count > 0]) if (count > 0).any() else 0.0) * 10 + 1.0
+    cost = np.where(count > 0, mean, big)  # never seen together: assign last
+    return optimal_assignment(torch.as_tensor(cost)).tolist()
 
 
 def plot_particles(ax, particles: ArrayLike, *, weights: Optional[ArrayLike] = None, size: float = 2.0,
@@ -120,8 +151,11 @@ def plot_particles(ax, particles: ArrayLike, *, weights: Optional[ArrayLike] = N
             for j in range(p.shape[1])]
 
 
+TIME_LABEL = "time [s]"
+
+
 def plot_rmse(ax, rmse: Union[ArrayLike, Mapping[str, ArrayLike]], *, dt: float = 1.0,
-              ylabel: str = "position RMSE [m]", **kw) -> list:
+              ylabel: str = "position RMSE [m]", xlabel: str = TIME_LABEL, **kw) -> list:
     """RMSE over time (paper 000 figs. 3 and 6).
 
     Parameters
@@ -129,6 +163,7 @@ def plot_rmse(ax, rmse: Union[ArrayLike, Mapping[str, ArrayLike]], *, dt: float 
     ax : matplotlib Axes.
     rmse : (T,) per-step RMSE, or a mapping name -> (T,) (one labelled line each).
     dt : time between steps [s]; the x axis is ``dt * (1..T)``.
+    ylabel, xlabel : axis labels with units (any curve over time: RMSE, ESS, OSPA).
     kw : passed to every ``ax.plot``.
 
     Returns
@@ -143,38 +178,45 @@ def plot_rmse(ax, rmse: Union[ArrayLike, Mapping[str, ArrayLike]], *, dt: float 
             raise ValueError(f"rmse{'' if name is None else f'[{name!r}]'} has shape {v.shape}, expected (T,)")
         (line,) = ax.plot(dt * np.arange(1, v.size + 1), v, label=name, **kw)
         lines.append(line)
-    ax.set_xlabel("time [s]")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     if any(name is not None for name in curves):
         ax.legend(loc="best", fontsize="small")
     return lines
 
 
-def plot_cardinality(ax, true_count: ArrayLike, est_count: ArrayLike, *, dt: float = 1.0,
-                     est_label: str = "estimated") -> list:
+def plot_cardinality(ax, true_count: ArrayLike, est_count: Union[ArrayLike, Mapping[str, ArrayLike]], *,
+                     dt: float = 1.0, est_label: str = "estimated") -> list:
     """True and estimated number of targets over time.
 
     Parameters
     ----------
     ax : matplotlib Axes.
     true_count : (T,) true number of targets.
-    est_count : (T,) estimated number (e.g. the sum of existence probabilities).
+    est_count : (T,) estimated number (e.g. the sum of existence probabilities), or a
+        mapping label -> (T,) (one line per filter).
     dt : time between steps [s].
+    est_label : legend entry of a single ``est_count``.
 
     Returns
     -------
-    [true Line2D (steps), estimated Line2D].
+    [true Line2D (steps), one estimated Line2D per curve].
     """
-    tc, ec = _np(true_count), _np(est_count)
-    if tc.ndim != 1 or ec.shape != tc.shape:
-        raise ValueError(f"true_count and est_count must both be (T,), got {tc.shape} and {ec.shape}")
+    tc = _np(true_count)
+    curves = dict(est_count) if isinstance(est_count, Mapping) else {est_label: est_count}
     t = dt * np.arange(1, tc.size + 1)
+    lines = []
+    for i, (label, values) in enumerate(curves.items()):
+        ec = _np(values)
+        if tc.ndim != 1 or ec.shape != tc.shape:
+            raise ValueError(f"true_count and est_count must both be (T,), got {tc.shape} and {ec.shape}")
+        (line,) = ax.plot(t, ec, "o-", color=f"C{(i + 3) % 10}", ms=3, label=label)
+        lines.append(line)
     (true_line,) = ax.step(t, tc, where="mid", color="k", label="true")
-    (est_line,) = ax.plot(t, ec, "o-", color="C3", ms=3, label=est_label)
-    ax.set_xlabel("time [s]")
+    ax.set_xlabel(TIME_LABEL)
     ax.set_ylabel("number of targets")
     ax.legend(loc="best", fontsize="small")
-    return [true_line, est_line]
+    return [true_line, *lines]
 
 
 def plot_frame(ax, frame: ArrayLike, *, range_bins: Optional[ArrayLike] = None,

@@ -5,9 +5,15 @@ see :mod:`torchmcmcpf.experiments._common` for the contract and the shared helpe
 are found by :func:`discover`, so adding a study means adding a module, nothing else:
 
     python -m torchmcmcpf reproduce --list
+    python -m torchmcmcpf reproduce --help          # the options every study shares
     python -m torchmcmcpf reproduce NAME [--quick] [--out DIR] [--device cpu|cuda] [--seed S]
+    python -m torchmcmcpf reproduce NAME --workers N [--ray-address ADDR] [--shard-size S]
 
-Modules whose name starts with ``_`` are helpers, not experiments.
+A study whose runs are independent also defines ``run_shard`` (its runs in fixed-size
+shards, each with the generator of ``(seed, shard index)``), so it runs the same in this
+process or on Ray; optional ``summary(payload) -> str`` is the headline table ``reproduce``
+prints, ``OUTPUTS`` the file names it writes. Modules whose name starts with ``_`` are
+helpers, not experiments.
 """
 
 from __future__ import annotations

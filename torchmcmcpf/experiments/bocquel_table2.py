@@ -20,6 +20,14 @@ What runs
 
 Every filter starts from ``Scenario.initial_particles`` (5 m / 1 m/s / 10 % around the
 truth one step before frame 0, labels kept); RMSE and TLR (20 m) use the slot labels.
+
+Shards
+------
+The runs are cut into shards of ``--shard-size`` runs (10, quick 1); each shard simulates
+its own runs of both scenarios and filters them with every algorithm, from the generator of
+``(seed, shard index)`` (:func:`~torchmcmcpf.experiments._common.run_shards`), so
+``--workers N`` on Ray gives the same numbers as the default in-process loop. Seconds per
+step are the filter times summed over the shards, over T.
 """
 
 from __future__ import annotations
@@ -33,7 +41,7 @@ from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.pmmh import ProcessNoiseScale, pmmh, sir_log_evidence
 from ..filters.sir import SIRFilter
 from ..scenarios.ground_radar import ground_radar
-from ._common import StepTimer, generator, positive_int, save_figure, write_metrics
+from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
 
 NAME = "bocquel-table2"
 DESCRIPTION = "Bocquel et al. 2012 Table II: SIR PF vs PMMH vs IP-MCMC-PF on the ground radar (RMSE, TLR, s/step)"
@@ -46,18 +54,23 @@ PAPER = {
 }
 
 QUICK = dict(runs=2, steps=3, particles=(40, 80), chains=10, burn_in=10, targets=(1, 10),
-             pmmh_iterations=2, pmmh_burn_in=1, max_extensions=1)
+             pmmh_iterations=2, pmmh_burn_in=1, max_extensions=1, shard_size=1)
 FULL = dict(runs=100, steps=20, particles=(500, 5000), chains=50, burn_in=100, targets=(1, 10),
-            pmmh_iterations=6, pmmh_burn_in=2, max_extensions=2)
+            pmmh_iterations=6, pmmh_burn_in=2, max_extensions=2, shard_size=10)
+ALGORITHMS = ("SIR PF", "PMMH", "IP-MCMC-PF")
+OUTPUTS = ("metrics.json", "table2.md", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png", "shards")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=positive_int, help="Monte Carlo runs (default 100, quick 2)")
-    parser.add_argument("--steps", type=positive_int, help="time steps (default 20, quick 4)")
-    parser.add_argument("--particles", type=positive_int, nargs="+", help="Np values (default 500 5000)")
-    parser.add_argument("--max-extensions", type=int, help="IP-MCMC-PF R-hat extensions (default 2)")
-    parser.add_argument("--pmmh-iterations", type=positive_int, help="PMMH iterations (default 6)")
-    parser.add_argument("--pmmh-burn-in", type=int, help="PMMH iterations discarded (default 2)")
+    def h(key, what):
+        return defaults_help(FULL, QUICK, key, what)
+
+    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
+    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
+    parser.add_argument("--particles", type=positive_int, nargs="+", help=h("particles", "Np values"))
+    parser.add_argument("--max-extensions", type=int, help=h("max_extensions", "IP-MCMC-PF R-hat extensions"))
+    parser.add_argument("--pmmh-iterations", type=positive_int, help=h("pmmh_iterations", "PMMH iterations"))
+    parser.add_argument("--pmmh-burn-in", type=int, help=h("pmmh_burn_in", "PMMH iterations discarded"))
 
 
 def settings(args: argparse.Namespace) -> dict:
@@ -68,6 +81,9 @@ def settings(args: argparse.Namespace) -> dict:
         value = getattr(args, key, None)
         if value is not None:
             cfg[key] = tuple(value) if key == "particles" else value
+    for key in ("shard_size",):
+        if getattr(args, key, None) is not None:
+            cfg[key] = getattr(args, key)
     if any(n % cfg["chains"] for n in cfg["particles"]):
         raise ValueError(f"--particles {cfg['particles']} must be multiples of {cfg['chains']} chains")
     cfg["quick"] = quick
@@ -90,44 +106,80 @@ def _run_pmmh(scn, n, cfg, g, progress):
     res = pmmh(evaluate, theta0, log_prior=lambda th: prior.log_prob(th[..., 0]), proposal_std=0.3,
                num_iterations=cfg["pmmh_iterations"], generator=g)
     means = res.aux[cfg["pmmh_burn_in"]:].mean((0, 2))  # (B, T, K, D)
-    return means.movedim(1, 0), {"acceptance": res.acceptance.mean(), "theta_mean": res.theta.mean()}
+    return means.movedim(1, 0), {"acceptance": res.acceptance.mean(1), "theta_mean": res.theta.mean((0, 2, 3))}
 
 
-def run_one(num_targets: int, cfg: dict, args) -> dict:
-    """All algorithms and Np for one scenario; returns metrics and the estimates."""
-    device = getattr(args, "device", torch.device("cpu"))
-    g = generator(device, getattr(args, "seed", 0) + num_targets)
-    scn = ground_radar(num_targets, cfg["steps"], cfg["runs"], generator=g, device=device)
-    progress = bool(getattr(args, "progress", False))
-    out, estimates = {}, {}
-    for n in cfg["particles"]:
-        x0 = scn.initial_particles(n, generator=g)
-        filters = {
-            "SIR PF": SIRFilter(scn.motion, scn.sensor, n),
-            "IP-MCMC-PF": IPMCMCFilter(scn.motion, scn.sensor, n, num_chains=cfg["chains"], burn_in=cfg["burn_in"],
-                                       max_extensions=cfg["max_extensions"]),
-        }
-        for name in ("SIR PF", "PMMH", "IP-MCMC-PF"):
-            extra = {}
-            with StepTimer(device, steps=cfg["steps"]) as timer:
-                if name == "PMMH":
-                    est, extra = _run_pmmh(scn, n, cfg, g, progress)
-                else:
-                    res = filters[name](scn.measurements, init=x0, generator=g, progress=progress)
-                    est = res.mean
-                    if name == "IP-MCMC-PF":
-                        extra = {"rhat_mean": res.info.extras["rhat"].mean(),
-                                 "extensions_mean": res.info.extras["extensions"].mean(),
-                                 "acceptance": res.info.acceptance.mean()}
-            rmse = metrics.position_rmse(est, scn.truth)
-            out[f"{name} | {n}"] = {
-                "algorithm": name, "num_particles": n,
-                "rmse": rmse.overall, "rmse_per_step": rmse.per_step,
-                "tlr": metrics.track_loss_rate(est, scn.truth),
-                "seconds_per_step": timer.seconds_per_step, **extra,
+def _key(num_targets: int, name: str, n: int) -> str:
+    return f"{num_targets}|{name}|{n}"
+
+
+def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
+              progress: bool = False) -> tuple[dict, dict]:
+    """Both scenarios, every algorithm and Np, for the runs ``runs`` (one batch).
+
+    Returns
+    -------
+    ``per_run`` with, per ``"<K>|<algorithm>|<Np>"``: ``|se`` ``(B, T)`` squared position
+    error averaged over the targets, ``|lost`` ``(B,)`` track loss (20 m), the per-run
+    diagnostics (``|rhat_mean``, ``|extensions_mean``, ``|acceptance``, ``|theta_mean``),
+    and for the largest K ``"<K>|truth"`` and the IP-MCMC-PF estimates of the largest Np
+    ``(B, T, K, D)`` (the tracks figure); ``seconds`` per key.
+    """
+    g = generator
+    per_run, seconds = {}, {}
+    for k in cfg["targets"]:
+        scn = ground_radar(k, cfg["steps"], len(runs), generator=g, device=device)
+        for n in cfg["particles"]:
+            x0 = scn.initial_particles(n, generator=g)
+            filters = {
+                "SIR PF": SIRFilter(scn.motion, scn.sensor, num_particles=n),
+                "IP-MCMC-PF": IPMCMCFilter(scn.motion, scn.sensor, num_particles=n, num_chains=cfg["chains"],
+                                           burn_in=cfg["burn_in"], max_extensions=cfg["max_extensions"]),
             }
-            estimates[(name, n)] = est
-    return {"results": out, "estimates": estimates, "truth": scn.truth}
+            for name in ALGORITHMS:
+                key = _key(k, name, n)
+                with StepTimer(device, steps=cfg["steps"]) as timer:
+                    if name == "PMMH":
+                        est, extra = _run_pmmh(scn, n, cfg, g, progress)
+                    else:
+                        res = filters[name](scn.measurements, init=x0, generator=g, progress=progress)
+                        est, extra = res.mean, {}
+                        if name == "IP-MCMC-PF":
+                            extra = {"rhat_mean": res.info.extras["rhat"].mean(0),
+                                     "extensions_mean": res.info.extras["extensions"].float().mean(0),
+                                     "acceptance": res.info.acceptance.mean(0)}
+                seconds[key] = timer.seconds
+                per_run[f"{key}|se"] = metrics.position_error(est, scn.truth).square().mean(-1).T
+                per_run[f"{key}|lost"] = metrics.track_loss(est, scn.truth)
+                per_run.update({f"{key}|{e}": v for e, v in extra.items()})
+                if k == max(cfg["targets"]) and name == "IP-MCMC-PF" and n == max(cfg["particles"]):
+                    per_run[f"{key}|estimate"] = est.movedim(1, 0)
+        if k == max(cfg["targets"]):
+            per_run[f"{k}|truth"] = scn.truth.movedim(1, 0)
+    return per_run, seconds
+
+
+def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
+    """Table II from the per-run arrays of every shard: ``"<K> targets" -> "<algorithm> |
+    <Np>" -> {rmse, rmse_per_step, tlr, seconds_per_step, diagnostics}``."""
+    results = {}
+    for k in cfg["targets"]:
+        rows = {}
+        for n in cfg["particles"]:
+            for name in ALGORITHMS:
+                key = _key(k, name, n)
+                se = per_run[f"{key}|se"]  # (B, T)
+                extra = {e: per_run[f"{key}|{e}"].mean()
+                         for e in ("rhat_mean", "extensions_mean", "acceptance", "theta_mean")
+                         if f"{key}|{e}" in per_run}
+                rows[f"{name} | {n}"] = {
+                    "algorithm": name, "num_particles": n,
+                    "rmse": se.mean().sqrt(), "rmse_per_step": se.mean(0).sqrt(),
+                    "tlr": per_run[f"{key}|lost"].float().mean(),
+                    "seconds_per_step": seconds[key] / cfg["steps"], **extra,
+                }
+        results[f"{k} targets"] = rows
+    return results
 
 
 def table_markdown(results: dict, num_targets: int, with_paper: bool) -> str:
@@ -147,8 +199,16 @@ def table_markdown(results: dict, num_targets: int, with_paper: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
+def summary(payload: dict) -> str:
+    """The headline table printed by ``reproduce``: the 10-target rows next to the paper's."""
+    k = max(payload["config"]["targets"])
+    return table_markdown(payload["results"][f"{k} targets"], k, with_paper=(k == 10))
+
+
 def run(args: argparse.Namespace) -> dict:
     """Run the study (see the module docstring); writes into ``args.out``."""
+    import sys
+
     import matplotlib
 
     matplotlib.use("Agg")
@@ -159,24 +219,27 @@ def run(args: argparse.Namespace) -> dict:
     cfg = settings(args)
     out = args.out
     device = getattr(args, "device", torch.device("cpu"))
-    all_results, md = {}, ["# Table II of Bocquel et al. (2012), regenerated", "",
-                           f"{cfg['runs']} Monte Carlo runs, {cfg['steps']} steps, device: see metrics.json"
-                           + (" (QUICK mode: small settings, not comparable with the paper)" if cfg["quick"] else ""), ""]
-    tracks = None
+    shards = run_shards(sys.modules[__name__], cfg, args)
+    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
+    all_results = aggregate(cfg, shards.per_run, shards.seconds)
+    quick = " (quick)" if cfg["quick"] else ""
+    md = ["# Table II of Bocquel et al. (2012), regenerated", "",
+          f"{cfg['runs']} Monte Carlo runs, {cfg['steps']} steps, device: see metrics.json"
+          + (" (QUICK mode: small settings, not comparable with the paper)" if cfg["quick"] else ""), ""]
     for k in cfg["targets"]:
-        study = run_one(k, cfg, args)
-        all_results[f"{k} targets"] = study["results"]
-        md.append(table_markdown(study["results"], k, with_paper=(k == 10)))
+        rows = all_results[f"{k} targets"]
+        md.append(table_markdown(rows, k, with_paper=(k == 10)))
         fig, ax = plt.subplots(figsize=(6, 4))
-        plot_rmse(ax, {key: r["rmse_per_step"] for key, r in study["results"].items()})
-        ax.set_title(f"Position RMSE, {k} target(s), {cfg['runs']} runs")
-        save_figure(fig, out, f"rmse_{k}_target{'s' if k > 1 else ''}.png")
-        if k == max(cfg["targets"]):
-            tracks = (study["truth"], study["estimates"][("IP-MCMC-PF", max(cfg["particles"]))])
+        plot_rmse(ax, {np_label(r["algorithm"], r["num_particles"]): r["rmse_per_step"] for r in rows.values()})
+        ax.set_title(f"Position RMSE, {k} target{'s' if k > 1 else ''}, {cfg['runs']} runs{quick}")
+        save_figure(fig, out, f"rmse_{k}_target{'s' if k > 1 else ''}.png", quick=cfg["quick"])
+    k, n = max(cfg["targets"]), max(cfg["particles"])
     fig, ax = plt.subplots(figsize=(6, 5))
-    plot_tracks(ax, tracks[0], tracks[1], run=0)
-    ax.set_title("IP-MCMC-PF tracks (run 0)")
-    save_figure(fig, out, "tracks.png")
+    plot_tracks(ax, shards.per_run[f"{k}|truth"].movedim(0, 1),
+                shards.per_run[f"{_key(k, 'IP-MCMC-PF', n)}|estimate"].movedim(0, 1), run=0,
+                estimate_label=f"IP-MCMC-PF, Np = {n}")
+    ax.set_title(f"IP-MCMC-PF tracks, {k} targets (run 0){quick}")
+    save_figure(fig, out, "tracks.png", quick=cfg["quick"])
     md += ["**Paper 000, Table II** (10 targets, 100 runs; MATLAB R2011b on an Intel Core i7 920)", "",
            "| Algorithm | Np | RMSE [m] | TLR | CPU s / step |", "|---|---|---|---|---|"]
     md += [f"| {a} | {n} | {p[0]:.2f} | {100 * p[1]:.0f}% | {p[2]} |" for (a, n), p in PAPER.items()]

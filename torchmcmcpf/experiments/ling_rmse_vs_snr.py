@@ -32,6 +32,11 @@ All SNRs and runs are one batch (``B_runs = runs x len(snr)``, per-run SNR); the
 SNR is eq. 16 over its runs, all frames and the three targets, with the slot labels the
 filter was initialised with (the paper's definition); ``rmse_matched`` relabels each run by
 the whole-track optimal assignment (a swap of targets 2 and 3 is then not counted).
+
+``reproduce`` runs the study in shards of ``--shard-size`` runs per SNR (5, quick 1), each
+from the generator of ``(seed, shard index)`` (:func:`run_shard`, :func:`aggregate`), so
+``--workers N`` on Ray writes the same numbers; :func:`run_study` filters all runs as one
+batch (the notebook's entry point).
 """
 
 from __future__ import annotations
@@ -43,7 +48,16 @@ import torch
 from .. import metrics
 from ..filters.mcmc import MCMCFilter
 from ..scenarios.ling import ling
-from ._common import StepTimer, generator, positive_int, save_figure, write_metrics
+from ._common import (
+    StepTimer,
+    defaults_help,
+    generator,
+    np_label,
+    positive_int,
+    run_shards,
+    save_figure,
+    write_metrics,
+)
 
 NAME = "ling-rmse-vs-snr"
 DESCRIPTION = "Ling 2016 Fig. 3: MCMC-based PF-TBD position RMSE vs SNR, 3 targets, 35 frames (B=500, M=10, N=100)"
@@ -52,20 +66,24 @@ DESCRIPTION = "Ling 2016 Fig. 3: MCMC-based PF-TBD position RMSE vs SNR, 3 targe
 RW_SCALE = (0.4, 0.4, 0.4, 0.4, 1e-3)
 
 QUICK = dict(runs=2, snr=(4.0, 10.0), steps=6, burn_in=20, thinning=2, particles=10,
-             moves=("random_walk", "mixture"))
+             moves=("random_walk", "mixture"), shard_size=1)
 FULL = dict(runs=100, snr=(0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0), steps=35, burn_in=500, thinning=10,
-            particles=100, moves=("random_walk", "mixture"))
+            particles=100, moves=("random_walk", "mixture"), shard_size=5)
+OUTPUTS = ("metrics.json", "rmse_vs_snr.png", "tracks.png", "shards")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=positive_int, help="Monte Carlo runs per SNR (default 100, quick 2)")
-    parser.add_argument("--snr", type=float, nargs="+", help="SNR values [dB] (default 0 2 ... 14, quick 4 10)")
-    parser.add_argument("--steps", type=positive_int, help="frames (default 35, quick 6)")
-    parser.add_argument("--burn-in", type=int, help="B, iterations discarded per frame (default 500, quick 20)")
-    parser.add_argument("--thinning", type=positive_int, help="M, keep every M-th state (default 10, quick 2)")
-    parser.add_argument("--particles", type=positive_int, help="N, samples kept per frame (default 100, quick 10)")
+    def h(key, what):
+        return defaults_help(FULL, QUICK, key, what)
+
+    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs per SNR"))
+    parser.add_argument("--snr", type=float, nargs="+", help=h("snr", "SNR values [dB]"))
+    parser.add_argument("--steps", type=positive_int, help=h("steps", "frames"))
+    parser.add_argument("--burn-in", type=int, help=h("burn_in", "burn-in, iterations discarded per frame"))
+    parser.add_argument("--thinning", type=positive_int, help=h("thinning", "M, keep every M-th state"))
+    parser.add_argument("--particles", type=positive_int, help=h("particles", "Np, samples kept per frame"))
     parser.add_argument("--moves", nargs="+", choices=("random_walk", "mixture"),
-                        help="kernels to run (default both)")
+                        help=h("moves", "kernels to run"))
 
 
 def settings(args: argparse.Namespace) -> dict:
@@ -73,7 +91,7 @@ def settings(args: argparse.Namespace) -> dict:
     command-line options given."""
     quick = bool(getattr(args, "quick", False))
     cfg = dict(QUICK if quick else FULL)
-    for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves"):
+    for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves", "shard_size"):
         value = getattr(args, key, None)
         if value is not None:
             cfg[key] = tuple(value) if key in ("snr", "moves") else value
@@ -99,9 +117,7 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
     x0 = scn.initial_particles(cfg["particles"], generator=g)
     results, estimates = {}, {}
     for moves in cfg["moves"]:
-        filt = MCMCFilter(scn.motion, scn.sensor, cfg["particles"], num_chains=1, burn_in=cfg["burn_in"],
-                          thinning=cfg["thinning"], moves=moves,
-                          rw_scale=torch.tensor(RW_SCALE) if moves == "random_walk" else None).to(device)
+        filt = _filter(cfg, scn, moves, device)
         with StepTimer(device, steps=cfg["steps"]) as timer:
             res = filt(scn.measurements, init=x0, generator=g, progress=progress)
         est = res.mean
@@ -126,44 +142,126 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
     return {"results": results, "scenario": scn, "estimates": estimates}
 
 
+def _filter(cfg: dict, scn, moves: str, device) -> MCMCFilter:
+    return MCMCFilter(scn.motion, scn.sensor, num_particles=cfg["particles"], num_chains=1, burn_in=cfg["burn_in"],
+                      thinning=cfg["thinning"], moves=moves,
+                      rw_scale=torch.tensor(RW_SCALE) if moves == "random_walk" else None).to(device)
+
+
+def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
+              progress: bool = False) -> tuple[dict, dict]:
+    """The runs ``runs`` at every SNR (one batch of ``len(runs) x S`` problems).
+
+    Returns
+    -------
+    ``per_run`` with ``"truth"`` ``(R, S, T, 3, 5)`` and, per kernel ``m``, ``"m|estimate"``
+    (same), ``"m|se"`` and ``"m|se_matched"`` ``(R, S, T, 3)`` squared position errors
+    (slot labels; labels matched per run), ``"m|acceptance|<move>"`` ``(R, S)`` (mean over
+    the frames); ``seconds`` per kernel.
+    """
+    r, s = len(runs), len(cfg["snr"])
+    snr = torch.tensor(cfg["snr"], dtype=torch.float32)
+    scn = ling(snr.repeat_interleave(r), r * s, generator=generator, num_steps=cfg["steps"], device=device)
+    x0 = scn.initial_particles(cfg["particles"], generator=generator)
+
+    def per_run_first(x):  # (T, S * R, ...) -> (R, S, T, ...)
+        return x.unflatten(1, (s, r)).movedim(0, 2).movedim(1, 0)
+
+    per_run, seconds = {"truth": per_run_first(scn.truth)}, {}
+    for moves in cfg["moves"]:
+        with StepTimer(device, steps=cfg["steps"]) as timer:
+            res = _filter(cfg, scn, moves, device)(scn.measurements, init=x0, generator=generator, progress=progress)
+        seconds[moves] = timer.seconds
+        matched, _ = metrics.match_tracks(res.mean, scn.truth)
+        per_run[f"{moves}|estimate"] = per_run_first(res.mean)
+        per_run[f"{moves}|se"] = per_run_first(metrics.position_error(res.mean, scn.truth).square())
+        per_run[f"{moves}|se_matched"] = per_run_first(metrics.position_error(matched, scn.truth).square())
+        for name, v in res.info.extras.items():  # v: (T, S * R)
+            if name.startswith("acceptance_"):
+                per_run[f"{moves}|acceptance|{name.removeprefix('acceptance_')}"] = v.nanmean(0).unflatten(0, (s, r)).T
+    return per_run, seconds
+
+
+def aggregate(cfg: dict, per_run: dict, seconds: dict, range_resolution: float) -> dict:
+    """Eq. 16 per SNR and kernel from the per-run arrays of every shard (see
+    :func:`run_study` for the fields; acceptance: mean over runs of the per-run mean)."""
+    results = {}
+    for moves in cfg["moves"]:
+        se, sem = per_run[f"{moves}|se"], per_run[f"{moves}|se_matched"]  # (R, S, T, K)
+        per_snr = []
+        for i, value in enumerate(cfg["snr"]):  # a handful of SNR values, not a loop over runs
+            rmse = se[:, i].mean().sqrt()
+            per_snr.append({
+                "snr_db": value,
+                "rmse": rmse,
+                "rmse_matched": sem[:, i].mean().sqrt(),
+                "rmse_per_target": se[:, i].mean((0, 1)).sqrt(),
+                "rmse_per_step": se[:, i].mean((0, 2)).sqrt(),
+                "below_range_resolution": bool(rmse < range_resolution),
+                "acceptance": {k.rsplit("|", 1)[1]: v[:, i].nanmean() for k, v in per_run.items()
+                               if k.startswith(f"{moves}|acceptance|")},
+            })
+        results[moves] = {"per_snr": per_snr, "seconds_per_step": seconds[moves] / cfg["steps"],
+                          "seconds_total": seconds[moves]}
+    return results
+
+
+def summary(payload: dict) -> str:
+    """Headline table: RMSE [m] per SNR and kernel."""
+    snr = payload["config"]["snr"]
+    lines = ["| kernel | " + " | ".join(f"{v:g} dB" for v in snr) + " |", "|---" * (len(snr) + 1) + "|"]
+    for moves, r in payload["results"].items():
+        lines.append(f"| {moves} | " + " | ".join(f"{float(p['rmse']):.2f}" for p in r["per_snr"]) + " |")
+    return "position RMSE [m] (eq. 16) per SNR\n\n" + "\n".join(lines) + "\n"
+
+
 def run(args: argparse.Namespace) -> dict:
-    """Run the study (see the module docstring); writes into ``args.out``."""
+    """Run the study in shards (see the module docstring); writes into ``args.out``."""
+    import sys
+
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     from ..plotting import plot_tracks
+    from ..scenarios.ling import ling as _ling
 
     cfg = settings(args)
     device = getattr(args, "device", torch.device("cpu"))
-    study = run_study(cfg, device=device, seed=getattr(args, "seed", 0),
-                      progress=bool(getattr(args, "progress", False)))
-    results, scn = study["results"], study["scenario"]
-    res_m = scn.range_resolution
+    shards = run_shards(sys.modules[__name__], cfg, args)
+    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
+    probe = _ling(10.0, 1, generator=generator("cpu", 0), num_steps=1)  # the geometry (no randomness used)
+    res_m = probe.range_resolution
+    results = aggregate(cfg, shards.per_run, shards.seconds, res_m)
+    quick = " (quick)" if cfg["quick"] else ""
 
     fig, ax = plt.subplots(figsize=(6, 4))
     for moves, r in results.items():
-        ax.plot(cfg["snr"], [float(p["rmse"]) for p in r["per_snr"]], "o-", label=f"MCMC-PF, {moves}")
+        ax.plot(cfg["snr"], [float(p["rmse"]) for p in r["per_snr"]], "o-",
+                label=np_label(f"MCMC-PF, {moves}", cfg["particles"]))
     ax.axhline(res_m, color="k", ls=":", lw=1, label=f"range resolution ({res_m:g} m)")
     ax.set_xlabel("SNR [dB]")
     ax.set_ylabel("position RMSE [m] (eq. 16)")
     ax.set_yscale("log")
-    ax.set_title(f"{cfg['runs']} runs, {cfg['steps']} frames, B={cfg['burn_in']}, M={cfg['thinning']}, "
-                 f"N={cfg['particles']}")
+    ax.set_title(f"{cfg['runs']} runs, {cfg['steps']} frames, burn-in {cfg['burn_in']}, thinning {cfg['thinning']}, "
+                 f"Np = {cfg['particles']}{quick}")
     ax.legend(fontsize="small")
-    save_figure(fig, args.out, "rmse_vs_snr.png")
+    save_figure(fig, args.out, "rmse_vs_snr.png", quick=cfg["quick"])
 
     i = min(range(len(cfg["snr"])), key=lambda j: abs(cfg["snr"][j] - 10.0))
-    fig, axes = plt.subplots(1, len(results), figsize=(5.5 * len(results), 4.5), squeeze=False)
-    for ax, (moves, est) in zip(axes[0], study["estimates"].items()):
-        plot_tracks(ax, scn.truth, est, run=i * cfg["runs"])
-        ax.set_title(f"{moves}, SNR {cfg['snr'][i]:g} dB (run 0)")
-    save_figure(fig, args.out, "tracks.png")
+    moves_all = list(results)
+    fig, axes = plt.subplots(1, len(moves_all), figsize=(5.5 * len(moves_all), 4.5), squeeze=False)
+    truth = shards.per_run["truth"][0, i]  # (T, K, D) run 0 at SNR i
+    for ax, moves in zip(axes[0], moves_all):
+        plot_tracks(ax, truth, shards.per_run[f"{moves}|estimate"][0, i],
+                    estimate_label=np_label(f"MCMC-PF, {moves}", cfg["particles"]))
+        ax.set_title(f"{moves}, SNR {cfg['snr'][i]:g} dB (run 0){quick}")
+    save_figure(fig, args.out, "tracks.png", quick=cfg["quick"])
 
     payload = {
         "config": {**cfg, "rw_scale": RW_SCALE, "num_chains": 1},
-        "grid": list(scn.sensor.frame_shape),
+        "grid": list(probe.sensor.frame_shape),
         "range_resolution_m": res_m,
         "results": results,
     }

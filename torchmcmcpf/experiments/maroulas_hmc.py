@@ -14,6 +14,11 @@ What runs (per observation model, Monte Carlo runs batched):
 Outputs: ``metrics.json`` (RMSE per target, eq. 31, averaged over time and runs; ESS in %
 of N, sec. 1.3; HMC acceptance; seconds per step; the paper's numbers), ``rmse_<obs>.png``
 (Figs. 3, 7), ``ess_<obs>.png`` (Figs. 4, 8) and ``tracks_<obs>.png`` (Figs. 1, 5).
+Paper 003 gives no units; the figures read positions in metres and the unit time step
+(``T = 1``) in seconds.
+
+Not sharded (no ``--workers``): the equal-time particle count comes from a measured time
+ratio, so it is not a function of the seed.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ import torch
 
 from ..filters.resample_move import ResampleMoveFilter
 from ..scenarios import maroulas as scenario
-from ._common import StepTimer, generator, positive_int, save_figure, write_metrics
+from ._common import StepTimer, defaults_help, generator, np_label, positive_int, save_figure, write_metrics
 
 NAME = "maroulas-hmc"
 DESCRIPTION = "Maroulas & Stinis 2010 Figs. 3, 4, 7, 8: PF with an HMC move vs the generic PF (RMSE, ESS)"
@@ -39,12 +44,17 @@ PAPER = {
 }
 QUICK = dict(runs=2, steps=12, hmc_steps=50, max_equal_time_particles=2000)
 FULL = dict(runs=10, steps=200, hmc_steps=100, max_equal_time_particles=20000)
+OUTPUTS = tuple(f"{kind}_{obs}.png" for obs in scenario.OBSERVATIONS for kind in ("rmse", "ess", "tracks")) \
+    + ("metrics.json",)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=positive_int, help="Monte Carlo runs (default 10, quick 2)")
-    parser.add_argument("--steps", type=positive_int, help="time steps after t=0 (default 200, quick 12)")
-    parser.add_argument("--hmc-steps", type=positive_int, help="HMC accept/reject rounds (default 100, quick 50)")
+    def h(key, what):
+        return defaults_help(FULL, QUICK, key, what)
+
+    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
+    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps after t=0"))
+    parser.add_argument("--hmc-steps", type=positive_int, help=h("hmc_steps", "HMC accept/reject rounds"))
 
 
 @contextlib.contextmanager
@@ -75,26 +85,23 @@ def _summary(result: scenario.TrackResult, data: scenario.MaroulasData, n: int, 
     )
 
 
-def _figures(out, obs: str, results: dict, data: scenario.MaroulasData, sensor) -> None:
+def _figures(out, obs: str, results: dict, data: scenario.MaroulasData, sensor, quick: bool = False) -> None:
     import matplotlib.pyplot as plt
 
     from ..plotting import plot_rmse
 
+    q = " (quick)" if quick else ""
+    labels = {k: np_label(k, v["particles"]) for k, v in results.items()}
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    plot_rmse(ax, {k: v["rmse_curve"] for k, v in results.items()}, ylabel="RMSE per target (eq. 31)")
+    plot_rmse(ax, {labels[k]: v["rmse_curve"] for k, v in results.items()}, ylabel="RMSE per target (eq. 31) [m]")
     ax.set_yscale("log")
-    ax.set_title(f"{obs}: RMSE per target, mean over {data.x.shape[1]} runs")
-    save_figure(fig, out, f"rmse_{obs}.png")
+    ax.set_title(f"{obs}: RMSE per target, mean over {data.x.shape[1]} runs{q}")
+    save_figure(fig, out, f"rmse_{obs}.png", quick=quick)
 
     fig, ax = plt.subplots(figsize=(6, 3.5))
-    for k, v in results.items():
-        c = v["ess_percent_curve"]
-        ax.plot(range(1, len(c) + 1), c, label=k)
-    ax.set_xlabel("time step")
-    ax.set_ylabel("ESS [% of N]")
-    ax.legend(fontsize="small")
-    ax.set_title(f"{obs}: effective sample size")
-    save_figure(fig, out, f"ess_{obs}.png")
+    plot_rmse(ax, {labels[k]: v["ess_percent_curve"] for k, v in results.items()}, ylabel="ESS [% of Np]")
+    ax.set_title(f"{obs}: effective sample size{q}")
+    save_figure(fig, out, f"ess_{obs}.png", quick=quick)
 
     fig, ax = plt.subplots(figsize=(5, 5))
     alive = data.alive[:, 0].unsqueeze(-1)
@@ -103,14 +110,15 @@ def _figures(out, obs: str, results: dict, data: scenario.MaroulasData, sensor) 
     zxy = torch.where(alive, sensor.to_position(data.z_slot[:, 0]), nan)
     est = torch.where(alive, results["improved"]["track_mean"][..., [0, 2]], nan)[::5]
     for k in range(xy.shape[1]):
-        ax.plot(xy[:, k, 0], xy[:, k, 1], "-", lw=1, label="truth" if k == 0 else None)
+        ax.plot(xy[:, k, 0], xy[:, k, 1], "-", lw=1, color=f"C{k}", label="truth" if k == 0 else None)
         ax.plot(zxy[:, k, 0], zxy[:, k, 1], "x", ms=3, color="gray", label="observations" if k == 0 else None)
-        ax.plot(est[:, k, 0], est[:, k, 1], ".", color="k", label="improved PF" if k == 0 else None)
-    ax.set_xlabel("x")
-    ax.set_ylabel("y")
+        ax.plot(est[:, k, 0], est[:, k, 1], ".", color=f"C{k}", mec="k", mew=0.3,
+                label=labels["improved"] if k == 0 else None)
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
     ax.legend(fontsize="small")
-    ax.set_title(f"{obs}: run 0 (estimates every 5 steps)")
-    save_figure(fig, out, f"tracks_{obs}.png")
+    ax.set_title(f"{obs}: run 0 (estimates every 5 steps){q}")
+    save_figure(fig, out, f"tracks_{obs}.png", quick=quick)
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -130,8 +138,8 @@ def run(args: argparse.Namespace) -> dict:
                                      device=device)
             n_rm, n_gen = PAPER[obs]["particles"]
             filters = {
-                "improved": ResampleMoveFilter(motion, sensor, n_rm, num_hmc_steps=cfg["hmc_steps"]),
-                "generic": ResampleMoveFilter(motion, sensor, n_gen, num_hmc_steps=0),
+                "improved": ResampleMoveFilter(motion, sensor, num_particles=n_rm, num_hmc_steps=cfg["hmc_steps"]),
+                "generic": ResampleMoveFilter(motion, sensor, num_particles=n_gen, num_hmc_steps=0),
             }
             results, times = {}, {}
             for name, filt in filters.items():
@@ -142,14 +150,26 @@ def run(args: argparse.Namespace) -> dict:
                 results[name]["track_mean"] = res.mean[:, 0]
             ratio = times["improved"] / times["generic"]
             n_eq = min(int(n_gen * ratio), cfg["max_equal_time_particles"])
-            filt = ResampleMoveFilter(motion, sensor, n_eq, num_hmc_steps=0)
+            filt = ResampleMoveFilter(motion, sensor, num_particles=n_eq, num_hmc_steps=0)
             with StepTimer(device, cfg["steps"]) as timer:
                 res = scenario.track(filt, data, generator=g, progress=args.progress)
             results["generic_equal_time"] = _summary(res, data, n_eq, timer.seconds)
-            _figures(args.out, obs, results, data, sensor)
+            _figures(args.out, obs, results, data, sensor, quick=bool(args.quick))
             for v in results.values():
                 v.pop("track_mean", None)
             results["time_ratio_improved_over_generic"] = ratio
             metrics[obs] = results
     write_metrics(args.out, metrics, args=args, device=device)
     return metrics
+
+
+def summary(payload: dict) -> str:
+    """Headline table: time-averaged RMSE per target and ESS per observation model and filter."""
+    lines = ["| observation | filter | Np | RMSE per target [m] | ESS [% of Np] | s / step |",
+             "|---|---|---|---|---|---|"]
+    for obs in scenario.OBSERVATIONS:
+        for name, r in payload[obs].items():
+            if isinstance(r, dict):
+                lines.append(f"| {obs} | {name} | {r['particles']} | {float(r['rmse_time_average']):.2f} | "
+                             f"{float(r['ess_percent']):.1f} | {r['seconds_per_step']:.3f} |")
+    return "\n".join(lines) + "\n"
