@@ -1,0 +1,27 @@
+"""The guides in docs/guides/ are tested pages: their Python code blocks run, in order, as
+one script per page (a later block sees the names of an earlier one)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+GUIDES = Path(__file__).resolve().parents[1] / "docs" / "guides"
+PAGES = sorted(p for p in GUIDES.glob("*.md") if p.name != "index.md")
+BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
+
+
+def test_every_guide_has_code():
+    assert PAGES, f"no guides found in {GUIDES}"
+    for page in PAGES:
+        assert BLOCK.findall(page.read_text()), f"{page.name} has no python block"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=[p.stem for p in PAGES])
+def test_guide_runs(page, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    source = "\n\n".join(BLOCK.findall(page.read_text()))
+    namespace: dict = {"__name__": f"guide_{page.stem}"}
+    exec(compile(source, str(page), "exec"), namespace)
