@@ -27,7 +27,7 @@ from .models import (
 )
 from .state import FilterResult, ParticleState, StepInfo
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "Filter",
