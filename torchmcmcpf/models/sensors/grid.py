@@ -363,11 +363,12 @@ class SeparableGridSensor(SensorModel):
         return torch.cat(out).reshape(x.shape[:-2])
 
     # ---------------------------------------------------------------- windowed fast path
-    #: On the windowed paths a box sums the truncated spreads of its own target and of at
-    #: most this many other targets whose boxes overlap it (a fixed count, so shapes stay
-    #: static under ``torch.compile``); when some box of a call has more overlapping
-    #: neighbours, that call uses every target (the dense form, ``K - 1`` neighbours), so the
-    #: result is exact either way. Setting it to ``K - 1`` or more forces the dense form
+    #: On the windowed paths a box sums the truncated spreads of its own target and of the
+    #: other targets whose boxes overlap it, in a fixed number of neighbour slots per box:
+    #: eager, the most any box of the call has; under ``torch.compile`` (static shapes) this
+    #: many, or every target (the dense form, ``K - 1`` neighbours) for a call in which some
+    #: box has more. Exact either way (see :meth:`_select`). Setting it to ``K - 1`` or more
+    #: forces the dense form, the cost of the whole-grid-free path before neighbour slots
     #: (benchmarks/bench_likelihood.py compares both).
     max_neighbours: int = 3
 
@@ -447,20 +448,28 @@ class SeparableGridSensor(SensorModel):
         w, index = torch.topk(overlap.to(torch.float32), count, dim=-1, sorted=False)
         return index, w
 
-    def _select(self, overlap: Tensor, dense: int, fn, operands: tuple[Tensor, ...]) -> Tensor:
-        """``fn(count, *operands)`` with ``count = max_neighbours`` when no box overlaps more
-        targets than that in ``overlap (..., Q, T)`` bool, else ``count = dense`` (at least the
-        most overlapping targets a box can have). Exact either way.
+    def _select(self, dense: int, fn, prepare, inputs: tuple[Tensor, ...]) -> Tensor:
+        """``fn(count, *parts)`` with ``parts = prepare(*inputs)`` (whose last entry is the
+        overlap mask ``(..., Q, T)`` bool of the boxes evaluated and the targets) and
+        ``count`` at least the most targets overlapping one box. Eager, ``count`` is that
+        maximum (one read from the device). Under ``torch.compile`` it is
+        :attr:`max_neighbours` when no box overlaps more targets than that, else ``dense``
+        (at least the most a box can have), chosen by ``torch.cond`` so that the graph stays
+        whole and shapes static (both branches are compiled). Exact either way.
 
-        Eager this reads one flag from the device; under ``torch.compile`` it is a
-        ``torch.cond``, so the graph stays whole (both branches are compiled)."""
+        The branches take the raw ``inputs`` and run ``prepare`` again: passed intermediates
+        instead, torch 2.13's inductor gave some a transposed layout that the compiled
+        branch did not expect (an ``assert_size_stride`` failure at run time)."""
+        parts = prepare(*inputs)
         cap = min(int(self.max_neighbours), dense)
         if cap >= dense:
-            return fn(dense, *operands)
-        fits = overlap.sum(-1).max() <= cap
-        if torch.compiler.is_compiling():
-            return torch.cond(fits, lambda *ops: fn(cap, *ops), lambda *ops: fn(dense, *ops), operands)
-        return fn(cap if bool(fits) else dense, *operands)
+            return fn(dense, *parts)
+        most = parts[-1].sum(-1).max()
+        if not torch.compiler.is_compiling():
+            return fn(int(most), *parts)
+        return torch.cond(
+            most <= cap, lambda *ins: fn(cap, *prepare(*ins)), lambda *ins: fn(dense, *prepare(*ins)), inputs
+        )
 
     def box_cells(self) -> tuple[int, ...]:
         """Layout of the cells of one box on the windowed paths: ``(W_1, ..., W_{n-2},
@@ -529,19 +538,23 @@ class SeparableGridSensor(SensorModel):
             out.append(torch.cat(row, 1))
         return torch.cat(out)
 
-    def _window_block(self, u: Tensor, s: Tensor, e: Tensor, zc: Tensor) -> Tensor:
-        """Windowed log-likelihood of a block of samples: ``u (b, p, K, n)``, ``s, e (b, p, K)``
-        (see :meth:`_flat_inputs`), ``zc (b, *G)`` -> ``(b, p)``."""
-        K = u.shape[-2]
+    def _window_parts(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> tuple:
+        """``x (b, p, K, D)``, ``z (b, *G)``, ``exists (b, p, K)`` -> ``(u, s, e, zc, *firsts,
+        others)``: see :meth:`_flat_inputs`; ``firsts[a] (b, p, K)`` the box starts and
+        ``others (b, p, J, K)`` whether the boxes of live targets ``j != k`` overlap."""
+        K = x.shape[-2]
+        u, s, e = self._flat_inputs(x, exists)
         firsts = [self._box_first(u[..., a], a) for a in range(self.n_axes)]  # (b, p, K) each
         live = e > 0
         others = self._overlaps(firsts, firsts) & live[..., :, None] & live[..., None, :]
-        others = others & ~torch.eye(K, dtype=torch.bool, device=u.device)  # (b, p, J, K)
-        return self._select(others, K - 1, self._window_sum, (u, s, e, zc, others, *firsts))
+        others = others & ~torch.eye(K, dtype=torch.bool, device=x.device)  # (b, p, J, K)
+        return (u, s, e, self.prepare_frame(z.to(x.dtype)), *firsts, others)
 
-    def _window_sum(self, count: int, u: Tensor, s: Tensor, e: Tensor, zc: Tensor, others: Tensor, *firsts: Tensor) -> Tensor:
-        """:meth:`_window_block` with ``count`` neighbour slots per box (at least the largest
-        number of other boxes overlapping one box)."""
+    def _window_sum(self, count: int, u: Tensor, s: Tensor, e: Tensor, zc: Tensor, *parts: Tensor) -> Tensor:
+        """Windowed log-likelihood ``(b, p)`` of a block of samples from
+        :meth:`_window_parts`, with ``count`` neighbour slots per box (at least the most
+        other boxes overlapping one box)."""
+        *firsts, others = parts
         b, p, K = s.shape
         index = torch.arange(K, device=u.device).expand(b, p, K)[..., None]  # (b, p, J, 1): the box's own target
         weight = torch.ones(index.shape, dtype=s.dtype, device=u.device)
@@ -595,13 +608,15 @@ class SeparableGridSensor(SensorModel):
         (B, *S).
         """
         self._check_inputs(x, z, exists)
-        u, s, e = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
-        zc = self.prepare_frame(z.to(x.dtype))
+        B, K = x.shape[0], x.shape[-2]
+        xf = x.reshape(B, -1, K, x.shape[-1])  # (B, P, K, D)
+        ef = None if exists is None else exists.reshape(B, -1, K)
 
         def rows(b0: int, b1: int, p0: int, p1: int) -> Tensor:
-            return self._window_block(u[b0:b1, p0:p1], s[b0:b1, p0:p1], e[b0:b1, p0:p1], zc[b0:b1])
+            inputs = (xf[b0:b1, p0:p1], z[b0:b1]) + (() if ef is None else (ef[b0:b1, p0:p1],))
+            return self._select(K - 1, self._window_sum, self._window_parts, inputs)
 
-        out = self._window_rows(u, rows, self.window_chunk_size(x.shape[-2], x.dtype))
+        out = self._window_rows(xf, rows, self.window_chunk_size(K, x.dtype))
         return out.reshape(x.shape[:-2])
 
     def log_likelihood_delta(
@@ -665,6 +680,31 @@ class SeparableGridSensor(SensorModel):
             e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
             x_new = torch.where(here[..., None], x_n[..., None, :], x)
             return self.log_likelihood_grid(x_new, z, e_new) - self.log_likelihood_grid(x, z, e_old)
+        names = [k for k, v in (("n", n if torch.is_tensor(n) else None), ("exists", exists), ("exists_n", exists_n))
+                 if v is not None]
+
+        def prepare(x: Tensor, x_n: Tensor, z: Tensor, *optional: Tensor) -> tuple:
+            kw = dict(zip(names, optional))
+            return self._delta_parts(x, x_n, kw.get("n", n), z, kw.get("exists"), kw.get("exists_n"))
+
+        inputs = (x, x_n, z) + tuple(v for v in (n, exists, exists_n) if torch.is_tensor(v))
+        return self._select(K - 1, self._delta_sum, prepare, inputs).reshape((B,) + S)
+
+    def _delta_parts(
+        self, x: Tensor, x_n: Tensor, n: Union[int, Tensor], z: Tensor, exists: Optional[Tensor],
+        exists_n: Optional[Tensor],
+    ) -> tuple:
+        """The arguments of :meth:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old,
+        s_new, zc, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K
+        slots, then of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new
+        (B, P, 1)`` the signals (times existence); ``firsts[a] (B, P, K + 2)`` the box starts;
+        ``others (B, P, 2, K)`` whether the old / new box of slot ``n`` overlaps the box of
+        another live slot."""
+        B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+        if torch.is_tensor(n):
+            slot = n.to(device=x.device, dtype=torch.int64).expand(x.shape[:-2]).reshape(B, -1)
+        else:
+            slot = torch.full((B, math.prod(x.shape[1:-2])), n, device=x.device, dtype=torch.int64)
         u, s, e = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
         P = u.shape[1]
         at = slot[..., None]  # (B, P, 1)
@@ -678,17 +718,14 @@ class SeparableGridSensor(SensorModel):
         boxes = [f[..., K:] for f in firsts]  # (B, P, 2): old and new box of slot n
         rest = (torch.arange(K, device=x.device) != at) & (e > 0)  # (B, P, K): the other live slots
         others = self._overlaps(boxes, [f[..., :K] for f in firsts]) & rest[..., None, :]  # (B, P, 2, K)
-        zc = self.prepare_frame(z.to(x.dtype))
-        out = self._select(others, K - 1, self._delta_sum, (u_all, s, s_old, s_new, zc, others, *firsts))
-        return out.reshape((B,) + S)
+        return (u_all, s, s_old, s_new, self.prepare_frame(z.to(x.dtype)), *firsts, others)
 
     def _delta_sum(
-        self, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor, zc: Tensor, others: Tensor,
-        *firsts: Tensor,
+        self, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor, zc: Tensor, *parts: Tensor
     ) -> Tensor:
-        """:meth:`log_likelihood_delta` with ``count`` neighbour slots per box: ``u_all
-        (B, P, K + 2, n)``, ``s (B, P, K)``, ``s_old, s_new (B, P, 1)``, ``others (B, P, 2, K)``
-        bool, ``firsts[a] (B, P, K + 2)`` -> ``(B, P)``."""
+        """:meth:`log_likelihood_delta` ``(B, P)`` from :meth:`_delta_parts`, with ``count``
+        neighbour slots per box."""
+        *firsts, others = parts
         B, P, K = s.shape
         boxes = [f[..., K:] for f in firsts]
         moved = torch.tensor([K, K + 1], device=s.device).expand(B, P, 2, 2)  # (B, P, 2q, 2)
