@@ -508,16 +508,18 @@ class SeparableGridSensor(SensorModel):
         """Samples (rows of the flattened ``B * prod(S)``) per chunk of the windowed path.
 
         One sample holds about ``_WINDOW_TEMPS * K * prod(W_a)`` elements of per-cell
-        temporaries at the dense form (``K`` neighbours per box); the chunk is the largest
-        count whose total stays within ``memory_budget`` bytes (at least 1).
+        temporaries, whatever the number of neighbour slots (they are summed term by term,
+        see :meth:`_outer_sum`); the chunk is the largest count whose total stays within
+        ``memory_budget`` bytes (at least 1).
         """
         itemsize = torch.empty((), dtype=dtype).element_size()
-        per_sample = itemsize * num_targets * math.prod(self.window_sizes()) * (num_targets + self._WINDOW_TEMPS)
+        per_sample = itemsize * num_targets * math.prod(self.window_sizes()) * self._WINDOW_TEMPS
         return max(1, self.memory_budget // per_sample)
 
-    #: per-cell temporaries of the windowed path besides the ``(K, *W)`` outer products of
-    #: the neighbours: amplitude, count, frame cells, log ratio and its intermediates.
-    _WINDOW_TEMPS = 10
+    #: per-cell temporaries of one box cell held at once by the eager windowed path: the
+    #: amplitude and box-count sums with their running terms, the frame cells, the log
+    #: ratio with the intermediates of the float32 log I0 polynomial (as ``_GRID_TEMPS``)
+    _WINDOW_TEMPS = 12
 
     def _window_rows(self, x: Tensor, fn, chunk: int) -> Tensor:
         """Apply ``fn(rows) -> (b, p)`` to blocks of at most ``chunk`` rows of the flattened
