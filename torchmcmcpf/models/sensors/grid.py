@@ -124,23 +124,39 @@ def _uniform_bins(bins, name: str) -> tuple[Tensor, float, float]:
 class SeparableGridSensor(SensorModel):
     """Base of the TBD sensors whose point spread is a separable Gaussian over a regular grid.
 
+    One constructor serves every subclass; a subclass declares its axes
+    (:attr:`axis_names`), its noise parameter (:attr:`noise_name`), its default window and
+    the default cell sizes of :meth:`uniform`, and documents the resulting keywords.
+
     Parameters
     ----------
-    bins : sequence of n 1-D tensors ``(N_a,)``
+    *bins : n 1-D tensors ``(N_a,)``, one per axis of :attr:`axis_names`
         Cell centres of each axis, increasing and uniformly spaced. Stored as buffers named
-        ``f"{name}_bins"`` (float64; computations follow the dtype of ``x``).
-    widths : sequence of n floats or ``None``
-        Point-spread standard deviation ``w_a`` of each axis, in the axis' unit; ``None`` means
-        the cell spacing of that axis.
-    names : sequence of n str
-        Axis names, used for buffers and error messages.
-    window : int
-        Half-width, in cells, of the box evaluated around each target by the windowed path.
+        ``f"{axis}_bins"`` (float64; computations follow the dtype of ``x``).
+    window : int, optional
+        Half-width, in cells, of the box evaluated around each target by the windowed path
+        (default :attr:`default_window`).
     method : {"window", "grid"}
         What :meth:`log_likelihood` dispatches to.
     memory_budget : int
-        Bytes of temporaries the whole-grid path may hold at once (see :meth:`grid_chunk_size`).
+        Bytes of temporaries either path may hold at once (see :meth:`grid_chunk_size`,
+        :meth:`window_chunk_size`).
+    **settings
+        ``f"{axis}_width"`` (float or ``None``): the point-spread standard deviation ``w_a``
+        of each axis, in the axis' unit; ``None`` (default) means the cell spacing of that
+        axis. ``noise_name`` (float > 0, default 1.0): the noise parameter of the subclass,
+        stored as an attribute of that name. Any other keyword is a ``ValueError``.
     """
+
+    #: grid axes in frame order; buffer and keyword names derive from them
+    #: (``f"{axis}_bins"``, ``f"{axis}_width"``, ``f"{axis}_cell"``). Subclasses set it.
+    axis_names: tuple[str, ...]
+    #: keyword (and attribute) name of the subclass's noise parameter
+    noise_name: str
+    #: default ``window``
+    default_window: int
+    #: default cell size per axis of :meth:`uniform`
+    default_cells: tuple[float, ...]
 
     #: per-target state size D; subclasses set it
     dim: int
@@ -154,22 +170,28 @@ class SeparableGridSensor(SensorModel):
 
     def __init__(
         self,
-        bins: Sequence[Tensor],
-        widths: Sequence[Optional[float]],
-        *,
-        names: Sequence[str],
-        window: int,
+        *bins: Tensor,
+        window: Optional[int] = None,
         method: str = "window",
         memory_budget: int = 2**30,
+        **settings: Optional[float],
     ):
         super().__init__()
-        if not (len(bins) == len(widths) == len(names)) or len(bins) == 0:
+        names = self.axis_names
+        if len(bins) != len(names):
             raise ValueError(
-                f"bins, widths and names must have the same length >= 1; got {len(bins)}, "
-                f"{len(widths)}, {len(names)}"
+                f"{type(self).__name__} takes {len(names)} bin tensors ({', '.join(f'{a}_bins' for a in names)}), "
+                f"got {len(bins)}"
             )
-        self.axis_names = tuple(names)
-        self.window = check_positive_int(window, "window", minimum=0)
+        widths = [settings.pop(f"{a}_width", None) for a in names]
+        noise = settings.pop(self.noise_name, 1.0)
+        if settings:
+            raise ValueError(
+                f"unexpected keyword(s) {sorted(settings)} for {type(self).__name__}; expected "
+                f"{', '.join(f'{a}_width' for a in names)}, {self.noise_name}, window, method, memory_budget"
+            )
+        setattr(self, self.noise_name, check_positive(noise, self.noise_name))
+        self.window = check_positive_int(self.default_window if window is None else window, "window", minimum=0)
         if method not in _METHODS:
             raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
         self.method = method
@@ -189,6 +211,21 @@ class SeparableGridSensor(SensorModel):
         self.cell_sizes = tuple(deltas)
         self.widths = tuple(ws)
         self.frame_shape = tuple(int(getattr(self, f"{n}_bins").numel()) for n in names)
+
+    @classmethod
+    def uniform(cls, *limits: tuple[float, float], **kw) -> "SeparableGridSensor":
+        """Uniform grid: one ``(first, last)`` per axis gives the first cell centre and an
+        upper limit; centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) /
+        cell)`` (``last`` included when it lies on the lattice). Cell sizes by the keywords
+        ``f"{axis}_cell"``, default :attr:`default_cells`; other keywords go to the
+        constructor."""
+        if len(limits) != len(cls.axis_names):
+            raise ValueError(
+                f"{cls.__name__}.uniform takes {len(cls.axis_names)} limits "
+                f"({', '.join(f'{a}_limits' for a in cls.axis_names)}), got {len(limits)}"
+            )
+        cells = [kw.pop(f"{a}_cell", c) for a, c in zip(cls.axis_names, cls.default_cells)]
+        return cls(*(lattice(lim, c, a) for lim, c, a in zip(limits, cells, cls.axis_names)), **kw)
 
     # ---------------------------------------------------------------- subclass hooks
     def measurement_coords(self, x: Tensor) -> Tensor:
@@ -408,7 +445,7 @@ class SeparableGridSensor(SensorModel):
         Q = index.shape[-2]
         profiles, indicators = [], []
         for a, (bq, fk, W) in enumerate(zip(box_firsts, firsts, self.window_sizes())):
-            pick = lambda v: torch.take_along_dim(v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1]), index, -1)  # noqa: E731
+            pick = lambda v: torch.take_along_dim(v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1]), index, -1)
             ua, first = pick(u[..., a]), pick(fk)  # (..., Q, M)
             c0, delta = self.origins[a], self.cell_sizes[a]
             scale = 1.0 / (math.sqrt(2.0) * self.widths[a])
@@ -564,7 +601,7 @@ class SeparableGridSensor(SensorModel):
             nb, w = self._neighbour_index(others, count)  # (b, p, J, count)
             index, weight = torch.cat([index, nb], -1), torch.cat([weight, w.to(s.dtype)], -1)
         profiles, indicators = self._neighbour_profiles(firsts, u, firsts, index)  # (b, p, J, M, W) each
-        pick = lambda v: torch.take_along_dim(v[..., None, :].expand(b, p, K, K), index, -1) * weight  # noqa: E731
+        pick = lambda v: torch.take_along_dim(v[..., None, :].expand(b, p, K, K), index, -1) * weight
         A = self._outer_sum(pick(s), profiles)  # (b, p, J, *W)
         # weight 1 / n_c; an absent box j has n_c >= 0, so add (1 - e_j) before dividing and
         # zero its sum afterwards
