@@ -567,7 +567,7 @@ class SeparableGridSensor(SensorModel):
         samples = max(1, chunk // runs)
         if runs >= B and samples >= P:
             return fn(0, B, 0, P)
-        grad = torch.is_grad_enabled()
+        grad = torch.is_grad_enabled() and x.requires_grad
         out = []
         for b in range(0, B, runs):  # chunks of rows, not a loop per particle or per run
             row = []
