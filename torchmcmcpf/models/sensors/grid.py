@@ -22,12 +22,17 @@ log-likelihood is its sum over cells.
   and the result is the exact log-likelihood of that truncated-spread sensor (a sum over the
   union of the boxes, a cell inside several boxes counted once). The truncation is the only
   approximation (spread values below ``exp(-(window + 1/2)^2 / 2)`` of the peak are dropped);
-  with ``window`` at least the grid size the two paths agree to round-off.
+  with ``window`` at least the grid size the two paths agree to round-off. A box sums only
+  the targets whose boxes overlap it (neighbour slots, see
+  :attr:`~SeparableGridSensor.max_neighbours`), so the cost is ``O(N K W^n)``, not
+  ``O(N K^2 W^n)``; blocks of samples sized from ``memory_budget``.
 - :meth:`~SeparableGridSensor.log_likelihood_delta`: the change of the windowed
   log-likelihood when one target slot moves, from the cells of its old and new box only
-  (the per-target refinement of the MCMC filter, the exchange move of IP-MCMC-PF).
+  (the per-target refinement of the MCMC filter, the exchange move of IP-MCMC-PF), summing
+  in each box slot ``n`` before and after the move and its overlapping neighbours.
 
-Subclasses implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
+Subclasses declare their axes and noise parameter (one base constructor serves all) and
+implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
 (optionally :meth:`prepare_frame`) and :meth:`simulate`.
 """
 
