@@ -24,7 +24,7 @@ from typing import NamedTuple
 import torch
 
 from ._validation import check_finite, check_positive, check_shape, check_tensor
-from .typing import X, Y, Tensor
+from .typing import Tensor, X, Y
 
 __all__ = [
     "RMSE",
@@ -129,7 +129,8 @@ def track_loss(estimate: Tensor, truth: Tensor, *, threshold: float = 20.0, matc
 def track_loss_rate(estimate: Tensor, truth: Tensor, *, threshold: float = 20.0,
                     match: bool = False) -> Tensor:
     """Track loss rate (TLR), paper 000 sec. VI: the fraction of runs that lost track
-    (:func:`track_loss`). Returns a scalar tensor in [0, 1]."""
+    (:func:`track_loss`). Returns a scalar tensor in [0, 1].
+    """
     return track_loss(estimate, truth, threshold=threshold, match=match).float().mean()
 
 

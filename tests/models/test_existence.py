@@ -7,9 +7,8 @@ import torch
 
 from torchmcmcpf.models import ConstantVelocity
 from torchmcmcpf.models.existence import BirthDeath
-from torchmcmcpf.state import existence_estimate
 from torchmcmcpf.models.sensors.points import PointFrame
-from torchmcmcpf.state import ParticleState
+from torchmcmcpf.state import ParticleState, existence_estimate
 
 AREA = ((0.0, 1000.0), (0.0, 500.0))
 

@@ -7,8 +7,6 @@ dims ``(*S, K, D)`` and reduces only trailing ones, so one model serves particle
 
 from __future__ import annotations
 
-from typing import Optional
-
 import torch
 from torch import nn
 
@@ -62,9 +60,9 @@ class SensorModel(nn.Module):
     """
 
     #: trailing shape of one run's measurement; ``None`` entries match any size
-    frame_shape: tuple[Optional[int], ...] = ()
+    frame_shape: tuple[int | None, ...] = ()
 
-    def log_likelihood(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """``log p(z | x)`` up to terms that do not depend on ``x``.
 
         Parameters
@@ -80,26 +78,28 @@ class SensorModel(nn.Module):
         raise NotImplementedError
 
     def simulate(
-        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+        self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
     ) -> Tensor:
         """Draw one frame per run from the true states ``x (B, K, D)``: ``-> (B, *G)``."""
         raise NotImplementedError
 
     # -- declared fast paths (optional; the defaults are exact and always available) -------
-    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Per-target terms ``(B, *S, K)`` with ``log_likelihood == per_target.sum(-1)``, term n
         depending on ``x[..., n, :]`` only. Only sensors whose targets do not interact
-        override it (then :attr:`separable` is True); the default raises."""
+        override it (then :attr:`separable` is True); the default raises.
+        """
         raise NotImplementedError(f"{type(self).__name__} has no per-target log-likelihood terms")
 
     @property
     def separable(self) -> bool:
         """Whether this sensor overrides :meth:`log_likelihood_per_target` (decided by method,
-        static under ``torch.compile``)."""
+        static under ``torch.compile``).
+        """
         return type(self).log_likelihood_per_target is not SensorModel.log_likelihood_per_target
 
-    def log_likelihood_delta(self, x: Tensor, x_n: Tensor, n, z: Tensor, exists: Optional[Tensor] = None,
-                             exists_n: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_delta(self, x: Tensor, x_n: Tensor, n, z: Tensor, exists: Tensor | None = None,
+                             exists_n: Tensor | None = None) -> Tensor:
         """``log p(z | x with slot n set to x_n (, e_n)) - log p(z | x (, e))``: ``(B, *S)``.
 
         Parameters
@@ -116,10 +116,11 @@ class SensorModel(nn.Module):
         return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)
 
     def log_likelihood_slot(self, x: Tensor, x_n: Tensor, n, z: Tensor, log_lik: Tensor,
-                            exists: Optional[Tensor] = None, exists_n: Optional[Tensor] = None) -> Tensor:
+                            exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
         """``log p(z | x with slot n set to x_n)`` given ``log_lik = log p(z | x)`` ``(B, *S)``
         (arguments as :meth:`log_likelihood_delta`): ``log_lik + delta`` when the sensor
-        overrides :meth:`log_likelihood_delta`, else one full evaluation of the new state."""
+        overrides :meth:`log_likelihood_delta`, else one full evaluation of the new state.
+        """
         if type(self).log_likelihood_delta is not SensorModel.log_likelihood_delta:
             return log_lik + self.log_likelihood_delta(x, x_n, n, z, exists=exists, exists_n=exists_n)
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
@@ -128,10 +129,11 @@ class SensorModel(nn.Module):
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
         """Check a state ``(B, *S, K, D)`` for values this sensor cannot score (eager, at the
         door). The default accepts every finite state; grid sensors refuse a negative
-        signal (amplitude or power)."""
+        signal (amplitude or power).
+        """
         return x
 
-    def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:
+    def validate(self, z: Tensor, batch_size: int | None = None, name: str = "z") -> Tensor:
         """Check one frame ``z (B, *G)``: shape, batch size, finite values. Returns ``z``."""
         check_shape(z, name, (None,) + tuple(self.frame_shape))
         if batch_size is not None:
@@ -139,8 +141,8 @@ class SensorModel(nn.Module):
         return check_finite(z, name)
 
 
-def _set_slot(x: Tensor, x_n: Tensor, n, exists: Optional[Tensor], exists_n: Optional[Tensor]
-              ) -> tuple[Tensor, Optional[Tensor]]:
+def _set_slot(x: Tensor, x_n: Tensor, n, exists: Tensor | None, exists_n: Tensor | None
+              ) -> tuple[Tensor, Tensor | None]:
     """``x`` with slot ``n`` (int, or (B, *S) int64) set to ``x_n (B, *S, D)`` (and its flag)."""
     slots = torch.arange(x.shape[-2], device=x.device)
     here = slots == (n.unsqueeze(-1) if torch.is_tensor(n) else n)  # (B, *S, K) or (K,)

@@ -39,14 +39,14 @@ Filters propagate ``(x, exists)`` jointly with one call, :meth:`BirthDeath.propo
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 from torch import nn
 
 from .._validation import check_positive
 from ..resampling import cdf, inverse_cdf
-from ..typing import Tensor, VX, VY, X, Y
+from ..typing import VX, VY, Tensor, X, Y
 from .base import MotionModel
 from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area
@@ -57,16 +57,18 @@ __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
 class BirthNoise(NamedTuple):
     """Pre-drawn existence noise for every slot: ``u (*S, K)`` uniforms for
     ``e'_n ~ p(. | e_n)``, newborn candidates ``x (*S, K, D)`` from the birth proposal
-    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``."""
+    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``.
+    """
 
     u: Tensor
     x: Tensor
     log_ratio: Tensor
 
     @classmethod
-    def draw(cls, x: Tensor, existence: "BirthDeath", z, *, generator: torch.Generator) -> "BirthNoise":
+    def draw(cls, x: Tensor, existence: BirthDeath, z, *, generator: torch.Generator) -> BirthNoise:
         """Draw for slots shaped like ``x (B, *S, K, D)`` (dtype and device of ``x``); births
-        near the points of ``z`` when ``existence`` draws them so."""
+        near the points of ``z`` when ``existence`` draws them so.
+        """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device)
@@ -107,8 +109,8 @@ class BirthDeath(nn.Module):
         *,
         velocity_std: float,
         dim: int = 4,
-        x_death: Optional[Tensor] = None,
-        birth_std: Optional[float] = None,
+        x_death: Tensor | None = None,
+        birth_std: float | None = None,
         p_uniform: float = 0.01,
     ):
         super().__init__()
@@ -133,7 +135,8 @@ class BirthDeath(nn.Module):
     # -- the existence chain (paper 004 eq. 25) ------------------------------------------
     def stationary(self) -> float:
         """Stationary existence probability ``P_B / (P_B + P_D)`` of one slot (1/2 when
-        ``P_B = P_D = 0``, where every distribution is stationary)."""
+        ``P_B = P_D = 0``, where every distribution is stationary).
+        """
         total = self.p_birth + self.p_death
         return 0.5 if total == 0 else self.p_birth / total
 
@@ -158,7 +161,8 @@ class BirthDeath(nn.Module):
 
     def birth_log_prob(self, x: Tensor) -> Tensor:
         """``log p_0(x)`` of a newborn, eq. 33: ``(*S, K, D) -> (*S, K)`` (the components
-        beyond ``[x, vx, y, vy]`` are fixed to ``x_death`` and not scored)."""
+        beyond ``[x, vx, y, vy]`` are fixed to ``x_death`` and not scored).
+        """
         pos = torch.stack([x[..., X], x[..., Y]], -1)
         vel = torch.stack([x[..., VX], x[..., VY]], -1)
         s = self.velocity_std
@@ -177,10 +181,11 @@ class BirthDeath(nn.Module):
         x, _ = self._draw_births(tuple(shape), None, generator=generator, dtype=dtype, device=device)
         return x
 
-    def _draw_births(self, shape, z: Optional[PointMeasurement], *, generator: torch.Generator,
+    def _draw_births(self, shape, z: PointMeasurement | None, *, generator: torch.Generator,
                      dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
-        ``(*shape)``; ``shape = (B, *S, K)``."""
+        ``(*shape)``; ``shape = (B, *S, K)``.
+        """
         a = self.area.to(dtype)
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         pos = a[:, 0] + (a[:, 1] - a[:, 0]) * u
@@ -248,7 +253,7 @@ class BirthDeath(nn.Module):
         log_x = torch.where(born, self.birth_log_prob(x_next), log_x)
         return log_e + log_x
 
-    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: "BirthNoise", *, motion: MotionModel
+    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: BirthNoise, *, motion: MotionModel
                   ) -> tuple[Tensor, Tensor, Tensor]:
         """The birth/death law from pre-drawn noise (the one implementation every filter and
         move uses): ``e_k ~ p(e_k | e_{k-1})`` (eq. 25) by ``birth.u < p(e_k = 1 | e_{k-1})``,
@@ -274,7 +279,7 @@ class BirthDeath(nn.Module):
         return x_next, exists_next, torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
 
     def propose(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator,
-                z: Optional[PointMeasurement] = None) -> tuple[Tensor, Tensor, Tensor]:
+                z: PointMeasurement | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Draw the noise and propagate every slot (:meth:`propagate`): newborns from the
         birth proposal (``q_0`` near the points of ``z`` when ``birth_std`` is set and ``z``
         given, else ``p_0``).
@@ -292,11 +297,12 @@ class BirthDeath(nn.Module):
         eps, birth = self.draw_noise(x, motion, z, generator=generator)
         return self.propagate(x, exists, eps, birth, motion=motion)
 
-    def draw_noise(self, x: Tensor, motion: MotionModel, z: Optional[PointMeasurement] = None, *,
-                   generator: torch.Generator) -> tuple[Tensor, "BirthNoise"]:
+    def draw_noise(self, x: Tensor, motion: MotionModel, z: PointMeasurement | None = None, *,
+                   generator: torch.Generator) -> tuple[Tensor, BirthNoise]:
         """The noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise
         ``(B, *S, K, noise_dim)`` and :class:`BirthNoise` (existence uniforms, then motion
-        noise, then birth candidates: the order every filter draws in)."""
+        noise, then birth candidates: the order every filter draws in).
+        """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         eps = torch.randn(shape + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
@@ -306,7 +312,8 @@ class BirthDeath(nn.Module):
     def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator
                ) -> tuple[Tensor, Tensor]:
         """Draw ``(x_k, e_k) ~ p(. | x_{k-1}, e_{k-1})`` from the prior (births from ``p_0``):
-        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``."""
+        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``.
+        """
         x_next, exists_next, _ = self.propose(x, exists, motion=motion, generator=generator)
         return x_next, exists_next
 
@@ -327,23 +334,25 @@ class TargetDynamics(NamedTuple):
     """
 
     motion: MotionModel
-    existence: Optional[BirthDeath] = None
+    existence: BirthDeath | None = None
 
-    def draw_noise(self, x: Tensor, z=None, *, generator: torch.Generator) -> tuple[Tensor, Optional[BirthNoise]]:
+    def draw_noise(self, x: Tensor, z=None, *, generator: torch.Generator) -> tuple[Tensor, BirthNoise | None]:
         """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise and, with
         births and deaths, :class:`BirthNoise` (births near the points of ``z`` when the
-        model draws them so)."""
+        model draws them so).
+        """
         if self.existence is None:
             eps = torch.randn(x.shape[:-1] + (self.motion.noise_dim,), generator=generator, device=x.device,
                               dtype=x.dtype)
             return eps, None
         return self.existence.draw_noise(x, self.motion, z, generator=generator)
 
-    def propagate(self, x: Tensor, exists: Optional[Tensor], eps: Tensor, birth: Optional[BirthNoise]
-                  ) -> tuple[Tensor, Optional[Tensor], Tensor]:
+    def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None
+                  ) -> tuple[Tensor, Tensor | None, Tensor]:
         """``(x, exists) -> (x', exists', log_ratio (B, *S, K))`` from pre-drawn noise (pure):
         :meth:`BirthDeath.propagate`, or the motion with the flags unchanged and
-        ``log_ratio = 0``."""
+        ``log_ratio = 0``.
+        """
         if self.existence is None:
             return self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
         if exists is None:

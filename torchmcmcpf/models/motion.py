@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import torch
 
@@ -67,7 +66,7 @@ class LinearGaussianMotion(MotionModel):
         return self._log_norm - 0.5 * white.square().sum(-1)
 
 
-def cv_matrices(dt: float, q: float, amplitude_q: Optional[float] = None, dtype=None):
+def cv_matrices(dt: float, q: float, amplitude_q: float | None = None, dtype=None):
     """F and Q of paper 000 eqs. 16-17 for ``[x, vx, y, vy(, rho)]``.
 
     ``F = diag(F1, F1(, 1))`` with ``F1 = [[1, T], [0, 1]]``;
@@ -98,7 +97,7 @@ class ConstantVelocity(LinearGaussianMotion):
     amplitude_q : random-walk level ``a_rho`` of the amplitude; ``None`` for no amplitude.
     """
 
-    def __init__(self, dt: float = 1.0, q: float = 1.0, amplitude_q: Optional[float] = None):
+    def __init__(self, dt: float = 1.0, q: float = 1.0, amplitude_q: float | None = None):
         check_positive(dt, "dt")
         check_positive(q, "q")
         if amplitude_q is not None:

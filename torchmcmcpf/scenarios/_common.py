@@ -3,14 +3,14 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import torch
 
 from .._validation import check_generator, check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
-from ..typing import RHO, VX, VY, X, Y, Tensor
+from ..typing import RHO, VX, VY, Tensor, X, Y
 
 __all__ = ["Scenario", "cover"]
 
@@ -97,7 +97,8 @@ class Scenario:
 
 def cover(lo: float, hi: float, cell: float) -> tuple[float, float]:
     """First and last centre of the fewest cells of size ``cell`` whose centres span
-    ``[lo, hi]``, placed symmetrically about its midpoint."""
+    ``[lo, hi]``, placed symmetrically about its midpoint.
+    """
     n = math.ceil((hi - lo) / cell - 1e-9) + 1
     first = 0.5 * (lo + hi) - 0.5 * (n - 1) * cell
     return first, first + (n - 1) * cell

@@ -24,7 +24,7 @@ association is unknown to the filter.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
@@ -40,7 +40,7 @@ from ..models.sensors.association import (
     shuffle,
 )
 from ..state import ParticleState
-from ..typing import Tensor, VX, VY, X, Y
+from ..typing import VX, VY, Tensor, X, Y
 
 __all__ = [
     "WhiteAccelerationMotion",
@@ -74,7 +74,8 @@ def alive_schedule(num_steps: int) -> Tensor:
 
 def paper_sensor(observation: str) -> AssociationSensor:
     """The sensor of paper 003: ``"linear"`` (eq. 14, s_obs = 1) or ``"bearing_range"``
-    (eq. 15, s_theta = 1e-2, s_r = 1)."""
+    (eq. 15, s_theta = 1e-2, s_r = 1).
+    """
     if observation == "linear":
         return AssociationPosition(1.0)
     if observation == "bearing_range":
@@ -116,7 +117,7 @@ def simulate(
     *,
     sensor: AssociationSensor,
     generator: torch.Generator,
-    motion: Optional[MotionModel] = None,
+    motion: MotionModel | None = None,
     dtype: torch.dtype = torch.float64,
     device=None,
 ) -> MaroulasData:
@@ -188,7 +189,7 @@ class TrackResult(NamedTuple):
 
     mean: Tensor
     ess: Tensor
-    acceptance: Optional[Tensor]
+    acceptance: Tensor | None
 
 
 def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
