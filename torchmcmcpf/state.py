@@ -33,8 +33,9 @@ def summary(value: Any) -> str:
     return repr(value)
 
 
-def _short_repr(self) -> str:
-    return f"{type(self).__name__}(" + ", ".join(f"{f}={summary(getattr(self, f))}" for f in self._fields) + ")"
+def _short_repr(value: Any) -> str:
+    """``Name(field=summary, ...)`` of a NamedTuple."""
+    return f"{type(value).__name__}(" + ", ".join(f"{f}={summary(getattr(value, f))}" for f in value._fields) + ")"
 
 
 class ParticleState(NamedTuple):
@@ -56,18 +57,22 @@ class ParticleState(NamedTuple):
     log_w: Tensor
     exists: Tensor | None = None
 
-    __repr__ = _short_repr
+    def __repr__(self) -> str:
+        return _short_repr(self)
 
     @property
     def batch_size(self) -> int:
+        """B, the number of independent runs (``x.shape[0]``)."""
         return self.x.shape[0]
 
     @property
     def num_particles(self) -> int:
+        """N, the number of particles per run (``x.shape[1]``)."""
         return self.x.shape[1]
 
     @property
     def num_targets(self) -> int:
+        """K, the number of target slots (``x.shape[2]``)."""
         return self.x.shape[2]
 
     def mean(self) -> Tensor:
@@ -102,7 +107,8 @@ class StepInfo(NamedTuple):
     acceptance: Tensor
     extras: dict
 
-    __repr__ = _short_repr
+    def __repr__(self) -> str:
+        return _short_repr(self)
 
     @staticmethod
     def make(template: Tensor, *, ess: Tensor | None = None, log_evidence: Tensor | None = None,
@@ -138,7 +144,8 @@ class FilterResult(NamedTuple):
     log_evidence: Tensor
     exists_prob: Tensor | None = None
 
-    __repr__ = _short_repr
+    def __repr__(self) -> str:
+        return _short_repr(self)
 
     def to_numpy(self) -> dict[str, Any]:
         """The result as a flat dict of NumPy arrays (for pandas / xarray): ``"mean"``,

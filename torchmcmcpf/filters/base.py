@@ -303,4 +303,5 @@ class Filter(nn.Module):
         )
 
     def extra_repr(self) -> str:
+        """Particle count, settings and compile flag, shown inside ``repr(filter)``."""
         return f"num_particles={self.num_particles}, settings={self.settings}, compile_step={self.compile_step}"

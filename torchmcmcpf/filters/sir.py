@@ -54,9 +54,9 @@ def sir_kernel(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, 
     Parameters
     ----------
     x : (B, N, K, D); log_w : (B, N) normalised; exists : (B, N, K) bool or None.
-    z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling uniforms (``(B, 1)`` systematic, ``(B, N)``
-    otherwise); eps : (B, N, K, noise_dim) motion noise; birth : :class:`BirthNoise` for
-    ``(B, N)`` (with ``existence``) or None.
+    z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling
+    uniforms (``(B, 1)`` systematic, ``(B, N)`` otherwise); eps : (B, N, K, noise_dim)
+    motion noise; birth : :class:`BirthNoise` for ``(B, N)`` (with ``existence``) or None.
 
     Returns
     -------

@@ -318,6 +318,7 @@ class BirthDeath(nn.Module):
         return x_next, exists_next
 
     def extra_repr(self) -> str:
+        """The model parameters, shown inside ``repr(module)``."""
         return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
                 f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
 

@@ -107,6 +107,7 @@ class ConstantVelocity(LinearGaussianMotion):
         self.dt, self.q, self.amplitude_q = float(dt), float(q), amplitude_q
 
     def extra_repr(self) -> str:
+        """The constructor arguments, shown inside ``repr(module)``."""
         return f"dt={self.dt}, q={self.q}, amplitude_q={self.amplitude_q}"
 
 
@@ -147,9 +148,17 @@ class WhiteAccelerationMotion(MotionModel):
         return self.mean(x) + eps @ self.G.to(x.dtype).mT
 
     def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
+        """Not defined: the 4-D transition is driven by 2-D noise, so it has no density.
+
+        Raises
+        ------
+        NotImplementedError
+            Always; use :meth:`propagate` (or move the noise, as paper 003's HMC does).
+        """
         raise NotImplementedError("the transition of paper 003 eq. 11 is rank 2 in 4-D: no density")
 
     def extra_repr(self) -> str:
+        """The constructor arguments, shown inside ``repr(module)``."""
         return f"dt={self.dt}"
 
 
