@@ -67,10 +67,10 @@ PointMeasurement = Tensor | PointFrame | tuple[Any, ...]
 
 def split_points(z: PointMeasurement) -> tuple[Tensor, Tensor | None]:
     """``(z (B, M, d), mask (B, M) or None)`` of a point measurement."""
-    if torch.is_tensor(z):
+    if isinstance(z, torch.Tensor):
         return z, None
-    z, mask = z
-    return z, mask
+    points, mask = z
+    return points, mask
 
 
 __all__ = ["Tensor", "Generator", "Measurement", "PointFrame", "PointMeasurement", "split_points", "X", "VX", "Y",
