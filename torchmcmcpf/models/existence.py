@@ -39,6 +39,7 @@ Filters propagate ``(x, exists)`` jointly with one call, :meth:`BirthDeath.propo
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -65,7 +66,8 @@ class BirthNoise(NamedTuple):
     log_ratio: Tensor
 
     @classmethod
-    def draw(cls, x: Tensor, existence: BirthDeath, z, *, generator: torch.Generator) -> BirthNoise:
+    def draw(cls, x: Tensor, existence: BirthDeath, z: PointMeasurement | None, *,
+             generator: torch.Generator) -> BirthNoise:
         """Draw for slots shaped like ``x (B, *S, K, D)`` (dtype and device of ``x``); births
         near the points of ``z`` when ``existence`` draws them so.
         """
@@ -75,7 +77,7 @@ class BirthNoise(NamedTuple):
         return cls(u, born, log_ratio)
 
 
-def _probability(value, name: str) -> float:
+def _probability(value: float, name: str) -> float:
     v = float(value)
     if not 0.0 <= v <= 1.0:
         raise ValueError(f"{name} must be a probability in [0, 1], got {value!r}")
@@ -101,6 +103,10 @@ class BirthDeath(nn.Module):
         proposal (paper 004 uses 1e-2).
     """
 
+    x_death: Tensor
+    area: Tensor
+    birth_std: float | None
+
     def __init__(
         self,
         p_birth: float,
@@ -112,7 +118,7 @@ class BirthDeath(nn.Module):
         x_death: Tensor | None = None,
         birth_std: float | None = None,
         p_uniform: float = 0.01,
-    ):
+    ) -> None:
         super().__init__()
         self.p_birth = _probability(p_birth, "p_birth")
         self.p_death = _probability(p_death, "p_death")
@@ -147,9 +153,15 @@ class BirthDeath(nn.Module):
 
     def log_prob_exists(self, exists_next: Tensor, exists: Tensor) -> Tensor:
         """``log p(e_k | e_{k-1})`` per slot, eq. 25: ``(*S, K), (*S, K) -> (*S, K)``."""
-        f64 = dict(dtype=torch.float64, device=exists.device)
-        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
+        p_on = self._p_on(exists)
         return torch.where(exists_next, p_on, 1.0 - p_on).log()
+
+    def _p_on(self, exists: Tensor) -> Tensor:
+        """``p(e_k = 1 | e_{k-1})`` per slot, float64 ``(*S, K)``."""
+        def f64(p: float) -> Tensor:
+            return torch.tensor(p, dtype=torch.float64, device=exists.device)
+
+        return torch.where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
 
     # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
     def _in_area(self, pos: Tensor) -> Tensor:
@@ -175,14 +187,14 @@ class BirthDeath(nn.Module):
         x[..., VX], x[..., VY] = self.velocity_std * vel_eps[..., 0], self.velocity_std * vel_eps[..., 1]
         return x
 
-    def sample_birth(self, shape, *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-                     device=None) -> Tensor:
+    def sample_birth(self, shape: Sequence[int], *, generator: torch.Generator,
+                     dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Tensor:
         """Draw newborn states from ``p_0`` (eqs. 32-33): ``-> (*shape, D)``."""
         x, _ = self._draw_births(tuple(shape), None, generator=generator, dtype=dtype, device=device)
         return x
 
-    def _draw_births(self, shape, z: PointMeasurement | None, *, generator: torch.Generator,
-                     dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+    def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
+                     dtype: torch.dtype, device: torch.device | str | None) -> tuple[Tensor, Tensor]:
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
         ``(*shape)``; ``shape = (B, *S, K)``.
         """
@@ -210,14 +222,15 @@ class BirthDeath(nn.Module):
                                                      device=device, dtype=dtype)
         use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)
         pos = torch.where(use_near.unsqueeze(-1), near, pos)
-        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask)
+        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
 
-    def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor) -> Tensor:
-        """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue)."""
+    def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
+        """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
+        ``s`` the birth standard deviation.
+        """
         b, m = mask.shape
         lead = (b,) + (1,) * (pos.dim() - 2)
         zb = pts.reshape(lead[:-1] + (1, m, 2))  # (B, 1.., 1, M, 2)
-        s = self.birth_std
         d2 = (pos.unsqueeze(-2) - zb).square().sum(-1) / s**2  # (B, *S, K, M)
         log_g = -0.5 * d2 - 2 * math.log(s) - math.log(2 * math.pi)
         mk = mask.reshape(lead[:-1] + (1, m))
@@ -270,8 +283,7 @@ class BirthDeath(nn.Module):
         x_next : (*S, K, D); exists_next : (*S, K) bool;
         log_ratio : (*S, K) ``log p_0(x) - log q_0(x)`` of each newborn slot, 0 elsewhere.
         """
-        f64 = dict(dtype=torch.float64, device=exists.device)
-        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
+        p_on = self._p_on(exists)
         exists_next = birth.u.to(torch.float64) < p_on
         born = exists_next & ~exists
         x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
@@ -337,7 +349,8 @@ class TargetDynamics(NamedTuple):
     motion: MotionModel
     existence: BirthDeath | None = None
 
-    def draw_noise(self, x: Tensor, z=None, *, generator: torch.Generator) -> tuple[Tensor, BirthNoise | None]:
+    def draw_noise(self, x: Tensor, z: PointMeasurement | None = None, *, generator: torch.Generator
+                   ) -> tuple[Tensor, BirthNoise | None]:
         """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise and, with
         births and deaths, :class:`BirthNoise` (births near the points of ``z`` when the
         model draws them so).
@@ -358,4 +371,6 @@ class TargetDynamics(NamedTuple):
             return self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
         if exists is None:
             exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+        if birth is None:
+            raise ValueError("birth is None; a model with births and deaths needs the BirthNoise of draw_noise")
         return self.existence.propagate(x, exists, eps, birth, motion=self.motion)
