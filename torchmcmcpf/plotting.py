@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -80,7 +81,7 @@ def plot_tracks(
     tr = _tracks(truth, run, "truth")
     k = tr.shape[1]
     colors = [f"C{j % 10}" for j in range(k)]
-    out = {"truth": [], "estimate": [], "start": [], "followed": []}
+    out: dict[str, Any] = {"truth": [], "estimate": [], "start": [], "followed": []}
     for j in range(k):  # one artist per target: plotting, not computation
         (line,) = ax.plot(tr[:, j, X], tr[:, j, Y], "-", color=colors[j], lw=1.5,
                           label=truth_label if j == 0 else None, **(truth_style or {}))

@@ -66,6 +66,7 @@ import argparse
 import contextlib
 import importlib
 import json
+import logging
 import math
 import os
 import platform
@@ -449,11 +450,11 @@ def _compute_shard(module_name: str, cfg: dict, seed: int, index: int, start: in
     the filters' own bars (only for a lone shard in this process; else one bar over shards).
     """
     module = importlib.import_module(module_name)
-    device = torch.device(device)
+    dev = torch.device(device)
     with _num_threads(threads):
         t0 = time.perf_counter()
-        per_run, seconds = module.run_shard(cfg, range(start, stop), generator=shard_generator(device, seed, index),
-                                            device=device, progress=progress)
+        per_run, seconds = module.run_shard(cfg, range(start, stop), generator=shard_generator(dev, seed, index),
+                                            device=dev, progress=progress)
         wall = time.perf_counter() - t0
         used = torch.get_num_threads()
     for key, value in per_run.items():
@@ -518,9 +519,9 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
         env = {"env_vars": {"PYTHONPATH": os.pathsep.join(filter(None, [_package_root(),
                                                                         os.environ.get("PYTHONPATH")]))}}
         if getattr(args, "ray_address", None):
-            ray.init(address=args.ray_address, logging_level="ERROR", log_to_driver=False)
+            ray.init(address=args.ray_address, logging_level=logging.ERROR, log_to_driver=False)
         else:
-            ray.init(num_cpus=args.workers, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
+            ray.init(num_cpus=args.workers, include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False,
                      runtime_env=env)
         started = True
     try:
@@ -530,7 +531,8 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
             raise ShardError(f"{name}: the Ray cluster has {have.get('CPU', 0):g} CPUs and {have.get('GPU', 0):g} "
                              f"GPUs; each shard needs 1 CPU and {gpus:g} GPUs (--gpus-per-shard)")
         task = ray.remote(_compute_shard).options(num_cpus=1, num_gpus=gpus, max_retries=0)
-        queue, running = list(todo), {}
+        queue = list(todo)
+        running: dict[Any, tuple[int, range, str]] = {}  # Ray ObjectRef -> shard
         while queue or running:
             while queue and len(running) < args.workers:
                 index, runs, key = queue.pop(0)

@@ -93,7 +93,7 @@ def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
-def _births(x: Tensor, existence: BirthDeath | None, z: Measurement, generator: torch.Generator
+def _births(x: Tensor, existence: BirthDeath | None, z: Measurement | None, generator: torch.Generator
             ) -> BirthNoise | None:
     return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
 

@@ -228,6 +228,9 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
     cand = _joint_candidate(cloud, noise, z, motion, sensor, existence)
     log_alpha = cand.log_lik - chain.log_lik  # the prior parts cancel (eq. 60, P_a = 0)
     if existence is not None:
+        if chain.log_birth is None or cand.log_birth is None:
+            raise ValueError("chain.log_birth is None but existence is given: start the chains with "
+                             "init_chains(..., existence=existence)")
         log_alpha = log_alpha + cand.log_birth.sum(-1) - chain.log_birth.sum(-1)
     accepted = mh_accept(log_alpha, noise.u)
     return mh_select(accepted, cand, chain), accepted
@@ -269,8 +272,9 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
 
 
 def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_birth: Tensor | None, x_prop: Tensor,
-                e_prop: Tensor | None, birth_prop: Tensor | None, log_ratio: Tensor, u: Tensor, n,
-                z: Measurement, *, sensor: SensorModel) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
+                e_prop: Tensor | None, birth_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
+                n: int | Tensor, z: Measurement, *, sensor: SensorModel
+                ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
     """The MH update of one slot ``n`` of the sequential sweep (pure; the unit the
     ``compile_step`` of the MCMC filter compiles, once for every slot).
 
@@ -285,8 +289,10 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_birth: Tensor 
     -------
     x, log_lik, e, log_birth : the chains after the update; accepted : (B, C) bool.
     """
+    if e is not None and (e_prop is None or birth_prop is None or log_birth is None):
+        raise ValueError("with existence flags e, e_prop, birth_prop and log_birth must be given too")
     slots = torch.arange(x.shape[-2], device=x.device)
-    if torch.is_tensor(n):
+    if isinstance(n, torch.Tensor):
         here = slots == n.unsqueeze(-1)  # (B, C, K)
 
         def pick(t: Tensor) -> Tensor:
@@ -300,11 +306,11 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_birth: Tensor 
     x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
     # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
     log_lik_cand = sensor.log_likelihood_slot(x, pick(x_prop), n, z, log_lik, exists=e,
-                                              exists_n=None if e is None else pick(e_prop))
+                                              exists_n=None if e is None or e_prop is None else pick(e_prop))
     acc = mh_accept(log_lik_cand - log_lik + pick(log_ratio), pick(u))
     x = mh_select(acc, x_cand, x)
     log_lik = torch.where(acc, log_lik_cand, log_lik)
-    if e is not None:
+    if e is not None and e_prop is not None and birth_prop is not None and log_birth is not None:
         e = mh_select(acc, torch.where(here, e_prop, e), e)
         log_birth = torch.where(acc.unsqueeze(-1) & here, birth_prop, log_birth)
     return x, log_lik, e, log_birth, acc
