@@ -79,8 +79,8 @@ def test_plot_cardinality(ax):
 
 def test_plot_frame_sums_over_doppler(ax, gen):
     frame = torch.rand(5, 4, 3, generator=gen, dtype=torch.float64)
-    mesh = plot_frame(ax, frame, range_bins=torch.arange(5) * 10.0, bearing_bins=torch.zeros(3) + torch.arange(3) * 0.01,
-                      colorbar=True)
+    mesh = plot_frame(ax, frame, range_bins=torch.arange(5) * 10.0,
+                      bearing_bins=torch.zeros(3) + torch.arange(3) * 0.01, colorbar=True)
     np.testing.assert_allclose(np.asarray(mesh.get_array()).reshape(5, 3), frame.sum(1).numpy())
     assert ax.get_xlabel() == "bearing [deg]"
     with pytest.raises(ValueError, match="frame"):

@@ -16,7 +16,7 @@ import argparse
 import shlex
 import sys
 import time
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 from .experiments._common import (
     StepTimer,
@@ -37,7 +37,8 @@ FILTER_NAMES = {"ipmcmc": "IP-MCMC-PF", "sir": "SIR PF"}
 
 def _build_filter(args: argparse.Namespace, scenario):
     """The demo's filters: IP-MCMC-PF with paper 000's 50 chains and burn-in 100 (by
-    default), or the SIR baseline."""
+    default), or the SIR baseline.
+    """
     from .filters import IPMCMCFilter, SIRFilter
 
     if args.filter == "sir":
@@ -109,10 +110,10 @@ def _demo(args: argparse.Namespace) -> dict:
 
     matplotlib.use("Agg")
 
+    import torch
+
     from .metrics import position_rmse, track_loss
     from .scenarios import ground_radar
-
-    import torch
 
     out = prepare_out(args.out, DEMO_OUTPUTS)
     if args.threads:
@@ -231,7 +232,7 @@ def _bench(args: argparse.Namespace) -> dict:
     return {}
 
 
-def main(argv: Optional[Sequence[str]] = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m torchmcmcpf`` and of the ``torchmcmcpf`` script.
 
     Returns 0 on success (results are in the output directory's ``metrics.json``);

@@ -7,14 +7,14 @@ never inside a step function's hot path.
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 import torch
 
 from .typing import Tensor
 
 
-def _fmt(shape: Sequence[Optional[int]]) -> str:
+def _fmt(shape: Sequence[int | None]) -> str:
     return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
 
 
@@ -24,7 +24,7 @@ def check_tensor(value, name: str) -> Tensor:
     return value
 
 
-def check_shape(t: Tensor, name: str, expected: Sequence[Optional[int]]) -> Tensor:
+def check_shape(t: Tensor, name: str, expected: Sequence[int | None]) -> Tensor:
     """Check ``t.shape`` against ``expected`` (``None`` matches any size)."""
     check_tensor(t, name)
     ok = t.dim() == len(expected) and all(e is None or s == e for s, e in zip(t.shape, expected))

@@ -24,7 +24,7 @@ from typing import NamedTuple
 import torch
 
 from ._validation import check_finite, check_positive, check_shape, check_tensor
-from .typing import X, Y, Tensor
+from .typing import Tensor, X, Y
 
 __all__ = [
     "RMSE",
@@ -76,7 +76,7 @@ def position_error(estimate: Tensor, truth: Tensor) -> Tensor:
 
 
 def position_rmse(estimate: Tensor, truth: Tensor, *, match: bool = False) -> RMSE:
-    """Position RMSE over runs, time and targets, Ling (2012) paper 002 eq. 16:
+    """Position RMSE over runs, time and targets (Ling 2012, paper 002 eq. 16).
 
     ``RMSE = sqrt( 1/(I E K) sum_i sum_k sum_j (x - x_hat)^2 + (y - y_hat)^2 )``
 
@@ -129,7 +129,8 @@ def track_loss(estimate: Tensor, truth: Tensor, *, threshold: float = 20.0, matc
 def track_loss_rate(estimate: Tensor, truth: Tensor, *, threshold: float = 20.0,
                     match: bool = False) -> Tensor:
     """Track loss rate (TLR), paper 000 sec. VI: the fraction of runs that lost track
-    (:func:`track_loss`). Returns a scalar tensor in [0, 1]."""
+    (:func:`track_loss`). Returns a scalar tensor in [0, 1].
+    """
     return track_loss(estimate, truth, threshold=threshold, match=match).float().mean()
 
 
@@ -415,8 +416,9 @@ def ospa(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | Non
 
 def gospa(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | None = None,
           y_mask: Tensor | None = None) -> Tensor:
-    """GOSPA distance with ``alpha = 2`` (Rahmathullah, Garcia-Fernandez and Svensson 2017,
-    eq. 2): for ``|X| = m <= n = |Y|``::
+    """GOSPA distance with ``alpha = 2`` (Rahmathullah, Garcia-Fernandez and Svensson 2017).
+
+    Eq. 2, for ``|X| = m <= n = |Y|``::
 
         d_p^(c,2)(X, Y) = ( min_pi sum_{i<=m} min(c, |x_i - y_pi(i)|)^p + (c^p / 2) (n - m) )^(1/p),
 

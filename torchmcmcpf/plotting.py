@@ -11,7 +11,8 @@ Positions follow the state layout ``[x, vx, y, vy, ...]`` (x at index 0, y at in
 from __future__ import annotations
 
 import math
-from typing import Mapping, Optional, Sequence, Union
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -20,7 +21,7 @@ from .typing import X, Y
 
 __all__ = ["plot_tracks", "plot_particles", "plot_rmse", "plot_cardinality", "plot_frame"]
 
-ArrayLike = Union[torch.Tensor, np.ndarray, Sequence[float]]
+ArrayLike = torch.Tensor | np.ndarray | Sequence[float]
 
 
 def _np(a: ArrayLike) -> np.ndarray:
@@ -43,11 +44,11 @@ def _tracks(data: ArrayLike, run: int, name: str) -> np.ndarray:
 def plot_tracks(
     ax,
     truth: ArrayLike,
-    estimate: Optional[ArrayLike] = None,
+    estimate: ArrayLike | None = None,
     *,
     run: int = 0,
-    truth_style: Optional[dict] = None,
-    estimate_style: Optional[dict] = None,
+    truth_style: dict | None = None,
+    estimate_style: dict | None = None,
     mark_start: bool = True,
     legend: bool = True,
     truth_label: str = "truth",
@@ -80,7 +81,7 @@ def plot_tracks(
     tr = _tracks(truth, run, "truth")
     k = tr.shape[1]
     colors = [f"C{j % 10}" for j in range(k)]
-    out = {"truth": [], "estimate": [], "start": [], "followed": []}
+    out: dict[str, Any] = {"truth": [], "estimate": [], "start": [], "followed": []}
     for j in range(k):  # one artist per target: plotting, not computation
         (line,) = ax.plot(tr[:, j, X], tr[:, j, Y], "-", color=colors[j], lw=1.5,
                           label=truth_label if j == 0 else None, **(truth_style or {}))
@@ -111,7 +112,8 @@ def plot_tracks(
 
 def _followed(truth: np.ndarray, est: np.ndarray) -> list[int]:
     """For (T, K, D) truth and estimate: the true slot each estimated slot follows (optimal
-    assignment of the mean x-y distance over the frames where both are finite)."""
+    assignment of the mean x-y distance over the frames where both are finite).
+    """
     from .metrics import optimal_assignment
 
     d = np.linalg.norm(est[:, :, None, [X, Y]] - truth[:, None, :, [X, Y]], axis=-1)  # (T, K est, K true)
@@ -123,7 +125,7 @@ def _followed(truth: np.ndarray, est: np.ndarray) -> list[int]:
     return optimal_assignment(torch.as_tensor(cost)).tolist()
 
 
-def plot_particles(ax, particles: ArrayLike, *, weights: Optional[ArrayLike] = None, size: float = 2.0,
+def plot_particles(ax, particles: ArrayLike, *, weights: ArrayLike | None = None, size: float = 2.0,
                    alpha: float = 0.3, **kw) -> list:
     """Scatter a particle cloud in the x-y plane, one colour per target slot (paper 000 fig. 2).
 
@@ -154,7 +156,7 @@ def plot_particles(ax, particles: ArrayLike, *, weights: Optional[ArrayLike] = N
 TIME_LABEL = "time [s]"
 
 
-def plot_rmse(ax, rmse: Union[ArrayLike, Mapping[str, ArrayLike]], *, dt: float = 1.0,
+def plot_rmse(ax, rmse: ArrayLike | Mapping[str, ArrayLike], *, dt: float = 1.0,
               ylabel: str = "position RMSE [m]", xlabel: str = TIME_LABEL, **kw) -> list:
     """RMSE over time (paper 000 figs. 3 and 6).
 
@@ -185,7 +187,7 @@ def plot_rmse(ax, rmse: Union[ArrayLike, Mapping[str, ArrayLike]], *, dt: float 
     return lines
 
 
-def plot_cardinality(ax, true_count: ArrayLike, est_count: Union[ArrayLike, Mapping[str, ArrayLike]], *,
+def plot_cardinality(ax, true_count: ArrayLike, est_count: ArrayLike | Mapping[str, ArrayLike], *,
                      dt: float = 1.0, est_label: str = "estimated") -> list:
     """True and estimated number of targets over time.
 
@@ -219,8 +221,8 @@ def plot_cardinality(ax, true_count: ArrayLike, est_count: Union[ArrayLike, Mapp
     return [true_line, *lines]
 
 
-def plot_frame(ax, frame: ArrayLike, *, range_bins: Optional[ArrayLike] = None,
-               bearing_bins: Optional[ArrayLike] = None, degrees: bool = True, colorbar: bool = False,
+def plot_frame(ax, frame: ArrayLike, *, range_bins: ArrayLike | None = None,
+               bearing_bins: ArrayLike | None = None, degrees: bool = True, colorbar: bool = False,
                **kw):
     """Range-bearing image of one radar power frame, summed over doppler.
 

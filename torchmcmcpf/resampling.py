@@ -12,7 +12,7 @@ particle filtering"; Doucet and Johansen (2009), sec. 3.4.
 from __future__ import annotations
 
 import math
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import torch
 
@@ -111,7 +111,7 @@ def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
 
 
 
-def systematic(log_w: Tensor, u: Tensor, num_samples: Optional[int] = None) -> Tensor:
+def systematic(log_w: Tensor, u: Tensor, num_samples: int | None = None) -> Tensor:
     """Systematic resampling: one uniform per run, points ``(i + u) / M``.
 
     Parameters
@@ -179,7 +179,7 @@ def resample(
     method: str = "systematic",
     *,
     generator: torch.Generator,
-    num_samples: Optional[int] = None,
+    num_samples: int | None = None,
 ) -> Tensor:
     """Draw ancestor indices from ``(B, N)`` log-weights.
 

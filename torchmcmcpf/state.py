@@ -10,7 +10,7 @@ Their ``repr`` shows field names, shapes and dtypes, never tensor values.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import torch
 
@@ -22,7 +22,8 @@ __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "ex
 
 def summary(value: Any) -> str:
     """Short description of a field: ``float32(4, 100, 2, 4)`` for a tensor, recursively for
-    dicts and tuples, ``repr`` otherwise."""
+    dicts and tuples, ``repr`` otherwise.
+    """
     if torch.is_tensor(value):
         return f"{str(value.dtype).removeprefix('torch.')}{tuple(value.shape)}"
     if isinstance(value, dict):
@@ -32,8 +33,9 @@ def summary(value: Any) -> str:
     return repr(value)
 
 
-def _short_repr(self) -> str:
-    return f"{type(self).__name__}(" + ", ".join(f"{f}={summary(getattr(self, f))}" for f in self._fields) + ")"
+def _short_repr(value: Any) -> str:
+    """``Name(field=summary, ...)`` of a NamedTuple."""
+    return f"{type(value).__name__}(" + ", ".join(f"{f}={summary(getattr(value, f))}" for f in value._fields) + ")"
 
 
 class ParticleState(NamedTuple):
@@ -53,20 +55,24 @@ class ParticleState(NamedTuple):
 
     x: Tensor
     log_w: Tensor
-    exists: Optional[Tensor] = None
+    exists: Tensor | None = None
 
-    __repr__ = _short_repr
+    def __repr__(self) -> str:
+        return _short_repr(self)
 
     @property
     def batch_size(self) -> int:
+        """B, the number of independent runs (``x.shape[0]``)."""
         return self.x.shape[0]
 
     @property
     def num_particles(self) -> int:
+        """N, the number of particles per run (``x.shape[1]``)."""
         return self.x.shape[1]
 
     @property
     def num_targets(self) -> int:
+        """K, the number of target slots (``x.shape[2]``)."""
         return self.x.shape[2]
 
     def mean(self) -> Tensor:
@@ -101,13 +107,15 @@ class StepInfo(NamedTuple):
     acceptance: Tensor
     extras: dict
 
-    __repr__ = _short_repr
+    def __repr__(self) -> str:
+        return _short_repr(self)
 
     @staticmethod
-    def make(template: Tensor, *, ess: Optional[Tensor] = None, log_evidence: Optional[Tensor] = None,
-             acceptance: Optional[Tensor] = None, extras: Optional[dict] = None) -> "StepInfo":
+    def make(template: Tensor, *, ess: Tensor | None = None, log_evidence: Tensor | None = None,
+             acceptance: Tensor | None = None, extras: dict | None = None) -> StepInfo:
         """Fill the fields a filter does not compute with NaN ``(B,)`` shaped like
-        ``template (B,)`` (its dtype and device)."""
+        ``template (B,)`` (its dtype and device).
+        """
         nan = torch.full_like(template, float("nan"))
         return StepInfo(nan if ess is None else ess, nan if log_evidence is None else log_evidence,
                         nan if acceptance is None else acceptance, {} if extras is None else dict(extras))
@@ -134,15 +142,17 @@ class FilterResult(NamedTuple):
     state: ParticleState
     info: StepInfo
     log_evidence: Tensor
-    exists_prob: Optional[Tensor] = None
+    exists_prob: Tensor | None = None
 
-    __repr__ = _short_repr
+    def __repr__(self) -> str:
+        return _short_repr(self)
 
     def to_numpy(self) -> dict[str, Any]:
         """The result as a flat dict of NumPy arrays (for pandas / xarray): ``"mean"``,
         ``"log_evidence"``, ``"exists_prob"``, ``"state.x"``, ``"state.log_w"``,
         ``"state.exists"``, ``"info.ess"``, ``"info.<extra>"``, ... (``None`` fields left
-        out)."""
+        out).
+        """
         out: dict[str, Any] = {}
 
         def put(name: str, value: Any) -> None:
@@ -192,7 +202,7 @@ class ExistenceEstimate(NamedTuple):
 
 
 def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
-                       x_death: Optional[Tensor] = None) -> ExistenceEstimate:
+                       x_death: Tensor | None = None) -> ExistenceEstimate:
     """Existence probabilities, expected count and the state of every slot whose existence
     probability exceeds ``threshold`` (0.5: the marginal MAP existence).
 

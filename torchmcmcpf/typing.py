@@ -31,7 +31,7 @@ Randomness only through an explicit keyword-only ``generator: torch.Generator``.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Optional, Union
+from typing import Any, NamedTuple
 
 import torch
 
@@ -39,7 +39,7 @@ Tensor = torch.Tensor
 Generator = torch.Generator
 #: A measurement for one time step: a tensor, or a tuple/NamedTuple of tensors that share
 #: the batch dim (e.g. point measurements and their mask).
-Measurement = Union[Tensor, tuple[Any, ...]]
+Measurement = Tensor | tuple[Any, ...]
 
 # Indices into the per-target state ``[x, vx, y, vy, (rho)]``.
 X, VX, Y, VY, RHO = 0, 1, 2, 3, 4
@@ -62,15 +62,15 @@ class PointFrame(NamedTuple):
 
 
 #: Point measurements: a tensor ``(B, M, d)``, or a :class:`PointFrame` / ``(z, mask)`` tuple.
-PointMeasurement = Union[Tensor, PointFrame, tuple]
+PointMeasurement = Tensor | PointFrame | tuple[Any, ...]
 
 
-def split_points(z: PointMeasurement) -> tuple[Tensor, Optional[Tensor]]:
+def split_points(z: PointMeasurement) -> tuple[Tensor, Tensor | None]:
     """``(z (B, M, d), mask (B, M) or None)`` of a point measurement."""
-    if torch.is_tensor(z):
+    if isinstance(z, torch.Tensor):
         return z, None
-    z, mask = z
-    return z, mask
+    points, mask = z
+    return points, mask
 
 
 __all__ = ["Tensor", "Generator", "Measurement", "PointFrame", "PointMeasurement", "split_points", "X", "VX", "Y",

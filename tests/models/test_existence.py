@@ -7,9 +7,8 @@ import torch
 
 from torchmcmcpf.models import ConstantVelocity
 from torchmcmcpf.models.existence import BirthDeath
-from torchmcmcpf.state import existence_estimate
 from torchmcmcpf.models.sensors.points import PointFrame
-from torchmcmcpf.state import ParticleState
+from torchmcmcpf.state import ParticleState, existence_estimate
 
 AREA = ((0.0, 1000.0), (0.0, 500.0))
 
@@ -92,7 +91,8 @@ def test_propose_is_reproducible_and_log_prob_matches(gen):
     motion = ConstantVelocity(1.0, 1.0).double()
     x = torch.randn(2, 7, 3, 4, generator=gen, dtype=torch.float64) * 100 + 250
     e = torch.rand(2, 7, 3, generator=gen) < 0.5
-    frame = PointFrame(torch.rand(2, 4, 2, generator=gen, dtype=torch.float64) * 500, torch.ones(2, 4, dtype=torch.bool))
+    frame = PointFrame(torch.rand(2, 4, 2, generator=gen, dtype=torch.float64) * 500,
+                       torch.ones(2, 4, dtype=torch.bool))
     a = bd.propose(x, e, motion=motion, generator=torch.Generator().manual_seed(5), z=frame)
     b = bd.propose(x, e, motion=motion, generator=torch.Generator().manual_seed(5), z=frame)
     for u, v in zip(a, b):

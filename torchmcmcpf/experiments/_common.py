@@ -66,6 +66,7 @@ import argparse
 import contextlib
 import importlib
 import json
+import logging
 import math
 import os
 import platform
@@ -73,8 +74,9 @@ import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, NamedTuple, Optional, Sequence, Union
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -103,7 +105,7 @@ __all__ = [
 
 
 def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
+    """An argparse type: an integer >= 1."""
     try:
         value = int(text)
     except ValueError:
@@ -114,7 +116,7 @@ def positive_int(text: str) -> int:
 
 
 def nonnegative_int(text: str) -> int:
-    """argparse type: an integer >= 0."""
+    """An argparse type: an integer >= 0."""
     try:
         value = int(text)
     except ValueError:
@@ -125,7 +127,7 @@ def nonnegative_int(text: str) -> int:
 
 
 def device_arg(text: str) -> torch.device:
-    """argparse type: ``"cpu"``, ``"cuda"``, ``"cuda:N"``, or ``"auto"`` (CUDA when present)."""
+    """An argparse type: ``"cpu"``, ``"cuda"``, ``"cuda:N"``, or ``"auto"`` (CUDA when present)."""
     if text == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     try:
@@ -140,8 +142,9 @@ def device_arg(text: str) -> torch.device:
 
 
 def out_dir(text: str) -> Path:
-    """argparse type: an output directory; an existing file, or a path under a file, is an
-    error (a one-line message naming ``--out``)."""
+    """An argparse type: an output directory; an existing file, or a path under a file, is an
+    error (a one-line message naming ``--out``).
+    """
     path = Path(text)
     if path.exists() and not path.is_dir():
         raise argparse.ArgumentTypeError(f"{text!r} is an existing file, expected a directory")
@@ -153,9 +156,10 @@ def out_dir(text: str) -> Path:
     return path
 
 
-def defaults_help(full: Mapping[str, Any], quick: Optional[Mapping[str, Any]], key: str, what: str) -> str:
+def defaults_help(full: Mapping[str, Any], quick: Mapping[str, Any] | None, key: str, what: str) -> str:
     """Help text ``"<what> (default <full>, quick <quick>)"`` read from the study's own
-    settings, so the help cannot drift from what runs."""
+    settings, so the help cannot drift from what runs.
+    """
 
     def fmt(v):
         return " ".join(f"{x:g}" if isinstance(x, float) else str(x) for x in v) if isinstance(v, (tuple, list)) \
@@ -175,7 +179,8 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: b
     """Add the options every experiment shares (see the module docstring); ``quick=False``
     leaves out ``--quick`` (for commands without a small version, like ``demo``),
     ``shards=False`` the shard and Ray options; ``study`` (a module with ``FULL`` and
-    ``QUICK`` settings) puts its default shard size in the help."""
+    ``QUICK`` settings) puts its default shard size in the help.
+    """
     group = parser.add_argument_group("options common to all studies")
     if quick:
         group.add_argument("--quick", action="store_true", help="small version (seconds on a CPU)")
@@ -209,7 +214,7 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: b
     return parser
 
 
-def prepare_out(path: Union[str, Path], outputs: Sequence[str] = ()) -> Path:
+def prepare_out(path: str | Path, outputs: Sequence[str] = ()) -> Path:
     """Create the output directory (and parents); return it as a Path.
 
     Raises ``ValueError`` when ``path`` is a file or lies under one. When the directory
@@ -227,12 +232,12 @@ def prepare_out(path: Union[str, Path], outputs: Sequence[str] = ()) -> Path:
     return path
 
 
-def generator(device: Union[str, torch.device], seed: int) -> torch.Generator:
+def generator(device: str | torch.device, seed: int) -> torch.Generator:
     """A ``torch.Generator`` on ``device`` seeded with ``seed``."""
     return torch.Generator(device=torch.device(device)).manual_seed(int(seed))
 
 
-def _sync(device: Optional[torch.device]) -> None:
+def _sync(device: torch.device | None) -> None:
     if device is not None and torch.device(device).type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -245,12 +250,12 @@ class StepTimer:
     >>> timer.seconds_per_step                          # doctest: +SKIP
     """
 
-    def __init__(self, device: Optional[Union[str, torch.device]] = None, steps: int = 1):
+    def __init__(self, device: str | torch.device | None = None, steps: int = 1):
         self.device = None if device is None else torch.device(device)
         self.steps = positive_int(str(steps))
         self.seconds = float("nan")
 
-    def __enter__(self) -> "StepTimer":
+    def __enter__(self) -> StepTimer:
         _sync(self.device)
         self._start = time.perf_counter()
         return self
@@ -264,7 +269,7 @@ class StepTimer:
         return self.seconds / self.steps
 
 
-def device_name(device: Optional[Union[str, torch.device]] = None) -> str:
+def device_name(device: str | torch.device | None = None) -> str:
     """``"cuda: <GPU name>"`` or ``"cpu: <processor>, <n> cores, <m> torch threads"``."""
     device = torch.device("cpu" if device is None else device)
     if device.type == "cuda":
@@ -280,7 +285,8 @@ def device_name(device: Optional[Union[str, torch.device]] = None) -> str:
 
 def to_jsonable(obj: Any) -> Any:
     """Convert tensors (to numbers or nested lists), numpy values, paths, devices and
-    containers to JSON types; NaN and infinities become ``None``."""
+    containers to JSON types; NaN and infinities become ``None``.
+    """
     if torch.is_tensor(obj):
         obj = obj.detach().cpu()
         return to_jsonable(obj.item() if obj.dim() == 0 else obj.tolist())
@@ -301,7 +307,7 @@ def to_jsonable(obj: Any) -> Any:
     raise TypeError(f"cannot write {type(obj).__name__} to metrics.json")
 
 
-def _git_commit() -> Optional[str]:
+def _git_commit() -> str | None:
     """The commit of the source tree the package was imported from, or None."""
     root = Path(__file__).resolve().parents[2]
     if not (root / ".git").exists():
@@ -318,9 +324,10 @@ def _git_commit() -> Optional[str]:
     return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
-def provenance(args: Optional[argparse.Namespace] = None, device=None) -> dict:
+def provenance(args: argparse.Namespace | None = None, device=None) -> dict:
     """What traces a ``metrics.json`` to the run that made it: command line, seed, shard
-    layout, device, threads, versions, wall time (seconds since ``args.started``)."""
+    layout, device, threads, versions, wall time (seconds since ``args.started``).
+    """
     from .. import __version__
 
     settings = vars(args) if args is not None else {}
@@ -342,9 +349,9 @@ def provenance(args: Optional[argparse.Namespace] = None, device=None) -> dict:
     }
 
 
-def write_metrics(out: Union[str, Path], metrics: Mapping[str, Any], *,
-                  args: Optional[argparse.Namespace] = None,
-                  device: Optional[Union[str, torch.device]] = None) -> Path:
+def write_metrics(out: str | Path, metrics: Mapping[str, Any], *,
+                  args: argparse.Namespace | None = None,
+                  device: str | torch.device | None = None) -> Path:
     """Write ``out/metrics.json`` with the settings, the device, the provenance and ``metrics``.
 
     Parameters
@@ -373,9 +380,10 @@ def write_metrics(out: Union[str, Path], metrics: Mapping[str, Any], *,
     return path
 
 
-def save_figure(fig, out: Union[str, Path], filename: str, *, quick: bool = False) -> Path:
+def save_figure(fig, out: str | Path, filename: str, *, quick: bool = False) -> Path:
     """Save ``fig`` as ``out/filename`` (150 dpi) and close it; return the path. ``quick``
-    stamps "quick mode" on the figure (small settings, not the paper's)."""
+    stamps "quick mode" on the figure (small settings, not the paper's).
+    """
     import matplotlib.pyplot as plt
 
     if quick:
@@ -400,30 +408,33 @@ class ShardError(RuntimeError):
 class Shards(NamedTuple):
     """The concatenated output of every shard: ``per_run`` (str -> ``(B, ...)`` tensor, run
     dim first, in run order), ``seconds`` (str -> total compute seconds over the shards) and
-    ``layout`` (shard size, count, and per shard its runs, threads, seconds, where it ran)."""
+    ``layout`` (shard size, count, and per shard its runs, threads, seconds, where it ran).
+    """
 
     per_run: dict
     seconds: dict
     layout: dict
 
 
-def shard_generator(device: Union[str, torch.device], seed: int, index: int) -> torch.Generator:
+def shard_generator(device: str | torch.device, seed: int, index: int) -> torch.Generator:
     """The generator of shard ``index``: seeded from ``(seed, index)`` through numpy's
     ``SeedSequence`` (independent streams for distinct pairs, none shared with
-    :func:`generator`)."""
+    :func:`generator`).
+    """
     state = np.random.SeedSequence([int(seed) & (2**63 - 1), int(index), 0x5EED]).generate_state(1, np.uint64)[0]
     return torch.Generator(device=torch.device(device)).manual_seed(int(state) >> 1)
 
 
 def shard_layout(num_runs: int, shard_size: int) -> list[range]:
     """``range(num_runs)`` cut into consecutive ranges of ``shard_size`` runs (the last may
-    be shorter)."""
+    be shorter).
+    """
     num_runs, shard_size = positive_int(str(num_runs)), positive_int(str(shard_size))
     return [range(a, min(a + shard_size, num_runs)) for a in range(0, num_runs, shard_size)]
 
 
 @contextlib.contextmanager
-def _num_threads(threads: Optional[int]):
+def _num_threads(threads: int | None):
     old = torch.get_num_threads()
     if threads:
         torch.set_num_threads(int(threads))
@@ -434,15 +445,16 @@ def _num_threads(threads: Optional[int]):
 
 
 def _compute_shard(module_name: str, cfg: dict, seed: int, index: int, start: int, stop: int, device: str,
-                   threads: Optional[int], progress: bool = False) -> dict:
+                   threads: int | None, progress: bool = False) -> dict:
     """Run one shard (in this process or in a Ray worker); CPU tensors out. ``progress``:
-    the filters' own bars (only for a lone shard in this process; else one bar over shards)."""
+    the filters' own bars (only for a lone shard in this process; else one bar over shards).
+    """
     module = importlib.import_module(module_name)
-    device = torch.device(device)
+    dev = torch.device(device)
     with _num_threads(threads):
         t0 = time.perf_counter()
-        per_run, seconds = module.run_shard(cfg, range(start, stop), generator=shard_generator(device, seed, index),
-                                            device=device, progress=progress)
+        per_run, seconds = module.run_shard(cfg, range(start, stop), generator=shard_generator(dev, seed, index),
+                                            device=dev, progress=progress)
         wall = time.perf_counter() - t0
         used = torch.get_num_threads()
     for key, value in per_run.items():
@@ -466,7 +478,7 @@ def _shard_path(out: Path, index: int) -> Path:
     return out / "shards" / f"shard-{index:05d}.pt"
 
 
-def _load_shard(path: Path, key: str) -> Optional[dict]:
+def _load_shard(path: Path, key: str) -> dict | None:
     if not path.exists():
         return None
     try:
@@ -496,7 +508,8 @@ def _package_root() -> str:
 def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device, threads: int, on_done) -> None:
     """Run the shards ``todo`` [(index, runs, key)] as Ray tasks, at most ``args.workers``
     in flight; ``on_done(index, runs, key, result)`` as each finishes. The first failure
-    cancels the rest and raises :class:`ShardError` naming the shard."""
+    cancels the rest and raises :class:`ShardError` naming the shard.
+    """
     try:
         import ray
     except ImportError as err:
@@ -506,9 +519,9 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
         env = {"env_vars": {"PYTHONPATH": os.pathsep.join(filter(None, [_package_root(),
                                                                         os.environ.get("PYTHONPATH")]))}}
         if getattr(args, "ray_address", None):
-            ray.init(address=args.ray_address, logging_level="ERROR", log_to_driver=False)
+            ray.init(address=args.ray_address, logging_level=logging.ERROR, log_to_driver=False)
         else:
-            ray.init(num_cpus=args.workers, include_dashboard=False, logging_level="ERROR", log_to_driver=False,
+            ray.init(num_cpus=args.workers, include_dashboard=False, logging_level=logging.ERROR, log_to_driver=False,
                      runtime_env=env)
         started = True
     try:
@@ -518,7 +531,8 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
             raise ShardError(f"{name}: the Ray cluster has {have.get('CPU', 0):g} CPUs and {have.get('GPU', 0):g} "
                              f"GPUs; each shard needs 1 CPU and {gpus:g} GPUs (--gpus-per-shard)")
         task = ray.remote(_compute_shard).options(num_cpus=1, num_gpus=gpus, max_retries=0)
-        queue, running = list(todo), {}
+        queue = list(todo)
+        running: dict[Any, tuple[int, range, str]] = {}  # Ray ObjectRef -> shard
         while queue or running:
             while queue and len(running) < args.workers:
                 index, runs, key = queue.pop(0)

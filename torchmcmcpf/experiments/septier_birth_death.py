@@ -54,7 +54,11 @@ OUTPUTS = ("metrics.json", "tracks.png", "cardinality.png", "ospa.png", "shards"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    def h(key, what):
+    """Add this experiment's options (``--runs``, ``--steps``, ...) to ``parser``; each help
+    text shows the full and the ``--quick`` default.
+    """
+
+    def h(key: str, what: str) -> str:
         return defaults_help(FULL, QUICK, key, what)
 
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))

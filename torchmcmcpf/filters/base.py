@@ -22,7 +22,8 @@ stored on the module, so filters are reentrant. Resume = the state plus
 
 from __future__ import annotations
 
-from typing import Any, Callable, Optional, Union
+from collections.abc import Callable
+from typing import Any
 
 import torch
 from torch import nn
@@ -37,7 +38,7 @@ from ..typing import Measurement, Tensor
 __all__ = ["Filter", "check_existence"]
 
 
-def check_existence(existence) -> Optional[BirthDeath]:
+def check_existence(existence) -> BirthDeath | None:
     """``existence`` must be a :class:`~torchmcmcpf.models.existence.BirthDeath` or ``None``."""
     if existence is not None and not isinstance(existence, BirthDeath):
         raise ValueError(f"existence must be a BirthDeath model or None, got {type(existence).__name__}")
@@ -53,7 +54,8 @@ def _leaves(measurements: Measurement, name: str) -> list[Tensor]:
 
 def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name: str, models: nn.Module) -> None:
     """Devices (none on ``meta``, all equal) and dtypes (floating measurements of the state's
-    dtype) of a state and measurements: metadata only, no host synchronisation."""
+    dtype) of a state and measurements: metadata only, no host synchronisation.
+    """
     x = state.x
     tensors = {"init": x, "init.log_w": state.log_w}
     if state.exists is not None:
@@ -96,11 +98,11 @@ class Filter(nn.Module):
     motion: MotionModel
     sensor: SensorModel
     num_particles: int
-    existence: Optional[BirthDeath]
+    existence: BirthDeath | None
     settings: Any
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
-                 existence: Optional[BirthDeath] = None, compile_step: bool = False):
+                 existence: BirthDeath | None = None, compile_step: bool = False):
         super().__init__()
         if not isinstance(motion, MotionModel):
             raise ValueError(f"motion must be a MotionModel, got {type(motion).__name__}")
@@ -114,18 +116,20 @@ class Filter(nn.Module):
         self.existence = check_existence(existence)
         self.settings = settings
         self.compile_step = compile_step
-        self._compiled: Optional[Callable] = None
+        self._compiled: Callable | None = None
 
     # -- the compiled kernel -------------------------------------------------------------
     def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
         """The kernel passed to the step function with ``compile`` applied to the pure parts
-        that should be compiled (one iteration / one step, never the loops over them)."""
+        that should be compiled (one iteration / one step, never the loops over them).
+        """
         raise NotImplementedError
 
-    def kernel(self) -> Optional[Callable]:
+    def kernel(self) -> Callable | None:
         """The kernel passed to the step function: built once with its parts compiled
         (``torch.compile(fullgraph=True, dynamic=False)``) when ``compile_step=True``, else
-        ``None`` (the step function's eager one)."""
+        ``None`` (the step function's eager one).
+        """
         if not self.compile_step:
             return None
         if self._compiled is None:
@@ -133,7 +137,7 @@ class Filter(nn.Module):
         return self._compiled
 
     # -- state ---------------------------------------------------------------------------
-    def init(self, particles: Tensor, exists: Optional[Tensor] = None) -> ParticleState:
+    def init(self, particles: Tensor, exists: Tensor | None = None) -> ParticleState:
         """Wrap an initial cloud into an equally weighted ``ParticleState``.
 
         Parameters
@@ -153,7 +157,7 @@ class Filter(nn.Module):
                            device=particles.device, dtype=particles.dtype)
         return ParticleState(particles, log_w, exists)
 
-    def _check_state_tensors(self, x: Tensor, exists: Optional[Tensor]) -> None:
+    def _check_state_tensors(self, x: Tensor, exists: Tensor | None) -> None:
         check_shape(x, "init", (None, self.num_particles, None, self.motion.dim))
         if x.shape[0] == 0 or x.shape[2] == 0:
             raise ValueError(f"init has shape {tuple(x.shape)}, expected B >= 1 and K >= 1")
@@ -170,7 +174,7 @@ class Filter(nn.Module):
             if exists.device != x.device:
                 raise ValueError(f"init.exists is on {exists.device}, expected {x.device} (the device of init)")
 
-    def _as_state(self, init: Union[Tensor, ParticleState]) -> ParticleState:
+    def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
         if isinstance(init, ParticleState):
             state = self.init(init.x, init.exists)
             check_shape(init.log_w, "init.log_w", tuple(init.x.shape[:2]))
@@ -184,7 +188,8 @@ class Filter(nn.Module):
 
     def estimate(self, state: ParticleState) -> Tensor:
         """MMSE estimate ``(B, K, D)`` of a state (paper 000 eq. 6); with existence, each
-        slot's mean given that it exists (:func:`~torchmcmcpf.state.existence_estimate`)."""
+        slot's mean given that it exists (:func:`~torchmcmcpf.state.existence_estimate`).
+        """
         if self.existence is None or state.exists is None:
             return state.mean()
         return existence_estimate(state, x_death=self.existence.x_death).mean
@@ -195,7 +200,8 @@ class Filter(nn.Module):
         """Check a state and one frame ``(B, *G)`` (``sequence=False``) or a whole sequence
         ``(T, B, *G)`` (``sequence=True``, one pass for all T frames): devices, dtypes,
         shapes, batch size, finite values (the sensor's :meth:`validate`). Raises
-        ``ValueError`` naming the argument."""
+        ``ValueError`` naming the argument.
+        """
         if not isinstance(state, ParticleState):
             raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
         _check_devices_dtypes(state, measurements, name, self)
@@ -234,7 +240,8 @@ class Filter(nn.Module):
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
              ) -> tuple[ParticleState, StepInfo]:
         """Advance ``state`` by one measurement ``z (B, *G)``; returns ``(state, info)``.
-        Validates ``state``, ``z`` and ``generator`` first (one host synchronisation)."""
+        Validates ``state``, ``z`` and ``generator`` first (one host synchronisation).
+        """
         check_generator(generator)
         if not isinstance(state, ParticleState):
             raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
@@ -247,9 +254,9 @@ class Filter(nn.Module):
         self,
         measurements: Measurement,
         *,
-        init: Union[Tensor, ParticleState],
+        init: Tensor | ParticleState,
         generator: torch.Generator,
-        progress: Optional[bool] = None,
+        progress: bool | None = None,
     ) -> FilterResult:
         """Filter a sequence of T measurements.
 
@@ -296,4 +303,5 @@ class Filter(nn.Module):
         )
 
     def extra_repr(self) -> str:
+        """Particle count, settings and compile flag, shown inside ``repr(filter)``."""
         return f"num_particles={self.num_particles}, settings={self.settings}, compile_step={self.compile_step}"

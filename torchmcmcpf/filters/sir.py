@@ -9,8 +9,8 @@ whole frame, and the estimate the weighted mean (paper 000 eq. 6).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import torch
 
@@ -45,18 +45,18 @@ class SIRSettings:
             raise ValueError(f"ess_threshold must be in [0, 1], got {self.ess_threshold!r}")
 
 
-def sir_kernel(x: Tensor, log_w: Tensor, exists: Optional[Tensor], z: Measurement, need: Tensor, u: Tensor,
-               eps: Tensor, birth: Optional[BirthNoise], *, motion: MotionModel, sensor: SensorModel,
-               settings: SIRSettings, existence: Optional[BirthDeath] = None
-               ) -> tuple[Tensor, Optional[Tensor], Tensor]:
+def sir_kernel(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, need: Tensor, u: Tensor,
+               eps: Tensor, birth: BirthNoise | None, *, motion: MotionModel, sensor: SensorModel,
+               settings: SIRSettings, existence: BirthDeath | None = None
+               ) -> tuple[Tensor, Tensor | None, Tensor]:
     """The noise-free part of one SIR step (pure; what ``compile_step=True`` compiles).
 
     Parameters
     ----------
     x : (B, N, K, D); log_w : (B, N) normalised; exists : (B, N, K) bool or None.
-    z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling uniforms (``(B, 1)`` systematic, ``(B, N)``
-    otherwise); eps : (B, N, K, noise_dim) motion noise; birth : :class:`BirthNoise` for
-    ``(B, N)`` (with ``existence``) or None.
+    z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling
+    uniforms (``(B, 1)`` systematic, ``(B, N)`` otherwise); eps : (B, N, K, noise_dim)
+    motion noise; birth : :class:`BirthNoise` for ``(B, N)`` (with ``existence``) or None.
 
     Returns
     -------
@@ -87,8 +87,8 @@ def sir_step(
     sensor: SensorModel,
     settings: SIRSettings = SIRSettings(),
     generator: torch.Generator,
-    existence: Optional[BirthDeath] = None,
-    kernel: Optional[Callable] = None,
+    existence: BirthDeath | None = None,
+    kernel: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One SIR step: resample (when ESS < ``ess_threshold * N``), propagate, weight.
 
@@ -135,7 +135,7 @@ def sir_step(
                                                               log_evidence=log_evidence)
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, settings: SIRSettings, existence: Optional[BirthDeath]
+def _bind(motion: MotionModel, sensor: SensorModel, settings: SIRSettings, existence: BirthDeath | None
           ) -> Callable:
     def kernel(*args):
         return sir_kernel(*args, motion=motion, sensor=sensor, settings=settings, existence=existence)
@@ -172,7 +172,7 @@ class SIRFilter(Filter):
         *,
         resample_method: str = "systematic",
         ess_threshold: float = 1.0,
-        existence: Optional[BirthDeath] = None,
+        existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         super().__init__(motion, sensor, num_particles, SIRSettings(resample_method, float(ess_threshold)),

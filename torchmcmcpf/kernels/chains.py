@@ -1,9 +1,10 @@
 """Chain states, the previous cloud and the pre-drawn noise of the sequential MCMC moves
-(:mod:`torchmcmcpf.kernels.moves` describes the target and the moves)."""
+(:mod:`torchmcmcpf.kernels.moves` describes the target and the moves).
+"""
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
@@ -41,10 +42,10 @@ class ChainState(NamedTuple):
     x: Tensor
     x_prev: Tensor
     log_lik: Tensor
-    log_lik_terms: Optional[Tensor] = None
-    exists: Optional[Tensor] = None
-    exists_prev: Optional[Tensor] = None
-    log_birth: Optional[Tensor] = None
+    log_lik_terms: Tensor | None = None
+    exists: Tensor | None = None
+    exists_prev: Tensor | None = None
+    log_birth: Tensor | None = None
 
 
 class PreviousCloud(NamedTuple):
@@ -64,16 +65,17 @@ class PreviousCloud(NamedTuple):
     x: Tensor
     log_w: Tensor
     cdf: Tensor
-    exists: Optional[Tensor] = None
-    white_mean: Optional[Tensor] = None
+    exists: Tensor | None = None
+    white_mean: Tensor | None = None
 
 
-def previous_cloud(x: Tensor, log_w: Tensor, exists: Optional[Tensor] = None, *,
-                   motion: Optional[MotionModel] = None) -> PreviousCloud:
+def previous_cloud(x: Tensor, log_w: Tensor, exists: Tensor | None = None, *,
+                   motion: MotionModel | None = None) -> PreviousCloud:
     """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)``, ``log_w (B, N)`` and
     optionally their existence flags ``exists (B, N, K)``. With a linear-Gaussian ``motion``
     the whitened predicted means are cached, so the random walk does not recompute them at
-    every iteration of the frame."""
+    every iteration of the frame.
+    """
     white = whiten(motion.mean(x), motion) if isinstance(motion, LinearGaussianMotion) else None
     return PreviousCloud(x, log_w, cdf(log_w), exists, white)
 
@@ -91,26 +93,28 @@ def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
-def _births(x: Tensor, existence: Optional[BirthDeath], z: Measurement, generator: torch.Generator
-            ) -> Optional[BirthNoise]:
+def _births(x: Tensor, existence: BirthDeath | None, z: Measurement | None, generator: torch.Generator
+            ) -> BirthNoise | None:
     return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
 
 
 class JointNoise(NamedTuple):
     """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
     K, noise_dim)`` standard normals (the transition noise of every target) and, with
-    existence, ``birth`` (:class:`BirthNoise`)."""
+    existence, ``birth`` (:class:`BirthNoise`).
+    """
 
     u_ancestor: Tensor
     eps: Tensor
     u: Tensor
-    birth: Optional[BirthNoise] = None
+    birth: BirthNoise | None = None
 
     @classmethod
     def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: Optional[BirthDeath] = None, z: Optional[Measurement] = None) -> "JointNoise":
+             existence: BirthDeath | None = None, z: Measurement | None = None) -> JointNoise:
         """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``); the
-        birth noise only with ``existence`` (which needs the frame ``z``)."""
+        birth noise only with ``existence`` (which needs the frame ``z``).
+        """
         b, c, k, _ = x.shape
         return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
                    _uniform((b, c), x, generator), _births(x, existence, z, generator))
@@ -119,25 +123,27 @@ class JointNoise(NamedTuple):
 class RefineNoise(NamedTuple):
     """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
     slot), ``u (B, C, K)`` uniforms (one accept/reject per slot) and, with existence,
-    ``birth`` (:class:`BirthNoise`)."""
+    ``birth`` (:class:`BirthNoise`).
+    """
 
     eps: Tensor
     u: Tensor
-    birth: Optional[BirthNoise] = None
+    birth: BirthNoise | None = None
 
     @classmethod
     def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: Optional[BirthDeath] = None, z: Optional[Measurement] = None) -> "RefineNoise":
+             existence: BirthDeath | None = None, z: Measurement | None = None) -> RefineNoise:
         """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``: as
-        :meth:`JointNoise.draw`)."""
+        :meth:`JointNoise.draw`).
+        """
         b, c, k, _ = x.shape
         return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator),
                    _births(x, existence, z, generator))
 
 
 # -- likelihood ------------------------------------------------------------------------------
-def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Optional[Tensor] = None
-             ) -> tuple[Tensor, Optional[Tensor]]:
+def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Tensor | None = None
+             ) -> tuple[Tensor, Tensor | None]:
     """Log-likelihood of chain states, with per-target terms when the sensor has them.
 
     Parameters

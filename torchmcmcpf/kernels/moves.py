@@ -100,7 +100,7 @@ discrete flags and is refused with existence.
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from collections.abc import Callable
 
 import torch
 
@@ -118,13 +118,13 @@ from .chains import (  # noqa: F401  (re-exported: the chain state of these move
     evaluate,
     previous_cloud,
 )
+from .mh import mh_accept, mh_select
 from .random_walk import (  # noqa: F401  (re-exported)
     RandomWalkNoise,
     log_transition,
     propose_random_walk,
     random_walk_move,
 )
-from .mh import mh_accept, mh_select
 
 __all__ = [
     "MOVES",
@@ -177,9 +177,10 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
 
 
 def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
-                     sensor: SensorModel, existence: Optional[BirthDeath]) -> ChainState:
+                     sensor: SensorModel, existence: BirthDeath | None) -> ChainState:
     """The joint-draw proposal as a scored :class:`ChainState`: an ancestor by weight, then
-    ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births)."""
+    ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births).
+    """
     a = _draw_ancestors(cloud, noise.u_ancestor)
     x_prev = gather_particles(cloud.x, a)
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
@@ -189,7 +190,7 @@ def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, mo
 
 
 def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, motion: MotionModel,
-                sensor: SensorModel, existence: Optional[BirthDeath] = None) -> ChainState:
+                sensor: SensorModel, existence: BirthDeath | None = None) -> ChainState:
     """Start each chain from a previous particle drawn by weight and moved by the prior
     (paper 002, "MCMC-based PF-TBD steps" 1): one joint-draw proposal, always kept.
 
@@ -208,7 +209,7 @@ def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, moti
 
 
 def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z: Measurement,
-               motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath] = None
+               motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None
                ) -> tuple[ChainState, Tensor]:
     """One joint-draw Metropolis-Hastings step (paper 004 Alg. 1, eq. 60; with existence
     paper 001 step (a), ``log alpha`` of the module docstring).
@@ -227,6 +228,9 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
     cand = _joint_candidate(cloud, noise, z, motion, sensor, existence)
     log_alpha = cand.log_lik - chain.log_lik  # the prior parts cancel (eq. 60, P_a = 0)
     if existence is not None:
+        if chain.log_birth is None or cand.log_birth is None:
+            raise ValueError("chain.log_birth is None but existence is given: start the chains with "
+                             "init_chains(..., existence=existence)")
         log_alpha = log_alpha + cand.log_birth.sum(-1) - chain.log_birth.sum(-1)
     accepted = mh_accept(log_alpha, noise.u)
     return mh_select(accepted, cand, chain), accepted
@@ -234,8 +238,8 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
 
 # -- per-target refinement -------------------------------------------------------------------
 def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion: MotionModel,
-                sensor: SensorModel, existence: Optional[BirthDeath] = None,
-                slot_kernel: Optional[Callable] = None) -> tuple[ChainState, Tensor]:
+                sensor: SensorModel, existence: BirthDeath | None = None,
+                slot_kernel: Callable | None = None) -> tuple[ChainState, Tensor]:
     """One MH-within-Gibbs sweep over the K targets (paper 004 Alg. 2; paper 001 Alg. 1).
 
     Every slot proposes ``(x'_n, e'_n)`` from its ancestor by :class:`TargetDynamics` (the
@@ -267,9 +271,10 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
     return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, birth_prop, slot_kernel)
 
 
-def refine_slot(x: Tensor, log_lik: Tensor, e: Optional[Tensor], log_birth: Optional[Tensor], x_prop: Tensor,
-                e_prop: Optional[Tensor], birth_prop: Optional[Tensor], log_ratio: Tensor, u: Tensor, n,
-                z: Measurement, *, sensor: SensorModel) -> tuple[Tensor, Tensor, Optional[Tensor], Optional[Tensor], Tensor]:
+def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_birth: Tensor | None, x_prop: Tensor,
+                e_prop: Tensor | None, birth_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
+                n: int | Tensor, z: Measurement, *, sensor: SensorModel
+                ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
     """The MH update of one slot ``n`` of the sequential sweep (pure; the unit the
     ``compile_step`` of the MCMC filter compiles, once for every slot).
 
@@ -284,8 +289,10 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Optional[Tensor], log_birth: Opti
     -------
     x, log_lik, e, log_birth : the chains after the update; accepted : (B, C) bool.
     """
+    if e is not None and (e_prop is None or birth_prop is None or log_birth is None):
+        raise ValueError("with existence flags e, e_prop, birth_prop and log_birth must be given too")
     slots = torch.arange(x.shape[-2], device=x.device)
-    if torch.is_tensor(n):
+    if isinstance(n, torch.Tensor):
         here = slots == n.unsqueeze(-1)  # (B, C, K)
 
         def pick(t: Tensor) -> Tensor:
@@ -299,23 +306,24 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Optional[Tensor], log_birth: Opti
     x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
     # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
     log_lik_cand = sensor.log_likelihood_slot(x, pick(x_prop), n, z, log_lik, exists=e,
-                                              exists_n=None if e is None else pick(e_prop))
+                                              exists_n=None if e is None or e_prop is None else pick(e_prop))
     acc = mh_accept(log_lik_cand - log_lik + pick(log_ratio), pick(u))
     x = mh_select(acc, x_cand, x)
     log_lik = torch.where(acc, log_lik_cand, log_lik)
-    if e is not None:
+    if e is not None and e_prop is not None and birth_prop is not None and log_birth is not None:
         e = mh_select(acc, torch.where(here, e_prop, e), e)
         log_birth = torch.where(acc.unsqueeze(-1) & here, birth_prop, log_birth)
     return x, log_lik, e, log_birth, acc
 
 
 def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: Tensor, z: Measurement,
-                      sensor: SensorModel, e_prop: Optional[Tensor] = None, birth_prop: Optional[Tensor] = None,
-                      slot_kernel: Optional[Callable] = None) -> tuple[ChainState, Tensor]:
+                      sensor: SensorModel, e_prop: Tensor | None = None, birth_prop: Tensor | None = None,
+                      slot_kernel: Callable | None = None) -> tuple[ChainState, Tensor]:
     """Sequential Gibbs sweep over the K slots with proposals ``x_prop (B, C, K, D)`` (and
     ``e_prop``, ``birth_prop (B, C, K)`` with existence), ``log_ratio (B, C, K)`` and
     uniforms ``u (B, C, K)``: slot n sees the accepted updates of slots ``< n``
-    (:func:`refine_slot`; ``slot_kernel`` a compiled one, called with a tensor slot)."""
+    (:func:`refine_slot`; ``slot_kernel`` a compiled one, called with a tensor slot).
+    """
     x, log_lik, e, log_birth = chain.x, chain.log_lik, chain.exists, chain.log_birth
     flags = []
     for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)

@@ -7,13 +7,13 @@ dims ``(*S, K, D)`` and reduces only trailing ones, so one model serves particle
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Generic, TypeVar
 
 import torch
 from torch import nn
 
 from .._validation import check_batch, check_finite, check_shape
-from ..typing import Tensor
+from ..typing import Measurement, Tensor
 
 __all__ = ["MotionModel", "SensorModel"]
 
@@ -53,18 +53,27 @@ class MotionModel(nn.Module):
         return self.propagate(x, eps)
 
 
-class SensorModel(nn.Module):
+#: The measurement type of a sensor (a :data:`~torchmcmcpf.typing.Measurement`): ``Tensor``
+#: for the grid sensors, :data:`~torchmcmcpf.typing.PointMeasurement` for the point sensors.
+Z = TypeVar("Z", bound=Measurement)
+
+
+class SensorModel(nn.Module, Generic[Z]):
     """Measurement likelihood ``p(z_k | x_k)`` of a multitarget state.
 
     Subclasses implement :meth:`log_likelihood`, :meth:`simulate` and declare
     :attr:`frame_shape` (the trailing shape of one run's measurement, e.g. ``(Nr, Nd, Nb)``
     or ``(K, 2)``). :meth:`validate` then checks shape and values in eager code.
+
+    The class is generic in its measurement type ``Z``: a grid sensor is a
+    ``SensorModel[Tensor]``, a point sensor a ``SensorModel[PointMeasurement]``; filters and
+    kernels, which pass measurements through, take any ``SensorModel``.
     """
 
     #: trailing shape of one run's measurement; ``None`` entries match any size
-    frame_shape: tuple[Optional[int], ...] = ()
+    frame_shape: tuple[int | None, ...] = ()
 
-    def log_likelihood(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: Z, exists: Tensor | None = None) -> Tensor:
         """``log p(z | x)`` up to terms that do not depend on ``x``.
 
         Parameters
@@ -80,26 +89,28 @@ class SensorModel(nn.Module):
         raise NotImplementedError
 
     def simulate(
-        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
-    ) -> Tensor:
+        self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
+    ) -> Z:
         """Draw one frame per run from the true states ``x (B, K, D)``: ``-> (B, *G)``."""
         raise NotImplementedError
 
     # -- declared fast paths (optional; the defaults are exact and always available) -------
-    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_per_target(self, x: Tensor, z: Z, exists: Tensor | None = None) -> Tensor:
         """Per-target terms ``(B, *S, K)`` with ``log_likelihood == per_target.sum(-1)``, term n
         depending on ``x[..., n, :]`` only. Only sensors whose targets do not interact
-        override it (then :attr:`separable` is True); the default raises."""
+        override it (then :attr:`separable` is True); the default raises.
+        """
         raise NotImplementedError(f"{type(self).__name__} has no per-target log-likelihood terms")
 
     @property
     def separable(self) -> bool:
         """Whether this sensor overrides :meth:`log_likelihood_per_target` (decided by method,
-        static under ``torch.compile``)."""
+        static under ``torch.compile``).
+        """
         return type(self).log_likelihood_per_target is not SensorModel.log_likelihood_per_target
 
-    def log_likelihood_delta(self, x: Tensor, x_n: Tensor, n, z: Tensor, exists: Optional[Tensor] = None,
-                             exists_n: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_delta(self, x: Tensor, x_n: Tensor, n: int | Tensor, z: Z,
+                             exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
         """``log p(z | x with slot n set to x_n (, e_n)) - log p(z | x (, e))``: ``(B, *S)``.
 
         Parameters
@@ -115,11 +126,12 @@ class SensorModel(nn.Module):
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
         return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)
 
-    def log_likelihood_slot(self, x: Tensor, x_n: Tensor, n, z: Tensor, log_lik: Tensor,
-                            exists: Optional[Tensor] = None, exists_n: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_slot(self, x: Tensor, x_n: Tensor, n: int | Tensor, z: Z, log_lik: Tensor,
+                            exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
         """``log p(z | x with slot n set to x_n)`` given ``log_lik = log p(z | x)`` ``(B, *S)``
         (arguments as :meth:`log_likelihood_delta`): ``log_lik + delta`` when the sensor
-        overrides :meth:`log_likelihood_delta`, else one full evaluation of the new state."""
+        overrides :meth:`log_likelihood_delta`, else one full evaluation of the new state.
+        """
         if type(self).log_likelihood_delta is not SensorModel.log_likelihood_delta:
             return log_lik + self.log_likelihood_delta(x, x_n, n, z, exists=exists, exists_n=exists_n)
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
@@ -128,22 +140,30 @@ class SensorModel(nn.Module):
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
         """Check a state ``(B, *S, K, D)`` for values this sensor cannot score (eager, at the
         door). The default accepts every finite state; grid sensors refuse a negative
-        signal (amplitude or power)."""
+        signal (amplitude or power).
+        """
         return x
 
-    def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:
-        """Check one frame ``z (B, *G)``: shape, batch size, finite values. Returns ``z``."""
+    def validate(self, z: Z, batch_size: int | None = None, name: str = "z") -> Z:
+        """Check one frame ``z (B, *G)``: shape, batch size, finite values. Returns ``z``.
+
+        The default handles tensor measurements; sensors with tuple measurements (points
+        and a mask) override it.
+        """
+        if not isinstance(z, torch.Tensor):
+            raise ValueError(f"{name} must be a tensor (B, *G) for {type(self).__name__}, got {type(z).__name__}")
         check_shape(z, name, (None,) + tuple(self.frame_shape))
         if batch_size is not None:
             check_batch(z, name, batch_size)
-        return check_finite(z, name)
+        check_finite(z, name)
+        return z
 
 
-def _set_slot(x: Tensor, x_n: Tensor, n, exists: Optional[Tensor], exists_n: Optional[Tensor]
-              ) -> tuple[Tensor, Optional[Tensor]]:
+def _set_slot(x: Tensor, x_n: Tensor, n: int | Tensor, exists: Tensor | None, exists_n: Tensor | None
+              ) -> tuple[Tensor, Tensor | None]:
     """``x`` with slot ``n`` (int, or (B, *S) int64) set to ``x_n (B, *S, D)`` (and its flag)."""
     slots = torch.arange(x.shape[-2], device=x.device)
-    here = slots == (n.unsqueeze(-1) if torch.is_tensor(n) else n)  # (B, *S, K) or (K,)
+    here = slots == (n.unsqueeze(-1) if isinstance(n, torch.Tensor) else n)  # (B, *S, K) or (K,)
     x_new = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), x)
     if exists is None:
         return x_new, None

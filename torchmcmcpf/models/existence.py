@@ -39,14 +39,15 @@ Filters propagate ``(x, exists)`` jointly with one call, :meth:`BirthDeath.propo
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 from torch import nn
 
 from .._validation import check_positive
 from ..resampling import cdf, inverse_cdf
-from ..typing import Tensor, VX, VY, X, Y
+from ..typing import VX, VY, Tensor, X, Y
 from .base import MotionModel
 from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area
@@ -57,23 +58,26 @@ __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
 class BirthNoise(NamedTuple):
     """Pre-drawn existence noise for every slot: ``u (*S, K)`` uniforms for
     ``e'_n ~ p(. | e_n)``, newborn candidates ``x (*S, K, D)`` from the birth proposal
-    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``."""
+    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``.
+    """
 
     u: Tensor
     x: Tensor
     log_ratio: Tensor
 
     @classmethod
-    def draw(cls, x: Tensor, existence: "BirthDeath", z, *, generator: torch.Generator) -> "BirthNoise":
+    def draw(cls, x: Tensor, existence: BirthDeath, z: PointMeasurement | None, *,
+             generator: torch.Generator) -> BirthNoise:
         """Draw for slots shaped like ``x (B, *S, K, D)`` (dtype and device of ``x``); births
-        near the points of ``z`` when ``existence`` draws them so."""
+        near the points of ``z`` when ``existence`` draws them so.
+        """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device)
         return cls(u, born, log_ratio)
 
 
-def _probability(value, name: str) -> float:
+def _probability(value: float, name: str) -> float:
     v = float(value)
     if not 0.0 <= v <= 1.0:
         raise ValueError(f"{name} must be a probability in [0, 1], got {value!r}")
@@ -99,6 +103,10 @@ class BirthDeath(nn.Module):
         proposal (paper 004 uses 1e-2).
     """
 
+    x_death: Tensor
+    area: Tensor
+    birth_std: float | None
+
     def __init__(
         self,
         p_birth: float,
@@ -107,10 +115,10 @@ class BirthDeath(nn.Module):
         *,
         velocity_std: float,
         dim: int = 4,
-        x_death: Optional[Tensor] = None,
-        birth_std: Optional[float] = None,
+        x_death: Tensor | None = None,
+        birth_std: float | None = None,
         p_uniform: float = 0.01,
-    ):
+    ) -> None:
         super().__init__()
         self.p_birth = _probability(p_birth, "p_birth")
         self.p_death = _probability(p_death, "p_death")
@@ -133,7 +141,8 @@ class BirthDeath(nn.Module):
     # -- the existence chain (paper 004 eq. 25) ------------------------------------------
     def stationary(self) -> float:
         """Stationary existence probability ``P_B / (P_B + P_D)`` of one slot (1/2 when
-        ``P_B = P_D = 0``, where every distribution is stationary)."""
+        ``P_B = P_D = 0``, where every distribution is stationary).
+        """
         total = self.p_birth + self.p_death
         return 0.5 if total == 0 else self.p_birth / total
 
@@ -144,9 +153,15 @@ class BirthDeath(nn.Module):
 
     def log_prob_exists(self, exists_next: Tensor, exists: Tensor) -> Tensor:
         """``log p(e_k | e_{k-1})`` per slot, eq. 25: ``(*S, K), (*S, K) -> (*S, K)``."""
-        f64 = dict(dtype=torch.float64, device=exists.device)
-        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
+        p_on = self._p_on(exists)
         return torch.where(exists_next, p_on, 1.0 - p_on).log()
+
+    def _p_on(self, exists: Tensor) -> Tensor:
+        """``p(e_k = 1 | e_{k-1})`` per slot, float64 ``(*S, K)``."""
+        def f64(p: float) -> Tensor:
+            return torch.tensor(p, dtype=torch.float64, device=exists.device)
+
+        return torch.where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
 
     # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
     def _in_area(self, pos: Tensor) -> Tensor:
@@ -158,7 +173,8 @@ class BirthDeath(nn.Module):
 
     def birth_log_prob(self, x: Tensor) -> Tensor:
         """``log p_0(x)`` of a newborn, eq. 33: ``(*S, K, D) -> (*S, K)`` (the components
-        beyond ``[x, vx, y, vy]`` are fixed to ``x_death`` and not scored)."""
+        beyond ``[x, vx, y, vy]`` are fixed to ``x_death`` and not scored).
+        """
         pos = torch.stack([x[..., X], x[..., Y]], -1)
         vel = torch.stack([x[..., VX], x[..., VY]], -1)
         s = self.velocity_std
@@ -171,16 +187,17 @@ class BirthDeath(nn.Module):
         x[..., VX], x[..., VY] = self.velocity_std * vel_eps[..., 0], self.velocity_std * vel_eps[..., 1]
         return x
 
-    def sample_birth(self, shape, *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-                     device=None) -> Tensor:
+    def sample_birth(self, shape: Sequence[int], *, generator: torch.Generator,
+                     dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Tensor:
         """Draw newborn states from ``p_0`` (eqs. 32-33): ``-> (*shape, D)``."""
         x, _ = self._draw_births(tuple(shape), None, generator=generator, dtype=dtype, device=device)
         return x
 
-    def _draw_births(self, shape, z: Optional[PointMeasurement], *, generator: torch.Generator,
-                     dtype: torch.dtype, device) -> tuple[Tensor, Tensor]:
+    def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
+                     dtype: torch.dtype, device: torch.device | str | None) -> tuple[Tensor, Tensor]:
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
-        ``(*shape)``; ``shape = (B, *S, K)``."""
+        ``(*shape)``; ``shape = (B, *S, K)``.
+        """
         a = self.area.to(dtype)
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         pos = a[:, 0] + (a[:, 1] - a[:, 0]) * u
@@ -205,14 +222,15 @@ class BirthDeath(nn.Module):
                                                      device=device, dtype=dtype)
         use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)
         pos = torch.where(use_near.unsqueeze(-1), near, pos)
-        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask)
+        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
 
-    def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor) -> Tensor:
-        """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue)."""
+    def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
+        """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
+        ``s`` the birth standard deviation.
+        """
         b, m = mask.shape
         lead = (b,) + (1,) * (pos.dim() - 2)
         zb = pts.reshape(lead[:-1] + (1, m, 2))  # (B, 1.., 1, M, 2)
-        s = self.birth_std
         d2 = (pos.unsqueeze(-2) - zb).square().sum(-1) / s**2  # (B, *S, K, M)
         log_g = -0.5 * d2 - 2 * math.log(s) - math.log(2 * math.pi)
         mk = mask.reshape(lead[:-1] + (1, m))
@@ -248,7 +266,7 @@ class BirthDeath(nn.Module):
         log_x = torch.where(born, self.birth_log_prob(x_next), log_x)
         return log_e + log_x
 
-    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: "BirthNoise", *, motion: MotionModel
+    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: BirthNoise, *, motion: MotionModel
                   ) -> tuple[Tensor, Tensor, Tensor]:
         """The birth/death law from pre-drawn noise (the one implementation every filter and
         move uses): ``e_k ~ p(e_k | e_{k-1})`` (eq. 25) by ``birth.u < p(e_k = 1 | e_{k-1})``,
@@ -265,8 +283,7 @@ class BirthDeath(nn.Module):
         x_next : (*S, K, D); exists_next : (*S, K) bool;
         log_ratio : (*S, K) ``log p_0(x) - log q_0(x)`` of each newborn slot, 0 elsewhere.
         """
-        f64 = dict(dtype=torch.float64, device=exists.device)
-        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
+        p_on = self._p_on(exists)
         exists_next = birth.u.to(torch.float64) < p_on
         born = exists_next & ~exists
         x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
@@ -274,7 +291,7 @@ class BirthDeath(nn.Module):
         return x_next, exists_next, torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
 
     def propose(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator,
-                z: Optional[PointMeasurement] = None) -> tuple[Tensor, Tensor, Tensor]:
+                z: PointMeasurement | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Draw the noise and propagate every slot (:meth:`propagate`): newborns from the
         birth proposal (``q_0`` near the points of ``z`` when ``birth_std`` is set and ``z``
         given, else ``p_0``).
@@ -292,11 +309,12 @@ class BirthDeath(nn.Module):
         eps, birth = self.draw_noise(x, motion, z, generator=generator)
         return self.propagate(x, exists, eps, birth, motion=motion)
 
-    def draw_noise(self, x: Tensor, motion: MotionModel, z: Optional[PointMeasurement] = None, *,
-                   generator: torch.Generator) -> tuple[Tensor, "BirthNoise"]:
+    def draw_noise(self, x: Tensor, motion: MotionModel, z: PointMeasurement | None = None, *,
+                   generator: torch.Generator) -> tuple[Tensor, BirthNoise]:
         """The noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise
         ``(B, *S, K, noise_dim)`` and :class:`BirthNoise` (existence uniforms, then motion
-        noise, then birth candidates: the order every filter draws in)."""
+        noise, then birth candidates: the order every filter draws in).
+        """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         eps = torch.randn(shape + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
@@ -306,11 +324,13 @@ class BirthDeath(nn.Module):
     def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator
                ) -> tuple[Tensor, Tensor]:
         """Draw ``(x_k, e_k) ~ p(. | x_{k-1}, e_{k-1})`` from the prior (births from ``p_0``):
-        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``."""
+        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``.
+        """
         x_next, exists_next, _ = self.propose(x, exists, motion=motion, generator=generator)
         return x_next, exists_next
 
     def extra_repr(self) -> str:
+        """The model parameters, shown inside ``repr(module)``."""
         return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
                 f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
 
@@ -327,25 +347,30 @@ class TargetDynamics(NamedTuple):
     """
 
     motion: MotionModel
-    existence: Optional[BirthDeath] = None
+    existence: BirthDeath | None = None
 
-    def draw_noise(self, x: Tensor, z=None, *, generator: torch.Generator) -> tuple[Tensor, Optional[BirthNoise]]:
+    def draw_noise(self, x: Tensor, z: PointMeasurement | None = None, *, generator: torch.Generator
+                   ) -> tuple[Tensor, BirthNoise | None]:
         """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise and, with
         births and deaths, :class:`BirthNoise` (births near the points of ``z`` when the
-        model draws them so)."""
+        model draws them so).
+        """
         if self.existence is None:
             eps = torch.randn(x.shape[:-1] + (self.motion.noise_dim,), generator=generator, device=x.device,
                               dtype=x.dtype)
             return eps, None
         return self.existence.draw_noise(x, self.motion, z, generator=generator)
 
-    def propagate(self, x: Tensor, exists: Optional[Tensor], eps: Tensor, birth: Optional[BirthNoise]
-                  ) -> tuple[Tensor, Optional[Tensor], Tensor]:
+    def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None
+                  ) -> tuple[Tensor, Tensor | None, Tensor]:
         """``(x, exists) -> (x', exists', log_ratio (B, *S, K))`` from pre-drawn noise (pure):
         :meth:`BirthDeath.propagate`, or the motion with the flags unchanged and
-        ``log_ratio = 0``."""
+        ``log_ratio = 0``.
+        """
         if self.existence is None:
             return self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
         if exists is None:
             exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+        if birth is None:
+            raise ValueError("birth is None; a model with births and deaths needs the BirthNoise of draw_noise")
         return self.existence.propagate(x, exists, eps, birth, motion=self.motion)

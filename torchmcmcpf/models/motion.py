@@ -9,7 +9,7 @@
 from __future__ import annotations
 
 import math
-from typing import Optional
+from collections.abc import Sequence
 
 import torch
 
@@ -32,7 +32,11 @@ class LinearGaussianMotion(MotionModel):
     ``.to(device)`` moves them with the filter. Used directly for Kalman cross-checks.
     """
 
-    def __init__(self, F: Tensor, Q: Tensor):
+    F: Tensor
+    Q: Tensor
+    L: Tensor
+
+    def __init__(self, F: Tensor, Q: Tensor) -> None:
         super().__init__()
         F = torch.as_tensor(F, dtype=torch.get_default_dtype() if not torch.is_tensor(F) else F.dtype)
         Q = torch.as_tensor(Q, dtype=F.dtype)
@@ -67,7 +71,8 @@ class LinearGaussianMotion(MotionModel):
         return self._log_norm - 0.5 * white.square().sum(-1)
 
 
-def cv_matrices(dt: float, q: float, amplitude_q: Optional[float] = None, dtype=None):
+def cv_matrices(dt: float, q: float, amplitude_q: float | None = None,
+                dtype: torch.dtype | None = None) -> tuple[Tensor, Tensor]:
     """F and Q of paper 000 eqs. 16-17 for ``[x, vx, y, vy(, rho)]``.
 
     ``F = diag(F1, F1(, 1))`` with ``F1 = [[1, T], [0, 1]]``;
@@ -98,7 +103,7 @@ class ConstantVelocity(LinearGaussianMotion):
     amplitude_q : random-walk level ``a_rho`` of the amplitude; ``None`` for no amplitude.
     """
 
-    def __init__(self, dt: float = 1.0, q: float = 1.0, amplitude_q: Optional[float] = None):
+    def __init__(self, dt: float = 1.0, q: float = 1.0, amplitude_q: float | None = None) -> None:
         check_positive(dt, "dt")
         check_positive(q, "q")
         if amplitude_q is not None:
@@ -108,6 +113,7 @@ class ConstantVelocity(LinearGaussianMotion):
         self.dt, self.q, self.amplitude_q = float(dt), float(q), amplitude_q
 
     def extra_repr(self) -> str:
+        """The constructor arguments, shown inside ``repr(module)``."""
         return f"dt={self.dt}, q={self.q}, amplitude_q={self.amplitude_q}"
 
 
@@ -127,7 +133,10 @@ class WhiteAccelerationMotion(MotionModel):
         (paper: 1).
     """
 
-    def __init__(self, dt: float = 1.0, sigma=1.0):
+    A: Tensor
+    G: Tensor
+
+    def __init__(self, dt: float = 1.0, sigma: float | Sequence[float] | Tensor = 1.0) -> None:
         super().__init__()
         check_positive(dt, "dt")
         s = torch.as_tensor(sigma, dtype=torch.get_default_dtype()).expand(2).clone()
@@ -148,9 +157,17 @@ class WhiteAccelerationMotion(MotionModel):
         return self.mean(x) + eps @ self.G.to(x.dtype).mT
 
     def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
+        """Not defined: the 4-D transition is driven by 2-D noise, so it has no density.
+
+        Raises
+        ------
+        NotImplementedError
+            Always; use :meth:`propagate` (or move the noise, as paper 003's HMC does).
+        """
         raise NotImplementedError("the transition of paper 003 eq. 11 is rank 2 in 4-D: no density")
 
     def extra_repr(self) -> str:
+        """The constructor arguments, shown inside ``repr(module)``."""
         return f"dt={self.dt}"
 
 
@@ -168,7 +185,9 @@ class ProcessNoiseScale(MotionModel):
     scale : (M,) positive scales, one per leading (batch) entry of the states it moves.
     """
 
-    def __init__(self, base: LinearGaussianMotion, scale: Tensor):
+    scale: Tensor
+
+    def __init__(self, base: LinearGaussianMotion, scale: Tensor) -> None:
         super().__init__()
         if not isinstance(base, LinearGaussianMotion):
             raise ValueError(f"base must be a LinearGaussianMotion, got {type(base).__name__}")

@@ -3,14 +3,18 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 
 from .._validation import check_generator, check_positive, check_positive_int
-from ..models.base import MotionModel, SensorModel
-from ..typing import RHO, VX, VY, X, Y, Tensor
+from ..models.base import MotionModel
+from ..typing import RHO, VX, VY, Tensor, X, Y
+
+if TYPE_CHECKING:  # the grid sensors are imported lazily by the scenario builders
+    from ..models.sensors.grid import SeparableGridSensor
 
 __all__ = ["Scenario", "cover"]
 
@@ -27,7 +31,7 @@ class Scenario:
         One simulated frame per step and run.
     initial : (B, K, D)
         True states one step before frame 0 (see the module docstring).
-    sensor : SensorModel that simulated the frames (and that filters should use).
+    sensor : the grid sensor that simulated the frames (and that filters should use).
     motion : MotionModel for the filters (the truth may follow a simpler law).
     snr_db : (B, K)
         Signal-to-noise ratio of each target [dB].
@@ -37,7 +41,7 @@ class Scenario:
     truth: Tensor
     measurements: Tensor
     initial: Tensor
-    sensor: SensorModel
+    sensor: SeparableGridSensor
     motion: MotionModel
     snr_db: Tensor
     dt: float
@@ -97,7 +101,8 @@ class Scenario:
 
 def cover(lo: float, hi: float, cell: float) -> tuple[float, float]:
     """First and last centre of the fewest cells of size ``cell`` whose centres span
-    ``[lo, hi]``, placed symmetrically about its midpoint."""
+    ``[lo, hi]``, placed symmetrically about its midpoint.
+    """
     n = math.ceil((hi - lo) / cell - 1e-9) + 1
     first = 0.5 * (lo + hi) - 0.5 * (n - 1) * cell
     return first, first + (n - 1) * cell

@@ -45,14 +45,14 @@ symmetrically over each covered interval).
 from __future__ import annotations
 
 import math
-from typing import Optional, Union
 
 import torch
 
 from .._validation import check_generator, check_positive, check_positive_int
 from ..models.motion import ConstantVelocity
 from ..typing import VX, VY, X, Y
-from ._common import Scenario, cover as _cover
+from ._common import Scenario
+from ._common import cover as _cover
 
 __all__ = ["Scenario", "ground_radar", "MARGIN_CELLS"]
 
@@ -74,13 +74,13 @@ def ground_radar(
     *,
     generator: torch.Generator,
     dt: float = 1.0,
-    snr_db: Union[float, tuple[float, float]] = (9.0, 20.0),
+    snr_db: float | tuple[float, float] = (9.0, 20.0),
     range_limits: tuple[float, float] = (2700.0, 2900.0),
     bearing_limits_deg: tuple[float, float] = (-6.0, 6.0),
     speed_limits: tuple[float, float] = (0.0, 15.0),
     noise_std: float = 1.0,
     amplitude_q: float = 0.01,
-    device: Optional[Union[str, torch.device]] = None,
+    device: str | torch.device | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> Scenario:
     """Simulate the ground-radar scenario of paper 000 (Table I, sec. VI); see the module

@@ -46,14 +46,14 @@ initial`` and a filter started from the initial cloud propagates it onto frame 0
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Optional, Sequence, Union
 
 import torch
 
 from .._validation import check_generator, check_positive, check_positive_int
 from ..models.motion import ConstantVelocity
-from ..typing import VX, VY, X, Y, Tensor
+from ..typing import VX, VY, Tensor, X, Y
 from ._common import Scenario, cover
 from .ground_radar import MARGIN_CELLS
 
@@ -73,7 +73,8 @@ INITIAL_SPREAD = (5.0, 1.0, 0.0)
 @dataclass(frozen=True, eq=False)
 class LingScenario(Scenario):
     """:class:`~torchmcmcpf.scenarios.ground_radar.Scenario` of paper 002; the state is
-    ``[x, vx, y, vy, P]``, the frames ``(T, B, Na, Nr)``, ``snr_db (B, K)``."""
+    ``[x, vx, y, vy, P]``, the frames ``(T, B, Na, Nr)``, ``snr_db (B, K)``.
+    """
 
     @property
     def range_resolution(self) -> float:
@@ -89,12 +90,13 @@ class LingScenario(Scenario):
     ) -> Tensor:
         """Gaussian cloud around the truth one step before frame 0, ``(B, N, K, 5)``; the
         power is known by default (``spread = (5 m, 1 m/s, 0)``, :data:`INITIAL_SPREAD`).
-        See :meth:`Scenario.initial_particles`."""
+        See :meth:`Scenario.initial_particles`.
+        """
         return super().initial_particles(num_particles, generator=generator, spread=spread)
 
 
 def ling(
-    snr_db: Union[float, Sequence[float], Tensor] = 10.0,
+    snr_db: float | Sequence[float] | Tensor = 10.0,
     batch_size: int = 1,
     *,
     generator: torch.Generator,
@@ -103,7 +105,7 @@ def ling(
     q: float = 1.0,
     power_q: float = 1e-6,
     noise_power: float = 1.0,
-    device: Optional[Union[str, torch.device]] = None,
+    device: str | torch.device | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> LingScenario:
     """Simulate the scenario of paper 002 sec. 4 (see the module docstring).

@@ -24,7 +24,7 @@ association is unknown to the filter.
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
@@ -40,7 +40,7 @@ from ..models.sensors.association import (
     shuffle,
 )
 from ..state import ParticleState
-from ..typing import Tensor, VX, VY, X, Y
+from ..typing import VX, VY, Tensor, X, Y
 
 __all__ = [
     "WhiteAccelerationMotion",
@@ -74,7 +74,8 @@ def alive_schedule(num_steps: int) -> Tensor:
 
 def paper_sensor(observation: str) -> AssociationSensor:
     """The sensor of paper 003: ``"linear"`` (eq. 14, s_obs = 1) or ``"bearing_range"``
-    (eq. 15, s_theta = 1e-2, s_r = 1)."""
+    (eq. 15, s_theta = 1e-2, s_r = 1).
+    """
     if observation == "linear":
         return AssociationPosition(1.0)
     if observation == "bearing_range":
@@ -116,7 +117,7 @@ def simulate(
     *,
     sensor: AssociationSensor,
     generator: torch.Generator,
-    motion: Optional[MotionModel] = None,
+    motion: MotionModel | None = None,
     dtype: torch.dtype = torch.float64,
     device=None,
 ) -> MaroulasData:
@@ -188,7 +189,7 @@ class TrackResult(NamedTuple):
 
     mean: Tensor
     ess: Tensor
-    acceptance: Optional[Tensor]
+    acceptance: Tensor | None
 
 
 def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
@@ -211,6 +212,9 @@ def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
     n = filt.num_particles
     alive = data.alive
     sensor = filt.sensor
+    if not isinstance(sensor, AssociationSensor):
+        raise ValueError(f"filt.sensor must be an AssociationSensor (births are drawn around its measurements), "
+                         f"got {type(sensor).__name__}")
     x0 = birth_particles(sensor, data.z_slot[0], n, generator=generator)
     x0 = torch.where(alive[0].unsqueeze(1).unsqueeze(-1), x0, torch.zeros_like(x0))
     state = filt.init(x0, alive[0].unsqueeze(1).expand(-1, n, -1))
@@ -221,19 +225,26 @@ def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
 
         steps = tqdm(steps, desc=type(filt).__name__, leave=False)
     for t in steps:
-        state = state._replace(exists=state.exists & alive[t].unsqueeze(1))  # deaths
+        state = state._replace(exists=_flags(state) & alive[t].unsqueeze(1))  # deaths
         frame = PointFrame(data.frames.z[t], data.frames.mask[t])
         state, info = filt.step(state, frame, generator=generator)
         born = alive[t] & ~alive[t - 1]  # (B, K), the same for every run
         if bool(born.any()):
             xb = birth_particles(sensor, data.z_slot[t], n, generator=generator)
             bn = born.unsqueeze(1)
-            state = ParticleState(torch.where(bn.unsqueeze(-1), xb, state.x), state.log_w, state.exists | bn)
+            state = ParticleState(torch.where(bn.unsqueeze(-1), xb, state.x), state.log_w, _flags(state) | bn)
         means.append(filt.estimate(state))
         esss.append(info.ess)
         accs.append(info.acceptance)
     acc = torch.stack(accs)
     return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc)
+
+
+def _flags(state: ParticleState) -> Tensor:
+    """``state.exists (B, N, K)``; a ValueError if the filter returned a state without flags."""
+    if state.exists is None:
+        raise ValueError("the filter returned a state with exists=None; track needs existence flags")
+    return state.exists
 
 
 def rmse_per_target(mean: Tensor, x_true: Tensor, alive: Tensor) -> Tensor:

@@ -69,7 +69,8 @@ class SeptierScenario(NamedTuple):
 
 def stack_frames(frames: list[PointFrame]) -> PointFrame:
     """Stack T frames ``(z (B, M_t, 2), mask (B, M_t))`` into one padded to the largest
-    ``M``: ``z (T, B, M, 2)``, ``mask (T, B, M)``."""
+    ``M``: ``z (T, B, M, 2)``, ``mask (T, B, M)``.
+    """
     m = max(f.z.shape[1] for f in frames)
     z = torch.stack([torch.nn.functional.pad(f.z, (0, 0, 0, m - f.z.shape[1])) for f in frames])
     mask = torch.stack([torch.nn.functional.pad(f.mask, (0, m - f.mask.shape[1])) for f in frames])
