@@ -72,12 +72,14 @@ _STAR = re.compile(r"(?<![\\*\w])\*(?=[A-Za-z_]\w*)")
 
 def _escape_shape_stars(app, what, name, obj, options, lines) -> None:
     """Shapes such as ``(B, *S, K, D)`` are the library's vocabulary (``torchmcmcpf.typing``);
-    outside inline literals their ``*`` would open reST emphasis, so escape it."""
+    outside inline literals their ``*`` would open reST emphasis, so escape it.
+    """
     for i, line in enumerate(lines):
         parts = re.split(r"(``.*?``|`[^`]*`)", line)
         lines[i] = "".join(p if p.startswith("`") else _STAR.sub(r"\\*", p) for p in parts)
 
 
 def setup(app):
+    """Sphinx extension hook: copy the notebooks, escape ``*`` in shapes."""
     app.connect("builder-inited", _copy_notebooks)
     app.connect("autodoc-process-docstring", _escape_shape_stars)

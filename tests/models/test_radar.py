@@ -108,7 +108,8 @@ def test_cell_log_ratio_matches_phase_integral():
 
 def test_log_i0_large_arguments_and_gradient():
     u = torch.tensor([0.0, 1e-3, 2.0, 50.0, 700.0, 1e5, -2.0], dtype=torch.float64, requires_grad=True)
-    ref = torch.tensor([0.0, math.log(float(special.iv(0, 1e-3))), math.log(float(special.iv(0, 2.0)))], dtype=torch.float64)
+    ref = torch.tensor([0.0, math.log(float(special.iv(0, 1e-3))), math.log(float(special.iv(0, 2.0)))],
+                       dtype=torch.float64)
     out = log_i0(u)
     torch.testing.assert_close(out[:3], ref, rtol=1e-12, atol=1e-15)
     assert torch.isfinite(out).all() and out[-1] == out[2]  # even
@@ -160,7 +161,8 @@ def test_window_matches_grid_on_table1_scenario():
     g = torch.Generator().manual_seed(3)
     # run 0: two overlapping targets (20 m, 2 m/s apart) + one far; run 1: SNR 20 dB single-ish
     rho = [[sens.amplitude_from_snr(v) for v in (20.0, 15.0, 9.0)]] * 2
-    xt = target_states([[2800, 2820, 2720], [2850, 2700, 2890]], [[3, 5, -10], [-4, 12, 0]], [[1, 1.2, -5], [4, -2, 5]], rho)
+    xt = target_states([[2800, 2820, 2720], [2850, 2700, 2890]], [[3, 5, -10], [-4, 12, 0]],
+                       [[1, 1.2, -5], [4, -2, 5]], rho)
     z = sens.simulate(xt, generator=g)
     x = particles_near(xt, 150, g)
     win, grid = sens.log_likelihood_window(x, z), sens.log_likelihood_grid(x, z)
@@ -193,7 +195,8 @@ def test_window_counts_overlapping_cells_once():
     xt = target_states([[2790, 2790]], [[1, 1]], [[0, 0]], [[4, 3]])
     z = sens.simulate(xt, generator=g)
     A = sens.signal_grid(xt)
-    cell = [int(round((c - o) / d)) for c, o, d in zip(sens.measurement_coords(xt)[0, 0].tolist(), sens.origins, sens.cell_sizes)]
+    u = sens.measurement_coords(xt)[0, 0].tolist()
+    cell = [int(round((c - o) / d)) for c, o, d in zip(u, sens.origins, sens.cell_sizes)]
     box = tuple(slice(c - 1, c + 2) for c in cell)
     ref = sens.cell_log_ratio(A[0][box], sens.prepare_frame(z)[0][box]).sum()
     torch.testing.assert_close(sens.log_likelihood_window(xt, z)[0], ref, rtol=1e-12, atol=1e-12)
@@ -276,7 +279,8 @@ def test_log_likelihood_delta_with_existence_and_float32():
     out = sens.log_likelihood_delta(x, x_n, slot, z, exists=exists, exists_n=exists_n)
     torch.testing.assert_close(out, ref, rtol=1e-10, atol=1e-9)
     same = sens.log_likelihood_delta(x, x_n, slot, z, exists=exists)  # exists_n defaults to the slot's flag
-    ref_same = sens.log_likelihood_window(_replace_slot(x, x_n, slot), z, exists) - sens.log_likelihood_window(x, z, exists)
+    ref_same = (sens.log_likelihood_window(_replace_slot(x, x_n, slot), z, exists)
+                - sens.log_likelihood_window(x, z, exists))
     torch.testing.assert_close(same, ref_same, rtol=1e-10, atol=1e-9)
     out32 = sens.log_likelihood_delta(x.float(), x_n.float(), slot, z.float(), exists=exists, exists_n=exists_n)
     assert (out32.double() - ref).abs().max() <= 1.4e-2
@@ -309,8 +313,8 @@ def test_neighbour_slots_equal_dense_form():
                                    rtol=1e-12, atol=1e-10)
         x_n = particles_near(xt, 20, g, pos=8.0)[:, :, 2]
         slot = torch.randint(6, (1, 20), generator=g)
-        torch.testing.assert_close(sens.log_likelihood_delta(x, x_n, slot, z), dense.log_likelihood_delta(x, x_n, slot, z),
-                                   rtol=1e-10, atol=1e-9)
+        torch.testing.assert_close(sens.log_likelihood_delta(x, x_n, slot, z),
+                                   dense.log_likelihood_delta(x, x_n, slot, z), rtol=1e-10, atol=1e-9)
 
 
 def test_compiled_neighbour_slots_take_either_branch():
@@ -508,7 +512,8 @@ def test_buffers_follow_module_conversions():
     sens = sens.to(torch.float32)
     assert sens.range_bins.dtype == torch.float32
     xt = target_states([[2780]], [[2]], [[0]], [[4]], torch.float32)
-    assert sens.log_likelihood_grid(xt, sens.simulate(xt, generator=torch.Generator().manual_seed(0))).dtype == torch.float32
+    z = sens.simulate(xt, generator=torch.Generator().manual_seed(0))
+    assert sens.log_likelihood_grid(xt, z).dtype == torch.float32
 
 
 # ----------------------------------------------------------------------------- bad input
@@ -545,7 +550,8 @@ def test_log_likelihood_rejects_mismatched_shapes():
 
 def test_constructor_rejects_bad_bins_and_settings():
     r, d, b = torch.arange(5.0) * 10, torch.arange(3.0) * 2, torch.arange(4.0) * DEG
-    with pytest.raises(ValueError, match=r"range_bins must be strictly increasing with uniform spacing; got spacings between 10 and 15"):
+    msg = r"range_bins must be strictly increasing with uniform spacing; got spacings between 10 and 15"
+    with pytest.raises(ValueError, match=msg):
         RangeDopplerBearingTBD(torch.tensor([0.0, 10, 20, 35]), d, b)
     with pytest.raises(ValueError, match="doppler_bins must be strictly increasing"):
         RangeDopplerBearingTBD(r, d.flip(0), b)

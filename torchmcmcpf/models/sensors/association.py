@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Optional, Union
 
 import torch
 
@@ -76,7 +75,7 @@ def permutations(p: int, device=None) -> Tensor:
     return _PERMS[key]
 
 
-def padded_pair_log_likelihood(pair: Tensor, exists: Optional[Tensor], mask: Optional[Tensor]
+def padded_pair_log_likelihood(pair: Tensor, exists: Tensor | None, mask: Tensor | None
                                ) -> tuple[Tensor, Tensor]:
     """Pad the ``(K, M)`` pair log-likelihoods to a square ``(P, P)``, ``P = max(K, M)``.
 
@@ -128,7 +127,7 @@ def metropolis_association(
     *,
     num_iters: int,
     generator: torch.Generator,
-    init: Optional[Tensor] = None,
+    init: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Metropolis walk over assignments, batched over every leading dim (paper 003 / [15]).
 
@@ -182,7 +181,8 @@ def metropolis_association(
 def shuffle(z: Tensor, exists: Tensor, *, generator: torch.Generator) -> PointFrame:
     """Forget the association: ``z (B, K, d)`` in slot order -> ``PointFrame`` with the
     measurements of existing slots first, in a uniformly random order per run, and the
-    other rows zeroed and masked out. ``exists`` is ``(B, K)`` bool."""
+    other rows zeroed and masked out. ``exists`` is ``(B, K)`` bool.
+    """
     key = torch.rand(exists.shape, generator=generator, device=z.device, dtype=torch.float64)
     order = torch.argsort(torch.where(exists, key, key + 2.0), dim=-1)
     zs = torch.take_along_dim(z, order.unsqueeze(-1), dim=-2)
@@ -237,7 +237,7 @@ class AssociationSensor(SensorModel):
         white = self.residual(zb, h) / self.noise_std.to(x.dtype)
         return self._log_norm - 0.5 * white.square().sum(-1)
 
-    def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """Exact ``log p(z | x)``: the average over all associations (module docstring).
 
         Parameters
@@ -263,7 +263,7 @@ class AssociationSensor(SensorModel):
         return torch.logsumexp(per_perm, -1) - log_count
 
     def assigned_log_likelihood(self, x: Tensor, z: PointMeasurement, assignment: Tensor,
-                                exists: Optional[Tensor] = None) -> Tensor:
+                                exists: Tensor | None = None) -> Tensor:
         """Per-slot ``log g(z_{a[k]} | x_k)`` for a given association (paper 003 eq. 9).
 
         Parameters
@@ -282,7 +282,7 @@ class AssociationSensor(SensorModel):
         return torch.take_along_dim(square[..., :k, :], assignment[..., :k].unsqueeze(-1), dim=-1).squeeze(-1)
 
     # -- simulation and checks -----------------------------------------------------------
-    def simulate(self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+    def simulate(self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
                  ) -> PointFrame:
         """Measure every existing slot, then shuffle the measurements of each run.
 
@@ -303,7 +303,10 @@ class AssociationSensor(SensorModel):
         noise = torch.randn(x.shape[:-1] + (self.meas_dim,), generator=generator, device=x.device, dtype=x.dtype)
         return self.measure(x) + noise * self.noise_std.to(x.dtype)
 
-    def validate(self, z: PointMeasurement, batch_size: Optional[int] = None, name: str = "z"):
+    def validate(self, z: PointMeasurement, batch_size: int | None = None, name: str = "z") -> PointMeasurement:
+        """Check a frame: points ``(B, M, d)`` finite (padding included), ``mask (B, M)`` bool
+        if given, and ``B == batch_size`` if given. Returns ``z``.
+        """
         zz, mask = _split(z)
         check_shape(zz, name, (None, None, self.meas_dim))
         if batch_size is not None:
@@ -325,16 +328,18 @@ class AssociationPosition(AssociationSensor):
     dim : per-target state size D (layout ``[x, vx, y, vy, ...]``).
     """
 
-    def __init__(self, noise_std: Union[float, Tensor] = 1.0, dim: int = 4):
+    def __init__(self, noise_std: float | Tensor = 1.0, dim: int = 4):
         std = torch.as_tensor(noise_std, dtype=torch.get_default_dtype()).expand(2).clone()
         for i, s in enumerate(std.tolist()):
             check_positive(s, f"noise_std[{i}]")
         super().__init__(std, dim)
 
     def measure(self, x: Tensor) -> Tensor:
+        """Eq. 14 without noise: the position ``(x, y)``, ``(*S, K, D) -> (*S, K, 2)``."""
         return torch.stack([x[..., X], x[..., Y]], -1)
 
     def to_position(self, z: Tensor) -> Tensor:
+        """The measurement is the position: identity, ``(..., 2) -> (..., 2)``."""
         return z
 
 
@@ -354,9 +359,13 @@ class AssociationBearingRange(AssociationSensor):
         super().__init__(torch.tensor([bearing_std, range_std]), dim)
 
     def measure(self, x: Tensor) -> Tensor:
+        """Eq. 15 without noise: ``[atan2(y, x), hypot(x, y)]``, ``(*S, K, D) -> (*S, K, 2)``."""
         return torch.stack([torch.atan2(x[..., Y], x[..., X]), torch.hypot(x[..., X], x[..., Y])], -1)
 
     def residual(self, z: Tensor, h: Tensor) -> Tensor:
+        """``z - h`` with the bearing difference wrapped to ``[-pi, pi]`` (broadcasting; the
+        wrap is constant in ``h``, so the gradient is that of ``z - h``).
+        """
         d = z - h
         two_pi = 2 * math.pi
         wrap = torch.zeros_like(d)
@@ -364,4 +373,5 @@ class AssociationBearingRange(AssociationSensor):
         return d - wrap
 
     def to_position(self, z: Tensor) -> Tensor:
+        """``(bearing, range) -> (r cos b, r sin b)``: ``(..., 2) -> (..., 2)``."""
         return torch.stack([z[..., 1] * torch.cos(z[..., 0]), z[..., 1] * torch.sin(z[..., 0])], -1)

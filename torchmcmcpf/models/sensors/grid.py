@@ -39,7 +39,7 @@ implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Union
+from collections.abc import Sequence
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -176,10 +176,10 @@ class SeparableGridSensor(SensorModel):
     def __init__(
         self,
         *bins: Tensor,
-        window: Optional[int] = None,
+        window: int | None = None,
         method: str = "window",
         memory_budget: int = 2**30,
-        **settings: Optional[float],
+        **settings: float | None,
     ):
         super().__init__()
         names = self.axis_names
@@ -218,12 +218,13 @@ class SeparableGridSensor(SensorModel):
         self.frame_shape = tuple(int(getattr(self, f"{n}_bins").numel()) for n in names)
 
     @classmethod
-    def uniform(cls, *limits: tuple[float, float], **kw) -> "SeparableGridSensor":
+    def uniform(cls, *limits: tuple[float, float], **kw) -> SeparableGridSensor:
         """Uniform grid: one ``(first, last)`` per axis gives the first cell centre and an
         upper limit; centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) /
         cell)`` (``last`` included when it lies on the lattice). Cell sizes by the keywords
         ``f"{axis}_cell"``, default :attr:`default_cells`; other keywords go to the
-        constructor."""
+        constructor.
+        """
         if len(limits) != len(cls.axis_names):
             raise ValueError(
                 f"{cls.__name__}.uniform takes {len(cls.axis_names)} limits "
@@ -244,28 +245,32 @@ class SeparableGridSensor(SensorModel):
     def prepare_frame(self, z: Tensor) -> Tensor:
         """Per-cell transform of the frame done once per call, before cells are gathered
         (e.g. ``sqrt(z)``); :meth:`cell_log_ratio` receives its output. Identity by default.
-        ``(B, *G) -> (B, *G)``."""
+        ``(B, *G) -> (B, *G)``.
+        """
         return z
 
     def cell_log_ratio(self, A: Tensor, zc: Tensor) -> Tensor:
         """``log p(z_c | A) - log p(z_c | 0)`` per cell; ``A`` and ``zc = prepare_frame(z)`` at
-        the same cells broadcast together. Must be 0 where ``A = 0``."""
+        the same cells broadcast together. Must be 0 where ``A = 0``.
+        """
         raise NotImplementedError
 
     # ---------------------------------------------------------------- shared pieces
     @property
     def n_axes(self) -> int:
+        """Number of grid axes ``n`` (``len(frame_shape)``)."""
         return len(self.frame_shape)
 
     @property
     def num_cells(self) -> int:
+        """Number of cells of one frame, ``N_1 * ... * N_n``."""
         return math.prod(self.frame_shape)
 
     def bins(self, axis: int) -> Tensor:
         """Cell centres of ``axis``, ``(N_a,)``."""
         return getattr(self, f"{self.axis_names[axis]}_bins")
 
-    def _check_inputs(self, x: Tensor, z: Tensor, exists: Optional[Tensor]) -> None:
+    def _check_inputs(self, x: Tensor, z: Tensor, exists: Tensor | None) -> None:
         # Shape checks only (no device sync): the hot path stays compile-friendly. Values
         # are checked once per frame by validate().
         if x.dim() < 3 or x.shape[-1] != self.dim:
@@ -278,16 +283,17 @@ class SeparableGridSensor(SensorModel):
         if exists is not None and tuple(exists.shape) != tuple(x.shape[:-1]):
             raise ValueError(f"exists has shape {tuple(exists.shape)}, expected {tuple(x.shape[:-1])}")
 
-    def _flat_inputs(self, x: Tensor, exists: Optional[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    def _flat_inputs(self, x: Tensor, exists: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """``x (B, *S, K, D) -> u (B, P, K, n), s (B, P, K), e (B, P, K)`` with ``P = prod(S)``;
-        ``s`` already multiplied by the existence flags ``e`` (float, dtype of ``x``)."""
+        ``s`` already multiplied by the existence flags ``e`` (float, dtype of ``x``).
+        """
         B, K = x.shape[0], x.shape[-2]
         x = x.reshape(B, -1, K, x.shape[-1])
         u = self.measurement_coords(x)
         e = torch.ones_like(x[..., 0]) if exists is None else exists.reshape(B, -1, K).to(x.dtype)
         return u, self.signal(x) * e, e
 
-    def log_likelihood(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Sum over cells of :meth:`cell_log_ratio`, by ``self.method``.
 
         Parameters
@@ -333,7 +339,7 @@ class SeparableGridSensor(SensorModel):
             )
         return out.reshape(*lead, *(f.shape[-1] for f in factors))
 
-    def signal_grid(self, x: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def signal_grid(self, x: Tensor, exists: Tensor | None = None) -> Tensor:
         """Noise-free signal ``A`` in every cell (eq. 19 without noise and phase).
 
         Parameters
@@ -366,7 +372,7 @@ class SeparableGridSensor(SensorModel):
         A = self._contract(s, self._profiles(u))
         return self.cell_log_ratio(A, zc).flatten(2).sum(-1)
 
-    def log_likelihood_grid(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_grid(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Reference: :meth:`cell_log_ratio` summed over every cell of the grid.
 
         ``A`` over the grid is ``sum_k s_k a_k(i_1) ... a_k(i_n)`` (per-axis profiles, one bmm).
@@ -420,14 +426,16 @@ class SeparableGridSensor(SensorModel):
 
     def _box_first(self, ua: Tensor, axis: int) -> Tensor:
         """First cell (float index) of the box on ``axis`` of targets at coordinates ``ua``:
-        the nearest cell minus ``window``, shifted to lie inside the grid. Same shape as ``ua``."""
+        the nearest cell minus ``window``, shifted to lie inside the grid. Same shape as ``ua``.
+        """
         N, W = self.frame_shape[axis], self.window_sizes()[axis]
         nearest = torch.round((ua.detach() - self.origins[axis]) / self.cell_sizes[axis])
         return (nearest - self.window).clamp(0, N - W)
 
     def _overlaps(self, box_firsts: Sequence[Tensor], firsts: Sequence[Tensor]) -> Tensor:
         """Whether box ``q`` (first cells ``box_firsts[a] (..., Q)``) and the box of target ``k``
-        (``firsts[a] (..., T)``) share a cell: ``(..., Q, T)`` bool."""
+        (``firsts[a] (..., T)``) share a cell: ``(..., Q, T)`` bool.
+        """
         out = None
         for bq, fk, W in zip(box_firsts, firsts, self.window_sizes()):
             near = (bq[..., :, None] - fk[..., None, :]).abs() < W
@@ -448,9 +456,12 @@ class SeparableGridSensor(SensorModel):
         factor ``(..., Q, M, W_{n-1} W_n)``).
         """
         Q = index.shape[-2]
+
+        def pick(v: Tensor) -> Tensor:  # (..., T) -> (..., Q, M): the selected targets' values per box
+            return torch.take_along_dim(v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1]), index, -1)
+
         profiles, indicators = [], []
         for a, (bq, fk, W) in enumerate(zip(box_firsts, firsts, self.window_sizes())):
-            pick = lambda v: torch.take_along_dim(v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1]), index, -1)
             ua, first = pick(u[..., a]), pick(fk)  # (..., Q, M)
             c0, delta = self.origins[a], self.cell_sizes[a]
             scale = 1.0 / (math.sqrt(2.0) * self.widths[a])
@@ -503,7 +514,8 @@ class SeparableGridSensor(SensorModel):
     def _neighbour_index(self, overlap: Tensor, count: int) -> tuple[Tensor, Tensor]:
         """The first ``count`` targets that overlap each box: ``overlap (..., Q, T)`` bool ->
         ``index (..., Q, count)`` int64 and ``weight (..., Q, count)`` 0/1 (dtype float32;
-        0 marks a filler when a box has fewer overlapping targets)."""
+        0 marks a filler when a box has fewer overlapping targets).
+        """
         w, index = torch.topk(overlap.to(torch.float32), count, dim=-1, sorted=False)
         return index, w
 
@@ -518,7 +530,8 @@ class SeparableGridSensor(SensorModel):
 
         The branches take the raw ``inputs`` and run ``prepare`` again: passed intermediates
         instead, torch 2.13's inductor gave some a transposed layout that the compiled
-        branch did not expect (an ``assert_size_stride`` failure at run time)."""
+        branch did not expect (an ``assert_size_stride`` failure at run time).
+        """
         parts = prepare(*inputs)
         cap = min(int(self.max_neighbours), dense)
         if cap >= dense:
@@ -533,14 +546,16 @@ class SeparableGridSensor(SensorModel):
     def box_cells(self) -> tuple[int, ...]:
         """Layout of the cells of one box on the windowed paths: ``(W_1, ..., W_{n-2},
         W_{n-1} * W_n)``, the last two axes merged so that the innermost loop is long enough
-        to vectorise (``W_a`` is 7 or 9, the vector width 8 or 16)."""
+        to vectorise (``W_a`` is 7 or 9, the vector width 8 or 16).
+        """
         W = self.window_sizes()
         return W if len(W) < 2 else W[:-2] + (W[-2] * W[-1],)
 
     @staticmethod
     def _merge_last(factors: list[Tensor]) -> list[Tensor]:
         """Per-axis factors ``(..., W_a)`` -> the :meth:`box_cells` layout (the last two
-        replaced by their flattened outer product ``(..., W_{n-1} * W_n)``)."""
+        replaced by their flattened outer product ``(..., W_{n-1} * W_n)``).
+        """
         if len(factors) < 2:
             return factors
         a, b = factors[-2][..., :, None], factors[-1][..., None, :]
@@ -551,7 +566,8 @@ class SeparableGridSensor(SensorModel):
 
     def _gather_cells(self, zc: Tensor, firsts: Sequence[Tensor]) -> Tensor:
         """``zc (B, *G)`` at the cells of boxes with first cells ``firsts[a] (B, P, Q)`` ->
-        ``(B, P, Q, *box_cells())`` by broadcast advanced indexing (no index blow-up)."""
+        ``(B, P, Q, *box_cells())`` by broadcast advanced indexing (no index blow-up).
+        """
         B, P, Q = firsts[0].shape
         n, W, V = self.n_axes, self.window_sizes(), self.box_cells()
         index = [torch.arange(B, device=zc.device).reshape((B,) + (1,) * (2 + len(V)))]
@@ -585,7 +601,8 @@ class SeparableGridSensor(SensorModel):
     def _window_rows(self, x: Tensor, fn, chunk: int) -> Tensor:
         """Apply ``fn(rows) -> (b, p)`` to blocks of at most ``chunk`` rows of the flattened
         ``(B, P)`` samples of ``x (B, P, ...)`` (a row block is ``runs x samples``), each block
-        checkpointed when autograd records, and reassemble ``(B, P)``."""
+        checkpointed when autograd records, and reassemble ``(B, P)``.
+        """
         B, P = x.shape[:2]
         runs = min(B, chunk)
         samples = max(1, chunk // runs)
@@ -601,10 +618,11 @@ class SeparableGridSensor(SensorModel):
             out.append(torch.cat(row, 1))
         return torch.cat(out)
 
-    def _window_parts(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> tuple:
+    def _window_parts(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> tuple:
         """``x (b, p, K, D)``, ``z (b, *G)``, ``exists (b, p, K)`` -> ``(u, s, e, zc, *firsts,
         others)``: see :meth:`_flat_inputs`; ``firsts[a] (b, p, K)`` the box starts and
-        ``others (b, p, J, K)`` whether the boxes of live targets ``j != k`` overlap."""
+        ``others (b, p, J, K)`` whether the boxes of live targets ``j != k`` overlap.
+        """
         K = x.shape[-2]
         u, s, e = self._flat_inputs(x, exists)
         firsts = [self._box_first(u[..., a], a) for a in range(self.n_axes)]  # (b, p, K) each
@@ -616,7 +634,8 @@ class SeparableGridSensor(SensorModel):
     def _window_sum(self, count: int, u: Tensor, s: Tensor, e: Tensor, zc: Tensor, *parts: Tensor) -> Tensor:
         """Windowed log-likelihood ``(b, p)`` of a block of samples from
         :meth:`_window_parts`, with ``count`` neighbour slots per box (at least the most
-        other boxes overlapping one box)."""
+        other boxes overlapping one box).
+        """
         *firsts, others = parts
         b, p, K = s.shape
         index = torch.arange(K, device=u.device).expand(b, p, K)[..., None]  # (b, p, J, 1): the box's own target
@@ -625,7 +644,10 @@ class SeparableGridSensor(SensorModel):
             nb, w = self._neighbour_index(others, count)  # (b, p, J, count)
             index, weight = torch.cat([index, nb], -1), torch.cat([weight, w.to(s.dtype)], -1)
         profiles, indicators = self._neighbour_profiles(firsts, u, firsts, index)  # (b, p, J, M, W) each
-        pick = lambda v: torch.take_along_dim(v[..., None, :].expand(b, p, K, K), index, -1) * weight
+
+        def pick(v: Tensor) -> Tensor:  # (b, p, K) -> (b, p, J, M): the neighbours' values per box, 0 for fillers
+            return torch.take_along_dim(v[..., None, :].expand(b, p, K, K), index, -1) * weight
+
         A = self._outer_sum(pick(s), profiles)  # (b, p, J, *W)
         # weight 1 / n_c; an absent box j has n_c >= 0, so add (1 - e_j) before dividing and
         # zero its sum afterwards
@@ -636,7 +658,7 @@ class SeparableGridSensor(SensorModel):
         # one reduction over boxes and cells (fused with the cell terms under torch.compile)
         return (self.cell_log_ratio(A, zw) * (e_cells / n_boxes)).sum(tuple(range(2, 3 + len(V))))
 
-    def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Fast path: the exact log-likelihood of the sensor with *truncated* point spreads.
 
         Each target ``k`` gets a box of ``W_a = min(2 * window + 1, N_a)`` cells per axis,
@@ -686,10 +708,10 @@ class SeparableGridSensor(SensorModel):
         self,
         x: Tensor,
         x_n: Tensor,
-        n: Union[int, Tensor],
+        n: int | Tensor,
         z: Tensor,
-        exists: Optional[Tensor] = None,
-        exists_n: Optional[Tensor] = None,
+        exists: Tensor | None = None,
+        exists_n: Tensor | None = None,
     ) -> Tensor:
         """Change of :meth:`log_likelihood_window` when slot ``n`` of ``x`` is set to ``x_n``.
 
@@ -728,7 +750,9 @@ class SeparableGridSensor(SensorModel):
         B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
         S = tuple(x.shape[1:-2])
         if tuple(x_n.shape) != (B,) + S + (D,):
-            raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {(B,) + S + (D,)} to match x {tuple(x.shape)}")
+            raise ValueError(
+                f"x_n has shape {tuple(x_n.shape)}, expected {(B,) + S + (D,)} to match x {tuple(x.shape)}"
+            )
         if exists_n is not None and tuple(exists_n.shape) != (B,) + S:
             raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {(B,) + S}")
         if torch.is_tensor(n):
@@ -754,15 +778,16 @@ class SeparableGridSensor(SensorModel):
         return self._select(K - 1, self._delta_sum, prepare, inputs).reshape((B,) + S)
 
     def _delta_parts(
-        self, x: Tensor, x_n: Tensor, n: Union[int, Tensor], z: Tensor, exists: Optional[Tensor],
-        exists_n: Optional[Tensor],
+        self, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor, exists: Tensor | None,
+        exists_n: Tensor | None,
     ) -> tuple:
         """The arguments of :meth:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old,
         s_new, zc, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K
         slots, then of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new
         (B, P, 1)`` the signals (times existence); ``firsts[a] (B, P, K + 2)`` the box starts;
         ``others (B, P, 2, K)`` whether the old / new box of slot ``n`` overlaps the box of
-        another live slot."""
+        another live slot.
+        """
         B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
         if torch.is_tensor(n):
             slot = n.to(device=x.device, dtype=torch.int64).expand(x.shape[:-2]).reshape(B, -1)
@@ -787,7 +812,8 @@ class SeparableGridSensor(SensorModel):
         self, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor, zc: Tensor, *parts: Tensor
     ) -> Tensor:
         """:meth:`log_likelihood_delta` ``(B, P)`` from :meth:`_delta_parts`, with ``count``
-        neighbour slots per box."""
+        neighbour slots per box.
+        """
         *firsts, others = parts
         B, P, K = s.shape
         boxes = [f[..., K:] for f in firsts]
@@ -820,7 +846,7 @@ class SeparableGridSensor(SensorModel):
         check_nonnegative(self.signal(x), f"{name} (signal component)")
         return x
 
-    def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:
+    def validate(self, z: Tensor, batch_size: int | None = None, name: str = "z") -> Tensor:
         """Check one frame ``z (B, *G)``: shape, batch size, finite, non-negative. Returns ``z``."""
         check_shape(z, name, (None,) + tuple(self.frame_shape))
         if z.shape[0] == 0:

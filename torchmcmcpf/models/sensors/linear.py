@@ -7,7 +7,6 @@ One measurement per target slot, ``z_k = H x_k + w``, ``w ~ N(0, R)``: Maroulas 
 from __future__ import annotations
 
 import math
-from typing import Optional
 
 import torch
 
@@ -58,7 +57,7 @@ class LinearGaussian(SensorModel):
         self._log_norm = -0.5 * d * math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
 
     @classmethod
-    def position(cls, noise_std: float, dim: int = 4) -> "LinearGaussian":
+    def position(cls, noise_std: float, dim: int = 4) -> LinearGaussian:
         """Observe ``(x, y)`` of ``[x, vx, y, vy(, rho)]`` with isotropic noise ``noise_std`` [m]."""
         check_positive(noise_std, "noise_std")
         if dim < 4:
@@ -68,7 +67,7 @@ class LinearGaussian(SensorModel):
         H[1, 2] = 1.0
         return cls(H, noise_std**2 * torch.eye(2))
 
-    def log_likelihood(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Sum over slots of ``log N(z_j; H x_j, R)``.
 
         Parameters
@@ -81,7 +80,7 @@ class LinearGaussian(SensorModel):
         """
         return self.log_likelihood_per_target(x, z, exists).sum(-1)
 
-    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Per-slot terms ``log N(z_j; H x_j, R)`` of :meth:`log_likelihood` (targets do not
         interact: the per-target refinement of the MCMC filter caches them, see
         ``torchmcmcpf.kernels.moves``).
@@ -103,7 +102,7 @@ class LinearGaussian(SensorModel):
         return per_target
 
     def simulate(
-        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+        self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
     ) -> Tensor:
         """``x (B, K, D) -> z (B, K, d)``."""
         eps = torch.randn(x.shape[:-1] + (self.meas_dim,), generator=generator, device=x.device, dtype=x.dtype)

@@ -27,7 +27,7 @@ leading ``T``: ``z (T, B, M, 2)``, ``mask (T, B, M)``.
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Union
+from collections.abc import Sequence
 
 import torch
 
@@ -38,7 +38,7 @@ from .association import PointFrame, PointMeasurement, _split
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area"]
 
-AreaLike = Union[Tensor, Sequence[Sequence[float]]]
+AreaLike = Tensor | Sequence[Sequence[float]]
 
 
 def as_area(area: AreaLike, name: str = "area") -> Tensor:
@@ -77,8 +77,8 @@ class PoissonClutterPoints(SensorModel):
         detection_rate: float,
         area: AreaLike,
         *,
-        noise_std: Optional[float] = None,
-        R: Optional[Tensor] = None,
+        noise_std: float | None = None,
+        R: Tensor | None = None,
         dim: int = 4,
     ):
         super().__init__()
@@ -114,7 +114,8 @@ class PoissonClutterPoints(SensorModel):
     # -- likelihood ---------------------------------------------------------------------
     def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
         """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
-        -> (B, *S, K, M)``."""
+        -> (B, *S, K, M)``.
+        """
         W = self.W.to(x.dtype)
         pos = torch.stack([x[..., X], x[..., Y]], -1) @ W.mT  # (B, *S, K, 2), whitened
         wz = z.to(x.dtype) @ W.mT
@@ -123,7 +124,7 @@ class PoissonClutterPoints(SensorModel):
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
         return log_rate + self._log_norm - 0.5 * r.square().sum(-1)
 
-    def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
         (paper 001, DESIGN.md), summed over the valid points only.
 
@@ -154,7 +155,7 @@ class PoissonClutterPoints(SensorModel):
 
     # -- simulation ---------------------------------------------------------------------
     def simulate(
-        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+        self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
     ) -> PointFrame:
         """Draw one frame per run: ``Poisson(L_C)`` clutter points uniform on the area and
         ``Poisson(L_x)`` noisy positions of every live target, in random order.
@@ -197,9 +198,10 @@ class PoissonClutterPoints(SensorModel):
         return PointFrame(torch.where(mask.unsqueeze(-1), pts, torch.zeros_like(pts)), mask)
 
     # -- input checks -------------------------------------------------------------------
-    def validate(self, z: PointMeasurement, batch_size: Optional[int] = None, name: str = "z"):
+    def validate(self, z: PointMeasurement, batch_size: int | None = None, name: str = "z"):
         """Check a frame: points ``(B, M, 2)`` finite (padding included), ``mask (B, M)``
-        bool of the same ``B, M``. Returns ``z``."""
+        bool of the same ``B, M``. Returns ``z``.
+        """
         if not torch.is_tensor(z) and not (isinstance(z, tuple) and len(z) == 2):
             raise ValueError(f"{name} must be a PointFrame (z, mask) or a tensor (B, M, 2), got "
                              f"{type(z).__name__}")
@@ -216,5 +218,6 @@ class PoissonClutterPoints(SensorModel):
         return z
 
     def extra_repr(self) -> str:
+        """The constructor arguments, shown inside ``repr(module)``."""
         return (f"clutter_rate={self.clutter_rate}, detection_rate={self.detection_rate}, "
                 f"volume={self.volume:g}")

@@ -22,12 +22,11 @@ sum over cells (DESIGN.md "Likelihoods worth writing down").
 from __future__ import annotations
 
 import math
-from typing import Optional, Union
 
 import torch
 
 from ..._validation import check_generator, check_shape
-from ...typing import RHO, VX, VY, X, Y, Tensor
+from ...typing import RHO, VX, VY, Tensor, X, Y
 from .grid import SeparableGridSensor, polar
 
 __all__ = ["RangeDopplerBearingTBD", "log_i0", "log_i0_approx"]
@@ -168,7 +167,8 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:
         """Eq. 21: ``(..., K, 5) -> (..., K, 3)`` as ``[r, d, b]`` (bearing ``atan2(y, x)``;
-        a state at the radar itself maps to ``r = d = b = 0``, see :func:`grid.polar`)."""
+        a state at the radar itself maps to ``r = d = b = 0``, see :func:`grid.polar`).
+        """
         r, b, ux, uy = polar(x[..., X], x[..., Y])
         d = ux * x[..., VX] + uy * x[..., VY]
         return torch.stack((r, d, b), dim=-1)
@@ -191,13 +191,13 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         return log_i0(A * zc) - A * A / (2.0 * self.noise_std**2)
 
     # ------------------------------------------------------------------ SNR
-    def amplitude_from_snr(self, snr_db: Union[float, Tensor]) -> Union[float, Tensor]:
+    def amplitude_from_snr(self, snr_db: float | Tensor) -> float | Tensor:
         """``rho = sigma * sqrt(2 * 10^(snr_db / 10))``, inverse of ``SNR = rho^2 / (2 sigma^2)``."""
         if torch.is_tensor(snr_db):
             return self.noise_std * torch.sqrt(2.0 * 10.0 ** (snr_db / 10.0))
         return self.noise_std * math.sqrt(2.0 * 10.0 ** (snr_db / 10.0))
 
-    def snr_db_from_amplitude(self, rho: Union[float, Tensor]) -> Union[float, Tensor]:
+    def snr_db_from_amplitude(self, rho: float | Tensor) -> float | Tensor:
         """``10 log10(rho^2 / (2 sigma^2))`` (peak target power over mean noise power per cell)."""
         if torch.is_tensor(rho):
             return 10.0 * torch.log10(rho * rho / (2.0 * self.noise_std**2))
@@ -205,7 +205,7 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
 
     # ------------------------------------------------------------------ simulation
     def simulate(
-        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+        self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
     ) -> Tensor:
         """Draw one power frame per run, eqs. 18-19.
 

@@ -20,12 +20,11 @@ and cells are independent (eq. 9). Per cell
 from __future__ import annotations
 
 import math
-from typing import Optional, Union
 
 import torch
 
 from ..._validation import check_finite, check_generator, check_nonnegative, check_shape
-from ...typing import RHO, X, Y, Tensor
+from ...typing import RHO, Tensor, X, Y
 from .grid import SeparableGridSensor, polar
 
 __all__ = ["AzimuthRangeSwerlingTBD", "POWER"]
@@ -117,7 +116,9 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         return z / self.noise_power
 
     def cell_log_ratio(self, A: Tensor, zc: Tensor) -> Tensor:
-        """Swerling-I log ratio per cell (eqs. 7-8), with ``a = A / sigma^2``:
+        """Swerling-I log ratio per cell (eqs. 7-8).
+
+        With ``a = A / sigma^2``:
 
         ``log p(z | A) - log p(z | 0) = -log(1 + a) + (z / sigma^2) a / (1 + a)``
 
@@ -137,11 +138,11 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         return torch.where(valid, out, torch.full_like(out, -math.inf))
 
     # ------------------------------------------------------------------ SNR
-    def power_from_snr(self, snr_db: Union[float, Tensor]) -> Union[float, Tensor]:
+    def power_from_snr(self, snr_db: float | Tensor) -> float | Tensor:
         """``P = sigma^2 * 10^(snr_db / 10)``, inverse of ``SNR = P / sigma^2``."""
         return self.noise_power * 10.0 ** (snr_db / 10.0)
 
-    def snr_db_from_power(self, power: Union[float, Tensor]) -> Union[float, Tensor]:
+    def snr_db_from_power(self, power: float | Tensor) -> float | Tensor:
         """``10 log10(P / sigma^2)``."""
         if torch.is_tensor(power):
             return 10.0 * torch.log10(power / self.noise_power)
@@ -149,7 +150,7 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
 
     # ------------------------------------------------------------------ simulation
     def simulate(
-        self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None
+        self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None
     ) -> Tensor:
         """Draw one power frame per run (eqs. 3-8).
 
