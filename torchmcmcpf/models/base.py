@@ -113,15 +113,15 @@ class SensorModel(nn.Module, Generic[Z]):
                              exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
         """``log p(z | x with slot n set to x_n (, e_n)) - log p(z | x (, e))``: ``(B, *S)``.
 
+        The default evaluates :meth:`log_likelihood` twice (exact); grid sensors override it
+        with the cells near the old and new position of the slot only.
+
         Parameters
         ----------
         x : (B, *S, K, D) current states; x_n : (B, *S, D) the new state of slot ``n``.
         n : Python int, or (B, *S) int64 (one slot per sample).
         z : one frame per run; exists : (B, *S, K) bool, optional, current flags;
         exists_n : (B, *S) bool, optional, slot n's new flag (with ``exists``).
-
-        The default evaluates :meth:`log_likelihood` twice (exact); grid sensors override it
-        with the cells near the old and new position of the slot only.
         """
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
         return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)

@@ -20,11 +20,6 @@ __all__ = ["LinearGaussian"]
 class LinearGaussian(SensorModel):
     """``z_{k,j} = H x_{k,j} + w_j``, ``w_j ~ N(0, R)``, one measurement per target.
 
-    Parameters
-    ----------
-    H : (d, D) observation matrix.
-    R : (d, d) symmetric positive definite noise covariance.
-
     ``log_likelihood`` returns the full Gaussian log density (constants included), so a
     filter's evidence is the true ``log p(z_{1:T})``, comparable across ``R``.
 
@@ -32,6 +27,11 @@ class LinearGaussian(SensorModel):
     give the whitened residual ``W z - WH x`` by two small matmuls per call (no triangular
     solve per call; the ``(B, K, d)`` measurements are whitened once per call, not once per
     particle).
+
+    Parameters
+    ----------
+    H : (d, D) observation matrix.
+    R : (d, d) symmetric positive definite noise covariance.
     """
 
     def __init__(self, H: Tensor, R: Tensor):
