@@ -39,10 +39,12 @@ implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch
 from torch.utils.checkpoint import checkpoint
+from typing_extensions import Self  # typing.Self needs Python 3.11; requires-python is 3.10
 
 from ..._validation import check_nonnegative, check_positive, check_positive_int, check_shape
 from ...typing import Tensor
@@ -101,7 +103,7 @@ def polar(px: Tensor, py: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
 _METHODS = ("window", "grid")
 
 
-def _uniform_bins(bins, name: str) -> tuple[Tensor, float, float]:
+def _uniform_bins(bins: Tensor | Sequence[float], name: str) -> tuple[Tensor, float, float]:
     """Check 1-D, finite, strictly increasing, uniformly spaced cell centres.
 
     Returns the centres as a float64 tensor, the first centre and the spacing (1.0 for a
@@ -126,7 +128,7 @@ def _uniform_bins(bins, name: str) -> tuple[Tensor, float, float]:
     return bins, float(bins[0]), delta
 
 
-class SeparableGridSensor(SensorModel):
+class SeparableGridSensor(SensorModel[Tensor]):
     """Base of the TBD sensors whose point spread is a separable Gaussian over a regular grid.
 
     One constructor serves every subclass; a subclass declares its axes
@@ -165,6 +167,8 @@ class SeparableGridSensor(SensorModel):
 
     #: per-target state size D; subclasses set it
     dim: int
+    #: ``(N_1, ..., N_n)``, the cells per axis: a grid sensor knows every size
+    frame_shape: tuple[int, ...]
 
     #: temporaries of one sample held at once by the whole-grid path, in units of the grid
     #: size G (the amplitude, the gathered frame term and the cell log-ratio with its
@@ -218,7 +222,7 @@ class SeparableGridSensor(SensorModel):
         self.frame_shape = tuple(int(getattr(self, f"{n}_bins").numel()) for n in names)
 
     @classmethod
-    def uniform(cls, *limits: tuple[float, float], **kw) -> SeparableGridSensor:
+    def uniform(cls, *limits: tuple[float, float], **kw: Any) -> Self:
         """Uniform grid: one ``(first, last)`` per axis gives the first cell centre and an
         upper limit; centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) /
         cell)`` (``last`` included when it lies on the lattice). Cell sizes by the keywords
@@ -436,10 +440,11 @@ class SeparableGridSensor(SensorModel):
         """Whether box ``q`` (first cells ``box_firsts[a] (..., Q)``) and the box of target ``k``
         (``firsts[a] (..., T)``) share a cell: ``(..., Q, T)`` bool.
         """
-        out = None
-        for bq, fk, W in zip(box_firsts, firsts, self.window_sizes()):
-            near = (bq[..., :, None] - fk[..., None, :]).abs() < W
-            out = near if out is None else out & near
+        near = [(bq[..., :, None] - fk[..., None, :]).abs() < W
+                for bq, fk, W in zip(box_firsts, firsts, self.window_sizes())]
+        out = near[0]
+        for other in near[1:]:
+            out = out & other
         return out
 
     def _neighbour_profiles(
@@ -502,13 +507,17 @@ class SeparableGridSensor(SensorModel):
                 last = factors[-1].expand(lead + factors[-1].shape[-2:])
                 out = torch.bmm(outer.reshape(-1, M, outer.shape[-1]).mT, last.reshape(-1, M, last.shape[-1]))
             return out.reshape(*lead, *(f.shape[-1] for f in factors))
-        out = None
-        for m in range(M):  # neighbour slots, not targets: at most _TERMWISE_MAX
-            term = s[..., m].reshape(s.shape[:-1] + (1,) * n)
+
+        def term(m: int) -> Tensor:  # s_m f_1[m, i_1] ... f_n[m, i_n], (*L, W_1, ..., W_n)
+            t = s[..., m].reshape(s.shape[:-1] + (1,) * n)
             for a, f in enumerate(factors):
                 fm = f[..., m, :]
-                term = term * fm.reshape(fm.shape[:-1] + (1,) * a + fm.shape[-1:] + (1,) * (n - 1 - a))
-            out = term if out is None else out + term
+                t = t * fm.reshape(fm.shape[:-1] + (1,) * a + fm.shape[-1:] + (1,) * (n - 1 - a))
+            return t
+
+        out = term(0)
+        for m in range(1, M):  # neighbour slots, not targets: at most _TERMWISE_MAX
+            out = out + term(m)
         return out
 
     def _neighbour_index(self, overlap: Tensor, count: int) -> tuple[Tensor, Tensor]:
@@ -519,7 +528,13 @@ class SeparableGridSensor(SensorModel):
         w, index = torch.topk(overlap.to(torch.float32), count, dim=-1, sorted=False)
         return index, w
 
-    def _select(self, dense: int, fn, prepare, inputs: tuple[Tensor, ...]) -> Tensor:
+    def _select(
+        self,
+        dense: int,
+        fn: Callable[..., Tensor],
+        prepare: Callable[..., tuple[Tensor, ...]],
+        inputs: tuple[Tensor, ...],
+    ) -> Tensor:
         """``fn(count, *parts)`` with ``parts = prepare(*inputs)`` (whose last entry is the
         overlap mask ``(..., Q, T)`` bool of the boxes evaluated and the targets) and
         ``count`` at least the most targets overlapping one box. Eager, ``count`` is that
@@ -598,7 +613,7 @@ class SeparableGridSensor(SensorModel):
     #: ratio with the intermediates of the float32 log I0 polynomial (as ``_GRID_TEMPS``)
     _WINDOW_TEMPS = 12
 
-    def _window_rows(self, x: Tensor, fn, chunk: int) -> Tensor:
+    def _window_rows(self, x: Tensor, fn: Callable[[int, int, int, int], Tensor], chunk: int) -> Tensor:
         """Apply ``fn(rows) -> (b, p)`` to blocks of at most ``chunk`` rows of the flattened
         ``(B, P)`` samples of ``x (B, P, ...)`` (a row block is ``runs x samples``), each block
         checkpointed when autograd records, and reassemble ``(B, P)``.
@@ -618,7 +633,7 @@ class SeparableGridSensor(SensorModel):
             out.append(torch.cat(row, 1))
         return torch.cat(out)
 
-    def _window_parts(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> tuple:
+    def _window_parts(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> tuple[Tensor, ...]:
         """``x (b, p, K, D)``, ``z (b, *G)``, ``exists (b, p, K)`` -> ``(u, s, e, zc, *firsts,
         others)``: see :meth:`_flat_inputs`; ``firsts[a] (b, p, K)`` the box starts and
         ``others (b, p, J, K)`` whether the boxes of live targets ``j != k`` overlap.
@@ -770,7 +785,7 @@ class SeparableGridSensor(SensorModel):
         names = [k for k, v in (("n", n if torch.is_tensor(n) else None), ("exists", exists), ("exists_n", exists_n))
                  if v is not None]
 
-        def prepare(x: Tensor, x_n: Tensor, z: Tensor, *optional: Tensor) -> tuple:
+        def prepare(x: Tensor, x_n: Tensor, z: Tensor, *optional: Tensor) -> tuple[Tensor, ...]:
             kw = dict(zip(names, optional))
             return self._delta_parts(x, x_n, kw.get("n", n), z, kw.get("exists"), kw.get("exists_n"))
 
@@ -780,7 +795,7 @@ class SeparableGridSensor(SensorModel):
     def _delta_parts(
         self, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor, exists: Tensor | None,
         exists_n: Tensor | None,
-    ) -> tuple:
+    ) -> tuple[Tensor, ...]:
         """The arguments of :meth:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old,
         s_new, zc, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K
         slots, then of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new
