@@ -60,7 +60,7 @@ __all__ = ["Scenario", "ground_radar", "MARGIN_CELLS"]
 MARGIN_CELLS = 3
 
 
-def _limits(value, name: str) -> tuple[float, float]:
+def _limits(value: float | tuple[float, float], name: str) -> tuple[float, float]:
     lo, hi = (float(value), float(value)) if isinstance(value, (int, float)) else map(float, value)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"{name} must be a number or a pair (low, high) with low <= high, got {value!r}")

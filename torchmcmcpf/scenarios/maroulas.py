@@ -100,11 +100,13 @@ class MaroulasData(NamedTuple):
     z_slot: Tensor
 
 
-def _uniform(shape, low, high, *, generator, dtype, device):
+def _uniform(shape: tuple[int, ...], low: float, high: float, *, generator: torch.Generator, dtype: torch.dtype,
+             device: torch.device | str | None) -> Tensor:
     return low + (high - low) * torch.rand(shape, generator=generator, dtype=dtype, device=device)
 
 
-def _new_targets(shape, *, generator, dtype, device) -> Tensor:
+def _new_targets(shape: tuple[int, ...], *, generator: torch.Generator, dtype: torch.dtype,
+                 device: torch.device | str | None) -> Tensor:
     """Positions ``U[-100, 100]^2``, velocities ``U[-1, 1]^2``: ``(*shape, 4)``."""
     pos = _uniform(shape + (2,), -100.0, 100.0, generator=generator, dtype=dtype, device=device)
     vel = _uniform(shape + (2,), -1.0, 1.0, generator=generator, dtype=dtype, device=device)
@@ -119,7 +121,7 @@ def simulate(
     generator: torch.Generator,
     motion: MotionModel | None = None,
     dtype: torch.dtype = torch.float64,
-    device=None,
+    device: torch.device | str | None = None,
 ) -> MaroulasData:
     """Simulate ``num_runs`` independent realisations of the paper-003 scenario.
 

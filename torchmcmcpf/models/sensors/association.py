@@ -66,7 +66,7 @@ _IMPOSSIBLE = -1e30
 _PERMS: dict[tuple[int, torch.device], Tensor] = {}
 
 
-def permutations(p: int, device=None) -> Tensor:
+def permutations(p: int, device: torch.device | str | None = None) -> Tensor:
     """All ``p!`` permutations of ``range(p)`` as a ``(p!, p)`` int64 tensor (cached)."""
     key = (p, torch.device(device or "cpu"))
     if key not in _PERMS:
@@ -190,12 +190,14 @@ def shuffle(z: Tensor, exists: Tensor, *, generator: torch.Generator) -> PointFr
     return PointFrame(torch.where(mask.unsqueeze(-1), zs, torch.zeros_like(zs)), mask)
 
 
-class AssociationSensor(SensorModel):
+class AssociationSensor(SensorModel[PointMeasurement]):
     """Base of the point sensors with unknown association (see the module docstring).
 
     Subclasses define :meth:`measure` (the noiseless measurement of each slot), the noise
     standard deviations ``noise_std (d,)`` and :meth:`to_position` (measurement -> xy).
     """
+
+    noise_std: Tensor  #: (d,) buffer, the noise standard deviation of each measurement component
 
     def __init__(self, noise_std: Tensor, dim: int):
         super().__init__()

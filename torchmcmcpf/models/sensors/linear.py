@@ -17,7 +17,7 @@ from ..base import SensorModel
 __all__ = ["LinearGaussian"]
 
 
-class LinearGaussian(SensorModel):
+class LinearGaussian(SensorModel[Tensor]):
     """``z_{k,j} = H x_{k,j} + w_j``, ``w_j ~ N(0, R)``, one measurement per target.
 
     ``log_likelihood`` returns the full Gaussian log density (constants included), so a
@@ -33,6 +33,12 @@ class LinearGaussian(SensorModel):
     H : (d, D) observation matrix.
     R : (d, d) symmetric positive definite noise covariance.
     """
+
+    H: Tensor  #: (d, D) buffer
+    R: Tensor  #: (d, d) buffer
+    L: Tensor  #: (d, d) buffer, lower Cholesky factor of ``R``
+    W: Tensor  #: (d, d) buffer, ``L^{-1}``
+    WH: Tensor  #: (d, D) buffer, ``W @ H``
 
     def __init__(self, H: Tensor, R: Tensor):
         super().__init__()

@@ -51,7 +51,7 @@ def as_area(area: AreaLike, name: str = "area") -> Tensor:
     return a
 
 
-class PoissonClutterPoints(SensorModel):
+class PoissonClutterPoints(SensorModel[PointMeasurement]):
     """Association-free likelihood of point measurements in Poisson clutter (module docstring).
 
     Parameters
@@ -70,6 +70,10 @@ class PoissonClutterPoints(SensorModel):
     >>> frame = sensor.simulate(x_true, exists=alive, generator=g)   # doctest: +SKIP
     >>> sensor.log_likelihood(particles, frame, exists)              # (B, N)  # doctest: +SKIP
     """
+
+    area: Tensor  #: (2, 2) buffer, ``((x_lo, x_hi), (y_lo, y_hi))``
+    R: Tensor  #: (2, 2) buffer, the noise covariance
+    W: Tensor  #: (2, 2) buffer, ``L^{-1}`` with ``R = L L^T`` (float64)
 
     def __init__(
         self,
@@ -198,7 +202,7 @@ class PoissonClutterPoints(SensorModel):
         return PointFrame(torch.where(mask.unsqueeze(-1), pts, torch.zeros_like(pts)), mask)
 
     # -- input checks -------------------------------------------------------------------
-    def validate(self, z: PointMeasurement, batch_size: int | None = None, name: str = "z"):
+    def validate(self, z: PointMeasurement, batch_size: int | None = None, name: str = "z") -> PointMeasurement:
         """Check a frame: points ``(B, M, 2)`` finite (padding included), ``mask (B, M)``
         bool of the same ``B, M``. Returns ``z``.
         """

@@ -161,6 +161,8 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
     dim = 5
     axis_names = ("range", "doppler", "bearing")
     noise_name = "noise_std"
+    #: ``sigma`` (set by the base constructor from the ``noise_std`` keyword)
+    noise_std: float
     default_window = 3
     default_cells = (10.0, 2.0, math.pi / 180)  # Table I: 10 m, 2 m/s, 1 deg
 
@@ -227,7 +229,7 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
             check_shape(exists, "exists", tuple(x.shape[:-1]))
         A = self.signal_grid(x, exists)
         B = x.shape[0]
-        kw = dict(generator=generator, device=x.device, dtype=x.dtype)
-        phi = 2.0 * math.pi * torch.rand((B,) + (1,) * self.n_axes, **kw)
-        noise = self.noise_std * torch.randn((2, B) + self.frame_shape, **kw)
+        phi = 2.0 * math.pi * torch.rand((B,) + (1,) * self.n_axes, generator=generator, device=x.device, dtype=x.dtype)
+        noise = self.noise_std * torch.randn((2, B) + self.frame_shape, generator=generator, device=x.device,
+                                             dtype=x.dtype)
         return (A * torch.cos(phi) + noise[0]) ** 2 + (A * torch.sin(phi) + noise[1]) ** 2

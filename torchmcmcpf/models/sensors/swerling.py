@@ -98,6 +98,8 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
     dim = 5
     axis_names = ("azimuth", "range")
     noise_name = "noise_power"
+    #: ``sigma^2`` (set by the base constructor from the ``noise_power`` keyword)
+    noise_power: float
     default_window = 4
     default_cells = (math.pi / 180, 10.0)  # 1 deg, 10 m
 
