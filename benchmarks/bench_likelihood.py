@@ -7,9 +7,19 @@ Groups are per particle count, so the ratios window / grid / compiled read off o
     pytest benchmarks/bench_likelihood.py --benchmark-group-by=group
     pytest benchmarks/bench_likelihood.py -m "not compile"     # eager only
 
+Variants: ``window`` (neighbour slots: a box sums only the targets whose boxes overlap it),
+``window-dense`` (the same code with ``max_neighbours = K - 1``: every target summed in every
+box, the O(N K^2 W^3) cost of the windowed path before neighbour slots), ``grid`` (the
+whole-grid reference).
+
 Also: ``log I0`` of float32 arguments, ``i0e`` vs the polynomial approximation (eager and
-compiled), and the change of the likelihood when one slot of 50 chains moves
-(``log_likelihood_delta`` vs two windowed calls).
+compiled); the change of the likelihood when one slot of 50 chains moves
+(``log_likelihood_delta`` with neighbour slots and dense, vs two windowed calls); and the
+point-measurement Gaussian (``LinearGaussian``, precomputed whitening vs the per-call
+triangular solve it replaced), B = 100 runs x N = 5000.
+
+Every benchmark records ``torch.get_num_threads()`` in ``extra_info``: on a shared 2-core
+machine a busy neighbour makes torch's threads spin, so compare variants within one run.
 """
 
 from __future__ import annotations
@@ -19,6 +29,7 @@ import math
 import pytest
 import torch
 
+from torchmcmcpf.models.sensors.linear import LinearGaussian
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0_approx
 
 K = 10
@@ -37,6 +48,19 @@ def problem(n: int):
     return sens, x, z
 
 
+@pytest.fixture(autouse=True)
+def _threads(benchmark):
+    benchmark.extra_info["threads"] = torch.get_num_threads()
+
+
+def _sensor_path(sens, path):
+    """The bound method of a variant; ``window-dense`` forces every target into every box."""
+    if path == "window-dense":
+        sens.max_neighbours = K - 1
+        path = "window"
+    return getattr(sens, f"log_likelihood_{path}")
+
+
 def _run(benchmark, fn, x, z, rounds):
     with torch.no_grad():
         fn(x, z)  # warm-up (and compilation)
@@ -45,21 +69,21 @@ def _run(benchmark, fn, x, z, rounds):
 
 
 @pytest.mark.parametrize("n", [500, 5000])
-@pytest.mark.parametrize("path", ["window", "grid"])
+@pytest.mark.parametrize("path", ["window", "window-dense", "grid"])
 def test_likelihood_eager(benchmark, path, n):
     sens, x, z = problem(n)
     benchmark.group = f"radar-likelihood-N{n}-K{K}"
-    fn = getattr(sens, f"log_likelihood_{path}")
+    fn = _sensor_path(sens, path)
     _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
 
 
 @pytest.mark.compile
 @pytest.mark.parametrize("n", [500, 5000])
-@pytest.mark.parametrize("path", ["window", "grid"])
+@pytest.mark.parametrize("path", ["window", "window-dense", "grid"])
 def test_likelihood_compiled(benchmark, path, n):
     sens, x, z = problem(n)
     benchmark.group = f"radar-likelihood-N{n}-K{K}"
-    fn = torch.compile(getattr(sens, f"log_likelihood_{path}"), dynamic=False)
+    fn = torch.compile(_sensor_path(sens, path), dynamic=False)
     _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
 
 
@@ -83,11 +107,16 @@ def test_log_i0(benchmark, variant, n):
 
 
 # ----------------------------------------------------------------------------- one-slot delta
-@pytest.mark.parametrize("variant", ["delta-eager", "delta-compiled", "window-eager-twice"])
+@pytest.mark.parametrize(
+    "variant", ["delta-eager", "delta-compiled", "delta-dense-eager", "delta-dense-compiled", "window-eager-twice"]
+)
 def test_one_slot_change(benchmark, variant):
     """Change of the log-likelihood when one of K = 10 slots moves, for C = 50 chains: the
-    ``log_likelihood_delta`` hook against two windowed evaluations."""
+    ``log_likelihood_delta`` hook (neighbour slots, or dense: every target in both boxes)
+    against two windowed evaluations."""
     sens, x, z = problem(50)
+    if "dense" in variant:
+        sens.max_neighbours = K - 1
     x_n = x[:, :, 3] + torch.tensor([3.0, 0.5, 3.0, 0.5, 0.0])
     x_new = x.clone()
     x_new[:, :, 3] = x_n
@@ -97,9 +126,32 @@ def test_one_slot_change(benchmark, variant):
         fn = lambda: sens.log_likelihood_window(x_new, z) - sens.log_likelihood_window(x, z)  # noqa: E731
     else:
         delta = sens.log_likelihood_delta
-        if variant == "delta-compiled":
+        if variant.endswith("compiled"):
             delta = torch.compile(delta, dynamic=False, fullgraph=True)
         fn = lambda: delta(x, x_n, slot, z)  # noqa: E731
     with torch.no_grad():
         fn()
         benchmark.pedantic(fn, rounds=20, iterations=1)
+
+
+# ----------------------------------------------------------------------------- point measurements
+def _solve_reference(sensor, x, z):
+    """The per-call triangular solve that precomputed whitening replaced (old-style path)."""
+    r = (z[:, None] - x @ sensor.H.mT).unsqueeze(-1)
+    L = sensor.L.expand(r.shape[:-2] + sensor.L.shape)
+    white = torch.linalg.solve_triangular(L, r, upper=False).squeeze(-1)
+    return (sensor._log_norm - 0.5 * white.square().sum(-1)).sum(-1)
+
+
+@pytest.mark.parametrize("variant", ["whitened", "triangular-solve"])
+def test_linear_gaussian(benchmark, variant):
+    """``LinearGaussian`` log-likelihood, B = 100 runs x N = 5000 particles, one target,
+    float32: precomputed whitening against the per-call triangular solve."""
+    g = torch.Generator().manual_seed(0)
+    sensor = LinearGaussian.position(10.0)
+    x = 100 * torch.randn(100, 5000, 1, 4, generator=g)
+    z = 100 * torch.randn(100, 1, 2, generator=g)
+    fn = sensor.log_likelihood if variant == "whitened" else (lambda x, z: _solve_reference(sensor, x, z))
+    torch.testing.assert_close(fn(x, z), _solve_reference(sensor, x, z), rtol=1e-4, atol=1e-2)
+    benchmark.group = "linear-gaussian-B100-N5000"
+    benchmark.pedantic(fn, args=(x, z), rounds=20, iterations=1)

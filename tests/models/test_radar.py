@@ -282,6 +282,56 @@ def test_log_likelihood_delta_with_existence_and_float32():
     assert (out32.double() - ref).abs().max() <= 1.4e-2
 
 
+def _crowd_and_spread(g):
+    """Six targets in two frames: a crowd in which every box overlaps four or five others,
+    and a spread in which no box overlaps more than one other; 20 particles each."""
+    crowd = target_states([[2790, 2795, 2800, 2805, 2790, 2800]], [[1, 0, 2, 1, -1, 0]],
+                          [[0.0, 0.3, -0.3, 0.0, 0.6, 0.6]], [[4, 5, 6, 4, 5, 6]])
+    spread = target_states([[2745, 2750, 2840, 2845, 2745, 2840]], [[-6, 6, 0, 1, -6, 6]],
+                           [[-4.5, 3.5, -4.5, 3.5, -4.0, 3.0]], [[4, 5, 6, 4, 5, 6]])
+    return [(xt, particles_near(xt, 20, g, pos=3.0), most) for xt, most in ((crowd, 4), (spread, 1))]
+
+
+def test_neighbour_slots_equal_dense_form():
+    """The windowed path and the delta with neighbour slots (the most overlapping boxes of
+    the call, eager) equal the dense form (every target summed in every box, forced by
+    ``max_neighbours = K - 1``) to round-off, for crowded and spread targets."""
+    sens, dense = small_sensor(window=2), small_sensor(window=2)
+    dense.max_neighbours = 5
+    g = torch.Generator().manual_seed(21)
+    for xt, x, bound in _crowd_and_spread(g):
+        z = sens.simulate(xt, generator=g)
+        u = sens.measurement_coords(x)
+        firsts = [sens._box_first(u[..., a], a) for a in range(3)]
+        most = int(sens._overlaps(firsts, firsts).sum(-1).max()) - 1  # other boxes overlapping one box
+        assert most >= 4 if bound == 4 else most <= 1
+        torch.testing.assert_close(sens.log_likelihood_window(x, z), dense.log_likelihood_window(x, z),
+                                   rtol=1e-12, atol=1e-10)
+        x_n = particles_near(xt, 20, g, pos=8.0)[:, :, 2]
+        slot = torch.randint(6, (1, 20), generator=g)
+        torch.testing.assert_close(sens.log_likelihood_delta(x, x_n, slot, z), dense.log_likelihood_delta(x, x_n, slot, z),
+                                   rtol=1e-10, atol=1e-9)
+
+
+def test_compiled_neighbour_slots_take_either_branch():
+    """Compiled (``fullgraph=True``, as the IP-MCMC iteration compiles the delta) with one
+    neighbour slot: the spread frame fits it, the crowd takes the dense branch of the
+    ``torch.cond``; both equal the eager results. One compiled function serves both
+    frames (same shapes, no recompilation)."""
+    sens = small_sensor(window=2)
+    sens.max_neighbours = 1
+    g = torch.Generator().manual_seed(22)
+    window = torch.compile(sens.log_likelihood_window, fullgraph=True, dynamic=False)
+    delta = torch.compile(sens.log_likelihood_delta, fullgraph=True, dynamic=False)
+    for xt, x, _ in _crowd_and_spread(g):
+        z = sens.simulate(xt, generator=g)
+        x_n = particles_near(xt, 20, g, pos=8.0)[:, :, 2]
+        slot = torch.randint(6, (1, 20), generator=g)
+        torch.testing.assert_close(window(x, z), sens.log_likelihood_window(x, z), rtol=1e-12, atol=1e-10)
+        torch.testing.assert_close(delta(x, x_n, slot, z), sens.log_likelihood_delta(x, x_n, slot, z),
+                                   rtol=1e-10, atol=1e-9)
+
+
 def test_log_likelihood_delta_follows_method_grid():
     """With method="grid" the delta is that of the whole-grid reference (what log_likelihood
     returns), so chains that cache log_likelihood and add deltas stay consistent."""

@@ -124,23 +124,39 @@ def _uniform_bins(bins, name: str) -> tuple[Tensor, float, float]:
 class SeparableGridSensor(SensorModel):
     """Base of the TBD sensors whose point spread is a separable Gaussian over a regular grid.
 
+    One constructor serves every subclass; a subclass declares its axes
+    (:attr:`axis_names`), its noise parameter (:attr:`noise_name`), its default window and
+    the default cell sizes of :meth:`uniform`, and documents the resulting keywords.
+
     Parameters
     ----------
-    bins : sequence of n 1-D tensors ``(N_a,)``
+    *bins : n 1-D tensors ``(N_a,)``, one per axis of :attr:`axis_names`
         Cell centres of each axis, increasing and uniformly spaced. Stored as buffers named
-        ``f"{name}_bins"`` (float64; computations follow the dtype of ``x``).
-    widths : sequence of n floats or ``None``
-        Point-spread standard deviation ``w_a`` of each axis, in the axis' unit; ``None`` means
-        the cell spacing of that axis.
-    names : sequence of n str
-        Axis names, used for buffers and error messages.
-    window : int
-        Half-width, in cells, of the box evaluated around each target by the windowed path.
+        ``f"{axis}_bins"`` (float64; computations follow the dtype of ``x``).
+    window : int, optional
+        Half-width, in cells, of the box evaluated around each target by the windowed path
+        (default :attr:`default_window`).
     method : {"window", "grid"}
         What :meth:`log_likelihood` dispatches to.
     memory_budget : int
-        Bytes of temporaries the whole-grid path may hold at once (see :meth:`grid_chunk_size`).
+        Bytes of temporaries either path may hold at once (see :meth:`grid_chunk_size`,
+        :meth:`window_chunk_size`).
+    **settings
+        ``f"{axis}_width"`` (float or ``None``): the point-spread standard deviation ``w_a``
+        of each axis, in the axis' unit; ``None`` (default) means the cell spacing of that
+        axis. ``noise_name`` (float > 0, default 1.0): the noise parameter of the subclass,
+        stored as an attribute of that name. Any other keyword is a ``ValueError``.
     """
+
+    #: grid axes in frame order; buffer and keyword names derive from them
+    #: (``f"{axis}_bins"``, ``f"{axis}_width"``, ``f"{axis}_cell"``). Subclasses set it.
+    axis_names: tuple[str, ...]
+    #: keyword (and attribute) name of the subclass's noise parameter
+    noise_name: str
+    #: default ``window``
+    default_window: int
+    #: default cell size per axis of :meth:`uniform`
+    default_cells: tuple[float, ...]
 
     #: per-target state size D; subclasses set it
     dim: int
@@ -154,22 +170,28 @@ class SeparableGridSensor(SensorModel):
 
     def __init__(
         self,
-        bins: Sequence[Tensor],
-        widths: Sequence[Optional[float]],
-        *,
-        names: Sequence[str],
-        window: int,
+        *bins: Tensor,
+        window: Optional[int] = None,
         method: str = "window",
         memory_budget: int = 2**30,
+        **settings: Optional[float],
     ):
         super().__init__()
-        if not (len(bins) == len(widths) == len(names)) or len(bins) == 0:
+        names = self.axis_names
+        if len(bins) != len(names):
             raise ValueError(
-                f"bins, widths and names must have the same length >= 1; got {len(bins)}, "
-                f"{len(widths)}, {len(names)}"
+                f"{type(self).__name__} takes {len(names)} bin tensors ({', '.join(f'{a}_bins' for a in names)}), "
+                f"got {len(bins)}"
             )
-        self.axis_names = tuple(names)
-        self.window = check_positive_int(window, "window", minimum=0)
+        widths = [settings.pop(f"{a}_width", None) for a in names]
+        noise = settings.pop(self.noise_name, 1.0)
+        if settings:
+            raise ValueError(
+                f"unexpected keyword(s) {sorted(settings)} for {type(self).__name__}; expected "
+                f"{', '.join(f'{a}_width' for a in names)}, {self.noise_name}, window, method, memory_budget"
+            )
+        setattr(self, self.noise_name, check_positive(noise, self.noise_name))
+        self.window = check_positive_int(self.default_window if window is None else window, "window", minimum=0)
         if method not in _METHODS:
             raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
         self.method = method
@@ -189,6 +211,21 @@ class SeparableGridSensor(SensorModel):
         self.cell_sizes = tuple(deltas)
         self.widths = tuple(ws)
         self.frame_shape = tuple(int(getattr(self, f"{n}_bins").numel()) for n in names)
+
+    @classmethod
+    def uniform(cls, *limits: tuple[float, float], **kw) -> "SeparableGridSensor":
+        """Uniform grid: one ``(first, last)`` per axis gives the first cell centre and an
+        upper limit; centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) /
+        cell)`` (``last`` included when it lies on the lattice). Cell sizes by the keywords
+        ``f"{axis}_cell"``, default :attr:`default_cells`; other keywords go to the
+        constructor."""
+        if len(limits) != len(cls.axis_names):
+            raise ValueError(
+                f"{cls.__name__}.uniform takes {len(cls.axis_names)} limits "
+                f"({', '.join(f'{a}_limits' for a in cls.axis_names)}), got {len(limits)}"
+            )
+        cells = [kw.pop(f"{a}_cell", c) for a, c in zip(cls.axis_names, cls.default_cells)]
+        return cls(*(lattice(lim, c, a) for lim, c, a in zip(limits, cells, cls.axis_names)), **kw)
 
     # ---------------------------------------------------------------- subclass hooks
     def measurement_coords(self, x: Tensor) -> Tensor:
@@ -363,6 +400,15 @@ class SeparableGridSensor(SensorModel):
         return torch.cat(out).reshape(x.shape[:-2])
 
     # ---------------------------------------------------------------- windowed fast path
+    #: On the windowed paths a box sums the truncated spreads of its own target and of the
+    #: other targets whose boxes overlap it, in a fixed number of neighbour slots per box:
+    #: eager, the most any box of the call has; under ``torch.compile`` (static shapes) this
+    #: many, or every target (the dense form, ``K - 1`` neighbours) for a call in which some
+    #: box has more. Exact either way (see :meth:`_select`). Setting it to ``K - 1`` or more
+    #: forces the dense form, the cost of the whole-grid-free path before neighbour slots
+    #: (benchmarks/bench_likelihood.py compares both).
+    max_neighbours: int = 3
+
     def window_sizes(self) -> tuple[int, ...]:
         """Cells per axis of one target's box: ``min(2 * window + 1, N_a)``."""
         return tuple(min(2 * self.window + 1, n) for n in self.frame_shape)
@@ -374,35 +420,197 @@ class SeparableGridSensor(SensorModel):
         nearest = torch.round((ua.detach() - self.origins[axis]) / self.cell_sizes[axis])
         return (nearest - self.window).clamp(0, N - W)
 
-    def _box_profiles(self, first_q: Tensor, ua: Tensor, first_k: Tensor, axis: int) -> tuple[Tensor, Tensor]:
-        """Truncated profiles of targets ``k`` at the cells of boxes ``q`` on one axis.
+    def _overlaps(self, box_firsts: Sequence[Tensor], firsts: Sequence[Tensor]) -> Tensor:
+        """Whether box ``q`` (first cells ``box_firsts[a] (..., Q)``) and the box of target ``k``
+        (``firsts[a] (..., T)``) share a cell: ``(..., Q, T)`` bool."""
+        out = None
+        for bq, fk, W in zip(box_firsts, firsts, self.window_sizes()):
+            near = (bq[..., :, None] - fk[..., None, :]).abs() < W
+            out = near if out is None else out & near
+        return out
 
-        ``first_q (..., Q)`` first cells of the boxes evaluated; ``ua, first_k (..., K)`` the
-        targets' coordinates and box starts. Returns ``profile (..., Q, K, W)``, the Gaussian of
-        target ``k`` at cell ``t`` of box ``q`` times the indicator that the cell lies in box
-        ``k``, and that indicator ``(..., Q, K, W)`` (0/1, dtype of ``ua``).
+    def _neighbour_profiles(
+        self, box_firsts: Sequence[Tensor], u: Tensor, firsts: Sequence[Tensor], index: Tensor
+    ) -> tuple[list[Tensor], list[Tensor]]:
+        """Truncated per-axis profiles of selected targets at the cells of boxes ``q``.
+
+        ``box_firsts[a] (..., Q)`` first cells of the boxes evaluated; ``u (..., T, n)`` and
+        ``firsts[a] (..., T)`` the targets' coordinates and box starts; ``index (..., Q, M)``
+        int64 the targets evaluated in each box. Returns, per axis, ``profile (..., Q, M, W)``:
+        the Gaussian of target ``index[q, m]`` at cell ``t`` of box ``q`` times the indicator
+        that the cell lies in the target's box, and that indicator ``(..., Q, M, W)`` (0/1,
+        dtype of ``u``); both lists in the :meth:`box_cells` layout (the last two axes as one
+        factor ``(..., Q, M, W_{n-1} W_n)``).
         """
-        W = self.window_sizes()[axis]
-        c0, delta = self.origins[axis], self.cell_sizes[axis]
-        scale = 1.0 / (math.sqrt(2.0) * self.widths[axis])
-        offsets = torch.arange(W, device=ua.device, dtype=ua.dtype)
-        centre = (c0 + delta * (first_q[..., None] + offsets)) * scale  # (..., Q, W)
-        dist = centre[..., :, None, :] - (ua * scale)[..., None, :, None]  # (..., Q, K, W)
-        # cell t of box q lies in box k iff 0 <= first_q - first_k + t < W
-        lag = (first_q[..., :, None] - first_k[..., None, :])[..., None] + offsets  # (..., Q, K, W)
-        inside = ((lag >= 0) & (lag < W)).to(ua.dtype)
-        return torch.exp(-dist.square()) * inside, inside
+        Q = index.shape[-2]
+        profiles, indicators = [], []
+        for a, (bq, fk, W) in enumerate(zip(box_firsts, firsts, self.window_sizes())):
+            pick = lambda v: torch.take_along_dim(v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1]), index, -1)
+            ua, first = pick(u[..., a]), pick(fk)  # (..., Q, M)
+            c0, delta = self.origins[a], self.cell_sizes[a]
+            scale = 1.0 / (math.sqrt(2.0) * self.widths[a])
+            offsets = torch.arange(W, device=u.device, dtype=u.dtype)
+            centre = (c0 + delta * (bq[..., None] + offsets)) * scale  # (..., Q, W)
+            dist = centre[..., None, :] - (ua * scale)[..., None]  # (..., Q, M, W)
+            # cell t of box q lies in the box of target k iff 0 <= first_q - first_k + t < W
+            lag = (bq[..., None] - first)[..., None] + offsets  # (..., Q, M, W)
+            inside = ((lag >= 0) & (lag < W)).to(u.dtype)
+            profiles.append(torch.exp(-dist.square()) * inside)
+            indicators.append(inside)
+        return self._merge_last(profiles), self._merge_last(indicators)
+
+    @staticmethod
+    def _outer_sum(s: Tensor, factors: Sequence[Tensor]) -> Tensor:
+        """``sum_m s_m f_1[m, i_1] ... f_n[m, i_n]`` by broadcast products.
+
+        ``s (*L, M)``, ``factors[a] (*L, M, W_a)`` -> ``(*L, W_1, ..., W_n)``. The sum over the
+        ``M`` neighbour slots (a few on the windowed paths) is written out term by term, so
+        that ``torch.compile`` fuses the whole per-cell computation into one loop (a
+        reduction over ``M`` would be materialised).
+        """
+        n = len(factors)
+        out = None
+        for m in range(s.shape[-1]):  # neighbour slots, not targets: max_neighbours + 1 on the fast form
+            term = s[..., m].reshape(s.shape[:-1] + (1,) * n)
+            for a, f in enumerate(factors):
+                fm = f[..., m, :]
+                term = term * fm.reshape(fm.shape[:-1] + (1,) * a + fm.shape[-1:] + (1,) * (n - 1 - a))
+            out = term if out is None else out + term
+        return out
+
+    def _neighbour_index(self, overlap: Tensor, count: int) -> tuple[Tensor, Tensor]:
+        """The first ``count`` targets that overlap each box: ``overlap (..., Q, T)`` bool ->
+        ``index (..., Q, count)`` int64 and ``weight (..., Q, count)`` 0/1 (dtype float32;
+        0 marks a filler when a box has fewer overlapping targets)."""
+        w, index = torch.topk(overlap.to(torch.float32), count, dim=-1, sorted=False)
+        return index, w
+
+    def _select(self, dense: int, fn, prepare, inputs: tuple[Tensor, ...]) -> Tensor:
+        """``fn(count, *parts)`` with ``parts = prepare(*inputs)`` (whose last entry is the
+        overlap mask ``(..., Q, T)`` bool of the boxes evaluated and the targets) and
+        ``count`` at least the most targets overlapping one box. Eager, ``count`` is that
+        maximum (one read from the device). Under ``torch.compile`` it is
+        :attr:`max_neighbours` when no box overlaps more targets than that, else ``dense``
+        (at least the most a box can have), chosen by ``torch.cond`` so that the graph stays
+        whole and shapes static (both branches are compiled). Exact either way.
+
+        The branches take the raw ``inputs`` and run ``prepare`` again: passed intermediates
+        instead, torch 2.13's inductor gave some a transposed layout that the compiled
+        branch did not expect (an ``assert_size_stride`` failure at run time)."""
+        parts = prepare(*inputs)
+        cap = min(int(self.max_neighbours), dense)
+        if cap >= dense:
+            return fn(dense, *parts)
+        most = parts[-1].sum(-1).max()
+        if not torch.compiler.is_compiling():
+            return fn(int(most), *parts)
+        return torch.cond(
+            most <= cap, lambda *ins: fn(cap, *prepare(*ins)), lambda *ins: fn(dense, *prepare(*ins)), inputs
+        )
+
+    def box_cells(self) -> tuple[int, ...]:
+        """Layout of the cells of one box on the windowed paths: ``(W_1, ..., W_{n-2},
+        W_{n-1} * W_n)``, the last two axes merged so that the innermost loop is long enough
+        to vectorise (``W_a`` is 7 or 9, the vector width 8 or 16)."""
+        W = self.window_sizes()
+        return W if len(W) < 2 else W[:-2] + (W[-2] * W[-1],)
+
+    @staticmethod
+    def _merge_last(factors: list[Tensor]) -> list[Tensor]:
+        """Per-axis factors ``(..., W_a)`` -> the :meth:`box_cells` layout (the last two
+        replaced by their flattened outer product ``(..., W_{n-1} * W_n)``)."""
+        if len(factors) < 2:
+            return factors
+        # a matmul with inner size 1 (not a broadcast product): materialised, so compiled
+        # consumers load it contiguously instead of recomputing it with per-lane div/mod
+        return factors[:-2] + [torch.matmul(factors[-2][..., :, None], factors[-1][..., None, :]).flatten(-2)]
 
     def _gather_cells(self, zc: Tensor, firsts: Sequence[Tensor]) -> Tensor:
         """``zc (B, *G)`` at the cells of boxes with first cells ``firsts[a] (B, P, Q)`` ->
-        ``(B, P, Q, *W)`` by broadcast advanced indexing (no index blow-up)."""
+        ``(B, P, Q, *box_cells())`` by broadcast advanced indexing (no index blow-up)."""
         B, P, Q = firsts[0].shape
-        n = self.n_axes
-        index = [torch.arange(B, device=zc.device).reshape((B,) + (1,) * (2 + n))]
-        for a, (first, W) in enumerate(zip(firsts, self.window_sizes())):
-            cells = first.long()[..., None] + torch.arange(W, device=zc.device)  # (B, P, Q, W)
-            index.append(cells.reshape((B, P, Q) + tuple(-1 if b == a else 1 for b in range(n))))
+        n, W, V = self.n_axes, self.window_sizes(), self.box_cells()
+        index = [torch.arange(B, device=zc.device).reshape((B,) + (1,) * (2 + len(V)))]
+        for a, first in enumerate(firsts):
+            if n >= 2 and a >= n - 2:  # the merged last two axes
+                t = torch.arange(V[-1], device=zc.device)
+                offsets, dim = (t // W[-1] if a == n - 2 else t % W[-1]), len(V) - 1
+            else:
+                offsets, dim = torch.arange(W[a], device=zc.device), a
+            cells = first.long()[..., None] + offsets  # (B, P, Q, V_dim)
+            index.append(cells.reshape((B, P, Q) + tuple(-1 if d == dim else 1 for d in range(len(V)))))
         return zc[tuple(index)]
+
+    def window_chunk_size(self, num_targets: int, dtype: torch.dtype = torch.float32) -> int:
+        """Samples (rows of the flattened ``B * prod(S)``) per chunk of the windowed path.
+
+        One sample holds about ``_WINDOW_TEMPS * K * prod(W_a)`` elements of per-cell
+        temporaries, whatever the number of neighbour slots (they are summed term by term,
+        see :meth:`_outer_sum`); the chunk is the largest count whose total stays within
+        ``memory_budget`` bytes (at least 1).
+        """
+        itemsize = torch.empty((), dtype=dtype).element_size()
+        per_sample = itemsize * num_targets * math.prod(self.window_sizes()) * self._WINDOW_TEMPS
+        return max(1, self.memory_budget // per_sample)
+
+    #: per-cell temporaries of one box cell held at once by the eager windowed path: the
+    #: amplitude and box-count sums with their running terms, the frame cells, the log
+    #: ratio with the intermediates of the float32 log I0 polynomial (as ``_GRID_TEMPS``)
+    _WINDOW_TEMPS = 12
+
+    def _window_rows(self, x: Tensor, fn, chunk: int) -> Tensor:
+        """Apply ``fn(rows) -> (b, p)`` to blocks of at most ``chunk`` rows of the flattened
+        ``(B, P)`` samples of ``x (B, P, ...)`` (a row block is ``runs x samples``), each block
+        checkpointed when autograd records, and reassemble ``(B, P)``."""
+        B, P = x.shape[:2]
+        runs = min(B, chunk)
+        samples = max(1, chunk // runs)
+        if runs >= B and samples >= P:
+            return fn(0, B, 0, P)
+        grad = torch.is_grad_enabled()
+        out = []
+        for b in range(0, B, runs):  # chunks of rows, not a loop per particle or per run
+            row = []
+            for p in range(0, P, samples):
+                args = (b, min(b + runs, B), p, min(p + samples, P))
+                row.append(checkpoint(fn, *args, use_reentrant=False) if grad else fn(*args))
+            out.append(torch.cat(row, 1))
+        return torch.cat(out)
+
+    def _window_parts(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> tuple:
+        """``x (b, p, K, D)``, ``z (b, *G)``, ``exists (b, p, K)`` -> ``(u, s, e, zc, *firsts,
+        others)``: see :meth:`_flat_inputs`; ``firsts[a] (b, p, K)`` the box starts and
+        ``others (b, p, J, K)`` whether the boxes of live targets ``j != k`` overlap."""
+        K = x.shape[-2]
+        u, s, e = self._flat_inputs(x, exists)
+        firsts = [self._box_first(u[..., a], a) for a in range(self.n_axes)]  # (b, p, K) each
+        live = e > 0
+        others = self._overlaps(firsts, firsts) & live[..., :, None] & live[..., None, :]
+        others = others & ~torch.eye(K, dtype=torch.bool, device=x.device)  # (b, p, J, K)
+        return (u, s, e, self.prepare_frame(z.to(x.dtype)), *firsts, others)
+
+    def _window_sum(self, count: int, u: Tensor, s: Tensor, e: Tensor, zc: Tensor, *parts: Tensor) -> Tensor:
+        """Windowed log-likelihood ``(b, p)`` of a block of samples from
+        :meth:`_window_parts`, with ``count`` neighbour slots per box (at least the most
+        other boxes overlapping one box)."""
+        *firsts, others = parts
+        b, p, K = s.shape
+        index = torch.arange(K, device=u.device).expand(b, p, K)[..., None]  # (b, p, J, 1): the box's own target
+        weight = torch.ones(index.shape, dtype=s.dtype, device=u.device)
+        if count > 0:
+            nb, w = self._neighbour_index(others, count)  # (b, p, J, count)
+            index, weight = torch.cat([index, nb], -1), torch.cat([weight, w.to(s.dtype)], -1)
+        profiles, indicators = self._neighbour_profiles(firsts, u, firsts, index)  # (b, p, J, M, W) each
+        pick = lambda v: torch.take_along_dim(v[..., None, :].expand(b, p, K, K), index, -1) * weight
+        A = self._outer_sum(pick(s), profiles)  # (b, p, J, *W)
+        # weight 1 / n_c; an absent box j has n_c >= 0, so add (1 - e_j) before dividing and
+        # zero its sum afterwards
+        n_boxes = self._outer_sum(pick(e), indicators) + (1.0 - e).reshape((b, p, K) + (1,) * len(self.box_cells()))
+        zw = self._gather_cells(zc, firsts)  # (b, p, J, *W)
+        V = self.box_cells()
+        e_cells = e.reshape((b, p, K) + (1,) * len(V))
+        # one reduction over boxes and cells (fused with the cell terms under torch.compile)
+        return (self.cell_log_ratio(A, zw) * (e_cells / n_boxes)).sum(tuple(range(2, 3 + len(V))))
 
     def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
         """Fast path: the exact log-likelihood of the sensor with *truncated* point spreads.
@@ -412,18 +620,23 @@ class SeparableGridSensor(SensorModel):
         is cut to that box: ``h~_k(c) = prod_a h_{k,a}(c_a) 1[c_a in box_{k,a}]``. Then
         ``A = sum_k e_k s_k h~_k`` vanishes outside the union of the boxes and the
         log-likelihood is the sum of :meth:`cell_log_ratio` over that union, computed box by
-        box: at the cells of box ``j``, ``A`` is the contraction of the truncated per-axis
-        profiles of every target (``(K, K, W_a)`` per axis, one bmm), and a cell inside
-        ``n_c`` boxes is weighted ``1 / n_c`` (``n_c`` the same contraction with the 0/1
-        indicators). The cut drops ``h`` below ``exp(-(window + 1/2)^2 / 2)`` of the peak
-        (2e-3 at ``window = 3`` and widths equal to the cell size): the difference to
-        :meth:`log_likelihood_grid` is stated in the subclass (tests/models/test_radar.py).
+        box: at the cells of box ``j``, ``A`` sums the truncated spreads of target ``j`` and
+        of the targets whose boxes overlap box ``j`` (the only ones nonzero there; at most
+        :attr:`max_neighbours` of them on the fast form, all ``K`` otherwise, see
+        :meth:`_select`), and a cell inside ``n_c`` boxes is weighted ``1 / n_c`` (``n_c`` the
+        same sum with the 0/1 indicators). The cut drops ``h`` below ``exp(-(window +
+        1/2)^2 / 2)`` of the peak (2e-3 at ``window = 3`` and widths equal to the cell size):
+        the difference to :meth:`log_likelihood_grid` is stated in the subclass
+        (tests/models/test_radar.py).
 
         Because the spread is truncated the likelihood is local: moving one target changes
         only the cells of its old and new box, which :meth:`log_likelihood_delta` exploits.
 
-        Cost per sample: ``2 * K^2 * prod(W_a)`` multiply-adds and ``K * prod(W_a)`` cell
-        log-ratios, independent of the grid size.
+        Cost per sample: ``2 * K * (1 + M) * prod(W_a)`` multiply-adds (``M`` the neighbour
+        slots, ``max_neighbours`` unless some box of the call overlaps more boxes) and
+        ``K * prod(W_a)`` cell log-ratios, independent of the grid size. Blocks of at most
+        :meth:`window_chunk_size` samples are processed at a time (checkpointed under
+        autograd), so temporaries stay within ``memory_budget``.
 
         Parameters
         ----------
@@ -435,24 +648,15 @@ class SeparableGridSensor(SensorModel):
         """
         self._check_inputs(x, z, exists)
         B, K = x.shape[0], x.shape[-2]
-        u, s, e = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
-        P = u.shape[1]
-        firsts = [self._box_first(u[..., a], a) for a in range(self.n_axes)]  # (B, P, K) each
-        profiles, indicators = [], []
-        for a, first in enumerate(firsts):
-            profile, inside = self._box_profiles(first, u[..., a], first, a)  # (B, P, J, K, W)
-            profiles.append(profile)
-            indicators.append(inside)
-        lead = (B, P, K)  # J = K: one box per target slot
-        A = self._contract(s[..., None, :].expand(*lead, K), profiles)  # (B, P, J, *W)
-        n_boxes = self._contract(e[..., None, :].expand(*lead, K), indicators)
-        zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)  # (B, P, J, *W)
-        n = self.n_axes
-        # weight 1 / n_c; an absent box j has n_c >= 0, so add (1 - e_j) before dividing and
-        # zero its sum afterwards
-        n_boxes = n_boxes + (1.0 - e).reshape(lead + (1,) * n)
-        per_box = (self.cell_log_ratio(A, zw) / n_boxes).flatten(3).sum(-1)  # (B, P, J)
-        return (per_box * e).sum(-1).reshape(x.shape[:-2])
+        xf = x.reshape(B, -1, K, x.shape[-1])  # (B, P, K, D)
+        ef = None if exists is None else exists.reshape(B, -1, K)
+
+        def rows(b0: int, b1: int, p0: int, p1: int) -> Tensor:
+            inputs = (xf[b0:b1, p0:p1], z[b0:b1]) + (() if ef is None else (ef[b0:b1, p0:p1],))
+            return self._select(K - 1, self._window_sum, self._window_parts, inputs)
+
+        out = self._window_rows(xf, rows, self.window_chunk_size(K, x.dtype))
+        return out.reshape(x.shape[:-2])
 
     def log_likelihood_delta(
         self,
@@ -469,15 +673,16 @@ class SeparableGridSensor(SensorModel):
         slot ``n``'s old box and of its new box change, so the difference is
         ``sum over box_old ∪ box_new of cell_log_ratio(A') - cell_log_ratio(A)`` (a cell in
         both boxes counted once), with ``A`` and ``A'`` the current and the new amplitude
-        there (every other target's truncated spread included). Cost per sample:
-        ``4 * (K + 2) * prod(W_a)`` multiply-adds and ``4 * prod(W_a)`` cell log-ratios,
-        against ``4 * K^2 * prod(W_a)`` and ``2 * K * prod(W_a)`` for two full windowed
-        evaluations (``K / 2`` times fewer log-ratios). This is the
-        ``log_likelihood_delta`` hook of :mod:`torchmcmcpf.kernels.moves` (per-target
-        refinement) and of :func:`torchmcmcpf.filters.ipmcmc.exchange_iteration`; it equals
+        there: the spreads of slot ``n`` before and after the move and those of the other
+        targets whose boxes overlap the box (at most :attr:`max_neighbours` on the fast
+        form, see :meth:`_select`). Cost per sample: ``4 * (M + 2) * prod(W_a)``
+        multiply-adds and ``4 * prod(W_a)`` cell log-ratios, independent of ``K`` on the
+        fast form. This is the ``log_likelihood_delta`` hook of
+        :mod:`torchmcmcpf.kernels.moves` (per-target refinement) and of
+        :func:`torchmcmcpf.filters.ipmcmc.exchange_iteration`; it equals
         ``log_likelihood_window(x') - log_likelihood_window(x)`` to round-off (tested).
-        Pure and branch-free (``torch.compile`` friendly). With ``method="grid"`` it is the
-        difference of two :meth:`log_likelihood_grid` calls instead (consistent with
+        Branch-free under ``torch.compile`` (``torch.cond``). With ``method="grid"`` it is
+        the difference of two :meth:`log_likelihood_grid` calls instead (consistent with
         :meth:`log_likelihood`, no speed-up).
 
         Parameters
@@ -514,6 +719,31 @@ class SeparableGridSensor(SensorModel):
             e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
             x_new = torch.where(here[..., None], x_n[..., None, :], x)
             return self.log_likelihood_grid(x_new, z, e_new) - self.log_likelihood_grid(x, z, e_old)
+        names = [k for k, v in (("n", n if torch.is_tensor(n) else None), ("exists", exists), ("exists_n", exists_n))
+                 if v is not None]
+
+        def prepare(x: Tensor, x_n: Tensor, z: Tensor, *optional: Tensor) -> tuple:
+            kw = dict(zip(names, optional))
+            return self._delta_parts(x, x_n, kw.get("n", n), z, kw.get("exists"), kw.get("exists_n"))
+
+        inputs = (x, x_n, z) + tuple(v for v in (n, exists, exists_n) if torch.is_tensor(v))
+        return self._select(K - 1, self._delta_sum, prepare, inputs).reshape((B,) + S)
+
+    def _delta_parts(
+        self, x: Tensor, x_n: Tensor, n: Union[int, Tensor], z: Tensor, exists: Optional[Tensor],
+        exists_n: Optional[Tensor],
+    ) -> tuple:
+        """The arguments of :meth:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old,
+        s_new, zc, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K
+        slots, then of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new
+        (B, P, 1)`` the signals (times existence); ``firsts[a] (B, P, K + 2)`` the box starts;
+        ``others (B, P, 2, K)`` whether the old / new box of slot ``n`` overlaps the box of
+        another live slot."""
+        B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+        if torch.is_tensor(n):
+            slot = n.to(device=x.device, dtype=torch.int64).expand(x.shape[:-2]).reshape(B, -1)
+        else:
+            slot = torch.full((B, math.prod(x.shape[1:-2])), n, device=x.device, dtype=torch.int64)
         u, s, e = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
         P = u.shape[1]
         at = slot[..., None]  # (B, P, 1)
@@ -521,29 +751,44 @@ class SeparableGridSensor(SensorModel):
         e_new = torch.take_along_dim(e, at, 2) if exists_n is None else exists_n.reshape(B, P, 1).to(x.dtype)
         s_old = torch.take_along_dim(s, at, 2)  # (B, P, 1)
         s_new = self.signal(x_new) * e_new
-        s_rest = torch.where(torch.arange(K, device=x.device) == at, torch.zeros_like(s), s)
-        # targets: the K slots (slot n silenced), slot n before and after the move: K + 2
+        # targets: the K slots, then slot n before (index K) and after (index K + 1) the move
         u_all = torch.cat([u, torch.take_along_dim(u, at[..., None], 2), self.measurement_coords(x_new)], 2)
+        firsts = [self._box_first(u_all[..., a], a) for a in range(self.n_axes)]  # (B, P, K + 2)
+        boxes = [f[..., K:] for f in firsts]  # (B, P, 2): old and new box of slot n
+        rest = (torch.arange(K, device=x.device) != at) & (e > 0)  # (B, P, K): the other live slots
+        others = self._overlaps(boxes, [f[..., :K] for f in firsts]) & rest[..., None, :]  # (B, P, 2, K)
+        return (u_all, s, s_old, s_new, self.prepare_frame(z.to(x.dtype)), *firsts, others)
+
+    def _delta_sum(
+        self, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor, zc: Tensor, *parts: Tensor
+    ) -> Tensor:
+        """:meth:`log_likelihood_delta` ``(B, P)`` from :meth:`_delta_parts`, with ``count``
+        neighbour slots per box."""
+        *firsts, others = parts
+        B, P, K = s.shape
+        boxes = [f[..., K:] for f in firsts]
+        moved = torch.tensor([K, K + 1], device=s.device).expand(B, P, 2, 2)  # (B, P, 2q, 2)
         zero = torch.zeros_like(s_old)
-        s_cur = torch.cat([s_rest, s_old, zero], -1)  # (B, P, K + 2)
-        s_prop = torch.cat([s_rest, zero, s_new], -1)
-        firsts, profiles, in_old = [], [], []
-        for a in range(self.n_axes):
-            first = self._box_first(u_all[..., a], a)  # (B, P, K + 2)
-            boxes = first[..., K:]  # (B, P, 2): old and new box of slot n
-            profile, inside = self._box_profiles(boxes, u_all[..., a], first, a)  # (B, P, 2, K + 2, W)
-            firsts.append(boxes)
-            profiles.append(profile)
-            in_old.append(inside[:, :, 1, K])  # (B, P, W): cells of the new box inside the old one
-        signals = torch.stack([s_cur, s_prop], 2)[:, :, :, None].expand(B, P, 2, 2, K + 2)  # (B, P, 2v, 2q, K+2)
-        factors = [f[:, :, None].expand(B, P, 2, *f.shape[2:]) for f in profiles]
-        A = self._contract(signals, factors)  # (B, P, 2 (cur, prop), 2 (old box, new box), *W)
-        zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)[:, :, None]  # (B, P, 1, 2, *W)
+        cur = torch.cat([s_old, zero], -1)[:, :, None].expand(B, P, 2, 2)
+        prop = torch.cat([zero, s_new], -1)[:, :, None].expand(B, P, 2, 2)
+        if count > 0:
+            nb, w = self._neighbour_index(others, count)  # (B, P, 2q, count)
+            s_nb = torch.take_along_dim(s[:, :, None].expand(B, P, 2, K), nb, -1) * w.to(s.dtype)
+            index = torch.cat([nb, moved], -1)  # (B, P, 2q, count + 2)
+            cur, prop = torch.cat([s_nb, cur], -1), torch.cat([s_nb, prop], -1)
+        else:
+            index = moved
+        profiles, indicators = self._neighbour_profiles(boxes, u_all, firsts, index)  # (B, P, 2q, M, W)
+        signals = torch.stack([cur, prop], 2)  # (B, P, 2 (cur, prop), 2 (old box, new box), M)
+        A = self._outer_sum(signals, [f[:, :, None] for f in profiles])  # (B, P, 2, 2, *W)
+        zw = self._gather_cells(zc, boxes)[:, :, None]  # (B, P, 1, 2, *W)
         ratio = self.cell_log_ratio(A, zw)
         diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
-        both = self._contract(torch.ones_like(s_old), [f[..., None, :] for f in in_old])  # (B, P, *W)
-        out = diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
-        return out.reshape((B,) + S)
+        # cells of the new box inside the old one: the old spread's indicator there
+        in_old = [f[:, :, 1, count] for f in indicators]  # (B, P, W_a)
+        both = self._outer_sum(torch.ones_like(s_old), [f[..., None, :] for f in in_old])  # (B, P, *W)
+        return diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
+
 
     # ---------------------------------------------------------------- checks
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:

@@ -28,6 +28,11 @@ class LinearGaussian(SensorModel):
 
     ``log_likelihood`` returns the full Gaussian log density (constants included), so a
     filter's evidence is the true ``log p(z_{1:T})``, comparable across ``R``.
+
+    Whitening is precomputed: with ``R = L L^T`` the buffers ``W = L^{-1}`` and ``WH = W H``
+    give the whitened residual ``W z - WH x`` by two small matmuls per call (no triangular
+    solve per call; the ``(B, K, d)`` measurements are whitened once per call, not once per
+    particle).
     """
 
     def __init__(self, H: Tensor, R: Tensor):
@@ -44,6 +49,9 @@ class LinearGaussian(SensorModel):
         self.register_buffer("H", H)
         self.register_buffer("R", R)
         self.register_buffer("L", L)
+        W = torch.linalg.solve_triangular(L, torch.eye(d, dtype=L.dtype), upper=False)  # L^{-1}
+        self.register_buffer("W", W)
+        self.register_buffer("WH", W @ H)
         self.meas_dim = d
         self.state_dim = H.shape[1]
         self.frame_shape = (None, d)
@@ -86,10 +94,9 @@ class LinearGaussian(SensorModel):
         -------
         (B, *S, K).
         """
-        zb = z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:])
-        r = (zb - x @ self.H.to(x.dtype).mT).unsqueeze(-1)
-        L = self.L.to(x.dtype).expand(r.shape[:-2] + self.L.shape)
-        white = torch.linalg.solve_triangular(L, r, upper=False).squeeze(-1)
+        wz = z.to(x.dtype) @ self.W.to(x.dtype).mT  # (B, K, d): whitened once per call
+        wz = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])
+        white = wz - x @ self.WH.to(x.dtype).mT  # (B, *S, K, d) = L^{-1} (z - H x)
         per_target = self._log_norm - 0.5 * white.square().sum(-1)
         if exists is not None:
             per_target = torch.where(exists, per_target, torch.zeros_like(per_target))

@@ -101,6 +101,10 @@ class PoissonClutterPoints(SensorModel):
         dtype = torch.get_default_dtype()
         self.register_buffer("area", area_t.to(dtype))
         self.register_buffer("R", R.to(dtype))
+        # whitening precomputed (R = L L^T, W = L^{-1}; float64 like the grid sensors' bins,
+        # computations follow the dtype of x): points and targets are whitened once per call,
+        # not each of the K x M residuals, and no Cholesky per call
+        self.register_buffer("W", torch.linalg.inv(L).tril())
         self.volume = float((area_t[:, 1] - area_t[:, 0]).prod())
         self.dim = dim
         self.meas_dim = 2
@@ -111,15 +115,13 @@ class PoissonClutterPoints(SensorModel):
     def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
         """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
         -> (B, *S, K, M)``."""
-        pos = torch.stack([x[..., X], x[..., Y]], -1)  # (B, *S, K, 2)
-        zb = z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:]).to(x.dtype)  # (B, 1.., M, 2)
-        r = zb.unsqueeze(-3) - pos.unsqueeze(-2)  # (B, *S, K, M, 2)
-        L = torch.linalg.cholesky(self.R.to(x.dtype))
-        # L lower triangular 2x2: whiten r by forward substitution (closed form, no solve).
-        w0 = r[..., 0] / L[0, 0]
-        w1 = (r[..., 1] - L[1, 0] * w0) / L[1, 1]
+        W = self.W.to(x.dtype)
+        pos = torch.stack([x[..., X], x[..., Y]], -1) @ W.mT  # (B, *S, K, 2), whitened
+        wz = z.to(x.dtype) @ W.mT
+        zb = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])  # (B, 1.., M, 2)
+        r = zb.unsqueeze(-3) - pos.unsqueeze(-2)  # (B, *S, K, M, 2): L^{-1} (z_m - H x_n)
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        return log_rate + self._log_norm - 0.5 * (w0.square() + w1.square())
+        return log_rate + self._log_norm - 0.5 * r.square().sum(-1)
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Optional[Tensor] = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``

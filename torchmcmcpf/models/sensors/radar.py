@@ -26,9 +26,9 @@ from typing import Optional, Union
 
 import torch
 
-from ..._validation import check_generator, check_positive, check_shape
+from ..._validation import check_generator, check_shape
 from ...typing import RHO, VX, VY, X, Y, Tensor
-from .grid import SeparableGridSensor, lattice, polar
+from .grid import SeparableGridSensor, polar
 
 __all__ = ["RangeDopplerBearingTBD", "log_i0", "log_i0_approx"]
 
@@ -160,55 +160,10 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
     """
 
     dim = 5
-
-    def __init__(
-        self,
-        range_bins: Tensor,
-        doppler_bins: Tensor,
-        bearing_bins: Tensor,
-        *,
-        noise_std: float = 1.0,
-        range_width: Optional[float] = None,
-        doppler_width: Optional[float] = None,
-        bearing_width: Optional[float] = None,
-        window: int = 3,
-        method: str = "window",
-        memory_budget: int = 2**30,
-    ):
-        super().__init__(
-            (range_bins, doppler_bins, bearing_bins),
-            (range_width, doppler_width, bearing_width),
-            names=("range", "doppler", "bearing"),
-            window=window,
-            method=method,
-            memory_budget=memory_budget,
-        )
-        self.noise_std = check_positive(noise_std, "noise_std")
-
-    @classmethod
-    def uniform(
-        cls,
-        range_limits: tuple[float, float],
-        doppler_limits: tuple[float, float],
-        bearing_limits: tuple[float, float],
-        *,
-        range_cell: float = 10.0,
-        doppler_cell: float = 2.0,
-        bearing_cell: float = math.pi / 180,
-        **kw,
-    ) -> "RangeDopplerBearingTBD":
-        """Uniform grid with Table I cell sizes (10 m, 2 m/s, 1 deg).
-
-        Each ``*_limits = (first, last)`` gives the first cell centre and an upper limit:
-        centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) / cell)``
-        (``last`` included when it lies on the lattice). Other keywords go to the constructor.
-        """
-        return cls(
-            lattice(range_limits, range_cell, "range"),
-            lattice(doppler_limits, doppler_cell, "doppler"),
-            lattice(bearing_limits, bearing_cell, "bearing"),
-            **kw,
-        )
+    axis_names = ("range", "doppler", "bearing")
+    noise_name = "noise_std"
+    default_window = 3
+    default_cells = (10.0, 2.0, math.pi / 180)  # Table I: 10 m, 2 m/s, 1 deg
 
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:

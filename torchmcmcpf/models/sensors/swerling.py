@@ -24,9 +24,9 @@ from typing import Optional, Union
 
 import torch
 
-from ..._validation import check_finite, check_generator, check_nonnegative, check_positive, check_shape
+from ..._validation import check_finite, check_generator, check_nonnegative, check_shape
 from ...typing import RHO, X, Y, Tensor
-from .grid import SeparableGridSensor, lattice, polar
+from .grid import SeparableGridSensor, polar
 
 __all__ = ["AzimuthRangeSwerlingTBD", "POWER"]
 
@@ -97,45 +97,10 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
     """
 
     dim = 5
-
-    def __init__(
-        self,
-        azimuth_bins: Tensor,
-        range_bins: Tensor,
-        *,
-        noise_power: float = 1.0,
-        azimuth_width: Optional[float] = None,
-        range_width: Optional[float] = None,
-        window: int = 4,
-        method: str = "window",
-        memory_budget: int = 2**30,
-    ):
-        super().__init__(
-            (azimuth_bins, range_bins),
-            (azimuth_width, range_width),
-            names=("azimuth", "range"),
-            window=window,
-            method=method,
-            memory_budget=memory_budget,
-        )
-        self.noise_power = check_positive(noise_power, "noise_power")
-
-    @classmethod
-    def uniform(
-        cls,
-        azimuth_limits: tuple[float, float],
-        range_limits: tuple[float, float],
-        *,
-        azimuth_cell: float = math.pi / 180,
-        range_cell: float = 10.0,
-        **kw,
-    ) -> "AzimuthRangeSwerlingTBD":
-        """Uniform grid: each ``*_limits = (first, last)`` gives the first cell centre and an
-        upper limit; centres are ``first + i * cell`` for ``i = 0 .. floor((last - first) /
-        cell)``. Default cells 1 deg and 10 m. Other keywords go to the constructor."""
-        return cls(
-            lattice(azimuth_limits, azimuth_cell, "azimuth"), lattice(range_limits, range_cell, "range"), **kw
-        )
+    axis_names = ("azimuth", "range")
+    noise_name = "noise_power"
+    default_window = 4
+    default_cells = (math.pi / 180, 10.0)  # 1 deg, 10 m
 
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:
