@@ -14,8 +14,6 @@ import torch
 
 from torchmcmcpf import resampling as rs
 
-THREADS = 1
-
 
 def _searchsorted(log_w, u):
     m = log_w.shape[-1]
@@ -25,12 +23,11 @@ def _searchsorted(log_w, u):
 @pytest.mark.parametrize("variant", ["counting", "searchsorted"])
 @pytest.mark.parametrize("b", [1, 100])
 def test_systematic(benchmark, variant, b, n=5000):
-    torch.set_num_threads(THREADS)
     g = torch.Generator().manual_seed(0)
     log_w = torch.randn(b, n, generator=g) * 3
     u = torch.rand(b, 1, generator=g, dtype=torch.float64)
     fn = rs.systematic if variant == "counting" else _searchsorted
     benchmark.group = f"resample-B{b}-N{n}"
-    benchmark.extra_info.update(variant=variant, threads=torch.get_num_threads())
+    benchmark.extra_info.update(variant=variant)
     idx = benchmark.pedantic(fn, args=(log_w, u), rounds=30, iterations=1, warmup_rounds=2)
     assert idx.shape == (b, n)
