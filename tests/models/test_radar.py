@@ -387,25 +387,29 @@ _PEAK_SCRIPT = textwrap.dedent(
             if line.startswith(key):
                 return int(line.split()[1]) * 1024
     sens = RangeDopplerBearingTBD.uniform((2300, 3300), (-20, 20), (-0.26, 0.26), memory_budget=int(sys.argv[1]))
+    path, n = sys.argv[2], int(sys.argv[3])
     g = torch.Generator().manual_seed(0)
-    x = torch.tensor([2800.0, 1, 0, 1, 5]) + torch.randn(2, 100, 3, 5, generator=g)
+    x = torch.tensor([2800.0, 1, 0, 1, 5]) + torch.randn(2, n, 3, 5, generator=g)
     z = sens.simulate(x[:, 0], generator=g)
-    sens.log_likelihood_grid(x[:, :2], z)  # warm up
+    fn = getattr(sens, "log_likelihood_" + path)
+    fn(x[:, :2], z)  # warm up
     with open("/proc/self/clear_refs", "w") as f:
         f.write("5")  # reset the peak-RSS high-water mark (Linux >= 4.0)
     base = status("VmRSS")
-    sens.log_likelihood_grid(x, z)
+    fn(x, z)
     print(status("VmHWM") - base)
     """
 )
 
 
-def _peak_rss_increase(budget: int) -> int:
-    """Peak resident memory added by one whole-grid call (2 runs x 100 particles x 3 targets,
-    Table I grid, float32), measured in a fresh process. MALLOC_MMAP_THRESHOLD_ makes glibc
-    map every block over 64 KiB and unmap it on free, so RSS follows live memory."""
+def _peak_rss_increase(budget: int, path: str = "grid", particles: int = 100) -> int:
+    """Peak resident memory added by one call of ``log_likelihood_<path>`` (2 runs x
+    ``particles`` x 3 targets, Table I grid, float32), measured in a fresh process.
+    MALLOC_MMAP_THRESHOLD_ makes glibc map every block over 64 KiB and unmap it on free, so
+    RSS follows live memory."""
     env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
-    out = subprocess.run([sys.executable, "-c", _PEAK_SCRIPT, str(budget)], env=env, capture_output=True, text=True, timeout=120)
+    out = subprocess.run([sys.executable, "-c", _PEAK_SCRIPT, str(budget), path, str(particles)], env=env,
+                         capture_output=True, text=True, timeout=120)
     if out.returncode != 0 and "clear_refs" in out.stderr:
         pytest.skip("cannot reset the peak RSS on this system")
     assert out.returncode == 0, out.stderr
@@ -421,6 +425,17 @@ def test_grid_measured_peak_memory_respects_budget():
     assert unchunked > 10 * budget
     # ... and the chunked call stays under the budget (+1 MiB for the inputs, outputs, and
     # page granularity)
+    assert chunked <= budget + 2**20, (chunked, unchunked)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
+def test_window_measured_peak_memory_respects_budget():
+    """The windowed path in blocks of window_chunk_size samples: 2 x 3000 samples take ~300 MB
+    of temporaries in one block; with an 8 MiB budget the peak stays under it."""
+    budget = 8 * 2**20
+    unchunked = _peak_rss_increase(2**30, "window", 3000)
+    chunked = _peak_rss_increase(budget, "window", 3000)
+    assert unchunked > 10 * budget
     assert chunked <= budget + 2**20, (chunked, unchunked)
 
 

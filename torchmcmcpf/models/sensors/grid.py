@@ -22,12 +22,17 @@ log-likelihood is its sum over cells.
   and the result is the exact log-likelihood of that truncated-spread sensor (a sum over the
   union of the boxes, a cell inside several boxes counted once). The truncation is the only
   approximation (spread values below ``exp(-(window + 1/2)^2 / 2)`` of the peak are dropped);
-  with ``window`` at least the grid size the two paths agree to round-off.
+  with ``window`` at least the grid size the two paths agree to round-off. A box sums only
+  the targets whose boxes overlap it (neighbour slots, see
+  :attr:`~SeparableGridSensor.max_neighbours`), so the cost is ``O(N K W^n)``, not
+  ``O(N K^2 W^n)``; blocks of samples sized from ``memory_budget``.
 - :meth:`~SeparableGridSensor.log_likelihood_delta`: the change of the windowed
   log-likelihood when one target slot moves, from the cells of its old and new box only
-  (the per-target refinement of the MCMC filter, the exchange move of IP-MCMC-PF).
+  (the per-target refinement of the MCMC filter, the exchange move of IP-MCMC-PF), summing
+  in each box slot ``n`` before and after the move and its overlapping neighbours.
 
-Subclasses implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
+Subclasses declare their axes and noise parameter (one base constructor serves all) and
+implement :meth:`measurement_coords`, :meth:`signal`, :meth:`cell_log_ratio`
 (optionally :meth:`prepare_frame`) and :meth:`simulate`.
 """
 
@@ -459,18 +464,35 @@ class SeparableGridSensor(SensorModel):
             indicators.append(inside)
         return self._merge_last(profiles), self._merge_last(indicators)
 
-    @staticmethod
-    def _outer_sum(s: Tensor, factors: Sequence[Tensor]) -> Tensor:
-        """``sum_m s_m f_1[m, i_1] ... f_n[m, i_n]`` by broadcast products.
+    #: Neighbour slots up to which :meth:`_outer_sum` adds the terms one by one (fused into
+    #: one loop by ``torch.compile``); above it, outer products and one bmm (faster for many
+    #: slots, eager or compiled: measured on the crowded ground-radar scene).
+    _TERMWISE_MAX = 4
 
-        ``s (*L, M)``, ``factors[a] (*L, M, W_a)`` -> ``(*L, W_1, ..., W_n)``. The sum over the
-        ``M`` neighbour slots (a few on the windowed paths) is written out term by term, so
-        that ``torch.compile`` fuses the whole per-cell computation into one loop (a
-        reduction over ``M`` would be materialised).
+    @classmethod
+    def _outer_sum(cls, s: Tensor, factors: Sequence[Tensor]) -> Tensor:
+        """``sum_m s_m f_1[m, i_1] ... f_n[m, i_n]``.
+
+        ``s (*L, M)``, ``factors[a] (*L, M, W_a)`` -> ``(*L, W_1, ..., W_n)``. Up to
+        ``_TERMWISE_MAX`` neighbour slots the sum is written out term by term, so that
+        ``torch.compile`` fuses the whole per-cell computation into one loop (a reduction
+        over ``M`` would be materialised); above it, outer products of the first ``n - 1``
+        factors then one bmm with the last.
         """
-        n = len(factors)
+        n, M = len(factors), s.shape[-1]
+        if M > cls._TERMWISE_MAX:
+            outer = s[..., None] * factors[0]
+            for f in factors[1:-1]:
+                outer = (outer[..., :, None] * f[..., None, :]).flatten(-2)
+            lead = outer.shape[:-2]  # broadcast of the leading dims of s and the factors
+            if n == 1:
+                out = outer.sum(-2)
+            else:
+                last = factors[-1].expand(lead + factors[-1].shape[-2:])
+                out = torch.bmm(outer.reshape(-1, M, outer.shape[-1]).mT, last.reshape(-1, M, last.shape[-1]))
+            return out.reshape(*lead, *(f.shape[-1] for f in factors))
         out = None
-        for m in range(s.shape[-1]):  # neighbour slots, not targets: max_neighbours + 1 on the fast form
+        for m in range(M):  # neighbour slots, not targets: at most _TERMWISE_MAX
             term = s[..., m].reshape(s.shape[:-1] + (1,) * n)
             for a, f in enumerate(factors):
                 fm = f[..., m, :]
@@ -521,9 +543,11 @@ class SeparableGridSensor(SensorModel):
         replaced by their flattened outer product ``(..., W_{n-1} * W_n)``)."""
         if len(factors) < 2:
             return factors
-        # a matmul with inner size 1 (not a broadcast product): materialised, so compiled
-        # consumers load it contiguously instead of recomputing it with per-lane div/mod
-        return factors[:-2] + [torch.matmul(factors[-2][..., :, None], factors[-1][..., None, :]).flatten(-2)]
+        a, b = factors[-2][..., :, None], factors[-1][..., None, :]
+        # compiled, a matmul with inner size 1 fuses better than the broadcast product
+        # (measured, benchmarks/bench_likelihood.py); eager it would be a bmm of tiny matrices
+        q = torch.matmul(a, b) if torch.compiler.is_compiling() else a * b
+        return factors[:-2] + [q.flatten(-2)]
 
     def _gather_cells(self, zc: Tensor, firsts: Sequence[Tensor]) -> Tensor:
         """``zc (B, *G)`` at the cells of boxes with first cells ``firsts[a] (B, P, Q)`` ->
@@ -567,7 +591,7 @@ class SeparableGridSensor(SensorModel):
         samples = max(1, chunk // runs)
         if runs >= B and samples >= P:
             return fn(0, B, 0, P)
-        grad = torch.is_grad_enabled()
+        grad = torch.is_grad_enabled() and x.requires_grad
         out = []
         for b in range(0, B, runs):  # chunks of rows, not a loop per particle or per run
             row = []
