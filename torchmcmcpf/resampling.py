@@ -89,10 +89,11 @@ def cdf(log_w: Tensor) -> Tensor:
     -------
     (..., N) float64.
     """
-    w = torch.softmax(log_w.to(torch.float64), dim=-1)
-    c = torch.cumsum(w, dim=-1)
-    # Guard the last bin against round-off: every u < 1 must land inside.
-    return torch.cat([c[..., :-1], torch.ones_like(c[..., -1:])], dim=-1)
+    c = torch.cumsum(torch.softmax(log_w.to(torch.float64), dim=-1), dim=-1)
+    # Guard the last bin against round-off: every u < 1 must land inside (in place: the
+    # cumulative sum is a fresh tensor, and its backward does not need its output).
+    c[..., -1] = 1.0
+    return c
 
 
 def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
