@@ -369,6 +369,7 @@ def plot_scaling(sweeps: dict, path: Path, title: str = "") -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 4), layout="constrained")
     for ax, (axis, lines) in zip(axes, sweeps.items()):
@@ -376,6 +377,9 @@ def plot_scaling(sweeps: dict, path: Path, title: str = "") -> None:
             ax.loglog(d["values"], [t * 1e3 for t in d["seconds"]], "o-", label=label)
             v0, t0 = d["values"][0], d["seconds"][0] * 1e3
             ax.loglog(d["values"], [t0 * v / v0 for v in d["values"]], ":", color="grey", lw=1)
+        values = next(iter(lines.values()))["values"]
+        ax.set_xticks(values, [str(v) for v in values])
+        ax.xaxis.set_minor_locator(matplotlib.ticker.NullLocator())
         fixed = ", ".join(f"{a}={v}" for a, v in next(iter(lines.values()))["fixed"].items())
         ax.set(xlabel=axis, ylabel="ms per step", title=f"vs {axis} ({fixed}); dotted: linear")
         ax.legend(fontsize=8)
