@@ -283,7 +283,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: Optional[int] = No
         add(Figure(f"ipmcmc-{ns}-B{b}",
                    time_step(radar_ipmcmc(ns, k, b, compiled, dev, **ip), repeats=cfg["slow_repeats"], device=dev),
                    dict(N=ns, C=c, burn_in=cfg["burn_in"], K=k, B=b, compiled=compiled),
-                   target("ipmcmc-500-B10") if b > 1 else None, note="target per run" if b > 1 else ""))
+                   target("ipmcmc-500-B10") if b > 1 else None, note="target per run" if b > 1 and not quick else ""))
     add(Figure("mcmc-pf", time_step(radar_mcmc(n, k, 1, compiled, dev, chains=c), repeats=cfg["slow_repeats"],
                                     device=dev),
                dict(N=n, C=c, K=k, B=1, compiled=compiled), target("mcmc-pf")))
