@@ -170,11 +170,6 @@ def test_reproduce_list_and_run(fake_experiment, tmp_path, capsys):
     assert "fake-study" in capsys.readouterr().out
 
 
-def test_bench_points_to_pytest_benchmark(capsys):
-    assert main(["bench"]) == 0
-    assert "pytest benchmarks/ --benchmark-only" in capsys.readouterr().out
-
-
 # ------------------------------------------------------------------ shards and Ray
 
 

@@ -90,3 +90,30 @@ def test_resample_bad_input(gen):
         rs.resample(torch.zeros(1, 3), generator=None)
     with pytest.raises(ValueError, match="num_samples"):
         rs.resample(torch.zeros(1, 3), generator=gen, num_samples=0)
+
+
+@pytest.mark.parametrize("m", [None, 7, 1300])
+def test_stratified_points_counting_equals_inverse_cdf(m, gen):
+    # The one-pass counting inversion of the sorted points (j + u_j) / M gives the indices
+    # of the generic searchsorted inversion (inverse_cdf), zero and dominant weights included.
+    B, N = 64, 1000
+    log_w = torch.randn(B, N, generator=gen) * torch.linspace(0.1, 30.0, B).unsqueeze(-1)
+    log_w[torch.rand(B, N, generator=gen) < 0.3] = -math.inf
+    log_w[:, 0] = 0.0
+    M = N if m is None else m
+    grid = torch.arange(M, dtype=torch.float64)
+    u1 = torch.rand(B, 1, generator=gen, dtype=torch.float64)
+    uM = torch.rand(B, M, generator=gen, dtype=torch.float64)
+    c = rs.cdf(log_w)
+    assert torch.equal(rs.systematic(log_w, u1, m), rs.inverse_cdf(c, (grid + u1) / M))
+    assert torch.equal(rs.stratified(log_w, uM), rs.inverse_cdf(c, (grid + uM) / M))
+
+
+def test_stratified_points_edge_uniforms():
+    # u = 0 puts every point exactly on a cdf value: cdf_i <= p_j is right-continuous.
+    zero = torch.zeros(1, 1, dtype=torch.float64)
+    assert torch.equal(rs.systematic(torch.zeros(1, 4), zero), torch.tensor([[0, 1, 2, 3]]))
+    log_w = torch.tensor([[0.25, 0.25, 0.5]]).log()
+    assert torch.equal(rs.systematic(log_w, zero), torch.tensor([[0, 1, 2]]))
+    near_one = torch.full((1, 1), 1.0 - 2.0 ** -53, dtype=torch.float64)
+    assert torch.equal(rs.systematic(log_w, near_one), torch.tensor([[1, 2, 2]]))

@@ -2,8 +2,11 @@
 
 Every scheme is split in two: the uniforms are drawn from the explicit generator, and a
 pure, compile-friendly function maps (log-weights, uniforms) to ancestor indices. The
-cumulative sum runs in float64 and indices come from ``searchsorted`` (faster than
-``torch.multinomial`` and traceable by ``torch.compile``, DESIGN.md).
+cumulative sum runs in float64. Arbitrary points are inverted by ``searchsorted``
+(:func:`inverse_cdf`, faster than ``torch.multinomial`` and traceable by ``torch.compile``,
+DESIGN.md); the sorted stratified and systematic points ``(j + u_j) / M`` are inverted in one
+pass by counting (:func:`stratified`), which is 5-8x faster than a batched ``searchsorted``
+at B = 100, N = 5000 on the CPU (benchmarks/bench_resampling.py).
 
 References: Douc, Cappe and Moulines (2005), "Comparison of resampling schemes for
 particle filtering"; Doucet and Johansen (2009), sec. 3.4.
@@ -86,10 +89,11 @@ def cdf(log_w: Tensor) -> Tensor:
     -------
     (..., N) float64.
     """
-    w = torch.softmax(log_w.to(torch.float64), dim=-1)
-    c = torch.cumsum(w, dim=-1)
-    # Guard the last bin against round-off: every u < 1 must land inside.
-    return torch.cat([c[..., :-1], torch.ones_like(c[..., -1:])], dim=-1)
+    c = torch.cumsum(torch.softmax(log_w.to(torch.float64), dim=-1), dim=-1)
+    # Guard the last bin against round-off: every u < 1 must land inside (in place: the
+    # cumulative sum is a fresh tensor, and its backward does not need its output).
+    c[..., -1] = 1.0
+    return c
 
 
 def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
@@ -112,7 +116,8 @@ def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
 
 
 def systematic(log_w: Tensor, u: Tensor, num_samples: int | None = None) -> Tensor:
-    """Systematic resampling: one uniform per run, points ``(i + u) / M``.
+    """Systematic resampling: one uniform per run, points ``(j + u) / M`` (Douc et al. 2005,
+    sec. 2.4): the stratified points with the same uniform in every stratum.
 
     Parameters
     ----------
@@ -122,16 +127,22 @@ def systematic(log_w: Tensor, u: Tensor, num_samples: int | None = None) -> Tens
 
     Returns
     -------
-    (B, M) int64 ancestor indices in ``[0, N)``.
+    (B, M) int64 ancestor indices in ``[0, N)``, non-decreasing; particle ``i`` has
+    ``floor(M w_i)`` or ``ceil(M w_i)`` offspring.
     """
     m = log_w.shape[-1] if num_samples is None else num_samples
-    grid = torch.arange(m, device=log_w.device, dtype=torch.float64)
-    return inverse_cdf(cdf(log_w), (grid + u.to(torch.float64)) / m)
+    return _invert_strata(log_w, u, m)
 
 
 def stratified(log_w: Tensor, u: Tensor) -> Tensor:
-    """Stratified resampling: one uniform per stratum, points ``(i + u_i) / M`` (the
-    systematic points with a uniform per stratum).
+    """Stratified resampling: one uniform per stratum, points ``p_j = (j + u_j) / M`` (Douc
+    et al. 2005, sec. 2.3), inverted in one pass without ``searchsorted``.
+
+    The ancestor of point ``j`` is ``#{i : cdf_i <= p_j}`` (as :func:`inverse_cdf`). Since the
+    points are sorted, that is ``#{i : n_i <= j}`` with ``n_i = #{j : p_j < cdf_i}``, and
+    ``n_i`` has a closed form: with ``k = floor(M cdf_i)``, the points of the strata below
+    ``k`` lie under ``cdf_i`` and the one of stratum ``k`` does when ``u_k < M cdf_i - k``.
+    A histogram of the ``n_i`` and its cumulative sum give every index: O(N + M) work.
 
     Parameters
     ----------
@@ -139,9 +150,25 @@ def stratified(log_w: Tensor, u: Tensor) -> Tensor:
 
     Returns
     -------
-    (B, M) int64 ancestor indices.
+    (B, M) int64 ancestor indices, non-decreasing.
     """
-    return systematic(log_w, u, u.shape[-1])
+    return _invert_strata(log_w, u, u.shape[-1])
+
+
+def _invert_strata(log_w: Tensor, u: Tensor, m: int) -> Tensor:
+    """:func:`stratified` for ``u`` (B, M), or (B, 1): the same uniform in every stratum."""
+    b = log_w.shape[0]
+    scaled = cdf(log_w) * m                                        # (B, N) float64, last entry M
+    k = scaled.floor()
+    inside = k < m
+    k = k.to(torch.int64).clamp_(max=m - 1)                        # the stratum holding cdf_i
+    frac = scaled - k                                              # in [0, 1] where inside
+    u = u.to(torch.float64)
+    u_k = u if u.shape[-1] == 1 else torch.gather(u, 1, k)         # (B, N) or (B, 1)
+    below = torch.where(inside, k + (u_k < frac), m)               # (B, N) n_i = #{j : p_j < cdf_i}
+    hist = torch.zeros(b, m + 1, dtype=torch.int64, device=log_w.device)
+    hist.scatter_add_(1, below, torch.ones_like(below))
+    return hist[:, :m].cumsum_(-1)
 
 
 def multinomial(log_w: Tensor, u: Tensor) -> Tensor:
@@ -217,6 +244,10 @@ def gather_particles(x: Tensor, idx: Tensor) -> Tensor:
     Returns
     -------
     (B, M, *E).
+
+    One ``index_select`` of whole rows of the flattened ``(B N, *E)`` tensor: 3x faster on
+    the CPU than ``take_along_dim`` with an index expanded over ``*E`` (B = 100, N = 5000).
     """
-    view = idx.reshape(idx.shape + (1,) * (x.dim() - 2))
-    return torch.take_along_dim(x, view, dim=1)
+    b, n = x.shape[:2]
+    flat = idx + torch.arange(b, device=idx.device).unsqueeze(-1) * n  # (B, M) rows of (B N, *E)
+    return x.flatten(0, 1).index_select(0, flat.flatten()).view(idx.shape + x.shape[2:])

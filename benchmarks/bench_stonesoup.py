@@ -1,0 +1,38 @@
+"""Point-measurement SIR against Stone Soup 1.9.1, same model, same N, in one run.
+
+    .venv/bin/pytest benchmarks/bench_stonesoup.py --benchmark-only --benchmark-group-by=group
+
+One target with known association: :class:`ConstantVelocity` motion (q = 0.1, dt = 1),
+position measured by :class:`LinearGaussian` (unit noise), systematic resampling at every
+step. Ours: :class:`~torchmcmcpf.filters.SIRFilter` with the B runs as one batch (float32,
+eager). Stone Soup: ``ParticlePredictor`` + ``ParticleUpdater`` with ``SystematicResampler``
+(float64 NumPy), a Python loop over the B runs. Each call filters the next measurement of
+every run (:mod:`torchmcmcpf.bench` builds both; tests/test_bench.py checks that both agree
+with the Kalman filter). Groups ``point-sir-B<B>-N<N>``: read the ratio within a group.
+Issue 12's targets: Stone Soup / ours >= 3x at B = 1 and >= 10x at B = 100 (N = 5000).
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchmcmcpf import bench
+
+N = 5000
+ROUNDS = 10
+
+
+@pytest.mark.parametrize("library", ["torchmcmcpf", "stonesoup"])
+@pytest.mark.parametrize("b", [1, 100])
+def test_point_sir_step(benchmark, library, b):
+    if library == "stonesoup":
+        pytest.importorskip("stonesoup")
+        step = bench.stonesoup_step(N, b, ROUNDS + 2)
+    else:
+        step = bench.point_sir_step(N, b, ROUNDS + 2, torch.device("cpu"))
+    benchmark.group = f"point-sir-B{b}-N{N}"
+    benchmark.extra_info.update(library=library, B=b, N=N)
+    with torch.no_grad():
+        benchmark.pedantic(step, rounds=ROUNDS if library == "torchmcmcpf" or b == 1 else 3, iterations=1,
+                           warmup_rounds=1)
