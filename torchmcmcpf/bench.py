@@ -30,6 +30,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -160,8 +161,9 @@ def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype=torch
     g = torch.Generator(device).manual_seed(1)
     x0 = torch.tensor([0.0, 1.0, 0.0, 1.0], device=device, dtype=dtype) + torch.randn(
         b, n, 1, 4, generator=g, device=device, dtype=dtype)
-    state = [filt.init(x0), 0]
-    filt.validate(state[0], z, sequence=True)
+    init = filt.init(x0)
+    filt.validate(init, z, sequence=True)
+    state: list[Any] = [init, 0]
 
     def step():
         s, t = state
@@ -218,10 +220,11 @@ def stonesoup_step(n: int, b: int, steps: int) -> Callable[[], object]:
 
 
 # -- the run -------------------------------------------------------------------------------------
-FULL = dict(n=5000, k=10, chains=50, burn_in=100, n_small=500, b_small=10, point_b=(1, 100), repeats=5,
+#: sizes of the full run (the issue's headline figures) and of ``--quick`` (seconds, for tests)
+FULL: dict[str, Any] = dict(n=5000, k=10, chains=50, burn_in=100, n_small=500, b_small=10, point_b=(1, 100), repeats=5,
             slow_repeats=3, compiled=True, sweep_n=(500, 1000, 2000, 5000), sweep_k=(1, 2, 5, 10),
             sweep_b=(1, 2, 5, 10), sweep_base=dict(n=1000, k=10, b=1), sweep_burn_in=20)
-QUICK = dict(n=200, k=2, chains=10, burn_in=5, n_small=100, b_small=3, point_b=(1, 10), repeats=1,
+QUICK: dict[str, Any] = dict(n=200, k=2, chains=10, burn_in=5, n_small=100, b_small=3, point_b=(1, 10), repeats=1,
              slow_repeats=1, compiled=False, sweep_n=(50, 100, 200), sweep_k=(1, 2, 4), sweep_b=(1, 2, 4),
              sweep_base=dict(n=100, k=2, b=1), sweep_burn_in=2)
 
