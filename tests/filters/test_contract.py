@@ -28,7 +28,7 @@ FILTERS = {
     "mcmc": (lambda m, s, c: MCMCFilter(m, s, N, num_chains=4, burn_in=3, thinning=2, compile_step=c),
              (False, False, True, {"acceptance_joint", "acceptance_refine"})),
     "ipmcmc": (lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, compile_step=c),
-               (False, False, True, {"rhat", "extensions"})),
+               (False, False, True, {"rhat", "rhat_slot", "rhat_dim", "extensions"})),
     "resample_move": (lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, step_size=0.3, compile_step=c),
                       (True, True, True, set())),
 }
