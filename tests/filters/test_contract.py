@@ -30,7 +30,7 @@ FILTERS = {
     "ipmcmc": (lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, compile_step=c),
                (False, False, True, {"rhat", "rhat_slot", "rhat_dim", "extensions"})),
     "resample_move": (lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, step_size=0.3, compile_step=c),
-                      (True, True, True, set())),
+                      (True, True, True, {"ess_after_move"})),
 }
 
 
