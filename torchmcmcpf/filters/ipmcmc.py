@@ -85,6 +85,23 @@ of slot ``j`` differs from its factor only by ``r_j = p_0(y_j) / q_0(y_j)`` for 
 before (an inactive slot sits at ``x_death``, so a slot that is alive in some chains and
 dead in others shows up).
 
+HMC refinement (optional)
+-------------------------
+With ``hmc=HMCRefine(...)`` (:mod:`torchmcmcpf.kernels.hmc_refine`) every chain also takes
+one Hamiltonian Monte Carlo transition of all its slots at once after every
+``hmc.every``-th exchange iteration, with autograd gradients of the sensor likelihood
+(differentiable through the radar's windowed path), targeting the same
+
+    ``pi(y) ∝ p(z_k | y) prod_j m_j(y_j)``,  ``m_j(y_j) = sum_i w^i N(y_j; F x^i_{k-1,j}, Q)``
+
+(the log-sum-exp over the N previous particles per slot gives ``log m_j`` and its
+gradient), so the composition leaves ``pi`` invariant. The exchange move is an
+independence sampler: it can only jump to a fresh prediction of one slot; the HMC move
+follows the likelihood's gradient and moves every slot of every chain a little at each
+transition. ``extras["acceptance_hmc"]`` reports its acceptance rate. The HMC transition
+runs eagerly, also with ``compile_step=True`` (which compiles the exchange iteration), and
+needs a linear-Gaussian motion and no existence model.
+
 Batching and extensions
 -----------------------
 Runs differ in whether they need an extension. The extension loop runs while *any* run
@@ -125,6 +142,7 @@ from ..kernels.exchange import (
     draw_exchange_noise,
     exchange_iteration,
 )
+from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, check_hmc_motion, hmc_refine, mixture_log_prior
 from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
@@ -137,18 +155,25 @@ __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration"
            "draw_exchange_noise"]
 
 
-def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable):
+def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Optional[Callable] = None,
+                every: int = 1):
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
-    ``(y, log_lik, ...)``; return the final chains, the list of the ``L`` chain tuples after
-    each iteration (references, no copies) and the number of acceptances per chain ``(B, C)``."""
+    ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
+    (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
+    the list of the ``L`` chain tuples after each iteration (references, no copies), the
+    number of exchange acceptances per chain ``(B, C)`` and that of refinements."""
     trace = []
     log_lik = chain[1]
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
+    refined_count = torch.zeros_like(accepted_count)
     for t in range(noise.u.shape[0]):
         chain, acc = step(chain, tree_map(lambda a: None if a is None else a[t], noise))
         accepted_count = accepted_count + acc.to(accepted_count.dtype)
+        if refine is not None and (t + 1) % every == 0:
+            chain, acc = refine(chain, (t + 1) // every - 1)
+            refined_count = refined_count + acc.to(refined_count.dtype)
         trace.append(chain)
-    return chain, trace, accepted_count
+    return chain, trace, accepted_count, refined_count
 
 
 def _kept(trace: list, keep: int, thinning: int) -> tuple:
@@ -202,6 +227,9 @@ class IPMCMCSettings:
     thinning : keep every ``thinning``-th state after the burn-in (1: the paper's
         consecutive states); ``thinning = K`` makes every kept sample follow one sweep over
         the K slots on average.
+    hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement
+        of every chain's states after every ``hmc.every``-th exchange iteration, on the same
+        factorised-prior posterior (module docstring); ``None`` (default): exchange only.
     """
 
     num_chains: int = 50
@@ -210,6 +238,7 @@ class IPMCMCSettings:
     max_extensions: int = 2
     rhat_method: str = "paper"
     thinning: int = 1
+    hmc: Optional[HMCRefine] = None
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains", minimum=2)
@@ -221,6 +250,8 @@ class IPMCMCSettings:
         if self.rhat_method not in RHAT_METHODS:
             raise ValueError(f"rhat_method must be one of {RHAT_METHODS}, got {self.rhat_method!r}")
         check_positive_int(self.thinning, "thinning")
+        if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
+            raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
 
     def check(self, num_particles: int) -> None:
         """``C | N`` with at least 2 kept samples per chain."""
@@ -270,7 +301,8 @@ def ipmcmc_step(
         R-hat (eq. 13) over the state components of the second half of the run's iterations
         (module docstring, "Convergence check"), ``"rhat_slot"``, ``"rhat_dim"`` (B,) the
         target slot ``k`` and state dimension ``d`` of the component that drives it and
-        ``"extensions" (B,)`` how many extensions ran.
+        ``"extensions" (B,)`` how many extensions ran and, with ``settings.hmc``,
+        ``"acceptance_hmc" (B,)`` the HMC refinement's acceptance rate.
     """
     x_prev, log_w, exists = state
     num_chains, burn_in = settings.num_chains, settings.burn_in
@@ -302,7 +334,27 @@ def ipmcmc_step(
     draw = lambda steps: draw_exchange_noise(  # noqa: E731
         log_w, steps, num_chains, k, motion.noise_dim, generator=generator, dtype=x_prev.dtype, **births)
     segment = settings.thinning * keep
-    chain, trace, accepted = _run_chains(chain, draw(burn_in + segment), step)
+    hmc = settings.hmc
+    refine, every = None, 1
+    if hmc is not None:
+        check_hmc_motion(motion, existence)
+        every = hmc.every
+        log_prior = mixture_log_prior(x_prev, log_w, motion)
+
+        def refine(ch, i):
+            y_new, ll_new, acc = hmc_refine(ch[0], ch[1], HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
+                                            log_prior=log_prior, sensor=sensor, motion=motion, settings=hmc)
+            return (y_new, ll_new, ch[2], ch[3]), acc
+
+    def run(steps):
+        nonlocal hmc_noise
+        noise = draw(steps)
+        if hmc is not None:
+            hmc_noise = HMCRefineNoise.draw(y, generator=generator, leading=(steps // every,))
+        return _run_chains(chain, noise, step, refine, every)
+
+    hmc_noise = None
+    chain, trace, accepted, refined = run(burn_in + segment)
     history = _kept(trace, keep, settings.thinning)
     ys = [c[0] for c in trace]  # (B, C, K, D) after every iteration: the R-hat window's source
     iterations = torch.full((b,), float(burn_in + segment), device=x_prev.device, dtype=x_prev.dtype)
@@ -315,13 +367,14 @@ def ipmcmc_step(
         need = report.max >= rhat_threshold  # (B,)
         if not bool(need.any()):
             break
-        chain_e, trace_e, acc_e = _run_chains(chain, draw(segment), step)
+        chain_e, trace_e, acc_e, ref_e = run(segment)
         chain = mh_select(need, chain_e, chain)
         hist_e = _kept(trace_e, keep, settings.thinning)
         history = tuple(None if h is None else torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
                         for he, h in zip(hist_e, history))
         ys = ys + [c[0] for c in trace_e]
         accepted = accepted + torch.where(need.unsqueeze(-1), acc_e, torch.zeros_like(acc_e))
+        refined = refined + torch.where(need.unsqueeze(-1), ref_e, torch.zeros_like(ref_e))
         iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
         report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
@@ -335,6 +388,9 @@ def ipmcmc_step(
     info = StepInfo.make(acceptance, acceptance=acceptance, extras={
         "rhat": report.max.to(dt), "rhat_slot": report.slot.to(dt), "rhat_dim": report.dim.to(dt),
         "extensions": extensions.to(dt)})
+    if hmc is not None:  # refinements per run: (burn_in + segment) // every + extensions * (segment // every)
+        count = (burn_in + segment) // every + extensions.to(dt) * (segment // every)
+        info.extras["acceptance_hmc"] = refined.mean(-1) / count.clamp(min=1)
     return ParticleState(x_new, log_w_new, exists_new), info
 
 
@@ -353,7 +409,7 @@ class IPMCMCFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, LinearGaussian, ...).
     num_particles : N; ``num_chains`` must divide it.
-    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning : see
+    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc : see
         :class:`IPMCMCSettings`.
     existence : BirthDeath, optional: births and deaths (module docstring); the estimate
         of a slot is then its mean given existence.
@@ -382,10 +438,13 @@ class IPMCMCFilter(Filter):
         max_extensions: int = 2,
         rhat_method: str = "paper",
         thinning: int = 1,
+        hmc: Optional[HMCRefine] = None,
         existence: Optional[BirthDeath] = None,
         compile_step: bool = False,
     ):
-        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning)
+        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc)
+        if hmc is not None:
+            check_hmc_motion(motion, existence)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles)
 
