@@ -85,3 +85,17 @@ def test_hmc_refine_bad_input():
         MCMCFilter(WhiteAccelerationMotion(), LinearGaussian.position(1.0), 10, hmc=HMCRefine())
     with pytest.raises(ValueError, match="hmc must be"):
         MCMCFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 10, hmc=0.5)
+
+
+def test_log_priors_match_motion_log_prob(gen):
+    """The whitened log-densities equal the motion's own log_prob (and the mixture its
+    log-sum-exp over the previous particles)."""
+    from torchmcmcpf.kernels.hmc_refine import mixture_log_prior
+
+    motion = ConstantVelocity(1.0, 1.0, amplitude_q=0.01).to(DT)
+    x_prev = torch.randn(2, 6, 3, 5, generator=gen, dtype=DT)
+    x = torch.randn(2, 4, 3, 5, generator=gen, dtype=DT)
+    torch.testing.assert_close(ancestor_log_prior(x_prev[:, :4], motion)(x), motion.log_prob(x, x_prev[:, :4]).sum(-1))
+    log_w = torch.log_softmax(torch.randn(2, 6, generator=gen, dtype=DT), -1)
+    expected = torch.logsumexp(motion.log_prob(x.unsqueeze(2), x_prev.unsqueeze(1)) + log_w[:, None, :, None], 2)
+    torch.testing.assert_close(mixture_log_prior(x_prev, log_w, motion)(x), expected.sum(-1))
