@@ -34,8 +34,9 @@ def test_hmc_refine_leaves_ancestor_conditional_invariant(gen):
     ll = sensor.log_likelihood(x, z)
     acc = 0.0
     for _ in range(5):
-        x, ll, a = hmc_refine(x, ll, HMCRefineNoise.draw(x, generator=gen), z, log_prior=ancestor_log_prior(x_anc, motion),
-                              sensor=sensor, motion=motion, settings=HMCRefine(step_size=0.6, num_leapfrog=3))
+        x, ll, a = hmc_refine(x, ll, HMCRefineNoise.draw(x, generator=gen), z,
+                              log_prior=ancestor_log_prior(x_anc, motion), sensor=sensor, motion=motion,
+                              settings=HMCRefine(step_size=0.6, num_leapfrog=3))
         acc += a.double().mean().item() / 5
     assert 0.3 < acc < 0.995
     torch.testing.assert_close(ll, sensor.log_likelihood(x, z))
