@@ -227,6 +227,10 @@ def test_rhat_window_is_second_half_of_iterations():
     assert (info.extras["rhat_dim"] == 0).all()
     kept = ys[5 + 2::3]  # states after iterations 8, 11, 14, 17
     torch.testing.assert_close(state.x, kept.permute(1, 2, 0, 3, 4).reshape(b, n, 2, 1))
+    # the shortest chains (no burn-in, S = 2 iterations): the window keeps 2 states
+    short = IPMCMCFilter(motion, sensor, 4, num_chains=2, burn_in=0, max_extensions=1)
+    _, info = short.step(short.init(x_prev[:, :4]), z, generator=torch.Generator().manual_seed(1))
+    assert info.extras["rhat"].shape == (b,)
 
 
 def test_same_seed_same_result_and_errors(gen):

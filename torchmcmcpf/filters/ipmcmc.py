@@ -156,12 +156,13 @@ __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration"
 
 
 def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Optional[Callable] = None,
-                every: int = 1):
+                every: int = 1, record_from: int = 0):
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
     ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
     (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
-    the list of the ``L`` chain tuples after each iteration (references, no copies), the
-    number of exchange acceptances per chain ``(B, C)`` and that of refinements."""
+    the list of the chain tuples after iterations ``record_from .. L - 1`` (references, no
+    copies), the number of exchange acceptances per chain ``(B, C)`` and that of
+    refinements."""
     trace = []
     log_lik = chain[1]
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
@@ -172,7 +173,8 @@ def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Opti
         if refine is not None and (t + 1) % every == 0:
             chain, acc = refine(chain, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
-        trace.append(chain)
+        if t >= record_from:
+            trace.append(chain)
     return chain, trace, accepted_count, refined_count
 
 
@@ -198,10 +200,16 @@ class RhatReport(NamedTuple):
     dim: Tensor
 
 
-def _rhat_report(ys: list, method: str) -> RhatReport:
-    """R-hat over chains of the states ``ys`` (a list of ``(B, C, K, D)``, one per iteration)
-    of the second half of the iterations run so far (module docstring, "Convergence check")."""
-    window = torch.stack(ys[len(ys) // 2:])  # (W, B, C, K, D)
+def _window_start(total: int) -> int:
+    """First iteration of the R-hat window among ``total`` (the second half, >= 2 states)."""
+    return min(total // 2, total - 2)
+
+
+def _rhat_report(ys: list, offset: int, method: str) -> RhatReport:
+    """R-hat over chains of the states ``ys`` (a list of ``(B, C, K, D)``, those after
+    iterations ``offset, offset + 1, ...``) of the second half of the iterations run so far
+    (module docstring, "Convergence check")."""
+    window = torch.stack(ys[_window_start(offset + len(ys)) - offset:])  # (W, B, C, K, D)
     r = rhat(window, chain_dim=2, sample_dim=0, method=method)  # (B, K, D)
     flat = r.flatten(1)
     # NaN-safe argmax: inf/NaN first (a NaN R-hat can only come from a NaN state)
@@ -346,22 +354,24 @@ def ipmcmc_step(
                                             log_prior=log_prior, sensor=sensor, motion=motion, settings=hmc)
             return (y_new, ll_new, ch[2], ch[3]), acc
 
-    def run(steps):
+    def run(steps, record_from=0):
         nonlocal hmc_noise
         noise = draw(steps)
         if hmc is not None:
             hmc_noise = HMCRefineNoise.draw(y, generator=generator, leading=(steps // every,))
-        return _run_chains(chain, noise, step, refine, every)
+        return _run_chains(chain, noise, step, refine, every, record_from)
 
     hmc_noise = None
-    chain, trace, accepted, refined = run(burn_in + segment)
+    # states before the first window (and before the kept ones) are not recorded
+    record_from = min(_window_start(burn_in + segment), burn_in)
+    chain, trace, accepted, refined = run(burn_in + segment, record_from)
     history = _kept(trace, keep, settings.thinning)
-    ys = [c[0] for c in trace]  # (B, C, K, D) after every iteration: the R-hat window's source
+    ys = [c[0] for c in trace]  # (B, C, K, D) after iterations record_from, ...: the R-hat window's source
     iterations = torch.full((b,), float(burn_in + segment), device=x_prev.device, dtype=x_prev.dtype)
 
     # 3. R-hat on the second half of the iterations, and extensions (all runs iterate, only
     # those that need it update; a run that stops needing never needs again)
-    report = _rhat_report(ys, rhat_method)
+    report = _rhat_report(ys, record_from, rhat_method)
     extensions = torch.zeros(b, dtype=torch.int64, device=x_prev.device)
     for _ in range(max_extensions if rhat_threshold < math.inf else 0):
         need = report.max >= rhat_threshold  # (B,)
@@ -378,7 +388,7 @@ def ipmcmc_step(
         iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
         report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
-                              for new, old in zip(_rhat_report(ys, rhat_method), report)))
+                              for new, old in zip(_rhat_report(ys, record_from, rhat_method), report)))
 
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
