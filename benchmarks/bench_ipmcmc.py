@@ -10,7 +10,9 @@ whole-grid evaluations). No R-hat extensions (``max_extensions=0``), so every va
 the same ``burn_in + Np / 50`` iterations. The whole-grid path is timed with ``burn_in = 0``
 (``Np / 50`` iterations, one round): multiply by ``(100 + Np / 50) / (Np / 50)`` (11 at
 Np = 500) for a full step; the cost is linear in the number of iterations. Set
-``BENCH_IPMCMC_BURN_IN`` to shorten the windowed chains too.
+``BENCH_IPMCMC_BURN_IN`` to shorten the windowed chains too. ``window-eager-hmc`` adds the
+HMC refinement (``HMCRefine(step_size=0.15, num_leapfrog=5, every=20)``: 6 transitions per
+step; Np = 500 only), the README's "HMC as a move" comparison.
 """
 
 import os
@@ -19,6 +21,7 @@ import pytest
 import torch
 
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
+from torchmcmcpf.kernels.hmc_refine import HMCRefine
 from torchmcmcpf.scenarios.ground_radar import ground_radar
 
 CHAINS, TARGETS = 50, 10
@@ -30,18 +33,21 @@ def scenario():
     return ground_radar(TARGETS, 20, 1, generator=torch.Generator().manual_seed(0))
 
 
-@pytest.mark.parametrize("variant", ["window-eager", "window-compiled", "grid-eager-no-burn-in"])
+@pytest.mark.parametrize("variant", ["window-eager", "window-compiled", "window-eager-hmc", "grid-eager-no-burn-in"])
 @pytest.mark.parametrize("n", [500, 5000])
 def test_ipmcmc_step(benchmark, scenario, variant, n):
     if variant.startswith("grid") and n > 500:
         pytest.skip("whole grid: timed at Np = 500 only (seconds per iteration at 50 chains)")
+    if variant.endswith("hmc") and n > 500:
+        pytest.skip("HMC refinement: timed at Np = 500 only")
     sensor = scenario.sensor
     sensor.method = "grid" if variant.startswith("grid") else "window"
     burn_in = 0 if variant.startswith("grid") else BURN_IN
     try:
         x0 = scenario.initial_particles(n, generator=torch.Generator().manual_seed(1))
+        hmc = HMCRefine(step_size=0.15, num_leapfrog=5, every=20) if variant.endswith("hmc") else None
         filt = IPMCMCFilter(scenario.motion, sensor, n, num_chains=CHAINS, burn_in=burn_in, max_extensions=0,
-                            compile_step=variant.endswith("compiled"))
+                            compile_step=variant.endswith("compiled"), hmc=hmc)
         state = filt.init(x0)
         z = scenario.measurements[0]
         with torch.no_grad():

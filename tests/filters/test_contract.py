@@ -17,6 +17,7 @@ import torch
 
 from torchmcmcpf import ConstantVelocity, FilterResult, LinearGaussian, ParticleState, StepInfo
 from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf.kernels.hmc_refine import HMCRefine
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
 
 DT = torch.float64
@@ -28,9 +29,16 @@ FILTERS = {
     "mcmc": (lambda m, s, c: MCMCFilter(m, s, N, num_chains=4, burn_in=3, thinning=2, compile_step=c),
              (False, False, True, {"acceptance_joint", "acceptance_refine"})),
     "ipmcmc": (lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, compile_step=c),
-               (False, False, True, {"rhat", "extensions"})),
+               (False, False, True, {"rhat", "rhat_slot", "rhat_dim", "extensions"})),
+    # the HMC refinement option (issue 13 item 5): runs eagerly inside both MCMC filters
+    "mcmc_hmc": (lambda m, s, c: MCMCFilter(m, s, N, num_chains=4, burn_in=3, thinning=2, compile_step=c,
+                                            hmc=HMCRefine(step_size=0.5, num_leapfrog=2, every=2)),
+                 (False, False, True, {"acceptance_joint", "acceptance_refine", "acceptance_hmc"})),
+    "ipmcmc_hmc": (lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, compile_step=c,
+                                                hmc=HMCRefine(step_size=0.5, num_leapfrog=2, every=2)),
+                   (False, False, True, {"rhat", "rhat_slot", "rhat_dim", "extensions", "acceptance_hmc"})),
     "resample_move": (lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, step_size=0.3, compile_step=c),
-                      (True, True, True, set())),
+                      (True, True, True, {"ess_after_move"})),
 }
 
 

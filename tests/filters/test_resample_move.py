@@ -167,3 +167,36 @@ def test_bad_settings_raise():
         ResampleMoveFilter(motion, AssociationPosition(), 10, step_size=0)
     with pytest.raises(ValueError, match="resample_method"):
         ResampleMoveFilter(motion, AssociationPosition(), 10, resample_method="residual")
+
+
+@pytest.mark.parametrize("association", ["exact", "metropolis"])
+def test_ess_after_move_is_paper_formula(association):
+    """extras["ess_after_move"] is paper 003 sec. 1.3's N / (1 + C_k^2), C_k the coefficient
+    of variation of g(X^n, Z) over the *returned* particles (computed here in linear space);
+    per target (metropolis association) it is the mean over targets of the same formula on
+    each target's g_lambda. The move brings the particles to the measurement, so the ESS
+    after it exceeds that of the predicted particles' weights (info.ess)."""
+    gen = torch.Generator().manual_seed(4)
+    motion = WhiteAccelerationMotion()
+    sensor = AssociationPosition(1.0)
+    b, n, k = 3, 200, 2
+    xt = torch.tensor([[0.0, 1.0, 0.0, 1.0], [30.0, -1.0, 10.0, 0.0]], dtype=D64).expand(b, k, 4)
+    x0 = xt.unsqueeze(1) + 3.0 * torch.randn(b, n, k, 4, generator=gen, dtype=D64)
+    z = sensor.simulate(motion.sample(xt, generator=gen), generator=gen)
+    settings = ResampleMoveSettings(num_hmc_steps=30, association=association)
+    state, info = resample_move_step(ParticleState(x0, torch.full((b, n), -math.log(n), dtype=D64)), z,
+                                     motion=motion, sensor=sensor, settings=settings, generator=gen)
+
+    def paper_ess(log_g):  # (..., N): N / (1 + C^2), C = sqrt(mean (g - W)^2) / W, W = mean g
+        g = torch.exp(log_g - log_g.amax(-1, keepdim=True))
+        w = g.mean(-1)
+        c = ((g - w.unsqueeze(-1)).square().mean(-1)).sqrt() / w
+        return log_g.shape[-1] / (1 + c.square())
+
+    if association == "exact":
+        torch.testing.assert_close(info.extras["ess_after_move"], paper_ess(sensor.log_likelihood(state.x, z)))
+    else:
+        assert {"ess_per_target", "ess_per_target_after_move"} <= set(info.extras)
+        for key in ("ess_per_target", "ess_per_target_after_move"):
+            assert ((info.extras[key] >= 1 - 1e-9) & (info.extras[key] <= n + 1e-9)).all()
+    assert (info.extras["ess_after_move"] > info.ess).all()

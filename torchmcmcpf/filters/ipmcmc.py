@@ -13,13 +13,38 @@ One time step, for every Monte Carlo run at once (batch dim B):
    proposes ``y'_j = f(x_{k-1,j}^i) + v`` (fresh process noise) in place of its slot ``j``
    and accepts with the likelihood ratio of eq. 12,
    ``alpha = p(z_k | y') / p(z_k | y)``.
-3. After ``burn_in`` iterations every chain contributes its next ``S = N / C`` states; the
+3. After ``burn_in`` iterations every chain contributes its next ``S = N / C`` states (with
+   ``thinning = m``: its states after every m-th of the next ``m S`` iterations); the
    ``C * S = N`` samples are the new equally weighted particles.
-4. *Convergence check* (Alg. 1, step 3): R-hat of eq. 13 over the kept samples of every
-   state component (``diagnostics.rhat``, ``method="paper"`` by default); where its largest
-   value is ``>= rhat_threshold`` the chains of that run go on for another ``S``
-   iterations and the **last** ``S`` states replace the kept ones, at most
-   ``max_extensions`` times.
+4. *Convergence check* (Alg. 1, step 3): R-hat of eq. 13 (``diagnostics.rhat``,
+   ``method="paper"`` by default) of every state component over the chains' states in the
+   **second half of the iterations run so far**; where its largest value is
+   ``>= rhat_threshold`` the chains of that run go on for another ``thinning * S``
+   iterations, the last kept states replace the kept ones and R-hat is taken again over the
+   second half of the longer chains, at most ``max_extensions`` times.
+
+Convergence check: what R-hat is computed on, and why
+-----------------------------------------------------
+Eq. 13 compares the within-chain variances with the variance of all chains pooled. Taken
+over the ``S`` kept states alone (the paper's reading, ``S = 10`` for ``N = 500``, ``C =
+50``) it cannot work with this kernel: an iteration proposes one of the K slots, so in 10
+consecutive iterations a slot is proposed about ``10 / K`` times and accepted less often,
+most slots of most chains never move inside the window, the within-chain variance of
+their components is 0 and R-hat is ``inf`` or far above 1.1 whether the chains have mixed
+or not (10 targets, ``N = 500``: median 24, an extension at every step, while the tracks
+are good). The window is therefore Gelman and Rubin's (1992, ref. [23] of paper 000): the
+second half of each chain's iterations, burn-in included (``(burn_in + thinning S) / 2``
+states per chain, all of them, since R-hat needs no independent samples, only enough
+moves inside the window: about ``W / K`` proposals per slot for a window of W
+iterations). Each extension lengthens the chains and so the window. This keeps the rule
+what the paper says it is, a test that the chains forgot their different starting points
+(``R = 1``: "the MCMC chains have converged within the burn-in period"), at no extra
+iteration. R-hat is taken per state component (positions, velocities, amplitude of every
+slot) and its largest value decides; ``extras["rhat_slot"]`` and ``extras["rhat_dim"]``
+say which target and which component drive it. ``thinning``
+(default 1, the paper) only changes which states become particles: with ``thinning = K``
+each particle follows one sweep over the slots on average, at ``K`` times the cost of the
+kept phase.
 
 Which target density the move leaves invariant
 ----------------------------------------------
@@ -60,13 +85,35 @@ of slot ``j`` differs from its factor only by ``r_j = p_0(y_j) / q_0(y_j)`` for 
 before (an inactive slot sits at ``x_death``, so a slot that is alive in some chains and
 dead in others shows up).
 
+HMC refinement (optional)
+-------------------------
+With ``hmc=HMCRefine(...)`` (:mod:`torchmcmcpf.kernels.hmc_refine`) every chain also takes
+one Hamiltonian Monte Carlo transition of all its slots at once after every
+``hmc.every``-th exchange iteration, with autograd gradients of the sensor likelihood
+(differentiable through the radar's windowed path), targeting the same
+
+    ``pi(y) ∝ p(z_k | y) prod_j m_j(y_j)``,  ``m_j(y_j) = sum_i w^i N(y_j; F x^i_{k-1,j}, Q)``
+
+(the log-sum-exp over the N previous particles per slot gives ``log m_j`` and its
+gradient), so the composition leaves ``pi`` invariant. The exchange move is an
+independence sampler: it can only jump to a fresh prediction of one slot; the HMC move
+follows the likelihood's gradient and moves every slot of every chain a little at each
+transition. ``extras["acceptance_hmc"]`` reports its acceptance rate. The HMC transition
+runs eagerly, also with ``compile_step=True`` (which compiles the exchange iteration), and
+needs a linear-Gaussian motion and no existence model.
+
 Batching and extensions
 -----------------------
 Runs differ in whether they need an extension. The extension loop runs while *any* run
 needs one (one ``bool(tensor)`` host sync per extension, in eager code); every run
 iterates, but only the runs that need it replace their kept samples and chain states and
 count the extension (``torch.where``), so each run's result is what it would be alone,
-up to the random numbers consumed.
+up to the random numbers consumed. The cost: an extension round costs every run
+``thinning * S`` iterations (about ``thinning * S / (burn_in + thinning * S)`` of a step,
+9 % with the paper's settings) as soon as one of the B runs needs it; ``extras["extensions"]``
+counts only the runs that needed it. Running the extension on the runs that need it alone
+would change the batch shape from round to round (a recompile per shape under
+``compile_step``), which costs more than it saves at the batch sizes used here.
 
 Speed
 -----
@@ -83,18 +130,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 
 import torch
 from torch.utils._pytree import tree_map
 
-from .._validation import check_positive, check_positive_int
+from .._validation import check_positive_int
 from ..diagnostics import RHAT_METHODS, rhat
 from ..kernels.exchange import (
     ExchangeNoise,
     draw_exchange_noise,
     exchange_iteration,
 )
+from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, check_hmc_motion, hmc_refine, mixture_log_prior
 from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
@@ -107,25 +155,67 @@ __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration"
            "draw_exchange_noise"]
 
 
-def _run_chains(chain: tuple, noise: ExchangeNoise, keep: int, step: Callable):
+def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Optional[Callable] = None,
+                every: int = 1, record_from: int = 0):
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
-    ``(y, log_lik, ...)``; return the final chains, the last ``keep`` chain tuples stacked
-    (leading ``keep``) and the number of acceptances per chain ``(B, C)``."""
-    steps = noise.u.shape[0]
-    kept = []
+    ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
+    (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
+    the list of the chain tuples after iterations ``record_from .. L - 1`` (references, no
+    copies), the number of exchange acceptances per chain ``(B, C)`` and that of
+    refinements."""
+    trace = []
     log_lik = chain[1]
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
-    for t in range(steps):
+    refined_count = torch.zeros_like(accepted_count)
+    for t in range(noise.u.shape[0]):
         chain, acc = step(chain, tree_map(lambda a: None if a is None else a[t], noise))
         accepted_count = accepted_count + acc.to(accepted_count.dtype)
-        if t >= steps - keep:
-            kept.append(chain)
-    return chain, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *kept), accepted_count
+        if refine is not None and (t + 1) % every == 0:
+            chain, acc = refine(chain, (t + 1) // every - 1)
+            refined_count = refined_count + acc.to(refined_count.dtype)
+        if t >= record_from:
+            trace.append(chain)
+    return chain, trace, accepted_count, refined_count
 
 
-def _max_rhat(history: Tensor, method: str) -> Tensor:
-    """Largest R-hat over the (K, D) components of a ``(S, B, C, K, D)`` history -> (B,)."""
-    return rhat(history, chain_dim=2, sample_dim=0, method=method).flatten(1).amax(-1)
+def _kept(trace: list, keep: int, thinning: int) -> tuple:
+    """The chain tuples after every ``thinning``-th of the last ``keep * thinning`` iterations
+    of ``trace``, stacked (leading ``keep``)."""
+    kept = trace[len(trace) - keep * thinning + thinning - 1::thinning]
+    return tree_map(lambda *a: None if a[0] is None else torch.stack(a), *kept)
+
+
+class RhatReport(NamedTuple):
+    """R-hat of paper 000 eq. 13 per state component and where it is largest.
+
+    Attributes
+    ----------
+    max : (B,) the largest R-hat over the ``K * D`` components (the stopping rule's value).
+    slot : (B,) int64, the target slot ``k`` of the component that gives ``max``.
+    dim : (B,) int64, its state dimension ``d``.
+    """
+
+    max: Tensor
+    slot: Tensor
+    dim: Tensor
+
+
+def _window_start(total: int) -> int:
+    """First iteration of the R-hat window among ``total`` (the second half, >= 2 states)."""
+    return min(total // 2, total - 2)
+
+
+def _rhat_report(ys: list, offset: int, method: str) -> RhatReport:
+    """R-hat over chains of the states ``ys`` (a list of ``(B, C, K, D)``, those after
+    iterations ``offset, offset + 1, ...``) of the second half of the iterations run so far
+    (module docstring, "Convergence check")."""
+    window = torch.stack(ys[_window_start(offset + len(ys)) - offset:])  # (W, B, C, K, D)
+    r = rhat(window, chain_dim=2, sample_dim=0, method=method)  # (B, K, D)
+    flat = r.flatten(1)
+    # NaN-safe argmax: inf/NaN first (a NaN R-hat can only come from a NaN state)
+    score = torch.where(torch.isnan(flat), torch.full_like(flat, float("inf")), flat)
+    at = score.argmax(-1)
+    return RhatReport(score.amax(-1), at // r.shape[-1], at % r.shape[-1])
 
 
 @dataclass(frozen=True)
@@ -136,9 +226,18 @@ class IPMCMCSettings:
     ----------
     num_chains : C >= 2 parallel chains (paper: 50); must divide N with ``N / C >= 2``.
     burn_in : iterations discarded per chain (paper: 100).
-    rhat_threshold : extend the chains of a run while its largest R-hat is ``>=`` this (1.1).
-    max_extensions : at most this many extensions of ``N / C`` iterations (0 disables).
+    rhat_threshold : extend the chains of a run while its largest R-hat is ``>=`` this (1.1);
+        ``math.inf`` switches the rule off (as ``max_extensions=0`` does; R-hat is still
+        reported).
+    max_extensions : at most this many extensions of ``thinning * N / C`` iterations (0
+        disables).
     rhat_method : ``"paper"`` (eq. 13) or ``"gelman-rubin"`` (see :mod:`..diagnostics`).
+    thinning : keep every ``thinning``-th state after the burn-in (1: the paper's
+        consecutive states); ``thinning = K`` makes every kept sample follow one sweep over
+        the K slots on average.
+    hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement
+        of every chain's states after every ``hmc.every``-th exchange iteration, on the same
+        factorised-prior posterior (module docstring); ``None`` (default): exchange only.
     """
 
     num_chains: int = 50
@@ -146,23 +245,30 @@ class IPMCMCSettings:
     rhat_threshold: float = 1.1
     max_extensions: int = 2
     rhat_method: str = "paper"
+    thinning: int = 1
+    hmc: Optional[HMCRefine] = None
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains", minimum=2)
         check_positive_int(self.burn_in, "burn_in", minimum=0)
-        object.__setattr__(self, "rhat_threshold", check_positive(self.rhat_threshold, "rhat_threshold"))
+        if not (isinstance(self.rhat_threshold, (int, float)) and float(self.rhat_threshold) > 0):
+            raise ValueError(f"rhat_threshold must be > 0 (math.inf: never extend), got {self.rhat_threshold!r}")
+        object.__setattr__(self, "rhat_threshold", float(self.rhat_threshold))
         check_positive_int(self.max_extensions, "max_extensions", minimum=0)
         if self.rhat_method not in RHAT_METHODS:
             raise ValueError(f"rhat_method must be one of {RHAT_METHODS}, got {self.rhat_method!r}")
+        check_positive_int(self.thinning, "thinning")
+        if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
+            raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
 
     def check(self, num_particles: int) -> None:
-        """``C | N`` with at least 2 kept samples per chain (R-hat needs them)."""
+        """``C | N`` with at least 2 kept samples per chain."""
         if num_particles % self.num_chains:
             raise ValueError(f"num_chains={self.num_chains} must divide num_particles={num_particles}")
         if num_particles // self.num_chains < 2:
             raise ValueError(
                 f"num_particles / num_chains = {num_particles // self.num_chains}, expected >= 2 kept "
-                "samples per chain (R-hat needs them)"
+                "samples per chain"
             )
 
 
@@ -199,8 +305,12 @@ def ipmcmc_step(
     state : ``x (B, N, K, D)``, the kept samples chain by chain (chain ``c`` owns particles
         ``c S .. (c+1) S - 1``), ``log_w = -log N``; with existence ``exists (B, N, K)``.
     info : ``acceptance (B,)``, the exchange acceptance rate over every iteration the run
-        used; ``ess``, ``log_evidence`` NaN; ``extras["rhat"] (B,)`` the largest R-hat of the
-        kept samples and ``extras["extensions"] (B,)`` how many extensions ran (as a float).
+        used; ``ess``, ``log_evidence`` NaN; extras (floats): ``"rhat" (B,)`` the largest
+        R-hat (eq. 13) over the state components of the second half of the run's iterations
+        (module docstring, "Convergence check"), ``"rhat_slot"``, ``"rhat_dim"`` (B,) the
+        target slot ``k`` and state dimension ``d`` of the component that drives it and
+        ``"extensions" (B,)`` how many extensions ran and, with ``settings.hmc``,
+        ``"acceptance_hmc" (B,)`` the HMC refinement's acceptance rate.
     """
     x_prev, log_w, exists = state
     num_chains, burn_in = settings.num_chains, settings.burn_in
@@ -227,35 +337,70 @@ def ipmcmc_step(
     def step(ch, nz):
         return iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)
 
-    # 2. burn-in + S kept iterations
+    # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
     births = {} if existence is None else dict(existence=existence, z=z)
     draw = lambda steps: draw_exchange_noise(  # noqa: E731
         log_w, steps, num_chains, k, motion.noise_dim, generator=generator, dtype=x_prev.dtype, **births)
-    chain, history, accepted = _run_chains(chain, draw(burn_in + keep), keep, step)
-    iterations = torch.full((b,), float(burn_in + keep), device=x_prev.device, dtype=x_prev.dtype)
+    segment = settings.thinning * keep
+    hmc = settings.hmc
+    refine, every = None, 1
+    if hmc is not None:
+        check_hmc_motion(motion, existence)
+        every = hmc.every
+        log_prior = mixture_log_prior(x_prev, log_w, motion)
 
-    # 3. R-hat and extensions (all runs iterate, only those that need it update)
-    r = _max_rhat(history[0], rhat_method)
+        def refine(ch, i):
+            y_new, ll_new, acc = hmc_refine(ch[0], ch[1], HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
+                                            log_prior=log_prior, sensor=sensor, motion=motion, settings=hmc)
+            return (y_new, ll_new, ch[2], ch[3]), acc
+
+    def run(steps, record_from=0):
+        nonlocal hmc_noise
+        noise = draw(steps)
+        if hmc is not None:
+            hmc_noise = HMCRefineNoise.draw(y, generator=generator, leading=(steps // every,))
+        return _run_chains(chain, noise, step, refine, every, record_from)
+
+    hmc_noise = None
+    # states before the first window (and before the kept ones) are not recorded
+    record_from = min(_window_start(burn_in + segment), burn_in)
+    chain, trace, accepted, refined = run(burn_in + segment, record_from)
+    history = _kept(trace, keep, settings.thinning)
+    ys = [c[0] for c in trace]  # (B, C, K, D) after iterations record_from, ...: the R-hat window's source
+    iterations = torch.full((b,), float(burn_in + segment), device=x_prev.device, dtype=x_prev.dtype)
+
+    # 3. R-hat on the second half of the iterations, and extensions (all runs iterate, only
+    # those that need it update; a run that stops needing never needs again)
+    report = _rhat_report(ys, record_from, rhat_method)
     extensions = torch.zeros(b, dtype=torch.int64, device=x_prev.device)
-    for _ in range(max_extensions):
-        need = r >= rhat_threshold  # (B,)
+    for _ in range(max_extensions if rhat_threshold < math.inf else 0):
+        need = report.max >= rhat_threshold  # (B,)
         if not bool(need.any()):
             break
-        chain_e, hist_e, acc_e = _run_chains(chain, draw(keep), keep, step)
+        chain_e, trace_e, acc_e, ref_e = run(segment)
         chain = mh_select(need, chain_e, chain)
+        hist_e = _kept(trace_e, keep, settings.thinning)
         history = tuple(None if h is None else torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
                         for he, h in zip(hist_e, history))
+        ys = ys + [c[0] for c in trace_e]
         accepted = accepted + torch.where(need.unsqueeze(-1), acc_e, torch.zeros_like(acc_e))
-        iterations = iterations + need.to(iterations.dtype) * keep
+        refined = refined + torch.where(need.unsqueeze(-1), ref_e, torch.zeros_like(ref_e))
+        iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
-        r = torch.where(need, _max_rhat(history[0], rhat_method), r)
+        report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
+                              for new, old in zip(_rhat_report(ys, record_from, rhat_method), report)))
 
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
     log_w_new = torch.full((b, n), -math.log(n), device=x_prev.device, dtype=log_w.dtype)
     acceptance = accepted.mean(-1) / iterations
-    info = StepInfo.make(acceptance, acceptance=acceptance, extras={"rhat": r.to(acceptance.dtype),
-                                                                    "extensions": extensions.to(acceptance.dtype)})
+    dt = acceptance.dtype
+    info = StepInfo.make(acceptance, acceptance=acceptance, extras={
+        "rhat": report.max.to(dt), "rhat_slot": report.slot.to(dt), "rhat_dim": report.dim.to(dt),
+        "extensions": extensions.to(dt)})
+    if hmc is not None:  # refinements per run: (burn_in + segment) // every + extensions * (segment // every)
+        count = (burn_in + segment) // every + extensions.to(dt) * (segment // every)
+        info.extras["acceptance_hmc"] = refined.mean(-1) / count.clamp(min=1)
     return ParticleState(x_new, log_w_new, exists_new), info
 
 
@@ -274,13 +419,15 @@ class IPMCMCFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, LinearGaussian, ...).
     num_particles : N; ``num_chains`` must divide it.
-    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method : see :class:`IPMCMCSettings`.
+    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc : see
+        :class:`IPMCMCSettings`.
     existence : BirthDeath, optional: births and deaths (module docstring); the estimate
         of a slot is then its mean given existence.
     compile_step : compile one exchange iteration with ``torch.compile(fullgraph=True)``
         (the first step pays the compile time).
 
-    ``StepInfo``: ``acceptance``; ``ess``, ``log_evidence`` NaN; extras ``"rhat"``, ``"extensions"``.
+    ``StepInfo``: ``acceptance``; ``ess``, ``log_evidence`` NaN; extras ``"rhat"``,
+    ``"rhat_slot"``, ``"rhat_dim"``, ``"extensions"`` (:func:`ipmcmc_step`).
 
     Example
     -------
@@ -300,10 +447,14 @@ class IPMCMCFilter(Filter):
         rhat_threshold: float = 1.1,
         max_extensions: int = 2,
         rhat_method: str = "paper",
+        thinning: int = 1,
+        hmc: Optional[HMCRefine] = None,
         existence: Optional[BirthDeath] = None,
         compile_step: bool = False,
     ):
-        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method)
+        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc)
+        if hmc is not None:
+            check_hmc_motion(motion, existence)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles)
 

@@ -42,6 +42,8 @@ from ..kernels.moves import (
     refine_move,
     refine_slot,
 )
+from ..kernels.chains import evaluate
+from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, ancestor_log_prior, check_hmc_motion, hmc_refine
 from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
@@ -119,6 +121,9 @@ class MCMCSettings:
     moves : a preset name or ``(name, probability)`` pairs (:func:`parse_moves`); stored parsed.
     rw_scale : random-walk step ``s``, a float or a ``(D,)`` tuple of floats (``S = diag(s^2)``,
         paper 002 eq. 13); required by ``"random_walk"``.
+    hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: one HMC transition
+        of every chain's ``x_k`` given its ancestor after every ``hmc.every``-th iteration
+        (target ``p(z_k | x_k) p(x_k | x_{k-1}^a)``, see :mod:`..kernels.hmc_refine`).
     """
 
     num_chains: int = 1
@@ -126,6 +131,7 @@ class MCMCSettings:
     thinning: int = 1
     moves: MoveSpec = "mixture"
     rw_scale: Optional[Union[float, tuple]] = None
+    hmc: Optional[HMCRefine] = None
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains")
@@ -133,6 +139,8 @@ class MCMCSettings:
         check_positive_int(self.thinning, "thinning")
         pairs = parse_moves(self.moves)
         object.__setattr__(self, "moves", pairs)
+        if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
+            raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
         if self.rw_scale is None:
             if any(name == "random_walk" for name, _ in pairs):
                 raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
@@ -313,6 +321,10 @@ def mcmc_step(
                         motion=motion, sensor=sensor, existence=existence)
 
     per_chain = n // num_chains
+    hmc = settings.hmc
+    if hmc is not None:
+        check_hmc_motion(motion, existence)
+    hmc_acc, hmc_count = x_prev.new_zeros(b), 0
     acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
@@ -322,6 +334,13 @@ def mcmc_step(
         for name, _ in pairs:
             acc_sum[name] = acc_sum[name] + accepted[name].sum(1)
             sel_sum[name] = sel_sum[name] + selected[name].sum(1)
+        if hmc is not None and m % hmc.every == 0:  # eager, also under compile_step
+            x_new, _, acc = hmc_refine(chain.x, chain.log_lik, HMCRefineNoise.draw(chain.x, generator=generator), z,
+                                       log_prior=ancestor_log_prior(chain.x_prev, motion), sensor=sensor,
+                                       motion=motion, settings=hmc)
+            log_lik, terms = evaluate(x_new, z, sensor)
+            chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
+            hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
         if m > burn_in and (m - burn_in) % thinning == 0:
             kept.append(chain.x)
             kept_exists.append(chain.exists)
@@ -329,6 +348,8 @@ def mcmc_step(
     exists = None if existence is None else torch.stack(kept_exists, dim=2).reshape(b, n, k)
     log_w = x.new_full((b, n), -math.log(n))
     extras = {f"acceptance_{name}": acc_sum[name] / sel_sum[name] for name, _ in pairs}
+    if hmc is not None:
+        extras["acceptance_hmc"] = hmc_acc / max(hmc_count, 1)
     acceptance = sum(acc_sum.values()) / sum(sel_sum.values())
     return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
@@ -385,6 +406,9 @@ class MCMCFilter(Filter):
         sweep; paper 004), ``"joint"``, ``"random_walk"`` (paper 002), or a sequence of
         ``(name, probability)`` pairs over ``"joint"``, ``"refine"``, ``"random_walk"``.
     rw_scale : float or ``(D,)`` tensor, the random-walk step (needed by ``"random_walk"``).
+    hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement of
+        ``x_k`` given the ancestor after every ``hmc.every``-th iteration (eager; extras
+        ``"acceptance_hmc"``); linear-Gaussian motion, no existence.
     existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
         estimate of a slot is then its mean given existence
         (:func:`torchmcmcpf.state.existence_estimate`).
@@ -410,6 +434,7 @@ class MCMCFilter(Filter):
         thinning: int = 1,
         moves: MoveSpec = "mixture",
         rw_scale: Optional[Union[float, Tensor]] = None,
+        hmc: Optional[HMCRefine] = None,
         existence: Optional[BirthDeath] = None,
         compile_step: bool = False,
     ):
@@ -417,9 +442,11 @@ class MCMCFilter(Filter):
             rw_scale = rw_scale.tolist()
         if isinstance(rw_scale, list):
             rw_scale = tuple(rw_scale)
-        settings = MCMCSettings(num_chains, burn_in, thinning, moves, rw_scale)
+        settings = MCMCSettings(num_chains, burn_in, thinning, moves, rw_scale, hmc)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles, motion.dim, existence)
+        if hmc is not None:
+            check_hmc_motion(motion, existence)
 
     def _kernel(self, compile: Callable) -> Callable:
         return _bind(self.motion, self.sensor, self.settings, self.existence, compile)

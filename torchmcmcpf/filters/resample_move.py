@@ -20,6 +20,21 @@ Step 4 leaves the target of step 3 invariant, so the particles remain a sample o
 resampled ancestors). With ``num_hmc_steps=0`` the step is the paper's generic particle
 filter (sec. 1.2: predict, weight, resample), its baseline.
 
+Effective sample sizes (paper 003 sec. 1.3-1.4)
+-----------------------------------------------
+The paper's ``ess(T_k) = N / (1 + C_k^2)``, with ``C_k`` the coefficient of variation of
+``g(X^n_{T_k}, Z_{T_k})`` over the N samples, is exactly ``(sum g)^2 / sum g^2``, the usual
+ESS of the normalised weights ``g``; the question is which samples. ``info.ess`` is that of
+the weights of step 2, over the *predicted* particles, before resampling and the move (the
+generic PF's ESS). The paper measures the improved filter on its returned samples
+``X^n_{T_k} = Y^{n, L}``, i.e. *after* the move ("we can still measure how well these
+samples approximate the posterior ... by comparing the effective sample sizes with and
+without the MCMC step"): ``extras["ess_after_move"]`` (one more likelihood evaluation
+per step). For several targets the paper's ``ess_Lambda`` uses the
+product of the per-target ``g_lambda`` (joint, as both fields here); with
+``association="metropolis"`` the per-target ESS (each target's own weights, eq. 8's
+marginals) is reported as well, before and after the move.
+
 Association: with ``association="exact"`` the sensor's exact likelihood is used and HMC
 moves the noise of all K slots of a particle jointly (eq. 10). With ``"metropolis"`` (an
 :class:`~torchmcmcpf.models.sensors.association.AssociationSensor` only) each predicted
@@ -136,7 +151,14 @@ def resample_move_step(
     state : equally weighted particles at time k.
     info : ``ess (B,)`` of the weights of step 2, ``log_evidence (B,)``
         (``log sum_i w_{k-1}^i g(x_k^i, z_k)``), ``acceptance (B,)`` the mean HMC acceptance
-        over particles (and existing slots), NaN without a move; no extras.
+        over particles (and existing slots), NaN without a move; extras (module docstring,
+        "Effective sample sizes"): ``"ess_after_move" (B,)``, ``N / (1 + C_k^2)`` of paper
+        003 sec. 1.3-1.4 over the returned particles ``g(x_k^n, z_k)`` (joint over the
+        targets; without a move, the resampled predicted particles); with
+        ``association="metropolis"`` also ``"ess_per_target"`` and
+        ``"ess_per_target_after_move"`` (B,), the ESS of each target's own weights (before:
+        ``w_{k-1} g_lambda`` of the predicted particles; after: ``g_lambda`` of the returned
+        ones) averaged over the existing targets.
     """
     x_prev, log_w_prev, exists = state
     b, n, k, _ = x_prev.shape
@@ -146,13 +168,17 @@ def resample_move_step(
     x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, motion, existence)
 
     assignment = None
+    extras = {}
     if settings.association == "metropolis":
         zz, mask = _split(z)
         square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists_new, mask)
         assignment, _, _ = metropolis_association(square, num_iters=settings.association_iters, generator=generator)
-        log_lik = sensor.assigned_log_likelihood(x, z, assignment, exists_new).sum(-1)
+        log_lik_slot = sensor.assigned_log_likelihood(x, z, assignment, exists_new)  # (B, N, K)
+        extras["ess_per_target"] = _ess_per_target(log_w_prev.unsqueeze(-1) + log_lik_slot, exists_new)
+        log_lik = log_lik_slot.sum(-1)
     else:
         log_lik = sensor.log_likelihood(x, z, exists_new)
+    log_g = log_lik  # the sensor likelihood g of the predicted particles (B, N), without births' r
     log_lik = log_lik + log_birth
 
     # Weights may all underflow in linear space; in log space they stay finite, and a run
@@ -172,7 +198,11 @@ def resample_move_step(
     uniform = torch.full_like(log_w, -math.log(n))
     if settings.num_hmc_steps == 0:
         x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
-        return ParticleState(x, uniform, exists_new), StepInfo.make(info_ess, ess=info_ess, log_evidence=log_evidence)
+        extras["ess_after_move"] = ess(normalize(gather_particles(log_g, idx))[0])
+        if "ess_per_target" in extras:
+            extras["ess_per_target_after_move"] = _ess_per_target(gather_particles(log_lik_slot, idx), exists_new)
+        return ParticleState(x, uniform, exists_new), StepInfo.make(info_ess, ess=info_ess, log_evidence=log_evidence,
+                                                                    extras=extras)
 
     if assignment is not None:
         assignment = gather_particles(assignment, idx)
@@ -188,13 +218,31 @@ def resample_move_step(
         accepted = accepted + accept.to(accepted.dtype)
     acc = accepted / settings.num_hmc_steps
     x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
+    # g at the moved particles, evaluated eagerly (one likelihood evaluation; not read off the
+    # HMC log-target, whose compiled value may differ from eager in the last bits)
+    if assignment is not None:  # per slot (B, N, K)
+        log_g_slot = sensor.assigned_log_likelihood(x, z, assignment, exists_new)
+        extras["ess_per_target_after_move"] = _ess_per_target(log_g_slot, exists_new)
+        log_g_moved = log_g_slot.sum(-1)
+    else:
+        log_g_moved = sensor.log_likelihood(x, z, exists_new)
+    extras["ess_after_move"] = ess(normalize(log_g_moved)[0])
     if acc.dim() == 3:  # per slot: average over existing slots
         w = torch.ones_like(acc) if exists_new is None else exists_new.to(acc.dtype)
         acc = (acc * w).sum((-2, -1)) / w.sum((-2, -1)).clamp(min=1)
     else:
         acc = acc.mean(-1)
     return ParticleState(x, uniform, exists_new), StepInfo.make(info_ess, ess=info_ess, log_evidence=log_evidence,
-                                                                acceptance=acc)
+                                                                acceptance=acc, extras=extras)
+
+
+def _ess_per_target(log_w_slot: Tensor, exists: Optional[Tensor]) -> Tensor:
+    """ESS of each slot's own weights ``log_w_slot (B, N, K)`` (unnormalised, normalised
+    over N here), averaged over the slots that exist in some particle -> (B,); paper 003
+    sec. 1.3's ``N / (1 + C^2)`` per target (eq. 8: the targets' marginal weights)."""
+    per = ess(normalize(log_w_slot.transpose(-1, -2))[0])  # (B, K)
+    alive = torch.ones_like(per) if exists is None else exists.any(1).to(per.dtype)
+    return (per * alive).sum(-1) / alive.sum(-1).clamp(min=1)
 
 
 def _target(motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath]) -> Callable:
@@ -242,7 +290,9 @@ class ResampleMoveFilter(Filter):
     existence : BirthDeath, optional: births and deaths, as for every other filter.
     compile_step : compile one HMC transition (leapfrog with ``torch.func.grad``).
 
-    ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (NaN without a move); no extras.
+    ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (NaN without a move); extras
+    ``"ess_after_move"`` (and per target with ``association="metropolis"``, see
+    :func:`resample_move_step`).
 
     Example
     -------

@@ -1,7 +1,8 @@
 """Pure, batched MCMC kernels: Metropolis-Hastings accept/reject (:mod:`.mh`); the moves of
 the sequential MCMC particle filter, by concern: chain states and noise (:mod:`.chains`),
 joint draw and per-target refinement (:mod:`.moves`), random walk (:mod:`.random_walk`); the
-IP-MCMC exchange move (:mod:`.exchange`); Hamiltonian Monte Carlo (:mod:`.hmc`).
+IP-MCMC exchange move (:mod:`.exchange`); Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC
+refinement move of the MCMC filters (:mod:`.hmc_refine`).
 
 Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decides with
 ``torch.where``, so chains, targets and runs are tensor dimensions.
@@ -9,6 +10,7 @@ Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decide
 
 from .exchange import ExchangeNoise, draw_exchange_noise, exchange_iteration
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
+from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
 from .moves import (
     MOVES,
@@ -56,4 +58,7 @@ __all__ = [
     "hmc_transition",
     "leapfrog",
     "value_and_grad",
+    "HMCRefine",
+    "HMCRefineNoise",
+    "hmc_refine",
 ]

@@ -187,11 +187,15 @@ class TrackResult(NamedTuple):
     mean : (T+1, B, K, 4) estimates (time 0: the mean of the initial cloud).
     ess : (T, B) effective sample size of each step's weights.
     acceptance : (T, B) HMC acceptance, or None for filters without a move.
+    ess_after_move : (T, B) ESS of ``g`` over the particles each step returns (paper 003
+        sec. 1.3's reading; ``info.extras["ess_after_move"]``), or None for a filter
+        without it.
     """
 
     mean: Tensor
     ess: Tensor
     acceptance: Tensor | None
+    ess_after_move: Tensor | None = None
 
 
 def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
@@ -220,7 +224,7 @@ def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
     x0 = birth_particles(sensor, data.z_slot[0], n, generator=generator)
     x0 = torch.where(alive[0].unsqueeze(1).unsqueeze(-1), x0, torch.zeros_like(x0))
     state = filt.init(x0, alive[0].unsqueeze(1).expand(-1, n, -1))
-    means, esss, accs = [state.mean()], [], []
+    means, esss, accs, after = [state.mean()], [], [], []
     steps = range(1, alive.shape[0])
     if progress:
         from tqdm.auto import tqdm
@@ -238,8 +242,10 @@ def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
         means.append(filt.estimate(state))
         esss.append(info.ess)
         accs.append(info.acceptance)
+        after.append(info.extras.get("ess_after_move"))
     acc = torch.stack(accs)
-    return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc)
+    return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc,
+                       None if any(a is None for a in after) else torch.stack(after))
 
 
 def _flags(state: ParticleState) -> Tensor:
