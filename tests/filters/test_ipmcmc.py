@@ -5,8 +5,8 @@ import math
 
 import pytest
 import torch
-
 from _kalman import kalman_filter
+
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
 from torchmcmcpf.kernels.exchange import draw_exchange_noise, exchange_iteration
 from torchmcmcpf.models.base import SensorModel
@@ -78,7 +78,8 @@ def test_exchange_move_targets_factorised_posterior(gen, start):
         # forgets its start geometrically, at rate <= 1 - 1/2.3 per update of the slot;
         # 60 iterations give ~30 updates per slot: (0.57)^30 ~ 5e-8.
         src = torch.randint(n, (b, c, k), generator=gen)
-        y = torch.take_along_dim(x_prev[..., 0], src, dim=1) + math.sqrt(q) * torch.randn(b, c, k, generator=gen, dtype=DT)
+        noise = torch.randn(b, c, k, generator=gen, dtype=DT)
+        y = torch.take_along_dim(x_prev[..., 0], src, dim=1) + math.sqrt(q) * noise
         iters = 60
     y = y.unsqueeze(-1)
     ll = sensor.log_likelihood(y, z)
@@ -208,9 +209,9 @@ def test_rhat_window_is_second_half_of_iterations():
     filt = IPMCMCFilter(motion, sensor, n, num_chains=c, burn_in=5, max_extensions=0, thinning=3)
     state, info = filt.step(filt.init(x_prev), z, generator=torch.Generator().manual_seed(1))
     # replay the chains by hand with the same random stream
-    from torchmcmcpf.filters.ipmcmc import _run_chains, _bind
-    from torchmcmcpf.resampling import gather_particles, systematic
     from torchmcmcpf.diagnostics import rhat
+    from torchmcmcpf.filters.ipmcmc import _bind, _run_chains
+    from torchmcmcpf.resampling import gather_particles, systematic
     g = torch.Generator().manual_seed(1)
     log_w = torch.full((b, n), -math.log(n), dtype=DT)
     start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, generator=g), c)

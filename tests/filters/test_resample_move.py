@@ -8,10 +8,10 @@ from _kalman import kalman_filter
 
 from torchmcmcpf.filters.resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
 from torchmcmcpf.filters.sir import SIRFilter
+from torchmcmcpf.models import WhiteAccelerationMotion
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.sensors.association import AssociationBearingRange, AssociationPosition, PointFrame
 from torchmcmcpf.models.sensors.linear import LinearGaussian
-from torchmcmcpf.models import WhiteAccelerationMotion
 from torchmcmcpf.state import ParticleState
 
 D64 = torch.float64

@@ -1,5 +1,5 @@
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
@@ -44,7 +44,7 @@ def test_select_over_trailing_dims():
 class _Chain(NamedTuple):
     x: torch.Tensor
     log_lik: torch.Tensor
-    terms: Optional[torch.Tensor] = None
+    terms: torch.Tensor | None = None
 
 
 def test_select_over_a_pytree_with_none():

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+from typing import Any
 
 import torch
 
@@ -40,7 +41,7 @@ DESCRIPTION = "Maroulas & Stinis 2010 Figs. 3, 4, 7, 8: PF with an HMC move vs t
 
 #: paper 003 sec. 2.2-2.3: observation -> (N improved, N generic, RMSE improved (mean, std
 #: over time), RMSE generic (mean, std), ESS improved [% of N])
-PAPER = {
+PAPER: dict[str, dict[str, Any]] = {
     "linear": dict(particles=(100, 120), rmse_improved=(2.5, 0.5), rmse_generic=(800.0, 760.0), ess_improved=25.0),
     "bearing_range": dict(particles=(200, 220), rmse_improved=(22.0, 21.0), rmse_generic=(760.0, 770.0),
                           ess_improved=25.0),
@@ -52,7 +53,9 @@ OUTPUTS = tuple(f"{kind}_{obs}.png" for obs in scenario.OBSERVATIONS for kind in
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    def h(key, what):
+    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+
+    def h(key: str, what: str) -> str:
         return defaults_help(FULL, QUICK, key, what)
 
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
@@ -139,7 +142,7 @@ def run(args: argparse.Namespace) -> dict:
     device = torch.device(getattr(args, "device", "cpu"))
     g = generator(device, args.seed)
     motion = scenario.WhiteAccelerationMotion().to(device)
-    metrics: dict = {"config": cfg, "paper": PAPER}
+    metrics: dict[str, Any] = {"config": cfg, "paper": PAPER}
     with _one_thread(device):
         for obs in scenario.OBSERVATIONS:
             sensor = scenario.paper_sensor(obs).to(device)
@@ -150,7 +153,8 @@ def run(args: argparse.Namespace) -> dict:
                 "improved": ResampleMoveFilter(motion, sensor, num_particles=n_rm, num_hmc_steps=cfg["hmc_steps"]),
                 "generic": ResampleMoveFilter(motion, sensor, num_particles=n_gen, num_hmc_steps=0),
             }
-            results, times = {}, {}
+            results: dict[str, Any] = {}
+            times: dict[str, float] = {}
             for name, filt in filters.items():
                 with StepTimer(device, cfg["steps"]) as timer:
                     res = scenario.track(filt, data, generator=g, progress=args.progress)

@@ -129,8 +129,9 @@ that moves (``sensor.log_likelihood_delta``, the cells of its old and new box), 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 from torch.utils._pytree import tree_map
@@ -155,14 +156,15 @@ __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration"
            "draw_exchange_noise"]
 
 
-def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Optional[Callable] = None,
+def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Callable | None = None,
                 every: int = 1, record_from: int = 0):
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
     ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
     (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
     the list of the chain tuples after iterations ``record_from .. L - 1`` (references, no
     copies), the number of exchange acceptances per chain ``(B, C)`` and that of
-    refinements."""
+    refinements.
+    """
     trace = []
     log_lik = chain[1]
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
@@ -180,7 +182,8 @@ def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Opti
 
 def _kept(trace: list, keep: int, thinning: int) -> tuple:
     """The chain tuples after every ``thinning``-th of the last ``keep * thinning`` iterations
-    of ``trace``, stacked (leading ``keep``)."""
+    of ``trace``, stacked (leading ``keep``).
+    """
     kept = trace[len(trace) - keep * thinning + thinning - 1::thinning]
     return tree_map(lambda *a: None if a[0] is None else torch.stack(a), *kept)
 
@@ -208,7 +211,8 @@ def _window_start(total: int) -> int:
 def _rhat_report(ys: list, offset: int, method: str) -> RhatReport:
     """R-hat over chains of the states ``ys`` (a list of ``(B, C, K, D)``, those after
     iterations ``offset, offset + 1, ...``) of the second half of the iterations run so far
-    (module docstring, "Convergence check")."""
+    (module docstring, "Convergence check").
+    """
     window = torch.stack(ys[_window_start(offset + len(ys)) - offset:])  # (W, B, C, K, D)
     r = rhat(window, chain_dim=2, sample_dim=0, method=method)  # (B, K, D)
     flat = r.flatten(1)
@@ -246,7 +250,7 @@ class IPMCMCSettings:
     max_extensions: int = 2
     rhat_method: str = "paper"
     thinning: int = 1
-    hmc: Optional[HMCRefine] = None
+    hmc: HMCRefine | None = None
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains", minimum=2)
@@ -280,8 +284,8 @@ def ipmcmc_step(
     sensor: SensorModel,
     settings: IPMCMCSettings = IPMCMCSettings(),
     generator: torch.Generator,
-    existence: Optional[BirthDeath] = None,
-    kernel: Optional[Callable] = None,
+    existence: BirthDeath | None = None,
+    kernel: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One IP-MCMC-PF step (paper 000 Alg. 1-2); see the module docstring.
 
@@ -404,7 +408,7 @@ def ipmcmc_step(
     return ParticleState(x_new, log_w_new, exists_new), info
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath]) -> Callable:
+def _bind(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None) -> Callable:
     """:func:`exchange_iteration` with the models bound."""
     def iterate(*args):
         return exchange_iteration(*args, motion=motion, sensor=sensor, existence=existence)
@@ -448,8 +452,8 @@ class IPMCMCFilter(Filter):
         max_extensions: int = 2,
         rhat_method: str = "paper",
         thinning: int = 1,
-        hmc: Optional[HMCRefine] = None,
-        existence: Optional[BirthDeath] = None,
+        hmc: HMCRefine | None = None,
+        existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc)

@@ -51,15 +51,15 @@ distribution the weights describe.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import torch
 
 from .._validation import check_positive, check_positive_int
 from ..kernels.hmc import hmc_transition, value_and_grad
-from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.sensors.association import (
     AssociationSensor,
     _split,
@@ -107,11 +107,12 @@ class ResampleMoveSettings:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
 
 
-def _predict(x_prev: Tensor, exists: Optional[Tensor], eps: Tensor, birth: Optional[BirthNoise], motion: MotionModel,
-             existence: Optional[BirthDeath]) -> tuple[Tensor, Optional[Tensor], Tensor]:
+def _predict(x_prev: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None, motion: MotionModel,
+             existence: BirthDeath | None) -> tuple[Tensor, Tensor | None, Tensor]:
     """``x_k = f(x_{k-1}, u)`` through :class:`TargetDynamics` (one path with or without
     births and deaths); returns ``x``, ``exists`` and the per-particle birth weight
-    correction ``(B, N)``."""
+    correction ``(B, N)``.
+    """
     x, e, log_ratio = TargetDynamics(motion, existence).propagate(x_prev, exists, eps, birth)
     return x, e, log_ratio.sum(-1)
 
@@ -124,8 +125,8 @@ def resample_move_step(
     sensor: SensorModel,
     settings: ResampleMoveSettings = ResampleMoveSettings(),
     generator: torch.Generator,
-    existence: Optional[BirthDeath] = None,
-    kernel: Optional[Callable] = None,
+    existence: BirthDeath | None = None,
+    kernel: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One step of the particle filter with an HMC move (module docstring, paper 003).
 
@@ -169,7 +170,11 @@ def resample_move_step(
 
     assignment = None
     extras = {}
+    assoc: AssociationSensor | None = None
     if settings.association == "metropolis":
+        if not isinstance(sensor, AssociationSensor):
+            raise ValueError(f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}")
+        assoc = sensor
         zz, mask = _split(z)
         square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists_new, mask)
         assignment, _, _ = metropolis_association(square, num_iters=settings.association_iters, generator=generator)
@@ -220,8 +225,8 @@ def resample_move_step(
     x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
     # g at the moved particles, evaluated eagerly (one likelihood evaluation; not read off the
     # HMC log-target, whose compiled value may differ from eager in the last bits)
-    if assignment is not None:  # per slot (B, N, K)
-        log_g_slot = sensor.assigned_log_likelihood(x, z, assignment, exists_new)
+    if assoc is not None and assignment is not None:  # per slot (B, N, K)
+        log_g_slot = assoc.assigned_log_likelihood(x, z, assignment, exists_new)
         extras["ess_per_target_after_move"] = _ess_per_target(log_g_slot, exists_new)
         log_g_moved = log_g_slot.sum(-1)
     else:
@@ -236,18 +241,20 @@ def resample_move_step(
                                                                 acceptance=acc, extras=extras)
 
 
-def _ess_per_target(log_w_slot: Tensor, exists: Optional[Tensor]) -> Tensor:
+def _ess_per_target(log_w_slot: Tensor, exists: Tensor | None) -> Tensor:
     """ESS of each slot's own weights ``log_w_slot (B, N, K)`` (unnormalised, normalised
     over N here), averaged over the slots that exist in some particle -> (B,); paper 003
-    sec. 1.3's ``N / (1 + C^2)`` per target (eq. 8: the targets' marginal weights)."""
+    sec. 1.3's ``N / (1 + C^2)`` per target (eq. 8: the targets' marginal weights).
+    """
     per = ess(normalize(log_w_slot.transpose(-1, -2))[0])  # (B, K)
     alive = torch.ones_like(per) if exists is None else exists.any(1).to(per.dtype)
     return (per * alive).sum(-1) / alive.sum(-1).clamp(min=1)
 
 
-def _target(motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath]) -> Callable:
+def _target(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None) -> Callable:
     """``log_target(u, x_prev, exists, birth, z, assignment)`` of the HMC move: ``(B, N)``
-    (one chain per particle, eq. 10) or ``(B, N, K)`` with an association (eq. 9)."""
+    (one chain per particle, eq. 10) or ``(B, N, K)`` with an association (eq. 9).
+    """
     def log_target(u, x_prev, exists, birth, z, assignment):
         x, e, _ = _predict(x_prev, exists, u, birth, motion, existence)
         if assignment is not None:  # one chain per slot, eq. 9
@@ -257,9 +264,10 @@ def _target(motion: MotionModel, sensor: SensorModel, existence: Optional[BirthD
 
 
 def _bind(motion: MotionModel, sensor: SensorModel, settings: ResampleMoveSettings,
-          existence: Optional[BirthDeath]) -> Callable:
+          existence: BirthDeath | None) -> Callable:
     """One HMC transition with the models bound; gradients by ``torch.func.grad`` (which
-    traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``)."""
+    traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``).
+    """
     target = _target(motion, sensor, existence)
 
     def kernel(eps, value, grad, p, u, x_prev, exists, birth, z, assignment):
@@ -312,7 +320,7 @@ class ResampleMoveFilter(Filter):
         association: str = "exact",
         association_iters: int = 30,
         resample_method: str = "systematic",
-        existence: Optional[BirthDeath] = None,
+        existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         settings = ResampleMoveSettings(step_size, num_leapfrog, num_hmc_steps, association, association_iters,

@@ -6,7 +6,7 @@ target it leaves invariant. Pure and branch-free: the noise is pre-drawn
 
 from __future__ import annotations
 
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
@@ -36,13 +36,13 @@ class ExchangeNoise(NamedTuple):
     slot: Tensor
     eps: Tensor
     u: Tensor
-    birth: Optional[BirthNoise] = None
+    birth: BirthNoise | None = None
 
 
 def draw_exchange_noise(
     log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, noise_dim: int,
-    *, generator: torch.Generator, dtype: torch.dtype, existence: Optional[BirthDeath] = None,
-    z: Optional[Measurement] = None,
+    *, generator: torch.Generator, dtype: torch.dtype, existence: BirthDeath | None = None,
+    z: Measurement | None = None,
 ) -> ExchangeNoise:
     """Draw the randomness of ``L = num_iterations`` exchange iterations in four calls
     (and, with ``existence``, the birth noise: births near the points of the frame ``z``
@@ -69,9 +69,9 @@ def draw_exchange_noise(
 
 
 def exchange_iteration(
-    chain: tuple, x_prev: Tensor, exists_prev: Optional[Tensor], z: Measurement,
-    source: Tensor, slot: Tensor, eps: Tensor, u: Tensor, birth: Optional[BirthNoise] = None,
-    *, motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath] = None,
+    chain: tuple, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement,
+    source: Tensor, slot: Tensor, eps: Tensor, u: Tensor, birth: BirthNoise | None = None,
+    *, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
 ) -> tuple[tuple, Tensor]:
     """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12), with or
     without births and deaths (one code path: the slot is propagated by
@@ -116,9 +116,12 @@ def exchange_iteration(
     log_lik_prop = sensor.log_likelihood_slot(y, moved.squeeze(-2), slot, z, log_lik, exists=exists,
                                               exists_n=None if e_new is None else e_new.squeeze(-1))
     log_alpha = log_lik_prop - log_lik
+    new: tuple[Tensor, Tensor, Tensor | None, Tensor | None]
     if existence is None:
         new = (proposal, log_lik_prop, None, None)
     else:
+        if e_new is None or exists is None or log_birth is None:
+            raise ValueError("with an existence model the chains need exists and log_birth (got None)")
         new = (proposal, log_lik_prop, torch.where(here, e_new, exists), torch.where(here, lb_new, log_birth))
         log_alpha = log_alpha + (lb_new.squeeze(-1) - torch.where(here, log_birth, 0.0).sum(-1))
     accepted = mh_accept(log_alpha, u)

@@ -20,7 +20,8 @@ would break this; none in torchmcmcpf does.)
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple, Optional, Union
+from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 
@@ -48,7 +49,7 @@ class HMCInfo(NamedTuple):
     log_target: Tensor
 
 
-def value_and_grad(log_target: LogTarget, q: Tensor, grad_fn: Optional[GradFn] = None
+def value_and_grad(log_target: LogTarget, q: Tensor, grad_fn: GradFn | None = None
                    ) -> tuple[Tensor, Tensor]:
     """``log_target(q)`` and its gradient in ``q``.
 
@@ -81,9 +82,9 @@ def leapfrog(
     grad: Tensor,
     log_target: LogTarget,
     *,
-    step_size: Union[float, Tensor],
+    step_size: float | Tensor,
     num_steps: int,
-    grad_fn: Optional[GradFn] = None,
+    grad_fn: GradFn | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Verlet leapfrog integration of Hamilton's equations for ``H = -log_target(q) + |p|^2/2``.
 
@@ -108,11 +109,13 @@ def leapfrog(
     grad : (*C, *E) at the new ``q``.
     """
     p = p + 0.5 * step_size * grad
-    value = None
-    for i in range(num_steps):
+    for _ in range(num_steps - 1):
         q = q + step_size * p
-        value, grad = value_and_grad(log_target, q, grad_fn)
-        p = p + (step_size if i < num_steps - 1 else 0.5 * step_size) * grad
+        _, grad = value_and_grad(log_target, q, grad_fn)
+        p = p + step_size * grad
+    q = q + step_size * p
+    value, grad = value_and_grad(log_target, q, grad_fn)
+    p = p + 0.5 * step_size * grad
     return q, p, value, grad
 
 
@@ -130,11 +133,11 @@ def hmc(
     q: Tensor,
     log_target: LogTarget,
     *,
-    step_size: Union[float, Tensor],
+    step_size: float | Tensor,
     num_leapfrog: int,
     num_steps: int,
     generator: torch.Generator,
-    grad_fn: Optional[GradFn] = None,
+    grad_fn: GradFn | None = None,
 ) -> tuple[Tensor, HMCInfo]:
     """Run ``num_steps`` HMC transitions on every chain at once.
 
@@ -185,7 +188,7 @@ def hmc(
 
 
 def hmc_transition(q: Tensor, value: Tensor, grad: Tensor, p: Tensor, u: Tensor, *, log_target: LogTarget,
-                   step_size: Union[float, Tensor], num_leapfrog: int, grad_fn: Optional[GradFn] = None
+                   step_size: float | Tensor, num_leapfrog: int, grad_fn: GradFn | None = None
                    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """One HMC transition from pre-drawn momenta ``p (*C, *E)`` and accept uniforms ``u (*C)``
     (pure; what ``ResampleMoveFilter(compile_step=True)`` compiles, with a ``grad_fn``).

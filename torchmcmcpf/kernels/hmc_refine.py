@@ -30,8 +30,9 @@ reversible). Needs a :class:`~torchmcmcpf.models.motion.LinearGaussianMotion` (`
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import torch
 
@@ -82,13 +83,14 @@ def check_hmc_motion(motion: MotionModel, existence) -> None:
 
 class HMCRefineNoise(NamedTuple):
     """Pre-drawn randomness of one HMC transition: momenta ``p (B, C, K, D)`` and accept
-    uniforms ``u (B, C)``."""
+    uniforms ``u (B, C)``.
+    """
 
     p: Tensor
     u: Tensor
 
     @classmethod
-    def draw(cls, x: Tensor, *, generator: torch.Generator, leading: tuple = ()) -> "HMCRefineNoise":
+    def draw(cls, x: Tensor, *, generator: torch.Generator, leading: tuple = ()) -> HMCRefineNoise:
         """For chains shaped like ``x (B, C, K, D)``, with optional extra leading dims."""
         p = torch.randn(leading + tuple(x.shape), generator=generator, device=x.device, dtype=x.dtype)
         u = torch.rand(leading + tuple(x.shape[:2]), generator=generator, device=x.device, dtype=x.dtype)
@@ -98,7 +100,8 @@ class HMCRefineNoise(NamedTuple):
 def _whitening(motion: LinearGaussianMotion, like: Tensor) -> tuple[Tensor, Tensor]:
     """``L^-1`` (``Q = L L^T``) and ``log N``'s constant ``-D/2 log 2 pi - sum log L_dd``:
     the Gaussian log-density by a matrix product, not a batched triangular solve (whose
-    backward under ``torch.func.grad`` costs seconds for thousands of chains)."""
+    backward under ``torch.func.grad`` costs seconds for thousands of chains).
+    """
     L = motion.L.to(like.dtype)
     d = L.shape[0]
     L_inv = torch.linalg.solve_triangular(L, torch.eye(d, dtype=like.dtype, device=like.device), upper=False)
@@ -108,7 +111,8 @@ def _whitening(motion: LinearGaussianMotion, like: Tensor) -> tuple[Tensor, Tens
 def ancestor_log_prior(x_prev: Tensor, motion: LinearGaussianMotion) -> Callable[[Tensor], Tensor]:
     """``x (B, C, K, D) -> sum_j log N(x_j; F x_prev_j, Q)`` ``(B, C)``, with the chains'
     ancestors ``x_prev (B, C, K, D)`` (MCMCFilter's conditional target; equals
-    ``motion.log_prob(x, x_prev).sum(-1)``)."""
+    ``motion.log_prob(x, x_prev).sum(-1)``).
+    """
     L_inv, log_norm = _whitening(motion, x_prev)
     white_prev = motion.mean(x_prev) @ L_inv.mT
 
@@ -121,7 +125,8 @@ def mixture_log_prior(x_prev: Tensor, log_w: Tensor, motion: LinearGaussianMotio
     """``y (B, C, K, D) -> sum_j log m_j(y_j)`` ``(B, C)``, ``m_j(y_j) = sum_i w^i N(y_j; F
     x_prev^i_j, Q)`` over the previous cloud ``x_prev (B, N, K, D)``, ``log_w (B, N)``
     normalised (IP-MCMC's factorised prior). Whitened once (``Q = L L^T``): memory
-    ``B C N K D`` per evaluation."""
+    ``B C N K D`` per evaluation.
+    """
     L_inv, log_norm = _whitening(motion, x_prev)
     white_prev = motion.mean(x_prev) @ L_inv.mT  # (B, N, K, D)
 

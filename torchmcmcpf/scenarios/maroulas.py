@@ -245,7 +245,7 @@ def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
         after.append(info.extras.get("ess_after_move"))
     acc = torch.stack(accs)
     return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc,
-                       None if any(a is None for a in after) else torch.stack(after))
+                       None if any(a is None for a in after) else torch.stack([a for a in after if a is not None]))
 
 
 def _flags(state: ParticleState) -> Tensor:
