@@ -3,6 +3,14 @@ sensors (likelihoods)."""
 
 from .base import MotionModel, SensorModel
 from .existence import BirthDeath, ExistenceEstimate, existence_estimate
+from .group import (
+    GroupExistence,
+    GroupStructurePrior,
+    VirtualLeaderMotion,
+    group_structures,
+    pairwise_kalman_predict,
+    pairwise_kalman_update,
+)
 from .motion import ConstantVelocity, LinearGaussianMotion, WhiteAccelerationMotion
 from .sensors import *  # noqa: F401,F403
 from .sensors import __all__ as _sensors
@@ -16,5 +24,11 @@ __all__ = [
     "BirthDeath",
     "ExistenceEstimate",
     "existence_estimate",
+    "VirtualLeaderMotion",
+    "GroupExistence",
+    "GroupStructurePrior",
+    "group_structures",
+    "pairwise_kalman_predict",
+    "pairwise_kalman_update",
     *_sensors,
 ]
