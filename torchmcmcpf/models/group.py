@@ -44,7 +44,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, NamedTuple, Optional, Sequence, Union
+from typing import Callable, NamedTuple, Optional, Sequence
 
 import torch
 from torch import nn
@@ -52,7 +52,6 @@ from torch import nn
 from .._validation import check_positive, check_positive_int
 from ..typing import Tensor
 from .existence import BirthDeath
-from .sensors.points import AreaLike, as_area
 
 __all__ = [
     "VirtualLeaderMotion",
@@ -298,7 +297,7 @@ class GroupExistence(nn.Module):
     x_death, v_death : (4,) (default zeros).
     """
 
-    def __init__(self, p_birth: float, p_death: float, area: AreaLike, *, velocity_std: float = 5.0,
+    def __init__(self, p_birth: float, p_death: float, area, *, velocity_std: float = 5.0,
                  group_birth_std: Sequence[float] = (50.0, 2.0),
                  leader_birth_std: Sequence[float] = (50.0, 2.0),
                  x_death: Optional[Tensor] = None, v_death: Optional[Tensor] = None):
@@ -306,7 +305,9 @@ class GroupExistence(nn.Module):
         self.chain = BirthDeath(p_birth, p_death, area, velocity_std=velocity_std)
         self.velocity_std = check_positive(velocity_std, "velocity_std")
         dtype = torch.float64
-        a = as_area(area)
+        a = torch.as_tensor(area, dtype=dtype)
+        if a.shape != (2, 2) or not bool(torch.isfinite(a).all()) or not bool((a[:, 1] > a[:, 0]).all()):
+            raise ValueError(f"area must be ((x_lo, x_hi), (y_lo, y_hi)) with finite lo < hi, got {area!r}")
         self.register_buffer("area", a)
         self.log_area = float(torch.log(a[:, 1] - a[:, 0]).sum())
         for name, std in (("group_birth_std", group_birth_std), ("leader_birth_std", leader_birth_std)):
