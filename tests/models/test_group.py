@@ -262,27 +262,29 @@ def test_sample_deaths_births_and_log_prob(gen):
 
 
 def test_log_prob_matches_sample_moments(gen):
-    """Monte Carlo: the empirical mean and covariance of sampled configurations match the
-    Gaussian that log_prob scores (merge + group birth + repulsion), within 5 standard
-    errors."""
+    """Monte Carlo: given the independent newborns' positions, the residuals of sampled
+    configurations have mean 0 and the covariance Q that log_prob scores (merge, group
+    birth, independent birth with a new leader, repulsion), within 5 standard errors."""
     m, ex = motion(r1=8.0, r2=12.0), _existence()
-    x, v = _config(gen, (1,))
-    lp, lab = torch.tensor([[0, 0, 1, 1]]), torch.tensor([[0, 0, 0, 0]])
-    ep, e = torch.tensor([[1, 1, 1, 0]]).bool(), torch.tensor([[1, 1, 1, 1]]).bool()
+    x, v = _config(gen, (1,), 5)
+    lp, lab = torch.tensor([[0, 0, 1, 1, 2]]), torch.tensor([[0, 0, 0, 0, 1]])
+    ep, e = torch.tensor([[1, 1, 1, 0, 0]]).bool(), torch.tensor([[1, 1, 1, 1, 1]]).bool()
     n = 20000
-    xs, vs = m.sample(x.expand(n, 4, 4), v.expand(n, 4, 4), lp.expand(n, 4), lab.expand(n, 4),
-                      ep.expand(n, 4), e.expand(n, 4), existence=ex, generator=gen)
-    tr = m.transition(x[..., 0::2], lp, lab, ep, e, existence=ex)
-    mean = (to_axes(x, v) @ tr.Psi.mT + tr.r)[0]  # (2, 16)
-    s = to_axes(xs, vs)  # (n, 2, 16)
-    se = (torch.diagonal(tr.Q[0]) / n).sqrt()
-    z = (s.mean(0) - mean) / se.clamp(min=1e-12)
-    assert (z.abs()[:, tr.random[0]] < 5).all()
-    emp = torch.einsum("nai,naj->ij", s - mean, s - mean) / (2 * n)
-    sd = torch.diagonal(tr.Q[0]).sqrt()
-    corr_err = (emp - tr.Q[0]) / (sd.unsqueeze(0) * sd.unsqueeze(1)).clamp(min=1e-12)
-    rnd = tr.random[0]
+    ns = lambda t: t.expand((n,) + t.shape[1:])  # noqa: E731
+    xs, vs = m.sample(ns(x), ns(v), ns(lp), ns(lab), ns(ep), ns(e), existence=ex, generator=gen)
+    tr = m.transition(ns(x)[..., 0::2], ns(lp), ns(lab), ns(ep), ns(e), existence=ex, pos_born=xs[..., 0::2])
+    resid = to_axes(xs, vs) - (to_axes(ns(x), ns(v)) @ tr.Psi.mT + tr.r)  # (n, 2, 20)
+    Q, rnd = tr.Q[0], tr.random[0]
+    assert rnd.sum() == 4 + 5 + 2 + 2 and tr.free_birth[0].tolist() == [False] * 4 + [True]
+    sd = torch.diagonal(Q).sqrt()
+    z = resid.mean(0) / (sd / math.sqrt(n)).clamp(min=1e-12)
+    assert (z.abs()[:, rnd] < 5).all()
+    assert (resid[:, :, ~rnd] == 0).all()
+    emp = torch.einsum("nai,naj->ij", resid, resid) / (2 * n)
+    corr_err = (emp - Q) / (sd.unsqueeze(0) * sd.unsqueeze(1)).clamp(min=1e-12)
     assert corr_err[rnd][:, rnd].abs().max() < 5 * math.sqrt(2 / (2 * n))
+    # the new leader (slot 1) sits on its newborn (slot 4) up to Q_bVL
+    assert Q[5 + 1, 5 + 4] == 0 and Q[15 + 1, 5 + 4] == pytest.approx(ex.velocity_std**2)
 
 
 # -- item 5: pairwise Kalman marginalisation ------------------------------------------------
@@ -395,10 +397,12 @@ def test_pairwise_kalman_through_births_deaths_merges(gen):
     transitions (eq. 42), by brute-force conditioning; batched over 2 x 3 particles."""
     m, ex = motion(r1=8.0, r2=12.0), _existence()
     k = 4
+    # group birth, merge, death + split, two independent births with new leaders, merge of
+    # those new groups
     labs = [torch.tensor([0, 0, 1, 2]), torch.tensor([0, 0, 1, 1]), torch.tensor([0, 0, 0, 0]),
-            torch.tensor([0, 0, 0, 1]), torch.tensor([0, 0, 0, 0])]
+            torch.tensor([0, 0, 0, 1]), torch.tensor([0, 1, 0, 2]), torch.tensor([0, 1, 0, 1])]
     ex_seq = [torch.tensor([1, 1, 1, 0]), torch.tensor([1, 1, 1, 1]), torch.tensor([1, 1, 1, 1]),
-              torch.tensor([1, 0, 1, 1]), torch.tensor([1, 1, 1, 1])]
+              torch.tensor([1, 0, 1, 0]), torch.tensor([1, 1, 1, 1]), torch.tensor([1, 1, 1, 1])]
     ex_seq = [e.bool() for e in ex_seq]
     shape = (2, 3)
     x, v = _config(gen, shape, k)

@@ -560,21 +560,22 @@ class VirtualLeaderMotion(nn.Module):
         lsrc = (surv | born22).to(dtype).unsqueeze(-1) * (G @ M)  # (*S, K, K): member <- leaders
         lead = grp_surv.to(dtype).unsqueeze(-1) * M  # (*S, K, K): leader <- leaders
 
-        def kron(B: Tensor, W: Tensor) -> Tensor:  # B (2, 2) blocks, W (*S, K, K) -> (*S, 2K, 2K)
-            out = B.to(**f).reshape((1,) * len(batch) + (2, 1, 2, 1)) * W.unsqueeze(-2).unsqueeze(-4)
-            return out.reshape(batch + (2 * k, 2 * k))
-
-        zero = torch.zeros(batch + (2 * k, 2 * k), **f)
-        Psi0 = torch.cat([torch.cat([kron(self.F_ss, src), kron(self.F_sl, lsrc)], -1),
-                          torch.cat([zero, kron(self.F_ll, lead)], -1)], -2)
-        same = _same_group(labels).to(dtype) * sv.unsqueeze(-1) * sv.unsqueeze(-2)
+        # new leaders (eq. 35): leader h of a group of newborns only = mean of its newborns
+        Bm = G.transpose(-1, -2) * born21.to(dtype).unsqueeze(-2)
+        Bm = Bm / Bm.sum(-1, keepdim=True).clamp(min=1) * grp_new.to(dtype).unsqueeze(-1)  # (*S, K', K)
+        # Psi and Q = sum over block types of (4 x 4 per-axis coefficients) x (K x K weights):
+        # one einsum each, no per-block concatenation
         eye = torch.eye(k, **f)
-        Qmm = kron(self.Q_cross, same) + kron(self.Q_self - self.Q_cross, eye * sv.unsqueeze(-1)) \
-            + kron(existence.group_birth_cov, eye * born22.to(dtype).unsqueeze(-1)) \
-            + kron(torch.tensor([[0.0, 0.0], [0.0, existence.velocity_std**2]]), eye * born21.to(dtype).unsqueeze(-1))
-        Qml = kron(self.Q_sl, sv.unsqueeze(-1) * G)
-        Qll = kron(self.Q_ll, torch.diag_embed(grp_surv.to(dtype)))
-        Q0 = torch.cat([torch.cat([Qmm, Qml], -1), torch.cat([Qml.transpose(-1, -2), Qll], -1)], -2)
+        same = _same_group(labels).to(dtype) * sv.unsqueeze(-1) * sv.unsqueeze(-2)
+        sG = sv.unsqueeze(-1) * G
+        W_psi = torch.stack([src, lsrc, lead], -3)  # (*S, 3, K, K)
+        W_q = torch.stack([same, eye * sv.unsqueeze(-1), eye * born22.to(dtype).unsqueeze(-1),
+                           eye * born21.to(dtype).unsqueeze(-1), sG, sG.transpose(-1, -2),
+                           torch.diag_embed(grp_surv.to(dtype)), torch.diag_embed(grp_new.to(dtype)),
+                           Bm.transpose(-1, -2), Bm, Bm @ Bm.transpose(-1, -2)], -3)  # (*S, 11, K, K)
+        C_psi, C_q = self._coefficients(existence, **f)
+        Psi = torch.einsum("tab,...tij->...aibj", C_psi, W_psi).reshape(batch + (4 * k, 4 * k))
+        Q = torch.einsum("tab,...tij->...aibj", C_q, W_q).reshape(batch + (4 * k, 4 * k))
         # offsets per axis: repulsion R h (eqs. 8, 13), death states (eqs. 36-37)
         rep = self.repulsion(pos_prev, labels, surv)  # (*S, K, 2)
         dead = (~exists).to(dtype).unsqueeze(-1)  # (*S, K, 1)
@@ -582,28 +583,46 @@ class VirtualLeaderMotion(nn.Module):
         xd, vd = existence.x_death.to(**f), existence.v_death.to(**f)
         r_pos = self.R_s[0].to(**f) * rep * sv.unsqueeze(-1) + dead * xd[0::2]
         r_vel = self.R_s[1].to(**f) * rep * sv.unsqueeze(-1) + dead * xd[1::2]
-        r_lp, r_lu = lead_dead * vd[0::2], lead_dead * vd[1::2]
-        r0 = torch.cat([r_pos, r_vel, r_lp, r_lu], -2).transpose(-1, -2)  # (*S, 2, 4K)
-        # new leaders (eq. 35): stage-2 map s <- Lmap s + noise on Upsilon_6 leaders
-        Bm = G.transpose(-1, -2) * born21.to(dtype).unsqueeze(-2)
-        Bm = Bm / Bm.sum(-1, keepdim=True).clamp(min=1) * grp_new.to(dtype).unsqueeze(-1)  # (*S, K', K)
-        keep = torch.diag_embed(1.0 - grp_new.to(dtype))
-        Lmap = torch.cat([torch.cat([torch.eye(2 * k, **f).expand(batch + (2 * k, 2 * k)), zero], -1),
-                          torch.cat([kron(torch.eye(2, **f), Bm), kron(torch.eye(2, **f), keep)], -1)], -2)
-        Q2 = torch.zeros(batch + (4 * k, 4 * k), **f)
-        Q2[..., 2 * k:, 2 * k:] = kron(existence.leader_birth_cov, torch.diag_embed(grp_new.to(dtype)))
-        Psi = Lmap @ Psi0
-        Q = Lmap @ Q0 @ Lmap.transpose(-1, -2) + Q2
-        r = r0 @ Lmap.transpose(-1, -2)
-        born_gain = Lmap[..., :, :k] * born21.to(dtype).unsqueeze(-2)  # (*S, 4K, K)
+        r = torch.cat([r_pos, r_vel, lead_dead * vd[0::2], lead_dead * vd[1::2]], -2).transpose(-1, -2)
+        # independent newborns: position given (p_0), enters its own row and its new leader's
+        zk = torch.zeros(batch + (k, k), **f)
+        born_gain = torch.cat([torch.diag_embed(born21.to(dtype)), zk, Bm, zk], -2)  # (*S, 4K, K)
         if pos_born is not None:
             r = r + (born_gain @ pos_born.to(dtype)).transpose(-1, -2)
         random = torch.cat([surv | born22, exists, grp_surv | grp_new, grp_surv | grp_new], -1)
         if self.sigma_g == 0:  # deterministic leaders: their noise rows vanish
             random = random & torch.cat([torch.ones(batch + (2 * k,), dtype=torch.bool, device=dev),
                                          grp_new, grp_new], -1)
-        return AffineTransition(Psi, r, 0.5 * (Q + Q.transpose(-1, -2)), random, surv | born22, born21,
-                                born_gain)
+        return AffineTransition(Psi, r, Q, random, surv | born22, born21, born_gain)
+
+    def _coefficients(self, existence: GroupExistence, **f) -> tuple[Tensor, Tensor]:
+        """Per-axis 4 x 4 coefficients (``[pos, vel, leader pos, leader vel]``) of each block
+        type of :meth:`transition`: ``Psi`` (3 types) and ``Q`` (11 types)."""
+        z = torch.zeros(2, 2, **f)
+        sv2 = existence.velocity_std ** 2
+
+        def place(B, row, col):
+            out = torch.zeros(4, 4, **f)
+            out[2 * row:2 * row + 2, 2 * col:2 * col + 2] = B.to(**f)
+            return out
+
+        c_psi = torch.stack([place(self.F_ss, 0, 0), place(self.F_sl, 0, 1), place(self.F_ll, 1, 1)])
+        u_lu = torch.zeros(4, 4, **f)
+        u_lu[1, 3] = sv2
+        c_q = torch.stack([
+            place(self.Q_cross, 0, 0),                    # survivors of one group
+            place(self.Q_self - self.Q_cross, 0, 0),      # each survivor's own noise
+            place(existence.group_birth_cov, 0, 0),       # group births, Q_bT (eq. 29)
+            place(torch.diag(torch.stack([z[0, 0], z[0, 0] + sv2])), 0, 0),  # independent births' velocity
+            place(self.Q_sl, 0, 1),                       # survivor - its leader
+            place(self.Q_sl.T, 1, 0),
+            place(self.Q_ll, 1, 1),                       # surviving leaders
+            place(existence.leader_birth_cov, 1, 1),      # new leaders, Q_bVL (eq. 35)
+            u_lu,                                         # newborn velocity - its new leader's
+            u_lu.T,
+            place(torch.diag(torch.stack([z[0, 0], z[0, 0] + sv2])), 1, 1),  # new leader <- newborns
+        ])
+        return c_psi, c_q
 
     def sample(self, x: Tensor, v: Tensor, labels_prev: Tensor, labels: Tensor, exists_prev: Tensor,
                exists: Tensor, *, existence: GroupExistence, generator: torch.Generator
