@@ -765,8 +765,8 @@ def pairwise_kalman_predict(stats: KalmanStats, pos_prev: Tensor, tr: AffineTran
     s_prev = torch.cat([pos_prev.transpose(-1, -2), stats.mean], -1)  # (*S, 2, 4K)
     mean = s_prev @ tr.Psi.transpose(-1, -2) + tr.r
     Pw = tr.Psi[..., :, k:]  # (*S, 4K, 3K)
-    cov = Pw @ stats.cov @ Pw.transpose(-1, -2) + tr.Q
-    return GroupPrediction(mean, 0.5 * (cov + cov.transpose(-1, -2)), tr)
+    cov = Pw @ stats.cov @ Pw.transpose(-1, -2) + tr.Q  # symmetric up to rounding; the update re-symmetrises
+    return GroupPrediction(mean, cov, tr)
 
 
 def pairwise_kalman_update(pred: GroupPrediction, pos: Tensor) -> tuple[Tensor, KalmanStats]:
