@@ -14,7 +14,9 @@ from torchmcmcpf.models import (
     GroupStructurePrior,
     VirtualLeaderMotion,
     group_structures,
+    pairwise_kalman_init,
     pairwise_kalman_predict,
+    pairwise_kalman_sample,
     pairwise_kalman_update,
 )
 from torchmcmcpf.models.group import KalmanStats, bell_number, structure_index, to_axes
@@ -461,3 +463,91 @@ def test_pairwise_kalman_through_births_deaths_merges(gen):
                 y_a = torch.cat([yy[a] for yy in ys])
                 ref += float(torch.distributions.MultivariateNormal(mean_a, big).log_prob(y_a))
             assert abs(float(total[b, n]) - ref) / abs(ref) < 1e-8, (float(total[b, n]), ref)
+
+
+def test_kalman_sample_moments_and_init(gen):
+    """Positions drawn by pairwise_kalman_sample have the predictive moments of eq. 58;
+    an all-inactive start predicts nothing observed."""
+    m, ex = motion(r1=8.0, r2=12.0), _existence()
+    k, n = 3, 20000
+    labels, alive = torch.tensor([0, 0, 1]).expand(n, k), torch.ones(n, k, dtype=torch.bool)
+    x, v = _config(gen, (1,), k)
+    s = to_axes(x, v)
+    stats = KalmanStats(s[..., k:].expand(n, 2, 3 * k), torch.eye(3 * k, dtype=torch.float64).expand(n, -1, -1))
+    pos_prev = x[..., 0::2].expand(n, k, 2)
+    pred = pairwise_kalman_predict(stats, pos_prev, m.transition(pos_prev, labels, labels, alive, alive,
+                                                                 existence=ex))
+    draws = pairwise_kalman_sample(pred, generator=gen)  # (n, K, 2)
+    mean, cov = pred.position_mean[0], pred.position_cov[0]
+    se = (torch.diagonal(cov) / n).sqrt().unsqueeze(-1)
+    assert ((draws.mean(0) - mean).abs() < 5 * se).all()
+    c = draws - mean
+    emp = torch.einsum("nia,nja->ij", c, c) / (2 * n)
+    sd = torch.diagonal(cov).sqrt()
+    assert ((emp - cov) / (sd.unsqueeze(0) * sd.unsqueeze(1))).abs().max() < 5 * math.sqrt(2 / (2 * n))
+    init = pairwise_kalman_init((2,), 3, existence=ex)
+    assert init.mean.shape == (2, 2, 9) and init.cov.shape == (2, 9, 9) and (init.cov == 0).all()
+    dead = torch.zeros(2, 3, dtype=torch.bool)
+    tr = m.transition(torch.zeros(2, 3, 2, dtype=torch.float64), torch.zeros(2, 3, dtype=torch.long),
+                      torch.zeros(2, 3, dtype=torch.long), dead, dead, existence=ex)
+    lp, st = pairwise_kalman_update(pairwise_kalman_predict(init, torch.zeros(2, 3, 2, dtype=torch.float64), tr),
+                                    torch.zeros(2, 3, 2, dtype=torch.float64))
+    assert torch.equal(lp, torch.zeros(2, dtype=torch.float64)) and torch.isfinite(st.cov).all()
+
+
+def test_same_seed_same_draw(gen):
+    m, ex = motion(r1=8.0, r2=12.0), _existence()
+    x, v = _config(gen, (2,))
+    args = (x, v, torch.tensor([[0, 0, 1, 1]] * 2), torch.tensor([[0, 0, 0, 1]] * 2),
+            torch.ones(2, 4, dtype=torch.bool), torch.tensor([[1, 1, 1, 0], [1, 1, 1, 1]]).bool())
+    a = m.sample(*args, existence=ex, generator=torch.Generator().manual_seed(9))
+    b = m.sample(*args, existence=ex, generator=torch.Generator().manual_seed(9))
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_bad_input():
+    with pytest.raises(ValueError, match="alpha"):
+        motion(alpha=-1.0)
+    with pytest.raises(ValueError, match="r1"):
+        motion(r1=8.0)
+    with pytest.raises(ValueError, match="p_nc"):
+        GroupStructurePrior(1.5, 0.05)
+    with pytest.raises(ValueError, match="p_q"):
+        GroupStructurePrior(0.6, 0.0)
+    with pytest.raises(ValueError, match="n must be"):
+        group_structures(0)
+    with pytest.raises(ValueError, match="group_birth_std"):
+        GroupExistence(0.2, 0.05, AREA, group_birth_std=(1.0,))
+    with pytest.raises(ValueError, match="area"):
+        GroupExistence(0.2, 0.05, ((0, -1), (0, 1)))
+    with pytest.raises(ValueError, match="generator or eps"):
+        m, ex = motion(), _existence()
+        lab, alive = torch.zeros(1, 2, dtype=torch.long), torch.ones(1, 2, dtype=torch.bool)
+        pos = torch.zeros(1, 2, 2, dtype=torch.float64)
+        pred = pairwise_kalman_predict(pairwise_kalman_init((1,), 2, existence=ex), pos,
+                                       m.transition(pos, lab, lab, alive, alive, existence=ex))
+        pairwise_kalman_sample(pred)
+
+
+@pytest.mark.compile
+def test_compiled_update_equals_eager(gen):
+    """transition + predict + update compile with fullgraph and give the eager result."""
+    m, ex = motion(r1=8.0, r2=12.0), _existence()
+    n, k = 16, 4
+    table = group_structures(k)
+    lp = table[torch.randint(0, 15, (n,), generator=gen)]
+    lab = table[torch.randint(0, 15, (n,), generator=gen)]
+    ep, e = torch.rand(n, k, generator=gen) < 0.7, torch.rand(n, k, generator=gen) < 0.7
+    pos_prev = 2000 + 300 * torch.rand(n, k, 2, generator=gen, dtype=torch.float64)
+    pos = pos_prev + torch.randn(n, k, 2, generator=gen, dtype=torch.float64)
+    A = torch.randn(n, 3 * k, 3 * k, generator=gen, dtype=torch.float64)
+    mean, cov = torch.randn(n, 2, 3 * k, generator=gen, dtype=torch.float64), A @ A.mT
+
+    def update(mean, cov, pos_prev, pos, lp, lab, ep, e):
+        tr = m.transition(pos_prev, lp, lab, ep, e, existence=ex)
+        log_pred, st = pairwise_kalman_update(pairwise_kalman_predict(KalmanStats(mean, cov), pos_prev, tr), pos)
+        return log_pred, st.mean, st.cov
+
+    args = (mean, cov, pos_prev, pos, lp, lab, ep, e)
+    for got, ref in zip(torch.compile(update, fullgraph=True)(*args), update(*args)):
+        torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-9)

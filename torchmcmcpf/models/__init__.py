@@ -4,12 +4,18 @@ sensors (likelihoods)."""
 from .base import MotionModel, SensorModel
 from .existence import BirthDeath, ExistenceEstimate, existence_estimate
 from .group import (
+    AffineTransition,
     GroupExistence,
+    GroupPrediction,
     GroupStructurePrior,
+    KalmanStats,
     VirtualLeaderMotion,
     group_structures,
+    pairwise_kalman_init,
     pairwise_kalman_predict,
+    pairwise_kalman_sample,
     pairwise_kalman_update,
+    structure_index,
 )
 from .motion import ConstantVelocity, LinearGaussianMotion, WhiteAccelerationMotion
 from .sensors import *  # noqa: F401,F403
@@ -28,7 +34,13 @@ __all__ = [
     "GroupExistence",
     "GroupStructurePrior",
     "group_structures",
+    "structure_index",
+    "AffineTransition",
+    "KalmanStats",
+    "GroupPrediction",
+    "pairwise_kalman_init",
     "pairwise_kalman_predict",
+    "pairwise_kalman_sample",
     "pairwise_kalman_update",
     *_sensors,
 ]

@@ -66,6 +66,8 @@ __all__ = [
     "pairwise_kalman_init",
     "pairwise_kalman_predict",
     "pairwise_kalman_update",
+    "pairwise_kalman_sample",
+    "canonical_labels",
     "gaussian_closeness",
     "to_axes",
     "from_axes",
@@ -806,3 +808,30 @@ def pairwise_kalman_update(pred: GroupPrediction, pos: Tensor) -> tuple[Tensor, 
     w_mean = mean[..., k:] + y.transpose(-1, -2) @ G  # (*S, 2, 3K)
     w_cov = pred.cov[..., k:, k:] - G.transpose(-1, -2) @ G
     return log_pred, KalmanStats(w_mean, 0.5 * (w_cov + w_cov.transpose(-1, -2)))
+
+
+def pairwise_kalman_sample(pred: GroupPrediction, *, generator: Optional[torch.Generator] = None,
+                           eps: Optional[Tensor] = None) -> Tensor:
+    """Draw the observed positions from their predictive ``N(x~_t, L_t)`` (eq. 58, the
+    position part of the proposal of eq. 63); the other slots are returned as zeros (fill
+    them with ``p_0`` / ``q_0`` births and ``x_death``).
+
+    Parameters
+    ----------
+    pred : GroupPrediction.
+    generator : source of the standard normals; or pass them as
+    eps : (*S, K, 2) pre-drawn standard normals (compiled kernels, DESIGN.md).
+
+    Returns
+    -------
+    (*S, K, 2).
+    """
+    obs = pred.transition.observed
+    k = obs.shape[-1]
+    mean = pred.mean[..., :k].transpose(-1, -2)  # (*S, K, 2)
+    if eps is None:
+        if generator is None:
+            raise ValueError("pairwise_kalman_sample needs a generator or eps")
+        eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+    L = _masked_cholesky(pred.cov[..., :k, :k], obs)
+    return (mean + L @ eps) * obs.to(mean.dtype).unsqueeze(-1)
