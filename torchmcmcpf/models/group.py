@@ -498,7 +498,7 @@ class VirtualLeaderMotion(nn.Module):
         if self.r1 is None:
             return torch.zeros_like(pos)
         diff = pos.unsqueeze(-2) - pos.unsqueeze(-3)  # (*S, K, K, 2): p_i - p_j
-        d = diff.square().sum(-1).clamp(min=1e-300).sqrt()
+        d = diff.square().sum(-1).clamp(min=torch.finfo(pos.dtype).tiny).sqrt()  # coincident: 0 force
         pair = _same_group(labels) & active.unsqueeze(-1) & active.unsqueeze(-2)
         pair = pair & ~torch.eye(pos.shape[-2], dtype=torch.bool, device=pos.device)
         coef = torch.where(pair, self.r1 / ((d + self.r2) * d), torch.zeros_like(d))
