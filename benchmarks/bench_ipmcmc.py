@@ -41,7 +41,7 @@ def test_ipmcmc_step(benchmark, scenario, variant, n):
     try:
         x0 = scenario.initial_particles(n, generator=torch.Generator().manual_seed(1))
         filt = IPMCMCFilter(scenario.motion, sensor, n, num_chains=CHAINS, burn_in=burn_in, max_extensions=0,
-                            compile=variant.endswith("compiled"))
+                            compile_step=variant.endswith("compiled"))
         state = filt.init(x0)
         z = scenario.measurements[0]
         with torch.no_grad():

@@ -30,7 +30,7 @@ import pytest
 import torch
 
 from torchmcmcpf import ConstantVelocity, LinearGaussian
-from torchmcmcpf.filters.mcmc import mcmc_step
+from torchmcmcpf.filters.mcmc import MCMCSettings, mcmc_step
 from torchmcmcpf.models.base import MotionModel, SensorModel
 from torchmcmcpf.scenarios.ground_radar import ground_radar
 from torchmcmcpf.state import ParticleState
@@ -94,8 +94,8 @@ def _bench_step(benchmark, group, motion, sensor, state, z, num_chains, rounds):
     g = torch.Generator().manual_seed(1)
 
     def step():
-        return mcmc_step(state, z, motion=motion, sensor=sensor, generator=g, num_chains=num_chains,
-                         burn_in=0, thinning=1, moves="mixture")
+        return mcmc_step(state, z, motion=motion, sensor=sensor, generator=g,
+                         settings=MCMCSettings(num_chains=num_chains, burn_in=0, thinning=1, moves="mixture"))
 
     with torch.no_grad():
         out, info = benchmark.pedantic(step, rounds=rounds, iterations=1, warmup_rounds=1)

@@ -28,6 +28,8 @@ __all__ = [
     "resample",
     "gather_particles",
     "RESAMPLERS",
+    "cdf",
+    "inverse_cdf",
 ]
 
 
@@ -73,16 +75,40 @@ def ess(log_w: Tensor) -> Tensor:
     return torch.exp(-torch.logsumexp(2.0 * log_w, dim=-1))
 
 
-def _cdf(log_w: Tensor) -> Tensor:
+def cdf(log_w: Tensor) -> Tensor:
+    """Cumulative normalised weights in float64, last entry exactly 1.
+
+    Parameters
+    ----------
+    log_w : (..., N) log-weights (normalised or not).
+
+    Returns
+    -------
+    (..., N) float64.
+    """
     w = torch.softmax(log_w.to(torch.float64), dim=-1)
-    cdf = torch.cumsum(w, dim=-1)
+    c = torch.cumsum(w, dim=-1)
     # Guard the last bin against round-off: every u < 1 must land inside.
-    return torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
+    return torch.cat([c[..., :-1], torch.ones_like(c[..., -1:])], dim=-1)
 
 
-def _search(cdf: Tensor, points: Tensor) -> Tensor:
-    idx = torch.searchsorted(cdf, points.to(cdf.dtype).contiguous(), right=True)
-    return idx.clamp_(max=cdf.shape[-1] - 1)
+def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
+    """Categorical draws by inversion: the one index helper of the library (resampling,
+    ancestor draws of the MCMC moves, source draws of IP-MCMC).
+
+    Parameters
+    ----------
+    cdf_ : (..., N) float64 from :func:`cdf`.
+    u : (..., M) points in [0, 1) (cast to float64).
+
+    Returns
+    -------
+    (..., M) int64 indices ``i`` with ``cdf[i-1] <= u < cdf[i]``.
+    """
+    idx = torch.searchsorted(cdf_, u.to(torch.float64).contiguous(), right=True)
+    return idx.clamp_(max=cdf_.shape[-1] - 1)
+
+
 
 
 def systematic(log_w: Tensor, u: Tensor, num_samples: Optional[int] = None) -> Tensor:
@@ -91,7 +117,7 @@ def systematic(log_w: Tensor, u: Tensor, num_samples: Optional[int] = None) -> T
     Parameters
     ----------
     log_w : (B, N) log-weights (normalised or not).
-    u : (B, 1) uniforms in [0, 1).
+    u : (B, 1) uniforms in [0, 1) (or (B, M): stratified).
     num_samples : M, defaults to N.
 
     Returns
@@ -100,11 +126,12 @@ def systematic(log_w: Tensor, u: Tensor, num_samples: Optional[int] = None) -> T
     """
     m = log_w.shape[-1] if num_samples is None else num_samples
     grid = torch.arange(m, device=log_w.device, dtype=torch.float64)
-    return _search(_cdf(log_w), (grid + u.to(torch.float64)) / m)
+    return inverse_cdf(cdf(log_w), (grid + u.to(torch.float64)) / m)
 
 
 def stratified(log_w: Tensor, u: Tensor) -> Tensor:
-    """Stratified resampling: one uniform per stratum, points ``(i + u_i) / M``.
+    """Stratified resampling: one uniform per stratum, points ``(i + u_i) / M`` (the
+    systematic points with a uniform per stratum).
 
     Parameters
     ----------
@@ -114,9 +141,7 @@ def stratified(log_w: Tensor, u: Tensor) -> Tensor:
     -------
     (B, M) int64 ancestor indices.
     """
-    m = u.shape[-1]
-    grid = torch.arange(m, device=log_w.device, dtype=torch.float64)
-    return _search(_cdf(log_w), (grid + u.to(torch.float64)) / m)
+    return systematic(log_w, u, u.shape[-1])
 
 
 def multinomial(log_w: Tensor, u: Tensor) -> Tensor:
@@ -130,7 +155,7 @@ def multinomial(log_w: Tensor, u: Tensor) -> Tensor:
     -------
     (B, M) int64 ancestor indices, in increasing order (the particles are exchangeable).
     """
-    return _search(_cdf(log_w), torch.sort(u, dim=-1).values)
+    return inverse_cdf(cdf(log_w), torch.sort(u, dim=-1).values)
 
 
 def _u_systematic(b: int, m: int, *, generator, device, dtype=torch.float64) -> Tensor:

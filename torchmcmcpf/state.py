@@ -2,18 +2,38 @@
 
 All three are ``NamedTuple`` s, hence pytrees: ``torch.compile`` and
 ``torch.utils._pytree`` see through them, and a step function can return them from a
-compiled region.
+compiled region. They are registered with :func:`torch.serialization.add_safe_globals`, so
+``torch.save(result, path)`` / ``torch.load(path)`` work with the default
+``weights_only=True`` (a checkpoint is a ``ParticleState`` plus ``generator.get_state()``).
+Their ``repr`` shows field names, shapes and dtypes, never tensor values.
 """
 
 from __future__ import annotations
 
-from typing import Mapping, NamedTuple, Optional
+from typing import Any, NamedTuple, Optional
 
 import torch
 
 from .typing import Tensor
 
-__all__ = ["ParticleState", "StepInfo", "FilterResult", "stack_infos"]
+__all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
+           "summary"]
+
+
+def summary(value: Any) -> str:
+    """Short description of a field: ``float32(4, 100, 2, 4)`` for a tensor, recursively for
+    dicts and tuples, ``repr`` otherwise."""
+    if torch.is_tensor(value):
+        return f"{str(value.dtype).removeprefix('torch.')}{tuple(value.shape)}"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k!r}: {summary(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, tuple) and hasattr(value, "_fields"):
+        return _short_repr(value)
+    return repr(value)
+
+
+def _short_repr(self) -> str:
+    return f"{type(self).__name__}(" + ", ".join(f"{f}={summary(getattr(self, f))}" for f in self._fields) + ")"
 
 
 class ParticleState(NamedTuple):
@@ -35,6 +55,8 @@ class ParticleState(NamedTuple):
     log_w: Tensor
     exists: Optional[Tensor] = None
 
+    __repr__ = _short_repr
+
     @property
     def batch_size(self) -> int:
         return self.x.shape[0]
@@ -54,28 +76,41 @@ class ParticleState(NamedTuple):
 
 
 class StepInfo(NamedTuple):
-    """What one filter step reports besides the new state. Fields a filter does not
-    compute stay ``None``; tensors are per run, ``(B,)``.
+    """What one filter step reports besides the new state: the same fields for every filter,
+    each a ``(B,)`` tensor (``(T, B)`` once stacked over time).
 
     Attributes
     ----------
-    ess : (B,), optional
-        Effective sample size of the importance weights before resampling.
-    log_evidence : (B,), optional
-        Estimate of ``log p(z_k | z_{1:k-1})`` (SIR filters; PMMH sums it over time).
-    acceptance : mapping name -> (B,), optional
-        Acceptance rate of each MCMC move type during the step.
-    rhat : (B,), optional
-        Largest Gelman-Rubin R-hat over the state components (paper 000 eq. 13).
-    extensions : (B,), optional
-        How many times the chains were run longer because R-hat was too large.
+    ess : (B,)
+        Effective sample size of the importance weights (SIR, resample-move, PMMH's
+        filters); NaN for the MCMC filters, which have no importance weights.
+    log_evidence : (B,)
+        Estimate of ``log p(z_k | z_{1:k-1})`` (importance-sampling filters, relative to the
+        sensor's "no target" hypothesis for likelihood-ratio sensors); NaN where the
+        algorithm has no such estimate (MCMC filters).
+    acceptance : (B,)
+        Fraction of the step's Metropolis-Hastings decisions that accepted (all moves
+        together); NaN where the step makes none (SIR, resample-move without HMC).
+    extras : dict name -> (B,) tensor
+        Algorithm-specific quantities (documented by each filter), e.g.
+        ``"acceptance_joint"``, ``"rhat"``, ``"extensions"``. Empty for SIR.
     """
 
-    ess: Optional[Tensor] = None
-    log_evidence: Optional[Tensor] = None
-    acceptance: Optional[Mapping[str, Tensor]] = None
-    rhat: Optional[Tensor] = None
-    extensions: Optional[Tensor] = None
+    ess: Tensor
+    log_evidence: Tensor
+    acceptance: Tensor
+    extras: dict
+
+    __repr__ = _short_repr
+
+    @staticmethod
+    def make(template: Tensor, *, ess: Optional[Tensor] = None, log_evidence: Optional[Tensor] = None,
+             acceptance: Optional[Tensor] = None, extras: Optional[dict] = None) -> "StepInfo":
+        """Fill the fields a filter does not compute with NaN ``(B,)`` shaped like
+        ``template (B,)`` (its dtype and device)."""
+        nan = torch.full_like(template, float("nan"))
+        return StepInfo(nan if ess is None else ess, nan if log_evidence is None else log_evidence,
+                        nan if acceptance is None else acceptance, {} if extras is None else dict(extras))
 
 
 class FilterResult(NamedTuple):
@@ -89,8 +124,8 @@ class FilterResult(NamedTuple):
         The particle state after the last step (feed it back as ``init`` to continue).
     info : StepInfo
         Per-step information stacked over time: every tensor gains a leading ``T`` dim.
-    log_evidence : (B,), optional
-        ``sum_k log p(z_k | z_{1:k-1})`` when the filter estimates it.
+    log_evidence : (B,)
+        ``sum_k log p(z_k | z_{1:k-1})`` (NaN for filters that do not estimate it).
     exists_prob : (T, B, K), optional
         Posterior existence probability of each slot (filters with births and deaths).
     """
@@ -98,21 +133,93 @@ class FilterResult(NamedTuple):
     mean: Tensor
     state: ParticleState
     info: StepInfo
-    log_evidence: Optional[Tensor] = None
+    log_evidence: Tensor
     exists_prob: Optional[Tensor] = None
+
+    __repr__ = _short_repr
+
+    def to_numpy(self) -> dict[str, Any]:
+        """The result as a flat dict of NumPy arrays (for pandas / xarray): ``"mean"``,
+        ``"log_evidence"``, ``"exists_prob"``, ``"state.x"``, ``"state.log_w"``,
+        ``"state.exists"``, ``"info.ess"``, ``"info.<extra>"``, ... (``None`` fields left
+        out)."""
+        out: dict[str, Any] = {}
+
+        def put(name: str, value: Any) -> None:
+            if torch.is_tensor(value):
+                out[name] = value.detach().cpu().numpy()
+
+        put("mean", self.mean)
+        put("log_evidence", self.log_evidence)
+        put("exists_prob", self.exists_prob)
+        for f in ParticleState._fields:
+            put(f"state.{f}", getattr(self.state, f))
+        for f in ("ess", "log_evidence", "acceptance"):
+            put(f"info.{f}", getattr(self.info, f))
+        for k, v in self.info.extras.items():
+            put(f"info.{k}", v)
+        return out
 
 
 def stack_infos(infos: list[StepInfo]) -> StepInfo:
     """Stack a list of per-step ``StepInfo`` into one with a leading time dim ``T``."""
     if not infos:
-        return StepInfo()
-    fields = {}
-    for name in StepInfo._fields:
-        values = [getattr(i, name) for i in infos]
-        if any(v is None for v in values):
-            fields[name] = None
-        elif isinstance(values[0], Mapping):
-            fields[name] = {k: torch.stack([v[k] for v in values]) for k in values[0]}
-        else:
-            fields[name] = torch.stack(values)
-    return StepInfo(**fields)
+        raise ValueError("infos is empty, expected at least one StepInfo")
+    return StepInfo(
+        torch.stack([i.ess for i in infos]),
+        torch.stack([i.log_evidence for i in infos]),
+        torch.stack([i.acceptance for i in infos]),
+        {k: torch.stack([i.extras[k] for i in infos]) for k in infos[0].extras},
+    )
+
+
+class ExistenceEstimate(NamedTuple):
+    """Point estimates of a weighted cloud with existence flags.
+
+    Attributes
+    ----------
+    exists_prob : (B, K) posterior existence probability of each slot.
+    expected_count : (B,) expected number of targets, ``sum_k exists_prob``.
+    mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
+        no particle has it).
+    present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
+    """
+
+    exists_prob: Tensor
+    expected_count: Tensor
+    mean: Tensor
+    present: Tensor
+
+
+def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
+                       x_death: Optional[Tensor] = None) -> ExistenceEstimate:
+    """Existence probabilities, expected count and the state of every slot whose existence
+    probability exceeds ``threshold`` (0.5: the marginal MAP existence).
+
+    Parameters
+    ----------
+    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)``, ``exists (B, N, K)``.
+    threshold : in [0, 1).
+    x_death : (D,) value for slots that exist in no particle (default zeros).
+
+    Returns
+    -------
+    ExistenceEstimate.
+    """
+    if state.exists is None:
+        raise ValueError("state.exists is None; existence_estimate needs a state with existence flags")
+    if not 0.0 <= float(threshold) < 1.0:
+        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
+    w = torch.softmax(state.log_w, -1).to(state.x.dtype)  # (B, N)
+    we = w.unsqueeze(-1) * state.exists.to(w.dtype)  # (B, N, K)
+    prob = we.sum(1)  # (B, K)
+    num = torch.einsum("bnk,bnkd->bkd", we, torch.where(state.exists.unsqueeze(-1), state.x,
+                                                        torch.zeros_like(state.x)))
+    fill = torch.zeros(state.x.shape[-1], dtype=state.x.dtype, device=state.x.device) \
+        if x_death is None else x_death.to(state.x)
+    mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
+                       fill)
+    return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)
+
+
+torch.serialization.add_safe_globals([ParticleState, StepInfo, FilterResult, ExistenceEstimate])

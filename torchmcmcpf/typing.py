@@ -31,7 +31,7 @@ Randomness only through an explicit keyword-only ``generator: torch.Generator``.
 
 from __future__ import annotations
 
-from typing import Any, Union
+from typing import Any, NamedTuple, Optional, Union
 
 import torch
 
@@ -45,4 +45,33 @@ Measurement = Union[Tensor, tuple[Any, ...]]
 X, VX, Y, VY, RHO = 0, 1, 2, 3, 4
 POSITION = (X, Y)
 
-__all__ = ["Tensor", "Generator", "Measurement", "X", "VX", "Y", "VY", "RHO", "POSITION"]
+
+
+class PointFrame(NamedTuple):
+    """One frame of unlabelled point measurements (a measurement type shared by the point
+    sensors, the birth proposals and the scenarios).
+
+    Attributes
+    ----------
+    z : (B, M, d) measurements, in no particular order.
+    mask : (B, M) bool, True for a real measurement (rows with False are padding).
+    """
+
+    z: Tensor
+    mask: Tensor
+
+
+#: Point measurements: a tensor ``(B, M, d)``, or a :class:`PointFrame` / ``(z, mask)`` tuple.
+PointMeasurement = Union[Tensor, PointFrame, tuple]
+
+
+def split_points(z: PointMeasurement) -> tuple[Tensor, Optional[Tensor]]:
+    """``(z (B, M, d), mask (B, M) or None)`` of a point measurement."""
+    if torch.is_tensor(z):
+        return z, None
+    z, mask = z
+    return z, mask
+
+
+__all__ = ["Tensor", "Generator", "Measurement", "PointFrame", "PointMeasurement", "split_points", "X", "VX", "Y",
+           "VY", "RHO", "POSITION"]

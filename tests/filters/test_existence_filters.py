@@ -27,10 +27,11 @@ the 0.5 crossings.
 import pytest
 import torch
 
-from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, ipmcmc_step
-from torchmcmcpf.filters.mcmc import MCMCFilter, mcmc_step
+from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
+from torchmcmcpf.filters.mcmc import MCMCFilter, MCMCSettings, mcmc_step
 from torchmcmcpf.filters.sir import SIRFilter
-from torchmcmcpf.models.existence import BirthDeath, existence_estimate
+from torchmcmcpf.models.existence import BirthDeath
+from torchmcmcpf.state import existence_estimate
 from torchmcmcpf.models.motion import ConstantVelocity
 from torchmcmcpf.models.sensors.points import PoissonClutterPoints
 from torchmcmcpf.scenarios.septier import stack_frames
@@ -119,8 +120,8 @@ N_MCMC = 200
 def mcmc_filter(kind):
     motion, sensor, existence = models()
     if kind == "mcmc":
-        return MCMCFilter(motion, sensor, N_MCMC, 100, burn_in=10, existence=existence)
-    return IPMCMCFilter(motion, sensor, N_MCMC, 20, burn_in=20, existence=existence)
+        return MCMCFilter(motion, sensor, N_MCMC, num_chains=100, burn_in=10, existence=existence)
+    return IPMCMCFilter(motion, sensor, N_MCMC, num_chains=20, burn_in=20, existence=existence)
 
 
 def run_mcmc(kind, z, gen):
@@ -189,16 +190,17 @@ def test_mcmc_filters_same_seed_same_result(kind):
 def test_mcmc_filters_refuse_bad_existence_settings(gen):
     motion, sensor, existence = models()
     with pytest.raises(ValueError, match="existence"):
-        MCMCFilter(motion, sensor, 10, 2, existence=object())
+        MCMCFilter(motion, sensor, 10, num_chains=2, existence=object())
     with pytest.raises(ValueError, match="existence"):
-        IPMCMCFilter(motion, sensor, 10, 2, existence="yes")
+        IPMCMCFilter(motion, sensor, 10, num_chains=2, existence="yes")
     with pytest.raises(ValueError, match="random_walk"):
-        MCMCFilter(motion, sensor, 10, 2, moves="random_walk", rw_scale=1.0, existence=existence)
+        MCMCFilter(motion, sensor, 10, num_chains=2, moves="random_walk", rw_scale=1.0, existence=existence)
     z, _ = data(gen, with_target=False)
     frame = type(z)(z.z[0], z.mask[0])
     state = ParticleState(torch.zeros(B, 4, K, 4, dtype=torch.float64), torch.full((B, 4), -1.3862943611198906,
                           dtype=torch.float64), torch.zeros(B, 4, K, dtype=torch.bool))
     with pytest.raises(ValueError, match="exists"):
-        mcmc_step(state, frame, motion=motion, sensor=sensor, generator=gen, num_chains=2)
+        mcmc_step(state, frame, motion=motion, sensor=sensor, generator=gen, settings=MCMCSettings(num_chains=2))
     with pytest.raises(ValueError, match="exists"):
-        ipmcmc_step(state, frame, motion=motion, sensor=sensor, generator=gen, num_chains=2, burn_in=1)
+        ipmcmc_step(state, frame, motion=motion, sensor=sensor, generator=gen,
+                    settings=IPMCMCSettings(num_chains=2, burn_in=1))

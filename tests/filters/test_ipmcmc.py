@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from _kalman import kalman_filter
-from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, draw_exchange_noise, exchange_iteration
+from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
+from torchmcmcpf.kernels.exchange import draw_exchange_noise, exchange_iteration
+from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.motion import ConstantVelocity, LinearGaussianMotion
 from torchmcmcpf.models.sensors.linear import LinearGaussian
 
@@ -128,9 +130,9 @@ def test_ipmcmc_matches_kalman_single_target(gen):
     # (N = 600 correlated draws give far more than 4 effective ones).
     assert zerr.square().mean() <= 0.25
     info = res.info
-    assert info.rhat.shape == (4, b) and info.extensions.shape == (4, b)
-    assert info.acceptance["exchange"].shape == (4, b)
-    assert ((info.acceptance["exchange"] > 0) & (info.acceptance["exchange"] < 1)).all()
+    assert info.extras["rhat"].shape == (4, b) and info.extras["extensions"].shape == (4, b)
+    assert info.acceptance.shape == (4, b)
+    assert ((info.acceptance > 0) & (info.acceptance < 1)).all()
 
 
 def test_extensions_follow_rhat_threshold(gen):
@@ -140,16 +142,16 @@ def test_extensions_follow_rhat_threshold(gen):
     # threshold below any R-hat (>= ~0.9 for 4 chains of 10): every run extends every time
     always = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=5, rhat_threshold=1e-3, max_extensions=2)
     res = always(zs, init=x0, generator=gen)
-    assert (res.info.extensions == 2).all()
+    assert (res.info.extras["extensions"] == 2).all()
     # a huge threshold never extends
     never = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=5, rhat_threshold=1e9, max_extensions=2)
     res = never(zs, init=x0, generator=gen)
-    assert (res.info.extensions == 0).all()
+    assert (res.info.extras["extensions"] == 0).all()
     # R-hat is reported and an extension happened exactly where R-hat of the first pass was
     # >= threshold: in between, the runs that still exceed it are those with extensions
     mid = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=0, rhat_threshold=1.05, max_extensions=3)
     res = mid(zs, init=x0, generator=gen)
-    ext, r = res.info.extensions, res.info.rhat
+    ext, r = res.info.extras["extensions"], res.info.extras["rhat"]
     assert ((ext == 3) | (r < 1.05)).all()  # stopped early only once converged
 
 
@@ -160,7 +162,7 @@ def test_same_seed_same_result_and_errors(gen):
     filt = IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=3)
     r1 = filt(zs, init=x0, generator=torch.Generator().manual_seed(7))
     r2 = filt(zs, init=x0, generator=torch.Generator().manual_seed(7))
-    assert torch.equal(r1.mean, r2.mean) and torch.equal(r1.info.rhat, r2.info.rhat)
+    assert torch.equal(r1.mean, r2.mean) and torch.equal(r1.info.extras["rhat"], r2.info.extras["rhat"])
     with pytest.raises(ValueError, match="num_chains"):
         IPMCMCFilter(motion, sensor, 21, num_chains=4)
     with pytest.raises(ValueError, match="burn_in"):
@@ -170,10 +172,11 @@ def test_same_seed_same_result_and_errors(gen):
 
 
 # ----------------------------------------------------------------------------- radar: delta path
-class _FullLikelihoodOnly:
+class _FullLikelihoodOnly(SensorModel):
     """The radar sensor seen without its ``log_likelihood_delta`` hook (full re-evaluation)."""
 
     def __init__(self, sensor):
+        super().__init__()
         self.sensor = sensor
 
     def log_likelihood(self, x, z, exists=None):

@@ -8,7 +8,7 @@ from _kalman import kalman_filter
 
 import torchmcmcpf.filters.mcmc as mcmc_module
 from torchmcmcpf import ConstantVelocity, LinearGaussian, ParticleState
-from torchmcmcpf.filters.mcmc import MCMCFilter, mcmc_step
+from torchmcmcpf.filters.mcmc import MCMCFilter, MCMCSettings, mcmc_step
 
 DT = torch.float64
 
@@ -94,8 +94,9 @@ def test_matches_the_kalman_filter(name, gen):
     correction = (km[1:] - km[:-1] @ motion.F.mT) / sd[1:, 0]  # what the update step adds
     assert (correction.abs() / se[1:]).max() > 10
 
-    acc = res.info.acceptance
-    assert set(acc) == {n for n, _ in filt.moves}
+    acc = res.info.extras
+    assert set(acc) == {f"acceptance_{n}" for n, _ in filt.settings.moves}
+    assert res.info.acceptance.shape == (zs.shape[0], B)
     for rate in acc.values():
         assert rate.shape == (zs.shape[0], B) and ((rate > 0) & (rate < 1)).all()
 
@@ -115,8 +116,8 @@ def test_kept_samples_honour_burn_in_and_thinning(monkeypatch, gen):
     monkeypatch.setattr(mcmc_module, "mcmc_iteration", fake_iteration)
     state = ParticleState(init[:, :12], torch.full((2, 12), -math.log(12), dtype=DT))
     burn_in, thinning, C = 7, 3, 4
-    out, info = mcmc_step(state, zs[0], motion=motion, sensor=sensor, generator=gen, num_chains=C,
-                          burn_in=burn_in, thinning=thinning)
+    out, info = mcmc_step(state, zs[0], motion=motion, sensor=sensor, generator=gen,
+                          settings=MCMCSettings(num_chains=C, burn_in=burn_in, thinning=thinning))
     S = 12 // C
     assert len(calls) == burn_in + thinning * S
     assert out.x.shape == (2, 12, 2, 4)
@@ -132,8 +133,9 @@ def test_same_seed_same_result(gen):
     a = filt(zs, init=init, generator=torch.Generator().manual_seed(3))
     b = filt(zs, init=init, generator=torch.Generator().manual_seed(3))
     assert torch.equal(a.state.x, b.state.x) and torch.equal(a.mean, b.mean)
-    for name in a.info.acceptance:
-        assert torch.equal(a.info.acceptance[name], b.info.acceptance[name])
+    assert torch.equal(a.info.acceptance, b.info.acceptance)
+    for name in a.info.extras:
+        assert torch.equal(a.info.extras[name], b.info.extras[name])
     c = filt(zs, init=init, generator=torch.Generator().manual_seed(4))
     assert not torch.equal(a.state.x, c.state.x)
 

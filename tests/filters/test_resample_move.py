@@ -6,7 +6,7 @@ import pytest
 import torch
 from _kalman import kalman_filter
 
-from torchmcmcpf.filters.resample_move import ResampleMoveFilter, resample_move_step
+from torchmcmcpf.filters.resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
 from torchmcmcpf.filters.sir import SIRFilter
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.sensors.association import AssociationBearingRange, AssociationPosition, PointFrame
@@ -54,8 +54,8 @@ def test_posterior_matches_kalman(num_hmc_steps, gen):
     # E[err^2] ~ P_ii / ESS: a mean error beyond the KF posterior std means a lost target.
     assert bool((err.square().mean(0) < kf_var).all())
     if num_hmc_steps:
-        assert res.info.acceptance["hmc"].shape == (T, B)
-        assert 0.5 < res.info.acceptance["hmc"].mean() <= 1.0
+        assert res.info.acceptance.shape == (T, B)
+        assert 0.5 < res.info.acceptance.mean() <= 1.0
         # After the move the particle variance stays the KF posterior variance (no
         # collapse onto few ancestors, no inflation): averaged over the runs the ratio is
         # within 20 % (an O(1/N) downward bias from resampling; Monte Carlo error ~2 %).
@@ -127,7 +127,7 @@ def test_same_seed_same_result_and_shapes(association, gen):
     assert torch.equal(a[0].x, b[0].x)
     new, info = a
     assert new.x.shape == (2, 40, 3, 4) and new.exists.shape == (2, 40, 3)
-    assert info.ess.shape == (2,) and info.acceptance["hmc"].shape == (2,)
+    assert info.ess.shape == (2,) and info.acceptance.shape == (2,)
     # the estimates stay on the two targets (measurement noise ~1 m, process noise ~1 m)
     est = filt.estimate(new)[:, :2]
     assert (est[..., [0, 2]] - truth[:, :2, [0, 2]]).abs().max() < 10
@@ -150,8 +150,9 @@ def test_works_with_a_known_association_sensor(gen):
     x = torch.randn(2, 30, 2, 4, generator=gen, dtype=D64)
     z = sensor.simulate(x[:, 0], generator=gen)
     state = ParticleState(x, torch.full((2, 30), -math.log(30), dtype=D64))
-    new, info = resample_move_step(state, z, motion=motion, sensor=sensor, generator=gen, num_hmc_steps=3)
-    assert new.x.shape == x.shape and info.acceptance["hmc"].shape == (2,)
+    new, info = resample_move_step(state, z, motion=motion, sensor=sensor, generator=gen,
+                                   settings=ResampleMoveSettings(num_hmc_steps=3))
+    assert new.x.shape == x.shape and info.acceptance.shape == (2,)
 
 
 def test_bad_settings_raise():

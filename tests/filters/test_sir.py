@@ -83,7 +83,7 @@ def test_bad_input(gen):
         filt(zs, init=init[:, :100], generator=gen)
     with pytest.raises(ValueError, match="init contains"):
         filt(zs, init=init.clone().index_fill_(1, torch.tensor([0]), float("nan")), generator=gen)
-    with pytest.raises(ValueError, match=r"measurements\[0\] has batch size 2"):
+    with pytest.raises(ValueError, match=r"measurements has batch size 2"):
         filt(zs[:, :2], init=init, generator=gen)
     bad = zs.clone()
     bad[3, 0, 0, 0] = float("inf")

@@ -82,7 +82,7 @@ class CoupledPositions(SensorModel):
 class CoupledWithDelta(CoupledPositions):
     """The same sensor with the ``log_likelihood_delta`` hook: only slot n's columns of A."""
 
-    def log_likelihood_delta(self, x, x_n, n, z):
+    def log_likelihood_delta(self, x, x_n, n, z, exists=None, exists_n=None):
         r = self._residual(x, z)
         shift = (x_n[..., [0, 2]] - x[..., n, [0, 2]]) @ self.A[:, 2 * n:2 * n + 2].mT
         return -0.5 * ((r - shift).square().sum(-1) - r.square().sum(-1)) / self.std**2
@@ -102,7 +102,7 @@ class Opaque(SensorModel):
 class PerTargetAsDelta(Opaque):
     """``log_likelihood_delta`` computed from per-target terms (the sequential hook path)."""
 
-    def log_likelihood_delta(self, x, x_n, n, z):
+    def log_likelihood_delta(self, x, x_n, n, z, exists=None, exists_n=None):
         new = self.inner.log_likelihood_per_target(x_n.unsqueeze(-2), z[:, n:n + 1]).squeeze(-1)
         return new - self.inner.log_likelihood_per_target(x, z)[..., n]
 

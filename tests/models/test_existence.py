@@ -6,7 +6,8 @@ import pytest
 import torch
 
 from torchmcmcpf.models import ConstantVelocity
-from torchmcmcpf.models.existence import BirthDeath, existence_estimate
+from torchmcmcpf.models.existence import BirthDeath
+from torchmcmcpf.state import existence_estimate
 from torchmcmcpf.models.sensors.points import PointFrame
 from torchmcmcpf.state import ParticleState
 

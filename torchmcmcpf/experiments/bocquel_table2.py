@@ -116,8 +116,9 @@ def run_one(num_targets: int, cfg: dict, args) -> dict:
                     res = filters[name](scn.measurements, init=x0, generator=g, progress=progress)
                     est = res.mean
                     if name == "IP-MCMC-PF":
-                        extra = {"rhat_mean": res.info.rhat.mean(), "extensions_mean": res.info.extensions.float().mean(),
-                                 "acceptance": res.info.acceptance["exchange"].mean()}
+                        extra = {"rhat_mean": res.info.extras["rhat"].mean(),
+                                 "extensions_mean": res.info.extras["extensions"].mean(),
+                                 "acceptance": res.info.acceptance.mean()}
             rmse = metrics.position_rmse(est, scn.truth)
             out[f"{name} | {n}"] = {
                 "algorithm": name, "num_particles": n,

@@ -118,7 +118,7 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
                 "rmse_per_target": per_target,
                 "rmse_per_step": rmse.per_step,
                 "below_range_resolution": bool(rmse.overall < scn.range_resolution),
-                "acceptance": {k: v[:, sl].nanmean() for k, v in res.info.acceptance.items()},
+                "acceptance": {k.removeprefix("acceptance_"): v[:, sl].nanmean() for k, v in res.info.extras.items()},
             })
         results[moves] = {"per_snr": per_snr, "seconds_per_step": timer.seconds_per_step,
                           "seconds_total": timer.seconds}

@@ -17,7 +17,7 @@ all with the same birth proposal, every particle starting with all slots inactiv
 
 Estimates: per slot the existence probability, the expected number of targets (their sum)
 and, for the slots with existence probability > 0.5, the mean given existence
-(:func:`~torchmcmcpf.models.existence.existence_estimate`).
+(:func:`~torchmcmcpf.state.existence_estimate`).
 
 Writes ``metrics.json`` (per-step OSPA and GOSPA, c = 100 m, p = 2, averaged over the runs;
 mean true and expected number of targets per step; their time averages; the mean
@@ -94,9 +94,10 @@ def run(args: argparse.Namespace) -> dict:
     n, burn_in = cfg["particles"], cfg["burn_in"]
     filters = {
         "SIR PF": SIRFilter(motion, sensor, n, existence=existence),
-        "MCMC-PF": MCMCFilter(motion, sensor, n, _divisor_at_most(n, n // 2), burn_in=burn_in,
+        "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=_divisor_at_most(n, n // 2), burn_in=burn_in,
                               existence=existence),
-        "IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, max(2, _divisor_at_most(n, n // 10)), burn_in=2 * burn_in,
+        "IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, num_chains=max(2, _divisor_at_most(n, n // 10)),
+                                   burn_in=2 * burn_in,
                                    existence=existence),
     }
     results, curves = {}, {"ospa": {}, "gospa": {}, "count": {}}

@@ -11,14 +11,18 @@
 """
 
 from .base import Filter
-from .ipmcmc import IPMCMCFilter, ipmcmc_step
-from .mcmc import MCMCFilter, mcmc_step
+from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
+from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
 from .pmmh import PMMHResult, ProcessNoiseScale, pmmh, sir_log_evidence
-from .resample_move import ResampleMoveFilter, resample_move_step
-from .sir import SIRFilter, sir_step
+from .resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
+from .sir import SIRFilter, SIRSettings, sir_step
 
 __all__ = [
     "Filter",
+    "SIRSettings",
+    "MCMCSettings",
+    "IPMCMCSettings",
+    "ResampleMoveSettings",
     "SIRFilter",
     "sir_step",
     "MCMCFilter",

@@ -1,21 +1,37 @@
 """The ``Filter`` base: a thin ``nn.Module`` around a pure step function.
 
+One contract for every algorithm (BlackJAX-style ``init``/``step`` with fixed state and info
+types):
+
+- constructor ``(motion, sensor, num_particles, *, <settings>, existence=None,
+  compile_step=False)``; the settings live in one frozen dataclass per algorithm
+  (``filt.settings``), which the pure step function also takes:
+  ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``;
+- ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments;
+- ``forward(measurements, *, init, generator, progress=None) -> FilterResult`` validates the
+  whole sequence once, before the first step, then runs the steps without checks;
+- ``compile_step=True`` compiles the filter's *kernel* (one MCMC iteration, one HMC
+  iteration, or the noise-free part of an SIR step) with ``torch.compile(fullgraph=True)``;
+  the random numbers are drawn eagerly from the generator and passed in, so compiled and
+  eager runs consume the same random stream.
+
 A filter holds models and settings; the filtering state is passed in and returned, never
-stored on the module, so filters are reentrant and their steps compile.
+stored on the module, so filters are reentrant. Resume = the state plus
+``generator.get_state()``.
 """
 
 from __future__ import annotations
 
-from typing import Any, Optional, Union
+from typing import Any, Callable, Optional, Union
 
 import torch
 from torch import nn
-from torch.utils._pytree import tree_map
+from torch.utils._pytree import tree_flatten, tree_map
 
-from .._validation import check_finite, check_generator, check_shape, check_tensor
+from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, existence_estimate
-from ..state import FilterResult, ParticleState, StepInfo, stack_infos
+from ..models.existence import BirthDeath
+from ..state import FilterResult, ParticleState, StepInfo, existence_estimate, stack_infos
 from ..typing import Measurement, Tensor
 
 __all__ = ["Filter", "check_existence"]
@@ -28,24 +44,48 @@ def check_existence(existence) -> Optional[BirthDeath]:
     return existence
 
 
-def _num_steps(measurements: Measurement) -> int:
-    leaves = [measurements] if torch.is_tensor(measurements) else list(measurements)
-    if not leaves or not all(torch.is_tensor(t) and t.dim() >= 1 for t in leaves):
-        raise ValueError(
-            "measurements must be a tensor (T, B, ...) or a tuple of such tensors, "
-            f"got {type(measurements).__name__}"
-        )
-    t = leaves[0].shape[0]
-    if any(leaf.shape[0] != t for leaf in leaves):
-        raise ValueError(f"measurements have different time lengths: {[tuple(x.shape) for x in leaves]}")
-    return t
+def _leaves(measurements: Measurement, name: str) -> list[Tensor]:
+    leaves = [measurements] if torch.is_tensor(measurements) else tree_flatten(measurements)[0]
+    if not leaves or not all(torch.is_tensor(t) for t in leaves):
+        raise ValueError(f"{name} must be a tensor or a tuple of tensors, got {type(measurements).__name__}")
+    return leaves
+
+
+def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name: str, models: nn.Module) -> None:
+    """Devices (none on ``meta``, all equal) and dtypes (floating measurements of the state's
+    dtype) of a state and measurements: metadata only, no host synchronisation."""
+    x = state.x
+    tensors = {"init": x, "init.log_w": state.log_w}
+    if state.exists is not None:
+        tensors["init.exists"] = state.exists
+    for i, leaf in enumerate(_leaves(measurements, name)):
+        tensors[name if torch.is_tensor(measurements) else f"{name}[{i}]"] = leaf
+    for key, t in tensors.items():
+        if t.device.type == "meta":
+            raise ValueError(f"{key} is on the meta device (no data), expected a tensor on {x.device}")
+        if t.device != x.device:
+            raise ValueError(f"{key} is on {t.device}, expected {x.device} (the device of init)")
+    for p in list(models.parameters()) + list(models.buffers()):
+        if p.device.type == "meta" or p.device != x.device:
+            raise ValueError(f"the models' parameters are on {p.device}, expected {x.device} (the device of "
+                             "init); move them with filt.to(device)")
+    if not x.is_floating_point():
+        raise ValueError(f"init has dtype {x.dtype}, expected a floating dtype")
+    for key, t in tensors.items():
+        if key.startswith(name) and t.dtype != torch.bool:
+            if not t.is_floating_point():
+                raise ValueError(f"{key} has dtype {t.dtype}, expected a floating dtype ({x.dtype}); "
+                                 "convert integer counts with .to(init.dtype)")
+            if t.dtype != x.dtype:
+                raise ValueError(f"{key} has dtype {t.dtype} but init has {x.dtype}; expected one dtype "
+                                 "(convert with .to(init.dtype))")
 
 
 class Filter(nn.Module):
-    """Base of every particle filter in torchmcmcpf.
+    """Base of every particle filter in torchmcmcpf (module docstring: the contract).
 
-    Subclasses set ``motion``, ``sensor``, ``num_particles`` (and ``existence``, a
-    ``BirthDeath`` model, for an unknown number of targets) and implement :meth:`step`.
+    Subclasses set :attr:`settings_class` and implement :meth:`_step` (call the pure step
+    function) and, for ``compile_step``, :meth:`_kernel` (the eager kernel to compile).
 
     Usage
     -----
@@ -56,16 +96,40 @@ class Filter(nn.Module):
     motion: MotionModel
     sensor: SensorModel
     num_particles: int
-    existence: Optional[BirthDeath]  # set by filters with births and deaths (None: known K)
+    existence: Optional[BirthDeath]
+    settings: Any
 
-    def __init__(self, motion: MotionModel, sensor: SensorModel):
+    def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
+                 existence: Optional[BirthDeath] = None, compile_step: bool = False):
         super().__init__()
         if not isinstance(motion, MotionModel):
             raise ValueError(f"motion must be a MotionModel, got {type(motion).__name__}")
         if not isinstance(sensor, SensorModel):
             raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
+        if not isinstance(compile_step, bool):
+            raise ValueError(f"compile_step must be a bool, got {compile_step!r}")
         self.motion = motion
         self.sensor = sensor
+        self.num_particles = check_positive_int(num_particles, "num_particles")
+        self.existence = check_existence(existence)
+        self.settings = settings
+        self.compile_step = compile_step
+        self._compiled: Optional[Callable] = None
+
+    # -- the compiled kernel -------------------------------------------------------------
+    def _kernel(self) -> Optional[Callable]:
+        """The eager kernel this filter compiles (pure, no generator); ``None``: the step
+        function's default."""
+        return None
+
+    def kernel(self) -> Optional[Callable]:
+        """The kernel passed to the step function: compiled once (``fullgraph=True``, static
+        shapes) when ``compile_step=True``, else ``None`` (the step function's eager one)."""
+        if not self.compile_step:
+            return None
+        if self._compiled is None:
+            self._compiled = torch.compile(self._kernel(), fullgraph=True, dynamic=False)
+        return self._compiled
 
     # -- state ---------------------------------------------------------------------------
     def init(self, particles: Tensor, exists: Optional[Tensor] = None) -> ParticleState:
@@ -80,38 +144,102 @@ class Filter(nn.Module):
         -------
         ParticleState with ``log_w = -log N``.
         """
-        check_shape(particles, "init", (None, self.num_particles, None, self.motion.dim))
-        if particles.shape[0] == 0 or particles.shape[2] == 0:
-            raise ValueError(f"init has shape {tuple(particles.shape)}, expected B >= 1 and K >= 1")
-        check_finite(particles, "init")
+        self._check_state_tensors(check_tensor(particles, "init"), exists)
         if exists is not None:
-            check_shape(exists, "exists", tuple(particles.shape[:3]))
             exists = exists.to(torch.bool)
         b, n = particles.shape[:2]
-        log_w = torch.full((b, n), -torch.log(torch.tensor(float(n))).item(), device=particles.device,
-                           dtype=particles.dtype)
+        log_w = torch.full((b, n), -torch.log(torch.tensor(float(n), dtype=torch.float64)).item(),
+                           device=particles.device, dtype=particles.dtype)
         return ParticleState(particles, log_w, exists)
+
+    def _check_state_tensors(self, x: Tensor, exists: Optional[Tensor]) -> None:
+        check_shape(x, "init", (None, self.num_particles, None, self.motion.dim))
+        if x.shape[0] == 0 or x.shape[2] == 0:
+            raise ValueError(f"init has shape {tuple(x.shape)}, expected B >= 1 and K >= 1")
+        if x.device.type == "meta":
+            raise ValueError("init is on the meta device (no data), expected a tensor with values")
+        if not x.is_floating_point():
+            raise ValueError(f"init has dtype {x.dtype}, expected a floating dtype")
+        if not bool(torch.isfinite(x).all()):
+            bad = int((~torch.isfinite(x)).sum())
+            raise ValueError(f"init contains {bad} NaN/inf value(s); expected finite values")
+        self.sensor.validate_state(x, "init")
+        if exists is not None:
+            check_shape(exists, "init.exists", tuple(x.shape[:3]))
+            if exists.device != x.device:
+                raise ValueError(f"init.exists is on {exists.device}, expected {x.device} (the device of init)")
 
     def _as_state(self, init: Union[Tensor, ParticleState]) -> ParticleState:
         if isinstance(init, ParticleState):
-            check_shape(init.log_w, "init.log_w", tuple(init.x.shape[:2]))
             state = self.init(init.x, init.exists)
+            check_shape(init.log_w, "init.log_w", tuple(init.x.shape[:2]))
+            if init.log_w.device != init.x.device or init.log_w.dtype != init.x.dtype:
+                raise ValueError(f"init.log_w is {init.log_w.dtype} on {init.log_w.device}, expected "
+                                 f"{init.x.dtype} on {init.x.device} (those of init.x)")
+            if bool(torch.isnan(init.log_w).any()):
+                raise ValueError("init.log_w contains NaN; expected normalised log-weights")
             return state._replace(log_w=init.log_w)
         return self.init(check_tensor(init, "init"))
 
     def estimate(self, state: ParticleState) -> Tensor:
         """MMSE estimate ``(B, K, D)`` of a state (paper 000 eq. 6); with existence, each
-        slot's mean given that it exists (:func:`~torchmcmcpf.models.existence.existence_estimate`)."""
-        existence = getattr(self, "existence", None)
-        if existence is None or state.exists is None:
+        slot's mean given that it exists (:func:`~torchmcmcpf.state.existence_estimate`)."""
+        if self.existence is None or state.exists is None:
             return state.mean()
-        return existence_estimate(state, x_death=existence.x_death).mean
+        return existence_estimate(state, x_death=self.existence.x_death).mean
+
+    # -- validation at the door ----------------------------------------------------------
+    def validate(self, state: ParticleState, measurements: Measurement, *, sequence: bool,
+                 name: str = "measurements") -> None:
+        """Check a state and one frame ``(B, *G)`` (``sequence=False``) or a whole sequence
+        ``(T, B, *G)`` (``sequence=True``, one pass for all T frames): devices, dtypes,
+        shapes, batch size, finite values (the sensor's :meth:`validate`). Raises
+        ``ValueError`` naming the argument."""
+        if not isinstance(state, ParticleState):
+            raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
+        _check_devices_dtypes(state, measurements, name, self)
+        b = state.batch_size
+        if sequence:
+            leaves = _leaves(measurements, name)
+            if any(t.dim() < 2 for t in leaves):
+                raise ValueError(f"{name} has shapes {[tuple(t.shape) for t in leaves]}, expected (T, B, ...)")
+            t0 = leaves[0].shape[0]
+            if t0 == 0:
+                raise ValueError(f"{name} has shape {tuple(leaves[0].shape)}: a time axis of length 0, "
+                                 "expected T >= 1")
+            if any(t.shape[0] != t0 for t in leaves):
+                raise ValueError(f"{name} have different time lengths: {[tuple(t.shape) for t in leaves]}")
+            if any(t.shape[1] != b for t in leaves):
+                raise ValueError(f"{name} has batch size {leaves[0].shape[1]} (shape "
+                                 f"{tuple(leaves[0].shape)}), expected {b} to match init")
+            for i, leaf in enumerate(leaves):  # name the first bad frame (one reduction, one sync)
+                if leaf.is_floating_point():
+                    bad = (~torch.isfinite(leaf)).flatten(1).sum(1)  # (T,)
+                    if bool(bad.any()):
+                        t = int(bad.nonzero()[0, 0])
+                        key = name if len(leaves) == 1 else f"{name}[{i}]"
+                        raise ValueError(f"{key}[{t}] contains {int(bad[t])} NaN/inf value(s); expected finite "
+                                         "values (checked for the whole sequence before the first step)")
+            flat = tree_map(lambda a: a.flatten(0, 1), measurements)
+            self.sensor.validate(flat, None, name)
+        else:
+            self.sensor.validate(measurements, b, name)
 
     # -- one step ------------------------------------------------------------------------
+    def _step(self, state: ParticleState, z: Measurement, generator: torch.Generator
+              ) -> tuple[ParticleState, StepInfo]:
+        raise NotImplementedError
+
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
              ) -> tuple[ParticleState, StepInfo]:
-        """Advance ``state`` by one measurement ``z (B, *G)``; returns ``(state, info)``."""
-        raise NotImplementedError
+        """Advance ``state`` by one measurement ``z (B, *G)``; returns ``(state, info)``.
+        Validates ``state``, ``z`` and ``generator`` first (one host synchronisation)."""
+        check_generator(generator)
+        if not isinstance(state, ParticleState):
+            raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
+        self._check_state_tensors(state.x, state.exists)
+        self.validate(state, z, sequence=False, name="z")
+        return self._step(state, z, generator)
 
     # -- a whole sequence ----------------------------------------------------------------
     def forward(
@@ -127,8 +255,9 @@ class Filter(nn.Module):
         Parameters
         ----------
         measurements : (T, B, *G) tensor, or a tuple of tensors with leading (T, B)
-            (e.g. point measurements and their mask).
-        init : (B, N, K, D) initial particles, or a ``ParticleState``.
+            (e.g. point measurements and their mask). Validated once, before the first step.
+        init : (B, N, K, D) initial particles, or a ``ParticleState`` (e.g. the ``state`` of
+            an earlier result, to resume).
         generator : the only source of randomness.
         progress : show a tqdm progress bar over time.
 
@@ -138,7 +267,8 @@ class Filter(nn.Module):
         """
         check_generator(generator)
         state = self._as_state(init)
-        num_steps = _num_steps(measurements)
+        self.validate(state, measurements, sequence=True)
+        num_steps = _leaves(measurements, "measurements")[0].shape[0]
         steps: Any = range(num_steps)
         if progress:
             from tqdm.auto import tqdm
@@ -147,19 +277,22 @@ class Filter(nn.Module):
         means, infos, exists_prob = [], [], []
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
-            self.sensor.validate(z, state.batch_size, f"measurements[{t}]")
-            state, info = self.step(state, z, generator=generator)
-            means.append(self.estimate(state))
+            state, info = self._step(state, z, generator)
             infos.append(info)
-            if state.exists is not None:
-                w = torch.softmax(state.log_w, -1)
-                exists_prob.append(torch.einsum("bn,bnk->bk", w, state.exists.to(w.dtype)))
+            if self.existence is None or state.exists is None:
+                means.append(state.mean())
+            else:  # one pass gives both the existence probabilities and the conditional means
+                est = existence_estimate(state, x_death=self.existence.x_death)
+                means.append(est.mean)
+                exists_prob.append(est.exists_prob)
         info = stack_infos(infos)
-        log_evidence = None if info.log_evidence is None else info.log_evidence.sum(0)
         return FilterResult(
             mean=torch.stack(means),
             state=state,
             info=info,
-            log_evidence=log_evidence,
+            log_evidence=info.log_evidence.sum(0),
             exists_prob=torch.stack(exists_prob) if exists_prob else None,
         )
+
+    def extra_repr(self) -> str:
+        return f"num_particles={self.num_particles}, settings={self.settings}, compile_step={self.compile_step}"

@@ -22,11 +22,12 @@ the existence and motion priors; acceptance ratios in :mod:`torchmcmcpf.kernels.
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence, Union
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence, Union
 
 import torch
 
-from .._validation import check_generator, check_positive_int
+from .._validation import check_positive_int
 from ..kernels.moves import (
     MOVES,
     ChainState,
@@ -45,9 +46,9 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from .base import Filter, check_existence
+from .base import Filter
 
-__all__ = ["MCMCFilter", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "parse_moves",
+__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "parse_moves",
            "MOVE_PRESETS"]
 
 MoveSpec = Union[str, Sequence[tuple[str, float]]]
@@ -105,36 +106,56 @@ def parse_moves(moves: MoveSpec) -> tuple[tuple[str, float], ...]:
     return pairs
 
 
-def _check_settings(num_particles: int, num_chains: int, burn_in: int, thinning: int, moves: MoveSpec,
-                    rw_scale, dim: int, existence: Optional[BirthDeath] = None
-                    ) -> tuple[tuple[tuple[str, float], ...], Optional[Tensor]]:
-    """Validate the MCMC settings (eager, once per call); returns parsed moves and rw_scale."""
-    check_existence(existence)
-    check_positive_int(num_particles, "num_particles")
-    check_positive_int(num_chains, "num_chains")
-    check_positive_int(burn_in, "burn_in", minimum=0)
-    check_positive_int(thinning, "thinning")
-    if num_particles % num_chains:
-        raise ValueError(
-            f"num_particles ({num_particles}) must be a multiple of num_chains ({num_chains}): "
-            "each chain keeps num_particles / num_chains samples"
-        )
-    pairs = parse_moves(moves)
-    if existence is not None and any(name == "random_walk" for name, _ in pairs):
-        raise ValueError(
-            f"moves={[name for name, _ in pairs]}: 'random_walk' is not available with existence (it has no "
-            "move on the existence flags); use 'joint' and 'refine' (e.g. moves='mixture')"
-        )
-    if rw_scale is None:
-        if any(name == "random_walk" for name, _ in pairs):
-            raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
-        return pairs, None
-    scale = torch.as_tensor(rw_scale)
-    if scale.dim() > 1 or (scale.dim() == 1 and scale.shape[0] != dim):
-        raise ValueError(f"rw_scale has shape {tuple(scale.shape)}, expected () or ({dim},)")
-    if not bool(torch.isfinite(scale).all()) or not bool((scale > 0).all()):
-        raise ValueError(f"rw_scale must be > 0 and finite, got {rw_scale!r}")
-    return pairs, scale
+@dataclass(frozen=True)
+class MCMCSettings:
+    """Settings of the sequential MCMC particle filter (validated on construction).
+
+    Attributes
+    ----------
+    num_chains : C >= 1 chains per run (a divisor of N; checked by the filter / step).
+    burn_in : iterations discarded per chain and time step, >= 0.
+    thinning : keep every ``thinning``-th state after the burn-in, >= 1.
+    moves : a preset name or ``(name, probability)`` pairs (:func:`parse_moves`); stored parsed.
+    rw_scale : random-walk step ``s``, a float or a ``(D,)`` tuple of floats (``S = diag(s^2)``,
+        paper 002 eq. 13); required by ``"random_walk"``.
+    """
+
+    num_chains: int = 1
+    burn_in: int = 100
+    thinning: int = 1
+    moves: MoveSpec = "mixture"
+    rw_scale: Optional[Union[float, tuple]] = None
+
+    def __post_init__(self):
+        check_positive_int(self.num_chains, "num_chains")
+        check_positive_int(self.burn_in, "burn_in", minimum=0)
+        check_positive_int(self.thinning, "thinning")
+        pairs = parse_moves(self.moves)
+        object.__setattr__(self, "moves", pairs)
+        if self.rw_scale is None:
+            if any(name == "random_walk" for name, _ in pairs):
+                raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
+            return
+        scale = torch.as_tensor(self.rw_scale, dtype=torch.float64)
+        if scale.dim() > 1 or not bool(torch.isfinite(scale).all()) or not bool((scale > 0).all()):
+            raise ValueError(f"rw_scale must be > 0 and finite, a float or a (D,) vector, got {self.rw_scale!r}")
+        object.__setattr__(self, "rw_scale", float(scale) if scale.dim() == 0 else tuple(scale.tolist()))
+
+    def check(self, num_particles: int, dim: int, existence: Optional[BirthDeath]) -> None:
+        """The checks that need the problem: ``C | N``, the size of ``rw_scale``, no random walk
+        with existence."""
+        if num_particles % self.num_chains:
+            raise ValueError(
+                f"num_particles ({num_particles}) must be a multiple of num_chains ({self.num_chains}): "
+                "each chain keeps num_particles / num_chains samples"
+            )
+        if isinstance(self.rw_scale, tuple) and len(self.rw_scale) != dim:
+            raise ValueError(f"rw_scale has shape ({len(self.rw_scale)},), expected () or ({dim},)")
+        if existence is not None and any(name == "random_walk" for name, _ in self.moves):
+            raise ValueError(
+                f"moves={[name for name, _ in self.moves]}: 'random_walk' is not available with existence (it has "
+                "no move on the existence flags); use 'joint' and 'refine' (e.g. moves='mixture')"
+            )
 
 
 def draw_iteration_noise(moves: tuple[tuple[str, float], ...], x: Tensor, motion: MotionModel, *,
@@ -225,13 +246,10 @@ def mcmc_step(
     *,
     motion: MotionModel,
     sensor: SensorModel,
+    settings: MCMCSettings = MCMCSettings(),
     generator: torch.Generator,
-    num_chains: int = 1,
-    burn_in: int = 100,
-    thinning: int = 1,
-    moves: MoveSpec = "mixture",
-    rw_scale: Optional[Union[float, Tensor]] = None,
     existence: Optional[BirthDeath] = None,
+    kernel: Optional[Callable] = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One time step of the sequential MCMC particle filter.
 
@@ -246,40 +264,39 @@ def mcmc_step(
         honoured: the target mixes over ``w^i p(x | x^i)``). Known number of targets
         (``existence`` None): ``state.exists`` must be ``None``.
     z : one frame per run ``(B, *G)``.
-    motion, sensor : the models.
-    generator : the only source of randomness.
-    num_chains : C >= 1, a divisor of N.
-    burn_in : iterations discarded per chain, >= 0.
-    thinning : keep every ``thinning``-th state after the burn-in, >= 1.
-    moves : the kernel, see :func:`parse_moves` (default paper 004's mixture, xi = 0.75).
-    rw_scale : per-component random-walk step ``s``, float or ``(D,)`` (``S = diag(s^2)``,
-        paper 002 eq. 13); required by ``"random_walk"``.
+    motion, sensor : the models; settings : :class:`MCMCSettings`.
+    generator : the only source of randomness (all draws in eager code).
     existence : BirthDeath, optional: an unknown number of targets (paper 001's adapted
         algorithm; :mod:`torchmcmcpf.kernels.moves`, "Existence"). ``state.exists (B, N, K)``
         None means every slot starts inactive; births are drawn near the points of ``z``
         when ``existence`` draws them so. ``moves`` may not use ``"random_walk"``.
+    kernel : :func:`mcmc_iteration` with the models and settings bound, called as
+        ``kernel(chain, noise, cloud, z, rw_scale)`` (``MCMCFilter(compile_step=True)``
+        passes a compiled one); default eager.
 
     Returns
     -------
     state : ParticleState with ``x (B, N, K, D)`` ordered chain by chain (particles
         ``c * N/C .. (c+1) * N/C - 1`` are chain c's kept states in order) and equal weights;
         with existence also ``exists (B, N, K)``.
-    info : StepInfo with ``acceptance``: move name -> (B,) acceptance rate over all
-        iterations (burn-in included) of the chains that picked it (per target update for
-        ``"refine"``); NaN for a run where no chain ever picked the move.
+    info : ``acceptance (B,)`` over every MH decision of the step (burn-in included);
+        ``ess`` and ``log_evidence`` NaN; ``extras["acceptance_<move>"] (B,)`` per move
+        (per target update for ``"refine"``), NaN for a run where no chain picked the move.
     """
-    check_generator(generator)
     x_prev = state.x
     b, n, k, d = x_prev.shape
-    pairs, scale = _check_settings(n, num_chains, burn_in, thinning, moves, rw_scale, d, existence)
+    settings.check(n, d, existence)
+    pairs, num_chains, burn_in, thinning = settings.moves, settings.num_chains, settings.burn_in, settings.thinning
     exists = state.exists
     if existence is None and exists is not None:
         raise ValueError("state.exists must be None without an existence model: pass existence= for an "
                          "unknown number of targets")
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
-    if scale is not None:
-        scale = scale.to(device=x_prev.device, dtype=x_prev.dtype)
+    scale = None if settings.rw_scale is None else torch.tensor(settings.rw_scale, device=x_prev.device,
+                                                                dtype=x_prev.dtype)
+    if kernel is None:
+        kernel = _bind(motion, sensor, settings, existence)
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
     births = {} if existence is None else dict(existence=existence, z=z)
@@ -292,9 +309,7 @@ def mcmc_step(
     kept, kept_exists = [], []
     for m in range(1, burn_in + thinning * per_chain + 1):
         noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator, **births)
-        chain, accepted, selected = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion,
-                                                   sensor=sensor, moves=pairs, rw_scale=scale,
-                                                   existence=existence)
+        chain, accepted, selected = kernel(chain, noise, cloud, z, scale)
         for name, _ in pairs:
             acc_sum[name] = acc_sum[name] + accepted[name].sum(1)
             sel_sum[name] = sel_sum[name] + selected[name].sum(1)
@@ -304,8 +319,18 @@ def mcmc_step(
     x = torch.stack(kept, dim=2).reshape(b, n, k, d)  # (B, C, N/C, K, D) -> chain-major (B, N, K, D)
     exists = None if existence is None else torch.stack(kept_exists, dim=2).reshape(b, n, k)
     log_w = x.new_full((b, n), -math.log(n))
-    acceptance = {name: acc_sum[name] / sel_sum[name] for name, _ in pairs}
-    return ParticleState(x, log_w, exists), StepInfo(acceptance=acceptance)
+    extras = {f"acceptance_{name}": acc_sum[name] / sel_sum[name] for name, _ in pairs}
+    acceptance = sum(acc_sum.values()) / sum(sel_sum.values())
+    return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
+
+
+def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: Optional[BirthDeath]
+          ) -> Callable:
+    """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, cloud, z, rw_scale)``."""
+    def kernel(chain, noise, cloud, z, rw_scale):
+        return mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, moves=settings.moves,
+                              rw_scale=rw_scale, existence=existence)
+    return kernel
 
 
 class MCMCFilter(Filter):
@@ -319,6 +344,8 @@ class MCMCFilter(Filter):
         method speeds up the per-target refinement (:mod:`torchmcmcpf.kernels.moves`).
     num_particles : N >= 1, a multiple of ``num_chains``.
     num_chains : C >= 1 chains per run, run in parallel; each keeps N / C samples.
+    compile_step : compile one MCMC iteration (:func:`mcmc_iteration`, every move of the
+        mixture) with ``torch.compile(fullgraph=True)``.
     burn_in : iterations discarded per chain and time step, >= 0.
     thinning : keep every ``thinning``-th state after the burn-in, >= 1.
     moves : ``"mixture"`` (default: joint draw w.p. 0.75, else a per-target refinement
@@ -327,7 +354,7 @@ class MCMCFilter(Filter):
     rw_scale : float or ``(D,)`` tensor, the random-walk step (needed by ``"random_walk"``).
     existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
         estimate of a slot is then its mean given existence
-        (:func:`torchmcmcpf.models.existence.existence_estimate`).
+        (:func:`torchmcmcpf.state.existence_estimate`).
 
     Each time step runs ``burn_in + thinning * N / C`` iterations of every chain.
 
@@ -336,7 +363,7 @@ class MCMCFilter(Filter):
     >>> filt = MCMCFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 500,
     ...                   num_chains=50, burn_in=20, thinning=2)
     >>> result = filt(z, init=x0, generator=torch.Generator().manual_seed(0))  # doctest: +SKIP
-    >>> result.info.acceptance["joint"].shape                                 # (T, B)
+    >>> result.info.extras["acceptance_joint"].shape                          # (T, B)
     """
 
     def __init__(
@@ -344,31 +371,26 @@ class MCMCFilter(Filter):
         motion: MotionModel,
         sensor: SensorModel,
         num_particles: int,
-        num_chains: int = 1,
         *,
+        num_chains: int = 1,
         burn_in: int = 100,
         thinning: int = 1,
         moves: MoveSpec = "mixture",
         rw_scale: Optional[Union[float, Tensor]] = None,
         existence: Optional[BirthDeath] = None,
+        compile_step: bool = False,
     ):
-        super().__init__(motion, sensor)
-        self.moves, scale = _check_settings(num_particles, num_chains, burn_in, thinning, moves, rw_scale,
-                                            motion.dim, existence)
-        self.existence = existence
-        self.num_particles, self.num_chains = num_particles, num_chains
-        self.burn_in, self.thinning = burn_in, thinning
-        self.register_buffer("rw_scale", scale)
+        if torch.is_tensor(rw_scale):
+            rw_scale = rw_scale.tolist()
+        if isinstance(rw_scale, list):
+            rw_scale = tuple(rw_scale)
+        settings = MCMCSettings(num_chains, burn_in, thinning, moves, rw_scale)
+        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
+        settings.check(num_particles, motion.dim, existence)
 
-    def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
-             ) -> tuple[ParticleState, StepInfo]:
-        """One MCMC time step (see :func:`mcmc_step`); ``state.x`` is ``(B, N, K, D)``."""
-        return mcmc_step(
-            state, z, motion=self.motion, sensor=self.sensor, generator=generator,
-            num_chains=self.num_chains, burn_in=self.burn_in, thinning=self.thinning,
-            moves=self.moves, rw_scale=self.rw_scale, existence=self.existence,
-        )
+    def _kernel(self) -> Callable:
+        return _bind(self.motion, self.sensor, self.settings, self.existence)
 
-    def extra_repr(self) -> str:
-        return (f"num_particles={self.num_particles}, num_chains={self.num_chains}, burn_in={self.burn_in}, "
-                f"thinning={self.thinning}, moves={self.moves}")
+    def _step(self, state, z, generator):
+        return mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
+                         generator=generator, existence=self.existence, kernel=self.kernel())

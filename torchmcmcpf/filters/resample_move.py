@@ -36,10 +36,14 @@ distribution the weights describe.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Callable, Optional
+
 import torch
 
 from .._validation import check_positive, check_positive_int
-from ..kernels.hmc import hmc
+from ..kernels.hmc import hmc_transition, value_and_grad
+from ..models.existence import BirthDeath, BirthNoise
 from ..models.base import MotionModel, SensorModel
 from ..models.sensors.association import (
     AssociationSensor,
@@ -52,9 +56,51 @@ from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["ResampleMoveFilter", "resample_move_step", "ASSOCIATIONS"]
+__all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "ASSOCIATIONS"]
 
 ASSOCIATIONS = ("exact", "metropolis")
+
+
+@dataclass(frozen=True)
+class ResampleMoveSettings:
+    """Settings of the resample-move filter (paper 003), validated on construction.
+
+    Attributes
+    ----------
+    step_size, num_leapfrog, num_hmc_steps : HMC settings (paper: 0.1, 1, 100);
+        ``num_hmc_steps=0`` gives the generic particle filter (sec. 1.2).
+    association : ``"exact"`` or ``"metropolis"`` (module docstring).
+    association_iters : Metropolis proposals per particle (``"metropolis"`` only).
+    resample_method : ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
+    """
+
+    step_size: float = 0.1
+    num_leapfrog: int = 1
+    num_hmc_steps: int = 100
+    association: str = "exact"
+    association_iters: int = 30
+    resample_method: str = "systematic"
+
+    def __post_init__(self):
+        object.__setattr__(self, "step_size", check_positive(self.step_size, "step_size"))
+        check_positive_int(self.num_leapfrog, "num_leapfrog")
+        check_positive_int(self.num_hmc_steps, "num_hmc_steps", minimum=0)
+        if self.association not in ASSOCIATIONS:
+            raise ValueError(f"association must be one of {ASSOCIATIONS}, got {self.association!r}")
+        check_positive_int(self.association_iters, "association_iters")
+        if self.resample_method not in RESAMPLERS:
+            raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
+
+
+def _predict(x_prev: Tensor, exists: Optional[Tensor], eps: Tensor, birth: Optional[BirthNoise], motion: MotionModel,
+             existence: Optional[BirthDeath]) -> tuple[Tensor, Optional[Tensor], Tensor]:
+    """``x_k = f(x_{k-1}, u)`` (with births and deaths: the birth/death law of
+    :meth:`BirthDeath.propagate`); returns ``x``, ``exists`` and the per-particle birth
+    weight correction ``(B, N)``."""
+    if existence is None:
+        return motion.propagate(x_prev, eps), exists, torch.zeros_like(x_prev[..., 0, 0])
+    x, e, log_ratio = existence.propagate(x_prev, exists, eps, birth, motion=motion)
+    return x, e, log_ratio.sum(-1)
 
 
 def resample_move_step(
@@ -63,13 +109,10 @@ def resample_move_step(
     *,
     motion: MotionModel,
     sensor: SensorModel,
+    settings: ResampleMoveSettings = ResampleMoveSettings(),
     generator: torch.Generator,
-    step_size: float = 0.1,
-    num_leapfrog: int = 1,
-    num_hmc_steps: int = 100,
-    association: str = "exact",
-    association_iters: int = 30,
-    resample_method: str = "systematic",
+    existence: Optional[BirthDeath] = None,
+    kernel: Optional[Callable] = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One step of the particle filter with an HMC move (module docstring, paper 003).
 
@@ -80,33 +123,44 @@ def resample_move_step(
     z : one measurement per run (e.g. ``PointFrame(z (B, M, d), mask (B, M))``).
     motion : any MotionModel (the move acts on its ``propagate`` noise).
     sensor : any SensorModel differentiable in ``x``.
+    settings : :class:`ResampleMoveSettings`.
     generator : the only source of randomness.
-    step_size, num_leapfrog, num_hmc_steps : HMC settings (paper: 0.1, 1, 100);
-        ``num_hmc_steps=0`` gives the generic particle filter.
-    association : ``"exact"`` or ``"metropolis"`` (module docstring).
-    association_iters : Metropolis proposals per particle (``"metropolis"`` only).
-    resample_method : ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
+    existence : BirthDeath, optional: births and deaths, propagated with the same law as
+        every other filter (:meth:`BirthDeath.propagate`); the HMC move acts on the motion
+        noise with the existence draws of the resampled pair fixed (``state.exists`` None:
+        every slot starts inactive).
+    kernel : one HMC transition (:func:`~torchmcmcpf.kernels.hmc.hmc_transition` with the
+        target bound), called as ``kernel(eps, value, grad, p, u, x_prev, exists, birth, z,
+        assignment)``; ``ResampleMoveFilter(compile_step=True)`` passes a compiled one.
 
     Returns
     -------
     state : equally weighted particles at time k.
     info : ``ess (B,)`` of the weights of step 2, ``log_evidence (B,)``
-        (``log sum_i w_{k-1}^i g(x_k^i, z_k)``), and ``acceptance = {"hmc": (B,)}``, the mean
-        HMC acceptance over particles (and existing slots); ``None`` without a move.
+        (``log sum_i w_{k-1}^i g(x_k^i, z_k)``), ``acceptance (B,)`` the mean HMC acceptance
+        over particles (and existing slots), NaN without a move; no extras.
     """
     x_prev, log_w_prev, exists = state
-    eps = torch.randn(x_prev.shape[:-1] + (motion.noise_dim,), generator=generator,
-                      device=x_prev.device, dtype=x_prev.dtype)
-    x = motion.propagate(x_prev, eps)
+    b, n, k, _ = x_prev.shape
+    if existence is None:
+        eps = torch.randn((b, n, k, motion.noise_dim), generator=generator, device=x_prev.device,
+                          dtype=x_prev.dtype)
+        birth = None
+    else:
+        if exists is None:
+            exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
+        eps, birth = existence.draw_noise(x_prev, motion, z, generator=generator)
+    x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, motion, existence)
 
     assignment = None
-    if association == "metropolis":
+    if settings.association == "metropolis":
         zz, mask = _split(z)
-        square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists, mask)
-        assignment, _, _ = metropolis_association(square, num_iters=association_iters, generator=generator)
-        log_lik = sensor.assigned_log_likelihood(x, z, assignment, exists).sum(-1)
+        square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists_new, mask)
+        assignment, _, _ = metropolis_association(square, num_iters=settings.association_iters, generator=generator)
+        log_lik = sensor.assigned_log_likelihood(x, z, assignment, exists_new).sum(-1)
     else:
-        log_lik = sensor.log_likelihood(x, z, exists)
+        log_lik = sensor.log_likelihood(x, z, exists_new)
+    log_lik = log_lik + log_birth
 
     # Weights may all underflow in linear space; in log space they stay finite, and a run
     # whose likelihoods are all -inf keeps uniform weights (normalize), never NaN.
@@ -114,38 +168,68 @@ def resample_move_step(
     info_ess = ess(log_w)
     log_evidence = torch.logsumexp(log_w_prev + log_lik, dim=-1)
 
-    # Resample the pairs (x_{k-1}, u) (paper 003 sec. 1.3, modified step 4).
-    idx = resample(log_w, resample_method, generator=generator)
+    # Resample the pairs (x_{k-1}, u) (paper 003 sec. 1.3, modified step 4), with their
+    # existence draws.
+    idx = resample(log_w, settings.resample_method, generator=generator)
     x_prev, eps = gather_particles(x_prev, idx), gather_particles(eps, idx)
-    if exists is not None:
+    if existence is not None:
         exists = gather_particles(exists, idx)
-    n = x_prev.shape[1]
+        birth = BirthNoise(*(gather_particles(t, idx) for t in birth))
     uniform = torch.full_like(log_w, -math.log(n))
-    if num_hmc_steps == 0:
-        return (ParticleState(motion.propagate(x_prev, eps), uniform, exists),
-                StepInfo(ess=info_ess, log_evidence=log_evidence))
+    if settings.num_hmc_steps == 0:
+        x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
+        return ParticleState(x, uniform, exists_new), StepInfo.make(info_ess, ess=info_ess, log_evidence=log_evidence)
 
     if assignment is not None:
         assignment = gather_particles(assignment, idx)
-
-        def log_target(u: Tensor) -> Tensor:  # (B, N, K): one chain per slot, eq. 9
-            lik = sensor.assigned_log_likelihood(motion.propagate(x_prev, u), z, assignment, exists)
-            return lik - 0.5 * u.square().sum(-1)
-    else:
-        def log_target(u: Tensor) -> Tensor:  # (B, N): one chain per particle, eq. 10
-            return sensor.log_likelihood(motion.propagate(x_prev, u), z, exists) - 0.5 * u.square().sum((-2, -1))
-
-    eps, hinfo = hmc(eps, log_target, step_size=step_size, num_leapfrog=num_leapfrog,
-                     num_steps=num_hmc_steps, generator=generator)
-    acc = hinfo.acceptance
+    if kernel is None:
+        kernel = _bind(motion, sensor, settings, existence)
+    target = _target(motion, sensor, existence)
+    value, grad = value_and_grad(lambda u: target(u, x_prev, exists, birth, z, assignment), eps)
+    accepted = torch.zeros_like(value)
+    for _ in range(settings.num_hmc_steps):
+        p = torch.randn(eps.shape, generator=generator, device=eps.device, dtype=eps.dtype)
+        u = torch.rand(value.shape, generator=generator, device=eps.device, dtype=eps.dtype)
+        eps, value, grad, accept = kernel(eps, value, grad, p, u, x_prev, exists, birth, z, assignment)
+        accepted = accepted + accept.to(accepted.dtype)
+    acc = accepted / settings.num_hmc_steps
+    x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
     if acc.dim() == 3:  # per slot: average over existing slots
-        w = torch.ones_like(acc) if exists is None else exists.to(acc.dtype)
+        w = torch.ones_like(acc) if exists_new is None else exists_new.to(acc.dtype)
         acc = (acc * w).sum((-2, -1)) / w.sum((-2, -1)).clamp(min=1)
     else:
         acc = acc.mean(-1)
-    x = motion.propagate(x_prev, eps)
-    return (ParticleState(x, uniform, exists),
-            StepInfo(ess=info_ess, log_evidence=log_evidence, acceptance={"hmc": acc}))
+    return ParticleState(x, uniform, exists_new), StepInfo.make(info_ess, ess=info_ess, log_evidence=log_evidence,
+                                                                acceptance=acc)
+
+
+def _target(motion: MotionModel, sensor: SensorModel, existence: Optional[BirthDeath]) -> Callable:
+    """``log_target(u, x_prev, exists, birth, z, assignment)`` of the HMC move: ``(B, N)``
+    (one chain per particle, eq. 10) or ``(B, N, K)`` with an association (eq. 9)."""
+    def log_target(u, x_prev, exists, birth, z, assignment):
+        x, e, _ = _predict(x_prev, exists, u, birth, motion, existence)
+        if assignment is not None:  # one chain per slot, eq. 9
+            return sensor.assigned_log_likelihood(x, z, assignment, e) - 0.5 * u.square().sum(-1)
+        return sensor.log_likelihood(x, z, e) - 0.5 * u.square().sum((-2, -1))
+    return log_target
+
+
+def _bind(motion: MotionModel, sensor: SensorModel, settings: ResampleMoveSettings,
+          existence: Optional[BirthDeath]) -> Callable:
+    """One HMC transition with the models bound; gradients by ``torch.func.grad`` (which
+    traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``)."""
+    target = _target(motion, sensor, existence)
+
+    def kernel(eps, value, grad, p, u, x_prev, exists, birth, z, assignment):
+        def log_target(q):
+            return target(q, x_prev, exists, birth, z, assignment)
+
+        def grad_fn(q):
+            return torch.func.grad(lambda q_: log_target(q_).sum())(q)
+
+        return hmc_transition(eps, value, grad, p, u, log_target=log_target, step_size=settings.step_size,
+                              num_leapfrog=settings.num_leapfrog, grad_fn=grad_fn)
+    return kernel
 
 
 class ResampleMoveFilter(Filter):
@@ -159,13 +243,12 @@ class ResampleMoveFilter(Filter):
         :class:`~torchmcmcpf.models.sensors.association.AssociationPosition` or
         :class:`~torchmcmcpf.models.sensors.association.AssociationBearingRange`).
     num_particles : N >= 1.
-    step_size : leapfrog step (paper: 0.1).
-    num_leapfrog : leapfrog steps per trajectory (paper: 1).
-    num_hmc_steps : accept/reject rounds per time step (paper: 100); 0 gives the generic
-        particle filter of paper 003 sec. 1.2 with the same models.
-    association : ``"exact"`` (default) or ``"metropolis"``.
-    association_iters : Metropolis proposals per particle and step.
-    resample_method : ``"systematic"`` (default), ``"stratified"``, ``"multinomial"``.
+    step_size, num_leapfrog, num_hmc_steps, association, association_iters, resample_method :
+        see :class:`ResampleMoveSettings`.
+    existence : BirthDeath, optional: births and deaths, as for every other filter.
+    compile_step : compile one HMC transition (leapfrog with ``torch.func.grad``).
+
+    ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (NaN without a move); no extras.
 
     Example
     -------
@@ -185,35 +268,20 @@ class ResampleMoveFilter(Filter):
         association: str = "exact",
         association_iters: int = 30,
         resample_method: str = "systematic",
+        existence: Optional[BirthDeath] = None,
+        compile_step: bool = False,
     ):
-        super().__init__(motion, sensor)
-        self.num_particles = check_positive_int(num_particles, "num_particles")
-        self.step_size = check_positive(step_size, "step_size")
-        self.num_leapfrog = check_positive_int(num_leapfrog, "num_leapfrog")
-        self.num_hmc_steps = check_positive_int(num_hmc_steps, "num_hmc_steps", minimum=0)
-        if association not in ASSOCIATIONS:
-            raise ValueError(f"association must be one of {ASSOCIATIONS}, got {association!r}")
+        settings = ResampleMoveSettings(step_size, num_leapfrog, num_hmc_steps, association, association_iters,
+                                        resample_method)
         if association == "metropolis" and not isinstance(sensor, AssociationSensor):
             raise ValueError(
                 f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}"
             )
-        self.association = association
-        self.association_iters = check_positive_int(association_iters, "association_iters")
-        if resample_method not in RESAMPLERS:
-            raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {resample_method!r}")
-        self.resample_method = resample_method
+        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
 
-    def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
-             ) -> tuple[ParticleState, StepInfo]:
-        """One step (see :func:`resample_move_step`); ``state.x`` is ``(B, N, K, D)``."""
-        return resample_move_step(
-            state, z, motion=self.motion, sensor=self.sensor, generator=generator,
-            step_size=self.step_size, num_leapfrog=self.num_leapfrog,
-            num_hmc_steps=self.num_hmc_steps, association=self.association,
-            association_iters=self.association_iters, resample_method=self.resample_method,
-        )
+    def _kernel(self) -> Callable:
+        return _bind(self.motion, self.sensor, self.settings, self.existence)
 
-    def extra_repr(self) -> str:
-        return (f"num_particles={self.num_particles}, step_size={self.step_size}, "
-                f"num_leapfrog={self.num_leapfrog}, num_hmc_steps={self.num_hmc_steps}, "
-                f"association={self.association!r}")
+    def _step(self, state, z, generator):
+        return resample_move_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
+                                  generator=generator, existence=self.existence, kernel=self.kernel())

@@ -9,19 +9,77 @@ whole frame, and the estimate the weighted mean (paper 000 eq. 6).
 from __future__ import annotations
 
 import math
-from typing import Optional
+from dataclasses import dataclass
+from typing import Callable, Optional
 
 import torch
 
-from .._validation import check_positive_int
+from ..kernels.moves import BirthNoise, propose_existence
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
+from ..resampling import RESAMPLERS, ess, gather_particles, normalize
 from ..state import ParticleState, StepInfo
-from ..typing import Measurement
-from .base import Filter, check_existence
+from ..typing import Measurement, Tensor
+from .base import Filter
 
-__all__ = ["SIRFilter", "sir_step"]
+__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_kernel"]
+
+
+@dataclass(frozen=True)
+class SIRSettings:
+    """Settings of the SIR filter.
+
+    Attributes
+    ----------
+    resample_method : ``"systematic"`` (default), ``"stratified"`` or ``"multinomial"``.
+    ess_threshold : resample when ``ESS < ess_threshold * N``; 1.0 resamples at every step
+        (Boers and Driessen), 0.0 never.
+    """
+
+    resample_method: str = "systematic"
+    ess_threshold: float = 1.0
+
+    def __post_init__(self):
+        if self.resample_method not in RESAMPLERS:
+            raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
+        if not 0.0 <= float(self.ess_threshold) <= 1.0:
+            raise ValueError(f"ess_threshold must be in [0, 1], got {self.ess_threshold!r}")
+
+
+def sir_kernel(x: Tensor, log_w: Tensor, exists: Optional[Tensor], z: Measurement, need: Tensor, u: Tensor,
+               eps: Tensor, birth: Optional[BirthNoise], *, motion: MotionModel, sensor: SensorModel,
+               settings: SIRSettings, existence: Optional[BirthDeath] = None
+               ) -> tuple[Tensor, Optional[Tensor], Tensor]:
+    """The noise-free part of one SIR step (pure; what ``compile_step=True`` compiles).
+
+    Parameters
+    ----------
+    x : (B, N, K, D); log_w : (B, N) normalised; exists : (B, N, K) bool or None.
+    z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling uniforms (``(B, 1)`` systematic, ``(B, N)``
+    otherwise); eps : (B, N, K, noise_dim) motion noise; birth : :class:`BirthNoise` for
+    ``(B, N)`` (with ``existence``) or None.
+
+    Returns
+    -------
+    x : (B, N, K, D) propagated; exists : (B, N, K) or None;
+    log_w : (B, N) unnormalised new log-weights ``log w_{k-1} + log p(z | x)`` (normalised
+    in eager code, so that compiled and eager steps agree bit for bit).
+    """
+    n = x.shape[1]
+    # Resample the previous cloud where its ESS is low; where not, keep it and its weights.
+    idx = RESAMPLERS[settings.resample_method][1](log_w, u, n)
+    keep = torch.arange(n, device=x.device).expand_as(idx)
+    idx = torch.where(need.unsqueeze(-1), idx, keep)
+    x = gather_particles(x, idx)
+    log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
+    if existence is None:
+        x = motion.propagate(x, eps)
+        log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
+    else:
+        x, exists, log_ratio = propose_existence(x, gather_particles(exists, idx), eps, birth, motion=motion,
+                                                 existence=existence)
+        log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N)
+    return x, exists, log_w + log_lik
 
 
 def sir_step(
@@ -30,10 +88,10 @@ def sir_step(
     *,
     motion: MotionModel,
     sensor: SensorModel,
+    settings: SIRSettings = SIRSettings(),
     generator: torch.Generator,
-    resample_method: str = "systematic",
-    ess_threshold: float = 1.0,
     existence: Optional[BirthDeath] = None,
+    kernel: Optional[Callable] = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One SIR step: resample (when ESS < ``ess_threshold * N``), propagate, weight.
 
@@ -41,50 +99,56 @@ def sir_step(
     ----------
     state : ParticleState with ``x (B, N, K, D)`` and normalised ``log_w (B, N)``.
     z : one measurement per run, ``(B, *G)``.
-    motion, sensor : the models.
-    generator : source of randomness.
-    resample_method : ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
-    ess_threshold : resample when ``ESS < ess_threshold * N``; 1.0 resamples at every
-        step (Boers and Driessen), 0.0 never.
+    motion, sensor : the models; settings : :class:`SIRSettings`.
+    generator : source of randomness (every draw is made here, in eager code).
     existence : BirthDeath, optional: an unknown number of targets. ``(x, exists)`` are
-        propagated jointly by ``existence.propose`` (births near the points of ``z`` when it
-        draws them so, with the weight correction ``p_0 / q_0``); ``state.exists`` None
-        means every slot starts inactive (paper 004 sec. 5).
+        propagated jointly (:func:`~torchmcmcpf.kernels.moves.propose_existence`, births near
+        the points of ``z`` when it draws them so, with the weight correction ``p_0 / q_0``);
+        ``state.exists`` None means every slot starts inactive (paper 004 sec. 5).
+    kernel : :func:`sir_kernel` with the models bound (compiled by ``SIRFilter(compile_step=True)``);
+        default eager.
 
     Returns
     -------
     state : the weighted particles at time k (``log_w`` normalised).
-    info : ``ess (B,)`` of the new weights and ``log_evidence (B,)``, the estimate of
+    info : ``ess (B,)`` of the new weights, ``log_evidence (B,)``, the estimate of
         ``log p(z_k | z_{1:k-1})`` (relative to the sensor's "no target" hypothesis for
-        likelihood-ratio sensors).
+        likelihood-ratio sensors); ``acceptance`` NaN (no MH step); no extras.
 
     An all-underflowing set of weights does not produce NaN: weights stay in log space and
     a run whose likelihoods are all ``-inf`` keeps uniform weights (``log_evidence = -inf``).
     """
     x, log_w, exists = state
-    n = x.shape[1]
-    # Resample the previous cloud where its ESS is low; where not, keep it and its weights.
-    need = ess(log_w) < ess_threshold * n  # (B,)
-    idx = resample(log_w, resample_method, generator=generator)
-    keep = torch.arange(n, device=x.device).expand_as(idx)
-    idx = torch.where(need.unsqueeze(-1), idx, keep)
-    x = gather_particles(x, idx)
-    if exists is not None:
-        exists = gather_particles(exists, idx)
-    log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
-
+    b, n, k, _ = x.shape
+    draw, _ = RESAMPLERS[settings.resample_method]
+    u = draw(b, n, generator=generator, device=x.device)
     if existence is None:
-        x = motion.sample(x, generator=generator)
-        log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
+        eps = torch.randn((b, n, k, motion.noise_dim), generator=generator, device=x.device, dtype=x.dtype)
+        birth = None
     else:
         if exists is None:
-            exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
-        x, exists, log_ratio = existence.propose(x, exists, motion=motion, generator=generator, z=z)
-        log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N)
-    log_w_new, log_mean = normalize(log_w + log_lik)
+            exists = torch.zeros((b, n, k), dtype=torch.bool, device=x.device)
+        eps, birth = existence.draw_noise(x, motion, z, generator=generator)
+    # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
+    if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
+        need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)
+    else:
+        need = ess(log_w) < settings.ess_threshold * n  # (B,)
+    if kernel is None:
+        kernel = _bind(motion, sensor, settings, existence)
+    x, exists, log_w = kernel(x, log_w, exists, z, need, u, eps, birth)
+    log_w_new, log_mean = normalize(log_w)
     # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
     log_evidence = log_mean + math.log(n)
-    return ParticleState(x, log_w_new, exists), StepInfo(ess=ess(log_w_new), log_evidence=log_evidence)
+    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess(log_w_new),
+                                                              log_evidence=log_evidence)
+
+
+def _bind(motion: MotionModel, sensor: SensorModel, settings: SIRSettings, existence: Optional[BirthDeath]
+          ) -> Callable:
+    def kernel(*args):
+        return sir_kernel(*args, motion=motion, sensor=sensor, settings=settings, existence=existence)
+    return kernel
 
 
 class SIRFilter(Filter):
@@ -96,11 +160,12 @@ class SIRFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, Swerling-I, pixels, LinearGaussian, ...).
     num_particles : N >= 1.
-    resample_method : ``"systematic"`` (default), ``"stratified"``, ``"multinomial"``.
-    ess_threshold : resample when ESS < ``ess_threshold * N`` (1.0: every step).
+    resample_method, ess_threshold : see :class:`SIRSettings`.
     existence : BirthDeath, optional: births and deaths (see :func:`sir_step`); the
-        estimate of a slot is then its mean given existence
-        (:func:`torchmcmcpf.models.existence.existence_estimate`).
+        estimate of a slot is then its mean given existence.
+    compile_step : compile :func:`sir_kernel` (the whole step but its random draws).
+
+    ``StepInfo``: ``ess``, ``log_evidence``; ``acceptance`` NaN; ``extras`` empty.
 
     Example
     -------
@@ -117,25 +182,14 @@ class SIRFilter(Filter):
         resample_method: str = "systematic",
         ess_threshold: float = 1.0,
         existence: Optional[BirthDeath] = None,
+        compile_step: bool = False,
     ):
-        super().__init__(motion, sensor)
-        self.existence = check_existence(existence)
-        self.num_particles = check_positive_int(num_particles, "num_particles")
-        if resample_method not in RESAMPLERS:
-            raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {resample_method!r}")
-        if not 0.0 <= float(ess_threshold) <= 1.0:
-            raise ValueError(f"ess_threshold must be in [0, 1], got {ess_threshold!r}")
-        self.resample_method = resample_method
-        self.ess_threshold = float(ess_threshold)
+        super().__init__(motion, sensor, num_particles, SIRSettings(resample_method, float(ess_threshold)),
+                         existence=existence, compile_step=compile_step)
 
-    def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
-             ) -> tuple[ParticleState, StepInfo]:
-        """One SIR step (see :func:`sir_step`); ``state.x`` is ``(B, N, K, D)``."""
-        return sir_step(
-            state, z, motion=self.motion, sensor=self.sensor, generator=generator,
-            resample_method=self.resample_method, ess_threshold=self.ess_threshold,
-            existence=self.existence,
-        )
+    def _kernel(self) -> Callable:
+        return _bind(self.motion, self.sensor, self.settings, self.existence)
 
-    def extra_repr(self) -> str:
-        return f"num_particles={self.num_particles}, resample_method={self.resample_method!r}"
+    def _step(self, state, z, generator):
+        return sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
+                        generator=generator, existence=self.existence, kernel=self.kernel())

@@ -27,7 +27,7 @@ import torch
 from .._validation import check_generator, check_positive, check_positive_int, check_tensor
 from ..typing import Tensor
 
-__all__ = ["HMCInfo", "hmc", "leapfrog", "value_and_grad"]
+__all__ = ["HMCInfo", "hmc", "hmc_transition", "leapfrog", "value_and_grad"]
 
 LogTarget = Callable[[Tensor], Tensor]
 GradFn = Callable[[Tensor], Tensor]
@@ -173,22 +173,40 @@ def hmc(
 
     q = q.detach()
     value, grad = value_and_grad(log_target, q, grad_fn)
-    chain_dims = _check_value(value, q)
-    event = tuple(range(chain_dims, q.dim()))
+    _check_value(value, q)
     accepted = torch.zeros_like(value)
     for _ in range(num_steps):
         p = torch.randn(q.shape, generator=generator, device=q.device, dtype=q.dtype)
-        log_u = torch.log(torch.rand(value.shape, generator=generator, device=q.device, dtype=q.dtype))
-        q_new, p_new, value_new, grad_new = leapfrog(
-            q, p, grad, log_target, step_size=step_size, num_steps=num_leapfrog, grad_fn=grad_fn
-        )
-        kinetic = 0.5 * p.square().sum(event) if event else 0.5 * p.square()
-        kinetic_new = 0.5 * p_new.square().sum(event) if event else 0.5 * p_new.square()
-        log_alpha = (value_new - kinetic_new) - (value - kinetic)
-        accept = log_u < log_alpha  # NaN -> False: a diverged trajectory is rejected
-        sel = accept.reshape(accept.shape + (1,) * len(event))
-        q = torch.where(sel, q_new, q)
-        grad = torch.where(sel, grad_new, grad)
-        value = torch.where(accept, value_new, value)
+        u = torch.rand(value.shape, generator=generator, device=q.device, dtype=q.dtype)
+        q, value, grad, accept = hmc_transition(q, value, grad, p, u, log_target=log_target, step_size=step_size,
+                                                num_leapfrog=num_leapfrog, grad_fn=grad_fn)
         accepted = accepted + accept.to(accepted.dtype)
     return q, HMCInfo(acceptance=accepted / num_steps, log_target=value)
+
+
+def hmc_transition(q: Tensor, value: Tensor, grad: Tensor, p: Tensor, u: Tensor, *, log_target: LogTarget,
+                   step_size: Union[float, Tensor], num_leapfrog: int, grad_fn: Optional[GradFn] = None
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """One HMC transition from pre-drawn momenta ``p (*C, *E)`` and accept uniforms ``u (*C)``
+    (pure; what ``ResampleMoveFilter(compile_step=True)`` compiles, with a ``grad_fn``).
+
+    Parameters
+    ----------
+    q : (*C, *E) states; value : (*C) ``log_target(q)``; grad : (*C, *E) its gradient.
+    Other arguments as :func:`hmc`.
+
+    Returns
+    -------
+    q, value, grad : the new states, log-targets and gradients; accept : (*C) bool.
+    """
+    event = tuple(range(value.dim(), q.dim()))
+    q_new, p_new, value_new, grad_new = leapfrog(
+        q, p, grad, log_target, step_size=step_size, num_steps=num_leapfrog, grad_fn=grad_fn
+    )
+    kinetic = 0.5 * p.square().sum(event) if event else 0.5 * p.square()
+    kinetic_new = 0.5 * p_new.square().sum(event) if event else 0.5 * p_new.square()
+    log_alpha = (value_new - kinetic_new) - (value - kinetic)
+    accept = torch.log(u) < log_alpha  # NaN -> False: a diverged trajectory is rejected
+    sel = accept.reshape(accept.shape + (1,) * len(event))
+    return (torch.where(sel, q_new, q), torch.where(accept, value_new, value), torch.where(sel, grad_new, grad),
+            accept)

@@ -105,16 +105,15 @@ discrete flags and is refused with existence.
 
 from __future__ import annotations
 
-import inspect
 import math
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple, Optional
 
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, BirthNoise
 from ..models.motion import LinearGaussianMotion
-from ..resampling import gather_particles
+from ..resampling import cdf, gather_particles, inverse_cdf
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
 
@@ -131,7 +130,6 @@ __all__ = [
     "init_chains",
     "propose_joint",
     "propose_existence",
-    "existence_delta",
     "joint_move",
     "propose_refine",
     "refine_move",
@@ -205,17 +203,13 @@ def previous_cloud(x: Tensor, log_w: Tensor, exists: Optional[Tensor] = None, *,
     optionally their existence flags ``exists (B, N, K)``. With a linear-Gaussian ``motion``
     the whitened predicted means are cached, so the random walk does not recompute them at
     every iteration of the frame."""
-    w = torch.softmax(log_w.to(torch.float64), dim=-1)
-    cdf = torch.cumsum(w, dim=-1)
-    cdf = torch.cat([cdf[..., :-1], torch.ones_like(cdf[..., -1:])], dim=-1)
     white = _whiten(motion.mean(x), motion) if isinstance(motion, LinearGaussianMotion) else None
-    return PreviousCloud(x, log_w, cdf, exists, white)
+    return PreviousCloud(x, log_w, cdf(log_w), exists, white)
 
 
 def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
     """Ancestor indices ``(B, C)`` with ``P(a) = w^a``, by inversion of uniforms ``u (B, C)``."""
-    idx = torch.searchsorted(cloud.cdf, u.to(torch.float64).contiguous(), right=True)
-    return idx.clamp_(max=cloud.cdf.shape[-1] - 1)
+    return inverse_cdf(cloud.cdf, u)
 
 
 def _uniform(shape, x: Tensor, generator: torch.Generator) -> Tensor:
@@ -224,27 +218,6 @@ def _uniform(shape, x: Tensor, generator: torch.Generator) -> Tensor:
 
 def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
-
-
-class BirthNoise(NamedTuple):
-    """Existence part of a proposal for every slot (module docstring, "Existence"):
-    ``u (B, C, K)`` uniforms for ``e'_n ~ p(. | e^a_n)``, newborn candidates ``x (B, C, K, D)``
-    from the birth proposal ``q_0`` and their ``log_ratio = log p_0 - log q_0 (B, C, K)``."""
-
-    u: Tensor
-    x: Tensor
-    log_ratio: Tensor
-
-    @classmethod
-    def draw(cls, x: Tensor, existence: BirthDeath, z: Measurement, *, generator: torch.Generator
-             ) -> "BirthNoise":
-        """Draw for chains shaped like ``x (B, C, K, D)``; births near the points of ``z``
-        when ``existence`` draws them so."""
-        b, c, k, _ = x.shape
-        u = _uniform((b, c, k), x, generator)
-        born, log_ratio = existence._draw_births((b, c, k), z, generator=generator, dtype=x.dtype,
-                                                 device=x.device)
-        return cls(u, born, log_ratio)
 
 
 def _births(x: Tensor, existence: Optional[BirthDeath], z: Measurement, generator: torch.Generator
@@ -309,23 +282,6 @@ class RandomWalkNoise(NamedTuple):
 
 
 # -- likelihood ------------------------------------------------------------------------------
-def existence_delta(sensor: SensorModel) -> Optional[Callable]:
-    """The sensor's ``log_likelihood_delta`` hook if it takes the ``exists`` and ``exists_n``
-    keywords (usable with existence flags), else ``None``."""
-    fn = getattr(sensor, "log_likelihood_delta", None)
-    if not callable(fn):
-        return None
-    try:
-        params = inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return None
-    return fn if {"exists", "exists_n"} <= params.keys() else None
-
-
-def _separable(sensor: SensorModel) -> bool:
-    return callable(getattr(sensor, "log_likelihood_per_target", None))
-
-
 def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Optional[Tensor] = None
              ) -> tuple[Tensor, Optional[Tensor]]:
     """Log-likelihood of chain states, with per-target terms when the sensor has them.
@@ -343,7 +299,7 @@ def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Optional[Te
     """
     if exists is not None:
         return sensor.log_likelihood(x, z, exists), None
-    if _separable(sensor):
+    if sensor.separable:
         terms = sensor.log_likelihood_per_target(x, z)
         return terms.sum(-1), terms
     return sensor.log_likelihood(x, z), None
@@ -376,27 +332,19 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
 def propose_existence(x_prev: Tensor, exists_prev: Tensor, eps: Tensor, birth: BirthNoise, *,
                       motion: MotionModel, existence: BirthDeath) -> tuple[Tensor, Tensor, Tensor]:
     """Per-slot proposal ``q_n`` of the existence moves (module docstring; paper 001 Alg. 1
-    steps 2-9): ``e_n ~ p(. | e_prev,n)`` (paper 004 eq. 25), then a survivor moved by the
-    motion, a newborn from the birth proposal, an inactive slot set to ``x_death``; every
-    slot at once (the same law as :meth:`BirthDeath.propose`, from pre-drawn noise).
+    steps 2-9): the birth/death law :meth:`BirthDeath.propagate` from pre-drawn noise.
 
     Parameters
     ----------
     x_prev : (B, C, K, D) ancestors; exists_prev : (B, C, K) bool their flags.
     eps : (B, C, K, noise_dim) motion noise; birth : :class:`BirthNoise`.
-    motion : MotionModel; existence : BirthDeath.
 
     Returns
     -------
     x : (B, C, K, D); exists : (B, C, K) bool;
     log_birth : (B, C, K) ``log r_n = log p_0(x_n) - log q_0(x_n)`` of newborn slots, else 0.
     """
-    log_on = existence.log_prob_exists(torch.ones_like(exists_prev), exists_prev)  # log p(e = 1 | e_prev)
-    exists = torch.log(birth.u).to(log_on.dtype) < log_on
-    born = exists & ~exists_prev
-    x = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x_prev, eps))
-    x = torch.where(exists.unsqueeze(-1), x, existence.x_death.to(x.dtype))
-    return x, exists, torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
+    return existence.propagate(x_prev, exists_prev, eps, birth, motion=motion)
 
 
 def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
@@ -519,7 +467,6 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
     ``e_prop``, ``birth_prop (B, C, K)`` with existence), ``log_ratio (B, C, K)`` and
     uniforms ``u (B, C, K)``: slot n sees the accepted updates of slots ``< n``."""
     existence = e_prop is not None
-    delta_fn = existence_delta(sensor) if existence else getattr(sensor, "log_likelihood_delta", None)
     x, log_lik, e, log_birth = chain.x, chain.log_lik, chain.exists, chain.log_birth
     slots = torch.arange(x.shape[-2], device=x.device)
     flags = []
@@ -528,16 +475,10 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
         x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
         if existence:
             e_cand = torch.where(here, e_prop, e)
-        if callable(delta_fn):
-            extra = dict(exists=e, exists_n=e_prop[..., n]) if existence else {}
-            delta = delta_fn(x, x_prop[..., n, :], n, z, **extra)
-            log_lik_cand = log_lik + delta
-        else:
-            if existence:
-                log_lik_cand = sensor.log_likelihood(x_cand, z, e_cand)
-            else:
-                log_lik_cand = sensor.log_likelihood(x_cand, z)
-            delta = log_lik_cand - log_lik
+        # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
+        log_lik_cand = sensor.log_likelihood_slot(x, x_prop[..., n, :], n, z, log_lik, exists=e,
+                                                  exists_n=e_prop[..., n] if existence else None)
+        delta = log_lik_cand - log_lik
         acc = mh_accept(delta + log_ratio[..., n], u[..., n])
         x = mh_select(acc, x_cand, x)
         log_lik = torch.where(acc, log_lik_cand, log_lik)
@@ -649,7 +590,5 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     new = mh_select(accepted, ChainState(x_prop, chain.x_prev, log_lik, terms), chain)
     # Gibbs step on the ancestor: inversion of the conditional's CDF with one uniform per chain.
     lj = torch.where(accepted.unsqueeze(-1), lj_prop, lj_cur)
-    cdf = torch.cumsum(torch.softmax(lj.to(torch.float64), dim=-1), dim=-1)
-    u = noise.u_ancestor.to(torch.float64).unsqueeze(-1) * cdf[..., -1:]
-    idx = torch.searchsorted(cdf, u.contiguous(), right=True).clamp_(max=cdf.shape[-1] - 1)
+    idx = inverse_cdf(cdf(lj), noise.u_ancestor.unsqueeze(-1))
     return new._replace(x_prev=gather_particles(cloud.x, idx.squeeze(-1))), accepted

@@ -2,7 +2,8 @@
 sensors (likelihoods)."""
 
 from .base import MotionModel, SensorModel
-from .existence import BirthDeath, ExistenceEstimate, existence_estimate
+from ..state import ExistenceEstimate, existence_estimate
+from .existence import BirthDeath
 from .group import (
     AffineTransition,
     GroupExistence,

@@ -85,9 +85,67 @@ class SensorModel(nn.Module):
         """Draw one frame per run from the true states ``x (B, K, D)``: ``-> (B, *G)``."""
         raise NotImplementedError
 
+    # -- declared fast paths (optional; the defaults are exact and always available) -------
+    def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+        """Per-target terms ``(B, *S, K)`` with ``log_likelihood == per_target.sum(-1)``, term n
+        depending on ``x[..., n, :]`` only. Only sensors whose targets do not interact
+        override it (then :attr:`separable` is True); the default raises."""
+        raise NotImplementedError(f"{type(self).__name__} has no per-target log-likelihood terms")
+
+    @property
+    def separable(self) -> bool:
+        """Whether this sensor overrides :meth:`log_likelihood_per_target` (decided by method,
+        static under ``torch.compile``)."""
+        return type(self).log_likelihood_per_target is not SensorModel.log_likelihood_per_target
+
+    def log_likelihood_delta(self, x: Tensor, x_n: Tensor, n, z: Tensor, exists: Optional[Tensor] = None,
+                             exists_n: Optional[Tensor] = None) -> Tensor:
+        """``log p(z | x with slot n set to x_n (, e_n)) - log p(z | x (, e))``: ``(B, *S)``.
+
+        Parameters
+        ----------
+        x : (B, *S, K, D) current states; x_n : (B, *S, D) the new state of slot ``n``.
+        n : Python int, or (B, *S) int64 (one slot per sample).
+        z : one frame per run; exists : (B, *S, K) bool, optional, current flags;
+        exists_n : (B, *S) bool, optional, slot n's new flag (with ``exists``).
+
+        The default evaluates :meth:`log_likelihood` twice (exact); grid sensors override it
+        with the cells near the old and new position of the slot only.
+        """
+        x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
+        return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)
+
+    def log_likelihood_slot(self, x: Tensor, x_n: Tensor, n, z: Tensor, log_lik: Tensor,
+                            exists: Optional[Tensor] = None, exists_n: Optional[Tensor] = None) -> Tensor:
+        """``log p(z | x with slot n set to x_n)`` given ``log_lik = log p(z | x)`` ``(B, *S)``
+        (arguments as :meth:`log_likelihood_delta`): ``log_lik + delta`` when the sensor
+        overrides :meth:`log_likelihood_delta`, else one full evaluation of the new state."""
+        if type(self).log_likelihood_delta is not SensorModel.log_likelihood_delta:
+            return log_lik + self.log_likelihood_delta(x, x_n, n, z, exists=exists, exists_n=exists_n)
+        x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
+        return self.log_likelihood(x_new, z, e_new)
+
+    def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
+        """Check a state ``(B, *S, K, D)`` for values this sensor cannot score (eager, at the
+        door). The default accepts every finite state; grid sensors refuse a negative
+        signal (amplitude or power)."""
+        return x
+
     def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:
         """Check one frame ``z (B, *G)``: shape, batch size, finite values. Returns ``z``."""
         check_shape(z, name, (None,) + tuple(self.frame_shape))
         if batch_size is not None:
             check_batch(z, name, batch_size)
         return check_finite(z, name)
+
+
+def _set_slot(x: Tensor, x_n: Tensor, n, exists: Optional[Tensor], exists_n: Optional[Tensor]
+              ) -> tuple[Tensor, Optional[Tensor]]:
+    """``x`` with slot ``n`` (int, or (B, *S) int64) set to ``x_n (B, *S, D)`` (and its flag)."""
+    slots = torch.arange(x.shape[-2], device=x.device)
+    here = slots == (n.unsqueeze(-1) if torch.is_tensor(n) else n)  # (B, *S, K) or (K,)
+    x_new = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), x)
+    if exists is None:
+        return x_new, None
+    e_n = exists[..., 0] if exists_n is None else exists_n
+    return x_new, torch.where(here, e_n.unsqueeze(-1), exists)

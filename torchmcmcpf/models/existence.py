@@ -18,7 +18,7 @@ The multitarget state has ``K = N_max`` slots, each with an existence flag ``e_n
 An inactive slot holds exactly ``x_death`` (default the zero vector), a point mass, so the
 transition density of a slot that dies or stays dead is ``p(e_k | e_{k-1})`` alone. Sensors
 never read an inactive slot (``exists`` masks it), and estimates condition on existence
-(:func:`existence_estimate`), so the value only has to be finite.
+(:func:`torchmcmcpf.state.existence_estimate`), so the value only has to be finite.
 
 Birth proposals
 ---------------
@@ -45,13 +45,31 @@ import torch
 from torch import nn
 
 from .._validation import check_positive
-from ..state import ParticleState
 from ..typing import Tensor, VX, VY, X, Y
 from .base import MotionModel
 from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area
 
-__all__ = ["BirthDeath", "ExistenceEstimate", "existence_estimate"]
+__all__ = ["BirthDeath", "BirthNoise"]
+
+
+class BirthNoise(NamedTuple):
+    """Pre-drawn existence noise for every slot: ``u (*S, K)`` uniforms for
+    ``e'_n ~ p(. | e_n)``, newborn candidates ``x (*S, K, D)`` from the birth proposal
+    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``."""
+
+    u: Tensor
+    x: Tensor
+    log_ratio: Tensor
+
+    @classmethod
+    def draw(cls, x: Tensor, existence: "BirthDeath", z, *, generator: torch.Generator) -> "BirthNoise":
+        """Draw for slots shaped like ``x (B, *S, K, D)`` (dtype and device of ``x``); births
+        near the points of ``z`` when ``existence`` draws them so."""
+        shape = x.shape[:-1]
+        u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
+        born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device)
+        return cls(u, born, log_ratio)
 
 
 def _probability(value, name: str) -> float:
@@ -128,14 +146,6 @@ class BirthDeath(nn.Module):
         f64 = dict(dtype=torch.float64, device=exists.device)
         p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
         return torch.where(exists_next, p_on, 1.0 - p_on).log()
-
-    def sample_exists(self, exists: Tensor, *, generator: torch.Generator,
-                      dtype: torch.dtype = torch.float64) -> Tensor:
-        """Draw ``e_k ~ p(. | e_{k-1})`` per slot: ``(*S, K) bool -> (*S, K) bool``."""
-        u = torch.rand(exists.shape, generator=generator, device=exists.device, dtype=dtype)
-        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, dtype=dtype, device=exists.device),
-                           torch.tensor(self.p_birth, dtype=dtype, device=exists.device))
-        return u < p_on
 
     # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
     def _in_area(self, pos: Tensor) -> Tensor:
@@ -239,11 +249,36 @@ class BirthDeath(nn.Module):
         log_x = torch.where(born, self.birth_log_prob(x_next), log_x)
         return log_e + log_x
 
+    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: "BirthNoise", *, motion: MotionModel
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+        """The birth/death law from pre-drawn noise (the one implementation every filter and
+        move uses): ``e_k ~ p(e_k | e_{k-1})`` (eq. 25) by ``birth.u < p(e_k = 1 | e_{k-1})``,
+        survivors moved by ``motion.propagate``, newborns from ``birth.x`` (the birth proposal),
+        inactive slots set to ``x_death``. Pure (``torch.compile`` friendly).
+
+        Parameters
+        ----------
+        x : (*S, K, D); exists : (*S, K) bool; eps : (*S, K, noise_dim) motion noise;
+        birth : :class:`BirthNoise` with leading ``(*S, K)``; motion : MotionModel.
+
+        Returns
+        -------
+        x_next : (*S, K, D); exists_next : (*S, K) bool;
+        log_ratio : (*S, K) ``log p_0(x) - log q_0(x)`` of each newborn slot, 0 elsewhere.
+        """
+        f64 = dict(dtype=torch.float64, device=exists.device)
+        p_on = torch.where(exists, torch.tensor(1.0 - self.p_death, **f64), torch.tensor(self.p_birth, **f64))
+        exists_next = birth.u.to(torch.float64) < p_on
+        born = exists_next & ~exists
+        x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
+        x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
+        return x_next, exists_next, torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
+
     def propose(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator,
                 z: Optional[PointMeasurement] = None) -> tuple[Tensor, Tensor, Tensor]:
-        """Propagate every slot: ``e_k ~ p(e_k | e_{k-1})`` (eq. 25), survivors by ``motion``,
-        newborns from the birth proposal (``q_0`` near the points of ``z`` when
-        ``birth_std`` is set and ``z`` given, else ``p_0``), inactive slots to ``x_death``.
+        """Draw the noise and propagate every slot (:meth:`propagate`): newborns from the
+        birth proposal (``q_0`` near the points of ``z`` when ``birth_std`` is set and ``z``
+        given, else ``p_0``).
 
         Parameters
         ----------
@@ -253,19 +288,21 @@ class BirthDeath(nn.Module):
 
         Returns
         -------
-        x_next : (B, *S, K, D); exists_next : (B, *S, K) bool;
-        log_ratio : (B, *S, K) the importance correction ``log p_0(x) - log q_0(x)`` of
-            each newborn slot (0 for the other slots and for prior births).
+        As :meth:`propagate`.
         """
-        exists_next = self.sample_exists(exists, generator=generator, dtype=x.dtype)
-        moved = motion.sample(x, generator=generator)
-        born, log_ratio = self._draw_births(exists.shape, z, generator=generator, dtype=x.dtype,
-                                            device=x.device)
-        is_born = (~exists & exists_next).unsqueeze(-1)
-        x_next = torch.where(is_born, born, moved)
-        x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
-        log_ratio = torch.where(is_born.squeeze(-1), log_ratio, torch.zeros_like(log_ratio))
-        return x_next, exists_next, log_ratio
+        eps, birth = self.draw_noise(x, motion, z, generator=generator)
+        return self.propagate(x, exists, eps, birth, motion=motion)
+
+    def draw_noise(self, x: Tensor, motion: MotionModel, z: Optional[PointMeasurement] = None, *,
+                   generator: torch.Generator) -> tuple[Tensor, "BirthNoise"]:
+        """The noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise
+        ``(B, *S, K, noise_dim)`` and :class:`BirthNoise` (existence uniforms, then motion
+        noise, then birth candidates: the order every filter draws in)."""
+        shape = x.shape[:-1]
+        u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
+        eps = torch.randn(shape + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
+        born, log_ratio = self._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device)
+        return eps, BirthNoise(u, born, log_ratio)
 
     def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator
                ) -> tuple[Tensor, Tensor]:
@@ -277,52 +314,3 @@ class BirthDeath(nn.Module):
     def extra_repr(self) -> str:
         return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
                 f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
-
-
-class ExistenceEstimate(NamedTuple):
-    """Point estimates of a weighted cloud with existence flags.
-
-    Attributes
-    ----------
-    exists_prob : (B, K) posterior existence probability of each slot.
-    expected_count : (B,) expected number of targets, ``sum_k exists_prob``.
-    mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
-        no particle has it).
-    present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
-    """
-
-    exists_prob: Tensor
-    expected_count: Tensor
-    mean: Tensor
-    present: Tensor
-
-
-def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
-                       x_death: Optional[Tensor] = None) -> ExistenceEstimate:
-    """Existence probabilities, expected count and the state of every slot whose existence
-    probability exceeds ``threshold`` (0.5: the marginal MAP existence).
-
-    Parameters
-    ----------
-    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)``, ``exists (B, N, K)``.
-    threshold : in [0, 1).
-    x_death : (D,) value for slots that exist in no particle (default zeros).
-
-    Returns
-    -------
-    ExistenceEstimate.
-    """
-    if state.exists is None:
-        raise ValueError("state.exists is None; existence_estimate needs a state with existence flags")
-    if not 0.0 <= float(threshold) < 1.0:
-        raise ValueError(f"threshold must be in [0, 1), got {threshold!r}")
-    w = torch.softmax(state.log_w, -1).to(state.x.dtype)  # (B, N)
-    we = w.unsqueeze(-1) * state.exists.to(w.dtype)  # (B, N, K)
-    prob = we.sum(1)  # (B, K)
-    num = torch.einsum("bnk,bnkd->bkd", we, torch.where(state.exists.unsqueeze(-1), state.x,
-                                                        torch.zeros_like(state.x)))
-    fill = torch.zeros(state.x.shape[-1], dtype=state.x.dtype, device=state.x.device) \
-        if x_death is None else x_death.to(state.x)
-    mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
-                       fill)
-    return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)

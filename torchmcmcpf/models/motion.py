@@ -13,11 +13,11 @@ from typing import Optional
 
 import torch
 
-from .._validation import check_positive
+from .._validation import check_positive, check_shape
 from ..typing import Tensor
 from .base import MotionModel
 
-__all__ = ["ConstantVelocity", "LinearGaussianMotion", "WhiteAccelerationMotion"]
+__all__ = ["ConstantVelocity", "LinearGaussianMotion", "WhiteAccelerationMotion", "ProcessNoiseScale"]
 
 
 class LinearGaussianMotion(MotionModel):
@@ -152,3 +152,40 @@ class WhiteAccelerationMotion(MotionModel):
 
     def extra_repr(self) -> str:
         return f"dt={self.dt}"
+
+
+class ProcessNoiseScale(MotionModel):
+    """A linear-Gaussian motion whose process noise is scaled per batch entry:
+    ``x_k = F x_{k-1} + sqrt(scale_b) L v``, i.e. covariance ``scale_b Q`` for entry ``b``.
+
+    With ``ConstantVelocity(dt, q=1)`` (no amplitude) as ``base``, ``scale = q`` gives the
+    constant-velocity model with acceleration noise level ``q`` (eq. 17: ``Q`` is linear
+    in ``q``).
+
+    Parameters
+    ----------
+    base : LinearGaussianMotion (F, Q).
+    scale : (M,) positive scales, one per leading (batch) entry of the states it moves.
+    """
+
+    def __init__(self, base: LinearGaussianMotion, scale: Tensor):
+        super().__init__()
+        if not isinstance(base, LinearGaussianMotion):
+            raise ValueError(f"base must be a LinearGaussianMotion, got {type(base).__name__}")
+        check_shape(scale, "scale", (None,))
+        self.base = base
+        self.register_buffer("scale", scale)
+        self.dim, self.noise_dim = base.dim, base.noise_dim
+
+    def _s(self, x: Tensor) -> Tensor:
+        return self.scale.to(x.dtype).reshape((-1,) + (1,) * (x.dim() - 1))
+
+    def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
+        """``(M, *S, K, D), (M, *S, K, D) -> (M, *S, K, D)``."""
+        return self.base.mean(x) + self._s(x).sqrt() * (eps @ self.base.L.to(x.dtype).mT)
+
+    def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
+        """``log N(x_next; F x, scale Q)``: ``(M, *S, K, D) -> (M, *S, K)``."""
+        s = self._s(x)
+        white = (x_next - self.base.mean(x)) / s.sqrt()
+        return self.base.log_prob(self.base.mean(x) + white, x) - 0.5 * self.dim * torch.log(s[..., 0])

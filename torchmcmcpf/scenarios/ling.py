@@ -54,7 +54,8 @@ import torch
 from .._validation import check_generator, check_positive, check_positive_int
 from ..models.motion import ConstantVelocity
 from ..typing import VX, VY, X, Y, Tensor
-from .ground_radar import MARGIN_CELLS, Scenario, _cover
+from ._common import Scenario, cover
+from .ground_radar import MARGIN_CELLS
 
 __all__ = ["LingScenario", "ling", "INITIAL_STATES", "INITIAL_SPREAD"]
 
@@ -150,8 +151,8 @@ def ling(
 
     az_cell, r_cell, m = math.pi / 180, 10.0, MARGIN_CELLS
     sensor = AzimuthRangeSwerlingTBD.uniform(
-        _cover(float(az.min()) - m * az_cell, float(az.max()) + m * az_cell, az_cell),
-        _cover(float(rng.min()) - m * r_cell, float(rng.max()) + m * r_cell, r_cell),
+        cover(float(az.min()) - m * az_cell, float(az.max()) + m * az_cell, az_cell),
+        cover(float(rng.min()) - m * r_cell, float(rng.max()) + m * r_cell, r_cell),
         azimuth_cell=az_cell,
         range_cell=r_cell,
         noise_power=noise_power,

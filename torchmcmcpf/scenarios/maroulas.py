@@ -231,9 +231,9 @@ def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
             state = ParticleState(torch.where(bn.unsqueeze(-1), xb, state.x), state.log_w, state.exists | bn)
         means.append(filt.estimate(state))
         esss.append(info.ess)
-        if info.acceptance is not None:
-            accs.append(info.acceptance["hmc"])
-    return TrackResult(torch.stack(means), torch.stack(esss), torch.stack(accs) if accs else None)
+        accs.append(info.acceptance)
+    acc = torch.stack(accs)
+    return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc)
 
 
 def rmse_per_target(mean: Tensor, x_true: Tensor, alive: Tensor) -> Tensor:

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import NamedTuple, Optional, Union
+from typing import Optional, Union
 
 import torch
 
@@ -41,7 +41,8 @@ from ..._validation import (
     check_positive_int,
     check_shape,
 )
-from ...typing import Tensor, X, Y
+from ...typing import PointFrame, PointMeasurement, Tensor, X, Y
+from ...typing import split_points as _split
 from ..base import SensorModel
 
 __all__ = [
@@ -61,29 +62,6 @@ MAX_EXACT_TARGETS = 6
 
 #: stand-in for -inf inside the Metropolis search, where ``inf - inf`` would give NaN
 _IMPOSSIBLE = -1e30
-
-
-class PointFrame(NamedTuple):
-    """One frame of unlabelled point measurements.
-
-    Attributes
-    ----------
-    z : (B, M, d) measurements, in no particular order.
-    mask : (B, M) bool, True for a real measurement (rows with False are padding).
-    """
-
-    z: Tensor
-    mask: Tensor
-
-
-PointMeasurement = Union[Tensor, PointFrame, tuple]
-
-
-def _split(z: PointMeasurement) -> tuple[Tensor, Optional[Tensor]]:
-    if torch.is_tensor(z):
-        return z, None
-    z, mask = z
-    return z, mask
 
 
 _PERMS: dict[tuple[int, torch.device], Tensor] = {}

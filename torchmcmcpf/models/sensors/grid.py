@@ -546,6 +546,11 @@ class SeparableGridSensor(SensorModel):
         return out.reshape((B,) + S)
 
     # ---------------------------------------------------------------- checks
+    def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
+        """Refuse a negative signal (amplitude or power) in a state ``(..., K, D)``."""
+        check_nonnegative(self.signal(x), f"{name} (signal component)")
+        return x
+
     def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:
         """Check one frame ``z (B, *G)``: shape, batch size, finite, non-negative. Returns ``z``."""
         check_shape(z, name, (None,) + tuple(self.frame_shape))

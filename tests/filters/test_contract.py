@@ -1,0 +1,257 @@
+"""One contract, every filter (torchfilter-style contract test, issue 9).
+
+Every algorithm is built as ``Filter(motion, sensor, num_particles, *, settings...,
+compile_step=...)`` and checked for: the shapes of ``FilterResult``; same seed -> identical
+bits; checkpoint (``torch.save`` of the state and the generator state, plain
+``torch.load``) and resume -> identical bits to the uninterrupted run; ``compile_step=True``
+-> identical bits to eager (one iteration/step kernel compiled with ``fullgraph=True``, so a
+graph break fails the test); each bad input -> ``ValueError`` naming the argument, raised
+before the first step; the ``StepInfo`` fields. Add a new filter to ``FILTERS`` and it is
+covered.
+"""
+
+import math
+
+import pytest
+import torch
+
+from torchmcmcpf import ConstantVelocity, FilterResult, LinearGaussian, ParticleState, StepInfo
+from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
+
+DT = torch.float64
+B, N, K, T = 2, 16, 2, 4
+
+#: name -> (factory(motion, sensor, compile_step), what StepInfo computes: ess, log_evidence, acceptance, extras)
+FILTERS = {
+    "sir": (lambda m, s, c: SIRFilter(m, s, N, compile_step=c), (True, True, False, set())),
+    "mcmc": (lambda m, s, c: MCMCFilter(m, s, N, num_chains=4, burn_in=3, thinning=2, compile_step=c),
+             (False, False, True, {"acceptance_joint", "acceptance_refine"})),
+    "ipmcmc": (lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, compile_step=c),
+               (False, False, True, {"rhat", "extensions"})),
+    "resample_move": (lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, step_size=0.3, compile_step=c),
+                      (True, True, True, set())),
+}
+
+
+def problem():
+    motion, sensor = ConstantVelocity(1.0, 1.0).to(DT), LinearGaussian.position(1.0).to(DT)
+    g = torch.Generator().manual_seed(0)
+    x = torch.tensor([[0.0, 1.0, 0.0, 0.5], [20.0, -1.0, 5.0, 0.0]], dtype=DT).expand(B, K, 4)
+    zs = []
+    for _ in range(T):
+        x = motion.sample(x, generator=g)
+        zs.append(x[..., [0, 2]] + torch.randn(B, K, 2, generator=g, dtype=DT))
+    init = x.new_zeros(B, N, K, 4) + 3.0 * torch.randn(B, N, K, 4, generator=g, dtype=DT)
+    return motion, sensor, torch.stack(zs), init
+
+
+def build(name, compile_step=False):
+    motion, sensor, zs, init = problem()
+    return FILTERS[name][0](motion, sensor, compile_step), zs, init
+
+
+def run(filt, zs, init, seed):
+    return filt(zs, init=init, generator=torch.Generator().manual_seed(seed))
+
+
+def assert_same(a: FilterResult, b: FilterResult):
+    assert torch.equal(a.mean, b.mean)
+    assert torch.equal(a.state.x, b.state.x) and torch.equal(a.state.log_w, b.state.log_w)
+    for f in ("ess", "log_evidence", "acceptance"):
+        assert torch.equal(getattr(a.info, f), getattr(b.info, f), ) or (
+            torch.isnan(getattr(a.info, f)).all() and torch.isnan(getattr(b.info, f)).all())
+    assert a.info.extras.keys() == b.info.extras.keys()
+    for k in a.info.extras:
+        assert torch.equal(a.info.extras[k], b.info.extras[k])
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_shapes_and_info_fields(name):
+    filt, zs, init = build(name)
+    res = run(filt, zs, init, 1)
+    assert res.mean.shape == (T, B, K, 4) and res.mean.dtype == DT
+    assert res.state.x.shape == (B, N, K, 4) and res.state.log_w.shape == (B, N)
+    torch.testing.assert_close(torch.logsumexp(res.state.log_w, -1), torch.zeros(B, dtype=DT))
+    assert StepInfo._fields == ("ess", "log_evidence", "acceptance", "extras")
+    has_ess, has_ev, has_acc, extras = FILTERS[name][1]
+    for field, computed in (("ess", has_ess), ("log_evidence", has_ev), ("acceptance", has_acc)):
+        value = getattr(res.info, field)
+        assert value.shape == (T, B)
+        assert bool(torch.isfinite(value).all()) if computed else bool(torch.isnan(value).all())
+    assert set(res.info.extras) == extras
+    assert all(v.shape == (T, B) for v in res.info.extras.values())
+    assert res.log_evidence.shape == (B,)
+    assert bool(torch.isfinite(res.log_evidence).all()) == has_ev
+    # one step through the public step() gives the same types
+    state, info = filt.step(filt.init(init), zs[0], generator=torch.Generator().manual_seed(1))
+    assert isinstance(state, ParticleState) and isinstance(info, StepInfo) and info.ess.shape == (B,)
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_same_seed_same_bits(name):
+    filt, zs, init = build(name)
+    a, b, c = run(filt, zs, init, 5), run(filt, zs, init, 5), run(filt, zs, init, 6)
+    assert_same(a, b)
+    assert not torch.equal(a.state.x, c.state.x)
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_checkpoint_and_resume_same_bits(name, tmp_path):
+    filt, zs, init = build(name)
+    whole = run(filt, zs, init, 7)
+    g = torch.Generator().manual_seed(7)
+    first = filt(zs[:2], init=init, generator=g)
+    torch.save({"state": first.state, "generator": g.get_state()}, tmp_path / "ckpt.pt")
+    ckpt = torch.load(tmp_path / "ckpt.pt")  # default weights_only=True
+    g2 = torch.Generator()
+    g2.set_state(ckpt["generator"])
+    rest = filt(zs[2:], init=ckpt["state"], generator=g2)
+    assert torch.equal(torch.cat([first.mean, rest.mean]), whole.mean)
+    assert torch.equal(rest.state.x, whole.state.x) and torch.equal(rest.state.log_w, whole.state.log_w)
+    for f in ("ess", "log_evidence", "acceptance"):
+        joined = torch.cat([getattr(first.info, f), getattr(rest.info, f)])
+        assert torch.equal(joined, getattr(whole.info, f)) or bool(torch.isnan(joined).all())
+
+
+@pytest.mark.compile
+@pytest.mark.parametrize("name", FILTERS)
+def test_compiled_step_equals_eager_bit_for_bit(name):
+    eager, zs, init = build(name)
+    compiled, _, _ = build(name, compile_step=True)
+    torch._dynamo.reset()
+    assert_same(run(eager, zs, init, 9), run(compiled, zs, init, 9))  # fullgraph=True: no graph break
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_result_travels(name, tmp_path):
+    filt, zs, init = build(name)
+    res = run(filt, zs, init, 3)
+    torch.save(res, tmp_path / "res.pt")
+    back = torch.load(tmp_path / "res.pt")  # weights_only=True: containers are safe globals
+    assert isinstance(back, FilterResult) and isinstance(back.state, ParticleState)
+    assert_same(res, back)
+    arrays = res.to_numpy()
+    assert arrays["mean"].shape == (T, B, K, 4) and arrays["state.x"].shape == (B, N, K, 4)
+    assert arrays["info.ess"].shape == (T, B)
+    assert all(arrays[f"info.{k}"].shape == (T, B) for k in res.info.extras)
+    text = repr(res)
+    assert len(text) < 600 and "mean=float64(4, 2, 2, 4)" in text and "tensor(" not in text
+
+
+# ----------------------------------------------------------------------------- bad input
+def _bad_inputs(zs, init):
+    meta = torch.empty(zs.shape, device="meta", dtype=DT)
+    return {
+        "float32 measurements, float64 init": (zs.float(), init, "measurements has dtype torch.float32"),
+        "integer measurements": (zs.round().long(), init, "measurements has dtype torch.int64"),
+        "measurements on meta": (meta, init, "measurements is on the meta device"),
+        "init on meta": (zs, torch.empty(init.shape, device="meta", dtype=DT), "init is on the meta device"),
+        "time axis of length 0": (zs[:0], init, "measurements has shape .*time axis of length 0"),
+        "NaN in the last frame": (torch.cat([zs[:-1], zs[-1:] * math.nan]), init,
+                                  rf"measurements\[{T - 1}\] contains {B * K * 2} NaN"),
+        "wrong batch": (zs[:, :1], init, "measurements has batch size 1"),
+        "NaN in init": (zs, init * math.nan, "init contains"),
+    }
+
+
+@pytest.mark.parametrize("name", FILTERS)
+@pytest.mark.parametrize("case", list(_bad_inputs(torch.zeros(T, B, K, 2), torch.zeros(B, N, K, 4))))
+def test_bad_input_raises_before_the_first_step(name, case, monkeypatch):
+    filt, zs, init = build(name)
+    z_bad, init_bad, message = _bad_inputs(zs, init)[case]
+    steps = []
+    monkeypatch.setattr(filt, "_step", lambda *a: steps.append(1))
+    with pytest.raises(ValueError, match=message):
+        filt(z_bad, init=init_bad, generator=torch.Generator().manual_seed(0))
+    assert not steps  # validated once, before any step ran
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_step_validates_like_forward(name):
+    filt, zs, init = build(name)
+    state, g = filt.init(init), torch.Generator().manual_seed(0)
+    with pytest.raises(ValueError, match="z contains 8 NaN"):
+        filt.step(state, zs[0] * math.nan, generator=g)  # an all-NaN frame
+    with pytest.raises(ValueError, match="z has dtype torch.float32"):
+        filt.step(state, zs[0].float(), generator=g)
+    with pytest.raises(ValueError, match="z has dtype torch.int64"):
+        filt.step(state, zs[0].long(), generator=g)
+    with pytest.raises(ValueError, match="generator"):
+        filt.step(state, zs[0], generator=None)
+    with pytest.raises(ValueError, match="state must be a ParticleState"):
+        filt.step(init, zs[0], generator=g)
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_models_on_another_device_are_refused(name):
+    filt, zs, init = build(name)
+    filt.to("meta")
+    with pytest.raises(ValueError, match="the models' parameters are on meta, expected cpu"):
+        filt(zs, init=init, generator=torch.Generator().manual_seed(0))
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match="measurements is on cuda"):
+            build(name)[0](zs.cuda(), init=init, generator=torch.Generator().manual_seed(0))
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_negative_radar_amplitude_is_refused(name):
+    deg = math.pi / 180
+    sensor = RangeDopplerBearingTBD.uniform((2740, 2850), (-8, 8), (-5 * deg, 4 * deg)).to(DT)
+    motion = ConstantVelocity(1.0, 1.0, amplitude_q=0.01).to(DT)
+    filt = FILTERS[name][0](motion, sensor, False)
+    init = torch.zeros(B, N, K, 5, dtype=DT)
+    init[..., 0], init[..., 4] = 2800.0, 5.0
+    init[0, 3, 1, 4] = -1.0
+    z = torch.zeros((1, B) + tuple(sensor.frame_shape), dtype=DT)
+    with pytest.raises(ValueError, match="init .signal component. has negative value"):
+        filt(z, init=init, generator=torch.Generator().manual_seed(0))
+
+
+# ----------------------------------------------------------------------------- births and deaths
+def existence_problem():
+    from torchmcmcpf.models.existence import BirthDeath
+    from torchmcmcpf.models.sensors.points import PoissonClutterPoints
+    from torchmcmcpf.scenarios.septier import stack_frames
+
+    area = ((0.0, 5000.0), (0.0, 5000.0))
+    motion = ConstantVelocity(1.0, 1.0).to(DT)
+    sensor = PoissonClutterPoints(10.0, 4.0, area, noise_std=10.0).to(DT)
+    existence = BirthDeath(0.05, 0.05, area, velocity_std=5.0, birth_std=10.0).to(DT)
+    g = torch.Generator().manual_seed(0)
+    x = torch.tensor([2000.0, 3.0, 2500.0, -2.0], dtype=DT).expand(B, 1, 4)
+    frames = []
+    for _ in range(T):
+        x = motion.sample(x, generator=g)
+        frames.append(sensor.simulate(x, exists=torch.ones(B, 1, dtype=torch.bool), generator=g))
+    z = stack_frames(frames)  # padded to a common M
+    return motion, sensor, existence, z, torch.zeros(B, N, K, 4, dtype=DT)
+
+
+EXISTENCE_FILTERS = {
+    "sir": lambda m, s, e: SIRFilter(m, s, N, existence=e),
+    "mcmc": lambda m, s, e: MCMCFilter(m, s, N, num_chains=4, burn_in=3, existence=e),
+    "ipmcmc": lambda m, s, e: IPMCMCFilter(m, s, N, num_chains=4, burn_in=3, existence=e),
+    "resample_move": lambda m, s, e: ResampleMoveFilter(m, s, N, num_hmc_steps=2, existence=e),
+}
+
+
+@pytest.mark.parametrize("name", EXISTENCE_FILTERS)
+def test_births_and_deaths_same_contract(name, tmp_path):
+    """Every filter takes a BirthDeath model the same way: shapes, same seed -> same bits,
+    checkpoint/resume -> same bits (the flags travel in the ParticleState)."""
+    motion, sensor, existence, z, init = existence_problem()
+    filt = EXISTENCE_FILTERS[name](motion, sensor, existence)
+    whole = filt(z, init=init, generator=torch.Generator().manual_seed(2))
+    again = filt(z, init=init, generator=torch.Generator().manual_seed(2))
+    assert whole.exists_prob.shape == (T, B, K) and whole.state.exists.shape == (B, N, K)
+    assert torch.equal(whole.exists_prob, again.exists_prob) and torch.equal(whole.state.x, again.state.x)
+    g = torch.Generator().manual_seed(2)
+    first = filt(type(z)(z.z[:2], z.mask[:2]), init=init, generator=g)
+    torch.save({"state": first.state, "generator": g.get_state()}, tmp_path / "ckpt.pt")
+    ckpt = torch.load(tmp_path / "ckpt.pt")
+    g2 = torch.Generator()
+    g2.set_state(ckpt["generator"])
+    rest = filt(type(z)(z.z[2:], z.mask[2:]), init=ckpt["state"], generator=g2)
+    assert torch.equal(torch.cat([first.exists_prob, rest.exists_prob]), whole.exists_prob)
+    assert torch.equal(rest.state.x, whole.state.x) and torch.equal(rest.state.exists, whole.state.exists)
