@@ -358,6 +358,17 @@ def _death_pos(existence: GroupExistence, like: Tensor) -> Tensor:
 # ----------------------------------------------------------------------------------------
 # the moves (pure: noise in, no generator; compile-friendly)
 # ----------------------------------------------------------------------------------------
+def make_chain(j: Tensor, labels: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, z: Tensor, models: Models
+               ) -> Chain:
+    """A chain state ``(B, C, ...)`` with its caches from ``(j, g, e, x_p)`` (dead slots' positions
+    are set to ``x_death``)."""
+    pm, S, obs, free = _predict(cloud, j, labels, exists, models)
+    pos = torch.where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
+    return Chain(j, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
+                 _log_px(pos, pm, S, obs, free, models.existence), _gather(cloud.log_wq, j),
+                 _birth_ratio(pos, free, cloud, models), pm, S, obs, free)
+
+
 def joint_proposal(noise: dict, cloud: Cloud, z: Tensor, models: Models) -> Chain:
     """Algorithm 1 steps 1-4 (eqs. 61-65) for every chain: the proposed state with its caches."""
     existence = models.existence
