@@ -99,8 +99,13 @@ def group_problem(chains=CHAINS, kept=KEPT, burn_in=1000):
 
 
 def _iteration_args(move):
-    from torchmcmcpf.filters.group import (Models, draw_joint_noise, draw_refine_noise, joint_proposal,
-                                           make_cloud)
+    from torchmcmcpf.filters.group import (
+        Models,
+        draw_joint_noise,
+        draw_refine_noise,
+        joint_proposal,
+        make_cloud,
+    )
 
     filt, state, z, g = group_problem()
     models = Models(filt.motion, filt.sensor, filt.existence, 0.01, 0.5)

@@ -10,8 +10,6 @@ marginals (ancestor, structure, existence pattern) and the mean positions stay w
 Carlo error (5 standard errors: chains plus reference).
 """
 
-import math
-
 import pytest
 import torch
 
@@ -83,7 +81,10 @@ def reference(sensor, motion, existence, prior, state, z, generator):
     j = jj.reshape(1, -1, 1).expand(1, jj.numel(), m).reshape(1, -1)
     g = gg.reshape(1, -1, 1).expand(1, jj.numel(), m).reshape(1, -1)
     e = pats[pp.reshape(-1)].reshape(1, -1, 1, K).expand(1, jj.numel(), m, K).reshape(1, -1, K)
-    take = lambda t: t[0, j[0]].unsqueeze(0)  # noqa: E731
+
+    def take(t):
+        return t[0, j[0]].unsqueeze(0)
+
     pos_prev, lab_prev, e_prev = take(state.x[..., 0::2]), take(state.labels), take(state.exists)
     lab = table[g]
     tr = motion.transition(pos_prev, lab_prev, lab, e_prev, e, existence=existence)

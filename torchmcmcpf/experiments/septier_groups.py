@@ -38,7 +38,7 @@ import torch
 
 from .. import metrics
 from ..filters.group import GroupMCMCFilter
-from ..models.group import GroupStructurePrior, group_structures
+from ..models.group import group_structures
 from ..scenarios.group_merge import group_merge
 from ._common import generator, positive_int, save_figure, write_metrics
 

@@ -81,7 +81,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, NamedTuple, Optional
+from typing import NamedTuple, Optional
 
 import torch
 import torch.nn.functional as F
@@ -520,7 +520,7 @@ def make_cloud(state: GroupState, z: Tensor, *, structure_prior: GroupStructureP
     """Per-step quantities of the proposals (eqs. 19, 61-62, 65), eager."""
     sensor = models.sensor
     pos = state.x[..., 0::2]
-    b, n, k = state.exists.shape
+    b, _, k = state.exists.shape
     table = group_structures(k, device=pos.device)
     log_pg = structure_prior.log_probs(structure_index(state.labels), pos, state.exists)
     log_w = torch.log_softmax(state.log_w.to(torch.float64), -1)
