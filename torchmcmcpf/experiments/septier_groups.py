@@ -229,9 +229,10 @@ def run(args: argparse.Namespace) -> dict:
         "ospa": o.mean(), "gospa": g.mean(),
         "acceptance": {k: v.nanmean() for k, v in res.info.extras.items() if k.startswith("acceptance")},
     }
+    write_metrics(args.out, payload, args=args, device=device)  # kept if item 4 is interrupted
     if getattr(args, "beyond", False):
         payload["beyond"] = _beyond(scn, cfg, gen, args.progress)
-    write_metrics(args.out, payload, args=args, device=device)
+        write_metrics(args.out, payload, args=args, device=device)
     return payload
 
 
