@@ -7,6 +7,7 @@ each algorithm is a pure step function wrapped by a thin ``nn.Module`` Filter.
 from . import diagnostics, kernels, metrics, models, plotting, resampling, scenarios
 from .filters import (
     Filter,
+    GroupMCMCFilter,
     IPMCMCFilter,
     MCMCFilter,
     ResampleMoveFilter,
@@ -15,6 +16,7 @@ from .filters import (
     mcmc_step,
     pmmh,
     resample_move_step,
+    group_mcmc_step,
     sir_step,
 )
 from .models import (
@@ -40,6 +42,8 @@ __all__ = [
     "pmmh",
     "ResampleMoveFilter",
     "resample_move_step",
+    "GroupMCMCFilter",
+    "group_mcmc_step",
     "ConstantVelocity",
     "LinearGaussian",
     "RangeDopplerBearingTBD",

@@ -6,11 +6,14 @@
 - :class:`IPMCMCFilter` / :func:`ipmcmc_step`: interacting population-based MCMC-PF
   (Bocquel et al. 2012).
 - :func:`pmmh`: particle marginal Metropolis-Hastings driven by the SIR log-evidence.
+- :class:`GroupMCMCFilter` / :func:`group_mcmc_step`: marginalised MCMC-based PF for
+  coordinated groups (Septier, Pang, Godsill and Carmi 2009).
 - :class:`ResampleMoveFilter` / :func:`resample_move_step`: SIR + HMC move over the
   Brownian increments (Maroulas and Stinis 2010).
 """
 
 from .base import Filter
+from .group import GroupMCMCFilter, GroupMCMCSettings, GroupState, group_mcmc_step
 from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
 from .pmmh import PMMHResult, ProcessNoiseScale, pmmh, sir_log_evidence
@@ -35,4 +38,8 @@ __all__ = [
     "sir_log_evidence",
     "ResampleMoveFilter",
     "resample_move_step",
+    "GroupMCMCFilter",
+    "GroupMCMCSettings",
+    "GroupState",
+    "group_mcmc_step",
 ]

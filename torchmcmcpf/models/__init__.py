@@ -4,6 +4,20 @@ sensors (likelihoods)."""
 from .base import MotionModel, SensorModel
 from ..state import ExistenceEstimate, existence_estimate
 from .existence import BirthDeath
+from .group import (
+    AffineTransition,
+    GroupExistence,
+    GroupPrediction,
+    GroupStructurePrior,
+    KalmanStats,
+    VirtualLeaderMotion,
+    group_structures,
+    pairwise_kalman_init,
+    pairwise_kalman_predict,
+    pairwise_kalman_sample,
+    pairwise_kalman_update,
+    structure_index,
+)
 from .motion import ConstantVelocity, LinearGaussianMotion, WhiteAccelerationMotion
 from .sensors import *  # noqa: F401,F403
 from .sensors import __all__ as _sensors
@@ -17,5 +31,17 @@ __all__ = [
     "BirthDeath",
     "ExistenceEstimate",
     "existence_estimate",
+    "VirtualLeaderMotion",
+    "GroupExistence",
+    "GroupStructurePrior",
+    "group_structures",
+    "structure_index",
+    "AffineTransition",
+    "KalmanStats",
+    "GroupPrediction",
+    "pairwise_kalman_init",
+    "pairwise_kalman_predict",
+    "pairwise_kalman_sample",
+    "pairwise_kalman_update",
     *_sensors,
 ]

@@ -4,11 +4,14 @@
 - :func:`ling`: three targets on an azimuth-range Swerling-I grid (Ling, paper 002).
 - :func:`septier`: births and deaths in Poisson clutter, after Septier et al. (paper 001).
 - :mod:`maroulas`: the time-varying target count of Maroulas and Stinis (2010).
+- :func:`group_merge`: two groups of two targets merge, thresholded pixels (Septier et al. 2009).
 """
 
 from . import maroulas
 from .ground_radar import Scenario, ground_radar
+from .group_merge import GroupMergeScenario, group_merge
 from .ling import LingScenario, ling
 from .septier import SeptierScenario, septier
 
-__all__ = ["Scenario", "ground_radar", "LingScenario", "ling", "SeptierScenario", "septier", "maroulas"]
+__all__ = ["Scenario", "ground_radar", "LingScenario", "ling", "SeptierScenario", "septier", "maroulas",
+           "GroupMergeScenario", "group_merge"]

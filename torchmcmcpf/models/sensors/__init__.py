@@ -7,11 +7,13 @@
 - :class:`AssociationPosition`, :class:`AssociationBearingRange`: point measurements with
   unknown association (Maroulas and Stinis 2010, eqs. 14-17).
 - :class:`PoissonClutterPoints`: point measurements in Poisson clutter, association-free.
+- :class:`ThresholdedPixels`: binary pixel frames (Septier et al. 2009, eqs. 39-41).
 """
 
 from .association import AssociationBearingRange, AssociationPosition, AssociationSensor, PointFrame
 from .grid import SeparableGridSensor
 from .linear import LinearGaussian
+from .pixels import ThresholdedPixels
 from .points import PoissonClutterPoints
 from .radar import RangeDopplerBearingTBD
 from .swerling import AzimuthRangeSwerlingTBD
@@ -26,4 +28,5 @@ __all__ = [
     "AssociationBearingRange",
     "PoissonClutterPoints",
     "PointFrame",
+    "ThresholdedPixels",
 ]
