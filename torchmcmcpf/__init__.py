@@ -12,11 +12,11 @@ from .filters import (
     MCMCFilter,
     ResampleMoveFilter,
     SIRFilter,
+    group_mcmc_step,
     ipmcmc_step,
     mcmc_step,
     pmmh,
     resample_move_step,
-    group_mcmc_step,
     sir_step,
 )
 from .models import (

@@ -103,7 +103,8 @@ def _run(filt, scn, steps, gen, progress):
 
 def first_step_above(prob: torch.Tensor, threshold: float, start: int = 0) -> list:
     """1-based first step ``t >= start + 1`` with ``prob[t] > threshold`` per run: ``(T, B) ->
-    [B]`` (``None`` where never)."""
+    [B]`` (``None`` where never).
+    """
     above = prob[start:] > threshold
     out = []
     for b in range(prob.shape[1]):
@@ -116,7 +117,8 @@ def plot_groups(ax, truth, est, present, labels_modal, *, every: int = 15) -> No
     """Fig. 4: true tracks (grey), estimated tracks (slots with existence > 0.5) and, every
     ``every`` steps, an ellipse around each group of the modal structure with its number of
     detected members. ``truth (T, K, 2)``, ``est (T, K, 2)``, ``present (T, K)``,
-    ``labels_modal (T, K)``."""
+    ``labels_modal (T, K)``.
+    """
     from matplotlib.patches import Ellipse
 
     t_max, k = present.shape

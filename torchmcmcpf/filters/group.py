@@ -81,7 +81,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -168,7 +168,7 @@ class GroupState(NamedTuple):
     labels: Tensor
     w_mean: Tensor
     w_cov: Tensor
-    frame_prev: Optional[Tensor] = None
+    frame_prev: Tensor | None = None
 
     @property
     def batch_size(self) -> int:
@@ -192,7 +192,8 @@ class Cloud(NamedTuple):
     ``w_cov``; ``log_pg (B, N, G)`` eq. 19 for every structure; ``cdf_alpha (B, N)``,
     ``cdf_w (B, N)`` float64 cumulative weights of ``alpha`` and ``w``; ``log_wq (B, N)``
     ``log w_j - log q(j)`` (eq. 61); ``beta (B, HW)`` bool pixels of eq. 65, ``cdf_beta (B, HW)``,
-    ``n_obs (B,)``; ``table (G, K)`` the structures."""
+    ``n_obs (B,)``; ``table (G, K)`` the structures.
+    """
 
     pos: Tensor
     labels: Tensor
@@ -213,7 +214,8 @@ class Chain(NamedTuple):
     """Chain states ``(B, C, ...)``: ancestor ``j``, ``labels``, ``exists``, ``pos (B, C, K, 2)``;
     cached ``log_lik`` (eq. 40), ``log_px`` (``log p(x | j, g, e)``), ``log_wq``
     (``log w_j - log q(j)``), ``log_birth`` (``sum_free log p_0 - log q_0``); and the
-    configuration's predictive: ``pm (B, C, K, 2)``, ``S (B, C, K, K)``, ``observed``, ``free``."""
+    configuration's predictive: ``pm (B, C, K, 2)``, ``S (B, C, K, K)``, ``observed``, ``free``.
+    """
 
     j: Tensor
     labels: Tensor
@@ -264,7 +266,8 @@ def _gather(t: Tensor, j: Tensor) -> Tensor:
 
 def _predict(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, models: Models):
     """Kalman predictive of the positions of configuration ``(j, g, e)``: ``pm (B, C, K, 2)``,
-    ``S (B, C, K, K)``, ``observed``, ``free (B, C, K)`` (eqs. 47, 51-52)."""
+    ``S (B, C, K, K)``, ``observed``, ``free (B, C, K)`` (eqs. 47, 51-52).
+    """
     pos_prev = _gather(cloud.pos, j)
     tr = models.motion.transition(pos_prev, _gather(cloud.labels, j), labels, _gather(cloud.exists, j), exists,
                                   existence=models.existence)
@@ -274,7 +277,8 @@ def _predict(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, models: Mo
 
 def _log_px(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, free: Tensor, existence: GroupExistence) -> Tensor:
     """``log p(x | j, g, e)`` (eq. 44): Gaussian over the observed slots (both axes) plus
-    ``log p_0`` of the free births: ``-> (B, C)``."""
+    ``log p_0`` of the free births: ``-> (B, C)``.
+    """
     o = obs.to(pos.dtype)
     Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
     L = torch.linalg.cholesky(Sm)
@@ -361,7 +365,8 @@ def _death_pos(existence: GroupExistence, like: Tensor) -> Tensor:
 def make_chain(j: Tensor, labels: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, z: Tensor, models: Models
                ) -> Chain:
     """A chain state ``(B, C, ...)`` with its caches from ``(j, g, e, x_p)`` (dead slots' positions
-    are set to ``x_death``)."""
+    are set to ``x_death``).
+    """
     pm, S, obs, free = _predict(cloud, j, labels, exists, models)
     pos = torch.where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
     return Chain(j, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
@@ -391,7 +396,8 @@ def joint_proposal(noise: dict, cloud: Cloud, z: Tensor, models: Models) -> Chai
 
 def joint_move(chain: Chain, noise: dict, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
     """Algorithm 1 with the acceptance ratio ``rho_1`` of eq. 60 (module docstring).
-    Returns the new chain and ``accepted (B, C)`` bool."""
+    Returns the new chain and ``accepted (B, C)`` bool.
+    """
     prop = joint_proposal(noise, cloud, z, models)
     log_rho = (prop.log_lik + prop.log_wq + prop.log_birth) - (chain.log_lik + chain.log_wq + chain.log_birth)
     acc = torch.log(noise["u"]) < log_rho
@@ -402,7 +408,8 @@ def refine_move(chain: Chain, noise: dict, cloud: Cloud, z: Tensor, models: Mode
                 ) -> tuple[Chain, Tensor, Tensor]:
     """Algorithm 2: the structure by ``rho_2``, then each slot's ``(x_i, e_i)`` by ``rho_3``
     (eq. 66; module docstring). Returns the chain, ``accepted_structure (B, C)`` bool and
-    ``accepted_targets (B, C, K)`` bool."""
+    ``accepted_targets (B, C, K)`` bool.
+    """
     existence, sensor = models.existence, models.sensor
     k = chain.pos.shape[-2]
     # -- structure (rho_2)
@@ -447,7 +454,8 @@ def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tup
     """Conditional of slot ``i``'s position given the other observed slots under the
     predictive ``N(pm, S)`` (per axis): mean ``(B, C, 2)``, variance ``(B, C)``. Through the
     precision ``P`` of the observed block: ``var = 1 / P_ii``,
-    ``mean = x_i - (P d)_i / P_ii`` with ``d = (x - pm)`` on the observed slots."""
+    ``mean = x_i - (P d)_i / P_ii`` with ``d = (x - pm)`` on the observed slots.
+    """
     o = obs.to(pos.dtype)
     Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
     P = torch.cholesky_inverse(torch.linalg.cholesky(Sm))
@@ -460,7 +468,8 @@ def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tup
 def _log_q_slot(x_i: Tensor, cm: Tensor, cv: Tensor, obs_i: Tensor, free_i: Tensor, cloud: Cloud,
                 models: Models) -> Tensor:
     """``log q_i(x_i)``: conditional Gaussian if observed, ``q_0`` if a free birth, 0 (point
-    mass) if dead: ``-> (B, C)``."""
+    mass) if dead: ``-> (B, C)``.
+    """
     log_n = (-0.5 * (x_i - cm).square().sum(-1) / cv - torch.log(cv) - LOG_2PI)
     log_q0 = _log_q0(x_i.unsqueeze(-2), cloud, models.sensor, models.existence, models.p_i).squeeze(-1)
     return torch.where(obs_i, log_n, torch.where(free_i, log_q0, torch.zeros_like(log_n)))
@@ -502,7 +511,8 @@ def draw_refine_noise(shape, *, generator: torch.Generator, dtype=torch.float64,
 # ----------------------------------------------------------------------------------------
 def _predicted_positions(state: GroupState, models: Models, chunk: int = 512) -> Tensor:
     """``x~^j`` of eq. 62: each particle's positions predicted with its structure and existence
-    unchanged, ``(B, N, K, 2)`` (chunks of particles bound the memory)."""
+    unchanged, ``(B, N, K, 2)`` (chunks of particles bound the memory).
+    """
     out = []
     pos = state.x[..., 0::2]
     for s in range(0, pos.shape[1], chunk):
@@ -539,7 +549,8 @@ def make_cloud(state: GroupState, z: Tensor, *, structure_prior: GroupStructureP
 def _kalman_at_keep(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, pos: Tensor, models: Models,
                     marginalise: bool, generator: torch.Generator, chunk: int = 512) -> tuple[Tensor, Tensor]:
     """Kalman statistics at ``t`` of kept states ``(B, N, ...)`` (eqs. 53-57); sampled with zero
-    covariance when not marginalising."""
+    covariance when not marginalising.
+    """
     means, covs = [], []
     for s in range(0, j.shape[1], chunk):
         sl = slice(s, s + chunk)
@@ -565,7 +576,7 @@ def _kalman_at_keep(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, pos
 def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion, sensor,
                     settings: GroupMCMCSettings = GroupMCMCSettings(), generator: torch.Generator,
                     existence: GroupExistence, structure_prior: GroupStructurePrior,
-                    kernels: Optional[dict] = None) -> tuple[GroupState, StepInfo]:
+                    kernels: dict | None = None) -> tuple[GroupState, StepInfo]:
     """One time step of the marginalised MCMC-based particle filter (module docstring).
 
     Parameters
@@ -682,9 +693,9 @@ class GroupMCMCFilter(Filter):
         self.settings = GroupMCMCSettings(num_chains, burn_in, thinning, xi, p_a, p_i, marginalise)
         self.settings.check(self.num_particles)
         self.compile_step = compile_step
-        self._compiled: Optional[dict] = None
+        self._compiled: dict | None = None
 
-    def kernels(self) -> Optional[dict]:
+    def kernels(self) -> dict | None:
         if not self.compile_step:
             return None
         if self._compiled is None:
@@ -694,11 +705,12 @@ class GroupMCMCFilter(Filter):
                               for name, fn in _bind(models).items()}
         return self._compiled
 
-    def init(self, particles: Tensor, exists: Optional[Tensor] = None, labels: Optional[Tensor] = None) -> GroupState:
+    def init(self, particles: Tensor, exists: Tensor | None = None, labels: Tensor | None = None) -> GroupState:
         """Wrap initial particles ``(B, N, K, 4)`` (``[x, vx, y, vy]``; ``exists (B, N, K)``,
         default all inactive; ``labels (B, N, K)``, default each slot its own group) into a
         GroupState with exact (zero-covariance) Kalman statistics: velocities from
-        ``particles``, leaders at ``v_death``."""
+        ``particles``, leaders at ``v_death``.
+        """
         check_shape(particles, "init", (None, self.num_particles, None, 4))
         if not particles.is_floating_point() or not bool(torch.isfinite(particles).all()):
             raise ValueError("init must be a finite floating tensor (B, N, K, 4)")
@@ -741,11 +753,12 @@ class GroupMCMCFilter(Filter):
                                kernels=self.kernels())
 
     def forward(self, measurements: Tensor, *, init: GroupState, generator: torch.Generator,
-                progress: Optional[bool] = None) -> FilterResult:
+                progress: bool | None = None) -> FilterResult:
         """Filter frames ``(T, B, H, W)`` from ``init`` (a GroupState, e.g. :meth:`init_inactive`).
 
         Returns FilterResult: ``mean (T, B, K, 4)`` (each slot's mean given existence),
-        ``exists_prob (T, B, K)``, ``info.extras`` stacked ``(T, B, ...)``."""
+        ``exists_prob (T, B, K)``, ``info.extras`` stacked ``(T, B, ...)``.
+        """
         check_generator(generator)
         if not torch.is_tensor(measurements) or measurements.dim() != 4 or measurements.shape[0] == 0:
             raise ValueError(f"measurements must be frames (T, B, H, W) with T >= 1, got "

@@ -1,8 +1,9 @@
 """Models by role: motion (transition densities), existence (births and deaths) and
-sensors (likelihoods)."""
+sensors (likelihoods).
+"""
 
-from .base import MotionModel, SensorModel
 from ..state import ExistenceEstimate, existence_estimate
+from .base import MotionModel, SensorModel
 from .existence import BirthDeath
 from .group import (
     AffineTransition,

@@ -44,7 +44,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Callable, NamedTuple, Optional, Sequence
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -79,7 +80,7 @@ LOG_2PI = math.log(2 * math.pi)
 # ----------------------------------------------------------------------------------------
 # group structures (eqs. 19-23, Table 2)
 # ----------------------------------------------------------------------------------------
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def bell_number(n: int) -> int:
     """Number of partitions of ``n`` items (Bell numbers 1, 1, 2, 5, 15, 52, ...)."""
     check_positive_int(n, "n", minimum=0)
@@ -92,7 +93,7 @@ def bell_number(n: int) -> int:
     return row[0]
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _structures(n: int) -> tuple[tuple[int, ...], ...]:
     rows: list[tuple[int, ...]] = [(0,)]
     for _ in range(n - 1):
@@ -124,7 +125,8 @@ def structure_index(labels: Tensor) -> Tensor:
     """Row of :func:`group_structures` that a labelling describes: ``(*S, K) -> (*S,)``.
 
     ``labels`` need not be canonical (any integers in ``[0, K)`` naming the groups); they
-    are relabelled in order of first appearance first."""
+    are relabelled in order of first appearance first.
+    """
     k = labels.shape[-1]
     table = group_structures(k, device=labels.device)
     canon = canonical_labels(labels)
@@ -182,7 +184,7 @@ class GroupStructurePrior(nn.Module):
         one group with score ``e^{-1/2}``).
     """
 
-    def __init__(self, p_nc: float, p_q: float, closeness: Optional[Callable] = None, *,
+    def __init__(self, p_nc: float, p_q: float, closeness: Callable | None = None, *,
                  scale: float = 300.0):
         super().__init__()
         self.p_nc = _probability(p_nc, "p_nc")
@@ -215,7 +217,8 @@ class GroupStructurePrior(nn.Module):
 
     def log_probs(self, structure_prev: Tensor, pos: Tensor, exists: Tensor) -> Tensor:
         """``log p(g_t = h | ...)`` for every ``h`` (eq. 19): ``(*S,), (*S, K, 2), (*S, K)
-        -> (*S, Bell(K))``; ``structure_prev`` is the row index of ``g_{t-1}``."""
+        -> (*S, Bell(K))``; ``structure_prev`` is the row index of ``g_{t-1}``.
+        """
         log_pi = self.log_scores(pos, exists)
         stay = torch.nn.functional.one_hot(structure_prev, log_pi.shape[-1]).bool()
         log_nc = math.log(self.p_nc) if self.p_nc > 0 else -math.inf
@@ -251,7 +254,8 @@ def _probability(value, name: str) -> float:
 def to_axes(x: Tensor, v: Tensor) -> Tensor:
     """Per-axis state of a configuration: targets ``x (*S, K, 4)`` and leaders ``v (*S, K, 4)``
     in the ``[x, vx, y, vy]`` layout -> ``(*S, 2, 4K)`` with, per axis,
-    ``[pos_1..pos_K, vel_1..vel_K, leader pos_1..K, leader vel_1..K]``."""
+    ``[pos_1..pos_K, vel_1..vel_K, leader pos_1..K, leader vel_1..K]``.
+    """
     parts = [x[..., 0::2], x[..., 1::2], v[..., 0::2], v[..., 1::2]]  # each (*S, K, 2)
     return torch.cat([p.transpose(-1, -2) for p in parts], -1)
 
@@ -302,7 +306,7 @@ class GroupExistence(nn.Module):
     def __init__(self, p_birth: float, p_death: float, area, *, velocity_std: float = 5.0,
                  group_birth_std: Sequence[float] = (50.0, 2.0),
                  leader_birth_std: Sequence[float] = (50.0, 2.0),
-                 x_death: Optional[Tensor] = None, v_death: Optional[Tensor] = None):
+                 x_death: Tensor | None = None, v_death: Tensor | None = None):
         super().__init__()
         self.chain = BirthDeath(p_birth, p_death, area, velocity_std=velocity_std)
         self.velocity_std = check_positive(velocity_std, "velocity_std")
@@ -341,7 +345,8 @@ class GroupExistence(nn.Module):
 
     def log_p0_position(self, pos: Tensor) -> Tensor:
         """Log density of the uniform birth position (eq. 32): ``(*S, K, 2) -> (*S, K)``,
-        ``-inf`` outside the area."""
+        ``-inf`` outside the area.
+        """
         a = self.area.to(pos.dtype)
         inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
         f = dict(dtype=pos.dtype, device=pos.device)
@@ -399,7 +404,7 @@ class VirtualLeaderMotion(nn.Module):
     """
 
     def __init__(self, alpha: float, beta: float, gamma1: float, gamma2: float, sigma_x: float,
-                 sigma_g: float, dt: float, r1: Optional[float] = None, r2: Optional[float] = None):
+                 sigma_g: float, dt: float, r1: float | None = None, r2: float | None = None):
         super().__init__()
         self.alpha = check_positive(alpha, "alpha")
         self.beta = check_positive(beta, "beta", allow_zero=True)
@@ -432,7 +437,8 @@ class VirtualLeaderMotion(nn.Module):
     # -- eqs. 3-7, 14-16 ------------------------------------------------------------------
     def generator_matrices(self, n: int) -> tuple[Tensor, Tensor]:
         """``A`` (eq. 4) and ``D Q_c D^T`` (eq. 7) of a group of ``n`` members, float64,
-        ``(4(n+1), 4(n+1))`` each, in the state order of eq. 3."""
+        ``(4(n+1), 4(n+1))`` each, in the state order of eq. 3.
+        """
         n = check_positive_int(n, "n")
         d = 4 * (n + 1)
         f64 = dict(dtype=torch.float64)
@@ -507,7 +513,7 @@ class VirtualLeaderMotion(nn.Module):
     # -- whole configuration (eqs. 13, 24-38) ----------------------------------------------
     def transition(self, pos_prev: Tensor, labels_prev: Tensor, labels: Tensor, exists_prev: Tensor,
                    exists: Tensor, *, existence: GroupExistence,
-                   pos_born: Optional[Tensor] = None) -> AffineTransition:
+                   pos_born: Tensor | None = None) -> AffineTransition:
         """The affine Gaussian transition of a whole configuration, per axis (eqs. 27, 42).
 
         Slots and groups are partitioned as in eq. 26: survivors ``Upsilon_3`` move by eq. 13
@@ -599,7 +605,8 @@ class VirtualLeaderMotion(nn.Module):
 
     def _coefficients(self, existence: GroupExistence, **f) -> tuple[Tensor, Tensor]:
         """Per-axis 4 x 4 coefficients (``[pos, vel, leader pos, leader vel]``) of each block
-        type of :meth:`transition`: ``Psi`` (3 types) and ``Q`` (11 types)."""
+        type of :meth:`transition`: ``Psi`` (3 types) and ``Q`` (11 types).
+        """
         z = torch.zeros(2, 2, **f)
         sv2 = existence.velocity_std ** 2
 
@@ -673,7 +680,8 @@ class VirtualLeaderMotion(nn.Module):
 
 def _masked_cholesky(Q: Tensor, mask: Tensor) -> Tensor:
     """Cholesky factor of ``Q`` restricted to ``mask``, zero rows/columns elsewhere:
-    ``(*S, d, d), (*S, d) -> (*S, d, d)``."""
+    ``(*S, d, d), (*S, d) -> (*S, d, d)``.
+    """
     m = mask.to(Q.dtype)
     Qm = Q * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m)
     return torch.linalg.cholesky(Qm) * m.unsqueeze(-1) * m.unsqueeze(-2)
@@ -681,7 +689,8 @@ def _masked_cholesky(Q: Tensor, mask: Tensor) -> Tensor:
 
 def _masked_gaussian(resid: Tensor, Q: Tensor, mask: Tensor) -> Tensor:
     """``log N(resid; 0, Q)`` over the masked components, both axes: ``resid (*S, 2, d)``,
-    ``Q (*S, d, d)``, ``mask (*S, d)`` -> ``(*S,)``."""
+    ``Q (*S, d, d)``, ``mask (*S, d)`` -> ``(*S,)``.
+    """
     m = mask.to(Q.dtype)
     L = torch.linalg.cholesky(Q * m.unsqueeze(-1) * m.unsqueeze(-2) + torch.diag_embed(1.0 - m))
     y = torch.linalg.solve_triangular(L, (resid * m.unsqueeze(-2)).transpose(-1, -2), upper=False)
@@ -739,7 +748,8 @@ class GroupPrediction(NamedTuple):
 def pairwise_kalman_init(batch_shape, num_slots: int, *, existence: GroupExistence,
                          dtype=torch.float64, device=None) -> KalmanStats:
     """Statistics of an all-inactive configuration: velocities at ``x_death``'s, leaders at
-    ``v_death``, zero covariance: ``-> mean (*batch, 2, 3K), cov (*batch, 3K, 3K)``."""
+    ``v_death``, zero covariance: ``-> mean (*batch, 2, 3K), cov (*batch, 3K, 3K)``.
+    """
     k = check_positive_int(num_slots, "num_slots")
     xd, vd = existence.x_death.to(dtype=dtype, device=device), existence.v_death.to(dtype=dtype, device=device)
     row = torch.stack([torch.cat([xd[1 + a].expand(k), vd[a].expand(k), vd[1 + a].expand(k)])
@@ -810,8 +820,8 @@ def pairwise_kalman_update(pred: GroupPrediction, pos: Tensor) -> tuple[Tensor, 
     return log_pred, KalmanStats(w_mean, 0.5 * (w_cov + w_cov.transpose(-1, -2)))
 
 
-def pairwise_kalman_sample(pred: GroupPrediction, *, generator: Optional[torch.Generator] = None,
-                           eps: Optional[Tensor] = None) -> Tensor:
+def pairwise_kalman_sample(pred: GroupPrediction, *, generator: torch.Generator | None = None,
+                           eps: Tensor | None = None) -> Tensor:
     """Draw the observed positions from their predictive ``N(x~_t, L_t)`` (eq. 58, the
     position part of the proposal of eq. 63); the other slots are returned as zeros (fill
     them with ``p_0`` / ``q_0`` births and ``x_death``).

@@ -37,7 +37,8 @@ it; ``merge_step`` is the 0-based index of the first merged step (45).
 
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 

@@ -25,7 +25,7 @@ give ``P_d,1 = 0.885``). We take ``P_d,1`` as given and derive the SNR from it.
 from __future__ import annotations
 
 import math
-from typing import Optional, Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -56,8 +56,8 @@ class ThresholdedPixels(SensorModel):
     12.2
     """
 
-    def __init__(self, shape: Sequence[int], pixel_size: float, p_fa: float, p_d1: Optional[float] = None,
-                 snr: Optional[float] = None, *, position_index: Sequence[int] = (X, Y)):
+    def __init__(self, shape: Sequence[int], pixel_size: float, p_fa: float, p_d1: float | None = None,
+                 snr: float | None = None, *, position_index: Sequence[int] = (X, Y)):
         super().__init__()
         if len(shape) != 2 or any(int(s) != s or s < 1 for s in shape):
             raise ValueError(f"shape must be (H, W) positive integers, got {shape!r}")
@@ -93,9 +93,10 @@ class ThresholdedPixels(SensorModel):
         """``log P_d,n`` of eq. 41 for target counts ``n`` (any shape): ``log P_fa / (1 + n SNR)``."""
         return math.log(self.p_fa) / (1.0 + n.to(dtype) * self.snr)
 
-    def pixel_index(self, x: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def pixel_index(self, x: Tensor, exists: Tensor | None = None) -> Tensor:
         """Flat pixel index ``i W + j`` of each target, ``-1`` if inactive or off the grid:
-        ``(*S, K, D) -> (*S, K)`` int64."""
+        ``(*S, K, D) -> (*S, K)`` int64.
+        """
         ix, iy = self.position_index
         col = torch.floor(x[..., ix] / self.pixel_size)
         row = torch.floor(x[..., iy] / self.pixel_size)
@@ -106,7 +107,7 @@ class ThresholdedPixels(SensorModel):
         flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long()
         return torch.where(inside, flat, torch.full_like(flat, -1))
 
-    def log_likelihood(self, x: Tensor, z: Tensor, exists: Optional[Tensor] = None) -> Tensor:
+    def log_likelihood(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Log ratio against "no target" over the occupied pixels (eq. 40).
 
         Parameters
@@ -134,7 +135,7 @@ class ThresholdedPixels(SensorModel):
                            torch.log(-torch.expm1(log_pd)) - math.log1p(-self.p_fa))
         return torch.where(first, term, torch.zeros_like(term)).sum(-1)
 
-    def simulate(self, x: Tensor, *, generator: torch.Generator, exists: Optional[Tensor] = None) -> Tensor:
+    def simulate(self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None) -> Tensor:
         """Draw one binary frame per run: ``x (B, K, D) -> (B, H, W)`` bool."""
         idx = self.pixel_index(x, exists)  # (B, K)
         b = idx.shape[0]
@@ -145,7 +146,7 @@ class ThresholdedPixels(SensorModel):
         u = torch.rand(b, h * w, generator=generator, dtype=torch.float64, device=x.device)
         return (u < p).reshape(b, h, w)
 
-    def validate(self, z: Tensor, batch_size: Optional[int] = None, name: str = "z") -> Tensor:
+    def validate(self, z: Tensor, batch_size: int | None = None, name: str = "z") -> Tensor:
         """Check a frame ``(B, H, W)``: shape, batch size and binary values."""
         check_shape(z, name, (None,) + self.shape)
         if batch_size is not None and z.shape[0] != batch_size:
