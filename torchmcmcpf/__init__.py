@@ -38,6 +38,7 @@ __all__ = [
     "IPMCMCFilter",
     "ipmcmc_step",
     "pmmh",
+    "PMMHFilter",
     "ResampleMoveFilter",
     "resample_move_step",
     "ConstantVelocity",

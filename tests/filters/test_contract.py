@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from torchmcmcpf import ConstantVelocity, FilterResult, LinearGaussian, ParticleState, StepInfo
-from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, PMMHFilter, ResampleMoveFilter, SIRFilter
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
 
 DT = torch.float64
@@ -31,6 +31,8 @@ FILTERS = {
                (False, False, True, {"rhat", "extensions"})),
     "resample_move": (lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, step_size=0.3, compile_step=c),
                       (True, True, True, set())),
+    "pmmh": (lambda m, s, c: PMMHFilter(m, s, N, num_candidates=4, compile_step=c),
+             (True, True, True, {"theta_mean", "candidate_ess"})),
 }
 
 

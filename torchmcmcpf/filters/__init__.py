@@ -5,7 +5,9 @@
   et al. 2009; Ling).
 - :class:`IPMCMCFilter` / :func:`ipmcmc_step`: interacting population-based MCMC-PF
   (Bocquel et al. 2012).
-- :func:`pmmh`: particle marginal Metropolis-Hastings driven by the SIR log-evidence.
+- :class:`PMMHFilter` / :func:`pmmh_step`: sequential PMMH (particle independent MH over
+  prior draws of a static parameter, their SIR filters side by side); :func:`pmmh`: the
+  offline random-walk PMMH driven by the SIR log-evidence.
 - :class:`ResampleMoveFilter` / :func:`resample_move_step`: SIR + HMC move over the
   Brownian increments (Maroulas and Stinis 2010).
 """
@@ -13,7 +15,7 @@
 from .base import Filter
 from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
-from .pmmh import PMMHResult, ProcessNoiseScale, pmmh, sir_log_evidence
+from .pmmh import PMMHFilter, PMMHResult, PMMHSettings, ProcessNoiseScale, pmmh, pmmh_step, sir_log_evidence
 from .resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
 from .sir import SIRFilter, SIRSettings, sir_step
 
@@ -30,6 +32,9 @@ __all__ = [
     "IPMCMCFilter",
     "ipmcmc_step",
     "pmmh",
+    "PMMHFilter",
+    "PMMHSettings",
+    "pmmh_step",
     "PMMHResult",
     "ProcessNoiseScale",
     "sir_log_evidence",

@@ -202,7 +202,7 @@ def ipmcmc_step(
         used; ``ess``, ``log_evidence`` NaN; ``extras["rhat"] (B,)`` the largest R-hat of the
         kept samples and ``extras["extensions"] (B,)`` how many extensions ran (as a float).
     """
-    x_prev, log_w, exists = state
+    x_prev, log_w, exists = state.x, state.log_w, state.exists
     num_chains, burn_in = settings.num_chains, settings.burn_in
     rhat_threshold, max_extensions, rhat_method = settings.rhat_threshold, settings.max_extensions, settings.rhat_method
     if existence is None and exists is not None:

@@ -138,7 +138,7 @@ def resample_move_step(
         (``log sum_i w_{k-1}^i g(x_k^i, z_k)``), ``acceptance (B,)`` the mean HMC acceptance
         over particles (and existing slots), NaN without a move; no extras.
     """
-    x_prev, log_w_prev, exists = state
+    x_prev, log_w_prev, exists = state.x, state.log_w, state.exists
     b, n, k, _ = x_prev.shape
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
