@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from torchmcmcpf import ConstantVelocity, FilterResult, LinearGaussian, ParticleState, StepInfo
-from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, PMMHFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, PartitionedSIRFilter, PMMHFilter, ResampleMoveFilter, SIRFilter
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
 
 DT = torch.float64
@@ -33,6 +33,7 @@ FILTERS = {
                       (True, True, True, set())),
     "pmmh": (lambda m, s, c: PMMHFilter(m, s, N, num_candidates=4, compile_step=c),
              (True, True, True, {"theta_mean", "candidate_ess"})),
+    "partitioned": (lambda m, s, c: PartitionedSIRFilter(m, s, N, compile_step=c), (True, False, False, {"ess_min"})),
 }
 
 

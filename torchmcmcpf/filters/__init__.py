@@ -5,6 +5,8 @@
   et al. 2009; Ling).
 - :class:`IPMCMCFilter` / :func:`ipmcmc_step`: interacting population-based MCMC-PF
   (Bocquel et al. 2012).
+- :class:`PartitionedSIRFilter` / :func:`partitioned_sir_step`: independent per-target
+  partitions, each weighted and resampled on its own (Orton and Fitzgerald; Kreucher et al.).
 - :class:`PMMHFilter` / :func:`pmmh_step`: sequential PMMH (particle independent MH over
   prior draws of a static parameter, their SIR filters side by side); :func:`pmmh`: the
   offline random-walk PMMH driven by the SIR log-evidence.
@@ -15,6 +17,7 @@
 from .base import Filter
 from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
+from .partitioned import PartitionedSIRFilter, PartitionedSIRSettings, partitioned_sir_step
 from .pmmh import PMMHFilter, PMMHResult, PMMHSettings, ProcessNoiseScale, pmmh, pmmh_step, sir_log_evidence
 from .resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
 from .sir import SIRFilter, SIRSettings, sir_step
@@ -31,6 +34,9 @@ __all__ = [
     "mcmc_step",
     "IPMCMCFilter",
     "ipmcmc_step",
+    "PartitionedSIRFilter",
+    "PartitionedSIRSettings",
+    "partitioned_sir_step",
     "pmmh",
     "PMMHFilter",
     "PMMHSettings",
