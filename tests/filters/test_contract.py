@@ -15,8 +15,21 @@ import math
 import pytest
 import torch
 
-from torchmcmcpf import ConstantVelocity, FilterResult, LinearGaussian, ParticleState, StepInfo
-from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, PartitionedSIRFilter, PMMHFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf import (
+    ConstantVelocity,
+    FilterResult,
+    LinearGaussian,
+    ParticleState,
+    StepInfo,
+)
+from torchmcmcpf.filters import (
+    IPMCMCFilter,
+    MCMCFilter,
+    PartitionedSIRFilter,
+    PMMHFilter,
+    ResampleMoveFilter,
+    SIRFilter,
+)
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
 
 DT = torch.float64

@@ -551,7 +551,11 @@ def test_adapted_random_walk_keeps_the_posterior(gen):
     invariant: adapt on a burn-in run from the prior, freeze, then start at pi exactly and
     make 100 moves with the Gibbs redraw of the ancestor (the acceptance on this mixture
     target is about 0.15, so that each chain accepts > 10 moves)."""
-    from torchmcmcpf.kernels.random_walk import RunningMoments, adapted_step, prior_covariance
+    from torchmcmcpf.kernels.random_walk import (
+        RunningMoments,
+        adapted_step,
+        prior_covariance,
+    )
 
     sensor = LinearGaussian.position(1.0).to(DT)
     motion, cloud, z, post = _problem(sensor, gen, q=3.0)

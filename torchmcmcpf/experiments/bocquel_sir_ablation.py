@@ -154,12 +154,12 @@ def table_markdown(rows: dict) -> str:
              " paper RMSE | paper TLR |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows.values():
         paper = PAPER.get(r["particles"]) if r["targets"] == 10 and r["spread"] == 1.0 else None
-        lines.append(
+        lines.append((
             f"| {r['targets']} | {r['particles']} | x{r['spread']:g} | "
             f"{'std = cell' if r['point_spread'] == 'std' else 'variance'} | "
             f"{'rho^2/(2 sigma^2)' if r['snr'] == 'half' else 'rho^2/sigma^2'} | {float(r['rmse']):.2f} | "
             f"{100 * float(r['tlr']):.0f}% | {float(r['ess']):.1f} | {r['seconds_per_step']:.3f} | "
-            + ("- | - |" if paper is None else f"{paper[0]:.2f} | {100 * paper[1]:.0f}% |"))
+            + ("- | - |" if paper is None else f"{paper[0]:.2f} | {100 * paper[1]:.0f}% |")))
     return "\n".join(lines) + "\n"
 
 

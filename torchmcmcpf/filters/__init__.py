@@ -17,8 +17,20 @@
 from .base import Filter
 from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
-from .partitioned import PartitionedSIRFilter, PartitionedSIRSettings, partitioned_sir_step
-from .pmmh import PMMHFilter, PMMHResult, PMMHSettings, ProcessNoiseScale, pmmh, pmmh_step, sir_log_evidence
+from .partitioned import (
+    PartitionedSIRFilter,
+    PartitionedSIRSettings,
+    partitioned_sir_step,
+)
+from .pmmh import (
+    PMMHFilter,
+    PMMHResult,
+    PMMHSettings,
+    ProcessNoiseScale,
+    pmmh,
+    pmmh_step,
+    sir_log_evidence,
+)
 from .resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
 from .sir import SIRFilter, SIRSettings, sir_step
 

@@ -201,7 +201,7 @@ def adapted_step(cov: Tensor, dtype: torch.dtype) -> Tensor:
     (B, 1, K, D, D) lower-triangular factors in ``dtype`` (the ``scale`` of
     :func:`random_walk_move`).
     """
-    b, k, d, _ = cov.shape
+    k, d = cov.shape[-3], cov.shape[-1]
     cov = 0.5 * (cov + cov.mT)
     jitter = 1e-9 * torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1).clamp(min=1e-12)
     eye = torch.eye(d, dtype=cov.dtype, device=cov.device)
