@@ -38,7 +38,7 @@ FILTERS = {
     "ipmcmc": lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=20, burn_in=5, max_extensions=0, compile_step=c),
     "resample_move": lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, compile_step=c),
     "partitioned": lambda m, s, c: PartitionedSIRFilter(m, s, N, compile_step=c),
-    "pmmh": lambda m, s, c: PMMHFilter(m, s, 4 * N, num_candidates=4, compile_step=c),
+    "pmmh": lambda m, s, c: PMMHFilter(m, s, N, num_candidates=4, compile_step=c),
 }
 
 
