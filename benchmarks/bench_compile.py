@@ -20,7 +20,14 @@ import time
 import pytest
 import torch
 
-from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf.filters import (
+    IPMCMCFilter,
+    MCMCFilter,
+    PartitionedSIRFilter,
+    PMMHFilter,
+    ResampleMoveFilter,
+    SIRFilter,
+)
 from torchmcmcpf.scenarios.ground_radar import ground_radar
 
 TARGETS, N = 5, 200
@@ -30,6 +37,8 @@ FILTERS = {
     "mcmc": lambda m, s, c: MCMCFilter(m, s, N, num_chains=20, burn_in=5, compile_step=c),
     "ipmcmc": lambda m, s, c: IPMCMCFilter(m, s, N, num_chains=20, burn_in=5, max_extensions=0, compile_step=c),
     "resample_move": lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, compile_step=c),
+    "partitioned": lambda m, s, c: PartitionedSIRFilter(m, s, N, compile_step=c),
+    "pmmh": lambda m, s, c: PMMHFilter(m, s, N, num_candidates=4, compile_step=c),
 }
 
 

@@ -11,7 +11,7 @@ from torchmcmcpf.experiments import bocquel_table2 as exp
 def test_quick_reproduction_end_to_end(tmp_path):
     args = argparse.Namespace(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
                               progress=False, runs=None, steps=3, particles=None, max_extensions=None,
-                              pmmh_iterations=2, pmmh_burn_in=1)
+                              pmmh_candidates=2)
     payload = exp.run(args)
     for f in ("table2.md", "metrics.json", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png"):
         assert (tmp_path / f).stat().st_size > 0, f
@@ -19,7 +19,7 @@ def test_quick_reproduction_end_to_end(tmp_path):
     assert saved["device"].startswith("cpu")
     for scenario in ("1 targets", "10 targets"):
         rows = saved["results"][scenario]
-        assert {r["algorithm"] for r in rows.values()} == {"SIR PF", "PMMH", "IP-MCMC-PF"}
+        assert {r["algorithm"] for r in rows.values()} == {"SIR PF", "Partitioned PF", "PMMH", "IP-MCMC-PF"}
         for r in rows.values():
             assert 0 < r["rmse"] < 100  # finite, and the filters track (initialised on the truth)
             assert 0 <= r["tlr"] <= 1 and r["seconds_per_step"] > 0
@@ -31,7 +31,7 @@ def test_quick_reproduction_end_to_end(tmp_path):
 
 def test_settings_validate_particles():
     args = argparse.Namespace(quick=True, particles=[45], runs=None, steps=None, max_extensions=None,
-                              pmmh_iterations=None, pmmh_burn_in=None)
+                              pmmh_candidates=None)
     try:
         exp.settings(args)
     except ValueError as err:

@@ -133,7 +133,8 @@ def test_reproduce_help_lists_the_common_options(capsys):
         assert name in text
 
 
-@pytest.mark.parametrize("name", ["bocquel-table2", "ling-rmse-vs-snr", "maroulas-hmc", "septier-birth-death"])
+@pytest.mark.parametrize("name", ["bocquel-table2", "bocquel-sir-ablation", "ling-rmse-vs-snr", "maroulas-hmc",
+                                  "septier-birth-death"])
 def test_study_help_states_the_settings_that_run(name, capsys):
     """Every ``(default X, quick Y)`` in a study's --help is read from its FULL and QUICK."""
     module = experiments.discover()[name]

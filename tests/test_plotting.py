@@ -140,8 +140,7 @@ def test_demo_figure_titles_do_not_overlap(tmp_path):
 
 # Every study's figures, captured before they are saved: labels, units, "quick", Np legends.
 STUDIES = {
-    "bocquel-table2": dict(runs=None, steps=2, particles=None, max_extensions=None, pmmh_iterations=None,
-                           pmmh_burn_in=None),
+    "bocquel-table2": dict(runs=None, steps=2, particles=None, max_extensions=None, pmmh_candidates=None),
     "ling-rmse-vs-snr": dict(runs=1, snr=None, steps=2, burn_in=4, thinning=1, particles=None, moves=None),
     "maroulas-hmc": dict(runs=1, steps=3, hmc_steps=2),
     "septier-birth-death": dict(runs=2, steps=4, particles=40, burn_in=2),

@@ -51,11 +51,18 @@ class ParticleState(NamedTuple):
     exists : (B, N, K) bool, optional
         Existence flag of each target slot, for filters with births and deaths; ``None``
         when the number of targets is known.
+    extras : dict name -> tensor with the run dim first, optional
+        Filtering state beyond the weighted cloud that an algorithm carries from step to
+        step, so that a checkpoint of the state alone resumes it (PMMHFilter: the candidate
+        parameters ``theta (B, L)``, their accumulated log-evidence ``log_evidence (B, L)``
+        and the within-candidate log-weights ``log_w_candidate (B, N)``); ``None`` for the
+        filters that need none.
     """
 
     x: Tensor
     log_w: Tensor
     exists: Tensor | None = None
+    extras: dict[str, Tensor] | None = None
 
     def __repr__(self) -> str:
         return _short_repr(self)

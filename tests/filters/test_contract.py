@@ -15,8 +15,21 @@ import math
 import pytest
 import torch
 
-from torchmcmcpf import ConstantVelocity, FilterResult, LinearGaussian, ParticleState, StepInfo
-from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, ResampleMoveFilter, SIRFilter
+from torchmcmcpf import (
+    ConstantVelocity,
+    FilterResult,
+    LinearGaussian,
+    ParticleState,
+    StepInfo,
+)
+from torchmcmcpf.filters import (
+    IPMCMCFilter,
+    MCMCFilter,
+    PartitionedSIRFilter,
+    PMMHFilter,
+    ResampleMoveFilter,
+    SIRFilter,
+)
 from torchmcmcpf.kernels.hmc_refine import HMCRefine
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
 
@@ -39,6 +52,9 @@ FILTERS = {
                    (False, False, True, {"rhat", "rhat_slot", "rhat_dim", "extensions", "acceptance_hmc"})),
     "resample_move": (lambda m, s, c: ResampleMoveFilter(m, s, N, num_hmc_steps=3, step_size=0.3, compile_step=c),
                       (True, True, True, {"ess_after_move"})),
+    "pmmh": (lambda m, s, c: PMMHFilter(m, s, N, num_candidates=4, compile_step=c),
+             (True, True, True, {"theta_mean", "candidate_ess"})),
+    "partitioned": (lambda m, s, c: PartitionedSIRFilter(m, s, N, compile_step=c), (True, False, False, {"ess_min"})),
 }
 
 

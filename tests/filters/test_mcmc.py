@@ -55,6 +55,8 @@ def _burn_in(motion, sensor, zs, means, covs, xi, tv=1e-2):
 SETTINGS = {
     "mixture": dict(moves="mixture"),  # joint draw w.p. 0.75, else a refinement sweep
     "joint_random_walk": dict(moves=[("joint", 0.75), ("random_walk", 0.25)], rw_scale=0.5),
+    # full per-target covariance adapted during the burn-in, frozen for the kept samples
+    "joint_adaptive_random_walk": dict(moves=[("joint", 0.75), ("random_walk", 0.25)], rw_scale="adaptive"),
 }
 
 
@@ -155,6 +157,7 @@ def test_same_seed_same_result(gen):
         (dict(moves="random_walk"), "rw_scale"),
         (dict(moves="random_walk", rw_scale=-1.0), "rw_scale"),
         (dict(moves="random_walk", rw_scale=torch.ones(3)), "rw_scale"),
+        (dict(moves="random_walk", rw_scale="adapt"), "rw_scale"),
     ],
 )
 def test_bad_settings_raise(kwargs, name):

@@ -108,3 +108,65 @@ def test_pmmh_rejects_outside_prior_and_is_deterministic():
     with pytest.raises(ValueError, match="theta0"):
         pmmh(evaluate, -torch.ones(1, 1, 1), log_prior=log_prior, proposal_std=1.0, num_iterations=2,
              generator=torch.Generator())
+
+
+def test_sequential_pmmh_filter_matches_the_exact_posterior_over_theta():
+    """PMMHFilter (particle independent MH over prior draws of theta = log q, module
+    docstring of filters/pmmh.py) on a linear-Gaussian model: its estimate of E[x_T | z_1:T]
+    and of E[theta | z_1:T], with theta integrated over its posterior, against the exact
+    values (Kalman evidence and means on a fine theta grid). B runs filter the SAME data with
+    independent randomness, so the run-to-run errors are iid: their mean must be within 5
+    standard errors of zero. The finite chain (L candidates, started at a prior draw) has an
+    O(1/L) bias: measured 0.14 at L = 16 and 0.03 at L = 64 in theta (posterior sd 0.4), below
+    5 standard errors at L = 64 with B = 100."""
+    from _kalman import kalman_filter
+
+    from torchmcmcpf.filters import PMMHFilter
+
+    gen = torch.Generator().manual_seed(5)
+    true_q, sigma, t_len, b, lc, nc = 4.0, 3.0, 15, 100, 64, 32
+    base = ConstantVelocity(1.0, q=1.0).to(DT)
+    truth = ConstantVelocity(1.0, q=true_q).to(DT)
+    sensor = LinearGaussian.position(sigma).to(DT)
+    m0, P0 = torch.tensor([0.0, 1.0, 0.0, -1.0], dtype=DT), torch.eye(4, dtype=DT)
+    x = (m0 + torch.randn(4, generator=gen, dtype=DT)).reshape(1, 1, 4)
+    zs = []
+    for _ in range(t_len):
+        x = truth.sample(x, generator=gen)
+        zs.append(sensor.simulate(x, generator=gen))
+    zs = torch.stack(zs)  # (T, 1, 1, 2)
+    mu = math.log(true_q) - 0.5
+    grid = torch.linspace(mu - 6, mu + 6, 801, dtype=DT)
+    qs = grid.exp()[:, None, None] * base.Q
+    log_post = _kalman_log_evidence(base.F, qs, sensor.H, sensor.R, m0, P0, zs[:, 0, 0]) \
+        + torch.distributions.Normal(mu, 1.0).log_prob(grid)
+    w = torch.softmax(log_post, 0)
+    km, _ = kalman_filter(base.F, qs, sensor.H, sensor.R, m0.expand(len(grid), 4), P0, zs[:, 0, 0])
+    exact_x, exact_theta = (w[:, None] * km[-1]).sum(0), (w * grid).sum()
+
+    filt = PMMHFilter(base, sensor, lc * nc, num_candidates=lc, prior_mean=mu, prior_std=1.0)
+    init = m0 + torch.randn(b, lc * nc, 1, 4, generator=gen, dtype=DT)
+    res = filt(zs.expand(t_len, b, 1, 2), init=init, generator=gen)
+    err = res.mean[-1, :, 0] - exact_x  # (B, D)
+    assert torch.all(err.mean(0).abs() <= 5 * err.std(0) / b**0.5), (err.mean(0), err.std(0))
+    theta = res.info.extras["theta_mean"][-1]  # (B,)
+    assert (theta.mean() - exact_theta).abs() <= 5 * theta.std() / b**0.5, (theta.mean(), exact_theta)
+    assert 0.2 < float(res.info.acceptance.mean()) < 0.9  # the PIMH chain moves
+    # the state carries the candidates: theta drawn once, evidence accumulated
+    assert res.state.extras["theta"].shape == (b, lc)
+    torch.testing.assert_close(res.state.extras["log_evidence"].logsumexp(-1) - math.log(lc),
+                               res.log_evidence)
+
+
+def test_pmmh_filter_settings_are_validated():
+    from torchmcmcpf.filters import PMMHFilter
+
+    motion, sensor = ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0)
+    with pytest.raises(ValueError, match="num_particles must be a multiple of num_candidates"):
+        PMMHFilter(motion, sensor, 10, num_candidates=4)
+    with pytest.raises(ValueError, match="num_candidates"):
+        PMMHFilter(motion, sensor, 10, num_candidates=1)
+    with pytest.raises(ValueError, match="burn_in"):
+        PMMHFilter(motion, sensor, 12, num_candidates=4, burn_in=4)
+    with pytest.raises(ValueError, match="prior_std"):
+        PMMHFilter(motion, sensor, 12, num_candidates=4, prior_std=0.0)

@@ -543,3 +543,34 @@ def test_existence_refine_uses_the_delta_hook_with_flags(gen):
     assert torch.equal(acc_ref, acc_full) and torch.equal(ref.exists, full.exists)
     torch.testing.assert_close(ref.log_lik, full.log_lik)
     torch.testing.assert_close(ref.log_lik, radar.log_likelihood(ref.x, z, ref.exists))
+
+
+def test_adapted_random_walk_keeps_the_posterior(gen):
+    """The adaptive random walk's frozen kernel (a full per-target covariance fitted to the
+    chains' history, :func:`adapted_step`) is a symmetric random walk, so it must leave pi
+    invariant: adapt on a burn-in run from the prior, freeze, then start at pi exactly and
+    make 100 moves with the Gibbs redraw of the ancestor (the acceptance on this mixture
+    target is about 0.15, so that each chain accepts > 10 moves)."""
+    from torchmcmcpf.kernels.random_walk import (
+        RunningMoments,
+        adapted_step,
+        prior_covariance,
+    )
+
+    sensor = LinearGaussian.position(1.0).to(DT)
+    motion, cloud, z, post = _problem(sensor, gen, q=3.0)
+    prior = prior_covariance(cloud, motion)
+    assert prior.shape == (B, K, D, D)
+    scale = adapted_step(prior, DT)
+    assert scale.shape == (B, 1, K, D, D)
+    chain, moments = _prior_chains(cloud, z, motion, sensor, gen), RunningMoments.zeros(cloud.x[:, :C])
+    for _ in range(40):  # burn-in with adaptation
+        chain, _ = _run(chain, (("random_walk", 1.0),), 1, cloud=cloud, z=z, motion=motion, sensor=sensor, gen=gen,
+                        rw_scale=scale)
+        moments = moments.update(chain.x)
+        scale = adapted_step(moments.covariance(prior, D + 1.0), DT)
+    chain = _exact_chains(post, cloud, z, sensor, gen)
+    chain, acc = _run(chain, (("random_walk", 1.0),), 100, cloud=cloud, z=z, motion=motion, sensor=sensor,
+                      gen=gen, rw_scale=scale)
+    assert (acc["random_walk"] > 10).all()
+    _assert_pi(chain, post, cloud)

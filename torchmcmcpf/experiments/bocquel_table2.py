@@ -1,6 +1,7 @@
 """Table II (and Figs. 3, 5, 6) of Bocquel, Driessen and Bagchi (2012), paper 000.
 
-SIR PF, PMMH and IP-MCMC-PF with Np in {500, 5000} on the ground-radar scenario of Table I,
+SIR PF, PMMH and IP-MCMC-PF with Np in {500, 5000} (and, as an extra row, the
+independent-partition PF of the paper's refs. [3], [6]) on the ground-radar scenario of Table I,
 with one target (Figs. 1-3) and ten targets (Figs. 4-6, Table II), Monte Carlo runs batched.
 Writes ``table2.md`` (our table next to the paper's), ``metrics.json`` (RMSE, TLR, seconds
 per time step, the device), ``rmse_1_target.png``, ``rmse_10_targets.png`` and
@@ -11,12 +12,16 @@ What runs
 - SIR PF: :class:`~torchmcmcpf.filters.sir.SIRFilter`, resampling every step.
 - IP-MCMC-PF: :class:`~torchmcmcpf.filters.ipmcmc.IPMCMCFilter`, 50 chains, burn-in 100,
   R-hat threshold 1.1, at most ``--max-extensions`` extensions.
-- PMMH: :func:`~torchmcmcpf.filters.pmmh.pmmh` on ``theta = log q``, the process-noise
-  scale of the filters' motion model (N(0, 1) prior, random-walk std 0.3, started at the
-  true value 0), one chain per run, ``--pmmh-iterations`` iterations of which the first
-  ``--pmmh-burn-in`` are discarded; each iteration runs an SIR filter with Np particles
-  over the whole sequence; the track is the average of the accepted filter means (see
-  :mod:`torchmcmcpf.filters.pmmh`). Its seconds per step are the total time over T.
+- PMMH: :class:`~torchmcmcpf.filters.pmmh.PMMHFilter`, sequential PMMH (particle
+  independent MH) on ``theta = log q``, the log-scale of the filters' process noise (true
+  value 0, prior N(0, 1)): ``--pmmh-candidates`` L prior draws of theta (the chain length,
+  no burn-in), each with its own SIR filter of Np particles (L * Np in all); the track at
+  each step is the chain average of the candidates' filtering means (see
+  :mod:`torchmcmcpf.filters.pmmh`). Its seconds per step are those of the whole filter.
+- Partitioned PF (extra row, not in the paper's table):
+  :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`, Np particles, each
+  target's partition weighted with the others at their predicted estimates and resampled
+  on its own (Orton and Fitzgerald; Kreucher et al.).
 
 Every filter starts from ``Scenario.initial_particles`` (5 m / 1 m/s / 10 % around the
 truth one step before frame 0, labels kept); RMSE and TLR (20 m) use the slot labels.
@@ -38,7 +43,8 @@ import torch
 
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
-from ..filters.pmmh import ProcessNoiseScale, pmmh, sir_log_evidence
+from ..filters.partitioned import PartitionedSIRFilter
+from ..filters.pmmh import PMMHFilter
 from ..filters.sir import SIRFilter
 from ..scenarios.ground_radar import ground_radar
 from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
@@ -54,10 +60,10 @@ PAPER = {
 }
 
 QUICK = dict(runs=2, steps=3, particles=(40, 80), chains=10, burn_in=10, targets=(1, 10),
-             pmmh_iterations=2, pmmh_burn_in=1, max_extensions=1, shard_size=1)
+             pmmh_candidates=2, max_extensions=1, shard_size=1)
 FULL = dict(runs=100, steps=20, particles=(500, 5000), chains=50, burn_in=100, targets=(1, 10),
-            pmmh_iterations=6, pmmh_burn_in=2, max_extensions=2, shard_size=10)
-ALGORITHMS = ("SIR PF", "PMMH", "IP-MCMC-PF")
+            pmmh_candidates=5, max_extensions=2, shard_size=10)
+ALGORITHMS = ("SIR PF", "Partitioned PF", "PMMH", "IP-MCMC-PF")
 OUTPUTS = ("metrics.json", "table2.md", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png", "shards")
 
 
@@ -69,21 +75,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
     parser.add_argument("--particles", type=positive_int, nargs="+", help=h("particles", "Np values"))
     parser.add_argument("--max-extensions", type=int, help=h("max_extensions", "IP-MCMC-PF R-hat extensions"))
-    parser.add_argument("--pmmh-iterations", type=positive_int, help=h("pmmh_iterations", "PMMH iterations"))
-    parser.add_argument("--pmmh-burn-in", type=int, help=h("pmmh_burn_in", "PMMH iterations discarded"))
+    parser.add_argument("--pmmh-candidates", type=positive_int,
+                        help=h("pmmh_candidates", "PMMH candidates L (chain length; L SIR filters of Np particles)"))
 
 
 def settings(args: argparse.Namespace) -> dict:
     """Quick or full defaults, overridden by the command-line options given."""
     quick = bool(getattr(args, "quick", False))
     cfg = dict(QUICK if quick else FULL)
-    for key in ("runs", "steps", "particles", "max_extensions", "pmmh_iterations", "pmmh_burn_in"):
+    for key in ("runs", "steps", "particles", "max_extensions", "pmmh_candidates"):
         value = getattr(args, key, None)
         if value is not None:
             cfg[key] = tuple(value) if key == "particles" else value
     for key in ("shard_size",):
         if getattr(args, key, None) is not None:
             cfg[key] = getattr(args, key)
+    if cfg["pmmh_candidates"] < 2:
+        raise ValueError(f"--pmmh-candidates must be >= 2, got {cfg['pmmh_candidates']}")
     if any(n % cfg["chains"] for n in cfg["particles"]):
         raise ValueError(f"--particles {cfg['particles']} must be multiples of {cfg['chains']} chains")
     cfg["quick"] = quick
@@ -91,22 +99,12 @@ def settings(args: argparse.Namespace) -> dict:
 
 
 def _run_pmmh(scn, n, cfg, g, progress):
-    base_cv = scn.motion
-    c = 1
-
-    def build(theta):
-        return ProcessNoiseScale(base_cv, theta[:, 0].exp()), scn.sensor
-
-    def init(m, *, generator):
-        return scn.initial_particles(n, generator=generator).repeat_interleave(m // scn.batch_size, dim=0)
-
-    evaluate = sir_log_evidence(build, scn.measurements, init, n, keep_means=True)
-    prior = torch.distributions.Normal(0.0, 1.0)
-    theta0 = torch.zeros((scn.batch_size, c, 1), device=scn.truth.device, dtype=scn.truth.dtype)
-    res = pmmh(evaluate, theta0, log_prior=lambda th: prior.log_prob(th[..., 0]), proposal_std=0.3,
-               num_iterations=cfg["pmmh_iterations"], generator=g)
-    means = res.aux[cfg["pmmh_burn_in"]:].mean((0, 2))  # (B, T, K, D)
-    return means.movedim(1, 0), {"acceptance": res.acceptance.mean(1), "theta_mean": res.theta.mean((0, 2, 3))}
+    """The PMMH row: :class:`PMMHFilter` with L = ``pmmh_candidates`` candidates of Np
+    particles each (module docstring)."""
+    lc = cfg["pmmh_candidates"]
+    filt = PMMHFilter(scn.motion, scn.sensor, lc * n, num_candidates=lc)
+    res = filt(scn.measurements, init=scn.initial_particles(lc * n, generator=g), generator=g, progress=progress)
+    return res.mean, {"acceptance": res.info.acceptance.mean(0), "theta_mean": res.info.extras["theta_mean"][-1]}
 
 
 def _key(num_targets: int, name: str, n: int) -> str:
@@ -133,6 +131,7 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
             x0 = scn.initial_particles(n, generator=g)
             filters = {
                 "SIR PF": SIRFilter(scn.motion, scn.sensor, num_particles=n),
+                "Partitioned PF": PartitionedSIRFilter(scn.motion, scn.sensor, num_particles=n),
                 "IP-MCMC-PF": IPMCMCFilter(scn.motion, scn.sensor, num_particles=n, num_chains=cfg["chains"],
                                            burn_in=cfg["burn_in"], max_extensions=cfg["max_extensions"]),
             }

@@ -183,7 +183,7 @@ class Filter(nn.Module):
                                  f"{init.x.dtype} on {init.x.device} (those of init.x)")
             if bool(torch.isnan(init.log_w).any()):
                 raise ValueError("init.log_w contains NaN; expected normalised log-weights")
-            return state._replace(log_w=init.log_w)
+            return state._replace(log_w=init.log_w, extras=init.extras)
         return self.init(check_tensor(init, "init"))
 
     def estimate(self, state: ParticleState) -> Tensor:

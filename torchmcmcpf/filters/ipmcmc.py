@@ -316,7 +316,7 @@ def ipmcmc_step(
         ``"extensions" (B,)`` how many extensions ran and, with ``settings.hmc``,
         ``"acceptance_hmc" (B,)`` the HMC refinement's acceptance rate.
     """
-    x_prev, log_w, exists = state
+    x_prev, log_w, exists = state.x, state.log_w, state.exists
     num_chains, burn_in = settings.num_chains, settings.burn_in
     rhat_threshold, max_extensions, rhat_method = settings.rhat_threshold, settings.max_extensions, settings.rhat_method
     if existence is None and exists is not None:

@@ -45,6 +45,7 @@ from ..kernels.moves import (
 from ..kernels.chains import evaluate
 from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, ancestor_log_prior, check_hmc_motion, hmc_refine
 from ..kernels.mh import mh_select
+from ..kernels.random_walk import RunningMoments, adapted_step, prior_covariance
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..state import ParticleState, StepInfo
@@ -120,7 +121,13 @@ class MCMCSettings:
     thinning : keep every ``thinning``-th state after the burn-in, >= 1.
     moves : a preset name or ``(name, probability)`` pairs (:func:`parse_moves`); stored parsed.
     rw_scale : random-walk step ``s``, a float or a ``(D,)`` tuple of floats (``S = diag(s^2)``,
-        paper 002 eq. 13); required by ``"random_walk"``.
+        paper 002 eq. 13); or ``"adaptive"``: a full per-target covariance ``S_k = 2.38^2 /
+        (K D) * Sigma_k`` that fits the posterior (:func:`~torchmcmcpf.kernels.random_walk.adapted_step`),
+        ``Sigma_k`` starting as the prior mixture's covariance of target k and, during the
+        burn-in, following the chains' history (Haario et al. 2001's adaptive Metropolis,
+        re-factored every tenth of the burn-in), frozen before the first kept sample (the
+        kept samples come from one fixed, symmetric kernel). Needs a linear-Gaussian motion.
+        Required by ``"random_walk"``.
     hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: one HMC transition
         of every chain's ``x_k`` given its ancestor after every ``hmc.every``-th iteration
         (target ``p(z_k | x_k) p(x_k | x_{k-1}^a)``, see :mod:`..kernels.hmc_refine`).
@@ -145,6 +152,10 @@ class MCMCSettings:
             if any(name == "random_walk" for name, _ in pairs):
                 raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
             return
+        if self.rw_scale == "adaptive":
+            return
+        if isinstance(self.rw_scale, str):
+            raise ValueError(f"rw_scale must be a float, a (D,) vector or 'adaptive', got {self.rw_scale!r}")
         scale = torch.as_tensor(self.rw_scale, dtype=torch.float64)
         if scale.dim() > 1 or not bool(torch.isfinite(scale).all()) or not bool((scale > 0).all()):
             raise ValueError(f"rw_scale must be > 0 and finite, a float or a (D,) vector, got {self.rw_scale!r}")
@@ -310,8 +321,9 @@ def mcmc_step(
                          "unknown number of targets")
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
-    scale = None if settings.rw_scale is None else torch.tensor(settings.rw_scale, device=x_prev.device,
-                                                                dtype=x_prev.dtype)
+    adaptive = settings.rw_scale == "adaptive" and any(name == "random_walk" for name, _ in pairs)
+    scale = None if settings.rw_scale is None or settings.rw_scale == "adaptive" else torch.tensor(
+        settings.rw_scale, device=x_prev.device, dtype=x_prev.dtype)
     if kernel is None:
         kernel = _bind(motion, sensor, settings, existence)
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
@@ -320,6 +332,10 @@ def mcmc_step(
     chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, **births), z,
                         motion=motion, sensor=sensor, existence=existence)
 
+    if adaptive:  # start from the prior mixture's per-target covariance (Haario et al. 2001 below)
+        prior_cov = prior_covariance(cloud, motion)
+        scale, moments = adapted_step(prior_cov, x_prev.dtype), RunningMoments.zeros(chain.x)
+        adapt_every = max(1, burn_in // 10)
     per_chain = n // num_chains
     hmc = settings.hmc
     if hmc is not None:
@@ -341,6 +357,10 @@ def mcmc_step(
             log_lik, terms = evaluate(x_new, z, sensor)
             chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
             hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
+        if adaptive and m <= burn_in:  # adapt during the burn-in only: frozen for the kept samples
+            moments = moments.update(chain.x)
+            if m % adapt_every == 0:
+                scale = adapted_step(moments.covariance(prior_cov, d + 1.0), x_prev.dtype)
         if m > burn_in and (m - burn_in) % thinning == 0:
             kept.append(chain.x)
             kept_exists.append(chain.exists)
@@ -405,7 +425,8 @@ class MCMCFilter(Filter):
     moves : ``"mixture"`` (default: joint draw w.p. 0.75, else a per-target refinement
         sweep; paper 004), ``"joint"``, ``"random_walk"`` (paper 002), or a sequence of
         ``(name, probability)`` pairs over ``"joint"``, ``"refine"``, ``"random_walk"``.
-    rw_scale : float or ``(D,)`` tensor, the random-walk step (needed by ``"random_walk"``).
+    rw_scale : float or ``(D,)`` tensor, the random-walk step, or ``"adaptive"`` (see
+        :class:`MCMCSettings`); needed by ``"random_walk"``.
     hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement of
         ``x_k`` given the ancestor after every ``hmc.every``-th iteration (eager; extras
         ``"acceptance_hmc"``); linear-Gaussian motion, no existence.

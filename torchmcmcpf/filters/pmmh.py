@@ -1,46 +1,68 @@
-"""Particle marginal Metropolis-Hastings (PMMH) for static parameters.
+"""Particle marginal Metropolis-Hastings (PMMH) for static parameters: offline and sequential.
 
 Andrieu, Doucet and Holenstein (2010), "Particle Markov chain Monte Carlo methods", JRSS B
-72(3), sec. 2.4.2 (refs. [7], [8] of paper 000). A random-walk MH chain on a static
-parameter ``theta`` whose intractable likelihood ``p(z_{1:T} | theta)`` is replaced by the
-unbiased SIR estimate ``hat p(z_{1:T} | theta) = prod_k hat p(z_k | z_{1:k-1}, theta)``
-(``SIRFilter.forward(...).log_evidence``). The pair (theta, the random numbers of the
-filter) is an exact MH chain on an extended space whose theta-marginal is
-``p(theta | z_{1:T})`` (pseudo-marginal argument, Andrieu and Roberts 2009).
+72(3), sec. 2.4 (refs. [7], [8] of paper 000). The intractable likelihood
+``p(z_{1:t} | theta)`` of a static parameter ``theta`` is replaced in a Metropolis-Hastings
+chain by the unbiased SIR estimate ``hat p(z_{1:t} | theta) = prod_k hat p(z_k | z_{1:k-1},
+theta)``. The pair (theta, the random numbers of the filter) is an exact MH chain on an
+extended space whose theta-marginal is ``p(theta | z_{1:t})`` (pseudo-marginal argument,
+Andrieu and Roberts 2009), whatever the number of particles.
 
-Batching: B independent problems (Monte Carlo runs) times C chains each. One PMMH
-iteration runs a single SIR filter on ``B * C`` copies of the data at once, each copy with
-its own parameter: the parameter enters the models as a ``(B * C,)`` tensor, e.g.
-:class:`ProcessNoiseScale` (a linear-Gaussian motion whose process-noise covariance is
-scaled per copy). ``build_models(theta (B*C, P)) -> (motion, sensor)`` is all a user writes.
+Two forms live here:
+
+- :func:`pmmh` (offline, the paper's form): a random-walk chain over the whole sequence;
+  every iteration reruns an SIR filter over all T frames (:func:`sir_log_evidence`).
+- :class:`PMMHFilter` / :func:`pmmh_step` (sequential, on the filter contract): a *particle
+  independent Metropolis-Hastings* chain with theta (Andrieu et al. 2010, sec. 2.4.1 with
+  the parameter added; sec. 2.4.2 with an independence proposal). The proposal is the prior:
+  ``L`` candidates ``theta_l ~ p(theta)`` are drawn once, at the first step, and their SIR
+  filters run side by side as blocks of the particle dimension (``N = L * N_c``, candidate
+  ``l`` owns particles ``l N_c .. (l+1) N_c - 1``), step by step. Each candidate accumulates
+  ``log hat Z_l(t) = log hat p(z_{1:t} | theta_l)`` in the state. At every step the MH chain
+  visits the candidates in order, starting at candidate 0, and moves from the current one
+  ``c`` to candidate ``l`` with probability ``min(1, hat Z_l(t) / hat Z_c(t))`` (the
+  proposal is the prior, so the prior and proposal densities cancel and only the evidence
+  ratio remains). The chain is a valid PIMH chain of length L targeting
+  ``p(theta, x_{0:t} | z_{1:t})`` at each t (fresh uniforms every step), so its average of
+  the candidates' filtering means is a consistent estimate of ``E[x_t | z_{1:t}]`` with theta
+  integrated over its posterior, exact as ``L -> infinity`` for any ``N_c``.
 
 What the PMMH row of Table II (paper 000) runs here
 ---------------------------------------------------
-Paper 000 does not say how its PMMH produced filtering estimates. We run PMMH estimating the
-process-noise level: ``theta = log q`` (the filters' acceleration noise level, true value
-1 m^2 s^-3) with a N(0, 1) prior, a random-walk proposal, C chains per run; an iteration's
-state part is the SIR filter's filtering means at every step under that iteration's
-``theta`` (the Rao-Blackwellised version of the path PMMH samples). The reported track is
-the average of those means over the post-burn-in PMMH iterations and chains: the filtering
-estimate with the parameter integrated over its posterior. Its cost per time step is the
-total PMMH time divided by T (see ``experiments/bocquel_table2.py``).
+Paper 000 does not say which static parameter its PMMH estimated, nor how it produced
+filtering estimates. Our row (``experiments/bocquel_table2.py``) is :class:`PMMHFilter`
+with ``theta = log q``, the log of the scale of the filters' process noise (true value 0:
+``q = 1 m^2 s^-3``, acceleration standard deviation 1 m/s^2), prior ``N(0, 1)``, ``L``
+candidates (chain length L, no burn-in), each an SIR filter with ``Np`` particles
+(``N = L * Np`` in all); the track at each step is the chain average of the candidates'
+SIR filtering means (the Rao-Blackwellised PIMH estimate). Its seconds per step are those
+of the whole filter (L SIR filters). The offline :func:`pmmh` stays for parameter
+estimation over a whole sequence (tests/filters/test_pmmh.py checks it against the exact
+Kalman posterior).
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, NamedTuple
+from dataclasses import dataclass
+from typing import Any, Callable, NamedTuple, Optional
 
 import torch
+from torch.utils._pytree import tree_map
 
 from .._validation import check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath
 from ..models.motion import ProcessNoiseScale
-from ..typing import Tensor
-from .sir import SIRFilter
+from ..resampling import ess, normalize
+from ..state import ParticleState, StepInfo
+from ..typing import Measurement, Tensor
+from .base import Filter
+from .sir import SIRFilter, SIRSettings, _bind, sir_step
 
-__all__ = ["pmmh", "PMMHResult", "sir_log_evidence", "ProcessNoiseScale"]
+__all__ = ["pmmh", "PMMHResult", "sir_log_evidence", "ProcessNoiseScale", "PMMHFilter", "PMMHSettings",
+           "pmmh_step"]
 
 
 class PMMHResult(NamedTuple):
@@ -164,3 +186,209 @@ def pmmh(
         auxs.append(aux)
     stacked_aux = None if aux is None else torch.utils._pytree.tree_map(lambda *a: torch.stack(a), *auxs)
     return PMMHResult(torch.stack(thetas), torch.stack(evs), stacked_aux, accepted_count / num_iterations)
+
+
+# ----------------------------------------------------------------------------- sequential
+@dataclass(frozen=True)
+class PMMHSettings:
+    """Settings of :class:`PMMHFilter` (see the module docstring).
+
+    Attributes
+    ----------
+    num_candidates : L >= 2, the candidate parameters (the length of the MH chain at each
+        step); ``num_particles`` must be a multiple of L.
+    burn_in : chain iterations discarded from the estimate, ``0 <= burn_in < L``.
+    prior_mean, prior_std : the ``N(prior_mean, prior_std^2)`` prior of ``theta``, the log
+        of the process-noise scale (the proposal of the independence sampler).
+    resample_method, ess_threshold : of each candidate's SIR filter (:class:`SIRSettings`).
+    """
+
+    num_candidates: int = 10
+    burn_in: int = 0
+    prior_mean: float = 0.0
+    prior_std: float = 1.0
+    resample_method: str = "systematic"
+    ess_threshold: float = 1.0
+
+    def __post_init__(self):
+        check_positive_int(self.num_candidates, "num_candidates", minimum=2)
+        if not (isinstance(self.burn_in, int) and 0 <= self.burn_in < self.num_candidates):
+            raise ValueError(f"burn_in must be an integer in [0, num_candidates = {self.num_candidates}), "
+                             f"got {self.burn_in!r}")
+        if not math.isfinite(float(self.prior_mean)):
+            raise ValueError(f"prior_mean must be finite, got {self.prior_mean!r}")
+        if not (math.isfinite(float(self.prior_std)) and float(self.prior_std) > 0):
+            raise ValueError(f"prior_std must be finite and > 0, got {self.prior_std!r}")
+        self.sir  # validates resample_method and ess_threshold
+
+    @property
+    def sir(self) -> SIRSettings:
+        """The settings of every candidate's SIR filter."""
+        return SIRSettings(self.resample_method, float(self.ess_threshold))
+
+
+def _first_extras(state: ParticleState, settings: PMMHSettings, generator: torch.Generator) -> dict:
+    """The PMMH part of the state at the first step: ``theta (B, L)`` drawn from the prior,
+    zero log-evidence, the within-candidate log-weights ``(B, N)``."""
+    x, log_w = state.x, state.log_w
+    b, n = log_w.shape
+    lc = settings.num_candidates
+    theta = settings.prior_mean + settings.prior_std * torch.randn(
+        (b, lc), generator=generator, device=x.device, dtype=x.dtype)
+    log_w_c = normalize(log_w.reshape(b * lc, n // lc))[0].reshape(b, n)
+    return {"theta": theta, "log_evidence": torch.zeros_like(theta), "log_w_candidate": log_w_c}
+
+
+def _check_extras(extras: dict, b: int, n: int, lc: int) -> None:
+    expected = {"theta": (b, lc), "log_evidence": (b, lc), "log_w_candidate": (b, n)}
+    if not isinstance(extras, dict) or set(extras) != set(expected):
+        got = sorted(extras) if isinstance(extras, dict) else type(extras).__name__
+        raise ValueError(f"state.extras must hold {sorted(expected)} (a PMMHFilter state), got {got}")
+    for key, shape in expected.items():
+        check_shape(extras[key], f"state.extras[{key!r}]", shape)
+
+
+def pmmh_step(
+    state: ParticleState,
+    z: Measurement,
+    *,
+    motion: MotionModel,
+    sensor: SensorModel,
+    settings: PMMHSettings = PMMHSettings(),
+    generator: torch.Generator,
+    existence: Optional[BirthDeath] = None,
+    kernel: Optional[Callable] = None,
+) -> tuple[ParticleState, StepInfo]:
+    """One step of the sequential PMMH filter (particle independent MH with theta, module
+    docstring): advance the L candidates' SIR filters, then run the MH chain over them.
+
+    ``theta`` scales the motion's process noise by ``e^theta``: each candidate's SIR step
+    propagates with ``e^(theta_l / 2) eps`` (covariance ``e^theta_l Q`` for a linear-Gaussian
+    motion, as :class:`ProcessNoiseScale`).
+
+    Parameters
+    ----------
+    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)`` and ``extras`` (None at
+        the first step: ``theta`` is then drawn from the prior and ``log_w`` split into the
+        L blocks of ``N / L`` particles, each renormalised).
+    z : one measurement per run ``(B, *G)`` (every candidate reads it).
+    motion, sensor : the models (``theta = 0`` is the motion as given).
+    settings : :class:`PMMHSettings`.
+    generator : the only source of randomness (theta at the first step, the SIR draws, the
+        L MH uniforms).
+    existence : BirthDeath, optional: passed to every candidate's SIR step.
+    kernel : :func:`~torchmcmcpf.filters.sir.sir_kernel` with the models bound (compiled by
+        ``PMMHFilter(compile_step=True)``); default eager.
+
+    Returns
+    -------
+    state : ``log_w (B, N)`` the PIMH estimate's weights, ``(occupancy of candidate l) / (L -
+        burn_in)`` times the candidate's normalised SIR weights (``state.mean()`` is the
+        PMMH estimate); ``extras`` ``theta (B, L)``, ``log_evidence (B, L)`` (``log hat
+        Z_l(t)``), ``log_w_candidate (B, N)``.
+    info : ``ess`` (B,) of the combined weights; ``log_evidence`` (B,) the increment of
+        ``log (1/L) sum_l hat Z_l(t)`` (the prior-averaged evidence); ``acceptance`` (B,)
+        the fraction of the L - 1 MH moves that accepted; extras ``theta_mean`` (B,) the
+        chain's posterior mean of theta and ``candidate_ess`` (B,) the ESS of the
+        candidates' evidences (how many candidates the data leave alive).
+    """
+    x, log_w, exists = state.x, state.log_w, state.exists
+    b, n, k, d = x.shape
+    lc, burn = settings.num_candidates, settings.burn_in
+    if n % lc:
+        raise ValueError(f"state.x has {n} particles, expected a multiple of num_candidates = {lc}")
+    m = n // lc
+    extras = _first_extras(state, settings, generator) if state.extras is None else state.extras
+    _check_extras(extras, b, n, lc)
+    theta, log_ev = extras["theta"], extras["log_evidence"]
+
+    # the L candidates' SIR filters as B * L runs of N / L particles
+    sub = ParticleState(x.reshape(b * lc, m, k, d), extras["log_w_candidate"].reshape(b * lc, m),
+                        None if exists is None else exists.reshape(b * lc, m, k))
+    zc = tree_map(lambda a: a.repeat_interleave(lc, dim=0), z)
+    base = kernel if kernel is not None else _bind(motion, sensor, settings.sir, existence)
+    scale = (0.5 * theta).exp().reshape(b * lc, 1, 1, 1)
+
+    def scaled(x_, log_w_, exists_, z_, need, u, eps, birth):
+        return base(x_, log_w_, exists_, z_, need, u, eps * scale.to(eps.dtype), birth)
+
+    sub, sub_info = sir_step(sub, zc, motion=motion, sensor=sensor, settings=settings.sir, generator=generator,
+                             existence=existence, kernel=scaled)
+    log_ev_new = log_ev + sub_info.log_evidence.reshape(b, lc)  # (B, L)
+
+    # the PIMH chain over the candidates, in order (MCMC iterations: a loop over L)
+    u = torch.rand((b, lc), generator=generator, device=x.device, dtype=x.dtype)
+    cur = torch.zeros(b, dtype=torch.long, device=x.device)
+    cur_ev = log_ev_new[:, 0]
+    counts = torch.zeros_like(log_ev_new)
+    accepted = torch.zeros_like(cur_ev)
+    for it in range(lc):
+        if it > 0:
+            acc = mh_accept(log_ev_new[:, it] - cur_ev, u[:, it])
+            cur = torch.where(acc, torch.full_like(cur, it), cur)
+            cur_ev = torch.where(acc, log_ev_new[:, it], cur_ev)
+            accepted = accepted + acc.to(accepted.dtype)
+        if it >= burn:
+            counts = counts + torch.nn.functional.one_hot(cur, lc).to(counts.dtype)
+    occupancy = counts / (lc - burn)  # (B, L)
+    log_w_c = sub.log_w.reshape(b, n)
+    log_w_new = occupancy.log().repeat_interleave(m, dim=1) + log_w_c
+    new_state = ParticleState(sub.x.reshape(b, n, k, d), log_w_new,
+                              None if sub.exists is None else sub.exists.reshape(b, n, k),
+                              {"theta": theta, "log_evidence": log_ev_new, "log_w_candidate": log_w_c})
+    log_mean_ev = torch.logsumexp(log_ev_new, -1) - torch.logsumexp(log_ev, -1)
+    info = StepInfo.make(log_mean_ev, ess=ess(log_w_new), log_evidence=log_mean_ev,
+                         acceptance=accepted / (lc - 1),
+                         extras={"theta_mean": (occupancy * theta).sum(-1), "candidate_ess": ess(log_ev_new)})
+    return new_state, info
+
+
+class PMMHFilter(Filter):
+    """Sequential PMMH on the filter contract: a particle independent Metropolis-Hastings
+    chain over ``L`` prior draws of the process-noise log-scale ``theta``, each with its own
+    SIR filter of ``num_particles / L`` particles (module docstring, :func:`pmmh_step`).
+
+    Parameters
+    ----------
+    motion : MotionModel (``theta`` scales its process noise by ``e^theta``).
+    sensor : SensorModel.
+    num_particles : N, a multiple of ``num_candidates`` (N / L particles per candidate).
+    num_candidates, burn_in, prior_mean, prior_std, resample_method, ess_threshold : see
+        :class:`PMMHSettings`.
+    existence : BirthDeath, optional, passed to every candidate's SIR filter.
+    compile_step : compile the candidates' SIR kernel (:func:`~torchmcmcpf.filters.sir.sir_kernel`).
+
+    ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (the PIMH moves); extras
+    ``theta_mean``, ``candidate_ess``. The state carries ``extras`` (the candidates'
+    ``theta``, accumulated log-evidence and within-candidate weights), so a checkpoint of
+    the state and the generator resumes bit for bit.
+    """
+
+    def __init__(
+        self,
+        motion: MotionModel,
+        sensor: SensorModel,
+        num_particles: int,
+        *,
+        num_candidates: int = 10,
+        burn_in: int = 0,
+        prior_mean: float = 0.0,
+        prior_std: float = 1.0,
+        resample_method: str = "systematic",
+        ess_threshold: float = 1.0,
+        existence: Optional[BirthDeath] = None,
+        compile_step: bool = False,
+    ):
+        settings = PMMHSettings(num_candidates, burn_in, float(prior_mean), float(prior_std), resample_method,
+                                float(ess_threshold))
+        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
+        if self.num_particles % num_candidates:
+            raise ValueError(f"num_particles must be a multiple of num_candidates = {num_candidates}, "
+                             f"got {num_particles}")
+
+    def _kernel(self, compile: Callable) -> Callable:
+        return compile(_bind(self.motion, self.sensor, self.settings.sir, self.existence))
+
+    def _step(self, state, z, generator):
+        return pmmh_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
+                         generator=generator, existence=self.existence, kernel=self.kernel())

@@ -161,7 +161,7 @@ def resample_move_step(
         ``w_{k-1} g_lambda`` of the predicted particles; after: ``g_lambda`` of the returned
         ones) averaged over the existing targets.
     """
-    x_prev, log_w_prev, exists = state
+    x_prev, log_w_prev, exists = state.x, state.log_w, state.exists
     b, n, k, _ = x_prev.shape
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)

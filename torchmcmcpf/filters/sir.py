@@ -115,7 +115,7 @@ def sir_step(
     An all-underflowing set of weights does not produce NaN: weights stay in log space and
     a run whose likelihoods are all ``-inf`` keeps uniform weights (``log_evidence = -inf``).
     """
-    x, log_w, exists = state
+    x, log_w, exists = state.x, state.log_w, state.exists
     b, n, k, _ = x.shape
     draw, _ = RESAMPLERS[settings.resample_method]
     u = draw(b, n, generator=generator, device=x.device)

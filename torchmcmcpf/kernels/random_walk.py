@@ -15,7 +15,12 @@ from ..typing import Measurement, Tensor
 from .chains import ChainState, PreviousCloud, _normal, _uniform, evaluate, whiten
 from .mh import mh_accept, mh_select
 
-__all__ = ["RandomWalkNoise", "log_transition", "propose_random_walk", "random_walk_move"]
+__all__ = ["RandomWalkNoise", "log_transition", "propose_random_walk", "random_walk_move", "prior_covariance",
+           "RunningMoments", "adapted_step"]
+
+#: Roberts, Gelman and Gilks (1997) / Haario et al. (2001): ``S = 2.38^2 / d * Cov`` for a
+#: random walk in d dimensions on a roughly Gaussian target
+RW_OPTIMAL = 2.38**2
 
 _CHUNK_ELEMENTS = 1 << 22
 
@@ -86,7 +91,9 @@ def propose_random_walk(x: Tensor, eps: Tensor, scale: Tensor, *, cloud: Previou
     Parameters
     ----------
     x : (B, C, K, D) current states; eps : (B, C, K, D) normals.
-    scale : (D,) or scalar tensor, the per-component step ``s`` (``S = diag(s^2)``).
+    scale : (D,) or scalar tensor, the per-component step ``s`` (``S = diag(s^2)``); or a
+        ``(B, 1, K, D, D)`` lower-triangular factor ``L`` of a per-run, per-target proposal
+        covariance ``S_k = L_k L_k^T`` (block diagonal over targets; :func:`adapted_step`).
     cloud : previous particles ``(B, N, K, D)`` with log-weights ``(B, N)``.
 
     Returns
@@ -97,7 +104,7 @@ def propose_random_walk(x: Tensor, eps: Tensor, scale: Tensor, *, cloud: Previou
     log_joint_prop, log_joint_cur : (B, C, N) ``log w^i + log p(. | x^i)`` at ``x'`` and ``x``
         (the ancestors' full conditionals, reused by :func:`random_walk_move`).
     """
-    x_prop = x + scale * eps
+    x_prop = x + (scale * eps if scale.dim() <= 1 else (scale @ eps.unsqueeze(-1)).squeeze(-1))
     lt = log_transition(torch.cat([x, x_prop], dim=1), cloud.x, motion=motion, white_prev=cloud.white_mean)
     lt = lt + cloud.log_w.unsqueeze(1).to(lt.dtype)
     log_joint_cur, log_joint_prop = lt.chunk(2, dim=1)
@@ -115,7 +122,7 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     ----------
     chain : ChainState ``(B, C, K, D)``; noise : :class:`RandomWalkNoise`; cloud : previous
     particles; z : frame ``(B, *G)``; motion, sensor : the models; scale : (D,) or scalar
-    random-walk step.
+    random-walk step, or a ``(B, 1, K, D, D)`` Cholesky factor (:func:`propose_random_walk`).
 
     Returns
     -------
@@ -131,3 +138,72 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     lj = torch.where(accepted.unsqueeze(-1), lj_prop, lj_cur)
     idx = inverse_cdf(cdf(lj), noise.u_ancestor.unsqueeze(-1))
     return new._replace(x_prev=gather_particles(cloud.x, idx.squeeze(-1))), accepted
+
+
+# ----------------------------------------------------------------------------- adaptive step
+def prior_covariance(cloud: PreviousCloud, motion: MotionModel) -> Tensor:
+    """Per-target covariance of the prior mixture ``sum_i w^i N(x_k; F x^i_k, Q)`` (the
+    chains' starting law), ``Cov_w(F x^i_k) + Q``: ``(B, K, D, D)`` (float64).
+
+    Needs a :class:`~torchmcmcpf.models.LinearGaussianMotion` (``mean``, ``Q``)."""
+    if not isinstance(motion, LinearGaussianMotion):
+        raise ValueError(f"an adaptive random walk needs a LinearGaussianMotion (F, Q), got {type(motion).__name__}")
+    m = motion.mean(cloud.x).to(torch.float64)  # (B, N, K, D)
+    w = cloud.log_w.to(torch.float64).exp()  # (B, N)
+    mean = torch.einsum("bn,bnkd->bkd", w, m)
+    dev = m - mean.unsqueeze(1)
+    return torch.einsum("bn,bnkd,bnke->bkde", w, dev, dev) + motion.Q.to(torch.float64)
+
+
+class RunningMoments(NamedTuple):
+    """Sums of the chains' states over MCMC iterations, per run and target (pooled over
+    chains): ``count ()``, ``s1 (B, K, D)``, ``s2 (B, K, D, D)`` (float64). Haario, Saksman
+    and Tamminen (2001), adaptive Metropolis: the proposal covariance follows the history."""
+
+    count: Tensor
+    s1: Tensor
+    s2: Tensor
+
+    @classmethod
+    def zeros(cls, x: Tensor) -> "RunningMoments":
+        b, _, k, d = x.shape
+        z = dict(dtype=torch.float64, device=x.device)
+        return cls(torch.zeros((), **z), torch.zeros((b, k, d), **z), torch.zeros((b, k, d, d), **z))
+
+    def update(self, x: Tensor) -> "RunningMoments":
+        """Add the chain states ``x (B, C, K, D)``."""
+        x = x.to(torch.float64)
+        return RunningMoments(self.count + x.shape[1], self.s1 + x.sum(1),
+                              self.s2 + torch.einsum("bckd,bcke->bkde", x, x))
+
+    def covariance(self, prior: Tensor, prior_weight: float) -> Tensor:
+        """The history's covariance shrunk towards ``prior (B, K, D, D)`` with the weight of
+        ``prior_weight`` samples (a few samples of a D-dimensional chain do not give a
+        full-rank covariance): ``(n Cov + n0 prior) / (n + n0)``."""
+        n = self.count.clamp(min=1.0)
+        mean = self.s1 / n
+        cov = self.s2 / n - mean.unsqueeze(-1) * mean.unsqueeze(-2)
+        return (self.count * cov + prior_weight * prior) / (self.count + prior_weight)
+
+
+def adapted_step(cov: Tensor, dtype: torch.dtype) -> Tensor:
+    """Cholesky factor of the random-walk covariance ``S_k = 2.38^2 / (K D) * cov_k`` of a
+    joint move in ``K * D`` dimensions (Roberts, Gelman and Gilks 1997; Haario et al. 2001),
+    with a jitter of ``1e-9`` times the mean variance (a component the motion keeps fixed has
+    zero variance).
+
+    Parameters
+    ----------
+    cov : (B, K, D, D) per-target covariance (float64).
+
+    Returns
+    -------
+    (B, 1, K, D, D) lower-triangular factors in ``dtype`` (the ``scale`` of
+    :func:`random_walk_move`).
+    """
+    k, d = cov.shape[-3], cov.shape[-1]
+    cov = 0.5 * (cov + cov.mT)
+    jitter = 1e-9 * torch.diagonal(cov, dim1=-2, dim2=-1).mean(-1).clamp(min=1e-12)
+    eye = torch.eye(d, dtype=cov.dtype, device=cov.device)
+    chol = torch.linalg.cholesky(RW_OPTIMAL / (k * d) * cov + jitter[..., None, None] * eye)
+    return chol.to(dtype).unsqueeze(1)

@@ -80,6 +80,7 @@ def ground_radar(
     speed_limits: tuple[float, float] = (0.0, 15.0),
     noise_std: float = 1.0,
     amplitude_q: float = 0.01,
+    point_spread: str = "std",
     device: str | torch.device | None = None,
     dtype: torch.dtype = torch.float32,
 ) -> Scenario:
@@ -101,6 +102,13 @@ def ground_radar(
         ``b0`` [deg] and ``|v0|`` [m/s] (Table I by default).
     noise_std : sigma, per real and imaginary component of the complex noise.
     amplitude_q : amplitude random-walk level of the filters' motion model.
+    point_spread : the reading of ``R, D, B`` in eq. 20 (the data are simulated, and the
+        filters score, with the same one). ``"std"`` (default): standard deviations equal to
+        the cell sizes (10 m, 2 m/s, pi/180 rad). ``"variance"``: variances, as the formula
+        writes them with Table I's values, i.e. standard deviations ``sqrt(10) = 3.16 m``,
+        ``sqrt(2) = 1.41 m/s`` and ``sqrt(pi/180) = 0.132 rad = 7.6 deg``; the bearing spread
+        then covers the whole grid, so the sensor evaluates every cell (``method="grid"``,
+        about 10x the cost of the windowed path) instead of a truncated window.
     device, dtype : of every tensor (and of the models).
 
     Returns
@@ -132,6 +140,13 @@ def ground_radar(
             f"minimum initial range {r_lo:.0f} m (the target could pass the radar)"
         )
     range_cell, doppler_cell, bearing_cell = 10.0, 2.0, math.pi / 180
+    if point_spread == "std":
+        spread = {}
+    elif point_spread == "variance":
+        spread = dict(range_width=math.sqrt(range_cell), doppler_width=math.sqrt(doppler_cell),
+                      bearing_width=math.sqrt(bearing_cell), method="grid")
+    else:
+        raise ValueError(f"point_spread must be 'std' or 'variance', got {point_spread!r}")
     turn = math.asin(travel / r_lo)
     m = MARGIN_CELLS
     sensor = RangeDopplerBearingTBD.uniform(
@@ -142,6 +157,7 @@ def ground_radar(
         doppler_cell=doppler_cell,
         bearing_cell=bearing_cell,
         noise_std=noise_std,
+        **spread,
     ).to(device)
     motion = ConstantVelocity(dt, q=1.0, amplitude_q=amplitude_q).to(device=device, dtype=dtype)
 

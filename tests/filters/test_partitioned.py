@@ -1,0 +1,96 @@
+"""Independent-partition SIR filter (Orton and Fitzgerald; Kreucher et al.): exact against
+per-target Kalman filters when the likelihood factorises over targets, through both
+weighting paths (a separable sensor's per-target terms, and the one-slot likelihood change
+at the reference that grid sensors use)."""
+
+import pytest
+import torch
+
+from torchmcmcpf import ConstantVelocity, LinearGaussian
+from torchmcmcpf.filters import PartitionedSIRFilter, SIRFilter
+from torchmcmcpf.models.base import SensorModel
+
+DT = torch.float64
+
+
+class JointLinearGaussian(LinearGaussian):
+    """The same likelihood without declared per-target terms: the filter then weights each
+    partition by ``log_likelihood_delta`` at the reference (the path grid sensors take)."""
+
+    log_likelihood_per_target = SensorModel.log_likelihood_per_target
+
+    def log_likelihood(self, x, z, exists=None):
+        return LinearGaussian.log_likelihood_per_target(self, x, z, exists).sum(-1)
+
+
+@pytest.mark.parametrize("sensor_cls", [LinearGaussian, JointLinearGaussian])
+def test_two_targets_match_per_target_kalman_filters(sensor_cls):
+    # Two targets, labelled position measurements: the posterior factorises over targets,
+    # each partition is an exact SIR filter of its target, and the particle mean of each
+    # target must agree with that target's Kalman mean. B runs filter the SAME data with
+    # independent randomness: the mean error over runs within 5 standard errors of zero, and
+    # the particle variance (averaged over runs) within 5% of the Kalman variance (relative
+    # Monte Carlo error ~ sqrt(2 / (N B)) < 1%). N = 2000 keeps the O(1/N) bias of SIR, shared by
+    # the runs (they filter the same data), well below the standard error sd / sqrt(B) (at
+    # N = 500 and B = 100 it reached 6 standard errors on one coordinate, for SIR as well).
+    from _kalman import kalman_filter
+
+    gen = torch.Generator().manual_seed(3)
+    motion = ConstantVelocity(1.0, 0.5).to(DT)
+    sensor = sensor_cls(LinearGaussian.position(3.0).H, LinearGaussian.position(3.0).R).to(DT)
+    assert sensor.separable == (sensor_cls is LinearGaussian)
+    t_len, b, n, k = 10, 50, 2000, 2
+    m0 = torch.tensor([[0.0, 1.0, 0.0, -0.5], [8.0, -1.0, 2.0, 0.5]], dtype=DT)  # (K, D)
+    P0 = torch.diag(torch.tensor([25.0, 1.0, 25.0, 1.0], dtype=DT))
+    x = m0 + torch.randn(k, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    zs = []
+    for _ in range(t_len):
+        x = motion.sample(x[None], generator=gen)[0]
+        zs.append(sensor.simulate(x[None], generator=gen)[0])
+    z = torch.stack(zs)  # (T, K, 2)
+    km, kP = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0, P0, z)  # (T, K, D), (T, K, D, D)
+    init = m0 + torch.randn(b, n, k, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    res = PartitionedSIRFilter(motion, sensor, n)(z.unsqueeze(1).expand(t_len, b, k, 2), init=init, generator=gen)
+    err = res.mean - km.unsqueeze(1)  # (T, B, K, D)
+    assert torch.all(err.mean(1).abs() <= 5 * err.std(1) / b**0.5)
+    var = ((res.state.x - res.mean[-1].unsqueeze(1)) ** 2).mean(1)  # (B, K, D), equal weights
+    torch.testing.assert_close(var.mean(0), torch.diagonal(kP[-1], dim1=-2, dim2=-1), rtol=0.05, atol=0.0)
+    assert res.info.ess.shape == (t_len, b) and bool((res.info.extras["ess_min"] <= res.info.ess).all())
+
+
+def test_partitions_beat_joint_weights_with_many_targets():
+    # With K targets the joint SIR weight is a product of K per-target factors, so its ESS
+    # collapses with K; the partitions keep each target's ESS. Ten independent targets,
+    # same data, same N: the partitioned filter's mean partition ESS is several times the
+    # joint filter's ESS, and its error against the exact per-target Kalman means is smaller.
+    from _kalman import kalman_filter
+
+    gen = torch.Generator().manual_seed(4)
+    motion = ConstantVelocity(1.0, 0.5).to(DT)
+    sensor = LinearGaussian.position(1.0).to(DT)
+    t_len, b, n, k = 8, 20, 200, 10
+    m0 = torch.zeros(k, 4, dtype=DT)
+    m0[:, 0] = 30.0 * torch.arange(k, dtype=DT)
+    P0 = torch.eye(4, dtype=DT)
+    x = m0 + torch.randn(k, 4, generator=gen, dtype=DT)
+    zs = []
+    for _ in range(t_len):
+        x = motion.sample(x[None], generator=gen)[0]
+        zs.append(sensor.simulate(x[None], generator=gen)[0])
+    z = torch.stack(zs).unsqueeze(1).expand(t_len, b, k, 2)
+    km, _ = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0, P0, torch.stack(zs))
+    init = m0 + torch.randn(b, n, k, 4, generator=gen, dtype=DT)
+    part = PartitionedSIRFilter(motion, sensor, n)(z, init=init, generator=gen)
+    joint = SIRFilter(motion, sensor, n)(z, init=init, generator=gen)
+    assert float(part.info.ess.mean()) > 3 * float(joint.info.ess.mean())
+    rmse = {name: (r.mean - km.unsqueeze(1)).square().mean().sqrt() for name, r in (("part", part), ("joint", joint))}
+    assert rmse["part"] < rmse["joint"], rmse
+
+
+def test_existence_is_refused():
+    from torchmcmcpf import BirthDeath
+
+    area = ((0.0, 100.0), (0.0, 100.0))
+    with pytest.raises(ValueError, match="existence must be None"):
+        PartitionedSIRFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 10,
+                             existence=BirthDeath(0.1, 0.1, area, velocity_std=1.0))
