@@ -42,7 +42,8 @@ def problem(n: int):
     r = 2400 + 800 * torch.rand(1, K, generator=g)
     b = (-12 + 24 * torch.rand(1, K, generator=g)) * DEG
     v = 5 * torch.randn(2, 1, K, generator=g)
-    xt = torch.stack([r * torch.cos(b), v[0], r * torch.sin(b), v[1], torch.full((1, K), sens.amplitude_from_snr(13.0))], -1)
+    rho = torch.full((1, K), sens.amplitude_from_snr(13.0))
+    xt = torch.stack([r * torch.cos(b), v[0], r * torch.sin(b), v[1], rho], -1)
     z = sens.simulate(xt, generator=g)
     x = xt[:, None] + torch.tensor([5.0, 1.0, 5.0, 1.0, 0.5]) * torch.randn(1, n, K, 5, generator=g)
     return sens, x, z

@@ -114,6 +114,7 @@ def test_quick_study_is_deterministic():
 
 def test_settings_map_the_paper_and_validate():
     full = exp.settings(argparse.Namespace(quick=False))
-    assert (full["burn_in"], full["thinning"], full["particles"], full["runs"], full["steps"]) == (500, 10, 100, 100, 35)
+    sizes = (full["burn_in"], full["thinning"], full["particles"], full["runs"], full["steps"])
+    assert sizes == (500, 10, 100, 100, 35)
     with pytest.raises(ValueError, match="--burn-in must be >= 0"):
         exp.settings(_args(None, burn_in=-1))

@@ -31,11 +31,10 @@ from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from torchmcmcpf.filters.mcmc import MCMCFilter, MCMCSettings, mcmc_step
 from torchmcmcpf.filters.sir import SIRFilter
 from torchmcmcpf.models.existence import BirthDeath
-from torchmcmcpf.state import existence_estimate
 from torchmcmcpf.models.motion import ConstantVelocity
 from torchmcmcpf.models.sensors.points import PoissonClutterPoints
 from torchmcmcpf.scenarios.septier import stack_frames
-from torchmcmcpf.state import ParticleState
+from torchmcmcpf.state import ParticleState, existence_estimate
 
 AREA = ((0.0, 5000.0), (0.0, 5000.0))
 B, N, K, T = 3, 400, 3, 26

@@ -168,6 +168,7 @@ def test_bad_settings_raise(kwargs, name):
 
 def test_step_rejects_existence_flags(gen):
     motion, sensor, zs, init, _, _ = _problem(gen, B=2, N=8)
-    state = ParticleState(init[:, :8], torch.full((2, 8), -math.log(8), dtype=DT), torch.ones(2, 8, 2, dtype=torch.bool))
+    log_w = torch.full((2, 8), -math.log(8), dtype=DT)
+    state = ParticleState(init[:, :8], log_w, torch.ones(2, 8, 2, dtype=torch.bool))
     with pytest.raises(ValueError, match="exists"):
         mcmc_step(state, zs[0], motion=motion, sensor=sensor, generator=gen)

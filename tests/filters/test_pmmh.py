@@ -73,7 +73,8 @@ def test_pmmh_recovers_process_noise(gen):
 
     evaluate = sir_log_evidence(build, zs, init, 100)
     c, iters, burn = 6, 60, 15
-    res = pmmh(evaluate, torch.full((1, c, 1), float(prior.mean), dtype=DT), log_prior=lambda th: prior.log_prob(th[..., 0]),
+    theta0 = torch.full((1, c, 1), float(prior.mean), dtype=DT)
+    res = pmmh(evaluate, theta0, log_prior=lambda th: prior.log_prob(th[..., 0]),
                proposal_std=0.4, num_iterations=iters, generator=gen)
     kept = res.theta[burn:, 0, :, 0]  # (S, C)
     est = kept.mean()

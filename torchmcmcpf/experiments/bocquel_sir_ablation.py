@@ -59,7 +59,9 @@ OUTPUTS = ("metrics.json", "ablation.md", "shards")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    def h(key, what):
+    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+
+    def h(key: str, what: str) -> str:
         return defaults_help(FULL, QUICK, key, what)
 
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs per setting"))
@@ -87,7 +89,8 @@ def settings(args: argparse.Namespace) -> dict:
 
 def cells(cfg: dict) -> list[dict]:
     """Every setting the study runs (one factor at a time around the base), each a dict
-    ``targets, particles, spread, point_spread, snr`` with its ``key``; duplicates dropped."""
+    ``targets, particles, spread, point_spread, snr`` with its ``key``; duplicates dropped.
+    """
     base = dict(targets=cfg["base_targets"], particles=cfg["base_particles"], spread=1.0, point_spread="std",
                 snr="half")
     out = [dict(base, targets=k) for k in cfg["targets"]]
@@ -137,7 +140,8 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
 
 def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
     """One row per setting: ``key -> {targets, particles, spread, point_spread, snr, rmse,
-    tlr, ess, seconds_per_step}``."""
+    tlr, ess, seconds_per_step}``.
+    """
     rows = {}
     for c in cells(cfg):
         key = c["key"]
@@ -150,16 +154,17 @@ def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
 
 
 def table_markdown(rows: dict) -> str:
+    """The ablation rows as a markdown table, with the paper's SIR figures beside them."""
     lines = ["| K | Np | initial spread | eq. 20 R, D, B as | SNR | RMSE [m] | TLR | mean ESS | s / step (batch) |"
              " paper RMSE | paper TLR |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows.values():
         paper = PAPER.get(r["particles"]) if r["targets"] == 10 and r["spread"] == 1.0 else None
-        lines.append((
+        lines.append(
             f"| {r['targets']} | {r['particles']} | x{r['spread']:g} | "
             f"{'std = cell' if r['point_spread'] == 'std' else 'variance'} | "
             f"{'rho^2/(2 sigma^2)' if r['snr'] == 'half' else 'rho^2/sigma^2'} | {float(r['rmse']):.2f} | "
             f"{100 * float(r['tlr']):.0f}% | {float(r['ess']):.1f} | {r['seconds_per_step']:.3f} | "
-            + ("- | - |" if paper is None else f"{paper[0]:.2f} | {100 * paper[1]:.0f}% |")))
+            + ("- | - |" if paper is None else f"{paper[0]:.2f} | {100 * paper[1]:.0f}% |"))
     return "\n".join(lines) + "\n"
 
 

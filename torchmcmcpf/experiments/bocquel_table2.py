@@ -68,7 +68,9 @@ OUTPUTS = ("metrics.json", "table2.md", "rmse_1_target.png", "rmse_10_targets.pn
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    def h(key, what):
+    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+
+    def h(key: str, what: str) -> str:
         return defaults_help(FULL, QUICK, key, what)
 
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
@@ -100,7 +102,8 @@ def settings(args: argparse.Namespace) -> dict:
 
 def _run_pmmh(scn, n, cfg, g, progress):
     """The PMMH row: :class:`PMMHFilter` with L = ``pmmh_candidates`` candidates of Np
-    particles each (module docstring)."""
+    particles each (module docstring).
+    """
     lc = cfg["pmmh_candidates"]
     filt = PMMHFilter(scn.motion, scn.sensor, lc * n, num_candidates=lc)
     res = filt(scn.measurements, init=scn.initial_particles(lc * n, generator=g), generator=g, progress=progress)
@@ -160,7 +163,8 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
 
 def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
     """Table II from the per-run arrays of every shard: ``"<K> targets" -> "<algorithm> |
-    <Np>" -> {rmse, rmse_per_step, tlr, seconds_per_step, diagnostics}``."""
+    <Np>" -> {rmse, rmse_per_step, tlr, seconds_per_step, diagnostics}``.
+    """
     results = {}
     for k in cfg["targets"]:
         rows = {}
@@ -182,6 +186,7 @@ def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
 
 
 def table_markdown(results: dict, num_targets: int, with_paper: bool) -> str:
+    """Table II for ``num_targets`` targets as markdown (with the paper's figures when ``with_paper``)."""
     head = "| Algorithm | Np | RMSE [m] | TLR | s / step |"
     sep = "|---|---|---|---|---|"
     if with_paper:

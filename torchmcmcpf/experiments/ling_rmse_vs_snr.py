@@ -79,7 +79,9 @@ OUTPUTS = ("metrics.json", "rmse_vs_snr.png", "tracks.png", "shards")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    def h(key, what):
+    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+
+    def h(key: str, what: str) -> str:
         return defaults_help(FULL, QUICK, key, what)
 
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs per SNR"))
@@ -94,7 +96,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def settings(args: argparse.Namespace) -> dict:
     """Quick or full defaults, overridden by the
-    command-line options given."""
+    command-line options given.
+    """
     quick = bool(getattr(args, "quick", False))
     cfg = dict(QUICK if quick else FULL)
     for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves", "shard_size"):
@@ -191,7 +194,8 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
 
 def aggregate(cfg: dict, per_run: dict, seconds: dict, range_resolution: float) -> dict:
     """Eq. 16 per SNR and kernel from the per-run arrays of every shard (see
-    :func:`run_study` for the fields; acceptance: mean over runs of the per-run mean)."""
+    :func:`run_study` for the fields; acceptance: mean over runs of the per-run mean).
+    """
     results = {}
     for moves in cfg["moves"]:
         se, sem = per_run[f"{moves}|se"], per_run[f"{moves}|se_matched"]  # (R, S, T, K)

@@ -22,12 +22,15 @@ the existence and motion priors; acceptance ratios in :mod:`torchmcmcpf.kernels.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Optional, Sequence, Union
 
 import torch
 
 from .._validation import check_positive_int
+from ..kernels.chains import evaluate
+from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, ancestor_log_prior, check_hmc_motion, hmc_refine
+from ..kernels.mh import mh_select
 from ..kernels.moves import (
     MOVES,
     ChainState,
@@ -42,9 +45,6 @@ from ..kernels.moves import (
     refine_move,
     refine_slot,
 )
-from ..kernels.chains import evaluate
-from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, ancestor_log_prior, check_hmc_motion, hmc_refine
-from ..kernels.mh import mh_select
 from ..kernels.random_walk import RunningMoments, adapted_step, prior_covariance
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
@@ -55,7 +55,7 @@ from .base import Filter
 __all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "parse_moves",
            "MOVE_PRESETS"]
 
-MoveSpec = Union[str, Sequence[tuple[str, float]]]
+MoveSpec = str | Sequence[tuple[str, float]]
 
 #: Named kernels: ``"mixture"`` is paper 004's (joint draw with probability xi = 0.75, else
 #: a refinement sweep); ``"joint"`` the pure joint draw (an independence sampler);
@@ -137,8 +137,8 @@ class MCMCSettings:
     burn_in: int = 100
     thinning: int = 1
     moves: MoveSpec = "mixture"
-    rw_scale: Optional[Union[float, tuple]] = None
-    hmc: Optional[HMCRefine] = None
+    rw_scale: float | tuple | None = None
+    hmc: HMCRefine | None = None
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains")
@@ -150,7 +150,8 @@ class MCMCSettings:
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
         if self.rw_scale is None:
             if any(name == "random_walk" for name, _ in pairs):
-                raise ValueError("rw_scale must be given (a float or a (D,) tensor of steps) for the 'random_walk' move")
+                raise ValueError("rw_scale must be given (a float, a (D,) tensor of steps or 'adaptive') "
+                                 "for the 'random_walk' move")
             return
         if self.rw_scale == "adaptive":
             return
@@ -161,9 +162,10 @@ class MCMCSettings:
             raise ValueError(f"rw_scale must be > 0 and finite, a float or a (D,) vector, got {self.rw_scale!r}")
         object.__setattr__(self, "rw_scale", float(scale) if scale.dim() == 0 else tuple(scale.tolist()))
 
-    def check(self, num_particles: int, dim: int, existence: Optional[BirthDeath]) -> None:
+    def check(self, num_particles: int, dim: int, existence: BirthDeath | None) -> None:
         """The checks that need the problem: ``C | N``, the size of ``rw_scale``, no random walk
-        with existence."""
+        with existence.
+        """
         if num_particles % self.num_chains:
             raise ValueError(
                 f"num_particles ({num_particles}) must be a multiple of num_chains ({self.num_chains}): "
@@ -179,8 +181,8 @@ class MCMCSettings:
 
 
 def draw_iteration_noise(moves: tuple[tuple[str, float], ...], x: Tensor, motion: MotionModel, *,
-                         generator: torch.Generator, existence: Optional[BirthDeath] = None,
-                         z: Optional[Measurement] = None) -> dict[str, object]:
+                         generator: torch.Generator, existence: BirthDeath | None = None,
+                         z: Measurement | None = None) -> dict[str, object]:
     """All the noise of one MCMC iteration, drawn in eager code from ``generator``.
 
     Parameters
@@ -212,9 +214,9 @@ def mcmc_iteration(
     motion: MotionModel,
     sensor: SensorModel,
     moves: tuple[tuple[str, float], ...],
-    rw_scale: Optional[Tensor] = None,
-    existence: Optional[BirthDeath] = None,
-    compiled: Optional[dict] = None,
+    rw_scale: Tensor | None = None,
+    existence: BirthDeath | None = None,
+    compiled: dict | None = None,
 ) -> tuple[ChainState, dict[str, Tensor], dict[str, Tensor]]:
     """One MCMC iteration of every chain: a mixture kernel, branch-free.
 
@@ -276,8 +278,8 @@ def mcmc_step(
     sensor: SensorModel,
     settings: MCMCSettings = MCMCSettings(),
     generator: torch.Generator,
-    existence: Optional[BirthDeath] = None,
-    kernel: Optional[Callable] = None,
+    existence: BirthDeath | None = None,
+    kernel: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One time step of the sequential MCMC particle filter.
 
@@ -374,14 +376,15 @@ def mcmc_step(
     return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: Optional[BirthDeath],
-          compile: Optional[Callable] = None) -> Callable:
+def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: BirthDeath | None,
+          compile: Callable | None = None) -> Callable:
     """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, cloud, z, rw_scale)``.
 
     With ``compile``, each move is compiled on its own (the joint draw; the refinement whole
     when the sensor is separable, else its one-slot update, one graph for every slot; the
     random walk), so the graph never holds K unrolled slot updates; the mixture's choice
-    between them is a few ``torch.where`` in eager code."""
+    between them is a few ``torch.where`` in eager code.
+    """
     moves = None
     if compile is not None:
         names = {name for name, _ in settings.moves}
@@ -454,9 +457,9 @@ class MCMCFilter(Filter):
         burn_in: int = 100,
         thinning: int = 1,
         moves: MoveSpec = "mixture",
-        rw_scale: Optional[Union[float, Tensor]] = None,
-        hmc: Optional[HMCRefine] = None,
-        existence: Optional[BirthDeath] = None,
+        rw_scale: float | Tensor | None = None,
+        hmc: HMCRefine | None = None,
+        existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         if torch.is_tensor(rw_scale):

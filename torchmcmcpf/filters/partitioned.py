@@ -31,8 +31,8 @@ estimate the joint evidence (``log_evidence`` is NaN). Known number of targets o
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, Optional
 
 import torch
 
@@ -113,8 +113,8 @@ def partitioned_sir_step(
     sensor: SensorModel,
     settings: PartitionedSIRSettings = PartitionedSIRSettings(),
     generator: torch.Generator,
-    existence: Optional[BirthDeath] = None,
-    kernel: Optional[Callable] = None,
+    existence: BirthDeath | None = None,
+    kernel: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One independent-partition step (module docstring: weighting and approximation).
 
@@ -171,7 +171,7 @@ class PartitionedSIRFilter(Filter):
     """
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, *,
-                 resample_method: str = "systematic", existence: Optional[BirthDeath] = None,
+                 resample_method: str = "systematic", existence: BirthDeath | None = None,
                  compile_step: bool = False):
         if existence is not None:
             raise ValueError("existence must be None: PartitionedSIRFilter tracks a known number of targets")

@@ -44,8 +44,9 @@ Kalman posterior).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import torch
 from torch.utils._pytree import tree_map
@@ -229,7 +230,8 @@ class PMMHSettings:
 
 def _first_extras(state: ParticleState, settings: PMMHSettings, generator: torch.Generator) -> dict:
     """The PMMH part of the state at the first step: ``theta (B, L)`` drawn from the prior,
-    zero log-evidence, the within-candidate log-weights ``(B, N)``."""
+    zero log-evidence, the within-candidate log-weights ``(B, N)``.
+    """
     x, log_w = state.x, state.log_w
     b, n = log_w.shape
     lc = settings.num_candidates
@@ -256,8 +258,8 @@ def pmmh_step(
     sensor: SensorModel,
     settings: PMMHSettings = PMMHSettings(),
     generator: torch.Generator,
-    existence: Optional[BirthDeath] = None,
-    kernel: Optional[Callable] = None,
+    existence: BirthDeath | None = None,
+    kernel: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One step of the sequential PMMH filter (particle independent MH with theta, module
     docstring): advance the L candidates' SIR filters, then run the MH chain over them.
@@ -292,7 +294,7 @@ def pmmh_step(
         chain's posterior mean of theta and ``candidate_ess`` (B,) the ESS of the
         candidates' evidences (how many candidates the data leave alive).
     """
-    x, log_w, exists = state.x, state.log_w, state.exists
+    x, exists = state.x, state.exists
     b, n, k, d = x.shape
     lc, burn = settings.num_candidates, settings.burn_in
     if n % lc:
@@ -376,7 +378,7 @@ class PMMHFilter(Filter):
         prior_std: float = 1.0,
         resample_method: str = "systematic",
         ess_threshold: float = 1.0,
-        existence: Optional[BirthDeath] = None,
+        existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         settings = PMMHSettings(num_candidates, burn_in, float(prior_mean), float(prior_std), resample_method,

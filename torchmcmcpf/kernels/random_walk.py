@@ -1,10 +1,11 @@
 """The random-walk move on the joint state (paper 002 eqs. 13-14) and the joint log
-transition density it needs (:mod:`torchmcmcpf.kernels.moves` describes the target)."""
+transition density it needs (:mod:`torchmcmcpf.kernels.moves` describes the target).
+"""
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Optional
+from typing import NamedTuple
 
 import torch
 
@@ -27,14 +28,15 @@ _CHUNK_ELEMENTS = 1 << 22
 
 class RandomWalkNoise(NamedTuple):
     """Noise of one random-walk move: ``eps (B, C, K, D)`` normals, ``u (B, C)`` uniforms for
-    the accept/reject and ``u_ancestor (B, C)`` for the Gibbs redraw of the ancestor."""
+    the accept/reject and ``u_ancestor (B, C)`` for the Gibbs redraw of the ancestor.
+    """
 
     eps: Tensor
     u: Tensor
     u_ancestor: Tensor
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> "RandomWalkNoise":
+    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> RandomWalkNoise:
         """Draw for chains shaped like ``x (B, C, K, D)``."""
         b, c = x.shape[:2]
         return cls(_normal(x.shape, x, generator), _uniform((b, c), x, generator), _uniform((b, c), x, generator))
@@ -43,7 +45,7 @@ class RandomWalkNoise(NamedTuple):
 
 
 def log_transition(x: Tensor, prev_x: Tensor, *, motion: MotionModel,
-                   white_prev: Optional[Tensor] = None) -> Tensor:
+                   white_prev: Tensor | None = None) -> Tensor:
     """Joint log transition density from every previous particle to every chain state,
     ``sum_k log p(x_k | x_{k-1,k}^i)``.
 
@@ -145,7 +147,8 @@ def prior_covariance(cloud: PreviousCloud, motion: MotionModel) -> Tensor:
     """Per-target covariance of the prior mixture ``sum_i w^i N(x_k; F x^i_k, Q)`` (the
     chains' starting law), ``Cov_w(F x^i_k) + Q``: ``(B, K, D, D)`` (float64).
 
-    Needs a :class:`~torchmcmcpf.models.LinearGaussianMotion` (``mean``, ``Q``)."""
+    Needs a :class:`~torchmcmcpf.models.LinearGaussianMotion` (``mean``, ``Q``).
+    """
     if not isinstance(motion, LinearGaussianMotion):
         raise ValueError(f"an adaptive random walk needs a LinearGaussianMotion (F, Q), got {type(motion).__name__}")
     m = motion.mean(cloud.x).to(torch.float64)  # (B, N, K, D)
@@ -158,19 +161,21 @@ def prior_covariance(cloud: PreviousCloud, motion: MotionModel) -> Tensor:
 class RunningMoments(NamedTuple):
     """Sums of the chains' states over MCMC iterations, per run and target (pooled over
     chains): ``count ()``, ``s1 (B, K, D)``, ``s2 (B, K, D, D)`` (float64). Haario, Saksman
-    and Tamminen (2001), adaptive Metropolis: the proposal covariance follows the history."""
+    and Tamminen (2001), adaptive Metropolis: the proposal covariance follows the history.
+    """
 
     count: Tensor
     s1: Tensor
     s2: Tensor
 
     @classmethod
-    def zeros(cls, x: Tensor) -> "RunningMoments":
+    def zeros(cls, x: Tensor) -> RunningMoments:
+        """Empty moments for chains ``x (B, C, K, D)``: count 0, sums ``(B, K, D)`` and ``(B, K, D, D)``."""
         b, _, k, d = x.shape
         z = dict(dtype=torch.float64, device=x.device)
         return cls(torch.zeros((), **z), torch.zeros((b, k, d), **z), torch.zeros((b, k, d, d), **z))
 
-    def update(self, x: Tensor) -> "RunningMoments":
+    def update(self, x: Tensor) -> RunningMoments:
         """Add the chain states ``x (B, C, K, D)``."""
         x = x.to(torch.float64)
         return RunningMoments(self.count + x.shape[1], self.s1 + x.sum(1),
@@ -179,7 +184,8 @@ class RunningMoments(NamedTuple):
     def covariance(self, prior: Tensor, prior_weight: float) -> Tensor:
         """The history's covariance shrunk towards ``prior (B, K, D, D)`` with the weight of
         ``prior_weight`` samples (a few samples of a D-dimensional chain do not give a
-        full-rank covariance): ``(n Cov + n0 prior) / (n + n0)``."""
+        full-rank covariance): ``(n Cov + n0 prior) / (n + n0)``.
+        """
         n = self.count.clamp(min=1.0)
         mean = self.s1 / n
         cov = self.s2 / n - mean.unsqueeze(-1) * mean.unsqueeze(-2)
