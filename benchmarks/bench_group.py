@@ -1,4 +1,5 @@
-"""The group model and filter. (1) One batched pairwise-Kalman update of the group model (Septier et al. 2009, eqs. 42-58).
+"""The group model and filter. (1) One batched pairwise-Kalman update of the group model
+(Septier et al. 2009, eqs. 42-58).
 
 N = 4000 particles, N_max = K = 4 slots, B = 1 run, float64; every particle has its own
 (random) pair of structures and existence patterns, so the transition is assembled per

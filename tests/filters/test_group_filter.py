@@ -102,7 +102,8 @@ def reference(sensor, motion, existence, prior, state, z, generator):
 def summaries(j, g, e, pos):
     """(S, M) statistics per sample: one-hot ancestor, structure, existence pattern; e_i x_i."""
     pattern = e[..., 0].long() * 2 + e[..., 1].long()
-    cols = [torch.nn.functional.one_hot(j, 3), torch.nn.functional.one_hot(g, 2), torch.nn.functional.one_hot(pattern, 4)]
+    one_hot = torch.nn.functional.one_hot
+    cols = [one_hot(j, 3), one_hot(g, 2), one_hot(pattern, 4)]
     ex = (pos * e.unsqueeze(-1)).flatten(-2) / 100.0
     return torch.cat([c.to(DT) for c in cols] + [ex], -1)[0]  # (M, 13)
 

@@ -31,6 +31,9 @@ FULL = dict(runs=40)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add this study's options (``--runs``, ``--slots``) to ``parser``; each help text shows
+    the full and the ``--quick`` default.
+    """
     parser.add_argument("--runs", type=positive_int, help="observation sets (default 40, quick 2)")
     parser.add_argument("--slots", type=positive_int, default=4, help="N_max target slots (default 4)")
 

@@ -34,14 +34,20 @@ from __future__ import annotations
 
 import argparse
 import time
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from .. import metrics
 from ..filters.group import GroupMCMCFilter
 from ..models.group import group_structures
-from ..scenarios.group_merge import group_merge
+from ..scenarios.group_merge import GroupMergeScenario, group_merge
+from ..state import FilterResult
+from ..typing import Tensor
 from ._common import generator, positive_int, save_figure, write_metrics
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
 
 NAME = "septier-groups"
 DESCRIPTION = "Septier et al. 2009 Figs. 4-6: marginalised MCMC-PF detects 4 targets and infers two groups merging"
@@ -58,6 +64,9 @@ PAIRS = (3, 6, 8)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add this study's options (runs, steps, particles, chains, burn-in, thinning, ``--beyond``
+    and its sizes) to ``parser``; each help text shows the full and the ``--quick`` default.
+    """
     parser.add_argument("--runs", type=positive_int, help="Monte Carlo runs (default 40, quick 2)")
     parser.add_argument("--steps", type=positive_int, help="time steps (default 110, quick 8)")
     parser.add_argument("--particles", type=positive_int, help="kept samples N_p (default 4000, quick 40)")
@@ -69,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--" + key.replace("_", "-"), dest=key, type=positive_int)
 
 
-def _config(args) -> dict:
+def _config(args: argparse.Namespace) -> dict[str, int]:
     cfg = dict(QUICK if args.quick else FULL)
     cfg.update(BEYOND_QUICK if args.quick else BEYOND_FULL)
     for key in cfg:
@@ -79,14 +88,17 @@ def _config(args) -> dict:
     return cfg
 
 
-def _filter(scn, cfg, *, particles=None, chains=None, burn_in=None, marginalise=True):
+def _filter(scn: GroupMergeScenario, cfg: dict[str, int], *, particles: int | None = None, chains: int | None = None,
+            burn_in: int | None = None, marginalise: bool = True) -> GroupMCMCFilter:
     return GroupMCMCFilter(scn.motion, scn.sensor, particles or cfg["particles"], existence=scn.existence,
                            structure_prior=scn.structure_prior, num_chains=chains or cfg["chains"],
                            burn_in=cfg["burn_in"] if burn_in is None else burn_in, thinning=cfg["thinning"],
                            xi=0.75, p_a=0.5, p_i=0.01, marginalise=marginalise)
 
 
-def _errors(res, scn, steps):
+def _errors(res: FilterResult, scn: GroupMergeScenario, steps: int) -> tuple[Tensor, Tensor]:
+    if res.exists_prob is None:
+        raise ValueError("res must carry exists_prob (a GroupMCMCFilter result), got None")
     present = res.exists_prob > 0.5
     est, true = res.mean[..., 0::2], scn.truth[:steps, ..., 0::2]
     o = metrics.ospa(est, true, c=CUTOFF, p=ORDER, x_mask=present, y_mask=scn.exists[:steps])
@@ -94,26 +106,28 @@ def _errors(res, scn, steps):
     return o, g  # (T, B)
 
 
-def _run(filt, scn, steps, gen, progress):
+def _run(filt: GroupMCMCFilter, scn: GroupMergeScenario, steps: int, gen: torch.Generator,
+         progress: bool | None) -> tuple[FilterResult, float]:
     t0 = time.perf_counter()
     res = filt(scn.frames[:steps], init=filt.init_inactive(scn.frames.shape[1], scn.truth.shape[2]),
                generator=gen, progress=progress)
     return res, time.perf_counter() - t0
 
 
-def first_step_above(prob: torch.Tensor, threshold: float, start: int = 0) -> list:
+def first_step_above(prob: torch.Tensor, threshold: float, start: int = 0) -> list[int | None]:
     """1-based first step ``t >= start + 1`` with ``prob[t] > threshold`` per run: ``(T, B) ->
     [B]`` (``None`` where never).
     """
     above = prob[start:] > threshold
-    out = []
+    out: list[int | None] = []
     for b in range(prob.shape[1]):
         idx = above[:, b].nonzero()
         out.append(int(idx[0, 0]) + start + 1 if len(idx) else None)
     return out
 
 
-def plot_groups(ax, truth, est, present, labels_modal, *, every: int = 15) -> None:
+def plot_groups(ax: Axes, truth: Tensor, est: Tensor, present: Tensor, labels_modal: Tensor, *,
+                every: int = 15) -> None:
     """Fig. 4: true tracks (grey), estimated tracks (slots with existence > 0.5) and, every
     ``every`` steps, an ellipse around each group of the modal structure with its number of
     detected members. ``truth (T, K, 2)``, ``est (T, K, 2)``, ``present (T, K)``,
@@ -135,8 +149,8 @@ def plot_groups(ax, truth, est, present, labels_modal, *, every: int = 15) -> No
             p = est[t][members]
             centre = p.mean(0)
             span = (p.amax(0) - p.amin(0)) if p.shape[0] > 1 else torch.zeros(2)
-            ax.add_patch(Ellipse(centre.tolist(), float(span[0]) + 250, float(span[1]) + 250, fill=False, color="k",
-                                 lw=1))
+            ax.add_patch(Ellipse((float(centre[0]), float(centre[1])), float(span[0]) + 250, float(span[1]) + 250,
+                                 fill=False, color="k", lw=1))
             ax.annotate(str(int(members.sum())), (float(centre[0]), float(centre[1]) + span[1] / 2 + 150),
                         ha="center", fontsize=9)
     ax.set_aspect("equal")
@@ -160,6 +174,8 @@ def run(args: argparse.Namespace) -> dict:
                        existence=scn.existence.to(device), structure_prior=scn.structure_prior)
     filt = _filter(scn, cfg)
     res, seconds = _run(filt, scn, steps, gen, args.progress)
+    if res.exists_prob is None:
+        raise ValueError("the filter result carries no exists_prob (expected a GroupMCMCFilter result)")
     sp = res.info.extras["structure_prob"]  # (T, B, 15)
     count = res.info.extras["expected_count"]  # (T, B)
     o, g = _errors(res, scn, steps)
@@ -230,7 +246,8 @@ def run(args: argparse.Namespace) -> dict:
         "exists_prob_per_step": res.exists_prob.mean(1),
         "structure_prob_per_step": sp.mean(1),
         "p_two_pairs_per_step": sp[..., list(PAIRS)].sum(-1).mean(1),
-        "p_two_pairs_mean_steps_11_to_45": sp[10:merge, :, list(PAIRS)].sum(-1).mean() if merge > 10 and steps > 10 else None,
+        "p_two_pairs_mean_steps_11_to_45": (sp[10:merge, :, list(PAIRS)].sum(-1).mean()
+                                            if merge > 10 and steps > 10 else None),
         "p_merged_mean_last_20": sp[-20:, :, MERGED].mean(),
         "ospa_per_step": o.mean(1), "gospa_per_step": g.mean(1),
         "ospa": o.mean(), "gospa": g.mean(),
@@ -243,12 +260,14 @@ def run(args: argparse.Namespace) -> dict:
     return payload
 
 
-def _beyond(scn, cfg, gen, progress) -> dict:
+def _beyond(scn: GroupMergeScenario, cfg: dict[str, int], gen: torch.Generator, progress: bool | None
+            ) -> dict[str, Any]:
     """Issue 11 item 4 on the first ``beyond_runs`` runs and ``beyond_steps`` steps."""
     r, steps, n, burn = cfg["beyond_runs"], cfg["beyond_steps"], cfg["beyond_particles"], cfg["beyond_burn_in"]
     sub = scn._replace(truth=scn.truth[:, :r], exists=scn.exists[:, :r], frames=scn.frames[:, :r])
     chains = max(d for d in range(1, min(cfg["chains"], n) + 1) if n % d == 0)
-    out = {"runs": r, "steps": steps, "particles": n, "burn_in": burn, "chains": chains, "thinning": cfg["thinning"]}
+    out: dict[str, Any] = {"runs": r, "steps": steps, "particles": n, "burn_in": burn, "chains": chains,
+                           "thinning": cfg["thinning"]}
     start = min(10, steps - 1)  # after the detection phase
     for name, marg in (("marginalised", True), ("sampled_velocities_and_leaders", False)):
         res, sec = _run(_filter(sub, cfg, particles=n, chains=chains, burn_in=burn, marginalise=marg), sub, steps,

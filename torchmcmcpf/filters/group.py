@@ -80,8 +80,9 @@ loops over the ``K`` slots (a Gibbs sweep is sequential by definition).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -99,6 +100,7 @@ from ..models.group import (
     pairwise_kalman_update,
     structure_index,
 )
+from ..models.sensors.pixels import ThresholdedPixels
 from ..state import FilterResult, StepInfo, existence_estimate, stack_infos
 from ..typing import Tensor
 from .base import Filter
@@ -106,6 +108,9 @@ from .base import Filter
 __all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "GroupState", "group_mcmc_step"]
 
 LOG_2PI = math.log(2 * math.pi)
+
+Noise = dict[str, Tensor]
+"""The uniforms and normals of one move, by name (:func:`draw_joint_noise`, :func:`draw_refine_noise`)."""
 
 
 @dataclass(frozen=True)
@@ -131,7 +136,7 @@ class GroupMCMCSettings:
     p_i: float = 0.01
     marginalise: bool = True
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         check_positive_int(self.num_chains, "num_chains")
         check_positive_int(self.burn_in, "burn_in", minimum=0)
         check_positive_int(self.thinning, "thinning")
@@ -143,6 +148,7 @@ class GroupMCMCSettings:
             raise ValueError(f"marginalise must be a bool, got {self.marginalise!r}")
 
     def check(self, num_particles: int) -> None:
+        """Raise ``ValueError`` unless ``num_particles`` is a multiple of ``num_chains``."""
         if num_particles % self.num_chains:
             raise ValueError(f"num_particles ({num_particles}) must be a multiple of num_chains ({self.num_chains})")
 
@@ -172,13 +178,18 @@ class GroupState(NamedTuple):
 
     @property
     def batch_size(self) -> int:
+        """``B``, the number of independent runs."""
         return self.x.shape[0]
 
     @property
     def num_particles(self) -> int:
+        """``N``, the number of particles per run."""
         return self.x.shape[1]
 
     def mean(self) -> Tensor:
+        """Weighted mean of the particles, ``(B, K, 4)`` (ignores existence: see
+        :func:`~torchmcmcpf.state.existence_estimate` for the mean given existence).
+        """
         w = torch.softmax(self.log_w, -1)
         return torch.einsum("bn,bnkd->bkd", w.to(self.x.dtype), self.x)
 
@@ -235,7 +246,7 @@ class Models(NamedTuple):
     """The models and the proposal constants a move needs (bound, not traced)."""
 
     motion: VirtualLeaderMotion
-    sensor: nn.Module
+    sensor: ThresholdedPixels
     existence: GroupExistence
     p_i: float
     p_a: float
@@ -244,7 +255,7 @@ class Models(NamedTuple):
 # ----------------------------------------------------------------------------------------
 # small pieces
 # ----------------------------------------------------------------------------------------
-def _lift(pos: Tensor, sensor) -> Tensor:
+def _lift(pos: Tensor, sensor: ThresholdedPixels) -> Tensor:
     """Positions ``(*S, K, 2)`` into the sensor's state layout ``(*S, K, D)``."""
     ix, iy = sensor.position_index
     d = max(ix, iy) + 1
@@ -254,7 +265,8 @@ def _lift(pos: Tensor, sensor) -> Tensor:
     return out
 
 
-def _log_lik(pos: Tensor, exists: Tensor, z: Tensor, sensor) -> Tensor:
+def _log_lik(pos: Tensor, exists: Tensor, z: Tensor, sensor: ThresholdedPixels) -> Tensor:
+    """``log p(Z | x, e)`` (eq. 40) of positions ``(B, *S, K, 2)``: ``-> (B, *S)``."""
     return sensor.log_likelihood(_lift(pos, sensor), z, exists)
 
 
@@ -264,7 +276,8 @@ def _gather(t: Tensor, j: Tensor) -> Tensor:
     return t[b, j]
 
 
-def _predict(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, models: Models):
+def _predict(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, models: Models
+             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Kalman predictive of the positions of configuration ``(j, g, e)``: ``pm (B, C, K, 2)``,
     ``S (B, C, K, K)``, ``observed``, ``free (B, C, K)`` (eqs. 47, 51-52).
     """
@@ -289,7 +302,7 @@ def _log_px(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, free: Tensor, exist
     return log_g + log_p0
 
 
-def _log_q0(pos: Tensor, cloud: Cloud, sensor, existence: GroupExistence, p_i: float) -> Tensor:
+def _log_q0(pos: Tensor, cloud: Cloud, sensor: ThresholdedPixels, existence: GroupExistence, p_i: float) -> Tensor:
     """``log q_0(x)`` of eq. 64 per slot: ``(B, C, K, 2) -> (B, C, K)``."""
     log_p0 = existence.log_p0_position(pos)
     h, w = sensor.shape
@@ -304,7 +317,8 @@ def _log_q0(pos: Tensor, cloud: Cloud, sensor, existence: GroupExistence, p_i: f
     return torch.where(torch.isfinite(log_p0), q.log(), log_p0)
 
 
-def _draw_q0(noise: dict, cloud: Cloud, sensor, existence: GroupExistence, p_i: float) -> Tensor:
+def _draw_q0(noise: Noise, cloud: Cloud, sensor: ThresholdedPixels, existence: GroupExistence, p_i: float
+             ) -> Tensor:
     """Positions from ``q_0`` (eqs. 64-65): ``(B, C, K, 2)`` from the birth noise."""
     u_sel, u_pix, u_xy = noise["b_sel"], noise["b_pix"], noise["b_xy"]
     a = existence.area.to(u_xy.dtype)
@@ -347,15 +361,16 @@ def _draw_exists(e_prev: Tensor, u: Tensor, existence: GroupExistence) -> Tensor
     return u < p_alive
 
 
-def _select(mask: Tensor, new, old):
+def _select(mask: Tensor, new: Chain, old: Chain) -> Chain:
     """Chain-wise ``torch.where`` over every field; ``mask (B, C)``."""
-    def pick(a, b):
+    def pick(a: Tensor, b: Tensor) -> Tensor:
         m = mask.reshape(mask.shape + (1,) * (a.dim() - mask.dim()))
         return torch.where(m, a, b)
     return type(old)(*(pick(a, b) for a, b in zip(new, old)))
 
 
 def _death_pos(existence: GroupExistence, like: Tensor) -> Tensor:
+    """The position ``(2,)`` of ``x_death`` in ``like``'s dtype and device."""
     return existence.x_death[0::2].to(like)
 
 
@@ -374,7 +389,7 @@ def make_chain(j: Tensor, labels: Tensor, exists: Tensor, pos: Tensor, cloud: Cl
                  _birth_ratio(pos, free, cloud, models), pm, S, obs, free)
 
 
-def joint_proposal(noise: dict, cloud: Cloud, z: Tensor, models: Models) -> Chain:
+def joint_proposal(noise: Noise, cloud: Cloud, z: Tensor, models: Models) -> Chain:
     """Algorithm 1 steps 1-4 (eqs. 61-65) for every chain: the proposed state with its caches."""
     existence = models.existence
     use_alpha = noise["mix"] < models.p_a
@@ -394,7 +409,7 @@ def joint_proposal(noise: dict, cloud: Cloud, z: Tensor, models: Models) -> Chai
                  _birth_ratio(pos, free, cloud, models), pm, S, obs, free)
 
 
-def joint_move(chain: Chain, noise: dict, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
+def joint_move(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
     """Algorithm 1 with the acceptance ratio ``rho_1`` of eq. 60 (module docstring).
     Returns the new chain and ``accepted (B, C)`` bool.
     """
@@ -404,7 +419,7 @@ def joint_move(chain: Chain, noise: dict, cloud: Cloud, z: Tensor, models: Model
     return _select(acc, prop, chain), acc
 
 
-def refine_move(chain: Chain, noise: dict, cloud: Cloud, z: Tensor, models: Models
+def refine_move(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor, models: Models
                 ) -> tuple[Chain, Tensor, Tensor]:
     """Algorithm 2: the structure by ``rho_2``, then each slot's ``(x_i, e_i)`` by ``rho_3``
     (eq. 66; module docstring). Returns the chain, ``accepted_structure (B, C)`` bool and
@@ -478,31 +493,46 @@ def _log_q_slot(x_i: Tensor, cm: Tensor, cv: Tensor, obs_i: Tensor, free_i: Tens
 # ----------------------------------------------------------------------------------------
 # noise (eager)
 # ----------------------------------------------------------------------------------------
-def _birth_noise(shape, g, **f) -> dict:
-    return {"b_sel": torch.rand(shape, generator=g, **f), "b_pix": torch.rand(shape, generator=g, **f),
-            "b_xy": torch.rand(shape + (2,), generator=g, **f)}
+def _birth_noise(shape: tuple[int, int, int], g: torch.Generator, *, dtype: torch.dtype,
+                 device: torch.device | str | None) -> Noise:
+    """Uniforms of the birth proposal ``q_0`` (eqs. 64-65): ``b_sel``, ``b_pix (B, C, K)``,
+    ``b_xy (B, C, K, 2)``.
+    """
+    return {"b_sel": torch.rand(shape, generator=g, dtype=dtype, device=device),
+            "b_pix": torch.rand(shape, generator=g, dtype=dtype, device=device),
+            "b_xy": torch.rand(shape + (2,), generator=g, dtype=dtype, device=device)}
 
 
-def draw_joint_noise(shape, *, generator: torch.Generator, dtype=torch.float64, device=None) -> dict:
-    """Uniforms and normals of one joint draw for chains of ``shape = (B, C, K)``."""
+def draw_joint_noise(shape: tuple[int, int, int], *, generator: torch.Generator,
+                     dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Noise:
+    """Uniforms and normals of one joint draw for chains of ``shape = (B, C, K)``: ``mix``,
+    ``j``, ``g``, ``u (B, C)``, ``e (B, C, K)``, ``eps (B, C, K, 2)`` and the birth uniforms.
+    """
     b, c, k = shape
-    f = dict(dtype=dtype, device=device)
-    noise = {"mix": torch.rand((b, c), generator=generator, **f), "j": torch.rand((b, c), generator=generator, **f),
-             "g": torch.rand((b, c), generator=generator, **f), "e": torch.rand((b, c, k), generator=generator, **f),
-             "eps": torch.randn((b, c, k, 2), generator=generator, **f), "u": torch.rand((b, c), generator=generator, **f)}
-    noise.update(_birth_noise((b, c, k), generator, **f))
+    g = generator
+    noise = {"mix": torch.rand((b, c), generator=g, dtype=dtype, device=device),
+             "j": torch.rand((b, c), generator=g, dtype=dtype, device=device),
+             "g": torch.rand((b, c), generator=g, dtype=dtype, device=device),
+             "e": torch.rand((b, c, k), generator=g, dtype=dtype, device=device),
+             "eps": torch.randn((b, c, k, 2), generator=g, dtype=dtype, device=device),
+             "u": torch.rand((b, c), generator=g, dtype=dtype, device=device)}
+    noise.update(_birth_noise((b, c, k), g, dtype=dtype, device=device))
     return noise
 
 
-def draw_refine_noise(shape, *, generator: torch.Generator, dtype=torch.float64, device=None) -> dict:
-    """Uniforms and normals of one refinement sweep for chains of ``shape = (B, C, K)``."""
+def draw_refine_noise(shape: tuple[int, int, int], *, generator: torch.Generator,
+                      dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Noise:
+    """Uniforms and normals of one refinement sweep for chains of ``shape = (B, C, K)``:
+    ``g``, ``u_g (B, C)``, ``e``, ``u_x (B, C, K)``, ``eps (B, C, K, 2)`` and the birth uniforms.
+    """
     b, c, k = shape
-    f = dict(dtype=dtype, device=device)
-    noise = {"g": torch.rand((b, c), generator=generator, **f), "u_g": torch.rand((b, c), generator=generator, **f),
-             "e": torch.rand((b, c, k), generator=generator, **f),
-             "eps": torch.randn((b, c, k, 2), generator=generator, **f),
-             "u_x": torch.rand((b, c, k), generator=generator, **f)}
-    noise.update(_birth_noise((b, c, k), generator, **f))
+    g = generator
+    noise = {"g": torch.rand((b, c), generator=g, dtype=dtype, device=device),
+             "u_g": torch.rand((b, c), generator=g, dtype=dtype, device=device),
+             "e": torch.rand((b, c, k), generator=g, dtype=dtype, device=device),
+             "eps": torch.randn((b, c, k, 2), generator=g, dtype=dtype, device=device),
+             "u_x": torch.rand((b, c, k), generator=g, dtype=dtype, device=device)}
+    noise.update(_birth_noise((b, c, k), g, dtype=dtype, device=device))
     return noise
 
 
@@ -573,10 +603,10 @@ def _kalman_at_keep(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, pos
     return torch.cat(means, 1), torch.cat(covs, 1)
 
 
-def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion, sensor,
+def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion, sensor: ThresholdedPixels,
                     settings: GroupMCMCSettings = GroupMCMCSettings(), generator: torch.Generator,
                     existence: GroupExistence, structure_prior: GroupStructurePrior,
-                    kernels: dict | None = None) -> tuple[GroupState, StepInfo]:
+                    kernels: dict[str, Callable[..., Any]] | None = None) -> tuple[GroupState, StepInfo]:
     """One time step of the marginalised MCMC-based particle filter (module docstring).
 
     Parameters
@@ -586,7 +616,8 @@ def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion
     motion, sensor, existence, structure_prior : the models (eqs. 13, 41, 25/33, 19).
     settings : GroupMCMCSettings; generator : the only source of randomness (eager draws).
     kernels : ``{"joint": f, "refine": f}``, :func:`joint_move` / :func:`refine_move` with the
-        models bound, ``f(chain, noise, cloud, z)`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``); default eager.
+        models bound, ``f(chain, noise, cloud, z)`` (compiled ones,
+        ``GroupMCMCFilter(compile_step=True)``); default eager.
 
     Returns
     -------
@@ -600,25 +631,25 @@ def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion
     c = settings.num_chains
     models = Models(motion, sensor, existence, float(settings.p_i), float(settings.p_a))
     kernels = kernels or _bind(models)
-    f = dict(dtype=state.x.dtype, device=state.x.device)
+    dtype, dev = state.x.dtype, state.x.device
     cloud = make_cloud(state, z, structure_prior=structure_prior, models=models, settings=settings)
-    chain = joint_proposal(draw_joint_noise((b, c, k), generator=generator, **f), cloud, z, models)
+    chain = joint_proposal(draw_joint_noise((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
     per_chain = n // c
     acc = {name: state.x.new_zeros(b) for name in ("joint", "structure", "target")}
     cnt = {name: state.x.new_zeros(b) for name in acc}
     kept = []
     for m in range(1, settings.burn_in + settings.thinning * per_chain + 1):
         if float(torch.rand((), generator=generator, dtype=torch.float64)) < settings.xi:
-            noise = draw_joint_noise((b, c, k), generator=generator, **f)
+            noise = draw_joint_noise((b, c, k), generator=generator, dtype=dtype, device=dev)
             chain, a = kernels["joint"](chain, noise, cloud, z)
-            acc["joint"] += a.to(f["dtype"]).sum(1)
+            acc["joint"] += a.to(dtype).sum(1)
             cnt["joint"] += c
         else:
-            noise = draw_refine_noise((b, c, k), generator=generator, **f)
+            noise = draw_refine_noise((b, c, k), generator=generator, dtype=dtype, device=dev)
             chain, a_g, a_x = kernels["refine"](chain, noise, cloud, z)
-            acc["structure"] += a_g.to(f["dtype"]).sum(1)
+            acc["structure"] += a_g.to(dtype).sum(1)
             cnt["structure"] += c
-            acc["target"] += a_x.to(f["dtype"]).sum((1, 2))
+            acc["target"] += a_x.to(dtype).sum((1, 2))
             cnt["target"] += c * k
         if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
             kept.append((chain.j, chain.labels, chain.exists, chain.pos))
@@ -632,16 +663,16 @@ def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion
     exists_prob = exists.to(x.dtype).mean(1)
     extras = {f"acceptance_{name}": acc[name] / cnt[name] for name in acc}
     extras.update(structure_prob=structure_prob, exists_prob=exists_prob, expected_count=exists_prob.sum(-1))
-    acceptance = sum(acc.values()) / sum(cnt.values())
+    acceptance = (acc["joint"] + acc["structure"] + acc["target"]) / (cnt["joint"] + cnt["structure"] + cnt["target"])
     return new, StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
 
-def _bind(models: Models) -> dict:
+def _bind(models: Models) -> dict[str, Callable[..., Any]]:
     """The two moves with the models bound: ``{"joint": f(chain, noise, cloud, z), "refine": ...}``."""
-    def joint(chain, noise, cloud, z):
+    def joint(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor) -> tuple[Chain, Tensor]:
         return joint_move(chain, noise, cloud, z, models)
 
-    def refine(chain, noise, cloud, z):
+    def refine(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor) -> tuple[Chain, Tensor, Tensor]:
         return refine_move(chain, noise, cloud, z, models)
 
     return {"joint": joint, "refine": refine}
@@ -673,10 +704,17 @@ class GroupMCMCFilter(Filter):
     >>> res.info.extras["structure_prob"].shape                               # (T, B, 15)
     """
 
-    def __init__(self, motion: VirtualLeaderMotion, sensor, num_particles: int, *, existence: GroupExistence,
-                 structure_prior: GroupStructurePrior, num_chains: int = 1, burn_in: int = 1000,
-                 thinning: int = 6, xi: float = 0.75, p_a: float = 0.5, p_i: float = 0.01,
-                 marginalise: bool = True, compile_step: bool = False):
+    # Contract deviation (module docstring): the group models replace Filter's MotionModel and
+    # BirthDeath, and the filtering state is a GroupState, not a ParticleState; hence the
+    # targeted ``type: ignore[assignment]`` / ``[override]`` / ``[arg-type]`` in this class.
+    motion: VirtualLeaderMotion  # type: ignore[assignment]
+    sensor: ThresholdedPixels
+    existence: GroupExistence  # type: ignore[assignment]
+
+    def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int, *,
+                 existence: GroupExistence, structure_prior: GroupStructurePrior, num_chains: int = 1,
+                 burn_in: int = 1000, thinning: int = 6, xi: float = 0.75, p_a: float = 0.5, p_i: float = 0.01,
+                 marginalise: bool = True, compile_step: bool = False) -> None:
         nn.Module.__init__(self)
         if not isinstance(motion, VirtualLeaderMotion):
             raise ValueError(f"motion must be a VirtualLeaderMotion, got {type(motion).__name__}")
@@ -693,19 +731,24 @@ class GroupMCMCFilter(Filter):
         self.settings = GroupMCMCSettings(num_chains, burn_in, thinning, xi, p_a, p_i, marginalise)
         self.settings.check(self.num_particles)
         self.compile_step = compile_step
-        self._compiled: dict | None = None
+        self._compiled_moves: dict[str, Callable[..., Any]] | None = None
 
-    def kernels(self) -> dict | None:
+    def kernels(self) -> dict[str, Callable[..., Any]] | None:
+        """The moves passed to :func:`group_mcmc_step`: ``None`` (its eager ones) unless
+        ``compile_step``, then ``{"joint": f, "refine": f}`` compiled once
+        (``torch.compile(fullgraph=True, dynamic=False)``), ``f(chain, noise, cloud, z)``.
+        """
         if not self.compile_step:
             return None
-        if self._compiled is None:
+        if self._compiled_moves is None:
             models = Models(self.motion, self.sensor, self.existence, float(self.settings.p_i),
                             float(self.settings.p_a))
-            self._compiled = {name: torch.compile(fn, fullgraph=True, dynamic=False)
-                              for name, fn in _bind(models).items()}
-        return self._compiled
+            self._compiled_moves = {name: torch.compile(fn, fullgraph=True, dynamic=False)
+                                    for name, fn in _bind(models).items()}
+        return self._compiled_moves
 
-    def init(self, particles: Tensor, exists: Tensor | None = None, labels: Tensor | None = None) -> GroupState:
+    def init(self, particles: Tensor, exists: Tensor | None = None,  # type: ignore[override]
+             labels: Tensor | None = None) -> GroupState:
         """Wrap initial particles ``(B, N, K, 4)`` (``[x, vx, y, vy]``; ``exists (B, N, K)``,
         default all inactive; ``labels (B, N, K)``, default each slot its own group) into a
         GroupState with exact (zero-covariance) Kalman statistics: velocities from
@@ -729,7 +772,8 @@ class GroupMCMCFilter(Filter):
         log_w = particles.new_full((b, n), -math.log(n))
         return GroupState(x, log_w, exists, labels.to(torch.int64).contiguous(), w_mean, st.cov)
 
-    def init_inactive(self, batch_size: int, num_slots: int = 4, *, dtype=torch.float64, device=None) -> GroupState:
+    def init_inactive(self, batch_size: int, num_slots: int = 4, *, dtype: torch.dtype = torch.float64,
+                      device: torch.device | str | None = None) -> GroupState:
         """``K = num_slots`` slots, all inactive in every particle of every run (paper 004 sec. 5)."""
         b = check_positive_int(batch_size, "batch_size")
         k = check_positive_int(num_slots, "num_slots")
@@ -741,19 +785,22 @@ class GroupMCMCFilter(Filter):
         check_shape(z, name, (state.batch_size,) + tuple(self.sensor.shape))
         self.sensor.validate(z, state.batch_size, name)
 
-    def step(self, state: GroupState, z: Tensor, *, generator: torch.Generator) -> tuple[GroupState, StepInfo]:
+    def step(self, state: GroupState, z: Tensor, *,  # type: ignore[override]
+             generator: torch.Generator) -> tuple[GroupState, StepInfo]:
         """Advance by one frame ``z (B, H, W)``."""
         check_generator(generator)
         self._check(state, z)
         return self._step(state, z, generator)
 
-    def _step(self, state, z, generator):
+    def _step(self, state: GroupState, z: Tensor,  # type: ignore[override]
+              generator: torch.Generator) -> tuple[GroupState, StepInfo]:
+        """One call of :func:`group_mcmc_step` with this filter's models and settings."""
         return group_mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
                                generator=generator, existence=self.existence, structure_prior=self.structure_prior,
                                kernels=self.kernels())
 
-    def forward(self, measurements: Tensor, *, init: GroupState, generator: torch.Generator,
-                progress: bool | None = None) -> FilterResult:
+    def forward(self, measurements: Tensor, *, init: GroupState,  # type: ignore[override]
+                generator: torch.Generator, progress: bool | None = None) -> FilterResult:
         """Filter frames ``(T, B, H, W)`` from ``init`` (a GroupState, e.g. :meth:`init_inactive`).
 
         Returns FilterResult: ``mean (T, B, K, 4)`` (each slot's mean given existence),
@@ -768,7 +815,7 @@ class GroupMCMCFilter(Filter):
         self._check(init, measurements[0], "measurements[0]")
         self.sensor.validate(measurements.flatten(0, 1), None, "measurements")
         state = init
-        steps = range(measurements.shape[0])
+        steps: Any = range(measurements.shape[0])
         if progress:
             from tqdm.auto import tqdm
 
@@ -776,12 +823,15 @@ class GroupMCMCFilter(Filter):
         means, infos, probs = [], [], []
         for t in steps:
             state, info = self._step(state, measurements[t], generator)
-            est = existence_estimate(state, x_death=self.existence.x_death)  # type: ignore[arg-type]
+            est = existence_estimate(state, x_death=self.existence.x_death)  # type: ignore[arg-type]  # GroupState
             means.append(est.mean)
             probs.append(est.exists_prob)
             infos.append(info)
         info = stack_infos(infos)
-        return FilterResult(torch.stack(means), state, info, info.log_evidence.sum(0), torch.stack(probs))
+        # the result holds the GroupState (resume with init=result.state)
+        return FilterResult(torch.stack(means), state, info,  # type: ignore[arg-type]
+                            info.log_evidence.sum(0), torch.stack(probs))
 
-    def estimate(self, state: GroupState) -> Tensor:
+    def estimate(self, state: GroupState) -> Tensor:  # type: ignore[override]
+        """Each slot's mean given existence, ``(B, K, 4)`` (``x_death`` where no particle has it)."""
         return existence_estimate(state, x_death=self.existence.x_death).mean  # type: ignore[arg-type]

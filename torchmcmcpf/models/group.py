@@ -53,6 +53,7 @@ from torch import nn
 from .._validation import check_positive, check_positive_int
 from ..typing import Tensor
 from .existence import BirthDeath
+from .sensors.points import AreaLike
 
 __all__ = [
     "VirtualLeaderMotion",
@@ -101,7 +102,7 @@ def _structures(n: int) -> tuple[tuple[int, ...], ...]:
     return tuple(rows)
 
 
-def group_structures(n: int, *, device=None) -> Tensor:
+def group_structures(n: int, *, device: torch.device | str | None = None) -> Tensor:
     """Every partition of ``n`` targets once, as canonical labels (paper 004, Table 2).
 
     A row is a restricted-growth string: target 0 is in group 0 and each target's label is
@@ -112,6 +113,7 @@ def group_structures(n: int, *, device=None) -> Tensor:
     Parameters
     ----------
     n : number of targets ``N_max >= 1``.
+    device : where the table is made (default the CPU).
 
     Returns
     -------
@@ -184,8 +186,8 @@ class GroupStructurePrior(nn.Module):
         one group with score ``e^{-1/2}``).
     """
 
-    def __init__(self, p_nc: float, p_q: float, closeness: Callable | None = None, *,
-                 scale: float = 300.0):
+    def __init__(self, p_nc: float, p_q: float, closeness: Callable[[Tensor, Tensor], Tensor] | None = None, *,
+                 scale: float = 300.0) -> None:
         super().__init__()
         self.p_nc = _probability(p_nc, "p_nc")
         self.p_q = _probability(p_q, "p_q")
@@ -223,9 +225,10 @@ class GroupStructurePrior(nn.Module):
         stay = torch.nn.functional.one_hot(structure_prev, log_pi.shape[-1]).bool()
         log_nc = math.log(self.p_nc) if self.p_nc > 0 else -math.inf
         log_c = math.log1p(-self.p_nc) if self.p_nc < 1 else -math.inf
-        f = dict(dtype=log_pi.dtype, device=log_pi.device)
+        dtype, dev = log_pi.dtype, log_pi.device
         return torch.logaddexp(log_c + log_pi,
-                               torch.where(stay, torch.tensor(log_nc, **f), torch.tensor(-math.inf, **f)))
+                               torch.where(stay, torch.tensor(log_nc, dtype=dtype, device=dev),
+                                           torch.tensor(-math.inf, dtype=dtype, device=dev)))
 
     def log_prob(self, structure: Tensor, structure_prev: Tensor, pos: Tensor, exists: Tensor) -> Tensor:
         """``log p(g_t | x_{p,t-1}, g_{t-1}, e_{t-1})`` of row indices ``structure (*S,)``."""
@@ -241,7 +244,7 @@ class GroupStructurePrior(nn.Module):
         return torch.searchsorted(cdf, u * cdf[..., -1:]).squeeze(-1).clamp(max=p.shape[-1] - 1)
 
 
-def _probability(value, name: str) -> float:
+def _probability(value: float, name: str) -> float:
     v = float(value)
     if not 0.0 <= v <= 1.0:
         raise ValueError(f"{name} must be a probability in [0, 1], got {value!r}")
@@ -265,7 +268,7 @@ def from_axes(s: Tensor) -> tuple[Tensor, Tensor]:
     k = s.shape[-1] // 4
     p, u, lp, lu = (s[..., j * k:(j + 1) * k].transpose(-1, -2) for j in range(4))  # (*S, K, 2)
 
-    def interleave(a, b):
+    def interleave(a: Tensor, b: Tensor) -> Tensor:
         return torch.stack([a[..., 0], b[..., 0], a[..., 1], b[..., 1]], -1)
 
     return interleave(p, u), interleave(lp, lu)
@@ -278,7 +281,7 @@ class GroupExistence(nn.Module):
     """Existence chain and birth/death densities of a group configuration (eqs. 24-37).
 
     - existence chain per slot (eq. 25): :class:`~torchmcmcpf.models.existence.BirthDeath`'s
-      ``P_B``, ``P_D`` (``log_prob_exists``, ``sample_exists`` are delegated to it);
+      ``P_B``, ``P_D`` (``log_prob_exists`` is delegated to it);
     - independent birth (``Upsilon_2^1``: newborn in a group with no survivor), eqs. 32-33:
       position uniform over ``area``, velocity ``N(0, velocity_std^2 I)``;
     - group birth (``Upsilon_2^2``), eqs. 29-31: ``N(F~_1 s_bar_{t-1}, Q_bT)``, ``s_bar`` the
@@ -303,10 +306,16 @@ class GroupExistence(nn.Module):
     x_death, v_death : (4,) (default zeros).
     """
 
-    def __init__(self, p_birth: float, p_death: float, area, *, velocity_std: float = 5.0,
+    area: Tensor  # (2, 2) float64
+    group_birth_cov: Tensor  # (2, 2) Q_bT per axis
+    leader_birth_cov: Tensor  # (2, 2) Q_bVL per axis
+    x_death: Tensor  # (4,)
+    v_death: Tensor  # (4,)
+
+    def __init__(self, p_birth: float, p_death: float, area: AreaLike, *, velocity_std: float = 5.0,
                  group_birth_std: Sequence[float] = (50.0, 2.0),
                  leader_birth_std: Sequence[float] = (50.0, 2.0),
-                 x_death: Tensor | None = None, v_death: Tensor | None = None):
+                 x_death: Tensor | None = None, v_death: Tensor | None = None) -> None:
         super().__init__()
         self.chain = BirthDeath(p_birth, p_death, area, velocity_std=velocity_std)
         self.velocity_std = check_positive(velocity_std, "velocity_std")
@@ -329,19 +338,17 @@ class GroupExistence(nn.Module):
 
     @property
     def p_birth(self) -> float:
+        """``P_B``, the probability that an inactive slot becomes active (eq. 25)."""
         return self.chain.p_birth
 
     @property
     def p_death(self) -> float:
+        """``P_D``, the probability that an active slot becomes inactive (eq. 25)."""
         return self.chain.p_death
 
     def log_prob_exists(self, exists_next: Tensor, exists: Tensor) -> Tensor:
         """``log p(e_t | e_{t-1})`` per slot (eq. 25): ``(*S, K), (*S, K) -> (*S, K)``."""
         return self.chain.log_prob_exists(exists_next, exists)
-
-    def sample_exists(self, exists: Tensor, *, generator: torch.Generator) -> Tensor:
-        """``e_t ~ p(. | e_{t-1})`` per slot (eq. 25): ``(*S, K) bool -> (*S, K) bool``."""
-        return self.chain.sample_exists(exists, generator=generator)
 
     def log_p0_position(self, pos: Tensor) -> Tensor:
         """Log density of the uniform birth position (eq. 32): ``(*S, K, 2) -> (*S, K)``,
@@ -349,11 +356,13 @@ class GroupExistence(nn.Module):
         """
         a = self.area.to(pos.dtype)
         inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
-        f = dict(dtype=pos.dtype, device=pos.device)
-        return torch.where(inside, torch.tensor(-self.log_area, **f), torch.tensor(-math.inf, **f))
+        dtype, dev = pos.dtype, pos.device
+        return torch.where(inside, torch.tensor(-self.log_area, dtype=dtype, device=dev),
+                           torch.tensor(-math.inf, dtype=dtype, device=dev))
 
-    def sample_p0_position(self, shape, *, generator: torch.Generator, dtype=torch.float64,
-                           device=None) -> Tensor:
+    def sample_p0_position(self, shape: Sequence[int], *, generator: torch.Generator,
+                           dtype: torch.dtype = torch.float64,
+                           device: torch.device | str | None = None) -> Tensor:
         """Uniform birth positions (eq. 32): ``-> (*shape, 2)``."""
         a = self.area.to(dtype=dtype, device=device)
         u = torch.rand(tuple(shape) + (2,), generator=generator, dtype=dtype, device=device)
@@ -403,8 +412,18 @@ class VirtualLeaderMotion(nn.Module):
         switches the repulsion off.
     """
 
+    # per-axis 2 x 2 blocks ([pos, vel]) of F, R, Q read from ``matrices(2)`` (module docstring)
+    F_ss: Tensor  # member <- itself
+    F_sl: Tensor  # member <- its leader
+    F_ll: Tensor  # leader <- itself
+    R_s: Tensor  # (2,) member (pos, vel) <- its acceleration
+    Q_self: Tensor
+    Q_cross: Tensor
+    Q_sl: Tensor
+    Q_ll: Tensor
+
     def __init__(self, alpha: float, beta: float, gamma1: float, gamma2: float, sigma_x: float,
-                 sigma_g: float, dt: float, r1: float | None = None, r2: float | None = None):
+                 sigma_g: float, dt: float, r1: float | None = None, r2: float | None = None) -> None:
         super().__init__()
         self.alpha = check_positive(alpha, "alpha")
         self.beta = check_positive(beta, "beta", allow_zero=True)
@@ -422,7 +441,7 @@ class VirtualLeaderMotion(nn.Module):
         F, R, Q = self.matrices(2)
         m1, m2, ld = [0, 4], [1, 5], [8, 10]
 
-        def blk(M, a, b):
+        def blk(M: Tensor, a: list[int], b: list[int]) -> Tensor:
             return M[a][:, b].clone()
 
         self.register_buffer("F_ss", blk(F, m1, m1))   # member <- itself
@@ -441,21 +460,21 @@ class VirtualLeaderMotion(nn.Module):
         """
         n = check_positive_int(n, "n")
         d = 4 * (n + 1)
-        f64 = dict(dtype=torch.float64)
-        A = torch.zeros(d, d, **f64)
-        I2n = torch.eye(2 * n, **f64)
+        f64 = torch.float64
+        A = torch.zeros(d, d, dtype=f64)
+        I2n = torch.eye(2 * n, dtype=f64)
         A[:2 * n, 2 * n:4 * n] = I2n
         A[2 * n:4 * n, :2 * n] = -self.alpha * I2n
         A[2 * n:4 * n, 2 * n:4 * n] = -(self.beta + self.gamma1) * I2n
-        ones = torch.ones(n, **f64)
+        ones = torch.ones(n, dtype=f64)
         o = 4 * n  # leader block starts here: [v^x, v^y, vdot^x, vdot^y]
         A[2 * n:3 * n, o + 0] = self.alpha * ones   # Lambda_a (eq. 5)
         A[3 * n:4 * n, o + 1] = self.alpha * ones
         A[2 * n:3 * n, o + 2] = self.beta * ones
         A[3 * n:4 * n, o + 3] = self.beta * ones
         A[o:, o:] = torch.tensor([[0, 0, 1, 0], [0, 0, 0, 1], [0, 0, -self.gamma2, 0],
-                                  [0, 0, 0, -self.gamma2]], **f64)  # Lambda_b (eq. 6)
-        qc = torch.zeros(d, **f64)
+                                  [0, 0, 0, -self.gamma2]], dtype=f64)  # Lambda_b (eq. 6)
+        qc = torch.zeros(d, dtype=f64)
         qc[2 * n:4 * n] = self.sigma_x**2
         qc[o + 2:] = self.sigma_g**2
         return A, torch.diag(qc)
@@ -501,7 +520,7 @@ class VirtualLeaderMotion(nn.Module):
         -------
         (*S, K, 2).
         """
-        if self.r1 is None:
+        if self.r1 is None or self.r2 is None:  # both or neither (__init__)
             return torch.zeros_like(pos)
         diff = pos.unsqueeze(-2) - pos.unsqueeze(-3)  # (*S, K, K, 2): p_i - p_j
         d = diff.square().sum(-1).clamp(min=torch.finfo(pos.dtype).tiny).sqrt()  # coincident: 0 force
@@ -545,7 +564,6 @@ class VirtualLeaderMotion(nn.Module):
         dtype, dev = pos_prev.dtype, pos_prev.device
         k = labels.shape[-1]
         batch = labels.shape[:-1]
-        f = dict(dtype=dtype, device=dev)
         surv = exists_prev & exists
         born = ~exists_prev & exists
         G = torch.nn.functional.one_hot(labels, k).to(dtype)  # (*S, K, K): G[i, h] = g_i == h
@@ -573,7 +591,7 @@ class VirtualLeaderMotion(nn.Module):
         Bm = Bm / Bm.sum(-1, keepdim=True).clamp(min=1) * grp_new.to(dtype).unsqueeze(-1)  # (*S, K', K)
         # Psi and Q = sum over block types of (4 x 4 per-axis coefficients) x (K x K weights):
         # one einsum each, no per-block concatenation
-        eye = torch.eye(k, **f)
+        eye = torch.eye(k, dtype=dtype, device=dev)
         same = _same_group(labels).to(dtype) * sv.unsqueeze(-1) * sv.unsqueeze(-2)
         sG = sv.unsqueeze(-1) * G
         W_psi = torch.stack([src, lsrc, lead], -3)  # (*S, 3, K, K)
@@ -581,19 +599,19 @@ class VirtualLeaderMotion(nn.Module):
                            eye * born21.to(dtype).unsqueeze(-1), sG, sG.transpose(-1, -2),
                            torch.diag_embed(grp_surv.to(dtype)), torch.diag_embed(grp_new.to(dtype)),
                            Bm.transpose(-1, -2), Bm, Bm @ Bm.transpose(-1, -2)], -3)  # (*S, 11, K, K)
-        C_psi, C_q = self._coefficients(existence, **f)
+        C_psi, C_q = self._coefficients(existence, dtype=dtype, device=dev)
         Psi = torch.einsum("tab,...tij->...aibj", C_psi, W_psi).reshape(batch + (4 * k, 4 * k))
         Q = torch.einsum("tab,...tij->...aibj", C_q, W_q).reshape(batch + (4 * k, 4 * k))
         # offsets per axis: repulsion R h (eqs. 8, 13), death states (eqs. 36-37)
         rep = self.repulsion(pos_prev, labels, surv)  # (*S, K, 2)
         dead = (~exists).to(dtype).unsqueeze(-1)  # (*S, K, 1)
         lead_dead = (~grp_surv & ~grp_new).to(dtype).unsqueeze(-1)
-        xd, vd = existence.x_death.to(**f), existence.v_death.to(**f)
-        r_pos = self.R_s[0].to(**f) * rep * sv.unsqueeze(-1) + dead * xd[0::2]
-        r_vel = self.R_s[1].to(**f) * rep * sv.unsqueeze(-1) + dead * xd[1::2]
+        xd, vd = existence.x_death.to(dtype=dtype, device=dev), existence.v_death.to(dtype=dtype, device=dev)
+        r_pos = self.R_s[0].to(dtype=dtype, device=dev) * rep * sv.unsqueeze(-1) + dead * xd[0::2]
+        r_vel = self.R_s[1].to(dtype=dtype, device=dev) * rep * sv.unsqueeze(-1) + dead * xd[1::2]
         r = torch.cat([r_pos, r_vel, lead_dead * vd[0::2], lead_dead * vd[1::2]], -2).transpose(-1, -2)
         # independent newborns: position given (p_0), enters its own row and its new leader's
-        zk = torch.zeros(batch + (k, k), **f)
+        zk = torch.zeros(batch + (k, k), dtype=dtype, device=dev)
         born_gain = torch.cat([torch.diag_embed(born21.to(dtype)), zk, Bm, zk], -2)  # (*S, 4K, K)
         if pos_born is not None:
             r = r + (born_gain @ pos_born.to(dtype)).transpose(-1, -2)
@@ -603,20 +621,21 @@ class VirtualLeaderMotion(nn.Module):
                                          grp_new, grp_new], -1)
         return AffineTransition(Psi, r, Q, random, surv | born22, born21, born_gain)
 
-    def _coefficients(self, existence: GroupExistence, **f) -> tuple[Tensor, Tensor]:
+    def _coefficients(self, existence: GroupExistence, *, dtype: torch.dtype,
+                      device: torch.device) -> tuple[Tensor, Tensor]:
         """Per-axis 4 x 4 coefficients (``[pos, vel, leader pos, leader vel]``) of each block
         type of :meth:`transition`: ``Psi`` (3 types) and ``Q`` (11 types).
         """
-        z = torch.zeros(2, 2, **f)
+        z = torch.zeros(2, 2, dtype=dtype, device=device)
         sv2 = existence.velocity_std ** 2
 
-        def place(B, row, col):
-            out = torch.zeros(4, 4, **f)
-            out[2 * row:2 * row + 2, 2 * col:2 * col + 2] = B.to(**f)
+        def place(B: Tensor, row: int, col: int) -> Tensor:
+            out = torch.zeros(4, 4, dtype=dtype, device=device)
+            out[2 * row:2 * row + 2, 2 * col:2 * col + 2] = B.to(dtype=dtype, device=device)
             return out
 
         c_psi = torch.stack([place(self.F_ss, 0, 0), place(self.F_sl, 0, 1), place(self.F_ll, 1, 1)])
-        u_lu = torch.zeros(4, 4, **f)
+        u_lu = torch.zeros(4, 4, dtype=dtype, device=device)
         u_lu[1, 3] = sv2
         c_q = torch.stack([
             place(self.Q_cross, 0, 0),                    # survivors of one group
@@ -745,8 +764,9 @@ class GroupPrediction(NamedTuple):
         return self.cov[..., :k, :k]
 
 
-def pairwise_kalman_init(batch_shape, num_slots: int, *, existence: GroupExistence,
-                         dtype=torch.float64, device=None) -> KalmanStats:
+def pairwise_kalman_init(batch_shape: Sequence[int], num_slots: int, *, existence: GroupExistence,
+                         dtype: torch.dtype = torch.float64,
+                         device: torch.device | str | None = None) -> KalmanStats:
     """Statistics of an all-inactive configuration: velocities at ``x_death``'s, leaders at
     ``v_death``, zero covariance: ``-> mean (*batch, 2, 3K), cov (*batch, 3K, 3K)``.
     """

@@ -94,7 +94,8 @@ class GroupMergeScenario(NamedTuple):
         return self.truth[..., 0::2]
 
 
-def _initial(motion: VirtualLeaderMotion, merge_index: int, merge_point, speed, spread, gap, dtype):
+def _initial(motion: VirtualLeaderMotion, merge_index: int, merge_point: Sequence[float], speed: Sequence[float],
+             spread: float, gap: float, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """Leaders and members at step 1 (module docstring): ``x (4, 4)``, ``v (2, 4)``."""
     Fk = torch.linalg.matrix_power(motion.F_ll.to(dtype), merge_index)  # per-axis leader map
     xs, vs = [], []

@@ -36,7 +36,7 @@ from ..base import SensorModel
 __all__ = ["ThresholdedPixels"]
 
 
-class ThresholdedPixels(SensorModel):
+class ThresholdedPixels(SensorModel[Tensor]):
     """Binary pixel frames with ``P_d,n = P_fa ** (1 / (1 + n SNR))`` (module docstring).
 
     Parameters
@@ -57,7 +57,7 @@ class ThresholdedPixels(SensorModel):
     """
 
     def __init__(self, shape: Sequence[int], pixel_size: float, p_fa: float, p_d1: float | None = None,
-                 snr: float | None = None, *, position_index: Sequence[int] = (X, Y)):
+                 snr: float | None = None, *, position_index: Sequence[int] = (X, Y)) -> None:
         super().__init__()
         if len(shape) != 2 or any(int(s) != s or s < 1 for s in shape):
             raise ValueError(f"shape must be (H, W) positive integers, got {shape!r}")
@@ -82,6 +82,7 @@ class ThresholdedPixels(SensorModel):
 
     @property
     def snr_db(self) -> float:
+        """The SNR of eq. 41 in dB, ``10 log10(SNR)``."""
         return 10 * math.log10(self.snr)
 
     @property
@@ -89,7 +90,7 @@ class ThresholdedPixels(SensorModel):
         """``((0, W s), (0, H s))`` [m]."""
         return ((0.0, self.shape[1] * self.pixel_size), (0.0, self.shape[0] * self.pixel_size))
 
-    def log_p_detect(self, n: Tensor, dtype=torch.float64) -> Tensor:
+    def log_p_detect(self, n: Tensor, dtype: torch.dtype = torch.float64) -> Tensor:
         """``log P_d,n`` of eq. 41 for target counts ``n`` (any shape): ``log P_fa / (1 + n SNR)``."""
         return math.log(self.p_fa) / (1.0 + n.to(dtype) * self.snr)
 
@@ -156,5 +157,6 @@ class ThresholdedPixels(SensorModel):
         return z
 
     def extra_repr(self) -> str:
+        """The constructor arguments, shown inside ``repr(module)``."""
         return (f"shape={self.shape}, pixel_size={self.pixel_size}, p_fa={self.p_fa}, "
                 f"p_d1={self.p_d1:.4g}, snr={self.snr:.4g} ({self.snr_db:.1f} dB)")
