@@ -430,6 +430,8 @@ class IPMCMCFilter(Filter):
     compile_step : compile one exchange iteration with ``torch.compile(fullgraph=True)``
         (the first step pays the compile time).
 
+    Notes
+    -----
     ``StepInfo``: ``acceptance``; ``ess``, ``log_evidence`` NaN; extras ``"rhat"``,
     ``"rhat_slot"``, ``"rhat_dim"``, ``"extensions"`` (:func:`ipmcmc_step`).
 

@@ -166,6 +166,8 @@ class PartitionedSIRFilter(Filter):
     existence : must be None (known number of targets).
     compile_step : compile :func:`partitioned_sir_kernel` (the whole step but its draws).
 
+    Notes
+    -----
     ``StepInfo``: ``ess`` (mean partition ESS); ``log_evidence``, ``acceptance`` NaN;
     extras ``ess_min``.
     """

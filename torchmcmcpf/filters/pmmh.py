@@ -360,6 +360,8 @@ class PMMHFilter(Filter):
     existence : BirthDeath, optional, passed to every candidate's SIR filter.
     compile_step : compile the candidates' SIR kernel (:func:`~torchmcmcpf.filters.sir.sir_kernel`).
 
+    Notes
+    -----
     ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (the PIMH moves); extras
     ``theta_mean``, ``candidate_ess``. The state carries ``extras`` (the candidates'
     ``theta``, accumulated log-evidence and within-candidate weights), so a checkpoint of

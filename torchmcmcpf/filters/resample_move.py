@@ -298,6 +298,8 @@ class ResampleMoveFilter(Filter):
     existence : BirthDeath, optional: births and deaths, as for every other filter.
     compile_step : compile one HMC transition (leapfrog with ``torch.func.grad``).
 
+    Notes
+    -----
     ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (NaN without a move); extras
     ``"ess_after_move"`` (and per target with ``association="metropolis"``, see
     :func:`resample_move_step`).

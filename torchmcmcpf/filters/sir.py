@@ -156,6 +156,8 @@ class SIRFilter(Filter):
         estimate of a slot is then its mean given existence.
     compile_step : compile :func:`sir_kernel` (the whole step but its random draws).
 
+    Notes
+    -----
     ``StepInfo``: ``ess``, ``log_evidence``; ``acceptance`` NaN; ``extras`` empty.
 
     Example

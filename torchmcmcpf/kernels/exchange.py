@@ -90,8 +90,8 @@ def exchange_iteration(
 
     Parameters
     ----------
-    chain : ``(y (B, C, K, D), log_lik (B, C), exists, log_birth)`` with ``log_lik = log p(z
-        | y, exists)``; ``exists (B, C, K)`` bool and ``log_birth (B, C, K)`` (the cached
+    chain : ``(y (B, C, K, D), log_lik (B, C), exists, log_birth)`` with
+        ``log_lik = log p(z | y, exists)``; ``exists (B, C, K)`` bool and ``log_birth (B, C, K)`` (the cached
         ``log r_j``) with ``existence``, else ``None``.
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
     z : the frame; source, slot : (B, C) int64; eps : (B, C, noise_dim) standard normals;

@@ -196,7 +196,7 @@ def hmc_transition(q: Tensor, value: Tensor, grad: Tensor, p: Tensor, u: Tensor,
     Parameters
     ----------
     q : (*C, *E) states; value : (*C) ``log_target(q)``; grad : (*C, *E) its gradient.
-    Other arguments as :func:`hmc`.
+    p, u, log_target, step_size, num_leapfrog, grad_fn : as :func:`hmc`.
 
     Returns
     -------

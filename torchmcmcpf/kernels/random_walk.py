@@ -122,9 +122,10 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
 
     Parameters
     ----------
-    chain : ChainState ``(B, C, K, D)``; noise : :class:`RandomWalkNoise`; cloud : previous
-    particles; z : frame ``(B, *G)``; motion, sensor : the models; scale : (D,) or scalar
-    random-walk step, or a ``(B, 1, K, D, D)`` Cholesky factor (:func:`propose_random_walk`).
+    chain : ChainState ``(B, C, K, D)``; noise : :class:`RandomWalkNoise`.
+    cloud : the previous particles; z : the frame ``(B, *G)``; motion, sensor : the models.
+    scale : ``(D,)`` or scalar random-walk step, or a ``(B, 1, K, D, D)`` Cholesky factor
+        (:func:`propose_random_walk`).
 
     Returns
     -------
