@@ -48,6 +48,7 @@ batch (the notebook's entry point).
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 import torch
 
@@ -94,12 +95,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=h("moves", "kernels to run"))
 
 
-def settings(args: argparse.Namespace) -> dict:
+def settings(args: argparse.Namespace) -> dict[str, Any]:
     """Quick or full defaults, overridden by the
     command-line options given.
     """
     quick = bool(getattr(args, "quick", False))
-    cfg = dict(QUICK if quick else FULL)
+    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
     for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves", "shard_size"):
         value = getattr(args, key, None)
         if value is not None:
