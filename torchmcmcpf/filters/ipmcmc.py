@@ -157,7 +157,7 @@ __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration"
 
 
 def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Callable | None = None,
-                every: int = 1, record_from: int = 0):
+                every: int = 1, record_from: int = 0) -> tuple[tuple, list[tuple], Tensor, Tensor]:
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
     ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
     (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
