@@ -54,7 +54,7 @@ import torch
 
 from .. import metrics
 from ..filters.mcmc import MCMCFilter
-from ..scenarios.ling import ling
+from ..scenarios.ling import LingScenario, ling
 from ._common import (
     StepTimer,
     defaults_help,
@@ -152,7 +152,7 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
     return {"results": results, "scenario": scn, "estimates": estimates}
 
 
-def _filter(cfg: dict, scn, moves: str, device) -> MCMCFilter:
+def _filter(cfg: dict, scn: LingScenario, moves: str, device: str | torch.device) -> MCMCFilter:
     return MCMCFilter(scn.motion, scn.sensor, num_particles=cfg["particles"], num_chains=1, burn_in=cfg["burn_in"],
                       thinning=cfg["thinning"], moves="random_walk" if moves == "adaptive_random_walk" else moves,
                       rw_scale=torch.tensor(RW_SCALE) if moves == "random_walk" else
