@@ -19,6 +19,7 @@ import shlex
 import sys
 import time
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from .experiments._common import (
     StepTimer,
@@ -32,12 +33,20 @@ from .experiments._common import (
     write_metrics,
 )
 
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from .filters.base import Filter
+    from .metrics import RMSE
+    from .scenarios.ground_radar import Scenario
+    from .state import FilterResult
+
 DEMO_DEFAULTS = dict(particles=1000, runs=2, steps=20, targets=10, chains=50, burn_in=100)
 DEMO_OUTPUTS = ("metrics.json", "tracks.png")
 FILTER_NAMES = {"ipmcmc": "IP-MCMC-PF", "sir": "SIR PF"}
 
 
-def _build_filter(args: argparse.Namespace, scenario):
+def _build_filter(args: argparse.Namespace, scenario: Scenario) -> Filter:
     """The demo's filters: IP-MCMC-PF with paper 000's 50 chains and burn-in 100 (by
     default), or the SIR baseline.
     """
@@ -60,7 +69,7 @@ def _check_demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> No
                          f"{args.particles // args.chains} per chain; R-hat needs at least 2")
 
 
-def _demo_parser(sub) -> None:
+def _demo_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
         help="IP-MCMC-PF on the 10-target ground-radar scenario (--filter sir: the SIR baseline)",
@@ -91,7 +100,7 @@ def _demo_parser(sub) -> None:
     p.set_defaults(command=_demo)
 
 
-def demo_figure(scenario, result, rmse, args: argparse.Namespace):
+def demo_figure(scenario: Scenario, result: FilterResult, rmse: RMSE, args: argparse.Namespace) -> Figure:
     """The demo's figure: run 0's true and estimated tracks, and the RMSE over time."""
     import matplotlib.pyplot as plt
 
@@ -230,7 +239,7 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
 BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png")
 
 
-def _bench_parser(sub) -> None:
+def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "bench",
         help="headline benchmarks: write bench.json, bench.md and bench_scaling.png",

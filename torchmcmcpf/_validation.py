@@ -8,6 +8,7 @@ never inside a step function's hot path.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import SupportsFloat
 
 import torch
 
@@ -18,7 +19,7 @@ def _fmt(shape: Sequence[int | None]) -> str:
     return "(" + ", ".join("*" if s is None else str(s) for s in shape) + ")"
 
 
-def check_tensor(value, name: str) -> Tensor:
+def check_tensor(value: object, name: str) -> Tensor:
     if not isinstance(value, torch.Tensor):
         raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
     return value
@@ -47,20 +48,22 @@ def check_nonnegative(t: Tensor, name: str) -> Tensor:
     return t
 
 
-def check_positive_int(value, name: str, minimum: int = 1) -> int:
+def check_positive_int(value: object, name: str, minimum: int = 1) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
     return value
 
 
-def check_positive(value, name: str, allow_zero: bool = False) -> float:
+def check_positive(value: SupportsFloat | None, name: str, allow_zero: bool = False) -> float:
+    if value is None:
+        raise ValueError(f"{name} must be a number {'>= 0' if allow_zero else '> 0'}, got None")
     v = float(value)
     if not (v > 0 or (allow_zero and v == 0)) or v != v or v == float("inf"):
         raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'} and finite, got {value!r}")
     return v
 
 
-def check_generator(generator, name: str = "generator") -> torch.Generator:
+def check_generator(generator: object, name: str = "generator") -> torch.Generator:
     if not isinstance(generator, torch.Generator):
         raise ValueError(
             f"{name} must be a torch.Generator (randomness is explicit in torchmcmcpf), "

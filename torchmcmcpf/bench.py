@@ -30,9 +30,14 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
+
+if TYPE_CHECKING:
+    from .filters.base import Filter
+    from .scenarios.ground_radar import Scenario
+    from .typing import Measurement
 
 __all__ = ["Figure", "run", "time_step", "radar_problem", "stonesoup_step", "point_sir_step", "TARGETS_S"]
 
@@ -80,7 +85,7 @@ def time_step(step: Callable[[], object], *, repeats: int, device: torch.device,
 
 
 # -- radar TBD filters -------------------------------------------------------------------------
-def radar_problem(n: int, k: int, b: int, device: torch.device, seed: int = 0):
+def radar_problem(n: int, k: int, b: int, device: torch.device, seed: int = 0) -> tuple[Scenario, torch.Tensor]:
     """The ground radar of paper 000 (K targets, B runs, 20 frames, windowed likelihood) and
     its initial cloud ``(B, N, K, 5)``: ``(scenario, x0)``.
     """
@@ -91,7 +96,8 @@ def radar_problem(n: int, k: int, b: int, device: torch.device, seed: int = 0):
     return scn, scn.initial_particles(n, generator=g)
 
 
-def filter_step(filt, x0: torch.Tensor, z, device: torch.device, seed: int = 1) -> Callable[[], object]:
+def filter_step(filt: Filter, x0: torch.Tensor, z: Measurement, device: torch.device, seed: int = 1
+                ) -> Callable[[], object]:
     """One step of ``filt`` from ``x0`` on the frame ``z``, as :meth:`Filter.forward` runs it
     (arguments validated once, here, not in the timed call).
     """
@@ -102,14 +108,15 @@ def filter_step(filt, x0: torch.Tensor, z, device: torch.device, seed: int = 1) 
     return lambda: filt._step(state, z, g)
 
 
-def radar_sir(n: int, k: int, b: int, compiled: bool, device: torch.device):
+def radar_sir(n: int, k: int, b: int, compiled: bool, device: torch.device) -> Callable[[], object]:
     from .filters import SIRFilter
 
     scn, x0 = radar_problem(n, k, b, device)
     return filter_step(SIRFilter(scn.motion, scn.sensor, n, compile_step=compiled), x0, scn.measurements[0], device)
 
 
-def radar_ipmcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, chains: int, burn_in: int):
+def radar_ipmcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, chains: int,
+                 burn_in: int) -> Callable[[], object]:
     from .filters import IPMCMCFilter
 
     scn, x0 = radar_problem(n, k, b, device)
@@ -118,7 +125,8 @@ def radar_ipmcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *
     return filter_step(filt, x0, scn.measurements[0], device)
 
 
-def radar_mcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, chains: int):
+def radar_mcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, chains: int
+               ) -> Callable[[], object]:
     from .filters import MCMCFilter
 
     scn, x0 = radar_problem(n, k, b, device)
@@ -131,7 +139,7 @@ def radar_mcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, 
 POINT_MODEL = dict(dt=1.0, q=0.1, noise_std=1.0)
 
 
-def _point_track(b: int, steps: int, seed: int = 0):
+def _point_track(b: int, steps: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Constant-velocity truth ``(steps, B, 4)`` and its noisy position measurements
     ``(steps, B, 2)`` (float64, CPU; both libraries filter the same numbers).
     """
@@ -148,7 +156,8 @@ def _point_track(b: int, steps: int, seed: int = 0):
     return torch.stack(truth), torch.stack(z)
 
 
-def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype=torch.float32) -> Callable[[], object]:
+def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32
+                   ) -> Callable[[], object]:
     """Our SIR filter on the point problem: each call filters the next measurement (B runs at once)."""
     from .filters import SIRFilter
     from .models import ConstantVelocity, LinearGaussian
@@ -193,8 +202,7 @@ def stonesoup_step(n: int, b: int, steps: int) -> Callable[[], object]:
     from stonesoup.types.state import ParticleState as SSParticleState
     from stonesoup.updater.particle import ParticleUpdater
 
-    _, z = _point_track(b, steps)
-    z = z.numpy()
+    z = _point_track(b, steps)[1].numpy()
     q, r = POINT_MODEL["q"], POINT_MODEL["noise_std"] ** 2
     transition = CombinedLinearGaussianTransitionModel([SSConstantVelocity(q), SSConstantVelocity(q)])
     sensor = SSLinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=np.diag([r, r]))
@@ -329,7 +337,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
     return result
 
 
-def _sweeps(cfg: dict, dev: torch.device, log, started) -> dict:
+def _sweeps(cfg: dict, dev: torch.device, log: Callable[[str], None], started: float) -> dict:
     """Time per step (eager) of the radar SIR step and of the IP-MCMC-PF step (burn-in
     ``sweep_burn_in``) against N, K and B, one axis at a time from ``sweep_base``.
     """

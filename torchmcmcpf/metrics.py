@@ -336,8 +336,8 @@ def match_tracks(estimate: Tensor, truth: Tensor, *, per_step: bool = False
 # -- set metrics: OSPA, GOSPA, cardinality ------------------------------------------------
 
 
-def _set_distance_sum(x: Tensor, y: Tensor, x_mask, y_mask, c: float, p: float, miss: float,
-                      name: str) -> tuple[Tensor, Tensor, Tensor]:
+def _set_distance_sum(x: Tensor, y: Tensor, x_mask: Tensor | None, y_mask: Tensor | None, c: float, p: float,
+                      miss: float, name: str) -> tuple[Tensor, Tensor, Tensor]:
     """Minimum over assignments of ``sum min(d, c)^p`` plus ``miss`` per unassigned point.
 
     Both sets are padded to ``P = max(m, n)`` slots; the square cost is ``min(d, c)^p``

@@ -12,12 +12,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
 from .typing import X, Y
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.collections import QuadMesh
 
 __all__ = ["plot_tracks", "plot_particles", "plot_rmse", "plot_cardinality", "plot_frame"]
 
@@ -42,7 +46,7 @@ def _tracks(data: ArrayLike, run: int, name: str) -> np.ndarray:
 
 
 def plot_tracks(
-    ax,
+    ax: Axes,
     truth: ArrayLike,
     estimate: ArrayLike | None = None,
     *,
@@ -125,8 +129,8 @@ def _followed(truth: np.ndarray, est: np.ndarray) -> list[int]:
     return optimal_assignment(torch.as_tensor(cost)).tolist()
 
 
-def plot_particles(ax, particles: ArrayLike, *, weights: ArrayLike | None = None, size: float = 2.0,
-                   alpha: float = 0.3, **kw) -> list:
+def plot_particles(ax: Axes, particles: ArrayLike, *, weights: ArrayLike | None = None, size: float = 2.0,
+                   alpha: float = 0.3, **kw: Any) -> list:
     """Scatter a particle cloud in the x-y plane, one colour per target slot (paper 000 fig. 2).
 
     Parameters
@@ -156,8 +160,8 @@ def plot_particles(ax, particles: ArrayLike, *, weights: ArrayLike | None = None
 TIME_LABEL = "time [s]"
 
 
-def plot_rmse(ax, rmse: ArrayLike | Mapping[str, ArrayLike], *, dt: float = 1.0,
-              ylabel: str = "position RMSE [m]", xlabel: str = TIME_LABEL, **kw) -> list:
+def plot_rmse(ax: Axes, rmse: ArrayLike | Mapping[str, ArrayLike], *, dt: float = 1.0,
+              ylabel: str = "position RMSE [m]", xlabel: str = TIME_LABEL, **kw: Any) -> list:
     """RMSE over time (paper 000 figs. 3 and 6).
 
     Parameters
@@ -187,7 +191,7 @@ def plot_rmse(ax, rmse: ArrayLike | Mapping[str, ArrayLike], *, dt: float = 1.0,
     return lines
 
 
-def plot_cardinality(ax, true_count: ArrayLike, est_count: ArrayLike | Mapping[str, ArrayLike], *,
+def plot_cardinality(ax: Axes, true_count: ArrayLike, est_count: ArrayLike | Mapping[str, ArrayLike], *,
                      dt: float = 1.0, est_label: str = "estimated") -> list:
     """True and estimated number of targets over time.
 
@@ -221,9 +225,9 @@ def plot_cardinality(ax, true_count: ArrayLike, est_count: ArrayLike | Mapping[s
     return [true_line, *lines]
 
 
-def plot_frame(ax, frame: ArrayLike, *, range_bins: ArrayLike | None = None,
+def plot_frame(ax: Axes, frame: ArrayLike, *, range_bins: ArrayLike | None = None,
                bearing_bins: ArrayLike | None = None, degrees: bool = True, colorbar: bool = False,
-               **kw):
+               **kw: Any) -> QuadMesh:
     """Range-bearing image of one radar power frame, summed over doppler.
 
     Parameters

@@ -185,11 +185,13 @@ def multinomial(log_w: Tensor, u: Tensor) -> Tensor:
     return inverse_cdf(cdf(log_w), torch.sort(u, dim=-1).values)
 
 
-def _u_systematic(b: int, m: int, *, generator, device, dtype=torch.float64) -> Tensor:
+def _u_systematic(b: int, m: int, *, generator: torch.Generator, device: torch.device | str | None,
+                  dtype: torch.dtype = torch.float64) -> Tensor:
     return torch.rand(b, 1, generator=generator, device=device, dtype=dtype)
 
 
-def _u_per_sample(b: int, m: int, *, generator, device, dtype=torch.float64) -> Tensor:
+def _u_per_sample(b: int, m: int, *, generator: torch.Generator, device: torch.device | str | None,
+                  dtype: torch.dtype = torch.float64) -> Tensor:
     return torch.rand(b, m, generator=generator, device=device, dtype=dtype)
 
 

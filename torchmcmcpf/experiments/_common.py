@@ -74,12 +74,16 @@ import shlex
 import subprocess
 import sys
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Any, NamedTuple
+from types import ModuleType
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 __all__ = [
     "add_common_arguments",
@@ -175,7 +179,7 @@ def np_label(name: str, num_particles: int) -> str:
 
 
 def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: bool = True,
-                         shards: bool = True, study=None) -> argparse.ArgumentParser:
+                         shards: bool = True, study: ModuleType | None = None) -> argparse.ArgumentParser:
     """Add the options every experiment shares (see the module docstring); ``quick=False``
     leaves out ``--quick`` (for commands without a small version, like ``demo``),
     ``shards=False`` the shard and Ray options; ``study`` (a module with ``FULL`` and
@@ -260,7 +264,7 @@ class StepTimer:
         self._start = time.perf_counter()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         _sync(self.device)
         self.seconds = time.perf_counter() - self._start
 
@@ -324,7 +328,7 @@ def _git_commit() -> str | None:
     return out.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
-def provenance(args: argparse.Namespace | None = None, device=None) -> dict:
+def provenance(args: argparse.Namespace | None = None, device: str | torch.device | None = None) -> dict:
     """What traces a ``metrics.json`` to the run that made it: command line, seed, shard
     layout, device, threads, versions, wall time (seconds since ``args.started``).
     """
@@ -380,7 +384,7 @@ def write_metrics(out: str | Path, metrics: Mapping[str, Any], *,
     return path
 
 
-def save_figure(fig, out: str | Path, filename: str, *, quick: bool = False) -> Path:
+def save_figure(fig: Figure, out: str | Path, filename: str, *, quick: bool = False) -> Path:
     """Save ``fig`` as ``out/filename`` (150 dpi) and close it; return the path. ``quick``
     stamps "quick mode" on the figure (small settings, not the paper's).
     """
@@ -434,7 +438,7 @@ def shard_layout(num_runs: int, shard_size: int) -> list[range]:
 
 
 @contextlib.contextmanager
-def _num_threads(threads: int | None):
+def _num_threads(threads: int | None) -> Iterator[None]:
     old = torch.get_num_threads()
     if threads:
         torch.set_num_threads(int(threads))
@@ -467,7 +471,8 @@ def _compute_shard(module_name: str, cfg: dict, seed: int, index: int, start: in
             "wall_seconds": wall, "threads": used, "host": platform.node()}
 
 
-def _shard_key(name: str, cfg: dict, seed: int, shard_size: int, index: int, runs: range, device) -> str:
+def _shard_key(name: str, cfg: dict, seed: int, shard_size: int, index: int, runs: range,
+               device: str | torch.device) -> str:
     """What a stored shard must match to be reused (settings, seed, layout, device type)."""
     return json.dumps(to_jsonable({"study": name, "cfg": cfg, "seed": seed, "shard_size": shard_size, "index": index,
                                    "runs": [runs.start, runs.stop], "device": torch.device(device).type}),
@@ -505,7 +510,8 @@ def _package_root() -> str:
     return str(Path(__file__).resolve().parents[2])
 
 
-def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device, threads: int, on_done) -> None:
+def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args: argparse.Namespace, device: torch.device,
+                threads: int, on_done: Callable[[int, range, str, dict], None]) -> None:
     """Run the shards ``todo`` [(index, runs, key)] as Ray tasks, at most ``args.workers``
     in flight; ``on_done(index, runs, key, result)`` as each finishes. The first failure
     cancels the rest and raises :class:`ShardError` naming the shard.
@@ -552,7 +558,7 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args, device
             ray.shutdown()
 
 
-def run_shards(module, cfg: dict, args: argparse.Namespace) -> Shards:
+def run_shards(module: ModuleType, cfg: dict, args: argparse.Namespace) -> Shards:
     """Run ``module.run_shard`` over every shard of ``range(cfg["runs"])``; see the module
     docstring. Shards already in ``args.out/shards`` with the same settings are reused.
 

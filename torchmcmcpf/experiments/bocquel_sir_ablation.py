@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import Any
 
 import torch
 
@@ -73,10 +74,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--base-particles", type=positive_int, help=h("base_particles", "Np of the base setting"))
 
 
-def settings(args: argparse.Namespace) -> dict:
+def settings(args: argparse.Namespace) -> dict[str, Any]:
     """Quick or full defaults, overridden by the command-line options given."""
     quick = bool(getattr(args, "quick", False))
-    cfg = dict(QUICK if quick else FULL)
+    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
     for key in ("runs", "steps", "targets", "particles", "spreads", "base_targets", "base_particles", "shard_size"):
         value = getattr(args, key, None)
         if value is not None:

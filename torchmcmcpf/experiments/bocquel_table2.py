@@ -38,6 +38,7 @@ step are the filter times summed over the shards, over T.
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 import torch
 
@@ -81,10 +82,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=h("pmmh_candidates", "PMMH candidates L (chain length; L SIR filters of Np particles)"))
 
 
-def settings(args: argparse.Namespace) -> dict:
+def settings(args: argparse.Namespace) -> dict[str, Any]:
     """Quick or full defaults, overridden by the command-line options given."""
     quick = bool(getattr(args, "quick", False))
-    cfg = dict(QUICK if quick else FULL)
+    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
     for key in ("runs", "steps", "particles", "max_extensions", "pmmh_candidates"):
         value = getattr(args, key, None)
         if value is not None:

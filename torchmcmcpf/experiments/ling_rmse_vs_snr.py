@@ -48,12 +48,13 @@ batch (the notebook's entry point).
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 import torch
 
 from .. import metrics
 from ..filters.mcmc import MCMCFilter
-from ..scenarios.ling import ling
+from ..scenarios.ling import LingScenario, ling
 from ._common import (
     StepTimer,
     defaults_help,
@@ -94,12 +95,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=h("moves", "kernels to run"))
 
 
-def settings(args: argparse.Namespace) -> dict:
+def settings(args: argparse.Namespace) -> dict[str, Any]:
     """Quick or full defaults, overridden by the
     command-line options given.
     """
     quick = bool(getattr(args, "quick", False))
-    cfg = dict(QUICK if quick else FULL)
+    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
     for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves", "shard_size"):
         value = getattr(args, key, None)
         if value is not None:
@@ -151,7 +152,7 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
     return {"results": results, "scenario": scn, "estimates": estimates}
 
 
-def _filter(cfg: dict, scn, moves: str, device) -> MCMCFilter:
+def _filter(cfg: dict, scn: LingScenario, moves: str, device: str | torch.device) -> MCMCFilter:
     return MCMCFilter(scn.motion, scn.sensor, num_particles=cfg["particles"], num_chains=1, burn_in=cfg["burn_in"],
                       thinning=cfg["thinning"], moves="random_walk" if moves == "adaptive_random_walk" else moves,
                       rw_scale=torch.tensor(RW_SCALE) if moves == "random_walk" else

@@ -28,11 +28,14 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-from typing import Any
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, SupportsFloat
 
 import torch
 
 from ..filters.resample_move import ResampleMoveFilter
+from ..models.sensors.association import AssociationSensor
 from ..scenarios import maroulas as scenario
 from ._common import StepTimer, defaults_help, generator, np_label, positive_int, save_figure, write_metrics
 
@@ -64,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 @contextlib.contextmanager
-def _one_thread(device: torch.device):
+def _one_thread(device: torch.device) -> Iterator[None]:
     """Small tensors: on the CPU one intra-op thread is faster (no oversubscription)."""
     old = torch.get_num_threads()
     if device.type == "cpu":
@@ -94,7 +97,8 @@ def _summary(result: scenario.TrackResult, data: scenario.MaroulasData, n: int, 
     )
 
 
-def _figures(out, obs: str, results: dict, data: scenario.MaroulasData, sensor, quick: bool = False) -> None:
+def _figures(out: str | Path, obs: str, results: dict, data: scenario.MaroulasData, sensor: AssociationSensor,
+             quick: bool = False) -> None:
     import matplotlib.pyplot as plt
 
     from ..plotting import plot_rmse
@@ -189,5 +193,5 @@ def summary(payload: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _pct(value) -> str:
+def _pct(value: SupportsFloat | None) -> str:
     return "-" if value is None else f"{float(value):.1f}"

@@ -39,6 +39,8 @@ from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.mcmc import MCMCFilter
 from ..filters.sir import SIRFilter
+from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath
 from ..scenarios.septier import septier
 from ..typing import X, Y
 from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
@@ -68,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=h("burn_in", "MCMC-PF burn-in per step; IP-MCMC-PF uses twice it"))
 
 
-def _config(args) -> dict:
+def _config(args: argparse.Namespace) -> dict:
     cfg = dict(QUICK if args.quick else FULL)
     for key in cfg:
         if getattr(args, key, None) is not None:
@@ -87,7 +89,7 @@ def _masked_positions(x: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
     return torch.where(keep.unsqueeze(-1), x, torch.full_like(x, float("nan")))
 
 
-def _filters(cfg: dict, motion, sensor, existence) -> dict:
+def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel, existence: BirthDeath) -> dict:
     n, burn_in = cfg["particles"], cfg["burn_in"]
     return {
         "SIR PF": SIRFilter(motion, sensor, num_particles=n, existence=existence),
@@ -111,7 +113,7 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
     """
     scn = septier(len(runs), cfg["steps"], generator=generator)
     scn = scn._replace(truth=scn.truth.to(device))
-    motion, sensor, existence = (m.to(device) for m in (scn.motion, scn.sensor, scn.existence))
+    motion, sensor, existence = scn.motion.to(device), scn.sensor.to(device), scn.existence.to(device)
     b, k = scn.alive.shape[1:]
     init = torch.zeros((b, cfg["particles"], k, 4), dtype=torch.float64, device=device)
     per_run = {"truth": _masked_positions(scn.truth, scn.alive).movedim(1, 0),

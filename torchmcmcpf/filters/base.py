@@ -38,7 +38,7 @@ from ..typing import Measurement, Tensor
 __all__ = ["Filter", "check_existence"]
 
 
-def check_existence(existence) -> BirthDeath | None:
+def check_existence(existence: object) -> BirthDeath | None:
     """``existence`` must be a :class:`~torchmcmcpf.models.existence.BirthDeath` or ``None``."""
     if existence is not None and not isinstance(existence, BirthDeath):
         raise ValueError(f"existence must be a BirthDeath model or None, got {type(existence).__name__}")

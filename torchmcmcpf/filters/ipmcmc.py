@@ -157,7 +157,7 @@ __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration"
 
 
 def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Callable | None = None,
-                every: int = 1, record_from: int = 0):
+                every: int = 1, record_from: int = 0) -> tuple[tuple, list[tuple], Tensor, Tensor]:
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
     ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
     (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
@@ -329,9 +329,9 @@ def ipmcmc_step(
     keep = n // num_chains
     iterate = _bind(motion, sensor, existence) if kernel is None else kernel
 
-    kw = dict(generator=generator, device=x_prev.device)
     # 1. starting points: C previous particles (systematic: one per stratum), predicted
-    start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, **kw), num_chains)
+    start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, generator=generator,
+                                           device=x_prev.device), num_chains)
     dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly: one path with or without births
     x0 = gather_particles(x_prev, start)
     e0 = None if exists is None else gather_particles(exists, start)
@@ -342,20 +342,20 @@ def ipmcmc_step(
         return iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)
 
     # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
-    births = {} if existence is None else dict(existence=existence, z=z)
     draw = lambda steps: draw_exchange_noise(  # noqa: E731
-        log_w, steps, num_chains, k, motion.noise_dim, generator=generator, dtype=x_prev.dtype, **births)
+        log_w, steps, num_chains, k, motion.noise_dim, generator=generator, dtype=x_prev.dtype, existence=existence,
+        z=z)
     segment = settings.thinning * keep
     hmc = settings.hmc
     refine, every = None, 1
     if hmc is not None:
-        check_hmc_motion(motion, existence)
+        hmc_motion = check_hmc_motion(motion, existence)
         every = hmc.every
-        log_prior = mixture_log_prior(x_prev, log_w, motion)
+        log_prior = mixture_log_prior(x_prev, log_w, hmc_motion)
 
         def refine(ch, i):
             y_new, ll_new, acc = hmc_refine(ch[0], ch[1], HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
-                                            log_prior=log_prior, sensor=sensor, motion=motion, settings=hmc)
+                                            log_prior=log_prior, sensor=sensor, motion=hmc_motion, settings=hmc)
             return (y_new, ll_new, ch[2], ch[3]), acc
 
     def run(steps, record_from=0):

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -65,8 +65,6 @@ MOVE_PRESETS: dict[str, tuple[tuple[str, float], ...]] = {
     "joint": (("joint", 1.0),),
     "random_walk": (("random_walk", 1.0),),
 }
-
-_NOISE = {"joint": JointNoise, "refine": RefineNoise, "random_walk": RandomWalkNoise}
 
 
 def parse_moves(moves: MoveSpec) -> tuple[tuple[str, float], ...]:
@@ -120,6 +118,7 @@ class MCMCSettings:
     burn_in : iterations discarded per chain and time step, >= 0.
     thinning : keep every ``thinning``-th state after the burn-in, >= 1.
     moves : a preset name or ``(name, probability)`` pairs (:func:`parse_moves`); stored parsed.
+    pairs : the parsed ``moves``, ``((name, probability), ...)`` (set on construction).
     rw_scale : random-walk step ``s``, a float or a ``(D,)`` tuple of floats (``S = diag(s^2)``,
         paper 002 eq. 13); or ``"adaptive"``: a full per-target covariance ``S_k = 2.38^2 /
         (K D) * Sigma_k`` that fits the posterior (:func:`~torchmcmcpf.kernels.random_walk.adapted_step`),
@@ -137,8 +136,9 @@ class MCMCSettings:
     burn_in: int = 100
     thinning: int = 1
     moves: MoveSpec = "mixture"
-    rw_scale: float | tuple | None = None
+    rw_scale: float | Sequence[float] | str | None = None
     hmc: HMCRefine | None = None
+    pairs: tuple[tuple[str, float], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains")
@@ -146,6 +146,7 @@ class MCMCSettings:
         check_positive_int(self.thinning, "thinning")
         pairs = parse_moves(self.moves)
         object.__setattr__(self, "moves", pairs)
+        object.__setattr__(self, "pairs", pairs)
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
         if self.rw_scale is None:
@@ -173,9 +174,9 @@ class MCMCSettings:
             )
         if isinstance(self.rw_scale, tuple) and len(self.rw_scale) != dim:
             raise ValueError(f"rw_scale has shape ({len(self.rw_scale)},), expected () or ({dim},)")
-        if existence is not None and any(name == "random_walk" for name, _ in self.moves):
+        if existence is not None and any(name == "random_walk" for name, _ in self.pairs):
             raise ValueError(
-                f"moves={[name for name, _ in self.moves]}: 'random_walk' is not available with existence (it has "
+                f"moves={[name for name, _ in self.pairs]}: 'random_walk' is not available with existence (it has "
                 "no move on the existence flags); use 'joint' and 'refine' (e.g. moves='mixture')"
             )
 
@@ -197,9 +198,13 @@ def draw_iteration_noise(moves: tuple[tuple[str, float], ...], x: Tensor, motion
     dict: move name -> its noise NamedTuple, plus ``"select" (B, C)`` uniforms that pick
     each chain's move when there is more than one.
     """
-    births = {} if existence is None else dict(existence=existence, z=z)
-    noise: dict[str, object] = {name: _NOISE[name].draw(x, motion, generator=generator, **births)
-                                for name, _ in moves}
+    noise: dict[str, object] = {}
+    for name, _ in moves:
+        if name == "random_walk":  # no existence variant (refused with existence)
+            noise[name] = RandomWalkNoise.draw(x, motion, generator=generator)
+        else:
+            noise[name] = (JointNoise if name == "joint" else RefineNoise).draw(
+                x, motion, generator=generator, existence=existence, z=z)
     if len(moves) > 1:
         noise["select"] = torch.rand(x.shape[:2], generator=generator, device=x.device, dtype=x.dtype)
     return noise
@@ -259,6 +264,8 @@ def mcmc_iteration(
         elif name == "refine":
             cand, acc = refine_move(chain, noise[name], z=z, motion=motion, sensor=sensor, existence=existence)
         else:
+            if rw_scale is None:
+                raise ValueError("rw_scale must be given (a scalar or (D,) tensor) for the 'random_walk' move")
             cand, acc = random_walk_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
                                          scale=rw_scale)
         if name == "refine":
@@ -316,7 +323,7 @@ def mcmc_step(
     x_prev = state.x
     b, n, k, d = x_prev.shape
     settings.check(n, d, existence)
-    pairs, num_chains, burn_in, thinning = settings.moves, settings.num_chains, settings.burn_in, settings.thinning
+    pairs, num_chains, burn_in, thinning = settings.pairs, settings.num_chains, settings.burn_in, settings.thinning
     exists = state.exists
     if existence is None and exists is not None:
         raise ValueError("state.exists must be None without an existence model: pass existence= for an "
@@ -324,14 +331,13 @@ def mcmc_step(
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
     adaptive = settings.rw_scale == "adaptive" and any(name == "random_walk" for name, _ in pairs)
-    scale = None if settings.rw_scale is None or settings.rw_scale == "adaptive" else torch.tensor(
+    scale = None if settings.rw_scale is None or isinstance(settings.rw_scale, str) else torch.tensor(
         settings.rw_scale, device=x_prev.device, dtype=x_prev.dtype)
     if kernel is None:
         kernel = _bind(motion, sensor, settings, existence)
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
-    births = {} if existence is None else dict(existence=existence, z=z)
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, **births), z,
+    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, existence=existence, z=z), z,
                         motion=motion, sensor=sensor, existence=existence)
 
     if adaptive:  # start from the prior mixture's per-target covariance (Haario et al. 2001 below)
@@ -340,22 +346,21 @@ def mcmc_step(
         adapt_every = max(1, burn_in // 10)
     per_chain = n // num_chains
     hmc = settings.hmc
-    if hmc is not None:
-        check_hmc_motion(motion, existence)
+    hmc_motion = None if hmc is None else check_hmc_motion(motion, existence)
     hmc_acc, hmc_count = x_prev.new_zeros(b), 0
     acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
     for m in range(1, burn_in + thinning * per_chain + 1):
-        noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator, **births)
+        noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator, existence=existence, z=z)
         chain, accepted, selected = kernel(chain, noise, cloud, z, scale)
         for name, _ in pairs:
             acc_sum[name] = acc_sum[name] + accepted[name].sum(1)
             sel_sum[name] = sel_sum[name] + selected[name].sum(1)
-        if hmc is not None and m % hmc.every == 0:  # eager, also under compile_step
+        if hmc is not None and hmc_motion is not None and m % hmc.every == 0:  # eager, also under compile_step
             x_new, _, acc = hmc_refine(chain.x, chain.log_lik, HMCRefineNoise.draw(chain.x, generator=generator), z,
-                                       log_prior=ancestor_log_prior(chain.x_prev, motion), sensor=sensor,
-                                       motion=motion, settings=hmc)
+                                       log_prior=ancestor_log_prior(chain.x_prev, hmc_motion), sensor=sensor,
+                                       motion=hmc_motion, settings=hmc)
             log_lik, terms = evaluate(x_new, z, sensor)
             chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
             hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
@@ -372,7 +377,7 @@ def mcmc_step(
     extras = {f"acceptance_{name}": acc_sum[name] / sel_sum[name] for name, _ in pairs}
     if hmc is not None:
         extras["acceptance_hmc"] = hmc_acc / max(hmc_count, 1)
-    acceptance = sum(acc_sum.values()) / sum(sel_sum.values())
+    acceptance = sum(acc_sum.values(), x_prev.new_zeros(b)) / sum(sel_sum.values(), x_prev.new_zeros(b))
     return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
 
@@ -387,7 +392,7 @@ def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, exis
     """
     moves = None
     if compile is not None:
-        names = {name for name, _ in settings.moves}
+        names = {name for name, _ in settings.pairs}
         moves = {}
         if "joint" in names:
             moves["joint"] = compile(lambda chain, noise, cloud, z: joint_move(
@@ -405,7 +410,7 @@ def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, exis
                 chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=scale))
 
     def kernel(chain, noise, cloud, z, rw_scale):
-        return mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, moves=settings.moves,
+        return mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, moves=settings.pairs,
                               rw_scale=rw_scale, existence=existence, compiled=moves)
     return kernel
 
@@ -457,16 +462,15 @@ class MCMCFilter(Filter):
         burn_in: int = 100,
         thinning: int = 1,
         moves: MoveSpec = "mixture",
-        rw_scale: float | Tensor | None = None,
+        rw_scale: float | Sequence[float] | Tensor | str | None = None,
         hmc: HMCRefine | None = None,
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
-        if torch.is_tensor(rw_scale):
-            rw_scale = rw_scale.tolist()
-        if isinstance(rw_scale, list):
-            rw_scale = tuple(rw_scale)
-        settings = MCMCSettings(num_chains, burn_in, thinning, moves, rw_scale, hmc)
+        scale = rw_scale.tolist() if isinstance(rw_scale, Tensor) else rw_scale
+        if isinstance(scale, list):
+            scale = tuple(scale)
+        settings = MCMCSettings(num_chains, burn_in, thinning, moves, scale, hmc)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles, motion.dim, existence)
         if hmc is not None:

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import torch
@@ -85,11 +86,11 @@ def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
     return inverse_cdf(cloud.cdf, u)
 
 
-def _uniform(shape, x: Tensor, generator: torch.Generator) -> Tensor:
+def _uniform(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
     return torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
-def _normal(shape, x: Tensor, generator: torch.Generator) -> Tensor:
+def _normal(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 

@@ -38,6 +38,7 @@ import torch
 
 from .._validation import check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
+from ..models.existence import BirthDeath
 from ..models.motion import LinearGaussianMotion
 from ..typing import Measurement, Tensor
 from .hmc import hmc_transition, value_and_grad
@@ -73,12 +74,16 @@ class HMCRefine:
         check_positive_int(self.every, "hmc.every")
 
 
-def check_hmc_motion(motion: MotionModel, existence) -> None:
-    """The move needs a linear-Gaussian motion (``Q``, ``log_prob``) and no existence model."""
+def check_hmc_motion(motion: MotionModel, existence: BirthDeath | None) -> LinearGaussianMotion:
+    """The move needs a linear-Gaussian motion (``Q``, ``log_prob``) and no existence model.
+
+    Returns ``motion``, narrowed to :class:`~torchmcmcpf.models.LinearGaussianMotion`.
+    """
     if not isinstance(motion, LinearGaussianMotion):
-        raise ValueError(f"hmc= needs a LinearGaussianMotion (Q and log_prob), got {type(motion).__name__}")
+        raise ValueError(f"hmc= needs a LinearGaussianMotion (Q and log_prob) as motion, got {type(motion).__name__}")
     if existence is not None:
         raise ValueError("hmc= is not available with an existence model (births and deaths)")
+    return motion
 
 
 class HMCRefineNoise(NamedTuple):

@@ -161,25 +161,26 @@ def prior_covariance(cloud: PreviousCloud, motion: MotionModel) -> Tensor:
 
 class RunningMoments(NamedTuple):
     """Sums of the chains' states over MCMC iterations, per run and target (pooled over
-    chains): ``count ()``, ``s1 (B, K, D)``, ``s2 (B, K, D, D)`` (float64). Haario, Saksman
+    chains): ``num_samples ()``, ``s1 (B, K, D)``, ``s2 (B, K, D, D)`` (float64). Haario, Saksman
     and Tamminen (2001), adaptive Metropolis: the proposal covariance follows the history.
     """
 
-    count: Tensor
+    num_samples: Tensor
     s1: Tensor
     s2: Tensor
 
     @classmethod
     def zeros(cls, x: Tensor) -> RunningMoments:
-        """Empty moments for chains ``x (B, C, K, D)``: count 0, sums ``(B, K, D)`` and ``(B, K, D, D)``."""
+        """Empty moments for chains ``x (B, C, K, D)``: num_samples 0, sums ``(B, K, D)`` and ``(B, K, D, D)``."""
         b, _, k, d = x.shape
-        z = dict(dtype=torch.float64, device=x.device)
-        return cls(torch.zeros((), **z), torch.zeros((b, k, d), **z), torch.zeros((b, k, d, d), **z))
+        f64, dev = torch.float64, x.device
+        return cls(torch.zeros((), dtype=f64, device=dev), torch.zeros((b, k, d), dtype=f64, device=dev),
+                   torch.zeros((b, k, d, d), dtype=f64, device=dev))
 
     def update(self, x: Tensor) -> RunningMoments:
         """Add the chain states ``x (B, C, K, D)``."""
         x = x.to(torch.float64)
-        return RunningMoments(self.count + x.shape[1], self.s1 + x.sum(1),
+        return RunningMoments(self.num_samples + x.shape[1], self.s1 + x.sum(1),
                               self.s2 + torch.einsum("bckd,bcke->bkde", x, x))
 
     def covariance(self, prior: Tensor, prior_weight: float) -> Tensor:
@@ -187,10 +188,10 @@ class RunningMoments(NamedTuple):
         ``prior_weight`` samples (a few samples of a D-dimensional chain do not give a
         full-rank covariance): ``(n Cov + n0 prior) / (n + n0)``.
         """
-        n = self.count.clamp(min=1.0)
+        n = self.num_samples.clamp(min=1.0)
         mean = self.s1 / n
         cov = self.s2 / n - mean.unsqueeze(-1) * mean.unsqueeze(-2)
-        return (self.count * cov + prior_weight * prior) / (self.count + prior_weight)
+        return (self.num_samples * cov + prior_weight * prior) / (self.num_samples + prior_weight)
 
 
 def adapted_step(cov: Tensor, dtype: torch.dtype) -> Tensor:
