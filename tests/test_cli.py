@@ -45,7 +45,7 @@ def test_demo_runs_sir_baseline(tmp_path, capsys):
     assert "SIRFilter" in capsys.readouterr().out
 
 
-def _one_line_error(capsys, argv, *words):
+def assert_one_line_error(capsys, argv, *words):
     """argv exits with status 2 and a single ``error:`` line holding every word (no traceback)."""
     with pytest.raises(SystemExit) as exc:
         main(argv)
@@ -58,19 +58,19 @@ def _one_line_error(capsys, argv, *words):
 
 
 def test_demo_rejects_particles_not_divisible_by_chains(capsys):
-    _one_line_error(capsys, ["demo", "--particles", "100", "--chains", "30"], "--particles", "--chains 30")
-    _one_line_error(capsys, ["demo", "--particles", "50"], "--particles", "--chains 50", "at least 2")
-    _one_line_error(capsys, ["demo", "--chains", "0"], "--chains")
-    _one_line_error(capsys, ["demo", "--burn-in", "-1"], "--burn-in")
-    _one_line_error(capsys, ["reproduce", "bocquel-table2", "--particles", "45"], "--particles", "chains")
+    assert_one_line_error(capsys, ["demo", "--particles", "100", "--chains", "30"], "--particles", "--chains 30")
+    assert_one_line_error(capsys, ["demo", "--particles", "50"], "--particles", "--chains 50", "at least 2")
+    assert_one_line_error(capsys, ["demo", "--chains", "0"], "--chains")
+    assert_one_line_error(capsys, ["demo", "--burn-in", "-1"], "--burn-in")
+    assert_one_line_error(capsys, ["reproduce", "bocquel-table2", "--particles", "45"], "--particles", "chains")
 
 
 def test_out_errors_and_replacement_note(tmp_path, capsys):
     afile = tmp_path / "afile"
     afile.write_text("x")
-    _one_line_error(capsys, ["demo", "--out", afile], "--out", "existing file")
-    _one_line_error(capsys, ["demo", "--out", afile / "sub"], "--out", "is a file")
-    _one_line_error(capsys, ["reproduce", "bocquel-table2", "--out", afile], "--out", "existing file")
+    assert_one_line_error(capsys, ["demo", "--out", afile], "--out", "existing file")
+    assert_one_line_error(capsys, ["demo", "--out", afile / "sub"], "--out", "is a file")
+    assert_one_line_error(capsys, ["reproduce", "bocquel-table2", "--out", afile], "--out", "existing file")
     out = tmp_path / "demo"
     argv = ["demo", "--filter", "sir", "--particles", "20", "--runs", "1", "--steps", "2", "--targets", "1",
             "--out", out, "--no-progress"]
