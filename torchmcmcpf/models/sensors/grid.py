@@ -541,7 +541,8 @@ class SeparableGridSensor(SensorModel[Tensor]):
         maximum (one read from the device). Under ``torch.compile`` it is
         :attr:`max_neighbours` when no box overlaps more targets than that, else ``dense``
         (at least the most a box can have), chosen by ``torch.cond`` so that the graph stays
-        whole and shapes static (both branches are compiled). Exact either way.
+        whole and shapes static (both branches are compiled); inside a ``torch.func``
+        transform (the compiled HMC kernel) always ``dense``. Exact either way.
 
         The branches take the raw ``inputs`` and run ``prepare`` again: passed intermediates
         instead, torch 2.13's inductor gave some a transposed layout that the compiled
@@ -554,6 +555,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
         most = parts[-1].sum(-1).max()
         if not torch.compiler.is_compiling():
             return fn(int(most), *parts)
+        if torch._C._are_functorch_transforms_active():
+            # torch.cond cannot be traced inside torch.func.grad (the compiled HMC kernel of
+            # the resample-move filter): take the dense form, exact as well
+            return fn(dense, *parts)
         return torch.cond(
             most <= cap, lambda *ins: fn(cap, *prepare(*ins)), lambda *ins: fn(dense, *prepare(*ins)), inputs
         )
