@@ -17,7 +17,7 @@ import torch
 from .typing import Tensor
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
-           "summary"]
+           "weighted_mean", "summary"]
 
 
 def summary(value: Any) -> str:
@@ -84,8 +84,7 @@ class ParticleState(NamedTuple):
 
     def mean(self) -> Tensor:
         """Weighted (MMSE) estimate of each target slot, ``(B, K, D)`` (paper 000 eq. 6)."""
-        w = torch.softmax(self.log_w, dim=-1)
-        return torch.einsum("bn,bnkd->bkd", w.to(self.x.dtype), self.x)
+        return weighted_mean(self.x, self.log_w)
 
 
 class StepInfo(NamedTuple):
@@ -176,6 +175,14 @@ class FilterResult(NamedTuple):
         for k, v in self.info.extras.items():
             put(f"info.{k}", v)
         return out
+
+
+def weighted_mean(x: Tensor, log_w: Tensor) -> Tensor:
+    """Weighted (MMSE) mean of particles ``x (B, N, K, D)`` under log-weights ``log_w (B, N)``
+    (normalised or not): ``(B, K, D)``, paper 000 eq. 6.
+    """
+    w = torch.softmax(log_w, dim=-1)
+    return torch.einsum("bn,bnkd->bkd", w.to(x.dtype), x)
 
 
 def stack_infos(infos: list[StepInfo]) -> StepInfo:

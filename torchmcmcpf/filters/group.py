@@ -101,7 +101,8 @@ from ..models.group import (
     structure_index,
 )
 from ..models.sensors.pixels import ThresholdedPixels
-from ..state import FilterResult, StepInfo, existence_estimate, stack_infos
+from ..resampling import cdf, inverse_cdf
+from ..state import FilterResult, StepInfo, existence_estimate, stack_infos, weighted_mean
 from ..typing import Tensor
 from .base import Filter
 
@@ -190,8 +191,7 @@ class GroupState(NamedTuple):
         """Weighted mean of the particles, ``(B, K, 4)`` (ignores existence: see
         :func:`~torchmcmcpf.state.existence_estimate` for the mean given existence).
         """
-        w = torch.softmax(self.log_w, -1)
-        return torch.einsum("bn,bnkd->bkd", w.to(self.x.dtype), self.x)
+        return weighted_mean(self.x, self.log_w)
 
 
 torch.serialization.add_safe_globals([GroupState])
@@ -342,17 +342,9 @@ def _birth_ratio(pos: Tensor, free: Tensor, cloud: Cloud, models: Models) -> Ten
     return torch.where(free, r, torch.zeros_like(r)).sum(-1)
 
 
-def _inverse_cdf(cdf: Tensor, u: Tensor) -> Tensor:
-    """Index drawn from an (unnormalised, float64) cumulative ``cdf (B, N)`` by ``u (B, C)``."""
-    idx = torch.searchsorted(cdf, (u.to(cdf.dtype) * cdf[..., -1:]).contiguous(), right=True)
-    return idx.clamp(max=cdf.shape[-1] - 1)
-
-
 def _draw_structure(log_pg: Tensor, u: Tensor) -> Tensor:
     """Row index from ``log_pg (B, C, G)`` by ``u (B, C)`` (eq. 19)."""
-    cdf = torch.softmax(log_pg.to(torch.float64), -1).cumsum(-1)
-    idx = torch.searchsorted(cdf, (u.to(torch.float64) * cdf[..., -1]).unsqueeze(-1).contiguous(), right=True)
-    return idx.squeeze(-1).clamp(max=log_pg.shape[-1] - 1)
+    return inverse_cdf(cdf(log_pg), u.unsqueeze(-1)).squeeze(-1)
 
 
 def _draw_exists(e_prev: Tensor, u: Tensor, existence: GroupExistence) -> Tensor:
@@ -393,7 +385,7 @@ def joint_proposal(noise: Noise, cloud: Cloud, z: Tensor, models: Models) -> Cha
     """Algorithm 1 steps 1-4 (eqs. 61-65) for every chain: the proposed state with its caches."""
     existence = models.existence
     use_alpha = noise["mix"] < models.p_a
-    j = torch.where(use_alpha, _inverse_cdf(cloud.cdf_alpha, noise["j"]), _inverse_cdf(cloud.cdf_w, noise["j"]))
+    j = torch.where(use_alpha, inverse_cdf(cloud.cdf_alpha, noise["j"]), inverse_cdf(cloud.cdf_w, noise["j"]))
     g = _draw_structure(_gather(cloud.log_pg, j), noise["g"])
     labels = cloud.table[g]
     exists = _draw_exists(_gather(cloud.exists, j), noise["e"], existence)
@@ -572,7 +564,7 @@ def make_cloud(state: GroupState, z: Tensor, *, structure_prior: GroupStructureP
     near = F.max_pool2d(prev.to(torch.float64).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
     beta = (zb & near).reshape(b, -1)
     return Cloud(pos, state.labels, state.exists, state.w_mean, state.w_cov, log_pg,
-                 torch.softmax(log_alpha, -1).cumsum(-1), torch.softmax(log_w, -1).cumsum(-1),
+                 cdf(log_alpha), cdf(log_w),
                  (log_w - log_q).to(pos.dtype), beta, beta.to(torch.float64).cumsum(-1), beta.sum(-1), table)
 
 

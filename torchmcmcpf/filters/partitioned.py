@@ -39,7 +39,7 @@ import torch
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..resampling import RESAMPLERS, ess, normalize
-from ..state import ParticleState, StepInfo
+from ..state import ParticleState, StepInfo, weighted_mean
 from ..typing import Measurement, Tensor
 from .base import Filter
 
@@ -83,8 +83,7 @@ def partitioned_sir_kernel(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, 
     """
     b, n, k, _ = x.shape
     # reference: the noise-free prediction of the previous posterior mean (B, K, D)
-    w = torch.softmax(log_w, -1).to(x.dtype)
-    ref = motion.propagate(torch.einsum("bn,bnkd->bkd", w, x), torch.zeros_like(eps[:, 0]))
+    ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
     x_prop = motion.propagate(x, eps)  # every partition from the motion prior
     if sensor.separable:  # target k's own likelihood term: exact
         log_lik = sensor.log_likelihood_per_target(x_prop, z)  # (B, N, K)
