@@ -110,10 +110,9 @@ def test_kept_samples_honour_burn_in_and_thinning(monkeypatch, gen):
     calls = []
 
     def fake_iteration(chain, noise, **kwargs):
-        calls.append(1)
-        sel = {n: torch.ones(chain.x.shape[:2], dtype=torch.bool) for n, _ in kwargs["moves"]}
-        acc = {n: torch.zeros(chain.x.shape[:2], dtype=DT) for n, _ in kwargs["moves"]}
-        return chain._replace(x=torch.full_like(chain.x, float(len(calls)))), acc, sel
+        calls.append(kwargs["move"])
+        acc = torch.zeros(chain.x.shape[:2], dtype=DT)
+        return chain._replace(x=torch.full_like(chain.x, float(len(calls)))), acc
 
     monkeypatch.setattr(mcmc_module, "mcmc_iteration", fake_iteration)
     state = ParticleState(init[:, :12], torch.full((2, 12), -math.log(12), dtype=DT))
@@ -172,3 +171,20 @@ def test_step_rejects_existence_flags(gen):
     state = ParticleState(init[:, :8], log_w, torch.ones(2, 8, 2, dtype=torch.bool))
     with pytest.raises(ValueError, match="exists"):
         mcmc_step(state, zs[0], motion=motion, sensor=sensor, generator=gen)
+
+
+def test_pick_moves_frequencies_and_seed():
+    """One pick per iteration: the moves' frequencies match their probabilities within 4
+    binomial standard errors, the same seed gives the same picks, a single move needs no draw."""
+    from torchmcmcpf.filters.mcmc import pick_moves
+
+    moves = (("joint", 0.75), ("refine", 0.25))
+    n = 20000
+    picks = pick_moves(moves, n, generator=torch.Generator().manual_seed(5))
+    share = sum(p == "joint" for p in picks) / n
+    assert abs(share - 0.75) <= 4 * math.sqrt(0.75 * 0.25 / n)
+    assert picks == pick_moves(moves, n, generator=torch.Generator().manual_seed(5))
+    g = torch.Generator().manual_seed(0)
+    state = g.get_state()
+    assert pick_moves((("joint", 1.0),), 3, generator=g) == ["joint"] * 3
+    assert torch.equal(g.get_state(), state)

@@ -31,7 +31,7 @@ import torch
 from _kalman import mixture_posterior
 
 from torchmcmcpf import ConstantVelocity, LinearGaussian
-from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration
+from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration, pick_moves
 from torchmcmcpf.kernels.moves import (
     ChainState,
     JointNoise,
@@ -203,12 +203,11 @@ def _assert_far(chain: ChainState, post, cloud):
 
 def _run(chain, moves, iters, *, cloud, z, motion, sensor, gen, rw_scale=None):
     accepted = {name: torch.zeros(B, dtype=DT) for name, _ in moves}
-    for _ in range(iters):
-        noise = draw_iteration_noise(moves, chain.x, motion, generator=gen)
-        chain, acc, _ = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor,
-                                       moves=moves, rw_scale=rw_scale)
-        for name in accepted:
-            accepted[name] += acc[name].mean(1)
+    for move in pick_moves(moves, iters, generator=gen):
+        noise = draw_iteration_noise(move, chain.x, motion, generator=gen)
+        chain, acc = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
+                                    rw_scale=rw_scale)
+        accepted[move] += acc.mean(1)
     return chain, accepted  # accepted: expected number of accepted moves per chain
 
 
@@ -498,10 +497,10 @@ def test_existence_moves_converge_to_the_exact_posterior(xi, birth_std, gen):
     chain = init_chains(cloud, JointNoise.draw(template, motion, generator=gen, existence=existence, z=z), z,
                         motion=motion, sensor=sensor, existence=existence)
     assert float(_existence_discrepancy(chain, exact).max()) > 10  # the start is far from pi
-    for _ in range(iters):
-        noise = draw_iteration_noise(moves, chain.x, motion, generator=gen, existence=existence, z=z)
-        chain, acc, _ = mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor,
-                                       moves=moves, existence=existence)
+    for move in pick_moves(moves, iters, generator=gen):
+        noise = draw_iteration_noise(move, chain.x, motion, generator=gen, existence=existence, z=z)
+        chain, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
+                                  existence=existence)
     worst = _existence_discrepancy(chain, exact)
     assert float(worst.max()) <= Z_TOL, dict(zip(EX_STATS, worst.max(0).values.tolist()))
     # the cache is the likelihood of the flags and states; dead slots hold x_death

@@ -30,7 +30,6 @@ import torch
 from .._validation import check_positive_int
 from ..kernels.chains import evaluate
 from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, ancestor_log_prior, check_hmc_motion, hmc_refine
-from ..kernels.mh import mh_select
 from ..kernels.moves import (
     MOVES,
     ChainState,
@@ -52,7 +51,8 @@ from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "parse_moves",
+__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "pick_moves",
+           "parse_moves",
            "MOVE_PRESETS"]
 
 MoveSpec = str | Sequence[tuple[str, float]]
@@ -181,100 +181,104 @@ class MCMCSettings:
             )
 
 
-def draw_iteration_noise(moves: tuple[tuple[str, float], ...], x: Tensor, motion: MotionModel, *,
-                         generator: torch.Generator, existence: BirthDeath | None = None,
-                         z: Measurement | None = None) -> dict[str, object]:
-    """All the noise of one MCMC iteration, drawn in eager code from ``generator``.
+def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: torch.Generator) -> list[str]:
+    """The move of each of ``count`` iterations, one pick per iteration for every chain.
+
+    The pick is independent of the chains' states, so every chain still runs the mixture
+    kernel ``sum_m p_m K_m`` (each ``K_m`` leaves the target invariant): only the one picked
+    move is computed per iteration, instead of every move for every chain and a
+    ``torch.where`` (half the cost of the ``"mixture"`` kernel). One draw of ``count``
+    uniforms from ``generator`` (one host transfer per time step).
 
     Parameters
     ----------
-    moves : parsed moves (:func:`parse_moves`); x : (B, C, K, D) chain states (for shape,
-    dtype, device); motion : MotionModel (noise size); generator : the randomness.
-    existence, z : with a BirthDeath model, the birth noise of the moves (births may be
-    drawn near the points of the frame ``z``).
+    moves : parsed moves (:func:`parse_moves`); count : number of iterations.
 
     Returns
     -------
-    dict: move name -> its noise NamedTuple, plus ``"select" (B, C)`` uniforms that pick
-    each chain's move when there is more than one.
+    list of ``count`` move names.
     """
-    noise: dict[str, object] = {}
-    for name, _ in moves:
-        if name == "random_walk":  # no existence variant (refused with existence)
-            noise[name] = RandomWalkNoise.draw(x, motion, generator=generator)
-        else:
-            noise[name] = (JointNoise if name == "joint" else RefineNoise).draw(
-                x, motion, generator=generator, existence=existence, z=z)
-    if len(moves) > 1:
-        noise["select"] = torch.rand(x.shape[:2], generator=generator, device=x.device, dtype=x.dtype)
-    return noise
+    if len(moves) == 1:
+        return [moves[0][0]] * count
+    u = torch.rand(count, generator=generator, dtype=torch.float64, device=generator.device).cpu()
+    edges = torch.tensor([p for _, p in moves[:-1]], dtype=torch.float64).cumsum(0)
+    return [moves[i][0] for i in (u.unsqueeze(-1) >= edges).sum(-1).tolist()]
+
+
+def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
+                         existence: BirthDeath | None = None, z: Measurement | None = None):
+    """The noise of one MCMC iteration of the move ``move``, drawn in eager code from ``generator``.
+
+    Parameters
+    ----------
+    move : ``"joint"``, ``"refine"`` or ``"random_walk"`` (:func:`pick_moves`).
+    x : (B, C, K, D) chain states (for shape, dtype, device); motion : MotionModel (noise size).
+    existence, z : with a BirthDeath model, the birth noise of the moves (births may be
+        drawn near the points of the frame ``z``).
+
+    Returns
+    -------
+    the move's noise NamedTuple (:class:`JointNoise`, :class:`RefineNoise`, :class:`RandomWalkNoise`).
+    """
+    if move == "random_walk":  # no existence variant (refused with existence)
+        return RandomWalkNoise.draw(x, motion, generator=generator)
+    if move not in ("joint", "refine"):
+        raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
+    return (JointNoise if move == "joint" else RefineNoise).draw(x, motion, generator=generator,
+                                                                 existence=existence, z=z)
 
 
 def mcmc_iteration(
     chain: ChainState,
-    noise: dict,
+    noise,
     *,
+    move: str,
     cloud: PreviousCloud,
     z: Measurement,
     motion: MotionModel,
     sensor: SensorModel,
-    moves: tuple[tuple[str, float], ...],
     rw_scale: Tensor | None = None,
     existence: BirthDeath | None = None,
     compiled: dict | None = None,
-) -> tuple[ChainState, dict[str, Tensor], dict[str, Tensor]]:
-    """One MCMC iteration of every chain: a mixture kernel, branch-free.
+) -> tuple[ChainState, Tensor]:
+    """One MCMC iteration of every chain by the move ``move`` (picked by :func:`pick_moves`).
 
-    Every move in ``moves`` is computed for every chain from the same current state and each
-    chain keeps the result of its own pick (``torch.where``), so the cost is the sum of the
-    moves' costs and nothing depends on data-dependent control flow: pure, no generator, no
-    ``.item()``, ready for ``torch.compile`` (K and ``moves`` static).
+    Pure: no generator, no ``.item()``; each move is ready for ``torch.compile`` (K static).
 
     Parameters
     ----------
     chain : ChainState ``(B, C, K, D)``.
-    noise : from :func:`draw_iteration_noise`.
+    noise : the move's noise (:func:`draw_iteration_noise`).
+    move : ``"joint"``, ``"refine"`` or ``"random_walk"``.
     cloud : the previous particles; z : frame ``(B, *G)``; motion, sensor : the models.
-    moves : parsed moves; rw_scale : (D,) or scalar step of the random walk.
+    rw_scale : (D,) or scalar step of the random walk.
     existence : BirthDeath, optional: chains with existence flags (``noise`` drawn with it).
     compiled : move name -> its compiled move (``MCMCFilter(compile_step=True)``), optional.
 
     Returns
     -------
     chain : the new ChainState.
-    accepted : name -> (B, C) fraction of the move's accept/reject decisions that accepted
-        (per target for ``refine``); 0 where the chain did not pick the move.
-    selected : name -> (B, C) bool, whether the chain picked the move.
+    accepted : (B, C) fraction of the move's accept/reject decisions that accepted (per
+        target for ``refine``).
     """
-    if len(moves) > 1:
-        edges = torch.tensor([p for _, p in moves[:-1]], dtype=torch.float64).cumsum(0)
-        choice = (noise["select"].to(torch.float64).unsqueeze(-1) >= edges.to(chain.x.device)).sum(-1)
+    if compiled is not None:
+        fn = compiled[move]
+        new, acc = (fn(chain, noise, z) if move == "refine" else
+                    fn(chain, noise, cloud, z, rw_scale) if move == "random_walk" else
+                    fn(chain, noise, cloud, z))
+    elif move == "joint":
+        new, acc = joint_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence)
+    elif move == "refine":
+        new, acc = refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence)
+    elif move == "random_walk":
+        if rw_scale is None:
+            raise ValueError("rw_scale must be given (a scalar or (D,) tensor) for the 'random_walk' move")
+        new, acc = random_walk_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=rw_scale)
     else:
-        choice = torch.zeros(chain.x.shape[:2], dtype=torch.int64, device=chain.x.device)
-    new, accepted, selected = chain, {}, {}
-    for i, (name, _) in enumerate(moves):
-        if compiled is not None:
-            fn = compiled[name]
-            cand, acc = (fn(chain, noise[name], z) if name == "refine" else
-                         fn(chain, noise[name], cloud, z, rw_scale) if name == "random_walk" else
-                         fn(chain, noise[name], cloud, z))
-        elif name == "joint":
-            cand, acc = joint_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
-                                   existence=existence)
-        elif name == "refine":
-            cand, acc = refine_move(chain, noise[name], z=z, motion=motion, sensor=sensor, existence=existence)
-        else:
-            if rw_scale is None:
-                raise ValueError("rw_scale must be given (a scalar or (D,) tensor) for the 'random_walk' move")
-            cand, acc = random_walk_move(chain, noise[name], cloud=cloud, z=z, motion=motion, sensor=sensor,
-                                         scale=rw_scale)
-        if name == "refine":
-            acc = acc.to(chain.x.dtype).mean(-1)
-        sel = choice == i
-        new = mh_select(sel, cand, new)
-        selected[name] = sel
-        accepted[name] = torch.where(sel, acc.to(chain.x.dtype), torch.zeros_like(chain.log_lik))
-    return new, accepted, selected
+        raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
+    if move == "refine":
+        acc = acc.to(chain.x.dtype).mean(-1)
+    return new, acc.to(chain.x.dtype)
 
 
 def mcmc_step(
@@ -308,7 +312,7 @@ def mcmc_step(
         None means every slot starts inactive; births are drawn near the points of ``z``
         when ``existence`` draws them so. ``moves`` may not use ``"random_walk"``.
     kernel : :func:`mcmc_iteration` with the models and settings bound, called as
-        ``kernel(chain, noise, cloud, z, rw_scale)`` (``MCMCFilter(compile_step=True)``
+        ``kernel(chain, noise, move, cloud, z, rw_scale)`` (``MCMCFilter(compile_step=True)``
         passes a compiled one); default eager.
 
     Returns
@@ -318,7 +322,8 @@ def mcmc_step(
         with existence also ``exists (B, N, K)``.
     info : ``acceptance (B,)`` over every MH decision of the step (burn-in included);
         ``ess`` and ``log_evidence`` NaN; ``extras["acceptance_<move>"] (B,)`` per move
-        (per target update for ``"refine"``), NaN for a run where no chain picked the move.
+        (per target update for ``"refine"``), NaN where no iteration of the step picked the
+        move (one pick per iteration for every chain, :func:`pick_moves`).
     """
     x_prev = state.x
     b, n, k, d = x_prev.shape
@@ -351,12 +356,11 @@ def mcmc_step(
     acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
-    for m in range(1, burn_in + thinning * per_chain + 1):
-        noise = draw_iteration_noise(pairs, chain.x, motion, generator=generator, existence=existence, z=z)
-        chain, accepted, selected = kernel(chain, noise, cloud, z, scale)
-        for name, _ in pairs:
-            acc_sum[name] = acc_sum[name] + accepted[name].sum(1)
-            sel_sum[name] = sel_sum[name] + selected[name].sum(1)
+    for m, move in enumerate(pick_moves(pairs, burn_in + thinning * per_chain, generator=generator), start=1):
+        noise = draw_iteration_noise(move, chain.x, motion, generator=generator, existence=existence, z=z)
+        chain, accepted = kernel(chain, noise, move, cloud, z, scale)
+        acc_sum[move] = acc_sum[move] + accepted.sum(1)
+        sel_sum[move] = sel_sum[move] + num_chains
         if hmc is not None and hmc_motion is not None and m % hmc.every == 0:  # eager, also under compile_step
             x_new, _, acc = hmc_refine(chain.x, chain.log_lik, HMCRefineNoise.draw(chain.x, generator=generator), z,
                                        log_prior=ancestor_log_prior(chain.x_prev, hmc_motion), sensor=sensor,
@@ -383,12 +387,12 @@ def mcmc_step(
 
 def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: BirthDeath | None,
           compile: Callable | None = None) -> Callable:
-    """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, cloud, z, rw_scale)``.
+    """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, move, cloud, z, rw_scale)``.
 
     With ``compile``, each move is compiled on its own (the joint draw; the refinement whole
     when the sensor is separable, else its one-slot update, one graph for every slot; the
     random walk), so the graph never holds K unrolled slot updates; the mixture's choice
-    between them is a few ``torch.where`` in eager code.
+    between them is made once per iteration in eager code (:func:`pick_moves`).
     """
     moves = None
     if compile is not None:
@@ -409,8 +413,8 @@ def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, exis
             moves["random_walk"] = compile(lambda chain, noise, cloud, z, scale: random_walk_move(
                 chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=scale))
 
-    def kernel(chain, noise, cloud, z, rw_scale):
-        return mcmc_iteration(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, moves=settings.pairs,
+    def kernel(chain, noise, move, cloud, z, rw_scale):
+        return mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
                               rw_scale=rw_scale, existence=existence, compiled=moves)
     return kernel
 
