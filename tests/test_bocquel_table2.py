@@ -38,3 +38,17 @@ def test_settings_validate_particles():
         assert "particles" in str(err)
     else:
         raise AssertionError("expected ValueError")
+
+
+def test_algorithms_pick_the_rows(tmp_path):
+    """``--algorithms`` runs only the rows named (in the table's order); without the
+    IP-MCMC-PF row there is no tracks figure."""
+    args = argparse.Namespace(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
+                              progress=False, runs=None, steps=2, particles=None, max_extensions=None,
+                              pmmh_candidates=None, algorithms=["SIR PF"], compile=False)
+    payload = exp.run(args)
+    assert payload["config"]["algorithms"] == ("SIR PF",)
+    for rows in payload["results"].values():
+        assert {r["algorithm"] for r in rows.values()} == {"SIR PF"}
+    assert not (tmp_path / "tracks.png").exists()
+    assert "SIR PF" in (tmp_path / "table2.md").read_text()
