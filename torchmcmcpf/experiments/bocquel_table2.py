@@ -48,6 +48,7 @@ from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.partitioned import PartitionedSIRFilter
 from ..filters.pmmh import PMMHFilter
 from ..filters.sir import SIRFilter
+from ..scenarios._common import Scenario
 from ..scenarios.ground_radar import ground_radar
 from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
 
@@ -118,7 +119,7 @@ def _run_pmmh(scn, n, cfg, g, progress):
     return res.mean, {"acceptance": res.info.acceptance.mean(0), "theta_mean": res.info.extras["theta_mean"][-1]}
 
 
-def _make_filter(name: str, scn, n: int, cfg: dict) -> SIRFilter | PartitionedSIRFilter | IPMCMCFilter:
+def _make_filter(name: str, scn: Scenario, n: int, cfg: dict) -> SIRFilter | PartitionedSIRFilter | IPMCMCFilter:
     """The row ``name``'s filter with Np = ``n`` (``cfg["compile"]``: ``compile_step=True``)."""
     c = bool(cfg.get("compile", False))
     if name == "SIR PF":

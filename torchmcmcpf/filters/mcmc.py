@@ -56,6 +56,8 @@ __all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_it
            "MOVE_PRESETS"]
 
 MoveSpec = str | Sequence[tuple[str, float]]
+MoveNoise = JointNoise | RefineNoise | RandomWalkNoise
+"""The noise of one iteration of one move (:func:`draw_iteration_noise`)."""
 
 #: Named kernels: ``"mixture"`` is paper 004's (joint draw with probability xi = 0.75, else
 #: a refinement sweep); ``"joint"`` the pure joint draw (an independence sampler);
@@ -206,7 +208,7 @@ def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: t
 
 
 def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-                         existence: BirthDeath | None = None, z: Measurement | None = None):
+                         existence: BirthDeath | None = None, z: Measurement | None = None) -> MoveNoise:
     """The noise of one MCMC iteration of the move ``move``, drawn in eager code from ``generator``.
 
     Parameters
@@ -230,7 +232,7 @@ def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator
 
 def mcmc_iteration(
     chain: ChainState,
-    noise,
+    noise: MoveNoise,
     *,
     move: str,
     cloud: PreviousCloud,
@@ -266,16 +268,17 @@ def mcmc_iteration(
         new, acc = (fn(chain, noise, z) if move == "refine" else
                     fn(chain, noise, cloud, z, rw_scale) if move == "random_walk" else
                     fn(chain, noise, cloud, z))
-    elif move == "joint":
+    elif move == "joint" and isinstance(noise, JointNoise):
         new, acc = joint_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence)
-    elif move == "refine":
+    elif move == "refine" and isinstance(noise, RefineNoise):
         new, acc = refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence)
-    elif move == "random_walk":
+    elif move == "random_walk" and isinstance(noise, RandomWalkNoise):
         if rw_scale is None:
             raise ValueError("rw_scale must be given (a scalar or (D,) tensor) for the 'random_walk' move")
         new, acc = random_walk_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=rw_scale)
     else:
-        raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
+        raise ValueError(f"move must be one of {list(MOVES)} with its noise (draw_iteration_noise(move, ...)), "
+                         f"got move={move!r} with {type(noise).__name__}")
     if move == "refine":
         acc = acc.to(chain.x.dtype).mean(-1)
     return new, acc.to(chain.x.dtype)
