@@ -52,8 +52,7 @@ from ..typing import Measurement, Tensor
 from .base import Filter
 
 __all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "pick_moves",
-           "parse_moves",
-           "MOVE_PRESETS"]
+           "parse_moves", "MOVE_PRESETS"]
 
 MoveSpec = str | Sequence[tuple[str, float]]
 MoveNoise = JointNoise | RefineNoise | RandomWalkNoise
