@@ -36,3 +36,22 @@ def test_point_sir_step(benchmark, library, b):
     with torch.no_grad():
         benchmark.pedantic(step, rounds=ROUNDS if library == "torchmcmcpf" or b == 1 else 3, iterations=1,
                            warmup_rounds=1)
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (2, 4)])
+@pytest.mark.parametrize("variant", ["linear_map", "matmul"])
+def test_linear_map(benchmark, variant, shape):
+    """The per-target linear maps of that step (``F x``, ``L eps``, ``W H x`` over B = 100 runs
+    x N = 5000 particles): :func:`~torchmcmcpf.models.base.linear_map` (block-diagonal
+    grouping of rows) against the plain ``x @ M.mT``, group ``linear-map-<d>x<D>``.
+    """
+    from torchmcmcpf.models.base import linear_map
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(100, N, 1, shape[1], generator=g)
+    M = torch.randn(shape, generator=g)
+    fn = (lambda: linear_map(x, M)) if variant == "linear_map" else (lambda: x @ M.mT)
+    benchmark.group = f"linear-map-{shape[0]}x{shape[1]}"
+    benchmark.extra_info.update(variant=variant, rows=x.numel() // shape[1])
+    out = benchmark.pedantic(fn, rounds=20, warmup_rounds=1, iterations=1)
+    torch.testing.assert_close(out, x @ M.mT)

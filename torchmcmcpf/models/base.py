@@ -7,6 +7,7 @@ dims ``(*S, K, D)`` and reduces only trailing ones, so one model serves particle
 
 from __future__ import annotations
 
+import math
 from typing import Generic, TypeVar
 
 import torch
@@ -15,7 +16,34 @@ from torch import nn
 from .._validation import check_batch, check_finite, check_shape
 from ..typing import Measurement, Tensor
 
-__all__ = ["MotionModel", "SensorModel"]
+__all__ = ["MotionModel", "SensorModel", "linear_map"]
+
+
+def linear_map(x: Tensor, M: Tensor) -> Tensor:
+    """``x @ M.mT``: a small matrix ``M (d, D)`` applied to every row of ``x (B, ..., D)``
+    -> ``(B, ..., d)``, the per-target linear maps of the motion and sensor models.
+
+    On the CPU, BLAS is slow on a tall product with ``D`` and ``d`` of 2 to 5 columns: 1.6 ms
+    for ``x (5e5, 4) @ (4, 4)`` on 2 cores, a third of the point-measurement SIR step
+    (benchmarks/bench_sir.py, ``group="linear-map"``). There, ``g`` consecutive rows are read
+    as one row of ``g * D`` columns and multiplied by the block-diagonal ``I_g (x) M^T``
+    (``g * min(D, d)`` about 16): the extra terms are exact zeros, so each output is the same
+    sum of ``D`` products (up to summation order), 2-8x faster (measured: 1.6 -> 0.54 ms at
+    ``D = d = 4``, 1.3 -> 0.40 ms at ``D = 4, d = 2``). ``g`` divides the rows of one run
+    (``prod(x.shape[1:-1])``), so a non-finite row can only affect rows of its own run,
+    whose normalisation it already spoils. On other devices, under ``torch.compile`` (which
+    fuses the product into its loops) or when no such ``g`` exists, it is ``x @ M.mT``.
+    """
+    M = M.to(x.dtype)
+    d, D = M.shape
+    g = 2 ** round(math.log2(16 / min(d, D))) if min(d, D) < 16 else 1
+    rows = math.prod(x.shape[1:-1]) if x.dim() > 1 else 1
+    while g > 1 and rows % g:
+        g //= 2
+    if g == 1 or x.device.type != "cpu" or torch.compiler.is_compiling() or x.dim() < 2:
+        return x @ M.mT
+    block = torch.block_diag(*([M.mT] * g))  # (g D, g d): I_g (x) M^T
+    return (x.reshape(-1, g * D) @ block).reshape(x.shape[:-1] + (d,))
 
 
 class MotionModel(nn.Module):

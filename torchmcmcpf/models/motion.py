@@ -15,7 +15,7 @@ import torch
 
 from .._validation import check_positive, check_shape
 from ..typing import Tensor
-from .base import MotionModel
+from .base import MotionModel, linear_map
 
 __all__ = ["ConstantVelocity", "LinearGaussianMotion", "WhiteAccelerationMotion", "ProcessNoiseScale"]
 
@@ -57,11 +57,11 @@ class LinearGaussianMotion(MotionModel):
 
     def mean(self, x: Tensor) -> Tensor:
         """``F x``: ``(*S, K, D) -> (*S, K, D)``."""
-        return x @ self.F.to(x.dtype).mT
+        return linear_map(x, self.F)
 
     def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
         """``F x + L eps``: ``(*S, K, D), (*S, K, D) -> (*S, K, D)``."""
-        return self.mean(x) + eps @ self.L.to(x.dtype).mT
+        return self.mean(x) + linear_map(eps, self.L)
 
     def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
         """``log N(x_next; F x, Q)``: ``(*S, K, D), (*S, K, D) -> (*S, K)``."""
@@ -150,11 +150,11 @@ class WhiteAccelerationMotion(MotionModel):
 
     def mean(self, x: Tensor) -> Tensor:
         """``A x``: ``(*S, K, 4) -> (*S, K, 4)``."""
-        return x @ self.A.to(x.dtype).mT
+        return linear_map(x, self.A)
 
     def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
         """``A x + B sigma eps``: ``(*S, K, 4), (*S, K, 2) -> (*S, K, 4)``."""
-        return self.mean(x) + eps @ self.G.to(x.dtype).mT
+        return self.mean(x) + linear_map(eps, self.G)
 
     def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
         """Not defined: the 4-D transition is driven by 2-D noise, so it has no density.
@@ -201,7 +201,7 @@ class ProcessNoiseScale(MotionModel):
 
     def propagate(self, x: Tensor, eps: Tensor) -> Tensor:
         """``(M, *S, K, D), (M, *S, K, D) -> (M, *S, K, D)``."""
-        return self.base.mean(x) + self._s(x).sqrt() * (eps @ self.base.L.to(x.dtype).mT)
+        return self.base.mean(x) + self._s(x).sqrt() * linear_map(eps, self.base.L)
 
     def log_prob(self, x_next: Tensor, x: Tensor) -> Tensor:
         """``log N(x_next; F x, scale Q)``: ``(M, *S, K, D) -> (M, *S, K)``."""

@@ -12,7 +12,7 @@ import torch
 
 from ..._validation import check_positive
 from ...typing import Tensor
-from ..base import SensorModel
+from ..base import SensorModel, linear_map
 
 __all__ = ["LinearGaussian"]
 
@@ -101,7 +101,7 @@ class LinearGaussian(SensorModel[Tensor]):
         """
         wz = z.to(x.dtype) @ self.W.to(x.dtype).mT  # (B, K, d): whitened once per call
         wz = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])
-        white = wz - x @ self.WH.to(x.dtype).mT  # (B, *S, K, d) = L^{-1} (z - H x)
+        white = wz - linear_map(x, self.WH)  # (B, *S, K, d) = L^{-1} (z - H x)
         per_target = self._log_norm - 0.5 * white.square().sum(-1)
         if exists is not None:
             per_target = torch.where(exists, per_target, torch.zeros_like(per_target))

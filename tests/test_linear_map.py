@@ -1,0 +1,39 @@
+"""``models.base.linear_map``: the grouped block-diagonal product equals ``x @ M.mT``."""
+
+import pytest
+import torch
+
+from torchmcmcpf.models.base import linear_map
+
+
+@pytest.mark.parametrize("x_shape, m_shape", [
+    ((3, 8, 2, 4), (4, 4)),   # rows per run 16: grouped by 4
+    ((3, 8, 2, 4), (2, 4)),   # grouped by 8
+    ((2, 5, 5), (5, 5)),      # rows per run 5: no power of two divides it, plain product
+    ((6, 3, 4), (4, 4)),      # rows per run 3
+    ((4,), (2, 4)),           # a single vector
+    ((7, 16, 1, 20), (20, 20)),  # wide state: plain product
+])
+def test_equals_matmul(x_shape, m_shape):
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(x_shape, generator=g, dtype=torch.float64)
+    M = torch.randn(m_shape, generator=g, dtype=torch.float64)
+    out = linear_map(x, M)
+    assert out.shape == x_shape[:-1] + (m_shape[0],)
+    torch.testing.assert_close(out, x @ M.mT, rtol=1e-12, atol=1e-12)
+
+
+def test_gradient_and_noncontiguous_input():
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 4, 8, 4, generator=g, dtype=torch.float64).transpose(1, 2).requires_grad_()
+    M = torch.randn(4, 4, generator=g, dtype=torch.float64)
+    torch.autograd.gradcheck(lambda t: linear_map(t, M), (x,))
+
+
+def test_non_finite_row_stays_in_its_run():
+    """A non-finite row may spoil the rows grouped with it, never those of another run."""
+    x = torch.ones(3, 16, 1, 4)
+    x[1, 5, 0, 2] = float("inf")
+    out = linear_map(x, torch.eye(4))
+    assert torch.isfinite(out[0]).all() and torch.isfinite(out[2]).all()
+    assert torch.isfinite(out[1, :4]).all() and torch.isfinite(out[1, 8:]).all()  # other groups of run 1
