@@ -220,6 +220,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         self.cell_sizes = tuple(deltas)
         self.widths = tuple(ws)
         self.frame_shape = tuple(int(getattr(self, f"{n}_bins").numel()) for n in names)
+        self.register_buffer("box_offsets", self._flat_box_offsets(), persistent=False)
 
     @classmethod
     def uniform(cls, *limits: tuple[float, float], **kw: Any) -> Self:
@@ -584,22 +585,33 @@ class SeparableGridSensor(SensorModel[Tensor]):
         q = torch.matmul(a, b) if torch.compiler.is_compiling() else a * b
         return factors[:-2] + [q.flatten(-2)]
 
+    def _flat_box_offsets(self) -> Tensor:
+        """Offset of each cell of a box from the box's first cell in the flattened frame,
+        ``(*box_cells())`` int64 (a buffer, ``box_offsets``: compiled, the gather of
+        :meth:`_gather_cells` then loads its cell offsets instead of recomputing them from the
+        merged index with an integer division per cell).
+        """
+        G, W = self.frame_shape, self.window_sizes()
+        off = torch.zeros((), dtype=torch.int64)
+        for a, w in enumerate(W):
+            t = torch.arange(w, dtype=torch.int64) * math.prod(G[a + 1:])
+            off = off[..., None] + t
+        return off.reshape(self.box_cells())
+
     def _gather_cells(self, zc: Tensor, firsts: Sequence[Tensor]) -> Tensor:
         """``zc (B, *G)`` at the cells of boxes with first cells ``firsts[a] (B, P, Q)`` ->
-        ``(B, P, Q, *box_cells())`` by broadcast advanced indexing (no index blow-up).
+        ``(B, P, Q, *box_cells())``: the flat index of each box's first cell plus
+        :attr:`box_offsets`, one gather.
         """
-        B, P, Q = firsts[0].shape
-        n, W, V = self.n_axes, self.window_sizes(), self.box_cells()
-        index = [torch.arange(B, device=zc.device).reshape((B,) + (1,) * (2 + len(V)))]
-        for a, first in enumerate(firsts):
-            if n >= 2 and a >= n - 2:  # the merged last two axes
-                t = torch.arange(V[-1], device=zc.device)
-                offsets, dim = (t // W[-1] if a == n - 2 else t % W[-1]), len(V) - 1
-            else:
-                offsets, dim = torch.arange(W[a], device=zc.device), a
-            cells = first.long()[..., None] + offsets  # (B, P, Q, V_dim)
-            index.append(cells.reshape((B, P, Q) + tuple(-1 if d == dim else 1 for d in range(len(V)))))
-        return zc[tuple(index)]
+        B = zc.shape[0]
+        base = firsts[0].long() * math.prod(self.frame_shape[1:])
+        for a in range(1, self.n_axes):
+            base = base + firsts[a].long() * math.prod(self.frame_shape[a + 1:])
+        V = self.box_cells()
+        offsets: Tensor = self.box_offsets  # type: ignore[assignment]  # a buffer (nn.Module types it loosely)
+        index = base.reshape(base.shape + (1,) * len(V)) + offsets  # (B, P, Q, *V)
+        run = torch.arange(B, device=zc.device).reshape((B,) + (1,) * (index.dim() - 1))
+        return zc.flatten(1)[run, index]
 
     def window_chunk_size(self, num_targets: int, dtype: torch.dtype = torch.float32) -> int:
         """Samples (rows of the flattened ``B * prod(S)``) per chunk of the windowed path.
@@ -614,7 +626,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         return max(1, self.memory_budget // per_sample)
 
     #: per-cell temporaries of one box cell held at once by the eager windowed path: the
-    #: amplitude and box-count sums with their running terms, the frame cells, the log
+    #: amplitude sum with its running terms, the ownership masks, the frame cells, the log
     #: ratio with the intermediates of the float32 log I0 polynomial (as ``_GRID_TEMPS``)
     _WINDOW_TEMPS = 12
 
@@ -663,20 +675,55 @@ class SeparableGridSensor(SensorModel[Tensor]):
         if count > 0:
             nb, w = self._neighbour_index(others, count)  # (b, p, J, count)
             index, weight = torch.cat([index, nb], -1), torch.cat([weight, w.to(s.dtype)], -1)
-        profiles, indicators = self._neighbour_profiles(firsts, u, firsts, index)  # (b, p, J, M, W) each
-
-        def pick(v: Tensor) -> Tensor:  # (b, p, K) -> (b, p, J, M): the neighbours' values per box, 0 for fillers
-            return torch.take_along_dim(v[..., None, :].expand(b, p, K, K), index, -1) * weight
-
-        A = self._outer_sum(pick(s), profiles)  # (b, p, J, *W)
-        # weight 1 / n_c; an absent box j has n_c >= 0, so add (1 - e_j) before dividing and
-        # zero its sum afterwards
-        n_boxes = self._outer_sum(pick(e), indicators) + (1.0 - e).reshape((b, p, K) + (1,) * len(self.box_cells()))
+        profiles, _ = self._neighbour_profiles(firsts, u, firsts, index)  # (b, p, J, M, W) each
+        s_nb = torch.take_along_dim(s[..., None, :].expand(b, p, K, K), index, -1) * weight  # (b, p, J, M)
+        A = self._outer_sum(s_nb, profiles)  # (b, p, J, *W)
         zw = self._gather_cells(zc, firsts)  # (b, p, J, *W)
+        owned = self._owned_cells(firsts, e > 0)  # (b, p, J, *W): each cell of the union counted once
         V = self.box_cells()
-        e_cells = e.reshape((b, p, K) + (1,) * len(V))
         # one reduction over boxes and cells (fused with the cell terms under torch.compile)
-        return (self.cell_log_ratio(A, zw) * (e_cells / n_boxes)).sum(tuple(range(2, 3 + len(V))))
+        return torch.where(owned, self.cell_log_ratio(A, zw), 0.0).sum(tuple(range(2, 3 + len(V))))
+
+    #: targets per word of the ownership masks of :meth:`_owned_cells` (int32 words built by
+    #: a float32 matmul, exact up to 2**24)
+    _MASK_BITS = 24
+
+    def _owned_cells(self, firsts: Sequence[Tensor], live: Tensor) -> Tensor:
+        """Which cells each box counts on the windowed path, so that every cell of the union
+        of the live boxes is counted exactly once: cell ``t`` of box ``j`` when ``j`` is live
+        and no live box ``i < j`` contains the cell (the union's cells belong to the first box
+        that holds them).
+
+        ``firsts[a] (b, p, K)`` the box starts, ``live (b, p, K)`` bool -> ``(b, p, K,
+        *box_cells())`` bool. Per axis, ``mask_a[j, t]`` is the bit set of the live boxes
+        ``i < j`` whose span on axis ``a`` holds cell ``t`` of box ``j`` (int64 words of
+        :attr:`_MASK_BITS` targets); a cell lies in box ``i`` iff it does on every axis, so
+        it is owned iff the AND of its axes' masks is empty: three integer operations per
+        cell instead of a K-term count of overlapping boxes.
+        """
+        K = live.shape[-1]
+        words = -(-K // self._MASK_BITS)
+        i = torch.arange(K, device=live.device)
+        # (I, words): target i's bit in its word, as a float (sums of distinct powers of two
+        # below 2**24 are exact in float32), so that the OR over i is one matmul
+        bits = torch.where((i // self._MASK_BITS)[:, None] == torch.arange(words, device=live.device),
+                           torch.exp2((i % self._MASK_BITS).float())[:, None], 0.0)
+        before = ((i[None, :] < i[:, None]) & live[..., None, :])[..., None, :]  # (b, p, J, 1, I): live i < j
+        masks = []
+        for first, W in zip(firsts, self.window_sizes()):
+            cells = first[..., :, None] + torch.arange(W, device=live.device)  # (b, p, J, W)
+            lag = cells[..., None] - first[..., None, None, :]  # (b, p, J, W, I)
+            holds = ((lag >= 0) & (lag < W) & before).float()  # box i holds cell t of box j
+            masks.append(torch.matmul(holds, bits).int())  # (b, p, J, W, words)
+        n = len(masks)
+        if n >= 2:  # the box_cells layout: the last two axes merged
+            last = masks[-2][..., :, None, :] & masks[-1][..., None, :, :]
+            masks = masks[:-2] + [last.flatten(-3, -2)]
+        both = masks[0]
+        for a, m in enumerate(masks[1:], start=1):  # (b, p, J, V_1, ..., V_a, words)
+            both = both.unsqueeze(-2) & m.reshape(m.shape[:3] + (1,) * a + m.shape[-2:])
+        free = (both == 0).all(-1) if words > 1 else both[..., 0] == 0
+        return free & live.reshape(live.shape + (1,) * len(masks))
 
     def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Fast path: the exact log-likelihood of the sensor with *truncated* point spreads.
@@ -689,8 +736,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
         box: at the cells of box ``j``, ``A`` sums the truncated spreads of target ``j`` and
         of the targets whose boxes overlap box ``j`` (the only ones nonzero there; at most
         :attr:`max_neighbours` of them on the fast form, all ``K`` otherwise, see
-        :meth:`_select`), and a cell inside ``n_c`` boxes is weighted ``1 / n_c`` (``n_c`` the
-        same sum with the 0/1 indicators). The cut drops ``h`` below ``exp(-(window +
+        :meth:`_select`), and a cell inside several boxes is counted once, by the first live box
+        that holds it (:meth:`_owned_cells`: per-axis bit masks, three integer operations per
+        cell). The cut drops ``h`` below ``exp(-(window +
         1/2)^2 / 2)`` of the peak (2e-3 at ``window = 3`` and widths equal to the cell size):
         the difference to :meth:`log_likelihood_grid` is stated in the subclass
         (tests/models/test_radar.py).
@@ -698,7 +746,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         Because the spread is truncated the likelihood is local: moving one target changes
         only the cells of its old and new box, which :meth:`log_likelihood_delta` exploits.
 
-        Cost per sample: ``2 * K * (1 + M) * prod(W_a)`` multiply-adds (``M`` the neighbour
+        Cost per sample: ``K * (1 + M) * prod(W_a)`` multiply-adds (``M`` the neighbour
         slots, ``max_neighbours`` unless some box of the call overlaps more boxes) and
         ``K * prod(W_a)`` cell log-ratios, independent of the grid size. Blocks of at most
         :meth:`window_chunk_size` samples are processed at a time (checkpointed under
