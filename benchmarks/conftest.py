@@ -10,11 +10,18 @@ import os
 import pytest
 import torch
 
+from torchmcmcpf.runtime import tune_cpu_allocator
+
+#: every figure is taken with freed memory kept for reuse, as the command line runs
+#: (torchmcmcpf.runtime; ``BENCH_TUNE_ALLOCATOR=0`` to measure glibc's default)
+ALLOCATOR_TUNED = os.environ.get("BENCH_TUNE_ALLOCATOR", "1") != "0" and tune_cpu_allocator()
+
 
 @pytest.fixture(autouse=True)
 def _set_and_record_threads(request):
     threads = int(os.environ.get("BENCH_THREADS", torch.get_num_threads()))
     torch.set_num_threads(threads)
     if "benchmark" in request.fixturenames:
-        request.getfixturevalue("benchmark").extra_info["threads"] = threads
+        info = request.getfixturevalue("benchmark").extra_info
+        info["threads"], info["cpu_allocator_tuned"] = threads, ALLOCATOR_TUNED
     yield

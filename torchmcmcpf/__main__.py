@@ -284,7 +284,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns 0 on success (results are in the output directory's ``metrics.json``);
     argument errors exit with status 2 and a message naming the argument.
     """
+    from .runtime import tune_cpu_allocator
+
     started = time.perf_counter()
+    tune_cpu_allocator()  # large per-step temporaries reuse warm pages (torchmcmcpf.runtime)
     argv = list(sys.argv[1:] if argv is None else argv)
     argv = [str(a) for a in argv]  # allow Path arguments in-process
     command_line = shlex.join(["python", "-m", "torchmcmcpf", *argv])

@@ -268,7 +268,10 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
     stonesoup : compare with Stone Soup (skipped, with a note, when it is not installed).
     scaling : the sweeps over N, K and B and their plot.
     """
+    from .runtime import tune_cpu_allocator
+
     dev = torch.device(device)
+    allocator_tuned = tune_cpu_allocator()
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device is {device!r} but torch.cuda.is_available() is False")
     if threads is not None:
@@ -287,6 +290,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
     n, k, c = cfg["n"], cfg["k"], cfg["chains"]
     target = (lambda name: None) if quick else TARGETS_S.get  # the issue's targets are for the full sizes
     log(f"torchmcmcpf bench on {device_name(dev)}, torch {torch.__version__}, {torch.get_num_threads()} threads"
+        f"{', CPU allocator tuned' if allocator_tuned else ''}"
         f"{', quick sizes' if quick else ''}")
     add(Figure("radar-sir", time_step(radar_sir(n, k, 1, compiled, dev), repeats=cfg["repeats"], device=dev),
                dict(N=n, K=k, B=1, compiled=compiled), target("radar-sir")))
@@ -324,6 +328,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
         sweeps = _sweeps(cfg, dev, log, started)
     result = dict(device=device_name(dev), device_type=dev.type, torch=torch.__version__,
                   threads=torch.get_num_threads(), quick=quick, python=platform.python_version(),
+                  cpu_allocator_tuned=allocator_tuned,
                   seconds_total=time.perf_counter() - started,
                   figures=[asdict(f) for f in figures], scaling=sweeps)
     if out is not None:
@@ -366,7 +371,9 @@ def _sweeps(cfg: dict, dev: torch.device, log: Callable[[str], None], started: f
 def markdown(result: dict) -> str:
     """The ``bench.md`` table: one row per figure, with the issue's target where it has one."""
     lines = [f"Device: {result['device']}; torch {result['torch']}; {result['threads']} threads"
-             f"{'; --quick sizes' if result['quick'] else ''}. Minimum over repeats, one run.", "",
+             f"{'; --quick sizes' if result['quick'] else ''}"
+             f"{'; CPU allocator tuned' if result.get('cpu_allocator_tuned') else ''}. Minimum over repeats, one run.",
+             "",
              "| benchmark | settings | ms per step | ms per run | target | |", "|---|---|---:|---:|---|---|"]
     for f in result["figures"]:
         p = ", ".join(f"{a}={b}" for a, b in f["params"].items())

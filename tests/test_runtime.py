@@ -1,0 +1,44 @@
+"""``torchmcmcpf.runtime.tune_cpu_allocator``: glibc keeps large freed blocks in the heap."""
+
+import ctypes
+import ctypes.util
+import sys
+
+import pytest
+import torch
+
+from torchmcmcpf.runtime import tune_cpu_allocator
+
+
+def _mmapped_bytes() -> int | None:
+    """glibc's ``mallinfo2().hblkhd``: bytes currently held in mmapped blocks (None without it)."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        fn = libc.mallinfo2
+    except (OSError, AttributeError):
+        return None
+
+    class Mallinfo2(ctypes.Structure):
+        _fields_ = [(n, ctypes.c_size_t) for n in
+                    ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks", "uordblks",
+                     "fordblks", "keepcost")]
+
+    fn.restype = Mallinfo2
+    return int(fn().hblkhd)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 1.5, True])
+def test_bad_max_block(bad):
+    with pytest.raises(ValueError, match="max_block"):
+        tune_cpu_allocator(bad)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or _mmapped_bytes() is None, reason="glibc only")
+def test_large_tensor_comes_from_the_heap():
+    """After the call a 64 MB tensor is not an mmapped block (it was before: glibc's default
+    threshold is at most 32 MB)."""
+    assert tune_cpu_allocator() is True
+    before = _mmapped_bytes()
+    t = torch.empty(16 * 2**20)  # 64 MB
+    assert _mmapped_bytes() - before < 2**20
+    del t
