@@ -4,7 +4,7 @@ Particles, chains and targets are tensor dimensions (see :mod:`torchmcmcpf.typin
 each algorithm is a pure step function wrapped by a thin ``nn.Module`` Filter.
 """
 
-from . import diagnostics, kernels, metrics, models, plotting, resampling, scenarios
+from . import diagnostics, kernels, metrics, models, plotting, resampling, runtime, scenarios
 from .filters import (
     Filter,
     GroupMCMCFilter,
@@ -63,5 +63,6 @@ __all__ = [
     "models",
     "plotting",
     "resampling",
+    "runtime",
     "scenarios",
 ]
