@@ -33,8 +33,10 @@ def tune_cpu_allocator(max_block: int = 2**30) -> bool:
     Sets glibc's mmap threshold and trim threshold to ``max_block`` bytes with ``mallopt``:
     blocks up to that size come from the heap and freed memory stays there, so the next step
     reuses warm pages instead of faulting in new ones. The process's resident memory then
-    stays near its peak instead of shrinking between steps; the peak itself does not grow.
-    Affects the whole process, from the call on; call it once.
+    stays near its peak instead of shrinking between steps, and the peak can grow by heap
+    fragmentation: measured +19% (1.04 -> 1.24 GB) over ten eager radar SIR steps at N = 5000
+    followed by three IP-MCMC-PF steps at B = 10 in one process. Affects the whole process,
+    from the call on; call it once.
 
     Parameters
     ----------
