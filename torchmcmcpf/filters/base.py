@@ -35,7 +35,36 @@ from ..models.existence import BirthDeath
 from ..state import FilterResult, ParticleState, StepInfo, existence_estimate, stack_infos
 from ..typing import Measurement, Tensor
 
-__all__ = ["Filter", "check_existence"]
+__all__ = ["Filter", "check_existence", "compile_kernel"]
+
+
+def compile_kernel(fn: Callable) -> Callable:
+    """``torch.compile(fn, fullgraph=True, dynamic=False)``, with CUDA graphs on a GPU.
+
+    Called on CPU tensors it is the compiled ``fn``. Called on CUDA tensors (the first tensor
+    argument decides) it is ``fn`` compiled with ``mode="reduce-overhead"``: each call
+    replays one CUDA graph instead of launching the graph's kernels one by one. The MCMC
+    filters call their kernel once per MH iteration, hundreds of times per step, and on a GPU
+    those launches were the step's cost (benchmarks/README.md, H200: about 1 ms per
+    iteration). A replay writes its outputs into the graph's static buffers, which the next
+    replay overwrites, and the filters keep every iteration's chain state (the R-hat trace,
+    the kept samples), so the outputs are cloned before they are returned. Same results as
+    without CUDA graphs: the same compiled kernels run.
+    """
+    plain = torch.compile(fn, fullgraph=True, dynamic=False)
+    graphed: Callable | None = None
+
+    def call(*args: Any) -> Any:
+        nonlocal graphed
+        first = next((a for a in tree_flatten(args)[0] if torch.is_tensor(a)), None)
+        if first is None or first.device.type != "cuda":
+            return plain(*args)
+        if graphed is None:
+            graphed = torch.compile(fn, fullgraph=True, dynamic=False, mode="reduce-overhead")
+        torch.compiler.cudagraph_mark_step_begin()
+        return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, graphed(*args))
+
+    return call
 
 
 def check_existence(existence: object) -> BirthDeath | None:
@@ -127,13 +156,14 @@ class Filter(nn.Module):
 
     def kernel(self) -> Callable | None:
         """The kernel passed to the step function: built once with its parts compiled
-        (``torch.compile(fullgraph=True, dynamic=False)``) when ``compile_step=True``, else
-        ``None`` (the step function's eager one).
+        (:func:`compile_kernel`: ``torch.compile(fullgraph=True, dynamic=False)``, with CUDA
+        graphs on a GPU) when ``compile_step=True``, else ``None`` (the step function's
+        eager one).
         """
         if not self.compile_step:
             return None
         if self._compiled is None:
-            self._compiled = self._kernel(lambda f: torch.compile(f, fullgraph=True, dynamic=False))
+            self._compiled = self._kernel(compile_kernel)
         return self._compiled
 
     # -- state ---------------------------------------------------------------------------

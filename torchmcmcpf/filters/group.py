@@ -104,7 +104,7 @@ from ..models.sensors.pixels import ThresholdedPixels
 from ..resampling import cdf, inverse_cdf
 from ..state import FilterResult, StepInfo, existence_estimate, stack_infos, weighted_mean
 from ..typing import Tensor
-from .base import Filter
+from .base import Filter, compile_kernel
 
 __all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "GroupState", "group_mcmc_step"]
 
@@ -728,15 +728,14 @@ class GroupMCMCFilter(Filter):
     def kernels(self) -> dict[str, Callable[..., Any]] | None:
         """The moves passed to :func:`group_mcmc_step`: ``None`` (its eager ones) unless
         ``compile_step``, then ``{"joint": f, "refine": f}`` compiled once
-        (``torch.compile(fullgraph=True, dynamic=False)``), ``f(chain, noise, cloud, z)``.
+        (:func:`~torchmcmcpf.filters.base.compile_kernel`), ``f(chain, noise, cloud, z)``.
         """
         if not self.compile_step:
             return None
         if self._compiled_moves is None:
             models = Models(self.motion, self.sensor, self.existence, float(self.settings.p_i),
                             float(self.settings.p_a))
-            self._compiled_moves = {name: torch.compile(fn, fullgraph=True, dynamic=False)
-                                    for name, fn in _bind(models).items()}
+            self._compiled_moves = {name: compile_kernel(fn) for name, fn in _bind(models).items()}
         return self._compiled_moves
 
     def init(self, particles: Tensor, exists: Tensor | None = None,  # type: ignore[override]

@@ -538,8 +538,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
     ) -> Tensor:
         """``fn(count, *parts)`` with ``parts = prepare(*inputs)`` (whose last entry is the
         overlap mask ``(..., Q, T)`` bool of the boxes evaluated and the targets) and
-        ``count`` at least the most targets overlapping one box. Eager, ``count`` is that
-        maximum (one read from the device). Under ``torch.compile`` it is
+        ``count`` at least the most targets overlapping one box. On a CUDA device it is
+        always ``dense``. Otherwise, eager, ``count`` is that maximum (one read from the
+        device). Under ``torch.compile`` it is
         :attr:`max_neighbours` when no box overlaps more targets than that, else ``dense``
         (at least the most a box can have), chosen by ``torch.cond`` so that the graph stays
         whole and shapes static (both branches are compiled); inside a ``torch.func``
@@ -551,7 +552,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         parts = prepare(*inputs)
         cap = min(int(self.max_neighbours), dense)
-        if cap >= dense:
+        if cap >= dense or parts[-1].device.type == "cuda":
+            # on a GPU, the dense form: no device sync for the count, no branch, so that a
+            # compiled kernel can be captured whole in a CUDA graph (filters.base.compile_kernel)
             return fn(dense, *parts)
         most = parts[-1].sum(-1).max()
         if not torch.compiler.is_compiling():
