@@ -38,6 +38,18 @@ from ..typing import Measurement, Tensor
 __all__ = ["Filter", "check_existence", "compile_kernel"]
 
 
+def _on_cuda(args: tuple) -> bool:
+    """Whether the first tensor among ``args`` (and the tuples in them, one level down; the
+    kernels' first argument is a tensor or the chain tuple) is on a CUDA device. Cheaper than
+    flattening the arguments: it runs once per MH iteration.
+    """
+    for a in args:
+        for t in (a if isinstance(a, tuple) else (a,)):
+            if torch.is_tensor(t):
+                return t.device.type == "cuda"
+    return False
+
+
 def compile_kernel(fn: Callable) -> Callable:
     """``torch.compile(fn, fullgraph=True, dynamic=False)``, with CUDA graphs on a GPU.
 
@@ -56,8 +68,7 @@ def compile_kernel(fn: Callable) -> Callable:
 
     def call(*args: Any) -> Any:
         nonlocal graphed
-        first = next((a for a in tree_flatten(args)[0] if torch.is_tensor(a)), None)
-        if first is None or first.device.type != "cuda":
+        if not _on_cuda(args):
             return plain(*args)
         if graphed is None:
             graphed = torch.compile(fn, fullgraph=True, dynamic=False, mode="reduce-overhead")
