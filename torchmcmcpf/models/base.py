@@ -25,7 +25,7 @@ def linear_map(x: Tensor, M: Tensor) -> Tensor:
 
     On the CPU, BLAS is slow on a tall product with ``D`` and ``d`` of 2 to 5 columns: 1.6 ms
     for ``x (5e5, 4) @ (4, 4)`` on 2 cores, a third of the point-measurement SIR step
-    (benchmarks/bench_sir.py, ``group="linear-map"``). There, ``g`` consecutive rows are read
+    (benchmarks/bench_stonesoup.py, groups ``linear-map-*``). There, ``g`` consecutive rows are read
     as one row of ``g * D`` columns and multiplied by the block-diagonal ``I_g (x) M^T``
     (``g * min(D, d)`` about 16): the extra terms are exact zeros, so each output is the same
     sum of ``D`` products (up to summation order), 2-8x faster (measured: 1.6 -> 0.54 ms at

@@ -699,7 +699,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
 
         ``firsts[a] (b, p, K)`` the box starts, ``live (b, p, K)`` bool -> ``(b, p, K,
         *box_cells())`` bool. Per axis, ``mask_a[j, t]`` is the bit set of the live boxes
-        ``i < j`` whose span on axis ``a`` holds cell ``t`` of box ``j`` (int64 words of
+        ``i < j`` whose span on axis ``a`` holds cell ``t`` of box ``j`` (int32 words of
         :attr:`_MASK_BITS` targets); a cell lies in box ``i`` iff it does on every axis, so
         it is owned iff the AND of its axes' masks is empty: three integer operations per
         cell instead of a K-term count of overlapping boxes.
@@ -725,6 +725,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         both = masks[0]
         for a, m in enumerate(masks[1:], start=1):  # (b, p, J, V_1, ..., V_a, words)
             both = both.unsqueeze(-2) & m.reshape(m.shape[:3] + (1,) * a + m.shape[-2:])
+        # one word (K <= 24): no reduction over words, which compiled code would not fuse
         free = (both == 0).all(-1) if words > 1 else both[..., 0] == 0
         return free & live.reshape(live.shape + (1,) * len(masks))
 
