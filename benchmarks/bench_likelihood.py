@@ -15,6 +15,8 @@ whole-grid reference).
 Also: ``log I0`` of float32 arguments, ``i0e`` vs the polynomial approximation (eager and
 compiled); the change of the likelihood when one slot of 50 chains moves
 (``log_likelihood_delta`` with neighbour slots and dense, vs two windowed calls); and the
+independent-partition weights (every slot of one reference moved on its own: one amplitude
+grid of the reference vs a one-slot delta per sample and slot); and the
 point-measurement Gaussian (``LinearGaussian``, precomputed whitening vs the per-call
 triangular solve it replaced), B = 100 runs x N = 5000.
 
@@ -133,6 +135,30 @@ def test_one_slot_change(benchmark, variant):
     with torch.no_grad():
         fn()
         benchmark.pedantic(fn, rounds=20, iterations=1)
+
+
+# ----------------------------------------------------------------------------- every slot of one reference
+@pytest.mark.parametrize("variant", ["reference-grid-eager", "reference-grid-compiled", "deltas-eager",
+                                     "deltas-compiled"])
+def test_slot_changes(benchmark, variant):
+    """The independent-partition filter's weights: every slot of one reference moved on its
+    own, N = 500 candidates x K = 10 slots. ``reference-grid``: the grid sensor's
+    ``log_likelihood_slot_changes`` (one amplitude grid of the reference, one box per slot);
+    ``deltas``: the base class's form, one ``log_likelihood_delta`` per sample and slot with
+    the reference repeated (what the filter did before)."""
+    from torchmcmcpf.models.base import SensorModel
+
+    sens, x, z = problem(500)
+    ref = x[:, 0].clone()  # not a view of x: torch.cond refuses branch inputs that alias
+    fn = sens.log_likelihood_slot_changes if variant.startswith("reference") else (
+        lambda r, y, f: SensorModel.log_likelihood_slot_changes(sens, r, y, f))
+    if variant.endswith("compiled"):
+        fn = torch.compile(fn, dynamic=False)
+    benchmark.group = "slot-changes-N500-K10"
+    with torch.no_grad():
+        out = fn(ref, x, z)
+        benchmark.pedantic(fn, args=(ref, x, z), rounds=5, iterations=1)
+    assert out.shape == (1, 500, K) and torch.isfinite(out).all()
 
 
 # ----------------------------------------------------------------------------- point measurements

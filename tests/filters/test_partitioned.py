@@ -87,6 +87,27 @@ def test_partitions_beat_joint_weights_with_many_targets():
     assert rmse["part"] < rmse["joint"], rmse
 
 
+def test_slot_changes_default_paths_agree():
+    # The base class's two exact paths: a separable sensor's per-target differences and
+    # the one-slot changes at the repeated reference equal the direct difference of two
+    # log-likelihoods, slot by slot; a reference of the wrong shape is refused by name.
+    gen = torch.Generator().manual_seed(5)
+    sensor, joint = LinearGaussian.position(2.0).to(DT), JointLinearGaussian(
+        LinearGaussian.position(2.0).H, LinearGaussian.position(2.0).R).to(DT)
+    ref = torch.randn(2, 3, 4, generator=gen, dtype=DT)
+    x = torch.randn(2, 5, 3, 4, generator=gen, dtype=DT)
+    z = sensor.simulate(ref, generator=gen)
+    out = sensor.log_likelihood_slot_changes(ref, x, z)
+    torch.testing.assert_close(joint.log_likelihood_slot_changes(ref, x, z), out, rtol=1e-12, atol=1e-12)
+    for k in range(3):
+        moved = ref[:, None].expand_as(x).clone()
+        moved[..., k, :] = x[..., k, :]
+        direct = sensor.log_likelihood(moved, z) - sensor.log_likelihood(ref, z)[:, None]
+        torch.testing.assert_close(out[..., k], direct)
+    with pytest.raises(ValueError, match=r"ref has shape \(2, 2, 4\), expected \(2, 3, 4\)"):
+        sensor.log_likelihood_slot_changes(ref[:, :2], x, z)
+
+
 def test_existence_is_refused():
     from torchmcmcpf import BirthDeath
 

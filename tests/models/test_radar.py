@@ -361,6 +361,52 @@ def test_log_likelihood_delta_rejects_bad_input():
         sens.log_likelihood_delta(x, x[..., 0, :], 0, z, exists_n=torch.ones(1, 3, dtype=torch.bool))
 
 
+@pytest.mark.parametrize("window", [1, 3])
+def test_log_likelihood_slot_changes_equal_window_differences(window):
+    """slot_changes(ref, x, z)[..., k] == window(ref with slot k = x_k) - window(ref) to
+    round-off: a crowded reference (every box overlaps the others), candidates near their
+    slot (boxes overlapping the old one) and far from it, sample dims (3, 10), two runs;
+    the same in blocks (a memory budget of a few samples) and with method="grid" (the
+    base class's one-slot changes of the whole-grid reference)."""
+    sens = small_sensor(window=window)
+    g = torch.Generator().manual_seed(15)
+    ref = target_states([[2790, 2800, 2805], [2760, 2830, 2800]], [[1, 2, -3], [0, 1, 2]],
+                        [[0.2, 0.6, 0.0], [-3.0, 2.0, 0.5]], [[4, 5, 6], [5, 4, 6]])
+    z = sens.simulate(ref, generator=g)
+    near = particles_near(ref, 15, g, pos=4.0)
+    far = particles_near(ref, 15, g, pos=25.0, vel=3.0)
+    x = torch.cat([near, far], 1).reshape(2, 3, 10, 3, 5)
+    out = sens.log_likelihood_slot_changes(ref, x, z)
+    assert out.shape == (2, 3, 10, 3)
+    base = sens.log_likelihood_window(ref, z)[:, None, None]
+    for k in range(3):
+        moved = _replace_slot(ref[:, None, None].expand_as(x), x[..., k, :], torch.tensor(k))
+        torch.testing.assert_close(out[..., k], sens.log_likelihood_window(moved, z) - base, rtol=1e-10, atol=1e-9)
+    assert out.abs().min() > 1e-3  # every move changes the likelihood
+    sens.memory_budget = 3 * 8 * 3 * math.prod(sens.window_sizes()) * sens._WINDOW_TEMPS
+    assert sens.window_chunk_size(3, torch.float64) == 3
+    torch.testing.assert_close(sens.log_likelihood_slot_changes(ref, x, z), out, rtol=1e-12, atol=1e-10)
+    grid = small_sensor(window=window, method="grid")
+    ref_grid = sens.log_likelihood_delta(ref[:, None, None, None].expand(2, 3, 10, 3, 3, 5), x,
+                                         torch.arange(3).expand(2, 3, 10, 3), z)
+    torch.testing.assert_close(sens.log_likelihood_slot_changes(ref, x, z), ref_grid, rtol=1e-10, atol=1e-9)
+    grid_out = grid.log_likelihood_slot_changes(ref, x[:, :1, :2], z)
+    moved = _replace_slot(ref[:, None, None].expand(2, 1, 2, 3, 5), x[:, :1, :2, 1], torch.tensor(1))
+    direct = grid.log_likelihood_grid(moved, z) - grid.log_likelihood_grid(ref, z)[:, None, None]
+    torch.testing.assert_close(grid_out[..., 1], direct, rtol=1e-10, atol=1e-9)
+
+
+def test_log_likelihood_slot_changes_rejects_bad_input():
+    sens = small_sensor()
+    ref = target_states([[2790, 2805]], [[1, 2]], [[0.2, 0.6]], [[4, 5]])
+    x = ref[:, None].expand(1, 4, 2, 5)
+    z = torch.ones(1, *sens.frame_shape, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"ref has shape \(1, 5\), expected \(1, 2, 5\)"):
+        sens.log_likelihood_slot_changes(ref[:, 0], x, z)
+    with pytest.raises(ValueError, match="z has shape"):
+        sens.log_likelihood_slot_changes(ref, x, z[:, :3])
+
+
 # ----------------------------------------------------------------------------- chunking and memory
 def test_grid_chunking_is_exact_and_sized_from_budget():
     big = table1_sensor(method="grid")

@@ -135,6 +135,25 @@ def test_window_covering_grid_equals_grid():
                                rtol=1e-12, atol=1e-10)
 
 
+def test_log_likelihood_slot_changes_equal_window_differences():
+    """Two axes (one merged box factor): slot_changes(ref, x, z)[..., k] equals
+    window(ref with slot k = x_k) - window(ref) to round-off, with overlapping reference
+    boxes (targets 20 m apart) and candidates near and far from their slot."""
+    sens = small_sensor()
+    g = torch.Generator().manual_seed(5)
+    ref = states([[580, 600, 620]], [[-2, -1.5, 3]], [[1, 1, -1]], [[5, 6, 4]])
+    z = sens.simulate(ref, generator=g)
+    x = torch.cat([near(ref, 10, g), near(ref, 10, g, pos=30.0)], 1)  # (1, 20, 3, 5)
+    out = sens.log_likelihood_slot_changes(ref, x, z)
+    assert out.shape == (1, 20, 3)
+    base = sens.log_likelihood_window(ref, z)[:, None]
+    for k in range(3):
+        moved = ref[:, None].expand_as(x).clone()
+        moved[..., k, :] = x[..., k, :]
+        torch.testing.assert_close(out[..., k], sens.log_likelihood_window(moved, z) - base, rtol=1e-10, atol=1e-9)
+    assert out.abs().min() > 1e-3
+
+
 # ----------------------------------------------------------------------------- gradients
 @pytest.mark.parametrize("method", ["window", "grid"])
 def test_gradcheck(method):

@@ -13,10 +13,11 @@ exponentially in K. Here every particle still holds all K targets, but each targ
 2. weight partition ``k`` of particle ``i`` by the likelihood with the other targets fixed at
    a reference, ``w_k^i ∝ p(z_t | x_k^i, x_{-k} = hat x_{-k})``, where ``hat x`` is the noise-
    free prediction of the previous posterior mean; only the ratio to ``p(z_t | hat x)``
-   matters, computed as the sensor's one-slot change
-   (:meth:`~torchmcmcpf.models.base.SensorModel.log_likelihood_delta`: the cells near the
-   old and new position of slot k). For a sensor whose targets do not interact
-   (``sensor.separable``) the weight is target k's own term, exactly;
+   matters, computed by
+   :meth:`~torchmcmcpf.models.base.SensorModel.log_likelihood_slot_changes` (grid sensors:
+   one amplitude grid of the reference per run, then the cells of slot k's new box only).
+   For a sensor whose targets do not interact (``sensor.separable``) the weight is target
+   k's own term, exactly;
 3. resample each partition with its own weights, independently of the other partitions.
 
 Approximation. The filter represents the posterior as the product of per-target marginals,
@@ -85,13 +86,8 @@ def partitioned_sir_kernel(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, 
     # reference: the noise-free prediction of the previous posterior mean (B, K, D)
     ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
     x_prop = motion.propagate(x, eps)  # every partition from the motion prior
-    if sensor.separable:  # target k's own likelihood term: exact
-        log_lik = sensor.log_likelihood_per_target(x_prop, z)  # (B, N, K)
-    else:  # p(z | x_k, x_-k = ref) / p(z | ref): the one-slot change at the reference
-        slots = torch.arange(k, device=x.device).expand(b, n, k)
-        log_lik = sensor.log_likelihood_delta(ref[:, None, None].expand(b, n, k, k, ref.shape[-1]), x_prop,
-                                              slots, z)  # (B, N, K)
-    log_lik = log_lik.transpose(1, 2)  # (B, K, N)
+    # p(z | x_k, x_-k = ref) / p(z | ref) (B, N, K); target k's own term for a separable sensor
+    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z).transpose(1, 2)  # (B, K, N)
     log_w_part, _ = normalize(log_lik.reshape(b * k, n))  # (B * K, N)
     idx = RESAMPLERS[settings.resample_method][1](log_w_part, u, n).reshape(b, k, n)
     x_new = torch.gather(x_prop.transpose(1, 2), 2, idx.unsqueeze(-1).expand(b, k, n, x.shape[-1]))

@@ -154,6 +154,36 @@ class SensorModel(nn.Module, Generic[Z]):
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
         return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)
 
+    def log_likelihood_slot_changes(self, ref: Tensor, x: Tensor, z: Z) -> Tensor:
+        """Every slot of one reference state moved on its own: entry ``[b, *s, k]`` is
+        ``log p(z | ref[b] with slot k set to x[b, *s, k]) - log p(z | ref[b])``.
+
+        The weights of the independent-partition filter
+        (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_kernel`). The default is
+        exact: the difference of per-target terms for a :attr:`separable` sensor, else
+        :meth:`log_likelihood_delta` with the reference repeated for every sample and slot
+        (``K`` one-slot changes per sample); grid sensors override it with one amplitude grid
+        of the reference and one box per slot (cost independent of ``K`` per slot).
+
+        Parameters
+        ----------
+        ref : (B, K, D) the reference state of each run (every slot present).
+        x : (B, *S, K, D) the candidate states, slot by slot.
+        z : one frame per run.
+
+        Returns
+        -------
+        (B, *S, K), dtype of ``x``.
+        """
+        B, K, D = _check_reference(ref, x)
+        S = tuple(x.shape[1:-2])
+        if self.separable:
+            at_ref = self.log_likelihood_per_target(ref[:, None], z)  # (B, 1, K)
+            return self.log_likelihood_per_target(x, z) - at_ref.reshape((B,) + (1,) * len(S) + (K,))
+        refs = ref.reshape((B,) + (1,) * len(S) + (1, K, D)).expand(x.shape[:-1] + (K, D))  # (B, *S, K, K, D)
+        slots = torch.arange(K, device=x.device).expand(x.shape[:-1])  # (B, *S, K)
+        return self.log_likelihood_delta(refs, x, slots, z)
+
     def log_likelihood_slot(self, x: Tensor, x_n: Tensor, n: int | Tensor, z: Z, log_lik: Tensor,
                             exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
         """``log p(z | x with slot n set to x_n)`` given ``log_lik = log p(z | x)`` ``(B, *S)``
@@ -185,6 +215,18 @@ class SensorModel(nn.Module, Generic[Z]):
             check_batch(z, name, batch_size)
         check_finite(z, name)
         return z
+
+
+def _check_reference(ref: Tensor, x: Tensor) -> tuple[int, int, int]:
+    """Shapes of :meth:`SensorModel.log_likelihood_slot_changes`: ``ref (B, K, D)`` against
+    ``x (B, *S, K, D)`` -> ``(B, K, D)``.
+    """
+    if x.dim() < 3:
+        raise ValueError(f"x has shape {tuple(x.shape)}, expected (B, *S, K, D)")
+    B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+    if tuple(ref.shape) != (B, K, D):
+        raise ValueError(f"ref has shape {tuple(ref.shape)}, expected {(B, K, D)} to match x {tuple(x.shape)}")
+    return B, K, D
 
 
 def _set_slot(x: Tensor, x_n: Tensor, n: int | Tensor, exists: Tensor | None, exists_n: Tensor | None
