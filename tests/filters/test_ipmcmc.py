@@ -86,8 +86,8 @@ def test_exchange_move_targets_factorised_posterior(gen, start):
     noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), iters, c, k, 1, generator=gen, dtype=DT)
     acc = 0.0
     for t in range(iters):
-        (y, ll, _, _), a = exchange_iteration((y, ll, None, None), x_prev, None, z, noise.source[t],
-                                              noise.slot[t], noise.eps[t], noise.u[t], motion=motion, sensor=sensor)
+        (y, ll, _, _), a, _ = exchange_iteration((y, ll, None, None), x_prev, None, z, noise.source[t],
+                                                 noise.slot[t], noise.eps[t], noise.u[t], motion=motion, sensor=sensor)
         acc += a.double().mean().item() / iters
     assert 0.2 < acc < 0.95  # the chains really move (an always-reject kernel is invariant too)
     torch.testing.assert_close(ll, sensor.log_likelihood(y, z))  # cached log-likelihoods stay exact
@@ -220,7 +220,7 @@ def test_rhat_window_is_second_half_of_iterations():
     noise = draw_exchange_noise(log_w, 5 + 3 * 4, c, 2, 1, generator=g, dtype=DT)
     it = _bind(motion, sensor, None)
     _, trace, _, _ = _run_chains((y, sensor.log_likelihood(y, z), None, None), noise,
-                              lambda ch, nz: it(ch, x_prev, None, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth))
+                              lambda ch, nz: it(ch, x_prev, None, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)[:2])
     ys = torch.stack([t[0] for t in trace])  # (17, B, C, K, 1)
     expected = rhat(ys[17 // 2:], chain_dim=2, sample_dim=0).flatten(1)  # (B, K * D), D = 1
     torch.testing.assert_close(info.extras["rhat"], expected.amax(-1))
@@ -290,27 +290,34 @@ def test_exchange_delta_path_equals_full_reevaluation():
     log-likelihood carried as a running sum of deltas stays that of the chain states."""
     motion, sensor, z, x_prev, y0, noise = _radar_exchange_problem(DT)
     runs = {}
-    for name, sens in (("delta", sensor), ("full", _FullLikelihoodOnly(sensor))):
+    for name, sens in (("delta", sensor), ("full", _FullLikelihoodOnly(sensor)), ("cached", sensor)):
         y, log_lik, accepted = y0, sensor.log_likelihood(y0, z), []
+        cache = sensor.amplitude_cache(y0) if name == "cached" else None
         for t in range(noise.u.shape[0]):
-            (y, log_lik, _, _), acc = exchange_iteration((y, log_lik, None, None), x_prev, None, z, noise.source[t],
-                                                         noise.slot[t], noise.eps[t], noise.u[t], motion=motion,
-                                                         sensor=sens)
+            (y, log_lik, _, _), acc, update = exchange_iteration(
+                (y, log_lik, None, None), x_prev, None, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t],
+                cache=cache, motion=motion, sensor=sens)
+            if cache is not None:
+                sensor.update_amplitude_cache(cache, *update, acc)
             accepted.append(acc)
         runs[name] = y, log_lik, torch.stack(accepted)
-    (y_d, ll_d, acc_d), (y_f, ll_f, acc_f) = runs["delta"], runs["full"]
+        if cache is not None:  # the in-place updates kept the amplitudes of the chains
+            torch.testing.assert_close(cache, sensor.amplitude_cache(y), rtol=0, atol=1e-10)
+    (y_d, ll_d, acc_d), (y_f, ll_f, acc_f), (y_c, ll_c, acc_c) = runs["delta"], runs["full"], runs["cached"]
     assert torch.equal(acc_d, acc_f) and torch.equal(y_d, y_f)
+    assert torch.equal(acc_d, acc_c) and torch.equal(y_d, y_c)
     torch.testing.assert_close(ll_d, sensor.log_likelihood(y_d, z), rtol=1e-10, atol=1e-8)
     torch.testing.assert_close(ll_d, ll_f, rtol=1e-10, atol=1e-8)
+    torch.testing.assert_close(ll_c, ll_d, rtol=1e-10, atol=1e-8)
     rate = acc_d.double().mean()
     assert 0.02 < rate < 0.98  # the comparison covers both decisions
 
 
 @pytest.mark.compile
 def test_exchange_iteration_compiles_with_radar_delta():
-    """exchange_iteration with the radar delta and the float32 log I0 polynomial traces under
-    torch.compile(fullgraph=True); from the same inputs the compiled iteration takes the same
-    decisions as eager and its log-likelihoods agree to float32 round-off (fused arithmetic
+    """exchange_iteration with the radar delta (and with the amplitude cache) and the float32
+    log I0 polynomial traces under torch.compile(fullgraph=True); from the same inputs the
+    compiled iteration takes the same decisions as eager and its log-likelihoods agree to float32 round-off (fused arithmetic
     reorders the sums: 1e-4 relative to |log_lik| ~1e2-1e3 covers the 1372 cell terms)."""
     motion, sensor, z, x_prev, y, noise = _radar_exchange_problem(torch.float32, iterations=3)
 
@@ -319,12 +326,17 @@ def test_exchange_iteration_compiles_with_radar_delta():
 
     compiled = torch.compile(iterate, fullgraph=True, dynamic=False)
     log_lik = sensor.log_likelihood(y, z)
+    cache = sensor.amplitude_cache(y)
     for t in range(noise.u.shape[0]):
         args = ((y, log_lik, None, None), x_prev, None, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t])
-        (y_e, ll_e, _, _), acc_e = iterate(*args)
-        (y_c, ll_c, _, _), acc_c = compiled(*args)
+        (y_e, ll_e, _, _), acc_e, _ = iterate(*args)
+        (y_c, ll_c, _, _), acc_c, _ = compiled(*args)
+        (y_k, ll_k, _, _), acc_k, update = compiled(*args, None, cache)  # the amplitude cache's path
         assert torch.equal(acc_e, acc_c) and torch.equal(y_e, y_c)
+        assert torch.equal(acc_e, acc_k) and torch.equal(y_e, y_k)
         torch.testing.assert_close(ll_c, ll_e, rtol=1e-4, atol=1e-3)
+        torch.testing.assert_close(ll_k, ll_e, rtol=1e-4, atol=1e-3)
+        sensor.update_amplitude_cache(cache, *update, acc_k)
         y, log_lik = y_e, ll_e
 
 

@@ -144,7 +144,6 @@ from ..kernels.exchange import (
     exchange_iteration,
 )
 from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, check_hmc_motion, hmc_refine, mixture_log_prior
-from ..kernels.mh import mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..resampling import gather_particles, systematic
@@ -337,9 +336,17 @@ def ipmcmc_step(
     e0 = None if exists is None else gather_particles(exists, start)
     y, e, log_birth = dynamics.propagate(x0, e0, *dynamics.draw_noise(x0, z, generator=generator))  # (B, C, K, D)
     chain = (y, sensor.log_likelihood(y, z, e), e, None if existence is None else log_birth)
+    # The chains' amplitudes per cell (grid sensors): a move then reads its two boxes instead
+    # of summing the other targets' spreads there, and the accepted moves' changes are added
+    # in place after each iteration. Not on a GPU: a compiled kernel replayed as a CUDA graph
+    # copies every non-static input into its own buffers, the whole cache at every iteration.
+    cache = [sensor.amplitude_cache(y, e) if y.device.type != "cuda" else None]
 
     def step(ch, nz):
-        return iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)
+        ch, acc, update = iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth, cache[0])
+        if update is not None:
+            sensor.update_amplitude_cache(cache[0], *update, acc)
+        return ch, acc
 
     # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
     draw = lambda steps: draw_exchange_noise(  # noqa: E731
@@ -356,6 +363,8 @@ def ipmcmc_step(
         def refine(ch, i):
             y_new, ll_new, acc = hmc_refine(ch[0], ch[1], HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
                                             log_prior=log_prior, sensor=sensor, motion=hmc_motion, settings=hmc)
+            if cache[0] is not None:  # every slot may have moved: the amplitudes afresh
+                cache[0] = sensor.amplitude_cache(y_new, ch[2])
             return (y_new, ll_new, ch[2], ch[3]), acc
 
     def run(steps, record_from=0):
@@ -381,8 +390,9 @@ def ipmcmc_step(
         need = report.max >= rhat_threshold  # (B,)
         if not bool(need.any()):
             break
-        chain_e, trace_e, acc_e, ref_e = run(segment)
-        chain = mh_select(need, chain_e, chain)
+        # every run iterates and goes on from where it is (the cache follows the chains); the
+        # runs that did not need the extension keep their earlier kept states below
+        chain, trace_e, acc_e, ref_e = run(segment)
         hist_e = _kept(trace_e, keep, settings.thinning)
         history = tuple(None if h is None else torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
                         for he, h in zip(hist_e, history))

@@ -71,8 +71,9 @@ def draw_exchange_noise(
 def exchange_iteration(
     chain: tuple, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement,
     source: Tensor, slot: Tensor, eps: Tensor, u: Tensor, birth: BirthNoise | None = None,
+    cache: Tensor | None = None,
     *, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
-) -> tuple[tuple, Tensor]:
+) -> tuple[tuple, Tensor, tuple[Tensor, Tensor] | None]:
     """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12), with or
     without births and deaths (one code path: the slot is propagated by
     :class:`~torchmcmcpf.models.existence.TargetDynamics`).
@@ -86,7 +87,12 @@ def exchange_iteration(
     :meth:`SensorModel.log_likelihood_slot`: a sensor that overrides ``log_likelihood_delta``
     (e.g. :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives the ratio from
     the cells near the old and new position of the slot only, carried as ``log_lik + delta``;
-    any other sensor scores the whole proposal with ``log_likelihood``.
+    any other sensor scores the whole proposal with ``log_likelihood``. With ``cache`` (the
+    chains' :meth:`SensorModel.amplitude_cache`) the ratio is
+    :meth:`SensorModel.log_likelihood_delta_cached` instead (the boxes' amplitudes read, not
+    summed from the neighbours' spreads), and the cache's change is returned for the caller
+    to apply to the accepted chains (:meth:`SensorModel.update_amplitude_cache`, eager and in
+    place: the kernel stays pure).
 
     Parameters
     ----------
@@ -96,11 +102,13 @@ def exchange_iteration(
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
     z : the frame; source, slot : (B, C) int64; eps : (B, C, noise_dim) standard normals;
     u : (B, C) uniforms; birth : :class:`BirthNoise` with leading ``(B, C)`` (with existence).
+    cache : (B, C, G), optional: the amplitudes of the chains ``y`` (see above).
     motion, sensor, existence : the models.
 
     Returns
     -------
-    chain : the new chain tuple; accepted : (B, C) bool.
+    chain : the new chain tuple; accepted : (B, C) bool; update : ``(cells, change)`` of
+    :meth:`SensorModel.log_likelihood_delta_cached` with ``cache``, else ``None``.
     """
     y, log_lik, exists, log_birth = chain
     b, n, k, d = x_prev.shape
@@ -113,8 +121,15 @@ def exchange_iteration(
         parent.unsqueeze(-2), None if parent_e is None else parent_e.unsqueeze(-1), eps.unsqueeze(-2), one)
     here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
     proposal = torch.where(here.unsqueeze(-1), moved, y)
-    log_lik_prop = sensor.log_likelihood_slot(y, moved.squeeze(-2), slot, z, log_lik, exists=exists,
-                                              exists_n=None if e_new is None else e_new.squeeze(-1))
+    exists_n = None if e_new is None else e_new.squeeze(-1)
+    update = None
+    if cache is None:
+        log_lik_prop = sensor.log_likelihood_slot(y, moved.squeeze(-2), slot, z, log_lik, exists=exists,
+                                                  exists_n=exists_n)
+    else:
+        delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved.squeeze(-2), slot, z,
+                                                                   exists=exists, exists_n=exists_n)
+        log_lik_prop, update = log_lik + delta, (cells, change)
     log_alpha = log_lik_prop - log_lik
     new: tuple[Tensor, Tensor, Tensor | None, Tensor | None]
     if existence is None:
@@ -125,4 +140,4 @@ def exchange_iteration(
         new = (proposal, log_lik_prop, torch.where(here, e_new, exists), torch.where(here, lb_new, log_birth))
         log_alpha = log_alpha + (lb_new.squeeze(-1) - torch.where(here, log_birth, 0.0).sum(-1))
     accepted = mh_accept(log_alpha, u)
-    return mh_select(accepted, new, chain), accepted
+    return mh_select(accepted, new, chain), accepted, update

@@ -154,6 +154,29 @@ class SensorModel(nn.Module, Generic[Z]):
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
         return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)
 
+    def amplitude_cache(self, x: Tensor, exists: Tensor | None = None) -> Tensor | None:
+        """Per-sample state kept beside MCMC chains so that a one-slot move reads it instead
+        of recomputing the other targets' contribution (grid sensors: each sample's amplitude
+        per cell, used by :meth:`log_likelihood_delta_cached`). ``None`` (the default): this
+        sensor keeps none.
+        """
+        return None
+
+    def log_likelihood_delta_cached(self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: Z,
+                                    exists: Tensor | None = None, exists_n: Tensor | None = None
+                                    ) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`log_likelihood_delta` read from :meth:`amplitude_cache`, with the cache's
+        change: ``(delta (B, *S), cells, change)`` for :meth:`update_amplitude_cache`. Only
+        sensors whose :meth:`amplitude_cache` is not ``None`` implement it.
+        """
+        raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
+
+    @staticmethod
+    def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
+        """Apply the ``change`` of :meth:`log_likelihood_delta_cached` to ``cache`` in place
+        for the ``accepted (B, *S)`` samples (eager); returns ``cache``."""
+        raise NotImplementedError("this sensor keeps no amplitude cache")
+
     def log_likelihood_slot_changes(self, ref: Tensor, x: Tensor, z: Z) -> Tensor:
         """Every slot of one reference state moved on its own: entry ``[b, *s, k]`` is
         ``log p(z | ref[b] with slot k set to x[b, *s, k]) - log p(z | ref[b])``.
