@@ -317,8 +317,9 @@ def test_exchange_delta_path_equals_full_reevaluation():
 def test_exchange_iteration_compiles_with_radar_delta():
     """exchange_iteration with the radar delta (and with the amplitude cache) and the float32
     log I0 polynomial traces under torch.compile(fullgraph=True); from the same inputs the
-    compiled iteration takes the same decisions as eager and its log-likelihoods agree to float32 round-off (fused arithmetic
-    reorders the sums: 1e-4 relative to |log_lik| ~1e2-1e3 covers the 1372 cell terms)."""
+    compiled iteration takes the same decisions as eager and its log-likelihoods agree to
+    float32 round-off (fused arithmetic reorders the sums: 1e-4 relative to |log_lik|
+    ~1e2-1e3 covers the 1372 cell terms)."""
     motion, sensor, z, x_prev, y, noise = _radar_exchange_problem(torch.float32, iterations=3)
 
     def iterate(*args):

@@ -396,6 +396,42 @@ def test_log_likelihood_slot_changes_equal_window_differences(window):
     torch.testing.assert_close(grid_out[..., 1], direct, rtol=1e-10, atol=1e-9)
 
 
+def test_amplitude_cache_delta_and_updates_follow_the_chains():
+    """The amplitude cache: equal to the amplitude of the window path (the grid's truncated
+    spreads: summing it with the cell log-ratios gives log_likelihood_window); the cached
+    delta equals log_likelihood_delta with existence flags (births, deaths, moves of
+    absent slots); after 30 accepted / rejected moves applied in place the cache equals the
+    chains' amplitudes afresh; method="grid" keeps no cache; a cache of the wrong shape is
+    refused by name."""
+    sens = small_sensor()
+    g = torch.Generator().manual_seed(16)
+    xt = target_states([[2790, 2805, 2830]], [[1, 2, -3]], [[0.2, 0.6, -2.0]], [[4, 5, 6]])
+    z = sens.simulate(xt, generator=g)
+    y = particles_near(xt, 12, g).reshape(1, 3, 4, 3, 5)
+    exists = torch.rand(1, 3, 4, 3, generator=g) < 0.7
+    cache = sens.amplitude_cache(y, exists)
+    assert cache.shape == (1, 3, 4, sens.num_cells)
+    whole = sens.cell_log_ratio(cache.reshape(1, 3, 4, *sens.frame_shape), sens.prepare_frame(z)[:, None, None])
+    torch.testing.assert_close(whole.flatten(3).sum(-1), sens.log_likelihood_window(y, z, exists), rtol=1e-10,
+                               atol=1e-9)
+    for _ in range(30):
+        slot = torch.randint(3, (1, 3, 4), generator=g)
+        x_n = particles_near(xt, 12, g, pos=10.0)[:, :, 0].reshape(1, 3, 4, 5)
+        e_n = torch.rand(1, 3, 4, generator=g) < 0.6
+        delta, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, slot, z, exists, e_n)
+        torch.testing.assert_close(delta, sens.log_likelihood_delta(y, x_n, slot, z, exists, e_n), rtol=1e-10,
+                                   atol=1e-9)
+        accepted = torch.rand(1, 3, 4, generator=g) < 0.5
+        sens.update_amplitude_cache(cache, cells, change, accepted)
+        here = (torch.arange(3) == slot[..., None]) & accepted[..., None]
+        y = torch.where(here[..., None], x_n[..., None, :], y)
+        exists = torch.where(here, e_n[..., None], exists)
+    torch.testing.assert_close(cache, sens.amplitude_cache(y, exists), rtol=0, atol=1e-12)
+    assert small_sensor(method="grid").amplitude_cache(y) is None
+    with pytest.raises(ValueError, match=r"cache has shape \(1, 3, 4, 10\)"):
+        sens.log_likelihood_delta_cached(cache[..., :10], y, x_n, slot, z)
+
+
 def test_log_likelihood_slot_changes_rejects_bad_input():
     sens = small_sensor()
     ref = target_states([[2790, 2805]], [[1, 2]], [[0.2, 0.6]], [[4, 5]])

@@ -154,6 +154,24 @@ def test_log_likelihood_slot_changes_equal_window_differences():
     assert out.abs().min() > 1e-3
 
 
+def test_cached_delta_equals_delta():
+    """Two axes: the amplitude cache's one-slot change equals log_likelihood_delta (and the
+    cache summed with the cell log-ratios the windowed likelihood), with a slot per chain."""
+    sens = small_sensor()
+    g = torch.Generator().manual_seed(6)
+    xt = states([[580, 600, 620]], [[-2, -1.5, 3]], [[1, 1, -1]], [[5, 6, 4]])
+    z = sens.simulate(xt, generator=g)
+    y = near(xt, 20, g)
+    cache = sens.amplitude_cache(y)
+    whole = sens.cell_log_ratio(cache.reshape(1, 20, *sens.frame_shape), sens.prepare_frame(z)[:, None])
+    torch.testing.assert_close(whole.flatten(2).sum(-1), sens.log_likelihood_window(y, z), rtol=1e-10, atol=1e-9)
+    slot = torch.randint(3, (1, 20), generator=g)
+    x_n = near(xt, 20, g, pos=15.0)[:, :, 1]
+    delta, _, _ = sens.log_likelihood_delta_cached(cache, y, x_n, slot, z)
+    torch.testing.assert_close(delta, sens.log_likelihood_delta(y, x_n, slot, z), rtol=1e-10, atol=1e-9)
+    assert delta.abs().min() > 1e-3
+
+
 # ----------------------------------------------------------------------------- gradients
 @pytest.mark.parametrize("method", ["window", "grid"])
 def test_gradcheck(method):

@@ -174,7 +174,8 @@ class SensorModel(nn.Module, Generic[Z]):
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
         """Apply the ``change`` of :meth:`log_likelihood_delta_cached` to ``cache`` in place
-        for the ``accepted (B, *S)`` samples (eager); returns ``cache``."""
+        for the ``accepted (B, *S)`` samples (eager); returns ``cache``.
+        """
         raise NotImplementedError("this sensor keeps no amplitude cache")
 
     def log_likelihood_slot_changes(self, ref: Tensor, x: Tensor, z: Z) -> Tensor:
