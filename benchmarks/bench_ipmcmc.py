@@ -12,7 +12,10 @@ the same ``burn_in + Np / 50`` iterations. The whole-grid path is timed with ``b
 Np = 500) for a full step; the cost is linear in the number of iterations. Set
 ``BENCH_IPMCMC_BURN_IN`` to shorten the windowed chains too. ``window-eager-hmc`` adds the
 HMC refinement (``HMCRefine(step_size=0.15, num_leapfrog=5, every=20)``: 6 transitions per
-step; Np = 500 only), the README's "HMC as a move" comparison.
+step; Np = 500 only), the README's "HMC as a move" comparison. ``window-compiled-no-cache``
+turns the chains' amplitude cache off (``sensor.amplitude_cache`` returning ``None``): every
+move then sums the other targets' spreads at its two boxes (``log_likelihood_delta``), the
+reference for the cache's speed-up.
 """
 
 import os
@@ -33,7 +36,8 @@ def scenario():
     return ground_radar(TARGETS, 20, 1, generator=torch.Generator().manual_seed(0))
 
 
-@pytest.mark.parametrize("variant", ["window-eager", "window-compiled", "window-eager-hmc", "grid-eager-no-burn-in"])
+@pytest.mark.parametrize("variant", ["window-eager", "window-compiled", "window-compiled-no-cache", "window-eager-hmc",
+                                     "grid-eager-no-burn-in"])
 @pytest.mark.parametrize("n", [500, 5000])
 def test_ipmcmc_step(benchmark, scenario, variant, n):
     if variant.startswith("grid") and n > 500:
@@ -42,12 +46,14 @@ def test_ipmcmc_step(benchmark, scenario, variant, n):
         pytest.skip("HMC refinement: timed at Np = 500 only")
     sensor = scenario.sensor
     sensor.method = "grid" if variant.startswith("grid") else "window"
+    if variant.endswith("no-cache"):
+        sensor.amplitude_cache = lambda *args, **kwargs: None  # an instance attribute: the cache off
     burn_in = 0 if variant.startswith("grid") else BURN_IN
     try:
         x0 = scenario.initial_particles(n, generator=torch.Generator().manual_seed(1))
         hmc = HMCRefine(step_size=0.15, num_leapfrog=5, every=20) if variant.endswith("hmc") else None
         filt = IPMCMCFilter(scenario.motion, sensor, n, num_chains=CHAINS, burn_in=burn_in, max_extensions=0,
-                            compile_step=variant.endswith("compiled"), hmc=hmc)
+                            compile_step="compiled" in variant, hmc=hmc)
         state = filt.init(x0)
         z = scenario.measurements[0]
         with torch.no_grad():
@@ -58,3 +64,4 @@ def test_ipmcmc_step(benchmark, scenario, variant, n):
                                rounds=1 if variant.startswith("grid") else 3, iterations=1)
     finally:
         sensor.method = "window"
+        sensor.__dict__.pop("amplitude_cache", None)
