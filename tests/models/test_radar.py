@@ -430,6 +430,10 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
     assert small_sensor(method="grid").amplitude_cache(y) is None
     with pytest.raises(ValueError, match=r"cache has shape \(1, 3, 4, 10\)"):
         sens.log_likelihood_delta_cached(cache[..., :10], y, x_n, slot, z)
+    with pytest.raises(ValueError, match="x_n has shape"):
+        sens.log_likelihood_delta_cached(cache, y, x_n[..., :4], slot, z)
+    with pytest.raises(ValueError, match="exists has shape"):
+        sens.amplitude_cache(y, exists[..., :2])
 
 
 def test_log_likelihood_slot_changes_rejects_bad_input():

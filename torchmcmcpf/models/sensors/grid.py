@@ -278,15 +278,31 @@ class SeparableGridSensor(SensorModel[Tensor]):
     def _check_inputs(self, x: Tensor, z: Tensor, exists: Tensor | None) -> None:
         # Shape checks only (no device sync): the hot path stays compile-friendly. Values
         # are checked once per frame by validate().
-        if x.dim() < 3 or x.shape[-1] != self.dim:
-            raise ValueError(f"x has shape {tuple(x.shape)}, expected (B, *S, K, {self.dim})")
+        self._check_state(x, exists)
         if z.dim() != 1 + self.n_axes or tuple(z.shape[1:]) != self.frame_shape or z.shape[0] != x.shape[0]:
             raise ValueError(
                 f"z has shape {tuple(z.shape)}, expected ({x.shape[0]}, "
                 f"{', '.join(map(str, self.frame_shape))}) to match x {tuple(x.shape)}"
             )
+
+    def _check_state(self, x: Tensor, exists: Tensor | None) -> None:
+        """Shapes of a state ``x (B, *S, K, D)`` and its flags ``exists (B, *S, K)``."""
+        if x.dim() < 3 or x.shape[-1] != self.dim:
+            raise ValueError(f"x has shape {tuple(x.shape)}, expected (B, *S, K, {self.dim})")
         if exists is not None and tuple(exists.shape) != tuple(x.shape[:-1]):
             raise ValueError(f"exists has shape {tuple(exists.shape)}, expected {tuple(x.shape[:-1])}")
+
+    @staticmethod
+    def _check_move(x: Tensor, x_n: Tensor, exists_n: Tensor | None) -> None:
+        """Shapes of a one-slot move: ``x_n (B, *S, D)`` and ``exists_n (B, *S)`` against
+        ``x (B, *S, K, D)``.
+        """
+        lead = tuple(x.shape[:-2])
+        if tuple(x_n.shape) != lead + (x.shape[-1],):
+            raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {lead + (x.shape[-1],)} to match x "
+                             f"{tuple(x.shape)}")
+        if exists_n is not None and tuple(exists_n.shape) != lead:
+            raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {lead}")
 
     def _flat_inputs(self, x: Tensor, exists: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
         """``x (B, *S, K, D) -> u (B, P, K, n), s (B, P, K), e (B, P, K)`` with ``P = prod(S)``;
@@ -824,14 +840,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
         (B, *S): ``log p(z | x with slot n = x_n) - log p(z | x)``.
         """
         self._check_inputs(x, z, exists)
-        B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+        self._check_move(x, x_n, exists_n)
+        B, K = x.shape[0], x.shape[-2]
         S = tuple(x.shape[1:-2])
-        if tuple(x_n.shape) != (B,) + S + (D,):
-            raise ValueError(
-                f"x_n has shape {tuple(x_n.shape)}, expected {(B,) + S + (D,)} to match x {tuple(x.shape)}"
-            )
-        if exists_n is not None and tuple(exists_n.shape) != (B,) + S:
-            raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {(B,) + S}")
         if torch.is_tensor(n):
             slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S).reshape(B, -1)
         else:
@@ -976,10 +987,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         if self.method == "grid":
             return None
-        if x.dim() < 3 or x.shape[-1] != self.dim:
-            raise ValueError(f"x has shape {tuple(x.shape)}, expected (B, *S, K, {self.dim})")
-        if exists is not None and tuple(exists.shape) != tuple(x.shape[:-1]):
-            raise ValueError(f"exists has shape {tuple(exists.shape)}, expected {tuple(x.shape[:-1])}")
+        self._check_state(x, exists)
         u, s, _ = self._flat_inputs(x, exists)  # (B, P, K, n), (B, P, K)
         firsts = [self._box_first(u[..., a], a) for a in range(self.n_axes)]
         return self._truncated_amplitude(u, s, firsts).reshape(x.shape[:-2] + (self.num_cells,))
@@ -1010,6 +1018,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
         self._check_inputs(x, z, exists)
+        self._check_move(x, x_n, exists_n)
         S = tuple(x.shape[1:-2])
         if tuple(cache.shape) != (B,) + S + (self.num_cells,):
             raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (self.num_cells,)}")
