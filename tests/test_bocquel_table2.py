@@ -83,3 +83,28 @@ def test_compile_reaches_every_row(monkeypatch):
         except Built:
             pass
         assert seen == [compile_]
+
+
+def test_pmmh_runs_in_batches_of_bounded_particles(monkeypatch):
+    """PMMH's L * Np particles per run go through the filter in batches of at most
+    ``PMMH_BATCH_PARTICLES`` (at least one run each); the batches' outputs are the shard's,
+    run by run, in order."""
+    from torchmcmcpf.scenarios.ground_radar import ground_radar
+
+    scn = ground_radar(2, 2, 3, generator=torch.Generator().manual_seed(0))
+    calls = []
+
+    class Spy(exp.PMMHFilter):
+        def forward(self, measurements, **kwargs):
+            calls.append(measurements.shape[1])
+            return super().forward(measurements, **kwargs)
+
+    monkeypatch.setattr(exp, "PMMHFilter", Spy)
+    cfg = {"pmmh_candidates": 2, "compile": False}
+    for budget, batches in ((1, [1, 1, 1]), (2 * 20 * 2, [2, 1]), (10**9, [3])):
+        monkeypatch.setattr(exp, "PMMH_BATCH_PARTICLES", budget)
+        calls.clear()
+        mean, extra = exp._run_pmmh(scn, 20, cfg, torch.Generator().manual_seed(1), False)
+        assert calls == batches
+        assert mean.shape == (2, 3, 2, 5) and torch.isfinite(mean).all()
+        assert extra["acceptance"].shape == extra["theta_mean"].shape == (3,)

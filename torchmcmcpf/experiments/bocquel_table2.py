@@ -19,6 +19,10 @@ What runs
   no burn-in), each with its own SIR filter of Np particles (L * Np in all); the track at
   each step is the chain average of the candidates' filtering means (see
   :mod:`torchmcmcpf.filters.pmmh`). Its seconds per step are those of the whole filter.
+  The shard's runs go through it in batches of at most :data:`PMMH_BATCH_PARTICLES`
+  particles (2 runs at Np = 5000): L * Np particles per run would otherwise hold 250,000
+  particles per shard of 10 runs (5.4 GiB peak, and a compiled graph of 39 unrolled
+  likelihood chunks that took about 6 min to compile).
 - Partitioned PF (extra row, not in the paper's table):
   :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`, Np particles, each
   target's partition weighted with the others at their predicted estimates and resampled
@@ -67,6 +71,8 @@ QUICK = dict(runs=2, steps=3, particles=(40, 80), chains=10, burn_in=10, targets
 FULL = dict(runs=100, steps=20, particles=(500, 5000), chains=50, burn_in=100, targets=(1, 10),
             pmmh_candidates=5, max_extensions=2, shard_size=10)
 ALGORITHMS = ("SIR PF", "Partitioned PF", "PMMH", "IP-MCMC-PF")
+#: particles of one PMMH batch (runs x L x Np): the SIR row's at Np = 5000 for a shard of 10
+PMMH_BATCH_PARTICLES = 50_000
 OUTPUTS = ("metrics.json", "table2.md", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png", "shards")
 
 
@@ -115,8 +121,14 @@ def _run_pmmh(scn, n, cfg, g, progress):
     """
     lc = cfg["pmmh_candidates"]
     filt = PMMHFilter(scn.motion, scn.sensor, lc * n, num_candidates=lc, compile_step=bool(cfg.get("compile", False)))
-    res = filt(scn.measurements, init=scn.initial_particles(lc * n, generator=g), generator=g, progress=progress)
-    return res.mean, {"acceptance": res.info.acceptance.mean(0), "theta_mean": res.info.extras["theta_mean"][-1]}
+    init = scn.initial_particles(lc * n, generator=g)  # (B, L * Np, K, D)
+    per = max(1, PMMH_BATCH_PARTICLES // (lc * n))
+    out = []
+    for b0 in range(0, init.shape[0], per):  # batches of runs: memory and compiled graph bounded
+        res = filt(scn.measurements[:, b0:b0 + per], init=init[b0:b0 + per], generator=g, progress=progress)
+        out.append((res.mean, res.info.acceptance.mean(0), res.info.extras["theta_mean"][-1]))
+    mean, acceptance, theta = (torch.cat(parts, dim) for parts, dim in zip(zip(*out), (1, 0, 0)))
+    return mean, {"acceptance": acceptance, "theta_mean": theta}
 
 
 def _make_filter(name: str, scn: Scenario, n: int, cfg: dict) -> SIRFilter | PartitionedSIRFilter | IPMCMCFilter:
