@@ -922,10 +922,16 @@ class SeparableGridSensor(SensorModel[Tensor]):
         zw = self._gather_cells(zc, boxes)[:, :, None]  # (B, P, 1, 2, *W)
         ratio = self.cell_log_ratio(A, zw)
         diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
-        # cells of the new box inside the old one: the old spread's indicator there
-        in_old = [f[:, :, 1, count] for f in indicators]  # (B, P, W_a)
-        both = self._outer_sum(torch.ones_like(s_old), [f[..., None, :] for f in in_old])  # (B, P, *W)
+        both = self._new_box_in_old(indicators, count, s_old)  # (B, P, *W)
         return diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
+
+    def _new_box_in_old(self, indicators: Sequence[Tensor], old: int, like: Tensor) -> Tensor:
+        """Which cells of a move's new box the old box holds, ``(B, P, *box_cells())`` 0/1:
+        from the per-axis indicators ``(B, P, 2 boxes, M, W)`` of
+        :meth:`_neighbour_profiles`, entry ``old`` being the moved slot's old spread;
+        ``like (B, P, 1)`` gives dtype and device.
+        """
+        return self._outer_sum(torch.ones_like(like), [f[:, :, 1, old][..., None, :] for f in indicators])
 
     # ---------------------------------------------------------------- every slot of one reference
     def log_likelihood_slot_changes(self, ref: Tensor, x: Tensor, z: Tensor) -> Tensor:
@@ -1041,8 +1047,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
         zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)
         # round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0
         diff = self.cell_log_ratio((A + change).clamp_min(0.0), zw) - self.cell_log_ratio(A.clamp_min(0.0), zw)
-        in_old = [f[:, :, 1, 0] for f in indicators]  # (B, P, W_a): new box cells inside the old box
-        both = self._outer_sum(torch.ones_like(s[..., :1]), [f[..., None, :] for f in in_old])  # (B, P, *V)
+        both = self._new_box_in_old(indicators, 0, s[..., :1])  # (B, P, *V)
         once = torch.stack([torch.ones_like(both), 1.0 - both], 2)  # (B, P, 2, *V)
         delta = (diff * once).flatten(2).sum(-1)
         rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(V))) * self.num_cells
