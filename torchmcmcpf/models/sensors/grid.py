@@ -506,13 +506,22 @@ class SeparableGridSensor(SensorModel[Tensor]):
     def _outer_sum(cls, s: Tensor, factors: Sequence[Tensor]) -> Tensor:
         """``sum_m s_m f_1[m, i_1] ... f_n[m, i_n]``.
 
-        ``s (*L, M)``, ``factors[a] (*L, M, W_a)`` -> ``(*L, W_1, ..., W_n)``. Up to
-        ``_TERMWISE_MAX`` neighbour slots the sum is written out term by term, so that
+        ``s (*L, M)``, ``factors[a] (*L, M, W_a)`` -> ``(*L, W_1, ..., W_n)``. On the CPU, up
+        to ``_TERMWISE_MAX`` neighbour slots the sum is written out term by term, so that
         ``torch.compile`` fuses the whole per-cell computation into one loop (a reduction
         over ``M`` would be materialised); above it, outer products of the first ``n - 1``
-        factors then one bmm with the last.
+        factors then one bmm with the last. On a GPU, the broadcast product summed over ``M``.
         """
         n, M = len(factors), s.shape[-1]
+        if s.device.type == "cuda":
+            # on a GPU, one broadcast product summed over M (fused by torch.compile): the bmm
+            # below would be tens of thousands of tiny matrices, which cuBLAS runs at a few
+            # percent of the card (its gemms were 70 % of the IP-MCMC-PF's GPU time on an
+            # H200, benchmarks/README.md)
+            t = s.reshape(s.shape + (1,) * n)
+            for a, f in enumerate(factors):
+                t = t * f.reshape(f.shape[:-1] + (1,) * a + f.shape[-1:] + (1,) * (n - 1 - a))
+            return t.sum(-n - 1)
         if M > cls._TERMWISE_MAX:
             outer = s[..., None] * factors[0]
             for f in factors[1:-1]:
@@ -542,6 +551,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
         ``index (..., Q, count)`` int64 and ``weight (..., Q, count)`` 0/1 (dtype float32;
         0 marks a filler when a box has fewer overlapping targets).
         """
+        if count >= overlap.shape[-1]:  # every target (the dense form): no selection
+            index = torch.arange(overlap.shape[-1], device=overlap.device).expand(overlap.shape)
+            return index, overlap.to(torch.float32)
         w, index = torch.topk(overlap.to(torch.float32), count, dim=-1, sorted=False)
         return index, w
 
@@ -599,9 +611,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
         if len(factors) < 2:
             return factors
         a, b = factors[-2][..., :, None], factors[-1][..., None, :]
-        # compiled, a matmul with inner size 1 fuses better than the broadcast product
-        # (measured, benchmarks/bench_likelihood.py); eager it would be a bmm of tiny matrices
-        q = torch.matmul(a, b) if torch.compiler.is_compiling() else a * b
+        # compiled on the CPU, a matmul with inner size 1 fuses better than the broadcast
+        # product (measured, benchmarks/bench_likelihood.py); eager it would be a bmm of tiny
+        # matrices, and on a GPU a batched gemm of them (slow there, see _outer_sum)
+        q = torch.matmul(a, b) if torch.compiler.is_compiling() and a.device.type != "cuda" else a * b
         return factors[:-2] + [q.flatten(-2)]
 
     def _flat_box_offsets(self) -> Tensor:
