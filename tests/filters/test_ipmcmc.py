@@ -395,3 +395,32 @@ def test_ipmcmc_with_hmc_matches_kalman_single_target(gen):
     assert zerr.square().mean() <= 0.25
     acc = res.info.extras["acceptance_hmc"]
     assert acc.shape == (4, b) and ((acc > 0.3) & (acc <= 1)).all()
+
+
+def test_segment_is_run_chains_with_a_stacked_trace():
+    """The loop that ``CompiledKernel.capture`` runs as one CUDA graph (``_segment``) gives
+    the chains, trace and acceptance counts of ``_run_chains``; ``_unstack`` restores the
+    list of chain tuples."""
+    from torchmcmcpf.filters.ipmcmc import _bind, _run_chains, _segment, _unstack
+    motion, sensor = _scalar_models(1.0, 1.0)
+    b, n, c, k, steps = 2, 8, 3, 2, 7
+    g = torch.Generator().manual_seed(4)
+    x_prev = torch.randn(b, n, k, 1, generator=g, dtype=DT)
+    z = torch.randn(b, k, 1, generator=g, dtype=DT)
+    y = x_prev[:, :c] + 0.1
+    chain = (y, sensor.log_likelihood(y, z), None, None)
+    noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), steps, c, k, 1, generator=g, dtype=DT)
+    it = _bind(motion, sensor, None)
+    final, stacked, acc = _segment(it, chain, noise, x_prev, None, z, 3)
+    ref_final, ref_trace, ref_acc, _ = _run_chains(
+        chain, noise, lambda ch, nz: it(ch, x_prev, None, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)[:2],
+        record_from=3)
+    assert stacked[0].shape == (steps - 3, b, c, k, 1) and stacked[2] is None and stacked[3] is None
+    torch.testing.assert_close(final[0], ref_final[0], rtol=0, atol=0)
+    torch.testing.assert_close(acc, ref_acc, rtol=0, atol=0)
+    trace = _unstack(stacked)
+    assert len(trace) == len(ref_trace) == steps - 3
+    for got, want in zip(trace, ref_trace):
+        torch.testing.assert_close(got[0], want[0], rtol=0, atol=0)
+        torch.testing.assert_close(got[1], want[1], rtol=0, atol=0)
+        assert got[2] is None and got[3] is None
