@@ -15,7 +15,8 @@ HMC refinement (``HMCRefine(step_size=0.15, num_leapfrog=5, every=20)``: 6 trans
 step; Np = 500 only), the README's "HMC as a move" comparison. ``window-compiled-no-cache``
 turns the chains' amplitude cache off (``sensor.amplitude_cache`` returning ``None``): every
 move then sums the other targets' spreads at its two boxes (``log_likelihood_delta``), the
-reference for the cache's speed-up.
+reference for the cache's speed-up. ``test_ipmcmc_step_cuda`` (GPU only) compares the
+captured segment with one CUDA graph per iteration.
 """
 
 import os
@@ -65,3 +66,32 @@ def test_ipmcmc_step(benchmark, scenario, variant, n):
     finally:
         sensor.method = "window"
         sensor.__dict__.pop("amplitude_cache", None)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("variant", ["captured-segment", "per-iteration-graphs"])
+@pytest.mark.parametrize("b", [1, 100])
+def test_ipmcmc_step_cuda(benchmark, variant, b):
+    """On a GPU, Np = 5000, compiled: each segment of MH iterations captured as one CUDA graph
+    (``CompiledKernel.capture``, what ``compile_step=True`` does) against one graph replay per
+    iteration (the kernel without its ``capture``), B = 1 and B = 100 runs.
+    """
+    n = 5000
+    scn = ground_radar(TARGETS, 20, b, generator=torch.Generator("cuda").manual_seed(0), device="cuda")
+    x0 = scn.initial_particles(n, generator=torch.Generator("cuda").manual_seed(1))
+    filt = IPMCMCFilter(scn.motion, scn.sensor, n, num_chains=CHAINS, burn_in=BURN_IN, max_extensions=0,
+                        compile_step=True).to("cuda")
+    if variant == "per-iteration-graphs":
+        kernel = filt.kernel()
+        filt._compiled = lambda *args: kernel(*args)  # no capture(): a graph replay per iteration
+    state, z = filt.init(x0), scn.measurements[0]
+
+    def step():
+        filt.step(state, z, generator=torch.Generator("cuda").manual_seed(2))
+        torch.cuda.synchronize()
+
+    with torch.no_grad():
+        step()  # warm-up: compilation, capture
+        benchmark.group = f"ipmcmc-step-cuda-N{n}-B{b}"
+        benchmark.extra_info.update(variant=variant, device=torch.cuda.get_device_name())
+        benchmark.pedantic(step, rounds=5, iterations=1)
