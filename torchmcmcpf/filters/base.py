@@ -98,7 +98,8 @@ class CompiledKernel:
         stream, then captures ``loop`` on static copies of the tensor arguments; every call
         copies the arguments in, replays the graph and returns clones of its outputs (so an
         earlier result survives the next replay). Same kernels, same results as the loop
-        called eagerly with this kernel, which is what it is on the CPU.
+        called eagerly with this kernel, which is what it is on the CPU. Each signature's
+        graph and its memory pool are kept for the kernel's life (the filter's).
         """
         leaves, spec = tree_flatten(args)
         tensors = [a for a in leaves if torch.is_tensor(a)]

@@ -513,15 +513,19 @@ class SeparableGridSensor(SensorModel[Tensor]):
         factors then one bmm with the last. On a GPU, the broadcast product summed over ``M``.
         """
         n, M = len(factors), s.shape[-1]
+
+        def product(w: Tensor, fs: Sequence[Tensor]) -> Tensor:  # w (*J) f_1 ... f_n -> (*J, W_1, ..., W_n)
+            t = w.reshape(w.shape + (1,) * n)
+            for a, f in enumerate(fs):
+                t = t * f.reshape(f.shape[:-1] + (1,) * a + f.shape[-1:] + (1,) * (n - 1 - a))
+            return t
+
         if s.device.type == "cuda":
             # on a GPU, one broadcast product summed over M (fused by torch.compile): the bmm
             # below would be tens of thousands of tiny matrices, which cuBLAS runs at a few
             # percent of the card (its gemms were 70 % of the IP-MCMC-PF's GPU time on an
             # H200, benchmarks/README.md)
-            t = s.reshape(s.shape + (1,) * n)
-            for a, f in enumerate(factors):
-                t = t * f.reshape(f.shape[:-1] + (1,) * a + f.shape[-1:] + (1,) * (n - 1 - a))
-            return t.sum(-n - 1)
+            return product(s, factors).sum(-n - 1)
         if M > cls._TERMWISE_MAX:
             outer = s[..., None] * factors[0]
             for f in factors[1:-1]:
@@ -535,11 +539,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
             return out.reshape(*lead, *(f.shape[-1] for f in factors))
 
         def term(m: int) -> Tensor:  # s_m f_1[m, i_1] ... f_n[m, i_n], (*L, W_1, ..., W_n)
-            t = s[..., m].reshape(s.shape[:-1] + (1,) * n)
-            for a, f in enumerate(factors):
-                fm = f[..., m, :]
-                t = t * fm.reshape(fm.shape[:-1] + (1,) * a + fm.shape[-1:] + (1,) * (n - 1 - a))
-            return t
+            return product(s[..., m], [f[..., m, :] for f in factors])
 
         out = term(0)
         for m in range(1, M):  # neighbour slots, not targets: at most _TERMWISE_MAX
