@@ -16,13 +16,13 @@ def test_target_counts_follow_the_paper():
     assert M.target_counts(200)[-1] == 4 and len(M.target_counts(200)) == 201
 
 
-def test_motion_is_eq_11_12():
+def test_motion_is_eq_11_12(gen):
     m = M.WhiteAccelerationMotion(dt=2.0, sigma=3.0)
     A = torch.tensor([[1.0, 2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 2], [0, 0, 0, 1]])
     Bm = torch.tensor([[2.0, 0], [2, 0], [0, 2], [0, 2]])  # T^2/2, T
     torch.testing.assert_close(m.A, A)
     torch.testing.assert_close(m.G, 3.0 * Bm)
-    x, u = torch.randn(5, 3, 4), torch.randn(5, 3, 2)
+    x, u = torch.randn(5, 3, 4, generator=gen), torch.randn(5, 3, 2, generator=gen)
     torch.testing.assert_close(m.propagate(x, u), x @ A.T + 3.0 * u @ Bm.T)
     with pytest.raises(ValueError, match="sigma"):
         M.WhiteAccelerationMotion(sigma=-1.0)

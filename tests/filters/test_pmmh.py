@@ -31,15 +31,19 @@ def _kalman_log_evidence(F, Qs, H, R, m0, P0, zs):
     return total
 
 
-def test_process_noise_scale_matches_cv():
+def test_process_noise_scale_matches_cv(gen):
+    # Both models' F, Q and chol(Q) are computed in float32 (the default dtype) and then cast,
+    # so sqrt(3) chol(Q_1) and chol(Q_3) agree to float32 rounding only: compare at that
+    # resolution (eps_32 = 1.2e-7 on terms of size ~5), not float64's.
     base = ConstantVelocity(1.0, q=1.0).to(DT)
     cv3 = ConstantVelocity(1.0, q=3.0).to(DT)
     scaled = ProcessNoiseScale(base, torch.tensor([3.0, 3.0], dtype=DT))
-    x = torch.randn(2, 5, 1, 4, dtype=DT)
-    xn = torch.randn(2, 5, 1, 4, dtype=DT)
-    torch.testing.assert_close(scaled.log_prob(xn, x), cv3.log_prob(xn, x))
-    eps = torch.randn(2, 5, 1, 4, dtype=DT)
-    torch.testing.assert_close(scaled.propagate(x, eps), cv3.propagate(x, eps))
+    x = torch.randn(2, 5, 1, 4, dtype=DT, generator=gen)
+    xn = torch.randn(2, 5, 1, 4, dtype=DT, generator=gen)
+    f32 = {"rtol": 1e-5, "atol": 1e-5}
+    torch.testing.assert_close(scaled.log_prob(xn, x), cv3.log_prob(xn, x), **f32)
+    eps = torch.randn(2, 5, 1, 4, dtype=DT, generator=gen)
+    torch.testing.assert_close(scaled.propagate(x, eps), cv3.propagate(x, eps), **f32)
 
 
 def test_pmmh_recovers_process_noise(gen):
