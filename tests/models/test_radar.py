@@ -233,6 +233,51 @@ def test_window_is_exact_for_truncated_point_spread():
                                rtol=1e-12, atol=1e-10)
 
 
+def _owned_reference(sens, firsts, live):
+    """Cell t of box j is counted iff j is live and no live box i < j contains it, by brute
+    force over (box, cell, other box): ``(b, p, K, *box_cells())`` bool."""
+    W = sens.window_sizes()
+    K = live.shape[-1]
+    inside = []
+    for f, w in zip(firsts, W):
+        c = f[..., :, None] + torch.arange(w)  # (b, p, J, W): absolute cells of box j
+        inside.append((c[..., None] >= f[..., None, None, :]) & (c[..., None] < f[..., None, None, :] + w))
+    held = (inside[0][..., :, None, None, :] & inside[1][..., None, :, None, :]
+            & inside[2][..., None, None, :, :])  # (b, p, J, W0, W1, W2, I): box i holds the cell
+    i = torch.arange(K)
+    earlier = (i[None, :] < i[:, None])[:, None, None, None, :] & live[..., None, None, None, None, :]
+    owned = live[..., None, None, None] & ~(held & earlier).any(-1)
+    return owned.reshape(owned.shape[:3] + sens.box_cells())
+
+
+@pytest.mark.parametrize("num_targets", [3, 30])
+def test_owned_cells_count_each_cell_of_the_union_once(num_targets):
+    """The ownership masks of the windowed path against brute force, with overlapping boxes,
+    dead targets and more targets than one mask word holds (30 > 24); compiled too (the
+    merged mask then goes through ``materialise``)."""
+    from torchmcmcpf.models.sensors.grid import materialise
+
+    sens = small_sensor(window=2)
+    g = torch.Generator().manual_seed(7)
+    k = num_targets
+    r = 2750 + 90 * torch.rand(1, k, generator=g, dtype=torch.float64)
+    d = -7 + 14 * torch.rand(1, k, generator=g, dtype=torch.float64)
+    b = -4.5 + 8 * torch.rand(1, k, generator=g, dtype=torch.float64)
+    xt = target_states(r, d, b, torch.full((1, k), 4.0, dtype=torch.float64))
+    x = particles_near(xt, 6, g, pos=8.0, vel=2.0)  # (1, 6, K, 5)
+    exists = torch.rand(x.shape[:-1], generator=g) < 0.8
+    u, s, e, zc, *firsts, _ = sens._window_parts(x, sens.simulate(xt, generator=g), exists)
+    live = e > 0
+    want = _owned_reference(sens, firsts, live)
+    assert want.any() and (~want).any()
+    assert torch.equal(sens._owned_cells(firsts, live), want)
+    compiled = torch.compile(lambda f, lv: sens._owned_cells(f, lv), fullgraph=True)
+    assert torch.equal(compiled(firsts, live), want)
+    ints, floats = torch.arange(-5, 5, dtype=torch.int32) * 2**20, torch.linspace(-1, 1, 7, dtype=torch.float64)
+    got = torch.compile(lambda a, f: (materialise(a), materialise(f)), fullgraph=True)(ints, floats)
+    assert got[0].dtype == torch.int32 and torch.equal(got[0], ints) and torch.equal(got[1], floats)
+
+
 def _replace_slot(x, x_n, slot):
     here = (torch.arange(x.shape[-2]) == slot[..., None])[..., None]
     return torch.where(here, x_n[..., None, :], x)
