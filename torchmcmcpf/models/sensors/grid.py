@@ -758,7 +758,8 @@ class SeparableGridSensor(SensorModel[Tensor]):
         integer operations per cell. The last two axes' merged mask is materialised
         (:func:`materialise`), so that the compiled per-cell loop loads it contiguously and
         stays vectorised (inlined, its per-cell division and modulo by ``W`` kept the loop
-        scalar: 94 -> 76 ms for the radar SIR step at N = 5000, K = 10, benchmarks/README.md).
+        scalar: 99 -> 81 ms for the compiled radar SIR step at N = 5000, K = 10, A/B in one
+        process, benchmarks/README.md).
         """
         K = live.shape[-1]
         words = -(-K // self._MASK_BITS)
