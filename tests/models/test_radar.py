@@ -250,7 +250,7 @@ def _owned_reference(sens, firsts, live):
     return owned.reshape(owned.shape[:3] + sens.box_cells())
 
 
-@pytest.mark.parametrize("num_targets", [3, 30])
+@pytest.mark.parametrize("num_targets", [1, 3, 30])
 def test_owned_cells_count_each_cell_of_the_union_once(num_targets):
     """The ownership masks of the windowed path against brute force, with overlapping boxes,
     dead targets and more targets than one mask word holds (30 > 24); compiled too (the

@@ -762,6 +762,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
         process, benchmarks/README.md).
         """
         K = live.shape[-1]
+        V = self.box_cells()
+        if K == 1:  # no earlier box: a live box owns all its cells (skips the covers' O(N_a) work)
+            return live.reshape(live.shape + (1,) * len(V)).expand(live.shape + V)
         words = -(-K // self._MASK_BITS)
         i = torch.arange(K, device=live.device)
         # (I, words): target i's bit in its word, as a float
