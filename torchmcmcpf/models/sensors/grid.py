@@ -774,10 +774,11 @@ class SeparableGridSensor(SensorModel[Tensor]):
         earlier = ((i[None, :] < i[:, None]).float() @ bits).int()  # (J, words): boxes i < j
         masks = []
         for first, W, N in zip(firsts, self.window_sizes(), self.frame_shape):
-            start = first.long()[..., None, :].expand(add.shape)  # (b, p, words, I)
+            first = first.long()
+            start = first[..., None, :].expand(add.shape)  # (b, p, words, I)
             diff = torch.zeros(add.shape[:-1] + (N + 1,), dtype=add.dtype, device=add.device)
             cover = diff.scatter_add(-1, start, add).scatter_add(-1, start + W, -add).cumsum(-1)
-            cells = (first.long()[..., :, None] + torch.arange(W, device=live.device)).flatten(-2)  # (b, p, J W)
+            cells = (first[..., :, None] + torch.arange(W, device=live.device)).flatten(-2)  # (b, p, J W)
             m = torch.gather(cover, -1, cells[..., None, :].expand(add.shape[:-1] + cells.shape[-1:]))
             masks.append(m.int().mT.unflatten(-2, (K, W)))  # (b, p, J, W, words)
         masks[0] = masks[0] & earlier[:, None, :]
@@ -790,7 +791,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
             both = both.unsqueeze(-2) & m.reshape(m.shape[:3] + (1,) * a + m.shape[-2:])
         # one word (K <= 24): no reduction over words, which compiled code would not fuse
         free = (both == 0).all(-1) if words > 1 else both[..., 0] == 0
-        return free & live.reshape(live.shape + (1,) * len(masks))
+        return free & live.reshape(live.shape + (1,) * len(V))
 
     def log_likelihood_window(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Fast path: the exact log-likelihood of the sensor with *truncated* point spreads.
