@@ -171,6 +171,15 @@ class SensorModel(nn.Module, Generic[Z]):
         """
         raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
 
+    def amplitude_change(self, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None = None,
+                         exists_n: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Where and by how much a one-slot move changes :meth:`amplitude_cache`: ``(cells,
+        change)`` for :meth:`update_amplitude_cache` (arguments as
+        :meth:`log_likelihood_delta`). Only sensors whose :meth:`amplitude_cache` is not
+        ``None`` implement it.
+        """
+        raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
+
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
         """Apply the ``change`` of :meth:`log_likelihood_delta_cached` to ``cache`` in place
@@ -218,6 +227,56 @@ class SensorModel(nn.Module, Generic[Z]):
             return log_lik + self.log_likelihood_delta(x, x_n, n, z, exists=exists, exists_n=exists_n)
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
         return self.log_likelihood(x_new, z, e_new)
+
+    # -- the multitarget prior's hooks (models/multitarget.py) -----------------------------
+    def resolution_coords(self, x: Tensor) -> Tensor:
+        """The state in the sensor's measurement space in units of its resolution: ``(*S, K,
+        D) -> (*S, K, r)``; two targets less than one unit apart are unresolved. The
+        :class:`~torchmcmcpf.models.multitarget.Exclusion` factor is a function of these
+        distances. The default raises (:attr:`resolved` is then False and the filters run
+        without exclusion).
+        """
+        raise NotImplementedError(f"{type(self).__name__} declares no resolution_coords")
+
+    @property
+    def resolved(self) -> bool:
+        """Whether this sensor overrides :meth:`resolution_coords` (decided by method)."""
+        return type(self).resolution_coords is not SensorModel.resolution_coords
+
+    def sample_from_data(self, z: Z, shape: tuple[int, ...], *, generator: torch.Generator,
+                         dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+        """Measured coordinates drawn where the frame says targets may be (the data-driven
+        density ``g(u | z)`` of :class:`~torchmcmcpf.models.multitarget.Recapture`).
+
+        Parameters
+        ----------
+        z : one frame per run ``(B, *G)``; shape : ``(B, *S)``, the leading shape of the draws.
+        generator : the only source of randomness; dtype : of the outputs.
+
+        Returns
+        -------
+        coords : (B, *S, r) measured coordinates (those :meth:`place` sets);
+        log_ratio : (B, *S) ``log p_0(coords) - log g(coords | z)``, ``p_0`` uniform over the
+        sensor's field of view.
+
+        The default raises (:attr:`data_driven` is then False and the filters run without
+        re-capture).
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no data-driven proposal")
+
+    def place(self, x: Tensor, coords: Tensor) -> Tensor:
+        """``x (*S, D)`` with its measured coordinates set to ``coords (*S, r)`` and the
+        others kept (the relocation map of :mod:`torchmcmcpf.models.multitarget`). Pure,
+        differentiable.
+        """
+        raise NotImplementedError(f"{type(self).__name__} has no data-driven proposal")
+
+    @property
+    def data_driven(self) -> bool:
+        """Whether this sensor overrides :meth:`sample_from_data` and :meth:`place`."""
+        cls = type(self)
+        return (cls.sample_from_data is not SensorModel.sample_from_data
+                and cls.place is not SensorModel.place)
 
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
         """Check a state ``(B, *S, K, D)`` for values this sensor cannot score (eager, at the

@@ -47,10 +47,11 @@ from torch import nn
 
 from .._validation import check_positive
 from ..resampling import cdf, inverse_cdf
-from ..typing import VX, VY, Tensor, X, Y
-from .base import MotionModel
+from ..typing import VX, VY, Measurement, Tensor, X, Y
+from .base import MotionModel, SensorModel
+from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
 from .sensors.association import PointMeasurement, _split
-from .sensors.points import AreaLike, as_area
+from .sensors.points import AreaLike, as_area, log_near_points
 
 __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
 
@@ -226,23 +227,11 @@ class BirthDeath(nn.Module):
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
         """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
-        ``s`` the birth standard deviation.
+        ``s`` the birth standard deviation (:func:`~torchmcmcpf.models.sensors.points.log_near_points`).
         """
-        b, m = mask.shape
-        lead = (b,) + (1,) * (pos.dim() - 2)
-        zb = pts.reshape(lead[:-1] + (1, m, 2))  # (B, 1.., 1, M, 2)
-        d2 = (pos.unsqueeze(-2) - zb).square().sum(-1) / s**2  # (B, *S, K, M)
-        log_g = -0.5 * d2 - 2 * math.log(s) - math.log(2 * math.pi)
-        mk = mask.reshape(lead[:-1] + (1, m))
-        log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
-        n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
-        log_near = torch.logsumexp(log_g, -1) - torch.log(n_valid.clamp(min=1))
-        log_u = self._log_uniform(pos)
-        log_pi = math.log(self.p_uniform) if self.p_uniform > 0 else -math.inf
-        log_pn = math.log1p(-self.p_uniform) if self.p_uniform < 1 else -math.inf
-        log_q = torch.logaddexp(log_pi - self.log_volume + torch.zeros_like(log_near), log_pn + log_near)
-        log_q = torch.where(n_valid > 0, log_q, torch.full_like(log_q, -self.log_volume))
-        return log_u - log_q
+        W = torch.eye(2, dtype=torch.float64, device=pos.device) / s
+        log_q = log_near_points(pos, pts, mask, W=W, p_uniform=self.p_uniform, area=self.area)
+        return self._log_uniform(pos) - log_q
 
     # -- the joint transition of (x, e) ---------------------------------------------------
     def log_prob(self, x_next: Tensor, exists_next: Tensor, x: Tensor, exists: Tensor, *,
@@ -336,41 +325,72 @@ class BirthDeath(nn.Module):
 
 
 class TargetDynamics(NamedTuple):
-    """The joint model of ``(x, exists)``: the motion composed with a birth/death model, or
-    the motion alone (``existence=None``, a known number of targets, flags passed through).
-    Step functions draw and propagate through it, one code path whatever the number of
-    targets.
+    """The joint model of ``(x, exists)`` of every slot: the motion composed with a
+    birth/death model (or the motion alone: ``existence=None``, a known number of targets,
+    flags passed through) and, with ``recapture``, the relocation component of the slot
+    prior (:mod:`torchmcmcpf.models.multitarget`). Step functions draw and propagate through
+    it, one code path whatever the number of targets.
 
     Attributes
     ----------
     motion : MotionModel; existence : BirthDeath or None.
+    recapture : :class:`~torchmcmcpf.models.multitarget.Recapture` or None.
+    sensor : the SensorModel whose data-driven proposal and ``place`` the relocation uses
+        (needed with ``recapture``).
     """
 
     motion: MotionModel
     existence: BirthDeath | None = None
+    recapture: Recapture | None = None
+    sensor: SensorModel | None = None
 
-    def draw_noise(self, x: Tensor, z: PointMeasurement | None = None, *, generator: torch.Generator
-                   ) -> tuple[Tensor, BirthNoise | None]:
-        """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise and, with
-        births and deaths, :class:`BirthNoise` (births near the points of ``z`` when the
-        model draws them so).
+    def draw_noise(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator
+                   ) -> tuple[Tensor, BirthNoise | None, RelocationNoise | None]:
+        """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise, with births
+        and deaths :class:`BirthNoise` (births near the points of ``z`` when the model draws
+        them so) and, with ``recapture``, :class:`RelocationNoise` drawn from the frame ``z``.
         """
         if self.existence is None:
             eps = torch.randn(x.shape[:-1] + (self.motion.noise_dim,), generator=generator, device=x.device,
                               dtype=x.dtype)
-            return eps, None
-        return self.existence.draw_noise(x, self.motion, z, generator=generator)
+            birth = None
+        else:
+            eps, birth = self.existence.draw_noise(x, self.motion, z, generator=generator)
+        return eps, birth, draw_relocation(self.recapture, self.sensor, tuple(x.shape[:-1]), z,
+                                           generator=generator, dtype=x.dtype, device=x.device)
 
-    def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None
-                  ) -> tuple[Tensor, Tensor | None, Tensor]:
+    def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
+                  relocation: RelocationNoise | None = None) -> tuple[Tensor, Tensor | None, Tensor]:
         """``(x, exists) -> (x', exists', log_ratio (B, *S, K))`` from pre-drawn noise (pure):
-        :meth:`BirthDeath.propagate`, or the motion with the flags unchanged and
-        ``log_ratio = 0``.
+        :meth:`BirthDeath.propagate` (or the motion with the flags unchanged), then, with
+        ``recapture`` and ``relocation``, :func:`~torchmcmcpf.models.multitarget.relocate`
+        of the surviving slots. ``log_ratio`` is ``log r_n`` per slot: target over proposal
+        density of the slot's component (``p_0 / q_0`` for a newborn, the relocation ratios of
+        :mod:`~torchmcmcpf.models.multitarget`; 0 without births and re-capture).
+        """
+        x, exists, log_ratio, _ = self.propagate_labelled(x, exists, eps, birth, relocation)
+        return x, exists, log_ratio
+
+    def propagate_labelled(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
+                           relocation: RelocationNoise | None = None, p_propose: float | None = None
+                           ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
+        """:meth:`propagate`, with the relocation's proposal probability ``p_propose``
+        (default ``recapture.p_propose``) and each slot's component ``kind (B, *S, K)`` int8
+        (:func:`~torchmcmcpf.models.multitarget.relocate`; None without re-capture).
         """
         if self.existence is None:
-            return self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
-        if exists is None:
-            exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
-        if birth is None:
-            raise ValueError("birth is None; a model with births and deaths needs the BirthNoise of draw_noise")
-        return self.existence.propagate(x, exists, eps, birth, motion=self.motion)
+            x_next, exists_next, log_ratio = self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
+            survive = None if exists is None else exists
+        else:
+            if exists is None:
+                exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
+            if birth is None:
+                raise ValueError("birth is None; a model with births and deaths needs the BirthNoise of draw_noise")
+            x_next, exists_next, log_ratio = self.existence.propagate(x, exists, eps, birth, motion=self.motion)
+            survive = exists & exists_next
+        if self.recapture is None or relocation is None:
+            return x_next, exists_next, log_ratio, None
+        if self.sensor is None:
+            raise ValueError("recapture needs the sensor (TargetDynamics(..., sensor=...))")
+        x_next, log_r, kind = relocate(x_next, survive, relocation, self.recapture, self.sensor, p_propose)
+        return x_next, exists_next, log_ratio + log_r, kind

@@ -222,6 +222,12 @@ class AssociationSensor(SensorModel[PointMeasurement]):
         """Measurement to an xy position: ``(..., d) -> (..., 2)``."""
         raise NotImplementedError
 
+    def resolution_coords(self, x: Tensor) -> Tensor:
+        """The noiseless measurement over its noise standard deviations: ``(*S, K, D) ->
+        (*S, K, d)``.
+        """
+        return self.measure(x) / self.noise_std.to(x.dtype)
+
     # -- likelihoods ---------------------------------------------------------------------
     def pair_log_likelihood(self, x: Tensor, z: Tensor) -> Tensor:
         """``L[k, m] = log g(z_m | x_k)`` with all constants.

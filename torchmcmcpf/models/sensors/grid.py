@@ -47,6 +47,7 @@ from torch.utils.checkpoint import checkpoint
 from typing_extensions import Self  # typing.Self needs Python 3.11; requires-python is 3.10
 
 from ..._validation import check_nonnegative, check_positive, check_positive_int, check_shape
+from ...resampling import cdf, inverse_cdf
 from ...typing import Tensor
 from ..base import SensorModel, _check_reference
 
@@ -1061,16 +1062,50 @@ class SeparableGridSensor(SensorModel[Tensor]):
 
         Returns
         -------
-        delta : (B, *S); cells : (B, *S, 2, *box_cells()) int64, the flat indices into
-        ``cache`` of the two boxes; change : the same shape, ``A' - A`` there (0 at the cells
-        of the new box that the old box holds, so that each cell changes once).
+        delta : (B, *S); cells, change : as :meth:`amplitude_change`.
         """
-        B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+        B = x.shape[0]
         self._check_inputs(x, z, exists)
-        self._check_move(x, x_n, exists_n)
         S = tuple(x.shape[1:-2])
         if tuple(cache.shape) != (B,) + S + (self.num_cells,):
             raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (self.num_cells,)}")
+        cells, change, firsts = self._amplitude_change(x, x_n, n, exists, exists_n)
+        A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2, *V)
+        zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)
+        # round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0
+        diff = self.cell_log_ratio((A + change).clamp_min(0.0), zw) - self.cell_log_ratio(A.clamp_min(0.0), zw)
+        delta = diff.flatten(2).sum(-1)  # each cell counted once: ``change`` is 0 on the repeats
+        return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
+            change.reshape((B,) + S + change.shape[2:])
+
+    def amplitude_change(self, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None = None,
+                         exists_n: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Where and by how much slot ``n``'s move changes the samples' amplitudes
+        (:meth:`amplitude_cache`), for :meth:`update_amplitude_cache`.
+
+        Parameters
+        ----------
+        x, x_n, n, exists, exists_n : as :meth:`log_likelihood_delta_cached`.
+
+        Returns
+        -------
+        cells : (B, *S, 2, *box_cells()) int64, flat indices into a ``(B, *S, G)`` cache of
+        the cells of the old and the new box; change : the same shape, ``A' - A`` there (0 at
+        the cells of the new box that the old box holds, so that each cell changes once).
+        """
+        self._check_state(x, exists)
+        cells, change, _ = self._amplitude_change(x, x_n, n, exists, exists_n)
+        lead = tuple(x.shape[:-2])
+        return cells.reshape(lead + cells.shape[2:]), change.reshape(lead + change.shape[2:])
+
+    def _amplitude_change(self, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
+                          exists_n: Tensor | None) -> tuple[Tensor, Tensor, list[Tensor]]:
+        """:meth:`amplitude_change` flat over the samples ``(B, P, 2, *V)``, and the boxes'
+        first cells ``firsts[a] (B, P, 2)``.
+        """
+        B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+        self._check_move(x, x_n, exists_n)
+        S = tuple(x.shape[1:-2])
         P = math.prod(S)
         slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S).reshape(B, P, 1)
         xf = x.reshape(B, P, K, D)
@@ -1085,17 +1120,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
         profiles, indicators = self._neighbour_profiles(firsts, u, firsts, index)  # (B, P, 2 box, 2 spread, W)
         change = self._outer_sum(torch.stack([-s[..., 0], s[..., 1]], -1)[:, :, None], profiles)  # (B, P, 2, *V)
         V = self.box_cells()
-        cells = self._flat_cells(firsts)  # (B, P, 2, *V) within one frame
-        A = cache.reshape(B * P, -1).gather(1, cells.reshape(B * P, -1)).reshape(change.shape)
-        zw = self._gather_cells(self.prepare_frame(z.to(x.dtype)), firsts)
-        # round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0
-        diff = self.cell_log_ratio((A + change).clamp_min(0.0), zw) - self.cell_log_ratio(A.clamp_min(0.0), zw)
         both = self._new_box_in_old(indicators, 0, s[..., :1])  # (B, P, *V)
         once = torch.stack([torch.ones_like(both), 1.0 - both], 2)  # (B, P, 2, *V)
-        delta = (diff * once).flatten(2).sum(-1)
         rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(V))) * self.num_cells
-        return delta.reshape((B,) + S), (cells + rows).reshape((B,) + S + cells.shape[2:]), \
-            (change * once).reshape((B,) + S + change.shape[2:])
+        return self._flat_cells(firsts) + rows, change * once, firsts
 
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
@@ -1130,6 +1158,148 @@ class SeparableGridSensor(SensorModel[Tensor]):
         dims = tuple(range(3, 3 + len(self.box_cells())))
         return (self.cell_log_ratio(rest + own, zw) - self.cell_log_ratio(rest, zw)).sum(dims)
 
+
+    # ---------------------------------------------------------------- multitarget prior hooks
+    #: Threshold of the data-driven proposal on :meth:`detection_statistic`: a noise-only
+    #: cell exceeds it with probability ``exp(-10) = 4.5e-5`` (about 3 cells of the ground
+    #: radar's 61,248 per frame), the peak cell of a 10 dB target about half the time.
+    detection_threshold: float = 10.0
+    #: At most this many peaks per frame (the strongest) enter the data-driven density.
+    max_peaks: int = 64
+    #: Standard deviation of a proposal around a peak's centroid, in cells of each axis.
+    peak_spread: float = 0.3
+    #: Weight of the uniform part of the data-driven density (so that ``g > 0`` on the whole grid).
+    uniform_weight: float = 0.05
+
+    def resolution_coords(self, x: Tensor) -> Tensor:
+        """:meth:`measurement_coords` over the point-spread widths: ``(*S, K, D) -> (*S, K, n)``
+        (one unit is one standard deviation of the spread, the cell size by default).
+        """
+        widths = torch.tensor(self.widths, dtype=x.dtype, device=x.device)
+        return self.measurement_coords(x) / widths
+
+    def detection_statistic(self, z: Tensor) -> Tensor:
+        """Per-cell statistic of the frame scaled so that a noise-only cell is ``Exp(1)``
+        (the radar's power over ``2 sigma^2``, Swerling's over ``sigma^2``): ``(B, *G) ->
+        (B, *G)``. Subclasses with a data-driven proposal implement it.
+        """
+        raise NotImplementedError(f"{type(self).__name__} declares no detection statistic")
+
+    @property
+    def data_driven(self) -> bool:
+        """Whether the subclass gives :meth:`detection_statistic` and :meth:`place`."""
+        cls = type(self)
+        return (cls.detection_statistic is not SeparableGridSensor.detection_statistic
+                and cls.place is not SensorModel.place)
+
+    def _pool(self, t: Tensor, kind: str) -> Tensor:
+        """``3^n`` max or average pooling of ``t (B, *G)`` with stride 1 (same shape)."""
+        fn = getattr(torch.nn.functional, f"{kind}_pool{self.n_axes}d")
+        return fn(t.unsqueeze(1), 3, stride=1, padding=1).squeeze(1)
+
+    def peaks(self, z: Tensor) -> Tensor:
+        """Cells that are local maxima of :meth:`detection_statistic` over their ``3^n``
+        neighbourhood and exceed :attr:`detection_threshold`: ``(B, *G)`` bool. A target
+        gives about one peak, whatever its SNR (a strong target lights many cells above the
+        threshold, but one local maximum).
+        """
+        stat = self.detection_statistic(z)
+        return (stat >= self._pool(stat, "max")) & (stat > self.detection_threshold)
+
+    def detections(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """The frame's :meth:`peaks` as points: the centroid of the statistic over each peak's
+        ``3^n`` neighbourhood, in the units of :meth:`measurement_coords`.
+
+        Parameters
+        ----------
+        z : (B, *G).
+
+        Returns
+        -------
+        centres : (B, P, n), the strongest ``P = min(max_peaks, G)`` peaks (padded);
+        mask : (B, P) bool, True for a real peak.
+        """
+        stat = self.detection_statistic(z)
+        peak = (stat >= self._pool(stat, "max")) & (stat > self.detection_threshold)
+        B, G = stat.shape[0], self.num_cells
+        weight = (stat - 1.0).clamp(min=0.0)  # above the noise mean (1)
+        norm = self._pool(weight, "avg").reshape(B, G)
+        P = min(self.max_peaks, G)
+        top, at = torch.topk(torch.where(peak, stat, float("-inf")).reshape(B, G), P, dim=-1)
+        mask = torch.isfinite(top)
+        centres = []
+        for a in range(self.n_axes):
+            shape = [1] * (self.n_axes + 1)
+            shape[1 + a] = self.frame_shape[a]
+            coord = (self.origins[a] + self.cell_sizes[a] * torch.arange(
+                self.frame_shape[a], device=z.device, dtype=stat.dtype)).reshape(shape)
+            moment = self._pool(weight * coord, "avg").reshape(B, G)
+            centres.append(torch.take_along_dim(moment / norm.clamp(min=1e-30), at, -1))
+        return torch.stack(centres, -1), mask
+
+    def _extent(self) -> tuple[list[float], list[float], float]:
+        """Lower and upper edges of the grid per axis and ``log`` of its volume (the field of view)."""
+        lo = [o - 0.5 * c for o, c in zip(self.origins, self.cell_sizes)]
+        hi = [o + (N - 0.5) * c for o, c, N in zip(self.origins, self.cell_sizes, self.frame_shape)]
+        return lo, hi, sum(math.log(h - lw) for lw, h in zip(lo, hi))
+
+    def log_data_density(self, coords: Tensor, centres: Tensor, mask: Tensor) -> Tensor:
+        """``log g(u | z)`` of :meth:`sample_from_data` at ``coords (B, *S, n)``, given the
+        frame's :meth:`detections` ``centres (B, P, n)``, ``mask (B, P)``: ``(B, *S)``.
+        """
+        B, n = coords.shape[0], self.n_axes
+        lo, hi, log_volume = self._extent()
+        scale = torch.tensor([self.peak_spread * c for c in self.cell_sizes], dtype=coords.dtype,
+                             device=coords.device)
+        flat = coords.reshape(B, -1, 1, n)  # (B, Q, 1, n)
+        white = (flat - centres.to(coords.dtype).unsqueeze(1)) / scale  # (B, Q, P, n)
+        log_n = -0.5 * white.square().sum(-1) - torch.log(scale).sum() - 0.5 * n * math.log(2 * math.pi)
+        log_n = torch.where(mask.unsqueeze(1), log_n, float("-inf"))
+        count = mask.sum(-1, keepdim=True).to(coords.dtype)  # (B, 1)
+        log_near = torch.logsumexp(log_n, -1) - torch.log(count.clamp(min=1.0))  # (B, Q)
+        p_u = self.uniform_weight
+        log_q = torch.logaddexp(torch.full_like(log_near, math.log(p_u) - log_volume), math.log1p(-p_u) + log_near)
+        log_q = torch.where(count > 0, log_q, torch.full_like(log_q, -log_volume))
+        return log_q.reshape(coords.shape[:-1])
+
+    def sample_from_data(self, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
+                         dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+        """Measured coordinates from ``g(u | z) = (1 - p_u) (1/P) sum_p N(u; c_p, S) + p_u
+        U(grid)``: a peak ``p`` of the frame drawn uniformly (:meth:`detections`: centroids
+        ``c_p``; ``S`` diagonal, :attr:`peak_spread` cells per axis), or with probability
+        ``p_u`` = :attr:`uniform_weight` (or for a frame without peaks) a point uniform over
+        the grid. ``p_0`` is uniform over the grid's extent, so ``log_ratio = -log V -
+        log g`` inside it (:meth:`log_data_density`) and ``-inf`` outside.
+
+        Parameters
+        ----------
+        z : (B, *G) one frame per run; shape : ``(B, *S)``.
+        generator : source of randomness; dtype : of the outputs.
+
+        Returns
+        -------
+        coords : (B, *S, n) in the units of :meth:`measurement_coords`;
+        log_ratio : (B, *S).
+        """
+        B = z.shape[0]
+        if not shape or shape[0] != B:
+            raise ValueError(f"shape {tuple(shape)} must start with the batch size of z, {B}")
+        n, Q = self.n_axes, math.prod(shape[1:])
+        centres, mask = self.detections(z)
+        lo, hi, log_volume = self._extent()
+        u = torch.rand((B, Q, 2), generator=generator, device=z.device, dtype=torch.float64)
+        pick = inverse_cdf(cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, float("-inf"))), u[..., 0])
+        eps = torch.randn((B, Q, n), generator=generator, device=z.device, dtype=dtype)
+        box = torch.rand((B, Q, n), generator=generator, device=z.device, dtype=dtype)
+        low = torch.tensor(lo, dtype=dtype, device=z.device)
+        span = torch.tensor(hi, dtype=dtype, device=z.device) - low
+        scale = torch.tensor([self.peak_spread * c for c in self.cell_sizes], dtype=dtype, device=z.device)
+        near = torch.take_along_dim(centres.to(dtype), pick.unsqueeze(-1), 1) + scale * eps
+        use = (u[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
+        coords = torch.where(use.unsqueeze(-1), near, low + span * box)  # (B, Q, n)
+        inside = ((coords >= low) & (coords <= low + span)).all(-1)
+        log_ratio = torch.where(inside, -log_volume - self.log_data_density(coords, centres, mask), float("-inf"))
+        return coords.reshape(tuple(shape) + (n,)), log_ratio.reshape(tuple(shape))
 
     # ---------------------------------------------------------------- checks
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:

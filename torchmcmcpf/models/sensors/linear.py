@@ -20,6 +20,10 @@ __all__ = ["LinearGaussian"]
 class LinearGaussian(SensorModel[Tensor]):
     """``z_{k,j} = H x_{k,j} + w_j``, ``w_j ~ N(0, R)``, one measurement per target.
 
+    The measurements are labelled (``z_j`` belongs to slot ``j``), so targets never merge:
+    the sensor declares no ``resolution_coords`` and the filters apply no exclusion term to it
+    (:mod:`torchmcmcpf.models.multitarget`); its posterior is the factorised Kalman one.
+
     ``log_likelihood`` returns the full Gaussian log density (constants included), so a
     filter's evidence is the true ``log p(z_{1:T})``, comparable across ``R``.
 

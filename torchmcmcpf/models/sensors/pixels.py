@@ -90,6 +90,13 @@ class ThresholdedPixels(SensorModel[Tensor]):
         """``((0, W s), (0, H s))`` [m]."""
         return ((0.0, self.shape[1] * self.pixel_size), (0.0, self.shape[0] * self.pixel_size))
 
+    def resolution_coords(self, x: Tensor) -> Tensor:
+        """Position in pixels: ``(*S, K, D) -> (*S, K, 2)`` (two targets in one pixel are
+        unresolved).
+        """
+        ix, iy = self.position_index
+        return torch.stack([x[..., ix], x[..., iy]], -1) / self.pixel_size
+
     def log_p_detect(self, n: Tensor, dtype: torch.dtype = torch.float64) -> Tensor:
         """``log P_d,n`` of eq. 41 for target counts ``n`` (any shape): ``log P_fa / (1 + n SNR)``."""
         return math.log(self.p_fa) / (1.0 + n.to(dtype) * self.snr)

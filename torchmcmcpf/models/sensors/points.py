@@ -32,11 +32,12 @@ from collections.abc import Sequence
 import torch
 
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
+from ...resampling import cdf, inverse_cdf
 from ...typing import Tensor, X, Y
 from ..base import SensorModel
 from .association import PointFrame, PointMeasurement, _split
 
-__all__ = ["PoissonClutterPoints", "PointFrame", "as_area"]
+__all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 
 AreaLike = Tensor | Sequence[Sequence[float]]
 
@@ -49,6 +50,49 @@ def as_area(area: AreaLike, name: str = "area") -> Tensor:
             f"{name} must be ((x_lo, x_hi), (y_lo, y_hi)) with finite lo < hi, got {area!r}"
         )
     return a
+
+
+def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor, p_uniform: float,
+                    area: Tensor) -> Tensor:
+    """``log g(pos)`` of the density "near one of the points, or anywhere".
+
+        ``g(pos) = p_u U(pos; area) + (1 - p_u) (1 / M) sum_m N(pos; z_m, R)``,  ``R^{-1} = W^T W``
+
+    over the ``M`` valid points of each run (``g = U`` for a run without points). The one
+    helper behind the birth proposal of :class:`~torchmcmcpf.models.existence.BirthDeath`
+    (paper 004 eqs. 64-65, point-measurement analogue) and the data-driven proposal of
+    :meth:`PoissonClutterPoints.sample_from_data`.
+
+    Parameters
+    ----------
+    pos : (B, *S, 2) positions; pts : (B, M, 2) points; mask : (B, M) bool or None (all valid).
+    W : (2, 2) whitening matrix (``I / s`` for an isotropic spread ``s``); p_uniform : ``p_u``;
+    area : (2, 2) ``((x_lo, x_hi), (y_lo, y_hi))``.
+
+    Returns
+    -------
+    (B, *S), dtype of ``pos`` (``-inf`` outside the area where no point is near).
+    """
+    b, m = pts.shape[:2]
+    lead = (b,) + (1,) * (pos.dim() - 2)
+    a = area.to(pos.dtype)
+    log_volume = float(torch.log(area[:, 1] - area[:, 0]).sum())
+    inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
+    log_u = torch.where(inside, -log_volume, -math.inf).to(pos.dtype)
+    if mask is None:
+        mask = torch.ones((b, m), dtype=torch.bool, device=pts.device)
+    Wt = W.to(pos.dtype)
+    white = (pos.unsqueeze(-2) - pts.to(pos.dtype).reshape(lead[:-1] + (1, m, 2))) @ Wt.mT  # (B, *S, M, 2)
+    log_norm = float(torch.log(torch.abs(torch.det(W.to(torch.float64))))) - math.log(2 * math.pi)
+    log_g = log_norm - 0.5 * white.square().sum(-1)
+    mk = mask.reshape(lead[:-1] + (1, m))
+    log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
+    n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
+    log_near = torch.logsumexp(log_g, -1) - torch.log(n_valid.clamp(min=1))
+    log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
+    log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
+    log_q = torch.logaddexp(log_pi + log_u, log_pn + log_near)
+    return torch.where(n_valid > 0, log_q, log_u)
 
 
 class PoissonClutterPoints(SensorModel[PointMeasurement]):
@@ -156,6 +200,60 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
         return per_point.sum(-1) - (self.clutter_rate + self.detection_rate * n_live)
+
+    # -- the multitarget prior's hooks --------------------------------------------------
+    #: weight of the uniform part of the data-driven density (:meth:`sample_from_data`)
+    uniform_weight: float = 0.05
+
+    def resolution_coords(self, x: Tensor) -> Tensor:
+        """The whitened position ``L^-1 H x`` (one unit is one noise standard deviation):
+        ``(*S, K, D) -> (*S, K, 2)``.
+        """
+        return torch.stack([x[..., X], x[..., Y]], -1) @ self.W.to(x.dtype).mT
+
+    def place(self, x: Tensor, coords: Tensor) -> Tensor:
+        """``x (*S, D)`` with its position set to ``coords (*S, 2)``, the velocity kept."""
+        return torch.cat([coords[..., :1], x[..., 1:2], coords[..., 1:2], x[..., 3:]], -1)
+
+    def sample_from_data(self, z: PointMeasurement, shape: tuple[int, ...], *, generator: torch.Generator,
+                         dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+        """Positions from ``g(pos | z) = p_u U(area) + (1 - p_u) (1/M) sum_m N(pos; z_m, R)``
+        (:func:`log_near_points`; ``p_u`` = :attr:`uniform_weight`): a valid point drawn
+        uniformly and a position scattered around it by the measurement noise, or a uniform
+        position. With ``p_0`` uniform over the area, ``log_ratio = log p_0 - log g``.
+
+        Parameters
+        ----------
+        z : ``PointFrame(z (B, M, 2), mask (B, M))``; shape : ``(B, *S)``.
+
+        Returns
+        -------
+        coords : (B, *S, 2); log_ratio : (B, *S).
+        """
+        pts, mask = _split(z)
+        b, m = pts.shape[:2]
+        if not shape or shape[0] != b:
+            raise ValueError(f"shape {tuple(shape)} must start with the batch size of z, {b}")
+        dev = pts.device
+        p = math.prod(shape[1:])
+        a = self.area.to(dtype)
+        pos = a[:, 0] + (a[:, 1] - a[:, 0]) * torch.rand((b, p, 2), generator=generator, device=dev, dtype=dtype)
+        u_pick = torch.rand((b, p, 2), generator=generator, device=dev, dtype=dtype)
+        eps = torch.randn((b, p, 2), generator=generator, device=dev, dtype=dtype)
+        if mask is None:
+            mask = torch.ones((b, m), dtype=torch.bool, device=dev)
+        if m > 0:
+            log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M)
+            idx = inverse_cdf(cdf(log_pick), u_pick[..., 0])  # (B, P)
+            centre = torch.take_along_dim(pts.to(dtype), idx.unsqueeze(-1), dim=1)
+            near = centre + eps @ torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype).mT
+            use = (u_pick[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
+            pos = torch.where(use.unsqueeze(-1), near, pos)
+        log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area)
+        a = self.area.to(dtype)
+        inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
+        log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
+        return pos.reshape(tuple(shape) + (2,)), log_ratio.reshape(tuple(shape))
 
     # -- simulation ---------------------------------------------------------------------
     def simulate(

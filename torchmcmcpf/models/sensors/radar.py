@@ -192,6 +192,24 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         """
         return log_i0(A * zc) - A * A / (2.0 * self.noise_std**2)
 
+    # ------------------------------------------------------------------ multitarget prior hooks
+    def detection_statistic(self, z: Tensor) -> Tensor:
+        """``z / (2 sigma^2)``: the power over the mean noise power, ``Exp(1)`` in a noise-only
+        cell (the data-driven proposal's peaks, :meth:`SeparableGridSensor.sample_from_data`).
+        """
+        return z / (2.0 * self.noise_std**2)
+
+    def place(self, x: Tensor, coords: Tensor) -> Tensor:
+        """``x (*S, 5)`` moved to the measured coordinates ``coords (*S, 3) = [r, d, b]``
+        (eq. 21 inverted): position ``r (cos b, sin b)``, radial velocity ``d`` along the new
+        line of sight, the tangential velocity and the amplitude kept from ``x``.
+        """
+        _, _, ux, uy = polar(x[..., X], x[..., Y])
+        tangential = ux * x[..., VY] - uy * x[..., VX]
+        r, d, b = coords.unbind(-1)
+        c, s = torch.cos(b), torch.sin(b)
+        return torch.stack((r * c, d * c - tangential * s, r * s, d * s + tangential * c, x[..., RHO]), -1)
+
     # ------------------------------------------------------------------ SNR
     def amplitude_from_snr(self, snr_db: float | Tensor) -> float | Tensor:
         """``rho = sigma * sqrt(2 * 10^(snr_db / 10))``, inverse of ``SNR = rho^2 / (2 sigma^2)``."""

@@ -24,7 +24,7 @@ import math
 import torch
 
 from ..._validation import check_finite, check_generator, check_nonnegative, check_shape
-from ...typing import RHO, Tensor, X, Y
+from ...typing import RHO, VX, VY, Tensor, X, Y
 from .grid import SeparableGridSensor, polar
 
 __all__ = ["AzimuthRangeSwerlingTBD", "POWER"]
@@ -138,6 +138,18 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         a = torch.where(valid, a, torch.zeros_like(a))  # keeps the gradient finite off the support
         out = zc * (a / (1.0 + a)) - torch.log1p(a)
         return torch.where(valid, out, torch.full_like(out, -math.inf))
+
+    # ------------------------------------------------------------------ multitarget prior hooks
+    def detection_statistic(self, z: Tensor) -> Tensor:
+        """``z / sigma^2``, ``Exp(1)`` in a noise-only cell (eq. 8)."""
+        return z / self.noise_power
+
+    def place(self, x: Tensor, coords: Tensor) -> Tensor:
+        """``x (*S, 5)`` moved to ``coords (*S, 2) = [a, r]``: position ``r (cos a, sin a)``,
+        velocity and power kept.
+        """
+        a, r = coords.unbind(-1)
+        return torch.stack((r * torch.cos(a), x[..., VX], r * torch.sin(a), x[..., VY], x[..., POWER]), -1)
 
     # ------------------------------------------------------------------ SNR
     def power_from_snr(self, snr_db: float | Tensor) -> float | Tensor:

@@ -1,0 +1,350 @@
+"""What the multitarget prior adds to the per-target motion: exclusion between slots and a
+slot prior with a heavy tail (re-capture).
+
+Why a factorised prior lets tracks coalesce
+-------------------------------------------
+With K fixed slots and a prior that factorises over slots (the IP-MCMC-PF's target, paper
+000 sec. IV-B, and the joint SIR / MCMC-PF prior ``prod_n p(x_n | x^a_n)``), nothing in the
+model says that two slots cannot be one target. Where two targets pass unresolved, both
+slots can follow the stronger one: radar returns add coherently, so two slots that split
+one target's amplitude explain the data as well as one slot does, and the weaker target is
+then explained by no slot. A proposal that draws a slot only from its own prediction can
+never bring it back once its prediction has moved away from the target (tens of metres,
+hundreds of nats of prior). Two additions repair this, each a term of the filtering target
+with its own invariance test:
+
+Exclusion (Khan, Balch and Dellaert 2005)
+-----------------------------------------
+A pairwise Markov-random-field factor on the current multitarget state,
+
+    ``Phi(x) = prod_{i < j, both alive} phi(d_ij)``,   ``phi(d) = 1 - exp(-d^2 / (2 s^2))``,
+
+with ``d_ij`` the distance between slots ``i`` and ``j`` in **resolution cells** of the
+sensor (:meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`: range, doppler and
+bearing over their point-spread widths for the radar, the whitened position for point
+sensors) and ``s`` the :class:`Exclusion` scale (1: one resolution cell). Two slots one
+resolution cell apart keep 39 % of their prior weight, two cells 86 %, three 99 %; two slots
+on top of each other have none. Following Khan et al. (their eq. 5, the MRF-augmented
+filtering target), the factor multiplies the predictive density at the current time,
+
+    ``pi_k(x) ∝ p(z_k | x) Phi(x) sum_a w^a p(x | x^a_{k-1})``,
+
+not the transition (whose normaliser would then depend on ``x_{k-1}``). Every filter with
+fixed slots targets this ``pi_k``: SIR and resample-move weigh by ``Phi``, the MCMC moves put
+the ratio ``Phi(x') / Phi(x)`` in their acceptance (a one-slot move pays only the ``K - 1``
+factors of the moved slot, :meth:`Exclusion.log_change`), the HMC moves add ``log Phi`` to
+their potential. ``log phi`` is floored at :data:`LOG_PHI_FLOOR` so that two coincident slots
+(a start state, say) give a finite, very low density rather than ``-inf - (-inf)``.
+
+Re-capture: a heavy-tailed slot prior and a data-driven proposal
+----------------------------------------------------------------
+The slot prior gets a small *relocation* component (:class:`Recapture`): with probability
+``delta = p_jump`` per slot and step the slot's target may be anywhere in the sensor's field
+of view,
+
+    ``f~(x_n | x^a_n) = (1 - delta) f(x_n | x^a_n) + delta p_0(x_n; x^a_n)``,
+
+where a relocated slot keeps the coordinates the sensor does not measure from its own
+prediction (the radar's tangential velocity and amplitude; the velocity of a point target)
+and its measured coordinates ``u`` (range, doppler, bearing; or the position) are uniform
+over the field of view: ``p_0`` is the push-forward of ``u ~ U(fov)`` and ``x_p ~ f(. |
+x^a_n)`` through :meth:`~torchmcmcpf.models.base.SensorModel.place`. Proposals draw that
+component with probability ``epsilon = p_propose`` and take ``u`` from the data-driven
+density ``g(u | z_k)`` of :meth:`~torchmcmcpf.models.base.SensorModel.sample_from_data`
+(peaks of the frame above a threshold for a grid sensor, the neighbourhood of a point for a
+point sensor, mixed with a little of the uniform so that ``g > 0`` on the whole field of
+view). Sampled with the component label ``c_n`` (motion or relocation) and the ancestor,
+the target of slot ``n`` over its proposal is
+
+    ``r_n = (1 - delta) / (1 - epsilon)``                       (motion),
+    ``r_n = delta p_0(u_n) / (epsilon g(u_n | z_k))``           (relocation),
+
+since everything else (the ancestor's weight, the prediction of the unmeasured coordinates,
+the Jacobian of ``place``) is shared by target and proposal and cancels. This is the same
+bookkeeping as births drawn near the data (:class:`~torchmcmcpf.models.existence.BirthDeath`,
+``r_n = p_0 / q_0``), and the filters cache it the same way: one ``log r_n`` per slot, and
+``log alpha`` gains ``sum (log r'_n - log r_n)`` over the slots a move changes. The heavy
+tail makes the ratio finite for a slot whose prediction is far from its target; ``delta``
+is small enough (1e-3 by default) that a tracked slot is relocated with negligible
+posterior probability (its motion prior density at the target exceeds ``delta p_0`` by many
+orders of magnitude), so the filters' accuracy on tracked targets is unchanged.
+
+With births and deaths the relocation component applies to surviving slots only (a newborn
+comes from the birth proposal, an inactive slot is ``x_death``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, NamedTuple
+
+import torch
+
+from .._validation import check_positive, check_positive_int
+from ..typing import Tensor
+
+if TYPE_CHECKING:  # the sensor protocol is imported by the callers
+    from .base import SensorModel
+
+__all__ = ["Exclusion", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR", "relocate", "log_exclusion",
+           "exclusion_change", "exclusion_against", "draw_relocation", "log_q_component", "FIXED", "MOTION",
+           "RELOCATED"]
+
+#: Lower bound of ``log phi(d)`` (``phi = e^-50``): two coincident slots get a finite, very low
+#: exclusion factor, so moves away from them have finite acceptance ratios (never NaN).
+LOG_PHI_FLOOR = -50.0
+
+
+def _probability(value: float, name: str, *, open_low: bool = False) -> float:
+    v = float(value)
+    if not (0.0 < v < 1.0 if open_low else 0.0 <= v < 1.0):
+        interval = "(0, 1)" if open_low else "[0, 1)"
+        raise ValueError(f"{name} must be a probability in {interval}, got {value!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """Pairwise exclusion factor between target slots (Khan, Balch and Dellaert 2005; module
+    docstring): ``phi(d) = 1 - exp(-d^2 / (2 scale^2))`` with ``d`` in resolution cells.
+
+    Attributes
+    ----------
+    scale : > 0, the distance (in resolution cells) at which ``phi = 1 - e^{-1/2} = 0.39``.
+    """
+
+    scale: float = 1.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "scale", check_positive(self.scale, "scale"))
+
+    def log_phi(self, d2: Tensor) -> Tensor:
+        """``log phi`` from squared distances ``d2`` (any shape), floored at
+        :data:`LOG_PHI_FLOOR`.
+        """
+        return torch.log(-torch.expm1(-d2 / (2.0 * self.scale**2))).clamp(min=LOG_PHI_FLOOR)
+
+    def log_factor(self, u: Tensor, alive: Tensor | None = None) -> Tensor:
+        """``log Phi`` of multitarget states given their resolution coordinates.
+
+        Parameters
+        ----------
+        u : (*S, K, r) ``sensor.resolution_coords(x)``.
+        alive : (*S, K) bool, optional: only pairs of live slots interact.
+
+        Returns
+        -------
+        (*S,), dtype of ``u``; differentiable in ``u``.
+        """
+        k = u.shape[-2]
+        d2 = (u.unsqueeze(-2) - u.unsqueeze(-3)).square().sum(-1)  # (*S, K, K)
+        pairs = torch.ones((k, k), dtype=torch.bool, device=u.device).triu(1)
+        if alive is not None:
+            pairs = pairs & alive.unsqueeze(-1) & alive.unsqueeze(-2)
+        # the diagonal (d = 0) is masked with a where on the value, so its gradient is 0
+        terms = self.log_phi(torch.where(pairs, d2, torch.ones_like(d2)))
+        return torch.where(pairs, terms, torch.zeros_like(terms)).sum((-2, -1))
+
+    def log_change(self, u: Tensor, u_n: Tensor, n: Tensor, alive: Tensor | None = None,
+                   alive_n: Tensor | None = None) -> Tensor:
+        """``log Phi(x with slot n moved) - log Phi(x)``: the ``K - 1`` factors of slot ``n``.
+
+        Parameters
+        ----------
+        u : (*S, K, r) resolution coordinates of the current states.
+        u_n : (*S, r) the new coordinates of slot ``n``.
+        n : (*S) int64, the slot that moves.
+        alive : (*S, K) bool, optional, the current flags; alive_n : (*S) bool, slot n's new
+            flag (defaults to its current one).
+
+        Returns
+        -------
+        (*S,).
+        """
+        k = u.shape[-2]
+        here = torch.arange(k, device=u.device) == n.unsqueeze(-1)  # (*S, K)
+        u_old = torch.take_along_dim(u, n.reshape(n.shape + (1, 1)), -2)  # (*S, 1, r)
+        d2_old = (u - u_old).square().sum(-1)  # (*S, K)
+        d2_new = (u - u_n.unsqueeze(-2)).square().sum(-1)
+        others = ~here
+        if alive is None:
+            old_on, new_on = others, others
+        else:
+            a_old = torch.take_along_dim(alive, n.unsqueeze(-1), -1)  # (*S, 1)
+            a_new = a_old if alive_n is None else alive_n.unsqueeze(-1)
+            old_on, new_on = others & alive & a_old, others & alive & a_new
+        one = torch.ones_like(d2_old)
+        old = torch.where(old_on, self.log_phi(torch.where(old_on, d2_old, one)), 0.0)
+        new = torch.where(new_on, self.log_phi(torch.where(new_on, d2_new, one)), 0.0)
+        return (new - old).sum(-1)
+
+
+def log_exclusion(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, exists: Tensor | None = None
+                  ) -> Tensor:
+    """``log Phi(x)`` of states ``x (*S, K, D)`` (flags ``exists (*S, K)``) with the sensor's
+    resolution: ``(*S,)``; zeros when ``exclusion`` is None or the sensor declares no
+    resolution (:attr:`~torchmcmcpf.models.base.SensorModel.resolved`).
+    """
+    if exclusion is None or not sensor.resolved:
+        return torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
+    return exclusion.log_factor(sensor.resolution_coords(x), exists)
+
+
+def exclusion_change(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, x_n: Tensor, n: Tensor,
+                     exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
+    """``log Phi(x with slot n set to x_n) - log Phi(x)``: ``x (*S, K, D)``, ``x_n (*S, D)``,
+    ``n (*S)`` int64, flags ``exists (*S, K)``, ``exists_n (*S)`` -> ``(*S,)`` (zeros when
+    off, as :func:`log_exclusion`).
+    """
+    if exclusion is None or not sensor.resolved:
+        return torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
+    u = sensor.resolution_coords(x)
+    u_n = sensor.resolution_coords(x_n.unsqueeze(-2)).squeeze(-2)
+    return exclusion.log_change(u, u_n, n, exists, exists_n)
+
+
+def exclusion_against(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, ref: Tensor) -> Tensor:
+    """Each slot of ``x (B, *S, K, D)`` against the *other* slots of one reference state per
+    run ``ref (B, K, D)``: ``sum_{l != k} log phi(d(x_k, ref_l))``, ``(B, *S, K)`` (the
+    independent-partition filter's weights, whose other targets sit at the reference).
+    Zeros when off (as :func:`log_exclusion`).
+    """
+    if exclusion is None or not sensor.resolved:
+        return torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
+    u = sensor.resolution_coords(x)  # (B, *S, K, r)
+    u_ref = sensor.resolution_coords(ref)  # (B, K, r)
+    u_ref = u_ref.reshape(u_ref.shape[:1] + (1,) * (x.dim() - 3) + u_ref.shape[1:])
+    d2 = (u.unsqueeze(-2) - u_ref.unsqueeze(-3)).square().sum(-1)  # (B, *S, K, K): slot k vs reference l
+    k = x.shape[-2]
+    others = ~torch.eye(k, dtype=torch.bool, device=x.device)
+    terms = exclusion.log_phi(torch.where(others, d2, torch.ones_like(d2)))
+    return torch.where(others, terms, torch.zeros_like(terms)).sum(-1)
+
+
+@dataclass(frozen=True)
+class Recapture:
+    """The heavy-tailed slot prior and its data-driven proposal (module docstring).
+
+    Attributes
+    ----------
+    p_jump : ``delta`` in (0, 1), the prior probability per slot and step that a slot's
+        target is anywhere in the field of view (the relocation component); pass
+        ``recapture=None`` to a filter for the paper's prior without it.
+    p_propose : ``epsilon`` in (0, 1), the probability that a proposal draws a slot from the
+        data instead of its prediction.
+    pair_every : every ``pair_every``-th IP-MCMC iteration is a joint move of two slots whose
+        predictions lie within ``pair_distance`` resolution cells of each other: both slots
+        re-drawn together from their proposals (Kreucher, Kastella and Hero's coupled
+        partitions), so two slots that block each other's one-slot moves can change places
+        or separate in one step; 0 disables. A fixed schedule (not a random pick) keeps the
+        sequence of kernels a constant of the step, so a captured CUDA graph is reused.
+    pair_distance : > 0, resolution cells.
+    p_propose_pair : ``epsilon`` of the two-slot move (both slots from the data with
+        probability ``epsilon^2``: after two tracks have swapped their amplitudes in a
+        crossing, only a joint move of both onto the two peaks repairs it). Each kernel
+        scores the chains with its own ``epsilon`` (:func:`log_q_component`), so the mixture
+        of one- and two-slot moves stays exact.
+    """
+
+    p_jump: float = 1e-3
+    p_propose: float = 0.1
+    pair_every: int = 10
+    pair_distance: float = 3.0
+    p_propose_pair: float = 0.5
+
+    def __post_init__(self):
+        object.__setattr__(self, "p_jump", _probability(self.p_jump, "p_jump", open_low=True))
+        object.__setattr__(self, "p_propose", _probability(self.p_propose, "p_propose", open_low=True))
+        object.__setattr__(self, "pair_every", check_positive_int(self.pair_every, "pair_every", minimum=0))
+        object.__setattr__(self, "pair_distance", check_positive(self.pair_distance, "pair_distance"))
+        object.__setattr__(self, "p_propose_pair", _probability(self.p_propose_pair, "p_propose_pair",
+                                                                open_low=True))
+
+
+class RelocationNoise(NamedTuple):
+    """Pre-drawn randomness of the relocation component for slots ``(*S, K)``.
+
+    Attributes
+    ----------
+    u : (*S, K) uniforms: a slot is proposed from the data where ``u < p_propose``.
+    coords : (*S, K, r) measured coordinates drawn from ``g(. | z)``
+        (:meth:`~torchmcmcpf.models.base.SensorModel.sample_from_data`).
+    log_ratio : (*S, K) ``log p_0(coords) - log g(coords | z)``.
+    """
+
+    u: Tensor
+    coords: Tensor
+    log_ratio: Tensor
+
+    @classmethod
+    def draw(cls, shape: tuple[int, ...], sensor: SensorModel, z: object, *, generator: torch.Generator,
+             dtype: torch.dtype, device: torch.device | str | None) -> RelocationNoise:
+        """Draw for slots of ``shape = (B, *S, K)`` from the frame ``z`` (one per run)."""
+        u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
+        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype)
+        return cls(u, coords, log_ratio)
+
+
+def draw_relocation(recapture: Recapture | None, sensor: SensorModel | None, shape: tuple[int, ...], z: object, *,
+                    generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None
+                    ) -> RelocationNoise | None:
+    """:class:`RelocationNoise` for slots of ``shape = (B, *S, K)`` from the frame ``z``, or
+    None without ``recapture``.
+    """
+    if recapture is None:
+        return None
+    if sensor is None or z is None:
+        raise ValueError("recapture needs the sensor and the frame z to draw from the data")
+    return RelocationNoise.draw(shape, sensor, z, generator=generator, dtype=dtype, device=device)
+
+
+#: The component a slot was proposed from (:func:`relocate`): its prior density over its
+#: proposal density does not depend on the proposal's ``epsilon`` (``FIXED``: inactive or
+#: newborn), or carries a factor ``1 - epsilon`` (``MOTION``) or ``epsilon`` (``RELOCATED``).
+FIXED, MOTION, RELOCATED = 0, 1, 2
+
+
+def log_q_component(kind: Tensor, p_propose: float) -> Tensor:
+    """``log`` of the proposal's component probability per slot: ``log(1 - epsilon)`` for a
+    :data:`MOTION` slot, ``log epsilon`` for a :data:`RELOCATED` one, 0 otherwise. A slot's
+    ``log r`` under a proposal of probability ``epsilon`` is its epsilon-free part minus this,
+    so that kernels with different ``epsilon`` (the one- and two-slot moves) score the same
+    chain state exactly. ``kind (*S, K)`` int8 -> ``(*S, K)`` float64.
+    """
+    motion = torch.tensor(math.log1p(-p_propose), dtype=torch.float64, device=kind.device)
+    jump = torch.tensor(math.log(p_propose), dtype=torch.float64, device=kind.device)
+    return torch.where(kind == MOTION, motion, torch.where(kind == RELOCATED, jump, torch.zeros_like(motion)))
+
+
+def relocate(x: Tensor, survive: Tensor | None, noise: RelocationNoise, recapture: Recapture,
+             sensor: SensorModel, p_propose: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """Apply the relocation component to propagated slots (pure, ``torch.compile`` friendly).
+
+    Parameters
+    ----------
+    x : (*S, K, D) the slots predicted by the motion model (or born, or inactive).
+    survive : (*S, K) bool, the slots alive before and after the step (``None``: all of them,
+        a known number of targets); only they may be relocated.
+    noise : :class:`RelocationNoise` with leading ``(*S, K)``.
+    recapture : :class:`Recapture`; sensor : the sensor whose
+        :meth:`~torchmcmcpf.models.base.SensorModel.place` sets the measured coordinates.
+    p_propose : ``epsilon`` of this proposal (default ``recapture.p_propose``).
+
+    Returns
+    -------
+    x : (*S, K, D) with the relocated slots placed at ``noise.coords``;
+    log_ratio : (*S, K) ``log r_n`` of the module docstring (with this ``epsilon``) for every
+    surviving slot, 0 for the others; kind : (*S, K) int8, :data:`MOTION`,
+    :data:`RELOCATED` or :data:`FIXED` (not surviving).
+    """
+    eps = recapture.p_propose if p_propose is None else p_propose
+    jump = noise.u < eps
+    alive = torch.ones_like(jump) if survive is None else survive
+    jump = jump & alive
+    x = torch.where(jump.unsqueeze(-1), sensor.place(x, noise.coords), x)
+    kind = torch.where(jump, RELOCATED, torch.where(alive, MOTION, FIXED)).to(torch.int8)
+    log_free = torch.where(jump, math.log(recapture.p_jump) + noise.log_ratio,
+                           torch.full_like(noise.log_ratio, math.log1p(-recapture.p_jump)))
+    log_r = log_free - log_q_component(kind, eps).to(log_free.dtype)
+    return x, torch.where(alive, log_r, torch.zeros_like(log_r)), kind
