@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 from _kalman import kalman_filter
+from torch.utils._pytree import tree_map
 
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
 from torchmcmcpf.kernels.exchange import draw_exchange_noise, exchange_iteration
@@ -15,6 +16,11 @@ from torchmcmcpf.models.sensors.linear import LinearGaussian
 
 DT = torch.float64
 
+
+
+def _at(noise, t):
+    """Iteration ``t`` of pre-drawn exchange noise (leading ``L`` dropped)."""
+    return tree_map(lambda a: None if a is None else a[t], noise)
 
 def _scalar_models(q, r):
     motion = LinearGaussianMotion(torch.eye(1, dtype=DT), q * torch.eye(1, dtype=DT))
@@ -86,8 +92,8 @@ def test_exchange_move_targets_factorised_posterior(gen, start):
     noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), iters, c, k, 1, generator=gen, dtype=DT)
     acc = 0.0
     for t in range(iters):
-        (y, ll, _, _), a, _ = exchange_iteration((y, ll, None, None), x_prev, None, z, noise.source[t],
-                                                 noise.slot[t], noise.eps[t], noise.u[t], motion=motion, sensor=sensor)
+        (y, ll, _, _, _), a, _ = exchange_iteration((y, ll, None, None, None), x_prev, None, z, _at(noise, t),
+                                                 motion=motion, sensor=sensor)
         acc += a.double().mean().item() / iters
     assert 0.2 < acc < 0.95  # the chains really move (an always-reject kernel is invariant too)
     torch.testing.assert_close(ll, sensor.log_likelihood(y, z))  # cached log-likelihoods stay exact
@@ -210,7 +216,7 @@ def test_rhat_window_is_second_half_of_iterations():
     state, info = filt.step(filt.init(x_prev), z, generator=torch.Generator().manual_seed(1))
     # replay the chains by hand with the same random stream
     from torchmcmcpf.diagnostics import rhat
-    from torchmcmcpf.filters.ipmcmc import _bind, _run_chains
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _bind, _run_chains
     from torchmcmcpf.resampling import gather_particles, systematic
     g = torch.Generator().manual_seed(1)
     log_w = torch.full((b, n), -math.log(n), dtype=DT)
@@ -218,9 +224,9 @@ def test_rhat_window_is_second_half_of_iterations():
     x0 = gather_particles(x_prev, start)
     y = motion.propagate(x0, torch.randn(x0.shape[:-1] + (1,), generator=g, dtype=DT))
     noise = draw_exchange_noise(log_w, 5 + 3 * 4, c, 2, 1, generator=g, dtype=DT)
-    it = _bind(motion, sensor, None)
-    _, trace, _, _ = _run_chains((y, sensor.log_likelihood(y, z), None, None), noise,
-                              lambda ch, nz: it(ch, x_prev, None, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)[:2])
+    it = _bind(motion, sensor, None, None, None)
+    _, trace, _, _ = _run_chains((y, sensor.log_likelihood(y, z), None, None, None), SegmentNoise(noise),
+                              lambda ch, nz: it(ch, x_prev, None, z, nz)[:2])
     ys = torch.stack([t[0] for t in trace])  # (17, B, C, K, 1)
     expected = rhat(ys[17 // 2:], chain_dim=2, sample_dim=0).flatten(1)  # (B, K * D), D = 1
     torch.testing.assert_close(info.extras["rhat"], expected.amax(-1))
@@ -294,9 +300,8 @@ def test_exchange_delta_path_equals_full_reevaluation():
         y, log_lik, accepted = y0, sensor.log_likelihood(y0, z), []
         cache = sensor.amplitude_cache(y0) if name == "cached" else None
         for t in range(noise.u.shape[0]):
-            (y, log_lik, _, _), acc, update = exchange_iteration(
-                (y, log_lik, None, None), x_prev, None, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t],
-                cache=cache, motion=motion, sensor=sens)
+            (y, log_lik, _, _, _), acc, update = exchange_iteration(
+                (y, log_lik, None, None, None), x_prev, None, z, _at(noise, t), cache=cache, motion=motion, sensor=sens)
             if cache is not None:
                 sensor.update_amplitude_cache(cache, *update, acc)
             accepted.append(acc)
@@ -329,10 +334,10 @@ def test_exchange_iteration_compiles_with_radar_delta():
     log_lik = sensor.log_likelihood(y, z)
     cache = sensor.amplitude_cache(y)
     for t in range(noise.u.shape[0]):
-        args = ((y, log_lik, None, None), x_prev, None, z, noise.source[t], noise.slot[t], noise.eps[t], noise.u[t])
-        (y_e, ll_e, _, _), acc_e, _ = iterate(*args)
-        (y_c, ll_c, _, _), acc_c, _ = compiled(*args)
-        (y_k, ll_k, _, _), acc_k, update = compiled(*args, None, cache)  # the amplitude cache's path
+        args = ((y, log_lik, None, None, None), x_prev, None, z, _at(noise, t))
+        (y_e, ll_e, _, _, _), acc_e, _ = iterate(*args)
+        (y_c, ll_c, _, _, _), acc_c, _ = compiled(*args)
+        (y_k, ll_k, _, _, _), acc_k, update = compiled(*args, cache)  # the amplitude cache's path
         assert torch.equal(acc_e, acc_c) and torch.equal(y_e, y_c)
         assert torch.equal(acc_e, acc_k) and torch.equal(y_e, y_k)
         torch.testing.assert_close(ll_c, ll_e, rtol=1e-4, atol=1e-3)
@@ -401,21 +406,21 @@ def test_segment_is_run_chains_with_a_stacked_trace():
     """The loop that ``CompiledKernel.capture`` runs as one CUDA graph (``_segment``) gives
     the chains, trace and acceptance counts of ``_run_chains``; ``_unstack`` restores the
     list of chain tuples."""
-    from torchmcmcpf.filters.ipmcmc import _bind, _run_chains, _segment, _unstack
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _bind, _run_chains, _segment, _unstack
     motion, sensor = _scalar_models(1.0, 1.0)
     b, n, c, k, steps = 2, 8, 3, 2, 7
     g = torch.Generator().manual_seed(4)
     x_prev = torch.randn(b, n, k, 1, generator=g, dtype=DT)
     z = torch.randn(b, k, 1, generator=g, dtype=DT)
     y = x_prev[:, :c] + 0.1
-    chain = (y, sensor.log_likelihood(y, z), None, None)
-    noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), steps, c, k, 1, generator=g, dtype=DT)
-    it = _bind(motion, sensor, None)
+    chain = (y, sensor.log_likelihood(y, z), None, None, None)
+    noise = SegmentNoise(draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), steps, c, k, 1,
+                                             generator=g, dtype=DT))
+    it = _bind(motion, sensor, None, None, None)
     final, stacked, acc = _segment(it, chain, noise, x_prev, None, z, 3)
-    ref_final, ref_trace, ref_acc, _ = _run_chains(
-        chain, noise, lambda ch, nz: it(ch, x_prev, None, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth)[:2],
-        record_from=3)
-    assert stacked[0].shape == (steps - 3, b, c, k, 1) and stacked[2] is None and stacked[3] is None
+    ref_final, ref_trace, ref_acc, _ = _run_chains(chain, noise, lambda ch, nz: it(ch, x_prev, None, z, nz)[:2],
+                                                   record_from=3)
+    assert stacked[0].shape == (steps - 3, b, c, k, 1) and all(t is None for t in stacked[2:])
     torch.testing.assert_close(final[0], ref_final[0], rtol=0, atol=0)
     torch.testing.assert_close(acc, ref_acc, rtol=0, atol=0)
     trace = _unstack(stacked)
@@ -423,4 +428,4 @@ def test_segment_is_run_chains_with_a_stacked_trace():
     for got, want in zip(trace, ref_trace):
         torch.testing.assert_close(got[0], want[0], rtol=0, atol=0)
         torch.testing.assert_close(got[1], want[1], rtol=0, atol=0)
-        assert got[2] is None and got[3] is None
+        assert all(t is None for t in got[2:])

@@ -22,6 +22,7 @@ stored on the module, so filters are reentrant. Resume = the state plus
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -35,7 +36,7 @@ from ..models.existence import BirthDeath
 from ..state import FilterResult, ParticleState, StepInfo, existence_estimate, stack_infos
 from ..typing import Measurement, Tensor
 
-__all__ = ["Filter", "CompiledKernel", "check_existence", "compile_kernel"]
+__all__ = ["Filter", "CompiledKernel", "active_prior", "check_existence", "compile_kernel"]
 
 
 def _on_cuda(args: tuple) -> bool:
@@ -136,6 +137,20 @@ def compile_kernel(fn: Callable) -> CompiledKernel:
     return CompiledKernel(fn)
 
 
+def active_prior(settings: Any, sensor: SensorModel) -> Any:
+    """``settings`` with the multitarget prior's terms the sensor cannot support turned off:
+    ``exclusion=None`` for a sensor without ``resolution_coords``, ``recapture=None`` for one
+    without a data-driven proposal (:mod:`torchmcmcpf.models.multitarget`), so that
+    ``filt.settings`` says what the filter does.
+    """
+    changes: dict[str, None] = {}
+    if getattr(settings, "exclusion", None) is not None and not sensor.resolved:
+        changes["exclusion"] = None
+    if getattr(settings, "recapture", None) is not None and not sensor.data_driven:
+        changes["recapture"] = None
+    return dataclasses.replace(settings, **changes) if changes else settings
+
+
 def check_existence(existence: object) -> BirthDeath | None:
     """``existence`` must be a :class:`~torchmcmcpf.models.existence.BirthDeath` or ``None``."""
     if existence is not None and not isinstance(existence, BirthDeath):
@@ -212,7 +227,7 @@ class Filter(nn.Module):
         self.sensor = sensor
         self.num_particles = check_positive_int(num_particles, "num_particles")
         self.existence = check_existence(existence)
-        self.settings = settings
+        self.settings = active_prior(settings, sensor)
         self.compile_step = compile_step
         self._compiled: Callable | None = None
 

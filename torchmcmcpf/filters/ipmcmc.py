@@ -144,22 +144,54 @@ from .._validation import check_positive_int
 from ..diagnostics import RHAT_METHODS, rhat
 from ..kernels.exchange import (
     ExchangeNoise,
+    close_pairs,
     draw_exchange_noise,
     exchange_iteration,
 )
-from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, check_hmc_motion, hmc_refine, mixture_log_prior
+from ..kernels.hmc_refine import (
+    HMCRefine,
+    HMCRefineNoise,
+    check_hmc_motion,
+    hmc_refine,
+    mixture_log_prior,
+    with_exclusion,
+)
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
+from ..models.multitarget import Exclusion, Recapture
 from ..resampling import gather_particles, systematic
-from ..state import ParticleState, StepInfo
+from ..state import ParticleState, StepInfo, existence_estimate, weighted_mean
 from ..typing import Measurement, Tensor
-from .base import Filter
+from .base import Filter, active_prior
 
 __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration", "ExchangeNoise",
            "draw_exchange_noise"]
 
 
-def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Callable | None = None,
+class SegmentNoise(NamedTuple):
+    """The randomness of one segment of ``L`` iterations: ``single`` (leading ``L``, one slot
+    per iteration) and, for the two-slot iterations, ``pair`` (leading ``len(at_pairs)``) with
+    ``at_pairs`` the (static) positions of the two-slot iterations in the segment.
+    """
+
+    single: ExchangeNoise
+    pair: ExchangeNoise | None = None
+    at_pairs: tuple[int, ...] = ()
+
+    def at(self, t: int) -> ExchangeNoise:
+        """The noise of iteration ``t`` (leading ``(B, C)``)."""
+        if self.pair is not None and t in self.at_pairs:
+            i = self.at_pairs.index(t)
+            return tree_map(lambda a: None if a is None else a[i], self.pair)
+        return tree_map(lambda a: None if a is None else a[t], self.single)
+
+    @property
+    def length(self) -> int:
+        """``L``."""
+        return self.single.u.shape[0]
+
+
+def _run_chains(chain: tuple, noise: SegmentNoise, step: Callable, refine: Callable | None = None,
                 every: int = 1, record_from: int = 0) -> tuple[tuple, list[tuple], Tensor, Tensor]:
     """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
     ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
@@ -172,8 +204,8 @@ def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Call
     log_lik = chain[1]
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
     refined_count = torch.zeros_like(accepted_count)
-    for t in range(noise.u.shape[0]):
-        chain, acc = step(chain, tree_map(lambda a: None if a is None else a[t], noise))
+    for t in range(noise.length):
+        chain, acc = step(chain, noise.at(t))
         accepted_count = accepted_count + acc.to(accepted_count.dtype)
         if refine is not None and (t + 1) % every == 0:
             chain, acc = refine(chain, (t + 1) // every - 1)
@@ -183,7 +215,7 @@ def _run_chains(chain: tuple, noise: ExchangeNoise, step: Callable, refine: Call
     return chain, trace, accepted_count, refined_count
 
 
-def _segment(kernel: Callable, chain: tuple, noise: ExchangeNoise, x_prev: Tensor, exists: Tensor | None,
+def _segment(kernel: Callable, chain: tuple, noise: SegmentNoise, x_prev: Tensor, exists: Tensor | None,
              z: Measurement, record_from: int) -> tuple[tuple, tuple, Tensor]:
     """``L`` exchange iterations of every chain (no amplitude cache, no refinement), the loop
     that :meth:`~torchmcmcpf.filters.base.CompiledKernel.capture` runs as one CUDA graph:
@@ -191,7 +223,7 @@ def _segment(kernel: Callable, chain: tuple, noise: ExchangeNoise, x_prev: Tenso
     entry with leading ``L - record_from``; :func:`_unstack` undoes it).
     """
     def step(ch, nz):
-        return kernel(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth, None)[:2]
+        return kernel(ch, x_prev, exists, z, nz, None)[:2]
 
     chain, trace, accepted, _ = _run_chains(chain, noise, step, record_from=record_from)
     return chain, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *trace), accepted
@@ -265,6 +297,16 @@ class IPMCMCSettings:
     hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement
         of every chain's states after every ``hmc.every``-th exchange iteration, on the same
         factorised-prior posterior (module docstring); ``None`` (default): exchange only.
+    exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
+        exclusion factor between slots in the target (module docstring, "Exclusion and
+        re-capture"); None is the paper's factorised prior.
+    recapture : :class:`~torchmcmcpf.models.multitarget.Recapture` (default) or None: the
+        heavy-tailed slot prior, the data-driven proposal of the exchange move and the
+        two-slot move; None is the paper's exchange move. Set to None with ``hmc`` (whose
+        target uses the prior without the relocation component).
+
+    Both are turned off for a sensor that cannot support them
+    (:func:`~torchmcmcpf.filters.base.active_prior`).
     """
 
     num_chains: int = 50
@@ -274,6 +316,8 @@ class IPMCMCSettings:
     rhat_method: str = "paper"
     thinning: int = 1
     hmc: HMCRefine | None = None
+    exclusion: Exclusion | None = Exclusion()
+    recapture: Recapture | None = Recapture()
 
     def __post_init__(self):
         check_positive_int(self.num_chains, "num_chains", minimum=2)
@@ -287,6 +331,12 @@ class IPMCMCSettings:
         check_positive_int(self.thinning, "thinning")
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
+        if self.exclusion is not None and not isinstance(self.exclusion, Exclusion):
+            raise ValueError(f"exclusion must be an Exclusion or None, got {type(self.exclusion).__name__}")
+        if self.recapture is not None and not isinstance(self.recapture, Recapture):
+            raise ValueError(f"recapture must be a Recapture or None, got {type(self.recapture).__name__}")
+        if self.hmc is not None:
+            object.__setattr__(self, "recapture", None)  # HMC's target: the prior without relocation
 
     def check(self, num_particles: int) -> None:
         """``C | N`` with at least 2 kept samples per chain."""
@@ -349,18 +399,21 @@ def ipmcmc_step(
     b, n, k, _ = x_prev.shape
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
+    settings = active_prior(settings, sensor)
     settings.check(n)
     keep = n // num_chains
-    iterate = _bind(motion, sensor, existence) if kernel is None else kernel
+    recapture, exclusion = settings.recapture, settings.exclusion
+    iterate = _bind(motion, sensor, existence, recapture, exclusion) if kernel is None else kernel
 
     # 1. starting points: C previous particles (systematic: one per stratum), predicted
     start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, generator=generator,
                                            device=x_prev.device), num_chains)
-    dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly: one path with or without births
+    # (x, exists) jointly: one path with or without births and re-capture
+    dynamics = TargetDynamics(motion, existence, recapture, sensor)
     x0 = gather_particles(x_prev, start)
     e0 = None if exists is None else gather_particles(exists, start)
-    y, e, log_birth = dynamics.propagate(x0, e0, *dynamics.draw_noise(x0, z, generator=generator))  # (B, C, K, D)
-    chain = (y, sensor.log_likelihood(y, z, e), e, None if existence is None else log_birth)
+    y, e, log_r, kind = dynamics.propagate_labelled(x0, e0, *dynamics.draw_noise(x0, z, generator=generator))
+    chain = (y, sensor.log_likelihood(y, z, e), e, None if existence is None and recapture is None else log_r, kind)
     # The chains' amplitudes per cell (grid sensors): a move then reads its two boxes instead
     # of summing the other targets' spreads there, and the accepted moves' changes are added
     # in place after each iteration. Not on a GPU: a compiled kernel replayed as a CUDA graph
@@ -368,33 +421,55 @@ def ipmcmc_step(
     cache = [sensor.amplitude_cache(y, e) if y.device.type != "cuda" else None]
 
     def step(ch, nz):
-        ch, acc, update = iterate(ch, x_prev, exists, z, nz.source, nz.slot, nz.eps, nz.u, nz.birth, cache[0])
+        ch, acc, update = iterate(ch, x_prev, exists, z, nz, cache[0])
         if update is not None:
             sensor.update_amplitude_cache(cache[0], *update, acc)
         return ch, acc
 
+    # two-slot moves: every pair_every-th iteration, over the pairs of slots whose predicted
+    # estimates are close (fixed for the step: a fixed mixture of invariant kernels)
+    pair_every = 0 if recapture is None or k < 2 else recapture.pair_every
+    pairs = None
+    if pair_every and recapture is not None:
+        if exists is None:
+            centre, alive = weighted_mean(x_prev, log_w), None
+        else:
+            est = existence_estimate(ParticleState(x_prev, log_w, exists))
+            centre, alive = est.mean, est.present
+        centre = motion.propagate(centre, torch.zeros(centre.shape[:-1] + (motion.noise_dim,), dtype=centre.dtype,
+                                                      device=centre.device))
+        pairs = close_pairs(sensor.resolution_coords(centre), recapture.pair_distance, alive)
+
     # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
-    draw = lambda steps: draw_exchange_noise(  # noqa: E731
-        log_w, steps, num_chains, k, motion.noise_dim, generator=generator, dtype=x_prev.dtype, existence=existence,
-        z=z)
+    def draw(steps: int, offset: int) -> SegmentNoise:
+        def one(count: int, close: Tensor | None) -> ExchangeNoise:
+            return draw_exchange_noise(log_w, count, num_chains, k, motion.noise_dim, generator=generator,
+                                       dtype=x_prev.dtype, existence=existence, z=z, recapture=recapture,
+                                       sensor=sensor, pairs=close)
+        at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)
+        return SegmentNoise(one(steps, None), one(len(at_pairs), pairs) if at_pairs else None, at_pairs)
+
     segment = settings.thinning * keep
     hmc = settings.hmc
     refine, every = None, 1
     if hmc is not None:
         hmc_motion = check_hmc_motion(motion, existence)
         every = hmc.every
-        log_prior = mixture_log_prior(x_prev, log_w, hmc_motion)
+        log_prior = with_exclusion(mixture_log_prior(x_prev, log_w, hmc_motion), exclusion, sensor)
 
         def refine(ch, i):
             y_new, ll_new, acc = hmc_refine(ch[0], ch[1], HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
                                             log_prior=log_prior, sensor=sensor, motion=hmc_motion, settings=hmc)
             if cache[0] is not None:  # every slot may have moved: the amplitudes afresh
                 cache[0] = sensor.amplitude_cache(y_new, ch[2])
-            return (y_new, ll_new, ch[2], ch[3]), acc
+            return (y_new, ll_new, *ch[2:]), acc
+
+    done = 0  # iterations run so far (the two-slot schedule counts across segments)
 
     def run(steps, record_from=0):
-        nonlocal hmc_noise
-        noise = draw(steps)
+        nonlocal hmc_noise, done
+        noise = draw(steps, done)
+        done += steps
         if hmc is not None:
             hmc_noise = HMCRefineNoise.draw(y, generator=generator, leading=(steps // every,))
         capture = getattr(iterate, "capture", None)
@@ -448,10 +523,12 @@ def ipmcmc_step(
     return ParticleState(x_new, log_w_new, exists_new), info
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None) -> Callable:
-    """:func:`exchange_iteration` with the models bound."""
+def _bind(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None, recapture: Recapture | None,
+          exclusion: Exclusion | None) -> Callable:
+    """:func:`exchange_iteration` with the models and the multitarget prior's terms bound."""
     def iterate(*args):
-        return exchange_iteration(*args, motion=motion, sensor=sensor, existence=existence)
+        return exchange_iteration(*args, motion=motion, sensor=sensor, existence=existence, recapture=recapture,
+                                  exclusion=exclusion)
     return iterate
 
 
@@ -463,8 +540,9 @@ class IPMCMCFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, LinearGaussian, ...).
     num_particles : N; ``num_chains`` must divide it.
-    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc : see
-        :class:`IPMCMCSettings`.
+    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc, exclusion, recapture :
+        see :class:`IPMCMCSettings` (``exclusion`` and ``recapture`` are on by default;
+        ``None`` gives the paper's factorised target and exchange move).
     existence : BirthDeath, optional: births and deaths (module docstring); the estimate
         of a slot is then its mean given existence.
     compile_step : compile one exchange iteration with ``torch.compile(fullgraph=True)``
@@ -495,17 +573,21 @@ class IPMCMCFilter(Filter):
         rhat_method: str = "paper",
         thinning: int = 1,
         hmc: HMCRefine | None = None,
+        exclusion: Exclusion | None = Exclusion(),
+        recapture: Recapture | None = Recapture(),
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
-        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc)
+        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc,
+                                  exclusion, recapture)
         if hmc is not None:
             check_hmc_motion(motion, existence)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles)
 
     def _kernel(self, compile: Callable) -> Callable:
-        return compile(_bind(self.motion, self.sensor, self.existence))
+        return compile(_bind(self.motion, self.sensor, self.existence, self.settings.recapture,
+                             self.settings.exclusion))
 
     def _step(self, state, z, generator):
         return ipmcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

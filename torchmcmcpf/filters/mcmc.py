@@ -29,7 +29,14 @@ import torch
 
 from .._validation import check_positive_int
 from ..kernels.chains import evaluate
-from ..kernels.hmc_refine import HMCRefine, HMCRefineNoise, ancestor_log_prior, check_hmc_motion, hmc_refine
+from ..kernels.hmc_refine import (
+    HMCRefine,
+    HMCRefineNoise,
+    ancestor_log_prior,
+    check_hmc_motion,
+    hmc_refine,
+    with_exclusion,
+)
 from ..kernels.moves import (
     MOVES,
     ChainState,
@@ -47,9 +54,10 @@ from ..kernels.moves import (
 from ..kernels.random_walk import RunningMoments, adapted_step, prior_covariance
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
+from ..models.multitarget import Exclusion, Recapture
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from .base import Filter
+from .base import Filter, active_prior
 
 __all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "pick_moves",
            "parse_moves", "MOVE_PRESETS"]
@@ -131,6 +139,17 @@ class MCMCSettings:
     hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: one HMC transition
         of every chain's ``x_k`` given its ancestor after every ``hmc.every``-th iteration
         (target ``p(z_k | x_k) p(x_k | x_{k-1}^a)``, see :mod:`..kernels.hmc_refine`).
+    exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
+        exclusion factor between slots in the target (Khan et al. 2005); None is the paper's
+        factorised prior.
+    recapture : :class:`~torchmcmcpf.models.multitarget.Recapture` (default) or None: the
+        heavy-tailed slot prior and the data-driven proposal of the joint draw and the
+        refinement (:mod:`torchmcmcpf.models.multitarget`). Set to None when ``moves`` use
+        ``"random_walk"`` or with ``hmc`` (their ratios use the prior without the relocation
+        component).
+
+    Both are turned off (set to None) for a sensor that cannot support them
+    (:func:`~torchmcmcpf.filters.base.active_prior`).
     """
 
     num_chains: int = 1
@@ -139,6 +158,8 @@ class MCMCSettings:
     moves: MoveSpec = "mixture"
     rw_scale: float | Sequence[float] | str | None = None
     hmc: HMCRefine | None = None
+    exclusion: Exclusion | None = Exclusion()
+    recapture: Recapture | None = Recapture()
     pairs: tuple[tuple[str, float], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -148,6 +169,8 @@ class MCMCSettings:
         pairs = parse_moves(self.moves)
         object.__setattr__(self, "moves", pairs)
         object.__setattr__(self, "pairs", pairs)
+        if self.hmc is not None or any(name == "random_walk" for name, _ in pairs):
+            object.__setattr__(self, "recapture", None)  # their ratios use the prior without relocation
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
         if self.rw_scale is None:
@@ -182,6 +205,7 @@ class MCMCSettings:
             )
 
 
+
 def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: torch.Generator) -> list[str]:
     """The move of each of ``count`` iterations, one pick per iteration for every chain.
 
@@ -207,7 +231,8 @@ def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: t
 
 
 def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-                         existence: BirthDeath | None = None, z: Measurement | None = None) -> MoveNoise:
+                         existence: BirthDeath | None = None, z: Measurement | None = None,
+                         recapture: Recapture | None = None, sensor: SensorModel | None = None) -> MoveNoise:
     """The noise of one MCMC iteration of the move ``move``, drawn in eager code from ``generator``.
 
     Parameters
@@ -216,6 +241,7 @@ def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator
     x : (B, C, K, D) chain states (for shape, dtype, device); motion : MotionModel (noise size).
     existence, z : with a BirthDeath model, the birth noise of the moves (births may be
         drawn near the points of the frame ``z``).
+    recapture, sensor : with re-capture, the relocation noise (drawn from ``z`` by ``sensor``).
 
     Returns
     -------
@@ -226,7 +252,8 @@ def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator
     if move not in ("joint", "refine"):
         raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
     return (JointNoise if move == "joint" else RefineNoise).draw(x, motion, generator=generator,
-                                                                 existence=existence, z=z)
+                                                                 existence=existence, z=z, recapture=recapture,
+                                                                 sensor=sensor)
 
 
 def mcmc_iteration(
@@ -240,6 +267,8 @@ def mcmc_iteration(
     sensor: SensorModel,
     rw_scale: Tensor | None = None,
     existence: BirthDeath | None = None,
+    recapture: Recapture | None = None,
+    exclusion: Exclusion | None = None,
     compiled: dict | None = None,
 ) -> tuple[ChainState, Tensor]:
     """One MCMC iteration of every chain by the move ``move`` (picked by :func:`pick_moves`).
@@ -254,6 +283,8 @@ def mcmc_iteration(
     cloud : the previous particles; z : frame ``(B, *G)``; motion, sensor : the models.
     rw_scale : (D,) or scalar step of the random walk.
     existence : BirthDeath, optional: chains with existence flags (``noise`` drawn with it).
+    recapture, exclusion : the multitarget prior's terms, optional (``noise`` drawn with
+        ``recapture``).
     compiled : move name -> its compiled move (``MCMCFilter(compile_step=True)``), optional.
 
     Returns
@@ -268,13 +299,16 @@ def mcmc_iteration(
                     fn(chain, noise, cloud, z, rw_scale) if move == "random_walk" else
                     fn(chain, noise, cloud, z))
     elif move == "joint" and isinstance(noise, JointNoise):
-        new, acc = joint_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence)
+        new, acc = joint_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence,
+                              recapture=recapture, exclusion=exclusion)
     elif move == "refine" and isinstance(noise, RefineNoise):
-        new, acc = refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence)
+        new, acc = refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence,
+                               recapture=recapture, exclusion=exclusion)
     elif move == "random_walk" and isinstance(noise, RandomWalkNoise):
         if rw_scale is None:
             raise ValueError("rw_scale must be given (a scalar or (D,) tensor) for the 'random_walk' move")
-        new, acc = random_walk_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=rw_scale)
+        new, acc = random_walk_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=rw_scale,
+                                    exclusion=exclusion)
     else:
         raise ValueError(f"move must be one of {list(MOVES)} with its noise (draw_iteration_noise(move, ...)), "
                          f"got move={move!r} with {type(noise).__name__}")
@@ -329,6 +363,7 @@ def mcmc_step(
     """
     x_prev = state.x
     b, n, k, d = x_prev.shape
+    settings = active_prior(settings, sensor)
     settings.check(n, d, existence)
     pairs, num_chains, burn_in, thinning = settings.pairs, settings.num_chains, settings.burn_in, settings.thinning
     exists = state.exists
@@ -344,8 +379,10 @@ def mcmc_step(
         kernel = _bind(motion, sensor, settings, existence)
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, existence=existence, z=z), z,
-                        motion=motion, sensor=sensor, existence=existence)
+    recapture = settings.recapture
+    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, existence=existence, z=z,
+                                               recapture=recapture, sensor=sensor), z,
+                        motion=motion, sensor=sensor, existence=existence, recapture=recapture)
 
     if adaptive:  # start from the prior mixture's per-target covariance (Haario et al. 2001 below)
         prior_cov = prior_covariance(cloud, motion)
@@ -359,14 +396,16 @@ def mcmc_step(
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
     for m, move in enumerate(pick_moves(pairs, burn_in + thinning * per_chain, generator=generator), start=1):
-        noise = draw_iteration_noise(move, chain.x, motion, generator=generator, existence=existence, z=z)
+        noise = draw_iteration_noise(move, chain.x, motion, generator=generator, existence=existence, z=z,
+                                     recapture=recapture, sensor=sensor)
         chain, accepted = kernel(chain, noise, move, cloud, z, scale)
         acc_sum[move] = acc_sum[move] + accepted.sum(1)
         sel_sum[move] = sel_sum[move] + num_chains
         if hmc is not None and hmc_motion is not None and m % hmc.every == 0:  # eager, also under compile_step
             x_new, _, acc = hmc_refine(chain.x, chain.log_lik, HMCRefineNoise.draw(chain.x, generator=generator), z,
-                                       log_prior=ancestor_log_prior(chain.x_prev, hmc_motion), sensor=sensor,
-                                       motion=hmc_motion, settings=hmc)
+                                       log_prior=with_exclusion(ancestor_log_prior(chain.x_prev, hmc_motion),
+                                                                settings.exclusion, sensor),
+                                       sensor=sensor, motion=hmc_motion, settings=hmc)
             log_lik, terms = evaluate(x_new, z, sensor)
             chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
             hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
@@ -392,32 +431,38 @@ def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, exis
     """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, move, cloud, z, rw_scale)``.
 
     With ``compile``, each move is compiled on its own (the joint draw; the refinement whole
-    when the sensor is separable, else its one-slot update, one graph for every slot; the
-    random walk), so the graph never holds K unrolled slot updates; the mixture's choice
-    between them is made once per iteration in eager code (:func:`pick_moves`).
+    when the sensor is separable and no exclusion couples the slots, else its one-slot
+    update, one graph for every slot; the random walk), so the graph never holds K unrolled
+    slot updates; the mixture's choice between them is made once per iteration in eager code
+    (:func:`pick_moves`).
     """
+    settings = active_prior(settings, sensor)
+    recapture, exclusion = settings.recapture, settings.exclusion
     moves = None
     if compile is not None:
         names = {name for name, _ in settings.pairs}
         moves = {}
         if "joint" in names:
             moves["joint"] = compile(lambda chain, noise, cloud, z: joint_move(
-                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence))
+                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence,
+                recapture=recapture, exclusion=exclusion))
         if "refine" in names:
-            if sensor.separable and existence is None:
+            if sensor.separable and existence is None and (exclusion is None or not sensor.resolved):
                 moves["refine"] = compile(lambda chain, noise, z: refine_move(
-                    chain, noise, z=z, motion=motion, sensor=sensor))
+                    chain, noise, z=z, motion=motion, sensor=sensor, recapture=recapture))
             else:
-                slot = compile(lambda *args: refine_slot(*args, sensor=sensor))
+                slot = compile(lambda *args: refine_slot(*args, sensor=sensor, exclusion=exclusion))
                 moves["refine"] = lambda chain, noise, z: refine_move(
-                    chain, noise, z=z, motion=motion, sensor=sensor, existence=existence, slot_kernel=slot)
+                    chain, noise, z=z, motion=motion, sensor=sensor, existence=existence, recapture=recapture,
+                    exclusion=exclusion, slot_kernel=slot)
         if "random_walk" in names:
             moves["random_walk"] = compile(lambda chain, noise, cloud, z, scale: random_walk_move(
-                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=scale))
+                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=scale, exclusion=exclusion))
 
     def kernel(chain, noise, move, cloud, z, rw_scale):
         return mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
-                              rw_scale=rw_scale, existence=existence, compiled=moves)
+                              rw_scale=rw_scale, existence=existence, recapture=recapture, exclusion=exclusion,
+                              compiled=moves)
     return kernel
 
 
@@ -444,6 +489,8 @@ class MCMCFilter(Filter):
     hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement of
         ``x_k`` given the ancestor after every ``hmc.every``-th iteration (eager; extras
         ``"acceptance_hmc"``); linear-Gaussian motion, no existence.
+    exclusion, recapture : the multitarget prior's terms (see :class:`MCMCSettings`, on by
+        default; re-capture is off with ``"random_walk"`` or ``hmc``).
     existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
         estimate of a slot is then its mean given existence
         (:func:`torchmcmcpf.state.existence_estimate`).
@@ -470,15 +517,17 @@ class MCMCFilter(Filter):
         moves: MoveSpec = "mixture",
         rw_scale: float | Sequence[float] | Tensor | str | None = None,
         hmc: HMCRefine | None = None,
+        exclusion: Exclusion | None = Exclusion(),
+        recapture: Recapture | None = Recapture(),
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         scale = rw_scale.tolist() if isinstance(rw_scale, Tensor) else rw_scale
         if isinstance(scale, list):
             scale = tuple(scale)
-        settings = MCMCSettings(num_chains, burn_in, thinning, moves, scale, hmc)
+        settings = MCMCSettings(num_chains, burn_in, thinning, moves, scale, hmc, exclusion, recapture)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
-        settings.check(num_particles, motion.dim, existence)
+        self.settings.check(num_particles, motion.dim, existence)
         if hmc is not None:
             check_hmc_motion(motion, existence)
 

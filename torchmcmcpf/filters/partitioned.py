@@ -39,6 +39,7 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
+from ..models.multitarget import Exclusion, exclusion_against
 from ..resampling import RESAMPLERS, ess, normalize
 from ..state import ParticleState, StepInfo, weighted_mean
 from ..typing import Measurement, Tensor
@@ -55,9 +56,13 @@ class PartitionedSIRSettings:
     ----------
     resample_method : ``"systematic"`` (default), ``"stratified"`` or ``"multinomial"``,
         applied to each partition (every step: the partitions carry no joint weights).
+    exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
+        weight of partition ``k`` includes ``prod_{l != k} phi(x_k, hat x_l)``, the exclusion
+        factors against the other targets at the reference (Khan et al. 2005).
     """
 
     resample_method: str = "systematic"
+    exclusion: Exclusion | None = Exclusion()
 
     def __post_init__(self):
         if self.resample_method not in RESAMPLERS:
@@ -87,7 +92,8 @@ def partitioned_sir_kernel(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, 
     ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
     x_prop = motion.propagate(x, eps)  # every partition from the motion prior
     # p(z | x_k, x_-k = ref) / p(z | ref) (B, N, K); target k's own term for a separable sensor
-    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z).transpose(1, 2)  # (B, K, N)
+    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z)  # (B, N, K)
+    log_lik = (log_lik + exclusion_against(settings.exclusion, sensor, x_prop, ref)).transpose(1, 2)  # (B, K, N)
     log_w_part, _ = normalize(log_lik.reshape(b * k, n))  # (B * K, N)
     idx = RESAMPLERS[settings.resample_method][1](log_w_part, u, n).reshape(b, k, n)
     x_new = torch.gather(x_prop.transpose(1, 2), 2, idx.unsqueeze(-1).expand(b, k, n, x.shape[-1]))
@@ -157,7 +163,7 @@ class PartitionedSIRFilter(Filter):
     sensor : SensorModel (grid sensors use their one-slot likelihood change; separable
         sensors their per-target terms).
     num_particles : N >= 1 per partition.
-    resample_method : see :class:`PartitionedSIRSettings`.
+    resample_method, exclusion : see :class:`PartitionedSIRSettings`.
     existence : must be None (known number of targets).
     compile_step : compile :func:`partitioned_sir_kernel` (the whole step but its draws).
 
@@ -168,11 +174,11 @@ class PartitionedSIRFilter(Filter):
     """
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, *,
-                 resample_method: str = "systematic", existence: BirthDeath | None = None,
-                 compile_step: bool = False):
+                 resample_method: str = "systematic", exclusion: Exclusion | None = Exclusion(),
+                 existence: BirthDeath | None = None, compile_step: bool = False):
         if existence is not None:
             raise ValueError("existence must be None: PartitionedSIRFilter tracks a known number of targets")
-        super().__init__(motion, sensor, num_particles, PartitionedSIRSettings(resample_method),
+        super().__init__(motion, sensor, num_particles, PartitionedSIRSettings(resample_method, exclusion),
                          existence=existence, compile_step=compile_step)
 
     def _kernel(self, compile: Callable) -> Callable:

@@ -60,6 +60,7 @@ from .._validation import check_positive, check_positive_int
 from ..kernels.hmc import hmc_transition, value_and_grad
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
+from ..models.multitarget import Exclusion, log_exclusion
 from ..models.sensors.association import (
     AssociationSensor,
     _split,
@@ -69,7 +70,7 @@ from ..models.sensors.association import (
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from .base import Filter
+from .base import Filter, active_prior
 
 __all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "ASSOCIATIONS"]
 
@@ -87,6 +88,10 @@ class ResampleMoveSettings:
     association : ``"exact"`` or ``"metropolis"`` (module docstring).
     association_iters : Metropolis proposals per particle (``"metropolis"`` only).
     resample_method : ``"systematic"``, ``"stratified"`` or ``"multinomial"``.
+    exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
+        weights and the HMC target include the exclusion factor ``Phi(x)`` between slots
+        (Khan et al. 2005). Set to None with ``association="metropolis"``, whose per-slot HMC
+        chains (eq. 9) need a target that factorises over the slots.
     """
 
     step_size: float = 0.1
@@ -95,6 +100,7 @@ class ResampleMoveSettings:
     association: str = "exact"
     association_iters: int = 30
     resample_method: str = "systematic"
+    exclusion: Exclusion | None = Exclusion()
 
     def __post_init__(self):
         object.__setattr__(self, "step_size", check_positive(self.step_size, "step_size"))
@@ -105,6 +111,8 @@ class ResampleMoveSettings:
         check_positive_int(self.association_iters, "association_iters")
         if self.resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
+        if self.association == "metropolis":
+            object.__setattr__(self, "exclusion", None)  # eq. 9's per-slot chains: a factorised target
 
 
 def _predict(x_prev: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None, motion: MotionModel,
@@ -165,7 +173,8 @@ def resample_move_step(
     b, n, k, _ = x_prev.shape
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
-    eps, birth = TargetDynamics(motion, existence).draw_noise(x_prev, z, generator=generator)
+    settings = active_prior(settings, sensor)
+    eps, birth, _ = TargetDynamics(motion, existence).draw_noise(x_prev, z, generator=generator)
     x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, motion, existence)
 
     assignment = None
@@ -184,7 +193,7 @@ def resample_move_step(
     else:
         log_lik = sensor.log_likelihood(x, z, exists_new)
     log_g = log_lik  # the sensor likelihood g of the predicted particles (B, N), without births' r
-    log_lik = log_lik + log_birth
+    log_lik = log_lik + log_birth + log_exclusion(settings.exclusion, sensor, x, exists_new)
 
     # Weights may all underflow in linear space; in log space they stay finite, and a run
     # whose likelihoods are all -inf keeps uniform weights (normalize), never NaN.
@@ -213,7 +222,7 @@ def resample_move_step(
         assignment = gather_particles(assignment, idx)
     if kernel is None:
         kernel = _bind(motion, sensor, settings, existence)
-    target = _target(motion, sensor, existence)
+    target = _target(motion, sensor, existence, settings.exclusion)
     value, grad = value_and_grad(lambda u: target(u, x_prev, exists, birth, z, assignment), eps)
     accepted = torch.zeros_like(value)
     for _ in range(settings.num_hmc_steps):
@@ -251,15 +260,17 @@ def _ess_per_target(log_w_slot: Tensor, exists: Tensor | None) -> Tensor:
     return (per * alive).sum(-1) / alive.sum(-1).clamp(min=1)
 
 
-def _target(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None) -> Callable:
+def _target(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None,
+            exclusion: Exclusion | None = None) -> Callable:
     """``log_target(u, x_prev, exists, birth, z, assignment)`` of the HMC move: ``(B, N)``
-    (one chain per particle, eq. 10) or ``(B, N, K)`` with an association (eq. 9).
+    (one chain per particle, eq. 10, times the exclusion factor) or ``(B, N, K)`` with an
+    association (eq. 9).
     """
     def log_target(u, x_prev, exists, birth, z, assignment):
         x, e, _ = _predict(x_prev, exists, u, birth, motion, existence)
         if assignment is not None:  # one chain per slot, eq. 9
             return sensor.assigned_log_likelihood(x, z, assignment, e) - 0.5 * u.square().sum(-1)
-        return sensor.log_likelihood(x, z, e) - 0.5 * u.square().sum((-2, -1))
+        return sensor.log_likelihood(x, z, e) - 0.5 * u.square().sum((-2, -1)) + log_exclusion(exclusion, sensor, x, e)
     return log_target
 
 
@@ -268,7 +279,7 @@ def _bind(motion: MotionModel, sensor: SensorModel, settings: ResampleMoveSettin
     """One HMC transition with the models bound; gradients by ``torch.func.grad`` (which
     traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``).
     """
-    target = _target(motion, sensor, existence)
+    target = _target(motion, sensor, existence, active_prior(settings, sensor).exclusion)
 
     def kernel(eps, value, grad, p, u, x_prev, exists, birth, z, assignment):
         def log_target(q):
@@ -293,7 +304,7 @@ class ResampleMoveFilter(Filter):
         :class:`~torchmcmcpf.models.sensors.association.AssociationPosition` or
         :class:`~torchmcmcpf.models.sensors.association.AssociationBearingRange`).
     num_particles : N >= 1.
-    step_size, num_leapfrog, num_hmc_steps, association, association_iters, resample_method :
+    step_size, num_leapfrog, num_hmc_steps, association, association_iters, resample_method, exclusion :
         see :class:`ResampleMoveSettings`.
     existence : BirthDeath, optional: births and deaths, as for every other filter.
     compile_step : compile one HMC transition (leapfrog with ``torch.func.grad``).
@@ -322,11 +333,12 @@ class ResampleMoveFilter(Filter):
         association: str = "exact",
         association_iters: int = 30,
         resample_method: str = "systematic",
+        exclusion: Exclusion | None = Exclusion(),
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         settings = ResampleMoveSettings(step_size, num_leapfrog, num_hmc_steps, association, association_iters,
-                                        resample_method)
+                                        resample_method, exclusion)
         if association == "metropolis" and not isinstance(sensor, AssociationSensor):
             raise ValueError(
                 f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}"

@@ -16,6 +16,7 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
+from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -33,10 +34,14 @@ class SIRSettings:
     resample_method : ``"systematic"`` (default), ``"stratified"`` or ``"multinomial"``.
     ess_threshold : resample when ``ESS < ess_threshold * N``; 1.0 resamples at every step
         (Boers and Driessen), 0.0 never.
+    exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
+        weights include the exclusion factor ``Phi(x)`` between slots (Khan et al. 2005); None
+        is the paper's factorised prior. Ignored for a sensor without ``resolution_coords``.
     """
 
     resample_method: str = "systematic"
     ess_threshold: float = 1.0
+    exclusion: Exclusion | None = Exclusion()
 
     def __post_init__(self):
         if self.resample_method not in RESAMPLERS:
@@ -76,7 +81,7 @@ def sir_kernel(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, 
     # (x, exists) propagated jointly: one code path whatever the number of targets
     x, exists, log_ratio = TargetDynamics(motion, existence).propagate(x, exists, eps, birth)
     log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N), with the birth correction
-    return x, exists, log_w + log_lik
+    return x, exists, log_w + log_lik + log_exclusion(settings.exclusion, sensor, x, exists)
 
 
 def sir_step(
@@ -110,7 +115,9 @@ def sir_step(
     state : the weighted particles at time k (``log_w`` normalised).
     info : ``ess (B,)`` of the new weights, ``log_evidence (B,)``, the estimate of
         ``log p(z_k | z_{1:k-1})`` (relative to the sensor's "no target" hypothesis for
-        likelihood-ratio sensors); ``acceptance`` NaN (no MH step); no extras.
+        likelihood-ratio sensors; with ``settings.exclusion`` the weights, hence this
+        estimate, include the exclusion factor ``Phi``); ``acceptance`` NaN (no MH step); no
+        extras.
 
     An all-underflowing set of weights does not produce NaN: weights stay in log space and
     a run whose likelihoods are all ``-inf`` keeps uniform weights (``log_evidence = -inf``).
@@ -119,7 +126,7 @@ def sir_step(
     b, n, k, _ = x.shape
     draw, _ = RESAMPLERS[settings.resample_method]
     u = draw(b, n, generator=generator, device=x.device)
-    eps, birth = TargetDynamics(motion, existence).draw_noise(x, z, generator=generator)
+    eps, birth, _ = TargetDynamics(motion, existence).draw_noise(x, z, generator=generator)
     # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
     if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
         need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)
@@ -151,7 +158,7 @@ class SIRFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, Swerling-I, pixels, LinearGaussian, ...).
     num_particles : N >= 1.
-    resample_method, ess_threshold : see :class:`SIRSettings`.
+    resample_method, ess_threshold, exclusion : see :class:`SIRSettings`.
     existence : BirthDeath, optional: births and deaths (see :func:`sir_step`); the
         estimate of a slot is then its mean given existence.
     compile_step : compile :func:`sir_kernel` (the whole step but its random draws).
@@ -174,10 +181,12 @@ class SIRFilter(Filter):
         *,
         resample_method: str = "systematic",
         ess_threshold: float = 1.0,
+        exclusion: Exclusion | None = Exclusion(),
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
-        super().__init__(motion, sensor, num_particles, SIRSettings(resample_method, float(ess_threshold)),
+        super().__init__(motion, sensor, num_particles,
+                         SIRSettings(resample_method, float(ess_threshold), exclusion),
                          existence=existence, compile_step=compile_step)
 
     def _kernel(self, compile: Callable) -> Callable:

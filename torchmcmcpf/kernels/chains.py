@@ -12,6 +12,7 @@ import torch
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise
 from ..models.motion import LinearGaussianMotion
+from ..models.multitarget import Recapture, RelocationNoise, draw_relocation
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 
@@ -35,9 +36,12 @@ class ChainState(NamedTuple):
     exists, exists_prev : (B, C, K) bool, optional
         With existence: the flags of ``x`` and of its ancestor (``None`` for a known number
         of targets; ``log_lik`` is then ``sensor.log_likelihood(x, z, exists)``).
-    log_birth : (B, C, K), optional
-        With existence: ``log r_n = log p_0(x_n) - log q_0(x_n)`` for a slot born between
-        the ancestor and ``x``, 0 for the others (module docstring).
+    log_ratio : (B, C, K), optional
+        With existence or re-capture: ``log r_n``, the slot's target over proposal density
+        ratio (``log p_0(x_n) - log q_0(x_n)`` for a slot born between the ancestor and
+        ``x``; the relocation ratios of :mod:`torchmcmcpf.models.multitarget` for a
+        surviving slot; 0 for an inactive one); ``None`` without either (module docstring
+        of :mod:`torchmcmcpf.kernels.moves`).
     """
 
     x: Tensor
@@ -46,7 +50,7 @@ class ChainState(NamedTuple):
     log_lik_terms: Tensor | None = None
     exists: Tensor | None = None
     exists_prev: Tensor | None = None
-    log_birth: Tensor | None = None
+    log_ratio: Tensor | None = None
 
 
 class PreviousCloud(NamedTuple):
@@ -99,47 +103,60 @@ def _births(x: Tensor, existence: BirthDeath | None, z: Measurement | None, gene
     return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
 
 
+def _relocations(x: Tensor, recapture: Recapture | None, sensor: SensorModel | None, z: Measurement | None,
+                 generator: torch.Generator) -> RelocationNoise | None:
+    return draw_relocation(recapture, sensor, tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
+                           device=x.device)
+
+
 class JointNoise(NamedTuple):
     """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
-    K, noise_dim)`` standard normals (the transition noise of every target) and, with
-    existence, ``birth`` (:class:`BirthNoise`).
+    K, noise_dim)`` standard normals (the transition noise of every target), with existence
+    ``birth`` (:class:`BirthNoise`) and with re-capture ``relocation``
+    (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`), leading ``(B, C, K)``.
     """
 
     u_ancestor: Tensor
     eps: Tensor
     u: Tensor
     birth: BirthNoise | None = None
+    relocation: RelocationNoise | None = None
 
     @classmethod
     def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: BirthDeath | None = None, z: Measurement | None = None) -> JointNoise:
+             existence: BirthDeath | None = None, z: Measurement | None = None,
+             recapture: Recapture | None = None, sensor: SensorModel | None = None) -> JointNoise:
         """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``); the
-        birth noise only with ``existence`` (which needs the frame ``z``).
+        birth noise only with ``existence``, the relocation noise only with ``recapture``
+        (both need the frame ``z``; the relocation the ``sensor``).
         """
         b, c, k, _ = x.shape
         return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
-                   _uniform((b, c), x, generator), _births(x, existence, z, generator))
+                   _uniform((b, c), x, generator), _births(x, existence, z, generator),
+                   _relocations(x, recapture, sensor, z, generator))
 
 
 class RefineNoise(NamedTuple):
     """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
-    slot), ``u (B, C, K)`` uniforms (one accept/reject per slot) and, with existence,
-    ``birth`` (:class:`BirthNoise`).
+    slot), ``u (B, C, K)`` uniforms (one accept/reject per slot) and, as in
+    :class:`JointNoise`, ``birth`` and ``relocation``.
     """
 
     eps: Tensor
     u: Tensor
     birth: BirthNoise | None = None
+    relocation: RelocationNoise | None = None
 
     @classmethod
     def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: BirthDeath | None = None, z: Measurement | None = None) -> RefineNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``: as
-        :meth:`JointNoise.draw`).
+             existence: BirthDeath | None = None, z: Measurement | None = None,
+             recapture: Recapture | None = None, sensor: SensorModel | None = None) -> RefineNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``,
+        ``recapture``, ``sensor``: as :meth:`JointNoise.draw`).
         """
         b, c, k, _ = x.shape
         return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator),
-                   _births(x, existence, z, generator))
+                   _births(x, existence, z, generator), _relocations(x, recapture, sensor, z, generator))
 
 
 # -- likelihood ------------------------------------------------------------------------------

@@ -1,7 +1,22 @@
 """The exchange / mutation kernel of the IP-MCMC-PF (Bocquel et al. 2012, paper 000, Alg. 2,
-eq. 12), with and without births and deaths; see :mod:`torchmcmcpf.filters.ipmcmc` for the
-target it leaves invariant. Pure and branch-free: the noise is pre-drawn
-(:func:`draw_exchange_noise`), so one iteration compiles with ``fullgraph=True``.
+eq. 12), with births and deaths, exclusion and re-capture, and its two-slot variant; see
+:mod:`torchmcmcpf.filters.ipmcmc` for the target it leaves invariant. Pure and branch-free:
+the noise is pre-drawn (:func:`draw_exchange_noise`), so one iteration compiles with
+``fullgraph=True``.
+
+One iteration moves ``M`` slots of every chain at once (``M`` is the trailing size of the
+noise, static): ``M = 1`` is the paper's exchange move, ``M = 2`` the joint move of two slots
+whose predictions are close (:class:`~torchmcmcpf.models.multitarget.Recapture`'s
+``pair_every``). Each moved slot ``j`` is drawn independently of the chain's state, from
+previous particle ``i ~ w`` propagated by
+:class:`~torchmcmcpf.models.existence.TargetDynamics` (motion, existence chain, birth or
+``x_death``, relocation from the data), so the move is an independence proposal on those
+slots and
+
+    ``log alpha = log p(z | y') - log p(z | y) + log Phi(y') - log Phi(y)
+                  + sum_{moved j} (log r'_j - log r_j)``
+
+with ``Phi`` the exclusion factor and ``r_j`` the slot's cached target-over-proposal ratio.
 """
 
 from __future__ import annotations
@@ -12,24 +27,36 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
+from ..models.multitarget import (
+    Exclusion,
+    Recapture,
+    RelocationNoise,
+    draw_relocation,
+    exclusion_change,
+    log_q_component,
+)
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
 
-__all__ = ["ExchangeNoise", "draw_exchange_noise", "exchange_iteration"]
+__all__ = ["ExchangeNoise", "draw_exchange_noise", "exchange_iteration", "close_pairs"]
 
 
 class ExchangeNoise(NamedTuple):
-    """Pre-drawn randomness of ``L`` exchange iterations (leading dim ``L``).
+    """Pre-drawn randomness of ``L`` iterations moving ``M`` slots each (leading dim ``L``).
 
     Attributes
     ----------
-    source : (L, B, C) int64, index of the previous particle each proposal starts from.
-    slot : (L, B, C) int64, the target slot ``j`` each chain updates.
-    eps : (L, B, C, noise_dim), standard normal process noise of the proposal.
+    source : (L, B, C, M) int64, the previous particle each moved slot starts from.
+    slot : (L, B, C, M) int64, the target slots each chain updates (distinct).
+    eps : (L, B, C, M, noise_dim), standard normal process noise of the proposals.
     u : (L, B, C), uniforms of the accept/reject test.
-    birth : :class:`~torchmcmcpf.kernels.moves.BirthNoise` with leading ``(L, B, C)``, the
-        existence part of the proposals (only with an existence model).
+    birth : :class:`~torchmcmcpf.models.existence.BirthNoise` with leading ``(L, B, C, M)``
+        (only with an existence model).
+    relocation : :class:`~torchmcmcpf.models.multitarget.RelocationNoise` with leading
+        ``(L, B, C, M)`` (only with re-capture).
+    valid : (L, B, C) bool, optional: False where a run has no pair of close slots (the
+        two-slot move is then rejected).
     """
 
     source: Tensor
@@ -37,107 +64,183 @@ class ExchangeNoise(NamedTuple):
     eps: Tensor
     u: Tensor
     birth: BirthNoise | None = None
+    relocation: RelocationNoise | None = None
+    valid: Tensor | None = None
+
+
+def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) -> Tensor:
+    """Pairs of slots whose predictions lie within ``distance`` resolution cells.
+
+    Parameters
+    ----------
+    centres : (B, K, r) resolution coordinates of each slot's predicted estimate.
+    distance : > 0.
+    exists : (B, K) bool, optional: only slots that exist somewhere pair.
+
+    Returns
+    -------
+    (B, K, K) bool, True for ``i < j`` within ``distance``.
+    """
+    k = centres.shape[-2]
+    d2 = (centres.unsqueeze(-2) - centres.unsqueeze(-3)).square().sum(-1)
+    out = (d2 < distance**2) & torch.ones((k, k), dtype=torch.bool, device=centres.device).triu(1)
+    if exists is not None:
+        out = out & exists.unsqueeze(-1) & exists.unsqueeze(-2)
+    return out
 
 
 def draw_exchange_noise(
     log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, noise_dim: int,
     *, generator: torch.Generator, dtype: torch.dtype, existence: BirthDeath | None = None,
-    z: Measurement | None = None,
+    z: Measurement | None = None, recapture: Recapture | None = None, sensor: SensorModel | None = None,
+    pairs: Tensor | None = None,
 ) -> ExchangeNoise:
-    """Draw the randomness of ``L = num_iterations`` exchange iterations in four calls
-    (and, with ``existence``, the birth noise: births near the points of the frame ``z``
-    when ``existence`` draws them so).
+    """Draw the randomness of ``L = num_iterations`` iterations: one slot per iteration
+    (uniform over the K slots) or, with ``pairs``, two slots (uniform over the close pairs of
+    the run); with ``existence`` the birth noise (births near the points of the frame ``z``
+    when ``existence`` draws them so), with ``recapture`` the relocation noise (from ``z``
+    by ``sensor``).
 
     ``source`` indices are categorical draws from the previous weights ``log_w (B, N)`` by
     inversion of uniforms (float64 CDF + ``searchsorted``, no ``torch.multinomial``).
-    """
-    b, n = log_w.shape
-    shape = (num_iterations, b, num_chains)
-    dev = log_w.device
-    u_src = torch.rand((b, num_iterations * num_chains), generator=generator, device=dev, dtype=torch.float64)
-    source = inverse_cdf(cdf(log_w), u_src)
-    source = source.reshape(b, num_iterations, num_chains).permute(1, 0, 2)
-    slot = torch.randint(num_targets, shape, generator=generator, device=dev)
-    eps = torch.randn(shape + (noise_dim,), generator=generator, device=dev, dtype=dtype)
-    u = torch.rand(shape, generator=generator, device=dev, dtype=dtype)
-    if existence is None:
-        return ExchangeNoise(source, slot, eps, u)
-    template = torch.empty((b, num_iterations, num_chains, existence.dim), device=dev, dtype=dtype)
-    birth = BirthNoise.draw(template, existence, z, generator=generator)  # leading (B, L, C)
-    birth = BirthNoise(birth.u.transpose(0, 1), birth.x.transpose(0, 1), birth.log_ratio.transpose(0, 1))
-    return ExchangeNoise(source, slot, eps, u, birth)
-
-
-def exchange_iteration(
-    chain: tuple, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement,
-    source: Tensor, slot: Tensor, eps: Tensor, u: Tensor, birth: BirthNoise | None = None,
-    cache: Tensor | None = None,
-    *, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
-) -> tuple[tuple, Tensor, tuple[Tensor, Tensor] | None]:
-    """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12), with or
-    without births and deaths (one code path: the slot is propagated by
-    :class:`~torchmcmcpf.models.existence.TargetDynamics`).
-
-    Chain ``c`` of run ``b`` replaces slot ``j = slot[b, c]`` by slot ``j`` of previous
-    particle ``source[b, c]`` propagated (motion; with ``existence`` the existence chain, a
-    birth or ``x_death``) and accepts with ``log u < log p(z | y') - log p(z | y)`` (plus
-    ``log r'_j - log r_j`` for births from ``q_0``, see :mod:`torchmcmcpf.filters.ipmcmc`).
-    Exact MH for the factorised-prior posterior. Pure and branch-free (``torch.compile``
-    friendly). The proposal is scored by the declared hook
-    :meth:`SensorModel.log_likelihood_slot`: a sensor that overrides ``log_likelihood_delta``
-    (e.g. :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives the ratio from
-    the cells near the old and new position of the slot only, carried as ``log_lik + delta``;
-    any other sensor scores the whole proposal with ``log_likelihood``. With ``cache`` (the
-    chains' :meth:`SensorModel.amplitude_cache`) the ratio is
-    :meth:`SensorModel.log_likelihood_delta_cached` instead (the boxes' amplitudes read, not
-    summed from the neighbours' spreads), and the cache's change is returned for the caller
-    to apply to the accepted chains (:meth:`SensorModel.update_amplitude_cache`, eager and in
-    place: the kernel stays pure).
 
     Parameters
     ----------
-    chain : ``(y (B, C, K, D), log_lik (B, C), exists, log_birth)`` with
-        ``log_lik = log p(z | y, exists)``; ``exists (B, C, K)`` bool and ``log_birth (B, C, K)`` (the cached
-        ``log r_j``) with ``existence``, else ``None``.
+    pairs : (B, K, K) bool, optional (:func:`close_pairs`): draw two-slot moves.
+    """
+    b, n = log_w.shape
+    m = 1 if pairs is None else 2
+    shape = (num_iterations, b, num_chains)
+    dev = log_w.device
+    u_src = torch.rand((b, num_iterations * num_chains * m), generator=generator, device=dev, dtype=torch.float64)
+    source = inverse_cdf(cdf(log_w), u_src).reshape(b, num_iterations, num_chains, m).transpose(0, 1)
+    valid = None
+    if pairs is None:
+        slot = torch.randint(num_targets, shape + (1,), generator=generator, device=dev)
+    else:
+        flat = pairs.reshape(b, num_targets * num_targets)
+        valid_run = flat.any(-1)  # (B,)
+        # a run without a close pair draws pair (0, 1) and is rejected (valid False)
+        fallback = torch.zeros_like(flat).index_fill_(-1, torch.tensor([1], device=dev), True)
+        weights = torch.where(valid_run.unsqueeze(-1), flat, fallback)
+        log_p = torch.where(weights, 0.0, float("-inf")).to(torch.float64)
+        u_pair = torch.rand((b, num_iterations * num_chains), generator=generator, device=dev, dtype=torch.float64)
+        at = inverse_cdf(cdf(log_p), u_pair).reshape(b, num_iterations, num_chains).transpose(0, 1)
+        slot = torch.stack([at // num_targets, at % num_targets], -1)
+        valid = valid_run.reshape(1, b, 1).expand(shape)
+    eps = torch.randn(shape + (m, noise_dim), generator=generator, device=dev, dtype=dtype)
+    u = torch.rand(shape, generator=generator, device=dev, dtype=dtype)
+    birth = None
+    if existence is not None:
+        template = torch.empty((b, num_iterations, num_chains, m, existence.dim), device=dev, dtype=dtype)
+        drawn = BirthNoise.draw(template, existence, z, generator=generator)  # leading (B, L, C, M)
+        birth = BirthNoise(*(t.transpose(0, 1) for t in drawn))
+    relocation = draw_relocation(recapture, sensor, (b, num_iterations, num_chains, m), z, generator=generator,
+                                 dtype=dtype, device=dev)
+    if relocation is not None:
+        relocation = RelocationNoise(*(t.transpose(0, 1) for t in relocation))
+    return ExchangeNoise(source, slot, eps, u, birth, relocation, valid)
+
+
+def exchange_iteration(
+    chain: tuple, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
+    cache: Tensor | None = None,
+    *, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
+    recapture: Recapture | None = None, exclusion: Exclusion | None = None,
+) -> tuple[tuple, Tensor, tuple[Tensor, Tensor] | None]:
+    """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12) moving
+    ``M`` slots (module docstring), with or without births and deaths, exclusion and
+    re-capture (one code path: the slots are propagated by
+    :class:`~torchmcmcpf.models.existence.TargetDynamics`).
+
+    The proposal is scored by the declared hook :meth:`SensorModel.log_likelihood_slot`,
+    slot after slot: a sensor that overrides ``log_likelihood_delta`` (e.g.
+    :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives each ratio from the
+    cells near the old and new position of the slot only, carried as ``log_lik + delta``; any
+    other sensor scores the whole proposal with ``log_likelihood``. With ``cache`` (the
+    chains' :meth:`SensorModel.amplitude_cache`) a one-slot move's ratio is
+    :meth:`SensorModel.log_likelihood_delta_cached` instead (the boxes' amplitudes read, not
+    summed from the neighbours' spreads); the cache's change (both slots' for a two-slot
+    move, :meth:`SensorModel.amplitude_change`) is returned for the caller to apply to the
+    accepted chains (:meth:`SensorModel.update_amplitude_cache`, eager and in place: the
+    kernel stays pure).
+
+    Parameters
+    ----------
+    chain : ``(y (B, C, K, D), log_lik (B, C), exists, log_r, kind)`` with
+        ``log_lik = log p(z | y, exists)``; ``exists (B, C, K)`` bool with ``existence``, else
+        ``None``; ``log_r (B, C, K)`` the cached ``log r_j`` (at ``recapture.p_propose``) with
+        ``existence`` or ``recapture``, else ``None``; ``kind (B, C, K)`` int8 the slots'
+        proposal components with ``recapture`` (:func:`~torchmcmcpf.models.multitarget.relocate`),
+        else ``None``.
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
-    z : the frame; source, slot : (B, C) int64; eps : (B, C, noise_dim) standard normals;
-    u : (B, C) uniforms; birth : :class:`BirthNoise` with leading ``(B, C)`` (with existence).
+    z : the frame; noise : :class:`ExchangeNoise` of one iteration (leading ``(B, C)``).
     cache : (B, C, G), optional: the amplitudes of the chains ``y`` (see above).
-    motion, sensor, existence : the models.
+    motion, sensor, existence, recapture, exclusion : the models and the multitarget prior's
+        terms.
 
     Returns
     -------
-    chain : the new chain tuple; accepted : (B, C) bool; update : ``(cells, change)`` of
-    :meth:`SensorModel.log_likelihood_delta_cached` with ``cache``, else ``None``.
+    chain : the new chain tuple; accepted : (B, C) bool; update : ``(cells, change)`` with
+    ``cache``, else ``None``.
     """
-    y, log_lik, exists, log_birth = chain
+    y, log_lik, exists, log_r, kind = chain
     b, n, k, d = x_prev.shape
-    at = source * k + slot  # (B, C)
-    parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), at.unsqueeze(-1), dim=1)  # (B, C, D)
-    parent_e = None if exists_prev is None else torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1)
-    one = None if birth is None else BirthNoise(birth.u.unsqueeze(-1), birth.x.unsqueeze(-2),
-                                                birth.log_ratio.unsqueeze(-1))
-    moved, e_new, lb_new = TargetDynamics(motion, existence).propagate(
-        parent.unsqueeze(-2), None if parent_e is None else parent_e.unsqueeze(-1), eps.unsqueeze(-2), one)
-    here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
-    proposal = torch.where(here.unsqueeze(-1), moved, y)
-    exists_n = None if e_new is None else e_new.squeeze(-1)
-    update = None
-    if cache is None:
-        log_lik_prop = sensor.log_likelihood_slot(y, moved.squeeze(-2), slot, z, log_lik, exists=exists,
-                                                  exists_n=exists_n)
-    else:
-        delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved.squeeze(-2), slot, z,
-                                                                   exists=exists, exists_n=exists_n)
-        log_lik_prop, update = log_lik + delta, (cells, change)
-    log_alpha = log_lik_prop - log_lik
-    new: tuple[Tensor, Tensor, Tensor | None, Tensor | None]
-    if existence is None:
-        new = (proposal, log_lik_prop, None, None)
-    else:
-        if e_new is None or exists is None or log_birth is None:
-            raise ValueError("with an existence model the chains need exists and log_birth (got None)")
-        new = (proposal, log_lik_prop, torch.where(here, e_new, exists), torch.where(here, lb_new, log_birth))
-        log_alpha = log_alpha + (lb_new.squeeze(-1) - torch.where(here, log_birth, 0.0).sum(-1))
-    accepted = mh_accept(log_alpha, u)
-    return mh_select(accepted, new, chain), accepted, update
+    c, m = noise.slot.shape[1], noise.slot.shape[-1]
+    if (existence is not None or recapture is not None) and log_r is None:
+        raise ValueError("with an existence model or re-capture the chains need log_r (got None)")
+    if existence is not None and exists is None:
+        raise ValueError("with an existence model the chains need exists (got None)")
+    at = (noise.source * k + noise.slot).reshape(b, c * m)  # (B, C M)
+    parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), at.unsqueeze(-1), dim=1).reshape(b, c, m, d)
+    parent_e = None if exists_prev is None else \
+        torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1).reshape(b, c, m)
+    dynamics = TargetDynamics(motion, existence, recapture, sensor)
+    # this kernel's epsilon; the chains cache log r at recapture.p_propose, converted by the
+    # slots' kinds (models/multitarget.py, log_q_component) where the two differ
+    base = None if recapture is None else recapture.p_propose
+    eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
+    moved, e_new, r_new, kind_new = dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth,
+                                                                noise.relocation, eps_k)
+
+    def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
+        if kd is None or src is None or dst is None or src == dst:
+            return r
+        return r + (log_q_component(kd, src) - log_q_component(kd, dst)).to(r.dtype)
+
+    cur_y, cur_e, cur_r, cur_kind, cur_ll = y, exists, log_r, kind, log_lik
+    log_prior = torch.zeros_like(log_lik)
+    cells, changes = [], []
+    for j in range(m):  # M = 1 or 2, static: the moved slots one after the other
+        slot = noise.slot[..., j]  # (B, C)
+        here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
+        x_n, e_n = moved[:, :, j], None if e_new is None else e_new[:, :, j]
+        if cache is not None and m == 1:
+            delta, cell, change = sensor.log_likelihood_delta_cached(cache, cur_y, x_n, slot, z, exists=cur_e,
+                                                                     exists_n=e_n)
+            ll = cur_ll + delta
+        else:
+            ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
+            if cache is not None:
+                cell, change = sensor.amplitude_change(cur_y, x_n, slot, cur_e, e_n)
+        if cache is not None:
+            cells.append(cell)
+            changes.append(change)
+        log_prior = log_prior + exclusion_change(exclusion, sensor, cur_y, x_n, slot, cur_e, e_n)
+        if cur_r is not None:
+            k_old = None if cur_kind is None else torch.where(here, cur_kind, 0).sum(-1).to(torch.int8)
+            r_old = convert(torch.where(here, cur_r, 0.0).sum(-1), k_old, base, eps_k)
+            k_j = None if kind_new is None else kind_new[:, :, j]
+            log_prior = log_prior + r_new[:, :, j] - r_old
+            cur_r = torch.where(here, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), cur_r)
+            if cur_kind is not None and k_j is not None:
+                cur_kind = torch.where(here, k_j.unsqueeze(-1), cur_kind)
+        cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
+        if cur_e is not None and e_n is not None:
+            cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
+        cur_ll = ll
+    accepted = mh_accept(cur_ll - log_lik + log_prior, noise.u)
+    if noise.valid is not None:
+        accepted = accepted & noise.valid
+    update = None if cache is None else (torch.cat(cells, 2), torch.cat(changes, 2))
+    return mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind), chain), accepted, update

@@ -40,11 +40,12 @@ from .._validation import check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..models.motion import LinearGaussianMotion
+from ..models.multitarget import Exclusion, log_exclusion
 from ..typing import Measurement, Tensor
 from .hmc import hmc_transition, value_and_grad
 
 __all__ = ["HMCRefine", "HMCRefineNoise", "hmc_refine", "ancestor_log_prior", "mixture_log_prior",
-           "check_hmc_motion"]
+           "check_hmc_motion", "with_exclusion"]
 
 
 @dataclass(frozen=True)
@@ -140,6 +141,20 @@ def mixture_log_prior(x_prev: Tensor, log_w: Tensor, motion: LinearGaussianMotio
         lp = log_norm - 0.5 * r.square().sum(-1)  # (B, C, N, K)
         return torch.logsumexp(lp + log_w[:, None, :, None], dim=2).sum(-1)
     return log_prior
+
+
+def with_exclusion(log_prior: Callable[[Tensor], Tensor], exclusion: Exclusion | None, sensor: SensorModel
+                   ) -> Callable[[Tensor], Tensor]:
+    """``log_prior`` plus the exclusion term ``log Phi(x)`` (:mod:`torchmcmcpf.models.multitarget`),
+    differentiable, so the HMC move targets the filter's target with exclusion; ``log_prior``
+    itself when the term is off.
+    """
+    if exclusion is None or not sensor.resolved:
+        return log_prior
+
+    def log_prior_excl(x: Tensor) -> Tensor:
+        return log_prior(x) + log_exclusion(exclusion, sensor, x)
+    return log_prior_excl
 
 
 def hmc_refine(x: Tensor, log_lik: Tensor, noise: HMCRefineNoise, z: Measurement, *, log_prior: Callable,

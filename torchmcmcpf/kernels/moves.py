@@ -106,6 +106,7 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
+from ..models.multitarget import Exclusion, Recapture, exclusion_change, log_exclusion
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
 from .chains import (  # noqa: F401  (re-exported: the chain state of these moves)
@@ -177,20 +178,24 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
 
 
 def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
-                     sensor: SensorModel, existence: BirthDeath | None) -> ChainState:
+                     sensor: SensorModel, existence: BirthDeath | None, recapture: Recapture | None = None
+                     ) -> ChainState:
     """The joint-draw proposal as a scored :class:`ChainState`: an ancestor by weight, then
-    ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births).
+    ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births
+    and re-capture).
     """
     a = _draw_ancestors(cloud, noise.u_ancestor)
     x_prev = gather_particles(cloud.x, a)
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
-    x, exists, log_birth = TargetDynamics(motion, existence).propagate(x_prev, exists_prev, noise.eps, noise.birth)
+    dynamics = TargetDynamics(motion, existence, recapture, sensor)
+    x, exists, log_ratio = dynamics.propagate(x_prev, exists_prev, noise.eps, noise.birth, noise.relocation)
     return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev,
-                      None if existence is None else log_birth)
+                      None if existence is None and recapture is None else log_ratio)
 
 
 def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, motion: MotionModel,
-                sensor: SensorModel, existence: BirthDeath | None = None) -> ChainState:
+                sensor: SensorModel, existence: BirthDeath | None = None, recapture: Recapture | None = None
+                ) -> ChainState:
     """Start each chain from a previous particle drawn by weight and moved by the prior
     (paper 002, "MCMC-based PF-TBD steps" 1): one joint-draw proposal, always kept.
 
@@ -200,16 +205,26 @@ def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, moti
     chains (its ``u`` is unused); z : frame ``(B, *G)``; motion, sensor : the models.
     existence : BirthDeath, optional: births and deaths (``cloud.exists`` and
     ``noise.birth`` needed; module docstring).
+    recapture : :class:`~torchmcmcpf.models.multitarget.Recapture`, optional (``noise.relocation``
+    needed).
 
     Returns
     -------
     ChainState with ``x (B, C, K, D)`` (and, with existence, ``exists (B, C, K)``).
     """
-    return _joint_candidate(cloud, noise, z, motion, sensor, existence)
+    return _joint_candidate(cloud, noise, z, motion, sensor, existence, recapture)
+
+
+def _log_ratio_sum(chain: ChainState) -> Tensor:
+    """``sum_n log r_n`` of a chain ``(B, C)`` (0 without births and re-capture)."""
+    if chain.log_ratio is None:
+        return torch.zeros_like(chain.log_lik)
+    return chain.log_ratio.sum(-1)
 
 
 def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z: Measurement,
-               motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None
+               motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
+               recapture: Recapture | None = None, exclusion: Exclusion | None = None
                ) -> tuple[ChainState, Tensor]:
     """One joint-draw Metropolis-Hastings step (paper 004 Alg. 1, eq. 60; with existence
     paper 001 step (a), ``log alpha`` of the module docstring).
@@ -218,39 +233,43 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
     ----------
     chain : ChainState ``(B, C, K, D)``; noise : :class:`JointNoise`; cloud : previous
     particles; z : frame ``(B, *G)``; motion, sensor : the models; existence : BirthDeath,
-    optional.
+    optional; recapture, exclusion : the multitarget prior's terms
+    (:mod:`torchmcmcpf.models.multitarget`), optional.
 
     Returns
     -------
     chain : the new ChainState.
     accepted : (B, C) bool.
     """
-    cand = _joint_candidate(cloud, noise, z, motion, sensor, existence)
+    cand = _joint_candidate(cloud, noise, z, motion, sensor, existence, recapture)
+    if (existence is not None or recapture is not None) and chain.log_ratio is None:
+        raise ValueError("chain.log_ratio is None but existence or recapture is given: start the chains with "
+                         "init_chains(..., existence=existence, recapture=recapture)")
     log_alpha = cand.log_lik - chain.log_lik  # the prior parts cancel (eq. 60, P_a = 0)
-    if existence is not None:
-        if chain.log_birth is None or cand.log_birth is None:
-            raise ValueError("chain.log_birth is None but existence is given: start the chains with "
-                             "init_chains(..., existence=existence)")
-        log_alpha = log_alpha + cand.log_birth.sum(-1) - chain.log_birth.sum(-1)
+    log_alpha = log_alpha + _log_ratio_sum(cand) - _log_ratio_sum(chain)
+    log_alpha = log_alpha + log_exclusion(exclusion, sensor, cand.x, cand.exists) \
+        - log_exclusion(exclusion, sensor, chain.x, chain.exists)
     accepted = mh_accept(log_alpha, noise.u)
     return mh_select(accepted, cand, chain), accepted
 
 
 # -- per-target refinement -------------------------------------------------------------------
 def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion: MotionModel,
-                sensor: SensorModel, existence: BirthDeath | None = None,
-                slot_kernel: Callable | None = None) -> tuple[ChainState, Tensor]:
+                sensor: SensorModel, existence: BirthDeath | None = None, recapture: Recapture | None = None,
+                exclusion: Exclusion | None = None, slot_kernel: Callable | None = None
+                ) -> tuple[ChainState, Tensor]:
     """One MH-within-Gibbs sweep over the K targets (paper 004 Alg. 2; paper 001 Alg. 1).
 
     Every slot proposes ``(x'_n, e'_n)`` from its ancestor by :class:`TargetDynamics` (the
-    motion alone without births). Vectorised over K for a separable sensor without flags;
-    otherwise sequential over K through the declared hook ``log_likelihood_slot`` (module
-    docstring).
+    motion alone without births and re-capture). Vectorised over K for a separable sensor
+    without flags and without exclusion; otherwise sequential over K through the declared
+    hook ``log_likelihood_slot`` (module docstring).
 
     Parameters
     ----------
     chain : ChainState ``(B, C, K, D)``; noise : :class:`RefineNoise`; z : frame ``(B, *G)``;
-    motion, sensor : the models; existence : BirthDeath, optional.
+    motion, sensor : the models; existence : BirthDeath, optional; recapture, exclusion :
+    the multitarget prior's terms, optional.
 
     Returns
     -------
@@ -258,80 +277,90 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
     accepted : (B, C, K) bool, one flag per target update.
     """
     # every slot's proposal (x'_n, e'_n) from its ancestor, by TargetDynamics; log_ratio is
-    # slot n's log r'_n - log r_n (zeros without births: the transition cancels, eq. 66)
-    x_prop, e_prop, birth_prop = TargetDynamics(motion, existence).propagate(chain.x_prev, chain.exists_prev,
-                                                                             noise.eps, noise.birth)
-    log_ratio = birth_prop if chain.log_birth is None else birth_prop - chain.log_birth
-    if chain.log_lik_terms is not None:  # separable sensor, no flags: all K slots at once
+    # slot n's log r'_n - log r_n (zeros without births and re-capture: the transition cancels, eq. 66)
+    dynamics = TargetDynamics(motion, existence, recapture, sensor)
+    x_prop, e_prop, ratio_prop = dynamics.propagate(chain.x_prev, chain.exists_prev, noise.eps, noise.birth,
+                                                    noise.relocation)
+    log_ratio = ratio_prop if chain.log_ratio is None else ratio_prop - chain.log_ratio
+    coupled = exclusion is not None and sensor.resolved
+    if chain.log_lik_terms is not None and not coupled:  # separable sensor, no flags: all K slots at once
         terms_prop = sensor.log_likelihood_per_target(x_prop, z)
         accepted = mh_accept(terms_prop - chain.log_lik_terms + log_ratio, noise.u)
         x = mh_select(accepted, x_prop, chain.x)
         terms = torch.where(accepted, terms_prop, chain.log_lik_terms)
-        return ChainState(x, chain.x_prev, terms.sum(-1), terms), accepted
-    return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, birth_prop, slot_kernel)
+        new_ratio = None if chain.log_ratio is None else torch.where(accepted, ratio_prop, chain.log_ratio)
+        return ChainState(x, chain.x_prev, terms.sum(-1), terms, log_ratio=new_ratio), accepted
+    return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, ratio_prop, exclusion,
+                             slot_kernel)
 
 
-def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_birth: Tensor | None, x_prop: Tensor,
-                e_prop: Tensor | None, birth_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
-                n: int | Tensor, z: Measurement, *, sensor: SensorModel
+def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | None, x_prop: Tensor,
+                e_prop: Tensor | None, r_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
+                n: int | Tensor, z: Measurement, *, sensor: SensorModel, exclusion: Exclusion | None = None
                 ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
     """The MH update of one slot ``n`` of the sequential sweep (pure; the unit the
     ``compile_step`` of the MCMC filter compiles, once for every slot).
 
     Parameters
     ----------
-    x : (B, C, K, D), log_lik : (B, C), e, log_birth : (B, C, K) or None: the chains.
-    x_prop : (B, C, K, D), e_prop, birth_prop : (B, C, K) or None, log_ratio, u : (B, C, K):
-    the proposals of every slot; n : Python int, or (B, C) int64 (the same slot everywhere,
-    as a tensor so that one compiled graph serves every slot); z : the frame.
+    x : (B, C, K, D), log_lik : (B, C), e, log_r : (B, C, K) or None: the chains (``log_r``
+    the cached ``log r_n``, :attr:`ChainState.log_ratio`).
+    x_prop : (B, C, K, D), e_prop, r_prop : (B, C, K) or None, log_ratio, u : (B, C, K):
+    the proposals of every slot (``r_prop`` their ``log r'_n``, ``log_ratio`` the difference
+    ``log r'_n - log r_n`` taken against the sweep's start); n : Python int, or (B, C) int64
+    (the same slot everywhere, as a tensor so that one compiled graph serves every slot);
+    z : the frame; sensor : the SensorModel; exclusion : the exclusion term, optional (its
+    ``K - 1`` factors of slot ``n``).
 
     Returns
     -------
-    x, log_lik, e, log_birth : the chains after the update; accepted : (B, C) bool.
+    x, log_lik, e, log_r : the chains after the update; accepted : (B, C) bool.
     """
-    if e is not None and (e_prop is None or birth_prop is None or log_birth is None):
-        raise ValueError("with existence flags e, e_prop, birth_prop and log_birth must be given too")
+    if e is not None and (e_prop is None or r_prop is None or log_r is None):
+        raise ValueError("with existence flags e, e_prop, r_prop and log_r must be given too")
     slots = torch.arange(x.shape[-2], device=x.device)
-    if isinstance(n, torch.Tensor):
-        here = slots == n.unsqueeze(-1)  # (B, C, K)
+    n_t = n if isinstance(n, torch.Tensor) else torch.full(log_lik.shape, n, dtype=torch.int64, device=x.device)
+    here = slots == n_t.unsqueeze(-1)  # (B, C, K)
 
-        def pick(t: Tensor) -> Tensor:
-            idx = n.reshape(n.shape + (1,) * (t.dim() - n.dim()))
-            return torch.take_along_dim(t, idx, dim=n.dim()).squeeze(n.dim())
-    else:
-        here = slots == n
+    def pick(t: Tensor) -> Tensor:
+        idx = n_t.reshape(n_t.shape + (1,) * (t.dim() - n_t.dim()))
+        return torch.take_along_dim(t, idx, dim=n_t.dim()).squeeze(n_t.dim())
 
-        def pick(t: Tensor) -> Tensor:
-            return t[:, :, n]
+    x_n = pick(x_prop)
+    e_n = None if e is None or e_prop is None else pick(e_prop)
     x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
     # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
-    log_lik_cand = sensor.log_likelihood_slot(x, pick(x_prop), n, z, log_lik, exists=e,
-                                              exists_n=None if e is None or e_prop is None else pick(e_prop))
-    acc = mh_accept(log_lik_cand - log_lik + pick(log_ratio), pick(u))
+    log_lik_cand = sensor.log_likelihood_slot(x, x_n, n, z, log_lik, exists=e, exists_n=e_n)
+    log_alpha = log_lik_cand - log_lik + pick(log_ratio) + exclusion_change(exclusion, sensor, x, x_n, n_t, e, e_n)
+    acc = mh_accept(log_alpha, pick(u))
     x = mh_select(acc, x_cand, x)
     log_lik = torch.where(acc, log_lik_cand, log_lik)
-    if e is not None and e_prop is not None and birth_prop is not None and log_birth is not None:
+    if e is not None and e_prop is not None:
         e = mh_select(acc, torch.where(here, e_prop, e), e)
-        log_birth = torch.where(acc.unsqueeze(-1) & here, birth_prop, log_birth)
-    return x, log_lik, e, log_birth, acc
+    if log_r is not None and r_prop is not None:
+        log_r = torch.where(acc.unsqueeze(-1) & here, r_prop, log_r)
+    return x, log_lik, e, log_r, acc
 
 
 def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: Tensor, z: Measurement,
-                      sensor: SensorModel, e_prop: Tensor | None = None, birth_prop: Tensor | None = None,
-                      slot_kernel: Callable | None = None) -> tuple[ChainState, Tensor]:
+                      sensor: SensorModel, e_prop: Tensor | None = None, r_prop: Tensor | None = None,
+                      exclusion: Exclusion | None = None, slot_kernel: Callable | None = None
+                      ) -> tuple[ChainState, Tensor]:
     """Sequential Gibbs sweep over the K slots with proposals ``x_prop (B, C, K, D)`` (and
-    ``e_prop``, ``birth_prop (B, C, K)`` with existence), ``log_ratio (B, C, K)`` and
+    ``e_prop``, ``r_prop (B, C, K)`` with existence or re-capture), ``log_ratio (B, C, K)`` and
     uniforms ``u (B, C, K)``: slot n sees the accepted updates of slots ``< n``
     (:func:`refine_slot`; ``slot_kernel`` a compiled one, called with a tensor slot).
     """
-    x, log_lik, e, log_birth = chain.x, chain.log_lik, chain.exists, chain.log_birth
+    x, log_lik, e, log_r = chain.x, chain.log_lik, chain.exists, chain.log_ratio
+    if log_r is None:
+        r_prop = None
     flags = []
     for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)
-        args = (x, log_lik, e, log_birth, x_prop, e_prop, birth_prop, log_ratio, u)
+        args = (x, log_lik, e, log_r, x_prop, e_prop, r_prop, log_ratio, u)
         if slot_kernel is None:
-            x, log_lik, e, log_birth, acc = refine_slot(*args, n, z, sensor=sensor)
+            x, log_lik, e, log_r, acc = refine_slot(*args, n, z, sensor=sensor, exclusion=exclusion)
         else:
-            x, log_lik, e, log_birth, acc = slot_kernel(*args, torch.full(log_lik.shape, n, device=x.device), z)
+            x, log_lik, e, log_r, acc = slot_kernel(*args, torch.full(log_lik.shape, n, device=x.device), z)
         flags.append(acc)
-    return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_birth=log_birth), \
+    return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_ratio=log_r), \
         torch.stack(flags, dim=-1)

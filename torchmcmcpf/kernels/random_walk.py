@@ -11,6 +11,7 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.motion import LinearGaussianMotion
+from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import cdf, gather_particles, inverse_cdf
 from ..typing import Measurement, Tensor
 from .chains import ChainState, PreviousCloud, _normal, _uniform, evaluate, whiten
@@ -115,8 +116,8 @@ def propose_random_walk(x: Tensor, eps: Tensor, scale: Tensor, *, cloud: Previou
 
 
 def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: PreviousCloud,
-                     z: Measurement, motion: MotionModel, sensor: SensorModel, scale: Tensor
-                     ) -> tuple[ChainState, Tensor]:
+                     z: Measurement, motion: MotionModel, sensor: SensorModel, scale: Tensor,
+                     exclusion: Exclusion | None = None) -> tuple[ChainState, Tensor]:
     """One random-walk MH step on ``x`` (paper 002 eqs. 13-14), then a Gibbs redraw of the
     ancestor from ``p(a | x) ∝ w^a p(x | x^a)``.
 
@@ -126,6 +127,9 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     cloud : the previous particles; z : the frame ``(B, *G)``; motion, sensor : the models.
     scale : ``(D,)`` or scalar random-walk step, or a ``(B, 1, K, D, D)`` Cholesky factor
         (:func:`propose_random_walk`).
+    exclusion : the exclusion term (:mod:`torchmcmcpf.models.multitarget`), optional: its
+        ratio ``Phi(x') / Phi(x)`` joins ``alpha`` (the ancestor's conditional does not
+        depend on it).
 
     Returns
     -------
@@ -135,6 +139,7 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     x_prop, log_ratio, lj_prop, lj_cur = propose_random_walk(chain.x, noise.eps, scale, cloud=cloud,
                                                              motion=motion)
     log_lik, terms = evaluate(x_prop, z, sensor)
+    log_ratio = log_ratio + log_exclusion(exclusion, sensor, x_prop) - log_exclusion(exclusion, sensor, chain.x)
     accepted = mh_accept(log_lik - chain.log_lik + log_ratio, noise.u)
     new = mh_select(accepted, ChainState(x_prop, chain.x_prev, log_lik, terms), chain)
     # Gibbs step on the ancestor: inversion of the conditional's CDF with one uniform per chain.
