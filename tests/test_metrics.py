@@ -5,6 +5,7 @@ import pytest
 import torch
 from scipy.optimize import linear_sum_assignment
 
+import torchmcmcpf as tp
 from torchmcmcpf.metrics import (
     match_tracks,
     optimal_assignment,
@@ -166,3 +167,70 @@ def test_assignment_bad_input():
         optimal_assignment(torch.ones(2, 2), method="greedy")
     with pytest.raises(ValueError, match="dp"):
         optimal_assignment(torch.ones(17, 17), method="dp")
+
+
+# -- long runs: coverage, identity switches, OSPA parts (issue 22) -------------------------
+def _states(points):
+    """(T, B, K, 2) positions -> (T, B, K, 4) states [x, vx, y, vy]."""
+    p = torch.as_tensor(points, dtype=torch.float64)
+    z = torch.zeros_like(p[..., 0])
+    return torch.stack([p[..., 0], z, p[..., 1], z], -1)
+
+
+def test_slot_coverage_counts_slots_near_each_target():
+    truth = _states([[[[0.0, 0.0], [100.0, 0.0]]]])  # T = B = 1, two targets
+    # both slots on target 0 (5 m and 12 m away): target 0 doubled, target 1 uncovered
+    est = _states([[[[5.0, 0.0], [0.0, 12.0]]]])
+    cov = tp.metrics.slot_coverage(est, truth, radius=20.0)
+    assert cov.tolist() == [[[2, 0]]]
+    # a label swap changes nothing; a slot at 20 m exactly is not within 20 m
+    est = _states([[[[100.0, 1.0], [20.0, 0.0]]]])
+    assert tp.metrics.slot_coverage(est, truth, radius=20.0).tolist() == [[[0, 1]]]
+    # masks: a slot not reported does not cover, an absent target counts 0
+    est = _states([[[[0.0, 0.0], [100.0, 0.0]]]])
+    cov = tp.metrics.slot_coverage(est, truth, estimate_mask=torch.tensor([[[True, False]]]),
+                                   truth_mask=torch.tensor([[[False, True]]]))
+    assert cov.tolist() == [[[0, 0]]]
+    with pytest.raises(ValueError, match="radius"):
+        tp.metrics.slot_coverage(est, truth, radius=0.0)
+    with pytest.raises(ValueError, match="estimate_mask"):
+        tp.metrics.slot_coverage(est, truth, estimate_mask=torch.ones(1, 1, 3, dtype=torch.bool))
+
+
+def test_longest_run_of_uncovered_steps():
+    flags = torch.tensor([[1, 0], [1, 1], [0, 1], [1, 1], [1, 0]], dtype=torch.bool)  # (T = 5, 2)
+    assert tp.metrics.longest_run(flags).tolist() == [2, 3]
+    assert tp.metrics.longest_run(torch.zeros(4, 3, dtype=torch.bool)).tolist() == [0, 0, 0]
+
+
+def test_identity_switches_count_label_changes_within_the_gate():
+    # two targets that swap their slots at step 2 (one switch per target = 2), run 1 never swaps
+    a, b = [0.0, 0.0], [100.0, 0.0]
+    truth = _states([[[a, b], [a, b]]] * 4)  # (T = 4, B = 2, K = 2, 2)
+    est = _states([[[a, b], [a, b]], [[a, b], [a, b]], [[b, a], [a, b]], [[b, a], [a, b]]])
+    assert tp.metrics.identity_switches(est, truth).tolist() == [2, 0]
+    # an estimate beyond the gate is no assignment: a slot that leaves and comes back with
+    # the same label is no switch
+    far = [1000.0, 0.0]
+    est = _states([[[a, b]], [[far, b]], [[a, b]], [[a, b]]])
+    truth1 = truth[:, :1]
+    assert tp.metrics.identity_switches(est, truth1, gate=20.0).tolist() == [0]
+    # per-step assignment RMSE: a swap costs nothing, whole-track matching charges it
+    est = _states([[[a, b]], [[a, b]], [[b, a]], [[b, a]]])
+    assert float(tp.metrics.position_rmse(est, truth1, match="step").overall) == 0.0
+    assert float(tp.metrics.position_rmse(est, truth1, match="track").overall) > 50.0
+    with pytest.raises(ValueError, match="match"):
+        tp.metrics.position_rmse(est, truth1, match="sometimes")
+
+
+def test_ospa_parts_split_localisation_and_cardinality():
+    x = torch.tensor([[[0.0, 0.0], [3.0, 4.0]]], dtype=torch.float64)  # 2 estimates
+    y = torch.tensor([[[0.0, 0.0], [0.0, 0.0], [50.0, 50.0]]], dtype=torch.float64)  # 3 truths, one far
+    parts = tp.metrics.ospa_parts(x, y, c=10.0, p=2.0)
+    # the 2 estimates pair with the 2 truths at the origin: distances 0 and 5; one missed
+    assert parts.localisation.item() == pytest.approx(math.sqrt(25.0 / 3))
+    assert parts.cardinality.item() == pytest.approx(math.sqrt(100.0 / 3))
+    assert parts.total.item() == pytest.approx(tp.metrics.ospa(x, y, c=10.0, p=2.0).item())
+    assert parts.total.item() ** 2 == pytest.approx(parts.localisation.item() ** 2 + parts.cardinality.item() ** 2)
+    empty = tp.metrics.ospa_parts(x[:, :0], y[:, :0], c=10.0)
+    assert empty.total.item() == 0.0 and empty.cardinality.item() == 0.0

@@ -35,7 +35,12 @@ __all__ = [
     "optimal_assignment",
     "match_tracks",
     "ospa",
+    "ospa_parts",
+    "OSPAParts",
     "gospa",
+    "slot_coverage",
+    "longest_run",
+    "identity_switches",
     "cardinality_error",
 ]
 
@@ -75,7 +80,7 @@ def position_error(estimate: Tensor, truth: Tensor) -> Tensor:
     return torch.linalg.vector_norm(_positions(estimate) - _positions(truth), dim=-1)
 
 
-def position_rmse(estimate: Tensor, truth: Tensor, *, match: bool = False) -> RMSE:
+def position_rmse(estimate: Tensor, truth: Tensor, *, match: bool | str = False) -> RMSE:
     """Position RMSE over runs, time and targets (Ling 2012, paper 002 eq. 16).
 
     ``RMSE = sqrt( 1/(I E K) sum_i sum_k sum_j (x - x_hat)^2 + (y - y_hat)^2 )``
@@ -86,15 +91,19 @@ def position_rmse(estimate: Tensor, truth: Tensor, *, match: bool = False) -> RM
     Parameters
     ----------
     estimate, truth : (T, B, K, D) with positions at indices 0 (x) and 2 (y).
-    match : relabel the estimates of each run to the truth first (:func:`match_tracks`,
-        whole-track assignment).
+    match : relabel the estimates of each run to the truth first (:func:`match_tracks`):
+        ``True`` or ``"track"`` with one whole-track assignment per run (a label swap costs
+        error), ``"step"`` with one assignment per step (the per-step assignment RMSE of long
+        runs: a label swap costs nothing, a lost target still does).
 
     Returns
     -------
     RMSE with ``per_step (T,)``, ``per_run (B,)``, ``overall ()``.
     """
+    if match not in (False, True, "track", "step"):
+        raise ValueError(f"match must be False, True, 'track' or 'step', got {match!r}")
     if match:
-        estimate, _ = match_tracks(estimate, truth)
+        estimate, _ = match_tracks(estimate, truth, per_step=match == "step")
     se = position_error(estimate, truth).square()  # (T, B, K)
     return RMSE(
         per_step=se.mean(dim=(1, 2)).sqrt(),
@@ -333,6 +342,92 @@ def match_tracks(estimate: Tensor, truth: Tensor, *, per_step: bool = False
     return matched, perm
 
 
+# -- long runs: coverage, identity switches ---------------------------------------------
+
+
+def slot_coverage(estimate: Tensor, truth: Tensor, *, radius: float = 20.0, estimate_mask: Tensor | None = None,
+                  truth_mask: Tensor | None = None) -> Tensor:
+    """How many estimated slots lie within ``radius`` of each true target, per step.
+
+    ``0`` marks an *uncovered* target (no slot within ``radius``: lost, whatever the labels),
+    ``>= 2`` a target that two slots share (coalescence). A label swap changes neither.
+
+    Parameters
+    ----------
+    estimate : (T, B, K, D) slot estimates; truth : (T, B, J, D) true states (positions at
+        indices 0 and 2).
+    radius : [m] > 0.
+    estimate_mask : (T, B, K) bool, optional: the slots reported (e.g. existence > 0.5).
+    truth_mask : (T, B, J) bool, optional: the targets present (absent ones count 0).
+
+    Returns
+    -------
+    (T, B, J) int64.
+    """
+    check_tensor(estimate, "estimate")
+    check_tensor(truth, "truth")
+    if estimate.dim() != 4 or truth.dim() != 4 or estimate.shape[:2] != truth.shape[:2] or min(
+            estimate.shape[-1], truth.shape[-1]) < 3:
+        raise ValueError(f"estimate has shape {tuple(estimate.shape)} and truth {tuple(truth.shape)}, expected "
+                         "(T, B, K, D) and (T, B, J, D) with the same T, B and D >= 3")
+    check_positive(radius, "radius")
+    d = torch.linalg.vector_norm(_positions(estimate).unsqueeze(-2) - _positions(truth).unsqueeze(-3), dim=-1)
+    near = d < radius  # (T, B, K, J); NaN estimates are never near
+    if estimate_mask is not None:
+        check_shape(estimate_mask, "estimate_mask", tuple(estimate.shape[:3]))
+        near = near & estimate_mask.to(torch.bool).unsqueeze(-1)
+    count = near.sum(-2)
+    if truth_mask is not None:
+        check_shape(truth_mask, "truth_mask", tuple(truth.shape[:3]))
+        count = torch.where(truth_mask.to(torch.bool), count, torch.zeros_like(count))
+    return count
+
+
+def longest_run(flags: Tensor) -> Tensor:
+    """Longest run of consecutive ``True`` along the first (time) dim: ``(T, ...) -> (...)``
+    int64 (e.g. the longest stretch a target stays uncovered, ``slot_coverage(...) == 0``).
+    """
+    check_tensor(flags, "flags")
+    if flags.dim() < 1:
+        raise ValueError(f"flags has shape {tuple(flags.shape)}, expected (T, ...)")
+    run = torch.zeros(flags.shape[1:], dtype=torch.int64, device=flags.device)
+    best = torch.zeros_like(run)
+    for f in flags.to(torch.bool):  # a loop over time only
+        run = torch.where(f, run + 1, torch.zeros_like(run))
+        best = torch.maximum(best, run)
+    return best
+
+
+def identity_switches(estimate: Tensor, truth: Tensor, *, gate: float = 20.0) -> Tensor:
+    """Identity switches per run (the IDSW count of the CLEAR MOT metrics, Bernardin and
+    Stiefelhagen 2008): at every step the slots are assigned to the true targets by an
+    optimal assignment on the squared position error (:func:`match_tracks` per step), an
+    assignment farther than ``gate`` does not count, and a true target whose assigned slot
+    differs from the slot it had at its last counted step is one switch.
+
+    Parameters
+    ----------
+    estimate, truth : (T, B, K, D) (the same K: every slot a target).
+    gate : [m] > 0.
+
+    Returns
+    -------
+    (B,) int64.
+    """
+    check_positive(gate, "gate")
+    _check_tracks(estimate, truth)
+    _, perm = match_tracks(estimate, truth, per_step=True)  # (T, B, K): slot of true target k
+    matched = estimate.gather(2, perm[..., None].expand(estimate.shape))
+    valid = position_error(matched, truth) < gate  # (T, B, K)
+    last = torch.full(perm.shape[1:], -1, dtype=torch.int64, device=perm.device)
+    switches = torch.zeros(perm.shape[1], dtype=torch.int64, device=perm.device)
+    for p, v in zip(perm, valid):  # a loop over time only
+        changed = v & (last >= 0) & (p != last)
+        switches = switches + changed.sum(-1)
+        last = torch.where(v, p, last)
+    return switches
+
+
 # -- set metrics: OSPA, GOSPA, cardinality ------------------------------------------------
 
 
@@ -412,6 +507,33 @@ def ospa(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | Non
     total, nx, ny = _set_distance_sum(x, y, x_mask, y_mask, c, float(p), float(c) ** float(p), "ospa")
     big = torch.maximum(nx, ny)
     return torch.where(big > 0, total / big.clamp(min=1), torch.zeros_like(total)).pow(1.0 / float(p))
+
+
+class OSPAParts(NamedTuple):
+    """OSPA and its two components (Schuhmacher, Vo and Vo 2008, sec. IV-B), each ``(...)``.
+
+    ``total^p = localisation^p + cardinality^p`` with, for ``m <= n``,
+    ``localisation = ((1/n) min_pi sum_i min(c, d_i)^p)^(1/p)`` and
+    ``cardinality = (c^p (n - m) / n)^(1/p)``.
+    """
+
+    total: Tensor
+    localisation: Tensor
+    cardinality: Tensor
+
+
+def ospa_parts(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | None = None,
+               y_mask: Tensor | None = None) -> OSPAParts:
+    """:func:`ospa` split into its localisation and cardinality components
+    (:class:`OSPAParts`); parameters as :func:`ospa`.
+    """
+    miss = float(c) ** float(p)
+    total, nx, ny = _set_distance_sum(x, y, x_mask, y_mask, c, float(p), miss, "ospa")
+    big = torch.maximum(nx, ny).clamp(min=1)
+    card = miss * (nx - ny).abs()
+    loc = (total - card).clamp(min=0.0)
+    e = 1.0 / float(p)
+    return OSPAParts((total / big).pow(e), (loc / big).pow(e), (card / big).pow(e))
 
 
 def gospa(x: Tensor, y: Tensor, *, c: float, p: float = 2.0, x_mask: Tensor | None = None,
