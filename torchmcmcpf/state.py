@@ -14,10 +14,10 @@ from typing import Any, NamedTuple
 
 import torch
 
-from .typing import Tensor
+from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
-           "weighted_mean", "summary"]
+           "weighted_mean", "summary", "relabel", "relabelled_estimate"]
 
 
 def summary(value: Any) -> str:
@@ -244,6 +244,120 @@ def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
     mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
                        fill)
     return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)
+
+
+def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, reference_exists: Tensor | None = None,
+            cutoff: float = 100.0, max_sweeps: int | None = None) -> tuple[Tensor, Tensor | None]:
+    """Permute each particle's slots to best match a reference state (the relabelling step
+    of Stephens 2000, "Dealing with label switching in mixture models").
+
+    A multitarget posterior is (nearly) symmetric in its slot labels: a particle may hold
+    target A in slot 0 and another particle target A in slot 1. Averaging slots across such
+    particles puts both slot means between the targets; relabelling first makes the slot
+    means means of *targets*. The cost of giving particle slot ``a`` the reference label
+    ``r`` is the squared position distance, cut off at ``cutoff^2`` (OSPA-like); with
+    existence flags a live slot against an absent reference slot, or a dead slot against a
+    present one, costs ``cutoff^2 / 2`` and two absent ones 0. The search swaps the pair of
+    labels that lowers a particle's cost most, sweep after sweep (vectorised over runs and
+    particles; one host check per sweep ends it when no particle improves), so it reaches a
+    permutation no single swap improves: the optimal one when labels are exchanged in
+    pairs, the usual case after targets cross.
+
+    Parameters
+    ----------
+    x : (B, N, K, D) particles (positions at the ``X``, ``Y`` indices).
+    reference : (B, K, D).
+    exists : (B, N, K) bool, optional; reference_exists : (B, K) bool, optional (present
+        reference slots; default all).
+    cutoff : [m] > 0.
+    max_sweeps : at most this many swaps per particle (default ``K (K - 1) / 2``).
+
+    Returns
+    -------
+    x : (B, N, K, D) with ``x[b, n, r]`` the slot given label ``r``; exists : the flags
+    permuted alike (None without).
+    """
+    b, n, k, _ = x.shape
+    if k < 2:
+        return x, exists
+    if tuple(reference.shape) != (b, k, x.shape[-1]):
+        raise ValueError(f"reference has shape {tuple(reference.shape)}, expected {(b, k, x.shape[-1])}")
+    if not cutoff > 0:
+        raise ValueError(f"cutoff must be > 0, got {cutoff!r}")
+    pos = x[..., [X, Y]]
+    ref = reference[..., [X, Y]].to(x.dtype)
+    cost = (pos.unsqueeze(-2) - ref[:, None, None]).square().sum(-1).clamp(max=cutoff**2)  # (B, N, K, K)
+    if exists is not None or reference_exists is not None:
+        e = torch.ones((b, n, k), dtype=torch.bool, device=x.device) if exists is None else exists
+        r = torch.ones((b, k), dtype=torch.bool, device=x.device) if reference_exists is None else reference_exists
+        live, present = e.unsqueeze(-1), r[:, None, None, :]
+        cost = torch.where(live & present, cost,
+                           torch.where(live ^ present, torch.full_like(cost, cutoff**2 / 2), torch.zeros_like(cost)))
+    label = torch.arange(k, device=x.device).expand(b, n, k).clone()  # particle slot a carries label[a]
+    pair = torch.ones((k, k), dtype=torch.bool, device=x.device).triu(1)
+    for _ in range(k * (k - 1) // 2 if max_sweeps is None else max_sweeps):  # sweeps, not slots
+        cross = torch.take_along_dim(cost, label.unsqueeze(-2).expand(b, n, k, k), -1)  # [a, c] = cost[a, label[c]]
+        own = torch.diagonal(cross, dim1=-2, dim2=-1)  # (B, N, K)
+        gain = own.unsqueeze(-1) + own.unsqueeze(-2) - cross - cross.mT  # swap a <-> c
+        gain = torch.where(pair, gain, torch.zeros_like(gain)).flatten(-2)
+        best, at = gain.max(-1)  # (B, N)
+        swap = best > 1e-9 * cutoff**2
+        if not bool(swap.any()):
+            break
+        a, c = at // k, at % k
+        la, lc = torch.take_along_dim(label, a.unsqueeze(-1), -1), torch.take_along_dim(label, c.unsqueeze(-1), -1)
+        new = label.scatter(-1, a.unsqueeze(-1), lc).scatter(-1, c.unsqueeze(-1), la)
+        label = torch.where(swap.unsqueeze(-1), new, label)
+    slot_of = torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
+    x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
+    return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+
+
+def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *,
+                        reference_exists: Tensor | None = None, x_death: Tensor | None = None,
+                        iterations: int = 2, cutoff: float = 100.0) -> ExistenceEstimate:
+    """The slot estimates of a cloud after relabelling its particles (:func:`relabel`):
+    the default estimate of every filter with two or more slots.
+
+    Starting from ``reference`` (default: the plain weighted mean, every slot present), each
+    of ``iterations`` rounds relabels the particles against the current estimate and
+    recomputes it (Stephens 2000's algorithm); a filter passes its previous estimate,
+    predicted, so that the labels also stay the same over time.
+
+    Parameters
+    ----------
+    state : ParticleState ``x (B, N, K, D)``, ``log_w (B, N)``, optional ``exists (B, N, K)``.
+    reference : (B, K, D), optional; reference_exists : (B, K) bool, optional.
+    x_death : (D,) for slots that exist in no particle (with existence).
+    iterations : relabelling rounds (0: the plain estimate); cutoff : [m], as :func:`relabel`.
+
+    Returns
+    -------
+    :class:`ExistenceEstimate` of the relabelled cloud (without existence flags:
+    ``exists_prob`` ones and ``mean`` the weighted mean).
+    """
+    x, log_w, exists = state.x, state.log_w, state.exists
+    b, n, k, d = x.shape
+    ref = weighted_mean(x, log_w) if reference is None else reference
+    present = reference_exists
+    if exists is not None and reference is None:
+        est = existence_estimate(state, x_death=x_death)
+        ref, present = est.mean, est.present
+    out = None
+    for _ in range(max(1, int(iterations))):
+        if iterations > 0 and k > 1:
+            xr, er = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
+        else:
+            xr, er = x, exists
+        if exists is None:
+            mean = weighted_mean(xr, log_w)
+            ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
+            out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
+        else:
+            out = existence_estimate(ParticleState(xr, log_w, er), x_death=x_death)
+        ref, present = out.mean, out.present if exists is not None else None
+    assert out is not None
+    return out
 
 
 torch.serialization.add_safe_globals([ParticleState, StepInfo, FilterResult, ExistenceEstimate])

@@ -34,7 +34,7 @@ from torchmcmcpf.models.existence import BirthDeath
 from torchmcmcpf.models.motion import ConstantVelocity
 from torchmcmcpf.models.sensors.points import PoissonClutterPoints
 from torchmcmcpf.scenarios.septier import stack_frames
-from torchmcmcpf.state import ParticleState, existence_estimate
+from torchmcmcpf.state import ParticleState, existence_estimate, relabelled_estimate
 
 AREA = ((0.0, 5000.0), (0.0, 5000.0))
 B, N, K, T = 3, 400, 3, 26
@@ -101,8 +101,11 @@ def test_estimate_is_the_mean_given_existence(gen):
     state = filt.init(torch.zeros(B, N, K, 4, dtype=torch.float64))
     for t in range(BORN + 6):
         state, _ = filt.step(state, type(z)(z.z[t], z.mask[t]), generator=gen)
-    est = existence_estimate(state)
+    # the filter's estimate: the mean given existence of the relabelled cloud (one target
+    # whatever slot each particle holds it in)
+    est = relabelled_estimate(state, x_death=existence.x_death)
     assert torch.allclose(filt.estimate(state), est.mean)
+    assert torch.allclose(est.expected_count, existence_estimate(state).expected_count)
     # the one present slot per run is within a few noise sd of the target's points
     pts, mask = z.z[BORN + 5], z.mask[BORN + 5]
     assert est.present.sum(-1).tolist() == [1] * B

@@ -33,7 +33,7 @@ from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..state import FilterResult, ParticleState, StepInfo, existence_estimate, stack_infos
+from ..state import ExistenceEstimate, FilterResult, ParticleState, StepInfo, relabelled_estimate, stack_infos
 from ..typing import Measurement, Tensor
 
 __all__ = ["Filter", "CompiledKernel", "active_prior", "check_existence", "compile_kernel"]
@@ -301,12 +301,42 @@ class Filter(nn.Module):
         return self.init(check_tensor(init, "init"))
 
     def estimate(self, state: ParticleState) -> Tensor:
-        """MMSE estimate ``(B, K, D)`` of a state (paper 000 eq. 6); with existence, each
-        slot's mean given that it exists (:func:`~torchmcmcpf.state.existence_estimate`).
+        """Point estimate ``(B, K, D)`` of a state: :meth:`estimate_targets` ``.mean``."""
+        return self.estimate_targets(state).mean
+
+    def estimate_targets(self, state: ParticleState, reference: ExistenceEstimate | None = None
+                         ) -> ExistenceEstimate:
+        """Point estimates ``(B, K, D)`` of a state: the MMSE estimate (paper 000 eq. 6) of
+        each target after relabelling the particles' slots (Stephens 2000,
+        :func:`~torchmcmcpf.state.relabelled_estimate`), so that a slot's mean is the mean of
+        one target even where particles hold the targets under different labels; with
+        existence, each target's existence probability and mean given that it exists.
+
+        Parameters
+        ----------
+        state : ParticleState.
+        reference : the previous step's estimate, optional: predicted by the motion model,
+            it is the starting reference, so the labels stay the same over time
+            (``forward`` passes it).
+
+        A sensor without :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`
+        (labelled measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says
+        which slot is which target: there the particles are not relabelled.
+
+        Returns
+        -------
+        :class:`~torchmcmcpf.state.ExistenceEstimate` (``exists_prob`` ones without existence).
         """
-        if self.existence is None or state.exists is None:
-            return state.mean()
-        return existence_estimate(state, x_death=self.existence.x_death).mean
+        x_death = None if self.existence is None else self.existence.x_death
+        if not self.sensor.resolved:  # labelled measurements (e.g. LinearGaussian): the slots are the targets
+            return relabelled_estimate(state, x_death=x_death, iterations=0)
+        ref = present = None
+        if reference is not None:
+            m = reference.mean
+            ref = self.motion.propagate(m, torch.zeros(m.shape[:-1] + (self.motion.noise_dim,), dtype=m.dtype,
+                                                       device=m.device))
+            present = reference.present if state.exists is not None else None
+        return relabelled_estimate(state, ref, reference_exists=present, x_death=x_death)
 
     # -- validation at the door ----------------------------------------------------------
     def validate(self, state: ParticleState, measurements: Measurement, *, sequence: bool,
@@ -397,15 +427,14 @@ class Filter(nn.Module):
 
             steps = tqdm(steps, desc=type(self).__name__, leave=False)
         means, infos, exists_prob = [], [], []
+        est = None
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
             infos.append(info)
-            if self.existence is None or state.exists is None:
-                means.append(state.mean())
-            else:  # one pass gives both the existence probabilities and the conditional means
-                est = existence_estimate(state, x_death=self.existence.x_death)
-                means.append(est.mean)
+            est = self.estimate_targets(state, est)  # relabelled against the previous estimate
+            means.append(est.mean)
+            if self.existence is not None and state.exists is not None:
                 exists_prob.append(est.exists_prob)
         info = stack_infos(infos)
         return FilterResult(
