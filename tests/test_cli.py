@@ -276,21 +276,3 @@ def test_without_workers_ray_is_not_imported(tmp_path):
     assert done.stdout.strip().splitlines()[-1] == "False"
 
 
-def test_soak_script_runs_at_a_tiny_size(tmp_path):
-    """benchmarks/soak.py stays runnable (its real sizes take hours; see benchmarks/README.md)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("soak", TESTS.parent / "benchmarks" / "soak.py")
-    soak = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(soak)
-    out = tmp_path / "soak.json"
-    assert soak.main(["--runs", "1", "--steps", "4", "--particles", "20", "--chains", "10", "--burn-in", "2",
-                      "--targets", "2", "--every", "2", "--out", str(out)]) == 0
-    report = json.loads(out.read_text())
-    for variant in ("fixed", "birth-death"):
-        rows = report["variants"][variant]["rows"]
-        assert [r["steps"] for r in rows] == [2, 4]
-        assert all(r["non_finite"] == 0 and r["rss_mib"] > 0 and r["peak_rss_mib"] >= r["rss_mib"] for r in rows)
-    assert report["provenance"]["command"].startswith("python benchmarks/soak.py")
-    current, peak = soak.rss_mib()
-    assert 0 < current <= peak

@@ -319,10 +319,10 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     """The slot estimates of a cloud after relabelling its particles (:func:`relabel`):
     the default estimate of every filter with two or more slots.
 
-    Starting from ``reference`` (default: the plain weighted mean, every slot present), each
-    of ``iterations`` rounds relabels the particles against the current estimate and
-    recomputes it (Stephens 2000's algorithm); a filter passes its previous estimate,
-    predicted, so that the labels also stay the same over time.
+    Starting from ``reference`` (default: the heaviest particle, whose labels are consistent
+    by construction), each of ``iterations`` rounds relabels the particles against the
+    current estimate and recomputes it (Stephens 2000's algorithm); a filter passes its
+    previous estimate, predicted, so that the labels also stay the same over time.
 
     Parameters
     ----------
@@ -338,11 +338,11 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     """
     x, log_w, exists = state.x, state.log_w, state.exists
     b, n, k, d = x.shape
-    ref = weighted_mean(x, log_w) if reference is None else reference
-    present = reference_exists
-    if exists is not None and reference is None:
-        est = existence_estimate(state, x_death=x_death)
-        ref, present = est.mean, est.present
+    ref, present = reference, reference_exists
+    if reference is None:  # one particle's labels are consistent: the heaviest one's
+        best = log_w.argmax(-1)[:, None, None]
+        ref = torch.take_along_dim(x, best[..., None], 1).squeeze(1)
+        present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
     out = None
     for _ in range(max(1, int(iterations))):
         if iterations > 0 and k > 1:

@@ -123,7 +123,10 @@ class Exclusion:
         """``log phi`` from squared distances ``d2`` (any shape), floored at
         :data:`LOG_PHI_FLOOR`.
         """
-        return torch.log(-torch.expm1(-d2 / (2.0 * self.scale**2))).clamp(min=LOG_PHI_FLOOR)
+        # log phi ~ log(d^2 / 2 s^2) near 0: flooring the argument floors log phi, with a finite
+        # (zero) gradient where it applies
+        x = (d2 / (2.0 * self.scale**2)).clamp(min=math.exp(LOG_PHI_FLOOR))
+        return torch.log(-torch.expm1(-x))
 
     def log_factor(self, u: Tensor, alive: Tensor | None = None) -> Tensor:
         """``log Phi`` of multitarget states given their resolution coordinates.

@@ -1,0 +1,155 @@
+"""The multitarget prior's terms (models/multitarget.py) and the sensor hooks they use."""
+
+import math
+
+import pytest
+import torch
+
+import torchmcmcpf as tp
+from torchmcmcpf.filters.base import active_prior
+from torchmcmcpf.filters.ipmcmc import IPMCMCSettings
+from torchmcmcpf.models.multitarget import (
+    FIXED,
+    LOG_PHI_FLOOR,
+    MOTION,
+    RELOCATED,
+    Exclusion,
+    Recapture,
+    RelocationNoise,
+    exclusion_against,
+    log_q_component,
+    relocate,
+)
+from torchmcmcpf.models.sensors.points import PoissonClutterPoints
+from torchmcmcpf.scenarios import crossing, ground_radar, septier
+
+DT = torch.float64
+
+
+def test_exclusion_factor_values_and_one_slot_change(gen):
+    ex = Exclusion(scale=1.0)
+    # phi(d) = 1 - exp(-d^2 / 2): one cell 0.39, two 0.86, three 0.99; coincident slots floored
+    d2 = torch.tensor([1.0, 4.0, 9.0, 0.0], dtype=DT)
+    torch.testing.assert_close(ex.log_phi(d2)[:3], torch.log(1 - torch.exp(-d2[:3] / 2)))
+    assert float(ex.log_phi(d2)[3]) == LOG_PHI_FLOOR
+    u = torch.randn(5, 7, 4, 3, generator=gen, dtype=DT)  # (*S, K, r)
+    alive = torch.rand(5, 7, 4, generator=gen) < 0.7
+    # log Phi is the sum over live pairs i < j
+    k = 4
+    brute = torch.zeros(5, 7, dtype=DT)
+    for i in range(k):
+        for j in range(i + 1, k):
+            both = alive[..., i] & alive[..., j]
+            term = ex.log_phi((u[..., i, :] - u[..., j, :]).square().sum(-1))
+            brute = brute + torch.where(both, term, 0.0)
+    torch.testing.assert_close(ex.log_factor(u, alive), brute)
+    # a one-slot move pays exactly the change of log Phi (K - 1 factors)
+    n = torch.randint(k, (5, 7), generator=gen)
+    u_n = torch.randn(5, 7, 3, generator=gen, dtype=DT)
+    alive_n = torch.rand(5, 7, generator=gen) < 0.5
+    here = torch.arange(k) == n.unsqueeze(-1)
+    u2 = torch.where(here.unsqueeze(-1), u_n.unsqueeze(-2), u)
+    a2 = torch.where(here, alive_n.unsqueeze(-1), alive)
+    want = ex.log_factor(u2, a2) - ex.log_factor(u, alive)
+    torch.testing.assert_close(ex.log_change(u, u_n, n, alive, alive_n), want)
+    # gradients are finite, also for coincident slots (floored)
+    v = torch.zeros(1, 2, 3, dtype=DT, requires_grad=True)
+    ex.log_factor(v).sum().backward()
+    assert bool(torch.isfinite(v.grad).all())
+    with pytest.raises(ValueError, match="scale"):
+        Exclusion(scale=0.0)
+
+
+def test_exclusion_against_a_reference(gen):
+    sensor = PoissonClutterPoints(1.0, 1.0, ((0, 100), (0, 100)), noise_std=2.0)
+    x = torch.randn(2, 5, 3, 4, generator=gen, dtype=DT) * 3
+    ref = torch.randn(2, 3, 4, generator=gen, dtype=DT) * 3
+    got = exclusion_against(Exclusion(), sensor, x, ref)  # (B, N, K)
+    u, ur = sensor.resolution_coords(x), sensor.resolution_coords(ref)
+    for k in range(3):
+        want = sum(Exclusion().log_phi((u[:, :, k] - ur[:, None, j]).square().sum(-1)) for j in range(3) if j != k)
+        torch.testing.assert_close(got[..., k], want)
+
+
+def test_recapture_settings_and_ratios():
+    r = Recapture(p_jump=0.01, p_propose=0.2)
+    for bad in (dict(p_jump=0.0), dict(p_jump=1.0), dict(p_propose=0.0), dict(pair_every=-1),
+                dict(pair_distance=0.0), dict(p_propose_pair=1.5)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            Recapture(**bad)
+    kind = torch.tensor([FIXED, MOTION, RELOCATED], dtype=torch.int8)
+    torch.testing.assert_close(log_q_component(kind, 0.2),
+                               torch.tensor([0.0, math.log(0.8), math.log(0.2)], dtype=DT))
+    # relocate: r = (1 - delta) / (1 - eps) for a slot from its prediction, delta p0 / (eps g)
+    # for a relocated one, 0 (log) for one that did not survive
+    x = torch.zeros(3, 4, dtype=DT)
+    noise = RelocationNoise(torch.tensor([0.5, 0.1, 0.1], dtype=DT), torch.ones(3, 2, dtype=DT),
+                            torch.tensor([-1.0, -2.0, -3.0], dtype=DT))
+    sensor = PoissonClutterPoints(1.0, 1.0, ((0, 100), (0, 100)), noise_std=2.0)
+    y, log_r, kinds = relocate(x, torch.tensor([True, True, False]), noise, r, sensor)
+    assert kinds.tolist() == [MOTION, RELOCATED, FIXED]
+    torch.testing.assert_close(log_r, torch.tensor([math.log(0.99 / 0.8), math.log(0.01 / 0.2) - 2.0, 0.0], dtype=DT))
+    assert y[1, 0] == 1.0 and y[1, 2] == 1.0 and y[0].abs().sum() == 0 and y[2].abs().sum() == 0
+
+
+def _density_check(sensor, z, centre, gen, n=200_000):
+    """E_g[p0 / g] = 1 and E_g[u p0 / g] = the field of view's centre: the returned log_ratio is
+    log p0 - log g of the density the draws come from (p0 / g <= 1 / p_u bounds the weights).
+    """
+    coords, log_ratio = sensor.sample_from_data(z, (z[0].shape[0] if isinstance(z, tuple) else z.shape[0], n),
+                                                generator=gen, dtype=DT)
+    w = log_ratio.exp()
+    assert float(w.max()) <= 1.0 / sensor.uniform_weight + 1e-6
+    se = w.std() / math.sqrt(n)
+    assert abs(float(w.mean()) - 1.0) < 5 * float(se.max())
+    mean = (w.unsqueeze(-1) * coords).mean(1)  # (B, r)
+    se_m = (w.unsqueeze(-1) * coords).std(1) / math.sqrt(n)
+    assert bool(((mean - centre).abs() <= 5 * se_m).all()), (mean, centre)
+
+
+def test_radar_data_driven_density_is_what_it_draws(gen):
+    scn = ground_radar(3, 2, 2, generator=gen, dtype=DT, snr_db=20.0)  # every target detected
+    sensor = scn.sensor
+    assert sensor.resolved and sensor.data_driven
+    z = scn.measurements[0]
+    lo = torch.tensor([o - c / 2 for o, c in zip(sensor.origins, sensor.cell_sizes)], dtype=DT)
+    hi = torch.tensor([o + (n - 0.5) * c for o, c, n in zip(sensor.origins, sensor.cell_sizes, sensor.frame_shape)],
+                      dtype=DT)
+    _density_check(sensor, z, (lo + hi) / 2, gen)
+    # the peaks are the (strong) targets: one detection within a cell of each
+    centres, mask = sensor.detections(z)
+    truth = sensor.measurement_coords(scn.truth[0])  # (B, K, 3)
+    cells = torch.tensor(sensor.cell_sizes, dtype=DT)
+    d = ((centres.unsqueeze(1) - truth.unsqueeze(2)) / cells).abs().amax(-1)  # (B, K, P)
+    d = torch.where(mask.unsqueeze(1), d, torch.full_like(d, float("inf")))
+    assert bool((d.amin(-1) < 1.0).all())
+    # place is eq. 21 inverted: a state placed at its own coordinates is unchanged
+    x = scn.truth[0]
+    torch.testing.assert_close(sensor.place(x, sensor.measurement_coords(x)), x)
+
+
+def test_point_data_driven_density_is_what_it_draws(gen):
+    scn = septier(2, 3, generator=gen)
+    sensor = scn.sensor
+    z = type(scn.measurements)(*(f[1] for f in scn.measurements))
+    _density_check(sensor, z, torch.tensor([2500.0, 2500.0], dtype=DT), gen)
+    x = scn.truth[1]
+    moved = sensor.place(x, torch.full(x.shape[:-1] + (2,), 7.0, dtype=DT))
+    assert bool((moved[..., [0, 2]] == 7.0).all()) and torch.equal(moved[..., [1, 3]], x[..., [1, 3]])
+
+
+def test_terms_are_off_where_the_sensor_cannot_support_them():
+    lg = tp.LinearGaussian.position(1.0)
+    assert not lg.resolved and not lg.data_driven  # labelled measurements: no exclusion, no re-capture
+    settings = active_prior(IPMCMCSettings(), lg)
+    assert settings.exclusion is None and settings.recapture is None
+    filt = tp.IPMCMCFilter(tp.ConstantVelocity(1.0, 1.0), lg, 100, num_chains=10)
+    assert filt.settings.exclusion is None and filt.settings.recapture is None
+    scn = crossing(2, 2, 1, generator=torch.Generator().manual_seed(0))
+    filt = tp.IPMCMCFilter(scn.motion, scn.sensor, 100, num_chains=10)
+    assert filt.settings.exclusion == Exclusion() and filt.settings.recapture == Recapture()
+    plain = tp.IPMCMCFilter(scn.motion, scn.sensor, 100, num_chains=10, exclusion=None, recapture=None)
+    assert plain.settings.exclusion is None and plain.settings.recapture is None
+    # re-capture needs the labelled prior: off with the random walk or HMC
+    mcmc = tp.MCMCFilter(scn.motion, scn.sensor, 100, moves="random_walk", rw_scale=1.0)
+    assert mcmc.settings.recapture is None and mcmc.settings.exclusion == Exclusion()

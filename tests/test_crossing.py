@@ -1,0 +1,93 @@
+"""The crossing scenario, the crossing and soak studies (issue 22), and the relabelled estimate."""
+
+import argparse
+import json
+import math
+
+import pytest
+import torch
+
+from torchmcmcpf.experiments import crossing as crossing_study
+from torchmcmcpf.experiments import soak
+from torchmcmcpf.scenarios import crossing
+from torchmcmcpf.state import ParticleState, relabel, relabelled_estimate
+from torchmcmcpf.typing import VX, VY, X, Y
+
+
+def test_crossing_geometry():
+    g = torch.Generator().manual_seed(0)
+    scn = crossing(3, 40, 4, generator=g, speed=0.5, miss_distance=2.0, crossing_step=20, snr_db=(20, 15, 10))
+    assert scn.truth.shape == (40, 4, 3, 5) and scn.measurements.shape[:2] == (40, 4)
+    pos = scn.truth[..., [X, Y]]
+    # at the crossing step neighbouring targets are miss_distance apart (offsets along one line)
+    d01 = (pos[20, :, 0] - pos[20, :, 1]).norm(dim=-1)
+    torch.testing.assert_close(d01, torch.full_like(d01, 2.0), rtol=0, atol=1e-3)
+    # every target moves at the set speed; every radial velocity lies within one doppler cell
+    speed = scn.truth[..., [VX, VY]].norm(dim=-1)
+    torch.testing.assert_close(speed, torch.full_like(speed, 0.5), rtol=1e-5, atol=1e-5)
+    doppler = scn.sensor.measurement_coords(scn.truth)[..., 1]
+    assert float(doppler.abs().max()) <= 0.5 + 1e-6
+    # amplitudes follow the SNRs (SNR = rho^2 / 2 sigma^2)
+    snr = 10 * torch.log10(scn.truth[0, 0, :, 4] ** 2 / 2)
+    torch.testing.assert_close(snr, torch.tensor([20.0, 15.0, 10.0]), rtol=0, atol=1e-3)
+    with pytest.raises(ValueError, match="snr_db"):
+        crossing(2, 5, 1, generator=g, snr_db=(1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match="num_targets"):
+        crossing(1, 5, 1, generator=g)
+
+
+def test_relabel_recovers_swapped_labels(gen):
+    # a cloud of two targets where half the particles hold them under swapped labels: the
+    # plain slot means both sit between the targets, the relabelled ones on the targets
+    n = 400
+    a, b = torch.tensor([0.0, 0.0, 0.0, 0.0]), torch.tensor([100.0, 0.0, 50.0, 0.0])
+    x = torch.stack([a, b]).expand(1, n, 2, 4) + 2.0 * torch.randn(1, n, 2, 4, generator=gen)
+    swap = torch.rand(1, n, generator=gen) < 0.5
+    x = torch.where(swap[..., None, None], x.flip(2), x)
+    state = ParticleState(x, torch.full((1, n), -math.log(n)))
+    plain = state.mean()[0]
+    assert float((plain[0, [X, Y]] - a[[X, Y]]).norm()) > 40  # the mixture of labels
+    est = relabelled_estimate(state).mean[0]
+    assert float((est[0, [X, Y]] - a[[X, Y]]).norm()) < 1.0 or float((est[1, [X, Y]] - a[[X, Y]]).norm()) < 1.0
+    assert float((est[0, [X, Y]] - est[1, [X, Y]]).norm()) > 100
+    # against a reference the labels follow the reference
+    ref = torch.stack([b, a]).unsqueeze(0)
+    xr, _ = relabel(x, ref)
+    assert float((xr[0, :, 0, [X, Y]] - b[[X, Y]]).norm(dim=-1).max()) < 20
+    # with existence: a dead slot takes the absent reference label
+    exists = torch.ones(1, n, 2, dtype=torch.bool)
+    exists[0, :, 1] = False
+    xs = torch.stack([a, torch.zeros(4)]).expand(1, n, 2, 4).clone()
+    xs[0, ::2] = xs[0, ::2].flip(0)  # alternate particles hold the target in slot 1
+    es = exists.clone()
+    es[0, ::2] = es[0, ::2].flip(-1)
+    est = relabelled_estimate(ParticleState(xs, torch.full((1, n), -math.log(n)), es))
+    assert sorted(est.exists_prob[0].tolist()) == pytest.approx([0.0, 1.0])
+
+
+def _args(module, tmp_path, **kw):
+    return argparse.Namespace(name=module.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
+                              progress=False, threads=None, workers=None, ray_address=None, shard_size=None,
+                              gpus_per_shard=1.0, **kw)
+
+
+def test_crossing_study_quick(tmp_path):
+    payload = crossing_study.run(_args(crossing_study, tmp_path))
+    for name in ("metrics.json", "crossing.png", "coalescence.png", "tracks.png"):
+        assert (tmp_path / name).exists()
+    stored = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(stored["results"]) == set(crossing_study.FILTERS)
+    r = payload["results"]["IP-MCMC-PF"]
+    assert 0 <= r["runs_uncovered_late"] <= r["runs"] and float(r["matched_rmse"]) >= 0
+    assert "| IP-MCMC-PF |" in crossing_study.summary(payload)
+
+
+def test_soak_study_quick(tmp_path):
+    payload = soak.run(_args(soak, tmp_path))
+    assert (tmp_path / "soak.png").exists() and (tmp_path / "metrics.json").exists()
+    fixed = payload["results"]["fixed"]["IP-MCMC-PF"]
+    assert fixed["non_finite"] == 0 and len(fixed["matched_rmse_per_chunk"]) == 2
+    bd = payload["results"]["birth-death"]["IP-MCMC-PF"]
+    for total, loc, card in bd["ospa_per_chunk"]:  # per step OSPA^2 = loc^2 + card^2, so for the means:
+        assert max(loc, card) - 1e-6 <= total <= loc + card + 1e-6
+    assert "birth-death" in soak.summary(payload)
