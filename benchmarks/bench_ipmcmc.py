@@ -95,3 +95,30 @@ def test_ipmcmc_step_cuda(benchmark, variant, b):
         benchmark.group = f"ipmcmc-step-cuda-N{n}-B{b}"
         benchmark.extra_info.update(variant=variant, device=torch.cuda.get_device_name())
         benchmark.pedantic(step, rounds=5, iterations=1)
+
+
+TERMS = {"paper": dict(exclusion=None, recapture=None), "exclusion": dict(recapture=None),
+         "recapture": dict(exclusion=None), "default": {}}
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+@pytest.mark.parametrize("terms", list(TERMS))
+@pytest.mark.parametrize("n", [500, 5000])
+def test_ipmcmc_step_multitarget_terms(benchmark, scenario, terms, compiled, n):
+    """The cost of the multitarget prior's terms (issue 22): the public ``filt.step`` with the
+    paper's factorised target and exchange move, with exclusion only, with re-capture only
+    (relocation noise drawn from the frame's peaks, every 10th iteration a two-slot move) and
+    with both (the default), Np = 500 and 5000, 50 chains, 10 targets, no R-hat extensions.
+    Compare within one run: ``--benchmark-group-by=group``.
+    """
+    x0 = scenario.initial_particles(n, generator=torch.Generator().manual_seed(1))
+    filt = IPMCMCFilter(scenario.motion, scenario.sensor, n, num_chains=CHAINS, burn_in=BURN_IN, max_extensions=0,
+                        compile_step=compiled, **TERMS[terms])
+    state = filt.init(x0)
+    z = scenario.measurements[0]
+    with torch.no_grad():
+        filt.step(state, z, generator=torch.Generator().manual_seed(1))  # warm-up, compilation
+        benchmark.group = f"ipmcmc-terms-N{n}-{'compiled' if compiled else 'eager'}"
+        benchmark.extra_info.update(terms=terms, threads=torch.get_num_threads())
+        benchmark.pedantic(lambda: filt.step(state, z, generator=torch.Generator().manual_seed(2)), rounds=3,
+                           iterations=1)

@@ -1248,6 +1248,8 @@ class SeparableGridSensor(SensorModel[Tensor]):
         frame's :meth:`detections` ``centres (B, P, n)``, ``mask (B, P)``: ``(B, *S)``.
         """
         B, n = coords.shape[0], self.n_axes
+        used = int(mask.sum(-1).max()) if mask.numel() else 0  # the padding holds no peak: drop it (eager)
+        centres, mask = centres[:, :max(used, 1)], mask[:, :max(used, 1)]
         lo, hi, log_volume = self._extent()
         scale = torch.tensor([self.peak_spread * c for c in self.cell_sizes], dtype=coords.dtype,
                              device=coords.device)
