@@ -276,15 +276,15 @@ class IPMCMCSettings:
     hmc: HMCRefine | None = None
 
     def __post_init__(self):
-        check_positive_int(self.num_chains, "num_chains", minimum=2)
-        check_positive_int(self.burn_in, "burn_in", minimum=0)
+        object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains", minimum=2))
+        object.__setattr__(self, "burn_in", check_positive_int(self.burn_in, "burn_in", minimum=0))
         if not (isinstance(self.rhat_threshold, (int, float)) and float(self.rhat_threshold) > 0):
             raise ValueError(f"rhat_threshold must be > 0 (math.inf: never extend), got {self.rhat_threshold!r}")
         object.__setattr__(self, "rhat_threshold", float(self.rhat_threshold))
-        check_positive_int(self.max_extensions, "max_extensions", minimum=0)
+        object.__setattr__(self, "max_extensions", check_positive_int(self.max_extensions, "max_extensions", minimum=0))
         if self.rhat_method not in RHAT_METHODS:
             raise ValueError(f"rhat_method must be one of {RHAT_METHODS}, got {self.rhat_method!r}")
-        check_positive_int(self.thinning, "thinning")
+        object.__setattr__(self, "thinning", check_positive_int(self.thinning, "thinning"))
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
 

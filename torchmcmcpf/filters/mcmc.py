@@ -142,9 +142,9 @@ class MCMCSettings:
     pairs: tuple[tuple[str, float], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
-        check_positive_int(self.num_chains, "num_chains")
-        check_positive_int(self.burn_in, "burn_in", minimum=0)
-        check_positive_int(self.thinning, "thinning")
+        object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains"))
+        object.__setattr__(self, "burn_in", check_positive_int(self.burn_in, "burn_in", minimum=0))
+        object.__setattr__(self, "thinning", check_positive_int(self.thinning, "thinning"))
         pairs = parse_moves(self.moves)
         object.__setattr__(self, "moves", pairs)
         object.__setattr__(self, "pairs", pairs)

@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import torch
 from torch.utils._pytree import tree_map
 
-from .._validation import check_generator, check_positive_int, check_shape
+from .._validation import as_int, check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
@@ -108,7 +108,7 @@ def sir_log_evidence(
     -------
     ``evaluate(theta (B, C, P), *, generator) -> (log_evidence (B, C), aux)``.
     """
-    check_positive_int(num_particles, "num_particles")
+    num_particles = check_positive_int(num_particles, "num_particles")
 
     def evaluate(theta: Tensor, *, generator: torch.Generator) -> tuple[Tensor, Any]:
         b, c, p = theta.shape
@@ -161,7 +161,7 @@ def pmmh(
     """
     check_generator(generator)
     check_shape(theta0, "theta0", (None, None, None))
-    check_positive_int(num_iterations, "num_iterations")
+    num_iterations = check_positive_int(num_iterations, "num_iterations")
     std = torch.as_tensor(proposal_std, dtype=theta0.dtype, device=theta0.device)
     if not bool((std > 0).all()):
         raise ValueError(f"proposal_std must be > 0, got {proposal_std!r}")
@@ -212,10 +212,13 @@ class PMMHSettings:
     ess_threshold: float = 1.0
 
     def __post_init__(self):
-        check_positive_int(self.num_candidates, "num_candidates", minimum=2)
-        if not (isinstance(self.burn_in, int) and 0 <= self.burn_in < self.num_candidates):
+        num_candidates = check_positive_int(self.num_candidates, "num_candidates", minimum=2)
+        object.__setattr__(self, "num_candidates", num_candidates)
+        burn_in = as_int(self.burn_in)
+        if burn_in is None or not 0 <= burn_in < self.num_candidates:
             raise ValueError(f"burn_in must be an integer in [0, num_candidates = {self.num_candidates}), "
                              f"got {self.burn_in!r}")
+        object.__setattr__(self, "burn_in", burn_in)
         if not math.isfinite(float(self.prior_mean)):
             raise ValueError(f"prior_mean must be finite, got {self.prior_mean!r}")
         if not (math.isfinite(float(self.prior_std)) and float(self.prior_std) > 0):

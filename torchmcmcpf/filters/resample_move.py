@@ -98,11 +98,11 @@ class ResampleMoveSettings:
 
     def __post_init__(self):
         object.__setattr__(self, "step_size", check_positive(self.step_size, "step_size"))
-        check_positive_int(self.num_leapfrog, "num_leapfrog")
-        check_positive_int(self.num_hmc_steps, "num_hmc_steps", minimum=0)
+        object.__setattr__(self, "num_leapfrog", check_positive_int(self.num_leapfrog, "num_leapfrog"))
+        object.__setattr__(self, "num_hmc_steps", check_positive_int(self.num_hmc_steps, "num_hmc_steps", minimum=0))
         if self.association not in ASSOCIATIONS:
             raise ValueError(f"association must be one of {ASSOCIATIONS}, got {self.association!r}")
-        check_positive_int(self.association_iters, "association_iters")
+        object.__setattr__(self, "association_iters", check_positive_int(self.association_iters, "association_iters"))
         if self.resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
 
