@@ -198,6 +198,10 @@ class Filter(nn.Module):
     num_particles: int
     existence: BirthDeath | None
     settings: Any
+    #: seconds the first ``compile_step=True`` step of a new shape takes to compile, cold, on a
+    #: 2-core CPU (5-target ground radar, ``benchmarks/bench_compile.py``); shown in the progress
+    #: bar while that step runs
+    compile_seconds: float = 20.0
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
                  existence: BirthDeath | None = None, compile_step: bool = False):
@@ -215,6 +219,7 @@ class Filter(nn.Module):
         self.settings = settings
         self.compile_step = compile_step
         self._compiled: Callable | None = None
+        self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
 
     # -- the compiled kernel -------------------------------------------------------------
     def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
@@ -376,15 +381,13 @@ class Filter(nn.Module):
         state = self._as_state(init)
         self.validate(state, measurements, sequence=True)
         num_steps = _leaves(measurements, "measurements")[0].shape[0]
-        steps: Any = range(num_steps)
-        if progress:
-            from tqdm.auto import tqdm
-
-            steps = tqdm(steps, desc=type(self).__name__, leave=False)
+        steps, note = self._progress(num_steps, state.x, progress)
         means, infos, exists_prob = [], [], []
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
+            if note and t == 0:
+                steps.set_postfix_str("", refresh=False)  # compiled: the bar's own rate from here on
             infos.append(info)
             if self.existence is None or state.exists is None:
                 means.append(state.mean())
@@ -400,6 +403,26 @@ class Filter(nn.Module):
             log_evidence=info.log_evidence.sum(0),
             exists_prob=torch.stack(exists_prob) if exists_prob else None,
         )
+
+    def _progress(self, num_steps: int, x: Tensor, progress: bool | None) -> tuple[Any, str | None]:
+        """The loop over time: ``range(num_steps)``, or a tqdm bar when ``progress``. With
+        ``compile_step=True`` and a shape not run compiled before, the bar says so while the
+        first step compiles (``compiling (first call, about N s)``, :attr:`compile_seconds`)
+        instead of sitting silent at 0; returns ``(steps, note)``.
+        """
+        key = (*x.shape, x.dtype, x.device)
+        note = None
+        if self.compile_step and key not in self._compiled_shapes:
+            self._compiled_shapes.add(key)
+            note = f"compiling (first call, about {self.compile_seconds:.0f} s)"
+        if not progress:
+            return range(num_steps), None
+        from tqdm.auto import tqdm
+
+        bar = tqdm(range(num_steps), desc=type(self).__name__, leave=False)
+        if note:
+            bar.set_postfix_str(note)
+        return bar, note
 
     def extra_repr(self) -> str:
         """Particle count, settings and compile flag, shown inside ``repr(filter)``."""

@@ -167,6 +167,8 @@ class PartitionedSIRFilter(Filter):
     extras ``ess_min``.
     """
 
+    compile_seconds = 16.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, *,
                  resample_method: str = "systematic", existence: BirthDeath | None = None,
                  compile_step: bool = False):

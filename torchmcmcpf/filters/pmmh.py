@@ -371,6 +371,8 @@ class PMMHFilter(Filter):
     the state and the generator resumes bit for bit.
     """
 
+    compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+
     def __init__(
         self,
         motion: MotionModel,

@@ -166,6 +166,8 @@ class SIRFilter(Filter):
     >>> result = filt(z, init=x0, generator=torch.Generator().manual_seed(0))  # doctest: +SKIP
     """
 
+    compile_seconds = 20.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+
     def __init__(
         self,
         motion: MotionModel,
