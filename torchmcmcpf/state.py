@@ -57,6 +57,16 @@ class ParticleState(NamedTuple):
         parameters ``theta (B, L)``, their accumulated log-evidence ``log_evidence (B, L)``
         and the within-candidate log-weights ``log_w_candidate (B, N)``); ``None`` for the
         filters that need none.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> x = torch.zeros(2, 100, 3, 4)                 # (B, N, K, D)
+    >>> state = tp.ParticleState(x, torch.full((2, 100), -math.log(100)))
+    >>> state.batch_size, state.num_particles, state.num_targets, state.mean().shape
+    (2, 100, 3, torch.Size([2, 3, 4]))
     """
 
     x: Tensor
@@ -106,6 +116,14 @@ class StepInfo(NamedTuple):
     extras : dict name -> (B,) tensor
         Algorithm-specific quantities (documented by each filter), e.g.
         ``"acceptance_joint"``, ``"rhat"``, ``"extensions"``. Empty for SIR.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> info = tp.StepInfo.make(torch.zeros(2), ess=torch.tensor([80.0, 95.0]))   # B = 2
+    >>> info.ess, info.acceptance                     # what a filter does not compute is NaN
+    (tensor([80., 95.]), tensor([nan, nan]))
     """
 
     ess: Tensor
@@ -142,6 +160,20 @@ class FilterResult(NamedTuple):
         ``sum_k log p(z_k | z_{1:k-1})`` (NaN for filters that do not estimate it).
     exists_prob : (T, B, K), optional
         Posterior existence probability of each slot (filters with births and deaths).
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> result = tp.SIRFilter(motion, sensor, 100)(z, init=x0, generator=g)
+    >>> result                                        # shapes, never values
+    FilterResult(mean=float32(5, 2, 3, 4), state=ParticleState(...), ...)
+    >>> sorted(result.to_numpy())[:3]                  # flat dict of NumPy arrays
+    ['info.acceptance', 'info.ess', 'info.log_evidence']
     """
 
     mean: Tensor

@@ -187,10 +187,21 @@ class Filter(nn.Module):
     Subclasses set :attr:`settings_class` and implement :meth:`_step` (call the pure step
     function) and, for ``compile_step``, :meth:`_kernel` (the eager kernel to compile).
 
-    Usage
-    -----
-    >>> result = filt(measurements, init=particles, generator=g)   # doctest: +SKIP
-    >>> result.mean.shape                                           # (T, B, K, D)
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> filt = tp.SIRFilter(motion, sensor, 100)       # any filter: same constructor, same result
+    >>> result = filt(z, init=x0, generator=g)         # a whole sequence
+    >>> result.mean.shape                              # (T, B, K, D)
+    torch.Size([5, 2, 3, 4])
+    >>> state, info = filt.step(result.state, z[0], generator=g)   # or one step at a time
+    >>> state.x.shape, info.ess.shape
+    (torch.Size([2, 100, 3, 4]), torch.Size([2]))
     """
 
     motion: MotionModel

@@ -369,6 +369,19 @@ class PMMHFilter(Filter):
     ``theta_mean``, ``candidate_ess``. The state carries ``extras`` (the candidates'
     ``theta``, accumulated log-evidence and within-candidate weights), so a checkpoint of
     the state and the generator resumes bit for bit.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> filt = tp.PMMHFilter(motion, sensor, 100, num_candidates=4)   # 4 candidates of 25 particles
+    >>> result = filt(z, init=x0, generator=g)
+    >>> result.info.extras["theta_mean"].shape         # (T, B): posterior mean of log q
+    torch.Size([5, 2])
     """
 
     compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
