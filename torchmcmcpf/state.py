@@ -17,7 +17,7 @@ import torch
 from .typing import Tensor
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
-           "weighted_mean", "summary"]
+           "stack_states", "weighted_mean", "weighted_cov", "summary"]
 
 
 def summary(value: Any) -> str:
@@ -160,6 +160,24 @@ class FilterResult(NamedTuple):
         ``sum_k log p(z_k | z_{1:k-1})`` (NaN for filters that do not estimate it).
     exists_prob : (T, B, K), optional
         Posterior existence probability of each slot (filters with births and deaths).
+    cov : (T, B, K, D, D), optional
+        Posterior covariance of each slot around ``mean`` (given existence, with births and
+        deaths; zeros where no particle has the slot): the weighted covariance of the cloud.
+    history : ParticleState with a leading T dim, optional
+        Every step's particle state, ``x (T, B, N, K, D)``, ``log_w (T, B, N)``, ``exists
+        (T, B, N, K)``, kept when ``forward(..., history=True)`` (T times the memory of one
+        state): per-step clouds for :meth:`to_stonesoup` (``kind="particle"``) and the chain
+        samples of any step for :meth:`to_arviz`.
+    meta : dict, optional
+        What made the result: ``filter`` (class name), ``num_particles``, ``settings`` (the
+        settings dataclass as plain values), ``motion``, ``sensor``, ``existence``, ``dt``
+        (the motion's sampling time, or None), ``compile_step`` and ``versions``; plain
+        Python values, so ``torch.load(weights_only=True)`` reads it.
+
+    Interoperability (optional packages, imported only when called): :meth:`to_numpy` (a
+    dict of NumPy arrays), :meth:`to_xarray` (an ``xarray.Dataset``), :meth:`to_arviz` (the
+    kept chain samples of an MCMC filter's step as ArviZ ``InferenceData``) and
+    :meth:`to_stonesoup` (Stone Soup ``Track`` s); see :mod:`torchmcmcpf.interop`.
 
     Example
     -------
@@ -181,13 +199,51 @@ class FilterResult(NamedTuple):
     info: StepInfo
     log_evidence: Tensor
     exists_prob: Tensor | None = None
+    cov: Tensor | None = None
+    history: ParticleState | None = None
+    meta: dict | None = None
 
     def __repr__(self) -> str:
-        return _short_repr(self)
+        fields = [f"{f}={summary(getattr(self, f))}" for f in self._fields if f != "meta"]
+        if self.meta is not None:  # its settings are long: name the filter only
+            fields.append(f"meta={{'filter': {self.meta.get('filter')!r}, ...}}")
+        return "FilterResult(" + ", ".join(fields) + ")"
+
+    def to_xarray(self) -> Any:
+        """The result as an ``xarray.Dataset`` (:func:`torchmcmcpf.interop.result_to_xarray`):
+        ``mean`` on dims ``(time, run, target, component)`` with the components named from
+        the state layout, the info fields as variables, the settings and provenance as
+        attributes. Needs ``pip install 'torchmcmcpf[interop]'``.
+        """
+        from .interop import result_to_xarray
+
+        return result_to_xarray(self)
+
+    def to_arviz(self, *, step: int = -1, run: int = 0) -> Any:
+        """The kept chain samples of an MCMC filter at ``step`` (default the last) for run
+        ``run`` as ArviZ ``InferenceData`` with ``chain`` and ``draw`` dims
+        (:func:`torchmcmcpf.interop.chains_to_arviz`); a step before the last needs
+        ``history``. Needs ``pip install 'torchmcmcpf[interop]'``.
+        """
+        from .interop import result_to_arviz
+
+        return result_to_arviz(self, step=step, run=run)
+
+    def to_stonesoup(self, *, run: int = 0, kind: str = "gaussian", start_time: Any = None,
+                     dt: float | None = None, threshold: float = 0.5) -> list:
+        """Stone Soup ``Track`` s of run ``run``, one per slot (and per stretch of existence
+        with births and deaths), of ``GaussianState`` s (``kind="gaussian"``, from ``mean``
+        and ``cov``) or ``ParticleState`` s (``kind="particle"``, from ``history``)
+        (:func:`torchmcmcpf.interop.tracks_to_stonesoup`). Needs Stone Soup
+        (``pip install 'torchmcmcpf[interop]'``).
+        """
+        from .interop import tracks_to_stonesoup
+
+        return tracks_to_stonesoup(self, run=run, kind=kind, start_time=start_time, dt=dt, threshold=threshold)
 
     def to_numpy(self) -> dict[str, Any]:
-        """The result as a flat dict of NumPy arrays (for pandas / xarray): ``"mean"``,
-        ``"log_evidence"``, ``"exists_prob"``, ``"state.x"``, ``"state.log_w"``,
+        """The result as a flat dict of NumPy arrays (for pandas): ``"mean"``,
+        ``"log_evidence"``, ``"exists_prob"``, ``"cov"``, ``"state.x"``, ``"state.log_w"``,
         ``"state.exists"``, ``"info.ess"``, ``"info.<extra>"``, ... (``None`` fields left
         out).
         """
@@ -200,6 +256,7 @@ class FilterResult(NamedTuple):
         put("mean", self.mean)
         put("log_evidence", self.log_evidence)
         put("exists_prob", self.exists_prob)
+        put("cov", self.cov)
         for f in ParticleState._fields:
             put(f"state.{f}", getattr(self.state, f))
         for f in ("ess", "log_evidence", "acceptance"):
@@ -215,6 +272,34 @@ def weighted_mean(x: Tensor, log_w: Tensor) -> Tensor:
     """
     w = torch.softmax(log_w, dim=-1)
     return torch.einsum("bn,bnkd->bkd", w.to(x.dtype), x)
+
+
+def weighted_cov(x: Tensor, log_w: Tensor, mean: Tensor, exists: Tensor | None = None) -> Tensor:
+    """Weighted covariance of each slot around ``mean``: ``x (B, N, K, D)``, ``log_w (B,
+    N)``, ``mean (B, K, D)`` -> ``(B, K, D, D)``. With ``exists (B, N, K)`` it is the
+    covariance given existence (weights ``w_n e_nk``, normalised per slot); zeros where no
+    particle has the slot.
+    """
+    w = torch.softmax(log_w, dim=-1).to(x.dtype)  # (B, N)
+    we = w.unsqueeze(-1).expand(x.shape[:3]) if exists is None else w.unsqueeze(-1) * exists.to(x.dtype)
+    d = x - mean.unsqueeze(1)  # (B, N, K, D)
+    if exists is not None:
+        d = torch.where(exists.unsqueeze(-1), d, torch.zeros_like(d))  # dead slots hold x_death: no NaN/inf
+    num = torch.einsum("bnk,bnkd,bnke->bkde", we, d, d)
+    num = 0.5 * (num + num.transpose(-1, -2))  # symmetric to the last bit (float rounding of the einsum)
+    mass = we.sum(1)  # (B, K)
+    return num / mass.clamp(min=torch.finfo(x.dtype).tiny)[..., None, None]
+
+
+def stack_states(states: list[ParticleState]) -> ParticleState:
+    """Stack per-step states into one with a leading time dim ``T`` (``extras`` stacked too)."""
+    if not states:
+        raise ValueError("states is empty, expected at least one ParticleState")
+    first = states[0]
+    exists = None if first.exists is None else torch.stack([s.exists for s in states])  # type: ignore[misc]
+    extras = None if first.extras is None else {k: torch.stack([s.extras[k] for s in states])  # type: ignore[index]
+                                                 for k in first.extras}
+    return ParticleState(torch.stack([s.x for s in states]), torch.stack([s.log_w for s in states]), exists, extras)
 
 
 def stack_infos(infos: list[StepInfo]) -> StepInfo:

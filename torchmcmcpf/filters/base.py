@@ -22,6 +22,7 @@ stored on the module, so filters are reentrant. Resume = the state plus
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
@@ -32,7 +33,15 @@ from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..state import FilterResult, ParticleState, StepInfo, existence_estimate, stack_infos
+from ..state import (
+    FilterResult,
+    ParticleState,
+    StepInfo,
+    existence_estimate,
+    stack_infos,
+    stack_states,
+    weighted_cov,
+)
 from ..typing import Measurement, Tensor
 
 __all__ = ["Filter", "CompiledKernel", "check_existence", "compile_kernel"]
@@ -134,6 +143,23 @@ class CompiledKernel:
 def compile_kernel(fn: Callable) -> CompiledKernel:
     """``fn`` compiled for a filter's kernel: :class:`CompiledKernel`."""
     return CompiledKernel(fn)
+
+
+def _plain(value: Any) -> Any:
+    """A settings value as plain Python (dicts, lists, str, int, float, bool, None), so a
+    result's ``meta`` loads with ``torch.load(weights_only=True)`` and writes to JSON.
+    """
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (bool, int, float, str)) or value is None:
+        return value
+    if torch.is_tensor(value) and value.numel() == 1:
+        return value.item()
+    return repr(value)
 
 
 def check_existence(existence: object) -> BirthDeath | None:
@@ -372,6 +398,7 @@ class Filter(nn.Module):
         init: Tensor | ParticleState,
         generator: torch.Generator,
         progress: bool | None = None,
+        history: bool = False,
     ) -> FilterResult:
         """Filter a sequence of T measurements.
 
@@ -382,18 +409,22 @@ class Filter(nn.Module):
         init : (B, N, K, D) initial particles, or a ``ParticleState`` (e.g. the ``state`` of
             an earlier result, to resume).
         generator : the only source of randomness.
-        progress : show a tqdm progress bar over time.
+        progress : show a tqdm progress bar over time (it says when the first step of a
+            ``compile_step=True`` filter compiles).
+        history : keep every step's particle state in ``result.history`` (T times the
+            memory of one state; for per-step clouds and chain samples).
 
         Returns
         -------
-        FilterResult with ``mean (T, B, K, D)``, the final state and stacked ``StepInfo``.
+        FilterResult with ``mean (T, B, K, D)``, ``cov (T, B, K, D, D)``, the final state,
+        stacked ``StepInfo`` and ``meta`` (see :class:`~torchmcmcpf.state.FilterResult`).
         """
         check_generator(generator)
         state = self._as_state(init)
         self.validate(state, measurements, sequence=True)
         num_steps = _leaves(measurements, "measurements")[0].shape[0]
         steps, note = self._progress(num_steps, state.x, progress)
-        means, infos, exists_prob = [], [], []
+        means, covs, infos, exists_prob, states = [], [], [], [], []
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
@@ -402,10 +433,14 @@ class Filter(nn.Module):
             infos.append(info)
             if self.existence is None or state.exists is None:
                 means.append(state.mean())
+                covs.append(weighted_cov(state.x, state.log_w, means[-1]))
             else:  # one pass gives both the existence probabilities and the conditional means
                 est = existence_estimate(state, x_death=self.existence.x_death)
                 means.append(est.mean)
+                covs.append(weighted_cov(state.x, state.log_w, est.mean, state.exists))
                 exists_prob.append(est.exists_prob)
+            if history:
+                states.append(state)
         info = stack_infos(infos)
         return FilterResult(
             mean=torch.stack(means),
@@ -413,7 +448,24 @@ class Filter(nn.Module):
             info=info,
             log_evidence=info.log_evidence.sum(0),
             exists_prob=torch.stack(exists_prob) if exists_prob else None,
+            cov=torch.stack(covs),
+            history=stack_states(states) if history else None,
+            meta=self.result_meta(),
         )
+
+    def result_meta(self) -> dict:
+        """What made a result (``FilterResult.meta``): the filter, its settings as plain
+        values, the models, the sampling time and the versions.
+        """
+        from .. import __version__
+
+        dt = getattr(self.motion, "dt", None)
+        return {"filter": type(self).__name__, "num_particles": self.num_particles,
+                "settings": _plain(self.settings), "motion": type(self.motion).__name__,
+                "sensor": type(self.sensor).__name__,
+                "existence": None if self.existence is None else type(self.existence).__name__,
+                "dt": None if dt is None else float(dt), "compile_step": self.compile_step,
+                "versions": {"torchmcmcpf": str(__version__), "torch": str(torch.__version__)}}
 
     def _progress(self, num_steps: int, x: Tensor, progress: bool | None) -> tuple[Any, str | None]:
         """The loop over time: ``range(num_steps)``, or a tqdm bar when ``progress``. With
