@@ -4,7 +4,7 @@ Particles, chains and targets are tensor dimensions (see :mod:`torchmcmcpf.typin
 each algorithm is a pure step function wrapped by a thin ``nn.Module`` Filter.
 """
 
-from . import diagnostics, kernels, metrics, models, plotting, resampling, runtime, scenarios
+from . import diagnostics, interop, kernels, metrics, models, plotting, resampling, runtime, scenarios
 from .filters import (
     Filter,
     GroupMCMCFilter,
@@ -62,6 +62,7 @@ __all__ = [
     "StepInfo",
     "FilterResult",
     "diagnostics",
+    "interop",
     "kernels",
     "metrics",
     "models",

@@ -190,8 +190,12 @@ class FilterResult(NamedTuple):
     >>> result = tp.SIRFilter(motion, sensor, 100)(z, init=x0, generator=g)
     >>> result                                        # shapes, never values
     FilterResult(mean=float32(5, 2, 3, 4), state=ParticleState(...), ...)
-    >>> sorted(result.to_numpy())[:3]                  # flat dict of NumPy arrays
-    ['info.acceptance', 'info.ess', 'info.log_evidence']
+    >>> result.cov.shape                              # (T, B, K, D, D): each slot's posterior covariance
+    torch.Size([5, 2, 3, 4, 4])
+    >>> result.to_numpy()["info.ess"].shape            # a flat dict of NumPy arrays
+    (5, 2)
+    >>> result.meta["filter"], result.meta["settings"]
+    ('SIRFilter', {'resample_method': 'systematic', 'ess_threshold': 1.0})
     """
 
     mean: Tensor
