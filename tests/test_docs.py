@@ -64,3 +64,19 @@ def test_what_the_commands_write_is_ignored_by_git():
              "docs/examples/demo.ipynb", ".venv/bin/python"]
     done = subprocess.run(["git", "-C", str(root), "check-ignore", *paths], capture_output=True, text=True)
     assert sorted(done.stdout.split()) == sorted(paths), done.stdout
+
+
+def test_readme_stays_a_five_minute_read():
+    """Issue 25: the README is the quick start, the API tour, the tables and links; long
+    text (results, design notes, performance tables) belongs on the documentation site."""
+    readme = (GUIDES.parents[1] / "README.md").read_bytes()
+    assert len(readme) < 15_000, (f"README.md is {len(readme)} bytes; move long sections to docs/ "
+                                  "(reproduction.md, performance.md, design.md) and link them")
+    text = readme.decode()
+    for marker in ("<!-- demo-command -->", "<!-- test-command -->", "## Quick start", "## API tour",
+                   "## Algorithms", "## Studies"):
+        assert marker in text, marker
+    from torchmcmcpf import experiments
+
+    for name in experiments.discover():  # every study in the study table
+        assert f"| `{name}` |" in text, name
