@@ -390,10 +390,13 @@ def test_demo_quick_states_its_expected_duration(tmp_path, capsys):
 def test_demo_warns_when_the_cores_are_busy(monkeypatch):
     from torchmcmcpf import __main__ as cli
 
-    args = argparse.Namespace(filter="ipmcmc", quick=False, **cli.DEMO_DEFAULTS)
+    args = argparse.Namespace(filter="ipmcmc", quick=False, threads=2, **cli.DEMO_DEFAULTS)
     monkeypatch.setattr(cli.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
     monkeypatch.setattr(cli.os, "cpu_count", lambda: 2)
     note = cli.demo_expectation(args)
     assert "expected: about 10 s of filtering" in note and "load average 9.0 on 2 cores" in note
+    assert "--threads 1 avoids most of it" in note
+    args.threads = 1
+    assert "--threads 1" not in cli.demo_expectation(args)
     monkeypatch.setattr(cli.os, "getloadavg", lambda: (0.5, 0.5, 0.5))
     assert "load average" not in cli.demo_expectation(args)

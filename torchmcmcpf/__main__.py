@@ -74,6 +74,13 @@ def _build_filter(args: argparse.Namespace, scenario: Scenario) -> Filter:
                         num_chains=args.chains, burn_in=args.burn_in)
 
 
+def torch_threads() -> int:
+    """The intra-op thread count of torch (imported here: the parser stays light)."""
+    import torch
+
+    return torch.get_num_threads()
+
+
 def _resolve_demo(args: argparse.Namespace) -> None:
     """Fill the sizes not given on the command line from the preset (``--quick`` or not)."""
     preset = DEMO_QUICK if args.quick else DEMO_DEFAULTS
@@ -98,9 +105,13 @@ def demo_expectation(args: argparse.Namespace) -> str | None:
         load, cores = os.getloadavg()[0], os.cpu_count() or 1
     except OSError:
         load, cores = 0.0, 1
-    if load > cores:
+    if load > cores and (args.threads or torch_threads()) > 1:
+        lines.append(f"note: load average {load:.1f} on {cores} cores: other processes compete for the CPU and "
+                     "torch's threads spin under contention, which can make each step 10x slower; --threads 1 "
+                     "avoids most of it")
+    elif load > cores:
         lines.append(f"note: load average {load:.1f} on {cores} cores: other processes compete for the CPU, so "
-                     "expect this to run several times slower (torch's threads spin under contention)")
+                     "expect this to run slower")
     return "\n".join(lines) or None
 
 
