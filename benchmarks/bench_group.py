@@ -88,7 +88,7 @@ def group_problem(chains=CHAINS, kept=KEPT, burn_in=1000):
     from torchmcmcpf.scenarios.group_merge import group_merge
 
     g = torch.Generator().manual_seed(0)
-    scn = group_merge(RUNS, g, num_steps=3)
+    scn = group_merge(RUNS, generator=g, num_steps=3)
     filt = GroupMCMCFilter(scn.motion, scn.sensor, kept, existence=scn.existence,
                            structure_prior=scn.structure_prior, num_chains=chains, burn_in=burn_in, thinning=6)
     # a cloud after two short steps (targets born) to start from

@@ -24,6 +24,7 @@ def test_quick_ablation_end_to_end(tmp_path):
     for r in rows.values():
         assert 0 <= r["rmse"] < 100 and 0 <= r["tlr"] <= 1 and 1 <= r["ess"] <= r["particles"]
     assert "variance" in (tmp_path / "ablation.md").read_text()
+    assert (tmp_path / "ablation.png").stat().st_size > 10_000  # RMSE and ESS against the number of targets
     assert exp.summary(payload).count("|") > 20
 
 

@@ -276,3 +276,107 @@ def test_without_workers_ray_is_not_imported(tmp_path):
     assert done.stdout.strip().splitlines()[-1] == "False"
 
 
+# ------------------------------------------------------------------ the first hour (issue 25)
+
+
+def test_study_argument_errors_are_one_line(capsys):
+    assert_one_line_error(capsys, ["reproduce", "bocquel-table2", "--quick", "--max-extensions", "-1"],
+                          "--max-extensions", ">= 0")
+    assert_one_line_error(capsys, ["reproduce", "ling-rmse-vs-snr", "--quick", "--burn-in", "-2"], "--burn-in")
+
+
+@pytest.fixture
+def failing_experiment(tmp_path, monkeypatch):
+    """A study whose run raises the errors a real one can: a ValueError from a model, a shard failure."""
+    pkg = tmp_path / "pkg_fail"
+    pkg.mkdir()
+    (pkg / "failing_study.py").write_text(textwrap.dedent('''
+        from torchmcmcpf.experiments._common import ShardError
+
+        NAME = "failing-study"
+        DESCRIPTION = "a study that fails (tests/test_cli.py)"
+
+        def add_arguments(parser):
+            parser.add_argument("--kind", default="value")
+
+        def run(args):
+            if args.kind == "value":
+                raise ValueError("num_chains=30 must divide num_particles=100")
+            raise ShardError("failing-study: shard 2 (runs 2..2) failed: RuntimeError: out of memory\\nsecond line")
+    '''))
+    monkeypatch.setattr(experiments, "__path__", [*experiments.__path__, str(pkg)])
+    yield "failing-study"
+    sys.modules.pop("torchmcmcpf.experiments.failing_study", None)
+
+
+def test_run_errors_are_one_line_unless_asked_for_the_traceback(failing_experiment, tmp_path, capsys, monkeypatch):
+    argv = ["reproduce", failing_experiment, "--out", tmp_path]
+    assert_one_line_error(capsys, argv, "failing-study: error:", "num_chains=30", "TORCHMCMCPF_TRACEBACK=1")
+    with pytest.raises(SystemExit) as exc:  # a shard that failed for another reason: one line, status 1
+        main([*argv, "--kind", "shard"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 1 and "Traceback" not in err
+    assert [line for line in err.splitlines() if line] == [
+        f"python -m torchmcmcpf reproduce {failing_experiment}: error: failing-study: shard 2 (runs 2..2) failed: "
+        "RuntimeError: out of memory second line (TORCHMCMCPF_TRACEBACK=1 shows the traceback)"]
+    monkeypatch.setenv("TORCHMCMCPF_TRACEBACK", "1")
+    with pytest.raises(ValueError, match="num_chains=30"):
+        main(argv)
+
+
+def test_shard_options_only_where_the_study_runs_in_shards(capsys):
+    sharded = [n for n, m in experiments.discover().items() if hasattr(m, "run_shard")]
+    unsharded = [n for n, m in experiments.discover().items() if not hasattr(m, "run_shard")]
+    assert {"maroulas-hmc", "septier-groups"} <= set(unsharded) and "bocquel-table2" in sharded
+    assert main(["reproduce", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    common = text.split("options common to all studies:")[1].split("shards and Ray")[0]
+    assert "--workers WORKERS" not in common and "--quick" in common
+    assert f"shards and Ray (only {', '.join(sharded)}):" in text
+    for name in unsharded:
+        assert_one_line_error(capsys, ["reproduce", name, "--quick", "--workers", "2"], "--workers",
+                              "does not run in shards", "bocquel-table2")
+        assert_one_line_error(capsys, ["reproduce", name, "--shard-size=3"], "--shard-size")
+        with pytest.raises(SystemExit):
+            main(["reproduce", name, "--help"])
+        assert "--workers" not in capsys.readouterr().out
+
+
+def test_every_study_prints_a_headline_table(fake_experiment, tmp_path, capsys):
+    """A study without its own summary prints its scalar results as a table (not a key dump)."""
+    assert main(["reproduce", fake_experiment, "--out", tmp_path, "--level", "7", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "| quantity | value |" in printed and "| level | 7 |" in printed
+    assert main(["reproduce", "group-merge-scenario", "--quick", "--out", tmp_path / "gm", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "| quantity | this run | paper |" in printed and "P_d,1: model / simulated" in printed
+    missing = [n for n, m in experiments.discover().items() if not hasattr(m, "summary") and n != fake_experiment]
+    assert missing in ([], ["septier-groups"]), missing  # septier-groups: its table comes with the group work
+
+
+def test_demo_quick_states_its_expected_duration(tmp_path, capsys):
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", out, "--no-progress"]) == 0
+    s = json.loads((out / "metrics.json").read_text())["settings"]
+    assert (s["runs"], s["steps"], s["particles"], s["chains"], s["targets"]) == (1, 5, 500, 50, 10)
+    assert "expected: about 1 s of filtering (0.22 s per step) on a quiet 2-core CPU" in capsys.readouterr().out
+    # explicit sizes win over the preset; no time is promised for them
+    assert main(["demo", "--quick", "--steps", "2", "--particles", "100", "--chains", "10", "--targets", "2",
+                 "--out", out, "--no-progress"]) == 0
+    assert json.loads((out / "metrics.json").read_text())["settings"]["steps"] == 2
+    assert "expected:" not in capsys.readouterr().out
+
+
+def test_demo_warns_when_the_cores_are_busy(monkeypatch):
+    from torchmcmcpf import __main__ as cli
+
+    args = argparse.Namespace(filter="ipmcmc", quick=False, threads=2, **cli.DEMO_DEFAULTS)
+    monkeypatch.setattr(cli.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
+    monkeypatch.setattr(cli.os, "cpu_count", lambda: 2)
+    note = cli.demo_expectation(args)
+    assert "expected: about 10 s of filtering" in note and "load average 9.0 on 2 cores" in note
+    assert "--threads 1 avoids most of it" in note
+    args.threads = 1
+    assert "--threads 1" not in cli.demo_expectation(args)
+    monkeypatch.setattr(cli.os, "getloadavg", lambda: (0.5, 0.5, 0.5))
+    assert "load average" not in cli.demo_expectation(args)

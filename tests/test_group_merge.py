@@ -15,7 +15,7 @@ from torchmcmcpf.scenarios import group_merge
 
 @pytest.fixture(scope="module")
 def scn():
-    return group_merge(6, torch.Generator().manual_seed(3))
+    return group_merge(6, generator=torch.Generator().manual_seed(3))
 
 
 def test_shapes_and_structures(scn):
@@ -66,16 +66,16 @@ def test_detection_and_false_alarm_rates(scn):
 
 
 def test_same_seed_same_scenario_and_options():
-    a = group_merge(2, torch.Generator().manual_seed(5), num_steps=20)
-    b = group_merge(2, torch.Generator().manual_seed(5), num_steps=20)
+    a = group_merge(2, generator=torch.Generator().manual_seed(5), num_steps=20)
+    b = group_merge(2, generator=torch.Generator().manual_seed(5), num_steps=20)
     assert torch.equal(a.truth, b.truth) and torch.equal(a.frames, b.frames)
-    c = group_merge(2, torch.Generator().manual_seed(5), num_steps=50, num_slots=6, same_tracks=False,
+    c = group_merge(2, generator=torch.Generator().manual_seed(5), num_steps=50, num_slots=6, same_tracks=False,
                     leader_noise=True)
     assert c.truth.shape == (50, 2, 6, 4) and not c.exists[..., 4:].any()
     assert (c.truth[..., 4:, :] == 0).all()
     assert not torch.equal(c.truth[:, 0], c.truth[:, 1])
     with pytest.raises(ValueError, match="num_slots"):
-        group_merge(2, torch.Generator(), num_slots=3)
+        group_merge(2, generator=torch.Generator(), num_slots=3)
 
 
 def test_study_quick_writes_figure_and_metrics(tmp_path):
@@ -91,3 +91,9 @@ def test_study_quick_writes_figure_and_metrics(tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["snr_db"] == pytest.approx(12.15, abs=0.01)
     assert out["merge_step"] == 46
+
+
+def test_generator_is_keyword_only():
+    """DESIGN.md: every function that draws takes ``generator=`` by keyword."""
+    with pytest.raises(TypeError):
+        group_merge(2, torch.Generator().manual_seed(0))  # type: ignore[misc]

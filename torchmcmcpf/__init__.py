@@ -4,7 +4,7 @@ Particles, chains and targets are tensor dimensions (see :mod:`torchmcmcpf.typin
 each algorithm is a pure step function wrapped by a thin ``nn.Module`` Filter.
 """
 
-from . import diagnostics, kernels, metrics, models, plotting, resampling, runtime, scenarios
+from . import diagnostics, interop, kernels, metrics, models, plotting, resampling, runtime, scenarios
 from .filters import (
     Filter,
     GroupMCMCFilter,
@@ -17,7 +17,9 @@ from .filters import (
     group_mcmc_step,
     ipmcmc_step,
     mcmc_step,
+    partitioned_sir_step,
     pmmh,
+    pmmh_step,
     resample_move_step,
     sir_step,
 )
@@ -43,7 +45,9 @@ __all__ = [
     "ipmcmc_step",
     "pmmh",
     "PMMHFilter",
+    "pmmh_step",
     "PartitionedSIRFilter",
+    "partitioned_sir_step",
     "ResampleMoveFilter",
     "resample_move_step",
     "GroupMCMCFilter",
@@ -58,6 +62,7 @@ __all__ = [
     "StepInfo",
     "FilterResult",
     "diagnostics",
+    "interop",
     "kernels",
     "metrics",
     "models",

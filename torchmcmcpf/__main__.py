@@ -6,24 +6,35 @@
   ``tracks.png``.
 - ``reproduce NAME``: run one of the studies in :mod:`torchmcmcpf.experiments`
   (``reproduce --list`` lists them, ``reproduce --help`` the common options) and print
-  its headline table; ``--workers N`` runs its shards of runs on Ray.
+  its headline table; ``--workers N`` runs its shards of runs on Ray (studies that define
+  ``run_shard``; the others refuse the shard options with a one-line error).
 - ``bench``: the headline benchmarks of :mod:`torchmcmcpf.bench` (radar SIR, IP-MCMC-PF and
   MCMC-PF steps, point SIR against Stone Soup, scaling in N, K and B); writes ``bench.json``,
   ``bench.md`` and ``bench_scaling.png``. ``--quick``: tiny sizes, seconds.
+
+Errors are one line on stderr naming the argument (exit status 2): argparse's own, the
+cross-option checks, and any ``ValueError`` the run raises (a study's settings refused by a
+filter, a shard that failed on bad input). ``TORCHMCMCPF_TRACEBACK=1`` shows the traceback
+instead.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 import shlex
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from typing import TYPE_CHECKING
 
 from .experiments._common import (
+    SHARD_OPTIONS,
+    ShardError,
     StepTimer,
     add_common_arguments,
+    add_shard_arguments,
     generator,
     nonnegative_int,
     np_label,
@@ -42,6 +53,11 @@ if TYPE_CHECKING:
     from .state import FilterResult
 
 DEMO_DEFAULTS = dict(particles=1000, runs=2, steps=20, targets=10, chains=50, burn_in=100)
+#: ``demo --quick``: one run of 5 steps, 500 particles (seconds)
+DEMO_QUICK = dict(particles=500, runs=1, steps=5, targets=10, chains=50, burn_in=100)
+#: seconds per step of the IP-MCMC-PF at the two presets, measured on a quiet 2-core CPU
+#: (``--no-progress``, 1 torch thread, 2026-12-01): what the demo announces before it runs
+DEMO_SECONDS_PER_STEP = {"default": 0.48, "quick": 0.22}
 DEMO_OUTPUTS = ("metrics.json", "tracks.png")
 FILTER_NAMES = {"ipmcmc": "IP-MCMC-PF", "sir": "SIR PF"}
 
@@ -56,6 +72,47 @@ def _build_filter(args: argparse.Namespace, scenario: Scenario) -> Filter:
         return SIRFilter(scenario.motion, scenario.sensor, num_particles=args.particles)
     return IPMCMCFilter(scenario.motion, scenario.sensor, num_particles=args.particles,
                         num_chains=args.chains, burn_in=args.burn_in)
+
+
+def torch_threads() -> int:
+    """The intra-op thread count of torch (imported here: the parser stays light)."""
+    import torch
+
+    return torch.get_num_threads()
+
+
+def _resolve_demo(args: argparse.Namespace) -> None:
+    """Fill the sizes not given on the command line from the preset (``--quick`` or not)."""
+    preset = DEMO_QUICK if args.quick else DEMO_DEFAULTS
+    for key, value in preset.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+
+
+def demo_expectation(args: argparse.Namespace) -> str | None:
+    """What the demo announces before it runs: the expected time at a preset's sizes, and a
+    warning when the load average exceeds the cores (other processes slow torch down many
+    times over); ``None`` when there is nothing to say.
+    """
+    lines = []
+    for name, preset in (("quick", DEMO_QUICK), ("default", DEMO_DEFAULTS)):
+        if args.filter == "ipmcmc" and all(getattr(args, k) == v for k, v in preset.items()):
+            per_step = DEMO_SECONDS_PER_STEP[name]
+            lines.append(f"expected: about {per_step * args.steps:.0f} s of filtering ({per_step:.2f} s per step) "
+                         "on a quiet 2-core CPU")
+            break
+    try:
+        load, cores = os.getloadavg()[0], os.cpu_count() or 1
+    except OSError:
+        load, cores = 0.0, 1
+    if load > cores and (args.threads or torch_threads()) > 1:
+        lines.append(f"note: load average {load:.1f} on {cores} cores: other processes compete for the CPU and "
+                     "torch's threads spin under contention, which can make each step 10x slower; --threads 1 "
+                     "avoids most of it")
+    elif load > cores:
+        lines.append(f"note: load average {load:.1f} on {cores} cores: other processes compete for the CPU, so "
+                     "expect this to run slower")
+    return "\n".join(lines) or None
 
 
 def _check_demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -78,24 +135,30 @@ def _demo_parser(sub: argparse._SubParsersAction) -> None:
             "with the IP-MCMC-PF (or, --filter sir, the multitarget SIR particle filter, which "
             "loses these targets), print the position RMSE (labels matched) and the track loss "
             "rate, and write metrics.json and tracks.png. Defaults: 1000 particles in 50 chains, "
-            "burn-in 100, 2 runs, 20 steps, 10 targets."
+            "burn-in 100, 2 runs, 20 steps, 10 targets: about 10 s on a quiet 2-core CPU (0.5 s per "
+            "step); --quick: 1 run, 5 steps, 500 particles, about 1 s. Other processes on the cores "
+            "slow it down many times over (torch's threads spin); the demo says so when the load is high."
         ),
     )
-    p.add_argument("--particles", type=positive_int, default=DEMO_DEFAULTS["particles"],
-                   help="particles N (default: %(default)s)")
-    p.add_argument("--runs", type=positive_int, default=DEMO_DEFAULTS["runs"],
-                   help="Monte Carlo runs B, filtered as one batch (default: %(default)s)")
-    p.add_argument("--steps", type=positive_int, default=DEMO_DEFAULTS["steps"],
-                   help="time steps T (default: %(default)s)")
-    p.add_argument("--targets", type=positive_int, default=DEMO_DEFAULTS["targets"],
-                   help="targets K (default: %(default)s)")
+    p.add_argument("--particles", type=positive_int,
+                   help=f"particles N (default: {DEMO_DEFAULTS['particles']}, quick: {DEMO_QUICK['particles']})")
+    p.add_argument("--runs", type=positive_int,
+                   help=f"Monte Carlo runs B, filtered as one batch (default: {DEMO_DEFAULTS['runs']}, "
+                        f"quick: {DEMO_QUICK['runs']})")
+    p.add_argument("--steps", type=positive_int,
+                   help=f"time steps T (default: {DEMO_DEFAULTS['steps']}, quick: {DEMO_QUICK['steps']})")
+    p.add_argument("--targets", type=positive_int,
+                   help=f"targets K (default: {DEMO_DEFAULTS['targets']}, quick: {DEMO_QUICK['targets']})")
     p.add_argument("--filter", choices=("ipmcmc", "sir"), default="ipmcmc",
                    help="ipmcmc: IP-MCMC-PF (default); sir: multitarget SIR PF, the baseline")
-    p.add_argument("--chains", type=positive_int, default=DEMO_DEFAULTS["chains"],
+    p.add_argument("--chains", type=positive_int,
                    help="IP-MCMC-PF chains C; --particles must be a multiple of it, with at least 2 "
-                        "particles per chain (default: %(default)s)")
-    p.add_argument("--burn-in", type=nonnegative_int, default=DEMO_DEFAULTS["burn_in"],
-                   help="IP-MCMC-PF burn-in iterations per step (default: %(default)s)")
+                        f"particles per chain (default: {DEMO_DEFAULTS['chains']})")
+    p.add_argument("--burn-in", type=nonnegative_int,
+                   help=f"IP-MCMC-PF burn-in iterations per step (default: {DEMO_DEFAULTS['burn_in']})")
+    p.add_argument("--quick", action="store_true",
+                   help="one run of 5 steps with 500 particles: about 1 s of filtering on a quiet 2-core CPU "
+                        "(the default: about 10 s)")
     add_common_arguments(p, name="demo", quick=False, shards=False)
     p.set_defaults(command=_demo)
 
@@ -133,6 +196,9 @@ def _demo(args: argparse.Namespace) -> dict:
     scenario = ground_radar(args.targets, args.steps, args.runs, generator=g, device=args.device)
     filt = _build_filter(args, scenario).to(args.device)
     init = scenario.initial_particles(args.particles, generator=g)
+    note = demo_expectation(args)
+    if note:
+        print(note, flush=True)
     with StepTimer(args.device, steps=args.steps) as timer:
         result = filt(scenario.measurements, init=init, generator=g, progress=args.progress)
     rmse = position_rmse(result.mean, scenario.truth, match=True)
@@ -177,7 +243,8 @@ def _reproduce_help_parser(found: dict) -> argparse.ArgumentParser:
     )
     parser.add_argument("name", nargs="?", help="study NAME (see --list)")
     parser.add_argument("--list", action="store_true", help="list the studies and exit")
-    add_common_arguments(parser, name="NAME")
+    add_common_arguments(parser, name="NAME", shards=False)
+    add_shard_arguments(parser, studies=[n for n, m in found.items() if hasattr(m, "run_shard")])
     return parser
 
 
@@ -207,7 +274,12 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
     module = found[known.name]
     parser = argparse.ArgumentParser(prog=f"python -m torchmcmcpf reproduce {known.name}",
                                      description=module.DESCRIPTION)
-    add_common_arguments(parser, name=known.name, shards=hasattr(module, "run_shard"), study=module)
+    sharded = hasattr(module, "run_shard")
+    add_common_arguments(parser, name=known.name, shards=sharded, study=module)
+    given = [a.split("=", 1)[0] for a in rest if a.split("=", 1)[0] in SHARD_OPTIONS]
+    if given and not sharded:
+        parser.error(f"argument {given[0]}: {known.name} does not run in shards, so it has no {given[0]}; "
+                     f"the studies that do: {', '.join(n for n, m in found.items() if hasattr(m, 'run_shard'))}")
     if hasattr(module, "add_arguments"):
         module.add_arguments(parser.add_argument_group(f"options of {known.name}"))
     args = parser.parse_args(rest + (["--help"] if known.help else []))
@@ -227,13 +299,33 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
         parser.error(f"argument --{err}")
     result = module.run(args)
     print(f"\n{known.name}: wrote {args.out}")
-    if hasattr(module, "summary"):
-        print(module.summary(result))
-    else:
-        for key, value in result.items():
-            if isinstance(value, (int, float, str)):
-                print(f"  {key}: {value}")
+    print(module.summary(result) if hasattr(module, "summary") else headline_table(result))
     return result
+
+
+def headline_table(result: dict) -> str:
+    """The headline table of a study without its own ``summary``: its scalar results (numbers,
+    strings, 0-d tensors, one level of nested dicts) as a two-column markdown table.
+    """
+    import torch
+
+    rows = []
+
+    def add(key: str, value: object) -> None:
+        if torch.is_tensor(value) and value.dim() == 0:
+            value = value.item()
+        if isinstance(value, float):
+            rows.append((key, f"{value:.4g}"))
+        elif isinstance(value, (int, str)):
+            rows.append((key, str(value)))
+
+    for key, value in result.items():
+        if isinstance(value, dict):
+            for sub, inner in value.items():
+                add(f"{key}.{sub}", inner)
+        else:
+            add(key, value)
+    return "\n".join(["| quantity | value |", "| --- | --- |", *(f"| {k} | {v} |" for k, v in rows)])
 
 
 BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png")
@@ -278,6 +370,23 @@ def _bench(args: argparse.Namespace) -> dict:
     return result
 
 
+@contextlib.contextmanager
+def _one_line_errors(prog: str) -> Iterator[None]:
+    """Turn a ``ValueError`` (bad input, by the library's convention) or a failed shard into
+    one ``error:`` line on stderr and exit status 2 (1 for a shard that failed otherwise);
+    ``TORCHMCMCPF_TRACEBACK=1`` lets the exception through with its traceback.
+    """
+    try:
+        yield
+    except (ValueError, ShardError) as err:
+        if os.environ.get("TORCHMCMCPF_TRACEBACK"):
+            raise
+        bad_input = isinstance(err, ValueError) or isinstance(err.__cause__, ValueError) or ": ValueError: " in str(err)
+        message = " ".join(str(err).split())  # one line, whatever the exception's text
+        print(f"{prog}: error: {message} (TORCHMCMCPF_TRACEBACK=1 shows the traceback)", file=sys.stderr)
+        raise SystemExit(2 if bad_input else 1) from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``python -m torchmcmcpf`` and of the ``torchmcmcpf`` script.
 
@@ -292,7 +401,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = [str(a) for a in argv]  # allow Path arguments in-process
     command_line = shlex.join(["python", "-m", "torchmcmcpf", *argv])
     if argv[:1] == ["reproduce"]:
-        _reproduce(argv[1:], command_line, started)
+        name = argv[1] if len(argv) > 1 and not argv[1].startswith("-") else ""
+        with _one_line_errors(f"python -m torchmcmcpf reproduce {name}".rstrip()):
+            _reproduce(argv[1:], command_line, started)
         return 0
     parser = argparse.ArgumentParser(
         prog="python -m torchmcmcpf",
@@ -305,8 +416,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.command_line, args.started = command_line, started
     if args.cmd == "demo":
+        _resolve_demo(args)
         _check_demo(sub.choices["demo"], args)
-    args.command(args)
+    with _one_line_errors(f"python -m torchmcmcpf {args.cmd}"):
+        args.command(args)
     return 0
 
 

@@ -7,6 +7,7 @@ never inside a step function's hot path.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 from typing import SupportsFloat
 
@@ -48,10 +49,33 @@ def check_nonnegative(t: Tensor, name: str) -> Tensor:
     return t
 
 
+def as_int(value: object) -> int | None:
+    """``value`` as a Python ``int`` when it is integral, else ``None``: any
+    :class:`numbers.Integral` (``int``, ``np.int64``, a 0-d integer tensor) and any real number
+    with an integral value (``100.0``, ``np.float32(8)``); never a ``bool``.
+    """
+    if isinstance(value, bool) or getattr(value, "dtype", None) == torch.bool:
+        return None
+    if isinstance(value, torch.Tensor):
+        if value.dim() != 0 or value.is_complex():
+            return None
+        value = value.item()
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, numbers.Real):
+        v = float(value)
+        return int(v) if v.is_integer() else None
+    return None
+
+
 def check_positive_int(value: object, name: str, minimum: int = 1) -> int:
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    """``value`` as an ``int >= minimum`` (see :func:`as_int` for what counts as an integer);
+    a ``ValueError`` naming ``name`` otherwise.
+    """
+    v = as_int(value)
+    if v is None or v < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-    return value
+    return v
 
 
 def check_positive(value: SupportsFloat | None, name: str, allow_zero: bool = False) -> float:

@@ -17,7 +17,7 @@ import torch
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
-           "weighted_mean", "summary", "relabel", "relabelled_estimate"]
+           "stack_states", "weighted_mean", "weighted_cov", "summary", "relabel", "relabelled_estimate"]
 
 
 def summary(value: Any) -> str:
@@ -57,6 +57,16 @@ class ParticleState(NamedTuple):
         parameters ``theta (B, L)``, their accumulated log-evidence ``log_evidence (B, L)``
         and the within-candidate log-weights ``log_w_candidate (B, N)``); ``None`` for the
         filters that need none.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> x = torch.zeros(2, 100, 3, 4)                 # (B, N, K, D)
+    >>> state = tp.ParticleState(x, torch.full((2, 100), -math.log(100)))
+    >>> state.batch_size, state.num_particles, state.num_targets, state.mean().shape
+    (2, 100, 3, torch.Size([2, 3, 4]))
     """
 
     x: Tensor
@@ -106,6 +116,14 @@ class StepInfo(NamedTuple):
     extras : dict name -> (B,) tensor
         Algorithm-specific quantities (documented by each filter), e.g.
         ``"acceptance_joint"``, ``"rhat"``, ``"extensions"``. Empty for SIR.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> info = tp.StepInfo.make(torch.zeros(2), ess=torch.tensor([80.0, 95.0]))   # B = 2
+    >>> info.ess, info.acceptance                     # what a filter does not compute is NaN
+    (tensor([80., 95.]), tensor([nan, nan]))
     """
 
     ess: Tensor
@@ -142,6 +160,42 @@ class FilterResult(NamedTuple):
         ``sum_k log p(z_k | z_{1:k-1})`` (NaN for filters that do not estimate it).
     exists_prob : (T, B, K), optional
         Posterior existence probability of each slot (filters with births and deaths).
+    cov : (T, B, K, D, D), optional
+        Posterior covariance of each slot around ``mean`` (given existence, with births and
+        deaths; zeros where no particle has the slot): the weighted covariance of the cloud.
+    history : ParticleState with a leading T dim, optional
+        Every step's particle state, ``x (T, B, N, K, D)``, ``log_w (T, B, N)``, ``exists
+        (T, B, N, K)``, kept when ``forward(..., history=True)`` (T times the memory of one
+        state): per-step clouds for :meth:`to_stonesoup` (``kind="particle"``) and the chain
+        samples of any step for :meth:`to_arviz`.
+    meta : dict, optional
+        What made the result: ``filter`` (class name), ``num_particles``, ``settings`` (the
+        settings dataclass as plain values), ``motion``, ``sensor``, ``existence``, ``dt``
+        (the motion's sampling time, or None), ``compile_step`` and ``versions``; plain
+        Python values, so ``torch.load(weights_only=True)`` reads it.
+
+    Interoperability (optional packages, imported only when called): :meth:`to_numpy` (a
+    dict of NumPy arrays), :meth:`to_xarray` (an ``xarray.Dataset``), :meth:`to_arviz` (the
+    kept chain samples of an MCMC filter's step as ArviZ ``InferenceData``) and
+    :meth:`to_stonesoup` (Stone Soup ``Track`` s); see :mod:`torchmcmcpf.interop`.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> result = tp.SIRFilter(motion, sensor, 100)(z, init=x0, generator=g)
+    >>> result                                        # shapes, never values
+    FilterResult(mean=float32(5, 2, 3, 4), state=ParticleState(...), ...)
+    >>> result.cov.shape                              # (T, B, K, D, D): each slot's posterior covariance
+    torch.Size([5, 2, 3, 4, 4])
+    >>> result.to_numpy()["info.ess"].shape            # a flat dict of NumPy arrays
+    (5, 2)
+    >>> result.meta["filter"], result.meta["settings"]
+    ('SIRFilter', {'resample_method': 'systematic', 'ess_threshold': 1.0})
     """
 
     mean: Tensor
@@ -149,13 +203,51 @@ class FilterResult(NamedTuple):
     info: StepInfo
     log_evidence: Tensor
     exists_prob: Tensor | None = None
+    cov: Tensor | None = None
+    history: ParticleState | None = None
+    meta: dict | None = None
 
     def __repr__(self) -> str:
-        return _short_repr(self)
+        fields = [f"{f}={summary(getattr(self, f))}" for f in self._fields if f != "meta"]
+        if self.meta is not None:  # its settings are long: name the filter only
+            fields.append(f"meta={{'filter': {self.meta.get('filter')!r}, ...}}")
+        return "FilterResult(" + ", ".join(fields) + ")"
+
+    def to_xarray(self) -> Any:
+        """The result as an ``xarray.Dataset`` (:func:`torchmcmcpf.interop.result_to_xarray`):
+        ``mean`` on dims ``(time, run, target, component)`` with the components named from
+        the state layout, the info fields as variables, the settings and provenance as
+        attributes. Needs ``pip install 'torchmcmcpf[interop]'``.
+        """
+        from .interop import result_to_xarray
+
+        return result_to_xarray(self)
+
+    def to_arviz(self, *, step: int = -1, run: int = 0) -> Any:
+        """The kept chain samples of an MCMC filter at ``step`` (default the last) for run
+        ``run`` as ArviZ ``InferenceData`` with ``chain`` and ``draw`` dims
+        (:func:`torchmcmcpf.interop.chains_to_arviz`); a step before the last needs
+        ``history``. Needs ``pip install 'torchmcmcpf[interop]'``.
+        """
+        from .interop import result_to_arviz
+
+        return result_to_arviz(self, step=step, run=run)
+
+    def to_stonesoup(self, *, run: int = 0, kind: str = "gaussian", start_time: Any = None,
+                     dt: float | None = None, threshold: float = 0.5) -> list:
+        """Stone Soup ``Track`` s of run ``run``, one per slot (and per stretch of existence
+        with births and deaths), of ``GaussianState`` s (``kind="gaussian"``, from ``mean``
+        and ``cov``) or ``ParticleState`` s (``kind="particle"``, from ``history``)
+        (:func:`torchmcmcpf.interop.tracks_to_stonesoup`). Needs Stone Soup
+        (``pip install 'torchmcmcpf[interop]'``).
+        """
+        from .interop import tracks_to_stonesoup
+
+        return tracks_to_stonesoup(self, run=run, kind=kind, start_time=start_time, dt=dt, threshold=threshold)
 
     def to_numpy(self) -> dict[str, Any]:
-        """The result as a flat dict of NumPy arrays (for pandas / xarray): ``"mean"``,
-        ``"log_evidence"``, ``"exists_prob"``, ``"state.x"``, ``"state.log_w"``,
+        """The result as a flat dict of NumPy arrays (for pandas): ``"mean"``,
+        ``"log_evidence"``, ``"exists_prob"``, ``"cov"``, ``"state.x"``, ``"state.log_w"``,
         ``"state.exists"``, ``"info.ess"``, ``"info.<extra>"``, ... (``None`` fields left
         out).
         """
@@ -168,6 +260,7 @@ class FilterResult(NamedTuple):
         put("mean", self.mean)
         put("log_evidence", self.log_evidence)
         put("exists_prob", self.exists_prob)
+        put("cov", self.cov)
         for f in ParticleState._fields:
             put(f"state.{f}", getattr(self.state, f))
         for f in ("ess", "log_evidence", "acceptance"):
@@ -183,6 +276,34 @@ def weighted_mean(x: Tensor, log_w: Tensor) -> Tensor:
     """
     w = torch.softmax(log_w, dim=-1)
     return torch.einsum("bn,bnkd->bkd", w.to(x.dtype), x)
+
+
+def weighted_cov(x: Tensor, log_w: Tensor, mean: Tensor, exists: Tensor | None = None) -> Tensor:
+    """Weighted covariance of each slot around ``mean``: ``x (B, N, K, D)``, ``log_w (B,
+    N)``, ``mean (B, K, D)`` -> ``(B, K, D, D)``. With ``exists (B, N, K)`` it is the
+    covariance given existence (weights ``w_n e_nk``, normalised per slot); zeros where no
+    particle has the slot.
+    """
+    w = torch.softmax(log_w, dim=-1).to(x.dtype)  # (B, N)
+    we = w.unsqueeze(-1).expand(x.shape[:3]) if exists is None else w.unsqueeze(-1) * exists.to(x.dtype)
+    d = x - mean.unsqueeze(1)  # (B, N, K, D)
+    if exists is not None:
+        d = torch.where(exists.unsqueeze(-1), d, torch.zeros_like(d))  # dead slots hold x_death: no NaN/inf
+    num = torch.einsum("bnk,bnkd,bnke->bkde", we, d, d)
+    num = 0.5 * (num + num.transpose(-1, -2))  # symmetric to the last bit (float rounding of the einsum)
+    mass = we.sum(1)  # (B, K)
+    return num / mass.clamp(min=torch.finfo(x.dtype).tiny)[..., None, None]
+
+
+def stack_states(states: list[ParticleState]) -> ParticleState:
+    """Stack per-step states into one with a leading time dim ``T`` (``extras`` stacked too)."""
+    if not states:
+        raise ValueError("states is empty, expected at least one ParticleState")
+    first = states[0]
+    exists = None if first.exists is None else torch.stack([s.exists for s in states])  # type: ignore[misc]
+    extras = None if first.extras is None else {k: torch.stack([s.extras[k] for s in states])  # type: ignore[index]
+                                                 for k in first.extras}
+    return ParticleState(torch.stack([s.x for s in states]), torch.stack([s.log_w for s in states]), exists, extras)
 
 
 def stack_infos(infos: list[StepInfo]) -> StepInfo:
@@ -315,7 +436,7 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
 
 def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *,
                         reference_exists: Tensor | None = None, x_death: Tensor | None = None,
-                        iterations: int = 2, cutoff: float = 100.0) -> ExistenceEstimate:
+                        iterations: int = 2, cutoff: float = 100.0) -> tuple[ExistenceEstimate, ParticleState]:
     """The slot estimates of a cloud after relabelling its particles (:func:`relabel`):
     the default estimate of every filter with two or more slots.
 
@@ -333,22 +454,24 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
 
     Returns
     -------
-    :class:`ExistenceEstimate` of the relabelled cloud (without existence flags:
-    ``exists_prob`` ones and ``mean`` the weighted mean).
+    estimate : :class:`ExistenceEstimate` of the relabelled cloud (without existence flags:
+    ``exists_prob`` ones and ``mean`` the weighted mean);
+    relabelled : the relabelled cloud (a ParticleState, its slots in the estimate's labels).
     """
     x, log_w, exists = state.x, state.log_w, state.exists
     b, n, k, d = x.shape
-    ref, present = reference, reference_exists
+    present = reference_exists
     if reference is None:  # one particle's labels are consistent: the heaviest one's
         best = log_w.argmax(-1)[:, None, None]
         ref = torch.take_along_dim(x, best[..., None], 1).squeeze(1)
         present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
+    else:
+        ref = reference
     out = None
+    xr, er = x, exists
     for _ in range(max(1, int(iterations))):
         if iterations > 0 and k > 1:
             xr, er = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
-        else:
-            xr, er = x, exists
         if exists is None:
             mean = weighted_mean(xr, log_w)
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
@@ -357,7 +480,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             out = existence_estimate(ParticleState(xr, log_w, er), x_death=x_death)
         ref, present = out.mean, out.present if exists is not None else None
     assert out is not None
-    return out
+    return out, state._replace(x=xr, exists=er)
 
 
 torch.serialization.add_safe_globals([ParticleState, StepInfo, FilterResult, ExistenceEstimate])

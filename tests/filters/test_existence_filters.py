@@ -103,7 +103,7 @@ def test_estimate_is_the_mean_given_existence(gen):
         state, _ = filt.step(state, type(z)(z.z[t], z.mask[t]), generator=gen)
     # the filter's estimate: the mean given existence of the relabelled cloud (one target
     # whatever slot each particle holds it in)
-    est = relabelled_estimate(state, x_death=existence.x_death)
+    est, _ = relabelled_estimate(state, x_death=existence.x_death)
     assert torch.allclose(filt.estimate(state), est.mean)
     assert torch.allclose(est.expected_count, existence_estimate(state).expected_count)
     # the one present slot per run is within a few noise sd of the target's points

@@ -152,7 +152,7 @@ def test_move_leaves_target_invariant(setup, move):
 def tiny_filter(compile_step=False, marginalise=True):
     from torchmcmcpf.scenarios.group_merge import group_merge
 
-    scn = group_merge(2, torch.Generator().manual_seed(0), num_steps=4, merge_step=3)
+    scn = group_merge(2, generator=torch.Generator().manual_seed(0), num_steps=4, merge_step=3)
     filt = GroupMCMCFilter(scn.motion, scn.sensor, 8, existence=scn.existence, structure_prior=scn.structure_prior,
                            num_chains=4, burn_in=3, thinning=2, marginalise=marginalise, compile_step=compile_step)
     return filt, scn.frames, filt.init_inactive(2)

@@ -15,9 +15,12 @@ and ``progress`` (bool: show tqdm bars).
 
 API
 ---
-``add_common_arguments(parser, *, name, quick=True)``
+``add_common_arguments(parser, *, name, quick=True, shards=True)``
     Adds ``--quick`` (unless ``quick=False``), ``--out`` (default ``results/<name>``), ``--device``, ``--seed``,
-    ``--no-progress``.
+    ``--threads``, ``--no-progress`` and, with ``shards=True``, :func:`add_shard_arguments`.
+``add_shard_arguments(parser)``
+    Adds :data:`SHARD_OPTIONS` (``--shard-size``, ``--workers``, ``--ray-address``,
+    ``--gpus-per-shard``): only studies that define ``run_shard`` accept them.
 ``positive_int(text)``, ``device_arg(text)``
     argparse ``type=`` converters: an integer >= 1; ``"cpu"``, ``"cuda"``, ``"cuda:1"`` or
     ``"auto"`` -> ``torch.device`` (an error naming the option when CUDA is unavailable).
@@ -87,6 +90,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "add_common_arguments",
+    "add_shard_arguments",
+    "SHARD_OPTIONS",
     "positive_int",
     "nonnegative_int",
     "device_arg",
@@ -194,27 +199,44 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: b
                        help="cpu (default), cuda, cuda:N or auto")
     group.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     group.add_argument("--threads", type=positive_int, default=None,
-                       help="torch intra-op threads of every shard, here or in a Ray worker (default: this "
+                       help="torch intra-op threads (default: this process's torch threads)" if not shards else
+                            "torch intra-op threads of every shard, here or in a Ray worker (default: this "
                             "process's torch threads, so both compute alike; with --workers on one machine "
                             "use cores / workers)")
     group.add_argument("--no-progress", dest="progress", action="store_false",
                        help="hide the progress bars")
     if shards:
-        group.add_argument("--shard-size", type=positive_int, default=None,
-                           help="Monte Carlo runs per shard; each shard has its own random stream "
-                                "from (seed, shard index), so results depend on it, never on --workers "
-                                + ("(default: the study's, see metrics.json)"
-                                   if study is None or "shard_size" not in getattr(study, "FULL", {}) else
-                                   defaults_help(study.FULL, study.QUICK, "shard_size", "")[1:]))
-        group.add_argument("--workers", type=positive_int, default=None,
-                           help="run the shards on Ray with this many in flight (a local cluster "
-                                "started for the command unless --ray-address); without it Ray is "
-                                "not imported and the shards run here, one after the other")
-        group.add_argument("--ray-address", default=None,
-                           help="join this Ray cluster (e.g. ray://host:10001 or auto) instead of "
-                                "starting a local one; torchmcmcpf must be importable on its nodes")
-        group.add_argument("--gpus-per-shard", type=float, default=1.0,
-                           help="GPUs Ray reserves per shard with --device cuda (default: 1)")
+        add_shard_arguments(parser, study=study)
+    return parser
+
+
+#: the options that only studies with ``run_shard`` accept
+SHARD_OPTIONS = ("--shard-size", "--workers", "--ray-address", "--gpus-per-shard")
+
+
+def add_shard_arguments(parser: argparse.ArgumentParser, *, study: ModuleType | None = None,
+                        studies: Sequence[str] = ()) -> argparse.ArgumentParser:
+    """Add :data:`SHARD_OPTIONS` (shards of runs, Ray) in their own group. ``study`` puts its
+    default shard size in the help; ``studies`` (the names of the sharded studies) goes in
+    the group title, for the help of ``reproduce`` itself.
+    """
+    title = "shards and Ray" + (f" (only {', '.join(studies)})" if studies else "")
+    group = parser.add_argument_group(title)
+    group.add_argument("--shard-size", type=positive_int, default=None,
+                       help="Monte Carlo runs per shard; each shard has its own random stream "
+                            "from (seed, shard index), so results depend on it, never on --workers "
+                            + ("(default: the study's, see metrics.json)"
+                               if study is None or "shard_size" not in getattr(study, "FULL", {}) else
+                               defaults_help(study.FULL, study.QUICK, "shard_size", "")[1:]))
+    group.add_argument("--workers", type=positive_int, default=None,
+                       help="run the shards on Ray with this many in flight (a local cluster "
+                            "started for the command unless --ray-address); without it Ray is "
+                            "not imported and the shards run here, one after the other")
+    group.add_argument("--ray-address", default=None,
+                       help="join this Ray cluster (e.g. ray://host:10001 or auto) instead of "
+                            "starting a local one; torchmcmcpf must be importable on its nodes")
+    group.add_argument("--gpus-per-shard", type=float, default=1.0,
+                       help="GPUs Ray reserves per shard with --device cuda (default: 1)")
     return parser
 
 

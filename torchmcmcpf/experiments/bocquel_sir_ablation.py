@@ -22,7 +22,8 @@ point spread read as standard deviations, ``SNR = rho^2 / (2 sigma^2)``):
 Each setting simulates its own scenario (the data follow the reading the filter uses), runs
 an :class:`~torchmcmcpf.filters.sir.SIRFilter` resampling every step, and reports RMSE, TLR
 (20 m, slot labels as in Table II), the mean ESS and seconds per step. Writes
-``ablation.md`` and ``metrics.json``.
+``ablation.md``, ``metrics.json`` and ``ablation.png`` (RMSE and mean ESS against the number
+of targets at the base Np, with the paper's 10-target SIR row).
 
 Shards: ``--shard-size`` runs per shard (default 5, quick 1), each with the generator of
 ``(seed, shard index)`` (:func:`~torchmcmcpf.experiments._common.run_shards`).
@@ -32,14 +33,17 @@ from __future__ import annotations
 
 import argparse
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from .. import metrics
 from ..filters.sir import SIRFilter
 from ..scenarios.ground_radar import ground_radar
-from ._common import StepTimer, defaults_help, positive_int, run_shards, write_metrics
+from ._common import StepTimer, defaults_help, positive_int, run_shards, save_figure, write_metrics
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 NAME = "bocquel-sir-ablation"
 DESCRIPTION = ("Bocquel et al. 2012 Table II SIR row: SIR RMSE/TLR vs targets, Np, initial spread, "
@@ -56,7 +60,7 @@ QUICK = dict(runs=1, steps=3, targets=(1, 3), particles=(50, 100), spreads=(0.0,
              base_particles=50, shard_size=1)
 FULL = dict(runs=20, steps=20, targets=(1, 2, 3, 5, 10), particles=(500, 5000, 50000), spreads=(0.0, 1.0, 2.0),
             base_targets=10, base_particles=500, shard_size=5)
-OUTPUTS = ("metrics.json", "ablation.md", "shards")
+OUTPUTS = ("metrics.json", "ablation.md", "ablation.png", "shards")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -169,6 +173,37 @@ def table_markdown(rows: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def targets_figure(rows: dict, cfg: dict) -> Figure:
+    """RMSE and mean ESS against the number of targets K (the base setting otherwise: Np =
+    ``base_particles``, spread x1, std reading, ``rho^2 / (2 sigma^2)``), with the paper's SIR
+    figure at K = 10 where the base Np is one of its rows.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    line = sorted((r for r in rows.values() if r["particles"] == cfg["base_particles"] and r["spread"] == 1.0
+                   and r["point_spread"] == "std" and r["snr"] == "half"), key=lambda r: r["targets"])
+    k = [r["targets"] for r in line]
+    fig, (ax_rmse, ax_ess) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")
+    ax_rmse.plot(k, [float(r["rmse"]) for r in line], "o-", label=f"SIR PF, Np = {cfg['base_particles']}")
+    ax_rmse.axhline(20.0, color="grey", ls=":", lw=1, label="track-loss threshold (20 m)")
+    if cfg["base_particles"] in PAPER:
+        ax_rmse.plot([10], [PAPER[cfg["base_particles"]][0]], "k*", ms=10, label="paper, SIR, 10 targets")
+    ax_rmse.set_xlabel("number of targets K")
+    ax_rmse.set_ylabel("position RMSE [m]")
+    ax_rmse.legend(fontsize="small")
+    ax_ess.semilogy(k, [float(r["ess"]) for r in line], "o-")
+    ax_ess.set_xlabel("number of targets K")
+    ax_ess.set_ylabel(f"mean ESS (of Np = {cfg['base_particles']})")
+    for ax in (ax_rmse, ax_ess):
+        ax.set_xticks(k)
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"joint SIR on the ground radar: {cfg['runs']} run(s) per point, {cfg['steps']} steps")
+    return fig
+
+
 def summary(payload: dict) -> str:
     """The headline table printed by ``reproduce``."""
     return table_markdown(payload["results"])
@@ -188,6 +223,7 @@ def run(args: argparse.Namespace) -> dict:
           "device: see metrics.json" + (" (QUICK mode: small settings)" if cfg["quick"] else ""), "",
           table_markdown(rows)]
     (args.out / "ablation.md").write_text("\n".join(md))
+    save_figure(targets_figure(rows, cfg), args.out, "ablation.png", quick=cfg["quick"])
     payload = {"config": cfg, "results": rows}
     write_metrics(args.out, payload, args=args, device=device)
     return payload

@@ -54,7 +54,16 @@ from ..filters.pmmh import PMMHFilter
 from ..filters.sir import SIRFilter
 from ..scenarios._common import Scenario
 from ..scenarios.ground_radar import ground_radar
-from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
+from ._common import (
+    StepTimer,
+    defaults_help,
+    nonnegative_int,
+    np_label,
+    positive_int,
+    run_shards,
+    save_figure,
+    write_metrics,
+)
 
 NAME = "bocquel-table2"
 DESCRIPTION = "Bocquel et al. 2012 Table II: SIR PF vs PMMH vs IP-MCMC-PF on the ground radar (RMSE, TLR, s/step)"
@@ -85,7 +94,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
     parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
     parser.add_argument("--particles", type=positive_int, nargs="+", help=h("particles", "Np values"))
-    parser.add_argument("--max-extensions", type=int, help=h("max_extensions", "IP-MCMC-PF R-hat extensions"))
+    parser.add_argument("--max-extensions", type=nonnegative_int,
+                        help=h("max_extensions", "IP-MCMC-PF R-hat extensions"))
     parser.add_argument("--pmmh-candidates", type=positive_int,
                         help=h("pmmh_candidates", "PMMH candidates L (chain length; L SIR filters of Np particles)"))
     parser.add_argument("--algorithms", nargs="+", choices=ALGORITHMS, metavar="NAME",

@@ -59,6 +59,7 @@ from ._common import (
     StepTimer,
     defaults_help,
     generator,
+    nonnegative_int,
     np_label,
     positive_int,
     run_shards,
@@ -88,7 +89,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs per SNR"))
     parser.add_argument("--snr", type=float, nargs="+", help=h("snr", "SNR values [dB]"))
     parser.add_argument("--steps", type=positive_int, help=h("steps", "frames"))
-    parser.add_argument("--burn-in", type=int, help=h("burn_in", "burn-in, iterations discarded per frame"))
+    parser.add_argument("--burn-in", type=nonnegative_int, help=h("burn_in", "burn-in, iterations discarded per frame"))
     parser.add_argument("--thinning", type=positive_int, help=h("thinning", "M, keep every M-th state"))
     parser.add_argument("--particles", type=positive_int, help=h("particles", "Np, samples kept per frame"))
     parser.add_argument("--moves", nargs="+", choices=("random_walk", "adaptive_random_walk", "mixture"),

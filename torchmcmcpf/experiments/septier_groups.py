@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> dict:
     device = args.device
     gen = generator(device, args.seed)
     steps = cfg["steps"]
-    scn = group_merge(cfg["runs"], gen, num_steps=max(steps, 2), merge_step=min(46, max(steps, 2)))
+    scn = group_merge(cfg["runs"], generator=gen, num_steps=max(steps, 2), merge_step=min(46, max(steps, 2)))
     scn = scn._replace(motion=scn.motion.to(device), sensor=scn.sensor.to(device),
                        existence=scn.existence.to(device), structure_prior=scn.structure_prior)
     filt = _filter(scn, cfg, compile_step=bool(getattr(args, "compile", False)))

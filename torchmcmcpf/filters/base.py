@@ -33,7 +33,16 @@ from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..state import ExistenceEstimate, FilterResult, ParticleState, StepInfo, relabelled_estimate, stack_infos
+from ..state import (
+    ExistenceEstimate,
+    FilterResult,
+    ParticleState,
+    StepInfo,
+    relabelled_estimate,
+    stack_infos,
+    stack_states,
+    weighted_cov,
+)
 from ..typing import Measurement, Tensor
 
 __all__ = ["Filter", "CompiledKernel", "active_prior", "check_existence", "compile_kernel"]
@@ -151,6 +160,23 @@ def active_prior(settings: Any, sensor: SensorModel) -> Any:
     return dataclasses.replace(settings, **changes) if changes else settings
 
 
+def _plain(value: Any) -> Any:
+    """A settings value as plain Python (dicts, lists, str, int, float, bool, None), so a
+    result's ``meta`` loads with ``torch.load(weights_only=True)`` and writes to JSON.
+    """
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (bool, int, float, str)) or value is None:
+        return value
+    if torch.is_tensor(value) and value.numel() == 1:
+        return value.item()
+    return repr(value)
+
+
 def check_existence(existence: object) -> BirthDeath | None:
     """``existence`` must be a :class:`~torchmcmcpf.models.existence.BirthDeath` or ``None``."""
     if existence is not None and not isinstance(existence, BirthDeath):
@@ -202,10 +228,21 @@ class Filter(nn.Module):
     Subclasses set :attr:`settings_class` and implement :meth:`_step` (call the pure step
     function) and, for ``compile_step``, :meth:`_kernel` (the eager kernel to compile).
 
-    Usage
-    -----
-    >>> result = filt(measurements, init=particles, generator=g)   # doctest: +SKIP
-    >>> result.mean.shape                                           # (T, B, K, D)
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> filt = tp.SIRFilter(motion, sensor, 100)       # any filter: same constructor, same result
+    >>> result = filt(z, init=x0, generator=g)         # a whole sequence
+    >>> result.mean.shape                              # (T, B, K, D)
+    torch.Size([5, 2, 3, 4])
+    >>> state, info = filt.step(result.state, z[0], generator=g)   # or one step at a time
+    >>> state.x.shape, info.ess.shape
+    (torch.Size([2, 100, 3, 4]), torch.Size([2]))
     """
 
     motion: MotionModel
@@ -213,6 +250,10 @@ class Filter(nn.Module):
     num_particles: int
     existence: BirthDeath | None
     settings: Any
+    #: seconds the first ``compile_step=True`` step of a new shape takes to compile, cold, on a
+    #: 2-core CPU (5-target ground radar, ``benchmarks/bench_compile.py``); shown in the progress
+    #: bar while that step runs
+    compile_seconds: float = 20.0
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
                  existence: BirthDeath | None = None, compile_step: bool = False):
@@ -230,6 +271,7 @@ class Filter(nn.Module):
         self.settings = active_prior(settings, sensor)
         self.compile_step = compile_step
         self._compiled: Callable | None = None
+        self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
 
     # -- the compiled kernel -------------------------------------------------------------
     def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
@@ -327,6 +369,11 @@ class Filter(nn.Module):
         -------
         :class:`~torchmcmcpf.state.ExistenceEstimate` (``exists_prob`` ones without existence).
         """
+        return self._estimate(state, reference)[0]
+
+    def _estimate(self, state: ParticleState, reference: ExistenceEstimate | None
+                  ) -> tuple[ExistenceEstimate, ParticleState]:
+        """:meth:`estimate_targets` and the relabelled cloud it averaged."""
         x_death = None if self.existence is None else self.existence.x_death
         if not self.sensor.resolved:  # labelled measurements (e.g. LinearGaussian): the slots are the targets
             return relabelled_estimate(state, x_death=x_death, iterations=0)
@@ -401,6 +448,7 @@ class Filter(nn.Module):
         init: Tensor | ParticleState,
         generator: torch.Generator,
         progress: bool | None = None,
+        history: bool = False,
     ) -> FilterResult:
         """Filter a sequence of T measurements.
 
@@ -411,31 +459,36 @@ class Filter(nn.Module):
         init : (B, N, K, D) initial particles, or a ``ParticleState`` (e.g. the ``state`` of
             an earlier result, to resume).
         generator : the only source of randomness.
-        progress : show a tqdm progress bar over time.
+        progress : show a tqdm progress bar over time (it says when the first step of a
+            ``compile_step=True`` filter compiles).
+        history : keep every step's particle state in ``result.history`` (T times the
+            memory of one state; for per-step clouds and chain samples).
 
         Returns
         -------
-        FilterResult with ``mean (T, B, K, D)``, the final state and stacked ``StepInfo``.
+        FilterResult with ``mean (T, B, K, D)``, ``cov (T, B, K, D, D)``, the final state,
+        stacked ``StepInfo`` and ``meta`` (see :class:`~torchmcmcpf.state.FilterResult`).
         """
         check_generator(generator)
         state = self._as_state(init)
         self.validate(state, measurements, sequence=True)
         num_steps = _leaves(measurements, "measurements")[0].shape[0]
-        steps: Any = range(num_steps)
-        if progress:
-            from tqdm.auto import tqdm
-
-            steps = tqdm(steps, desc=type(self).__name__, leave=False)
-        means, infos, exists_prob = [], [], []
+        steps, note = self._progress(num_steps, state.x, progress)
+        means, covs, infos, exists_prob, states = [], [], [], [], []
         est = None
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
+            if note and t == 0:
+                steps.set_postfix_str("", refresh=False)  # compiled: the bar's own rate from here on
             infos.append(info)
-            est = self.estimate_targets(state, est)  # relabelled against the previous estimate
+            est, relabelled = self._estimate(state, est)  # relabelled against the previous estimate
             means.append(est.mean)
+            covs.append(weighted_cov(relabelled.x, relabelled.log_w, est.mean, relabelled.exists))
             if self.existence is not None and state.exists is not None:
                 exists_prob.append(est.exists_prob)
+            if history:
+                states.append(state)
         info = stack_infos(infos)
         return FilterResult(
             mean=torch.stack(means),
@@ -443,7 +496,44 @@ class Filter(nn.Module):
             info=info,
             log_evidence=info.log_evidence.sum(0),
             exists_prob=torch.stack(exists_prob) if exists_prob else None,
+            cov=torch.stack(covs),
+            history=stack_states(states) if history else None,
+            meta=self.result_meta(),
         )
+
+    def result_meta(self) -> dict:
+        """What made a result (``FilterResult.meta``): the filter, its settings as plain
+        values, the models, the sampling time and the versions.
+        """
+        from .. import __version__
+
+        dt = getattr(self.motion, "dt", None)
+        return {"filter": type(self).__name__, "num_particles": self.num_particles,
+                "settings": _plain(self.settings), "motion": type(self.motion).__name__,
+                "sensor": type(self.sensor).__name__,
+                "existence": None if self.existence is None else type(self.existence).__name__,
+                "dt": None if dt is None else float(dt), "compile_step": self.compile_step,
+                "versions": {"torchmcmcpf": str(__version__), "torch": str(torch.__version__)}}
+
+    def _progress(self, num_steps: int, x: Tensor, progress: bool | None) -> tuple[Any, str | None]:
+        """The loop over time: ``range(num_steps)``, or a tqdm bar when ``progress``. With
+        ``compile_step=True`` and a shape not run compiled before, the bar says so while the
+        first step compiles (``compiling (first call, about N s)``, :attr:`compile_seconds`)
+        instead of sitting silent at 0; returns ``(steps, note)``.
+        """
+        key = (*x.shape, x.dtype, x.device)
+        note = None
+        if self.compile_step and key not in self._compiled_shapes:
+            self._compiled_shapes.add(key)
+            note = f"compiling (first call, about {self.compile_seconds:.0f} s)"
+        if not progress:
+            return range(num_steps), None
+        from tqdm.auto import tqdm
+
+        bar = tqdm(range(num_steps), desc=type(self).__name__, leave=False)
+        if note:
+            bar.set_postfix_str(note)
+        return bar, note
 
     def extra_repr(self) -> str:
         """Particle count, settings and compile flag, shown inside ``repr(filter)``."""

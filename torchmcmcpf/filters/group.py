@@ -689,7 +689,7 @@ class GroupMCMCFilter(Filter):
 
     Example
     -------
-    >>> scn = group_merge(2, torch.Generator().manual_seed(0))               # doctest: +SKIP
+    >>> scn = group_merge(2, generator=torch.Generator().manual_seed(0))    # doctest: +SKIP
     >>> filt = GroupMCMCFilter(scn.motion, scn.sensor, 400, existence=scn.existence,
     ...                        structure_prior=scn.structure_prior, num_chains=20, burn_in=50)
     >>> res = filt(scn.frames, init=filt.init_inactive(2), generator=g)     # doctest: +SKIP

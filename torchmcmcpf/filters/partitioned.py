@@ -171,7 +171,21 @@ class PartitionedSIRFilter(Filter):
     -----
     ``StepInfo``: ``ess`` (mean partition ESS); ``log_evidence``, ``acceptance`` NaN;
     extras ``ess_min``.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> result = tp.PartitionedSIRFilter(motion, sensor, 100)(z, init=x0, generator=g)
+    >>> result.info.extras["ess_min"].shape            # (T, B): the smallest ESS over the partitions
+    torch.Size([5, 2])
     """
+
+    compile_seconds = 16.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, *,
                  resample_method: str = "systematic", exclusion: Exclusion | None = Exclusion(),

@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import torch
 from torch.utils._pytree import tree_map
 
-from .._validation import check_generator, check_positive_int, check_shape
+from .._validation import as_int, check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
@@ -108,7 +108,7 @@ def sir_log_evidence(
     -------
     ``evaluate(theta (B, C, P), *, generator) -> (log_evidence (B, C), aux)``.
     """
-    check_positive_int(num_particles, "num_particles")
+    num_particles = check_positive_int(num_particles, "num_particles")
 
     def evaluate(theta: Tensor, *, generator: torch.Generator) -> tuple[Tensor, Any]:
         b, c, p = theta.shape
@@ -161,7 +161,7 @@ def pmmh(
     """
     check_generator(generator)
     check_shape(theta0, "theta0", (None, None, None))
-    check_positive_int(num_iterations, "num_iterations")
+    num_iterations = check_positive_int(num_iterations, "num_iterations")
     std = torch.as_tensor(proposal_std, dtype=theta0.dtype, device=theta0.device)
     if not bool((std > 0).all()):
         raise ValueError(f"proposal_std must be > 0, got {proposal_std!r}")
@@ -212,10 +212,13 @@ class PMMHSettings:
     ess_threshold: float = 1.0
 
     def __post_init__(self):
-        check_positive_int(self.num_candidates, "num_candidates", minimum=2)
-        if not (isinstance(self.burn_in, int) and 0 <= self.burn_in < self.num_candidates):
+        num_candidates = check_positive_int(self.num_candidates, "num_candidates", minimum=2)
+        object.__setattr__(self, "num_candidates", num_candidates)
+        burn_in = as_int(self.burn_in)
+        if burn_in is None or not 0 <= burn_in < self.num_candidates:
             raise ValueError(f"burn_in must be an integer in [0, num_candidates = {self.num_candidates}), "
                              f"got {self.burn_in!r}")
+        object.__setattr__(self, "burn_in", burn_in)
         if not math.isfinite(float(self.prior_mean)):
             raise ValueError(f"prior_mean must be finite, got {self.prior_mean!r}")
         if not (math.isfinite(float(self.prior_std)) and float(self.prior_std) > 0):
@@ -366,7 +369,22 @@ class PMMHFilter(Filter):
     ``theta_mean``, ``candidate_ess``. The state carries ``extras`` (the candidates'
     ``theta``, accumulated log-evidence and within-candidate weights), so a checkpoint of
     the state and the generator resumes bit for bit.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> filt = tp.PMMHFilter(motion, sensor, 100, num_candidates=4)   # 4 candidates of 25 particles
+    >>> result = filt(z, init=x0, generator=g)
+    >>> result.info.extras["theta_mean"].shape         # (T, B): posterior mean of log q
+    torch.Size([5, 2])
     """
+
+    compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
 
     def __init__(
         self,

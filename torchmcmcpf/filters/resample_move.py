@@ -104,11 +104,11 @@ class ResampleMoveSettings:
 
     def __post_init__(self):
         object.__setattr__(self, "step_size", check_positive(self.step_size, "step_size"))
-        check_positive_int(self.num_leapfrog, "num_leapfrog")
-        check_positive_int(self.num_hmc_steps, "num_hmc_steps", minimum=0)
+        object.__setattr__(self, "num_leapfrog", check_positive_int(self.num_leapfrog, "num_leapfrog"))
+        object.__setattr__(self, "num_hmc_steps", check_positive_int(self.num_hmc_steps, "num_hmc_steps", minimum=0))
         if self.association not in ASSOCIATIONS:
             raise ValueError(f"association must be one of {ASSOCIATIONS}, got {self.association!r}")
-        check_positive_int(self.association_iters, "association_iters")
+        object.__setattr__(self, "association_iters", check_positive_int(self.association_iters, "association_iters"))
         if self.resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
         if self.association == "metropolis":
@@ -317,9 +317,19 @@ class ResampleMoveFilter(Filter):
 
     Example
     -------
-    >>> filt = ResampleMoveFilter(WhiteAccelerationMotion(), AssociationPosition(), 100)
-    >>> state, info = filt.step(state, frame, generator=g)             # doctest: +SKIP
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
+    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
+    >>> filt = tp.ResampleMoveFilter(motion, sensor, 100, num_hmc_steps=3, step_size=0.3)
+    >>> result = filt(z, init=x0, generator=g)
+    >>> result.info.acceptance.shape                   # (T, B): HMC acceptance
+    torch.Size([5, 2])
     """
+
+    compile_seconds = 29.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
 
     def __init__(
         self,

@@ -170,8 +170,8 @@ def hmc(
             raise ValueError("step_size must be > 0 everywhere")
     else:
         check_positive(step_size, "step_size")
-    check_positive_int(num_leapfrog, "num_leapfrog")
-    check_positive_int(num_steps, "num_steps")
+    num_leapfrog = check_positive_int(num_leapfrog, "num_leapfrog")
+    num_steps = check_positive_int(num_steps, "num_steps")
     check_generator(generator)
 
     q = q.detach()

@@ -71,8 +71,8 @@ class HMCRefine:
 
     def __post_init__(self):
         object.__setattr__(self, "step_size", check_positive(self.step_size, "hmc.step_size"))
-        check_positive_int(self.num_leapfrog, "hmc.num_leapfrog")
-        check_positive_int(self.every, "hmc.every")
+        object.__setattr__(self, "num_leapfrog", check_positive_int(self.num_leapfrog, "hmc.num_leapfrog"))
+        object.__setattr__(self, "every", check_positive_int(self.every, "hmc.every"))
 
 
 def check_hmc_motion(motion: MotionModel, existence: BirthDeath | None) -> LinearGaussianMotion:

@@ -102,6 +102,17 @@ class BirthDeath(nn.Module):
         spread; ``None`` (default) draws births from the prior ``p_0``.
     p_uniform : ``P_I``, weight of the uniform component of the measurement-driven
         proposal (paper 004 uses 1e-2).
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> existence = tp.BirthDeath(0.05, 0.02, ((0, 5000), (0, 5000)), velocity_std=5.0)
+    >>> motion = tp.ConstantVelocity(dt=1.0, q=1.0)
+    >>> sensor = tp.PoissonClutterPoints(10.0, 4.0, ((0, 5000), (0, 5000)), noise_std=10.0)
+    >>> filt = tp.SIRFilter(motion, sensor, 200, existence=existence)   # births and deaths, any filter
+    >>> filt.existence is existence
+    True
     """
 
     x_death: Tensor

@@ -101,6 +101,18 @@ class ConstantVelocity(LinearGaussianMotion):
         the white acceleration; paper 000 uses a 1 m/s^2 acceleration standard deviation,
         ``q = 1``).
     amplitude_q : random-walk level ``a_rho`` of the amplitude; ``None`` for no amplitude.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> motion = tp.ConstantVelocity(dt=1.0, q=0.5)
+    >>> x = torch.tensor([[0.0, 1.0, 0.0, 2.0]])       # (K, D) = [x, vx, y, vy]
+    >>> x_next = motion.sample(x, generator=torch.Generator().manual_seed(0))
+    >>> x_next.shape, motion.log_prob(x_next, x).shape
+    (torch.Size([1, 4]), torch.Size([1]))
+    >>> motion.F @ x[0]                                # the noise-free prediction
+    tensor([1., 1., 2., 2.])
     """
 
     def __init__(self, dt: float = 1.0, q: float = 1.0, amplitude_q: float | None = None) -> None:

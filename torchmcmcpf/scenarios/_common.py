@@ -83,7 +83,7 @@ class Scenario:
         -------
         (B, N, K, D), dtype and device of ``truth``.
         """
-        check_positive_int(num_particles, "num_particles")
+        num_particles = check_positive_int(num_particles, "num_particles")
         check_generator(generator)
         if len(spread) != 3:
             raise ValueError(f"spread must be (position std, velocity std, relative amplitude std), got {spread!r}")

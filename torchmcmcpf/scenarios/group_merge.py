@@ -112,7 +112,7 @@ def _initial(motion: VirtualLeaderMotion, merge_index: int, merge_point: Sequenc
     return torch.stack(xs), torch.stack(vs)
 
 
-def group_merge(batch_size: int, generator: torch.Generator, *, num_slots: int = 4, num_steps: int = 110,
+def group_merge(batch_size: int, *, generator: torch.Generator, num_slots: int = 4, num_steps: int = 110,
                 merge_step: int = 46, same_tracks: bool = True, leader_noise: bool = False,
                 merge_point: Sequence[float] = (2300.0, 2500.0), speed: Sequence[float] = (6.0, 3.5),
                 spread: float = 75.0, gap: float = 300.0, p_d1: float = 0.7, p_fa: float = 0.002,

@@ -138,8 +138,8 @@ def simulate(
     -------
     :class:`MaroulasData`.
     """
-    check_positive_int(num_runs, "num_runs")
-    check_positive_int(num_steps, "num_steps", minimum=0)
+    num_runs = check_positive_int(num_runs, "num_runs")
+    num_steps = check_positive_int(num_steps, "num_steps", minimum=0)
     check_generator(generator)
     if not isinstance(sensor, AssociationSensor):
         raise ValueError(f"sensor must be an AssociationSensor, got {type(sensor).__name__}")

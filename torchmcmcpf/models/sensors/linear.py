@@ -36,6 +36,16 @@ class LinearGaussian(SensorModel[Tensor]):
     ----------
     H : (d, D) observation matrix.
     R : (d, d) symmetric positive definite noise covariance.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> sensor = tp.LinearGaussian.position(noise_std=2.0)   # z = [x, y] + N(0, 4 I)
+    >>> x = torch.zeros(3, 50, 1, 4)                   # (B, N, K, D)
+    >>> z = sensor.simulate(torch.zeros(3, 1, 4), generator=torch.Generator().manual_seed(0))
+    >>> z.shape, sensor.log_likelihood(x, z).shape     # (B, K, 2), (B, N)
+    (torch.Size([3, 1, 2]), torch.Size([3, 50]))
     """
 
     H: Tensor  #: (d, D) buffer

@@ -51,6 +51,7 @@ class ThresholdedPixels(SensorModel[Tensor]):
 
     Example
     -------
+    >>> from torchmcmcpf.models import ThresholdedPixels
     >>> sensor = ThresholdedPixels((100, 100), 50.0, p_fa=0.002, p_d1=0.7)
     >>> round(sensor.snr_db, 1)
     12.2

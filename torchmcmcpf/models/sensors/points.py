@@ -110,9 +110,16 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
 
     Example
     -------
-    >>> sensor = PoissonClutterPoints(10.0, 2.0, ((0, 5000), (0, 5000)), noise_std=10.0)
-    >>> frame = sensor.simulate(x_true, exists=alive, generator=g)   # doctest: +SKIP
-    >>> sensor.log_likelihood(particles, frame, exists)              # (B, N)  # doctest: +SKIP
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> sensor = tp.PoissonClutterPoints(10.0, 2.0, ((0, 5000), (0, 5000)), noise_std=10.0)
+    >>> x = torch.tensor([[[1000.0, 0.0, 2000.0, 0.0]]])   # (B, K, D)
+    >>> alive = torch.ones(1, 1, dtype=torch.bool)        # (B, K)
+    >>> frame = sensor.simulate(x, exists=alive, generator=torch.Generator().manual_seed(0))
+    >>> frame.z.shape[-1], frame.mask.dtype              # points (B, M, 2) with a (B, M) mask
+    (2, torch.bool)
+    >>> sensor.log_likelihood(x.unsqueeze(1), frame, alive.unsqueeze(1)).shape   # (B, N)
+    torch.Size([1, 1])
     """
 
     area: Tensor  #: (2, 2) buffer, ``((x_lo, x_hi), (y_lo, y_hi))``

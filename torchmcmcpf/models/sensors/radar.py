@@ -156,6 +156,20 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         Which path :meth:`log_likelihood` uses.
     memory_budget : int
         Bytes of temporaries the whole-grid path may hold at once (default 1 GiB).
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> sensor = tp.RangeDopplerBearingTBD.uniform((2700.0, 2900.0), (-10.0, 10.0), (-0.1, 0.1),
+    ...                                            bearing_cell=math.pi / 180, noise_std=1.0)
+    >>> sensor.frame_shape                             # (Nr, Nd, Nb) cells of 10 m, 2 m/s, 1 deg
+    (21, 11, 12)
+    >>> x = torch.tensor([[[2800.0, -5.0, 0.0, 0.0, sensor.amplitude_from_snr(15.0)]]])   # (B, K, D)
+    >>> z = sensor.simulate(x, generator=torch.Generator().manual_seed(0))
+    >>> z.shape, sensor.log_likelihood(x.unsqueeze(1), z).shape   # (B, Nr, Nd, Nb), (B, N)
+    (torch.Size([1, 21, 11, 12]), torch.Size([1, 1]))
     """
 
     dim = 5

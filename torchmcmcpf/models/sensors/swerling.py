@@ -93,6 +93,20 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         Which path :meth:`log_likelihood` uses.
     memory_budget : int
         Bytes of temporaries the whole-grid path may hold at once (default 1 GiB).
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> sensor = tp.AzimuthRangeSwerlingTBD.uniform((-0.1, 0.1), (900.0, 1100.0), azimuth_cell=math.pi / 180,
+    ...                                             noise_power=1.0)
+    >>> sensor.frame_shape                             # (Na, Nr) cells of 1 deg, 10 m
+    (12, 21)
+    >>> x = torch.tensor([[[1000.0, 0.0, 0.0, 0.0, sensor.power_from_snr(10.0)]]])   # (B, K, D)
+    >>> z = sensor.simulate(x, generator=torch.Generator().manual_seed(0))
+    >>> z.shape, sensor.log_likelihood(x.unsqueeze(1), z).shape
+    (torch.Size([1, 12, 21]), torch.Size([1, 1]))
     """
 
     dim = 5
