@@ -45,7 +45,7 @@ from ..state import (
 )
 from ..typing import Measurement, Tensor
 
-__all__ = ["Filter", "CompiledKernel", "active_prior", "check_existence", "compile_kernel"]
+__all__ = ["Filter", "CompiledKernel", "active_prior", "check_existence", "compile_kernel", "ESTIMATE", "PRESENT"]
 
 
 def _on_cuda(args: tuple) -> bool:
@@ -175,6 +175,26 @@ def _plain(value: Any) -> Any:
     if torch.is_tensor(value) and value.numel() == 1:
         return value.item()
     return repr(value)
+
+
+#: Keys of ``ParticleState.extras`` under which ``forward`` carries its last estimate ``(B, K,
+#: D)`` and the slots it reported ``(B, K)`` bool: the reference of the next step's relabelling.
+ESTIMATE, PRESENT = "estimate", "estimate_present"
+
+
+def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
+    """The estimate a state carries from ``forward`` (``extras[ESTIMATE]``), or None."""
+    extras = state.extras or {}
+    if ESTIMATE not in extras or PRESENT not in extras:
+        return None
+    mean, present = extras[ESTIMATE], extras[PRESENT].to(torch.bool)
+    if tuple(mean.shape) != tuple(state.x.shape[:1] + state.x.shape[2:]) or tuple(present.shape) != tuple(
+            state.x.shape[:1] + state.x.shape[2:3]):
+        raise ValueError(f"state.extras[{ESTIMATE!r}] has shape {tuple(mean.shape)} and [{PRESENT!r}] "
+                         f"{tuple(present.shape)}, expected {tuple(state.x.shape[:1] + state.x.shape[2:])} and "
+                         f"{tuple(state.x.shape[:1] + state.x.shape[2:3])}")
+    prob = present.to(mean.dtype)
+    return ExistenceEstimate(prob, prob.sum(-1), mean, present)
 
 
 def check_existence(existence: object) -> BirthDeath | None:
@@ -475,7 +495,7 @@ class Filter(nn.Module):
         num_steps = _leaves(measurements, "measurements")[0].shape[0]
         steps, note = self._progress(num_steps, state.x, progress)
         means, covs, infos, exists_prob, states = [], [], [], [], []
-        est = None
+        est = _carried_estimate(state)
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
@@ -483,6 +503,9 @@ class Filter(nn.Module):
                 steps.set_postfix_str("", refresh=False)  # compiled: the bar's own rate from here on
             infos.append(info)
             est, relabelled = self._estimate(state, est)  # relabelled against the previous estimate
+            # the estimate is the next step's reference: carried in the state, so a resumed run
+            # labels its targets as the uninterrupted one does
+            state = state._replace(extras={**(state.extras or {}), ESTIMATE: est.mean, PRESENT: est.present})
             means.append(est.mean)
             covs.append(weighted_cov(relabelled.x, relabelled.log_w, est.mean, relabelled.exists))
             if self.existence is not None and state.exists is not None:

@@ -246,7 +246,7 @@ def _first_extras(state: ParticleState, settings: PMMHSettings, generator: torch
 
 def _check_extras(extras: dict, b: int, n: int, lc: int) -> None:
     expected = {"theta": (b, lc), "log_evidence": (b, lc), "log_w_candidate": (b, n)}
-    if not isinstance(extras, dict) or set(extras) != set(expected):
+    if not isinstance(extras, dict) or not set(expected) <= set(extras):  # others (forward's estimate) pass
         got = sorted(extras) if isinstance(extras, dict) else type(extras).__name__
         raise ValueError(f"state.extras must hold {sorted(expected)} (a PMMHFilter state), got {got}")
     for key, shape in expected.items():
@@ -303,7 +303,7 @@ def pmmh_step(
     if n % lc:
         raise ValueError(f"state.x has {n} particles, expected a multiple of num_candidates = {lc}")
     m = n // lc
-    extras = _first_extras(state, settings, generator) if state.extras is None else state.extras
+    extras = state.extras if state.extras and "theta" in state.extras else _first_extras(state, settings, generator)
     _check_extras(extras, b, n, lc)
     theta, log_ev = extras["theta"], extras["log_evidence"]
 
