@@ -467,6 +467,17 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
     else:
         ref = reference
+    if exists is not None and present is not None and k > 1:
+        # labels the reference has no target for take the targets of the particle with the
+        # most live slots (relabelled against the reference first): a target that appeared
+        # since the reference gets one label in every particle, not a share of each
+        seed = exists.sum(-1).argmax(-1)[:, None, None]  # (B, 1, 1)
+        seed_exists = torch.take_along_dim(exists, seed, 1)
+        xs, es = relabel(torch.take_along_dim(x, seed[..., None], 1), ref, exists=seed_exists,
+                         reference_exists=present, cutoff=cutoff)
+        fill = (seed_exists if es is None else es)[:, 0] & ~present  # (B, K)
+        ref = torch.where(fill.unsqueeze(-1), xs[:, 0], ref)
+        present = present | fill
     out = None
     xr, er = x, exists
     for _ in range(max(1, int(iterations))):

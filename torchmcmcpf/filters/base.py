@@ -160,6 +160,21 @@ def active_prior(settings: Any, sensor: SensorModel) -> Any:
     return dataclasses.replace(settings, **changes) if changes else settings
 
 
+def check_existence_proposal(value: object) -> tuple[float, float] | None:
+    """``existence_proposal`` of the MCMC filters' settings: ``None`` or ``(q_birth, q_death)``,
+    two probabilities in (0, 1); returns it as a tuple of floats.
+    """
+    if value is None:
+        return None
+    try:
+        q = tuple(float(v) for v in value)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        q = ()
+    if len(q) != 2 or not all(0.0 < v < 1.0 for v in q):
+        raise ValueError(f"existence_proposal must be None or (q_birth, q_death) in (0, 1), got {value!r}")
+    return (q[0], q[1])
+
+
 def _plain(value: Any) -> Any:
     """A settings value as plain Python (dicts, lists, str, int, float, bool, None), so a
     result's ``meta`` loads with ``torch.load(weights_only=True)`` and writes to JSON.

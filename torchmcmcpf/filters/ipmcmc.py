@@ -162,7 +162,7 @@ from ..models.multitarget import Exclusion, Recapture
 from ..resampling import gather_particles, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, weighted_mean
 from ..typing import Measurement, Tensor
-from .base import Filter, active_prior
+from .base import Filter, active_prior, check_existence_proposal
 
 __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration", "ExchangeNoise",
            "draw_exchange_noise"]
@@ -305,6 +305,14 @@ class IPMCMCSettings:
         two-slot move; None is the paper's exchange move. Set to None with ``hmc`` (whose
         target uses the prior without the relocation component).
 
+    existence_proposal : ``(q_birth, q_death)``: with an existence model, the proposals turn
+        an inactive slot on with probability ``q_birth`` and an active one off with
+        ``q_death`` (:meth:`~torchmcmcpf.models.existence.BirthDeath.with_proposal`; the
+        ratio ``p(e' | e) / q(e' | e)`` keeps the target). Default ``(0.5, 0.1)``: proposing
+        births from the chain's ``P_B = 0.02`` left a target that four points show beyond
+        doubt unbelieved for several frames (issue 27). ``None``: the chain's own
+        probabilities.
+
     Both are turned off for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
     """
@@ -318,6 +326,7 @@ class IPMCMCSettings:
     hmc: HMCRefine | None = None
     exclusion: Exclusion | None = Exclusion()
     recapture: Recapture | None = Recapture()
+    existence_proposal: tuple[float, float] | None = (0.5, 0.1)
 
     def __post_init__(self):
         object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains", minimum=2))
@@ -337,6 +346,7 @@ class IPMCMCSettings:
             raise ValueError(f"recapture must be a Recapture or None, got {type(self.recapture).__name__}")
         if self.hmc is not None:
             object.__setattr__(self, "recapture", None)  # HMC's target: the prior without relocation
+        object.__setattr__(self, "existence_proposal", check_existence_proposal(self.existence_proposal))
 
     def check(self, num_particles: int) -> None:
         """``C | N`` with at least 2 kept samples per chain."""
@@ -401,6 +411,7 @@ def ipmcmc_step(
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
     settings = active_prior(settings, sensor)
     settings.check(n)
+    existence = None if existence is None else existence.with_proposal(settings.existence_proposal)
     keep = n // num_chains
     recapture, exclusion = settings.recapture, settings.exclusion
     iterate = _bind(motion, sensor, existence, recapture, exclusion) if kernel is None else kernel
@@ -540,8 +551,8 @@ class IPMCMCFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, LinearGaussian, ...).
     num_particles : N; ``num_chains`` must divide it.
-    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc, exclusion, recapture :
-        see :class:`IPMCMCSettings` (``exclusion`` and ``recapture`` are on by default;
+    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc, exclusion, recapture,
+    existence_proposal : see :class:`IPMCMCSettings` (``exclusion`` and ``recapture`` are on by default;
         ``None`` gives the paper's factorised target and exchange move).
     existence : BirthDeath, optional: births and deaths (module docstring); the estimate
         of a slot is then its mean given existence.
@@ -584,13 +595,16 @@ class IPMCMCFilter(Filter):
         hmc: HMCRefine | None = None,
         exclusion: Exclusion | None = Exclusion(),
         recapture: Recapture | None = Recapture(),
+        existence_proposal: tuple[float, float] | None = (0.5, 0.1),
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc,
-                                  exclusion, recapture)
+                                  exclusion, recapture, existence_proposal)
         if hmc is not None:
             check_hmc_motion(motion, existence)
+        if isinstance(existence, BirthDeath):
+            existence = existence.with_proposal(settings.existence_proposal)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         settings.check(num_particles)
 

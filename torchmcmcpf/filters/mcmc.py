@@ -57,7 +57,7 @@ from ..models.existence import BirthDeath
 from ..models.multitarget import Exclusion, Recapture
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from .base import Filter, active_prior
+from .base import Filter, active_prior, check_existence_proposal
 
 __all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "pick_moves",
            "parse_moves", "MOVE_PRESETS"]
@@ -148,6 +148,14 @@ class MCMCSettings:
         ``"random_walk"`` or with ``hmc`` (their ratios use the prior without the relocation
         component).
 
+    existence_proposal : ``(q_birth, q_death)``: with an existence model, the proposals turn
+        an inactive slot on with probability ``q_birth`` and an active one off with
+        ``q_death`` (:meth:`~torchmcmcpf.models.existence.BirthDeath.with_proposal`; the
+        ratio ``p(e' | e) / q(e' | e)`` keeps the target). Default ``(0.5, 0.1)``: proposing
+        births from the chain's ``P_B = 0.02`` left a target that four points show beyond
+        doubt unbelieved for several frames (issue 27). ``None``: the chain's own
+        probabilities.
+
     Both are turned off (set to None) for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
     """
@@ -160,6 +168,7 @@ class MCMCSettings:
     hmc: HMCRefine | None = None
     exclusion: Exclusion | None = Exclusion()
     recapture: Recapture | None = Recapture()
+    existence_proposal: tuple[float, float] | None = (0.5, 0.1)
     pairs: tuple[tuple[str, float], ...] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -171,6 +180,7 @@ class MCMCSettings:
         object.__setattr__(self, "pairs", pairs)
         if self.hmc is not None or any(name == "random_walk" for name, _ in pairs):
             object.__setattr__(self, "recapture", None)  # their ratios use the prior without relocation
+        object.__setattr__(self, "existence_proposal", check_existence_proposal(self.existence_proposal))
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
         if self.rw_scale is None:
@@ -365,6 +375,7 @@ def mcmc_step(
     b, n, k, d = x_prev.shape
     settings = active_prior(settings, sensor)
     settings.check(n, d, existence)
+    existence = None if existence is None else existence.with_proposal(settings.existence_proposal)
     pairs, num_chains, burn_in, thinning = settings.pairs, settings.num_chains, settings.burn_in, settings.thinning
     exists = state.exists
     if existence is None and exists is not None:
@@ -491,6 +502,8 @@ class MCMCFilter(Filter):
         ``"acceptance_hmc"``); linear-Gaussian motion, no existence.
     exclusion, recapture : the multitarget prior's terms (see :class:`MCMCSettings`, on by
         default; re-capture is off with ``"random_walk"`` or ``hmc``).
+    existence_proposal : with ``existence``, the birth and death proposal probabilities (see
+        :class:`MCMCSettings`).
     existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
         estimate of a slot is then its mean given existence
         (:func:`torchmcmcpf.state.existence_estimate`).
@@ -527,13 +540,17 @@ class MCMCFilter(Filter):
         hmc: HMCRefine | None = None,
         exclusion: Exclusion | None = Exclusion(),
         recapture: Recapture | None = Recapture(),
+        existence_proposal: tuple[float, float] | None = (0.5, 0.1),
         existence: BirthDeath | None = None,
         compile_step: bool = False,
     ):
         scale = rw_scale.tolist() if isinstance(rw_scale, Tensor) else rw_scale
         if isinstance(scale, list):
             scale = tuple(scale)
-        settings = MCMCSettings(num_chains, burn_in, thinning, moves, scale, hmc, exclusion, recapture)
+        settings = MCMCSettings(num_chains, burn_in, thinning, moves, scale, hmc, exclusion, recapture,
+                                existence_proposal)
+        if isinstance(existence, BirthDeath):
+            existence = existence.with_proposal(settings.existence_proposal)
         super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
         self.settings.check(num_particles, motion.dim, existence)
         if hmc is not None:

@@ -38,6 +38,7 @@ Filters propagate ``(x, exists)`` jointly with one call, :meth:`BirthDeath.propo
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -102,6 +103,14 @@ class BirthDeath(nn.Module):
         spread; ``None`` (default) draws births from the prior ``p_0``.
     p_uniform : ``P_I``, weight of the uniform component of the measurement-driven
         proposal (paper 004 uses 1e-2).
+    birth_proposal, death_proposal : the probabilities with which the filters' proposals
+        turn an inactive slot on and an active one off, ``q(e_k = 1 | e_{k-1} = 0)`` and
+        ``q(e_k = 0 | e_{k-1} = 1)``; ``None`` (default) proposes from the chain itself
+        (``P_B``, ``P_D``). Every proposed slot carries ``p(e_k | e_{k-1}) / q(e_k | e_{k-1})``
+        in its ratio (:meth:`propagate`), so the target is unchanged. With ``P_B = 0.02`` a
+        filter proposes a birth for an inactive slot once in 50 tries and a target that a
+        frame shows beyond doubt is believed only after several frames (issue 27); a birth
+        proposal of 0.5 lets one frame do it.
 
     Example
     -------
@@ -130,6 +139,8 @@ class BirthDeath(nn.Module):
         x_death: Tensor | None = None,
         birth_std: float | None = None,
         p_uniform: float = 0.01,
+        birth_proposal: float | None = None,
+        death_proposal: float | None = None,
     ) -> None:
         super().__init__()
         self.p_birth = _probability(p_birth, "p_birth")
@@ -149,6 +160,28 @@ class BirthDeath(nn.Module):
         self.log_volume = float(torch.log(area_t[:, 1] - area_t[:, 0]).sum())
         self.birth_std = None if birth_std is None else check_positive(birth_std, "birth_std")
         self.p_uniform = _probability(p_uniform, "p_uniform")
+        self.birth_proposal = self.p_birth if birth_proposal is None else _probability(birth_proposal, "birth_proposal")
+        self.death_proposal = self.p_death if death_proposal is None else _probability(death_proposal, "death_proposal")
+        for q, p, name in ((self.birth_proposal, self.p_birth, "birth_proposal"),
+                           (self.death_proposal, self.p_death, "death_proposal")):
+            if q != p and not 0 < q < 1:  # both outcomes must stay proposable
+                raise ValueError(f"{name} must lie in (0, 1), got {q!r}")
+
+    def with_proposal(self, proposal: tuple[float, float] | None) -> BirthDeath:
+        """The same model with the existence proposal ``(birth_proposal, death_proposal)`` (the
+        same parameters and buffers; ``None``: ``self``). The MCMC filters call it with their
+        ``existence_proposal`` setting.
+        """
+        if proposal is None or (self.birth_proposal, self.death_proposal) == tuple(proposal):
+            return self
+        other = copy.copy(self)  # shares the parameters and buffers
+        other.birth_proposal, other.death_proposal = (_probability(q, name) for q, name in
+                                                      zip(proposal, ("birth_proposal", "death_proposal")))
+        for q, p, name in ((other.birth_proposal, self.p_birth, "birth_proposal"),
+                           (other.death_proposal, self.p_death, "death_proposal")):
+            if q != p and not 0 < q < 1:
+                raise ValueError(f"{name} must lie in (0, 1), got {q!r}")
+        return other
 
     # -- the existence chain (paper 004 eq. 25) ------------------------------------------
     def stationary(self) -> float:
@@ -168,11 +201,15 @@ class BirthDeath(nn.Module):
         p_on = self._p_on(exists)
         return torch.where(exists_next, p_on, 1.0 - p_on).log()
 
-    def _p_on(self, exists: Tensor) -> Tensor:
-        """``p(e_k = 1 | e_{k-1})`` per slot, float64 ``(*S, K)``."""
+    def _p_on(self, exists: Tensor, *, proposal: bool = False) -> Tensor:
+        """``p(e_k = 1 | e_{k-1})`` per slot, float64 ``(*S, K)`` (with ``proposal``, the
+        proposal's ``q(e_k = 1 | e_{k-1})``).
+        """
         def f64(p: float) -> Tensor:
             return torch.tensor(p, dtype=torch.float64, device=exists.device)
 
+        if proposal:
+            return torch.where(exists, f64(1.0 - self.death_proposal), f64(self.birth_proposal))
         return torch.where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
 
     # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
@@ -281,14 +318,22 @@ class BirthDeath(nn.Module):
         Returns
         -------
         x_next : (*S, K, D); exists_next : (*S, K) bool;
-        log_ratio : (*S, K) ``log p_0(x) - log q_0(x)`` of each newborn slot, 0 elsewhere.
+        log_ratio : (*S, K) ``log p_0(x) - log q_0(x)`` of each newborn slot, 0 elsewhere,
+        plus ``log p(e_k | e_{k-1}) - log q(e_k | e_{k-1})`` when the flags are drawn from
+        ``birth_proposal`` / ``death_proposal`` rather than the chain.
         """
-        p_on = self._p_on(exists)
-        exists_next = birth.u.to(torch.float64) < p_on
+        q_on = self._p_on(exists, proposal=True)
+        exists_next = birth.u.to(torch.float64) < q_on
         born = exists_next & ~exists
         x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
         x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
-        return x_next, exists_next, torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
+        log_ratio = torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
+        if self.birth_proposal != self.p_birth or self.death_proposal != self.p_death:
+            p_on = self._p_on(exists)
+            log_p = torch.where(exists_next, p_on, 1.0 - p_on).log()
+            log_q = torch.where(exists_next, q_on, 1.0 - q_on).log()
+            log_ratio = log_ratio + (log_p - log_q).to(log_ratio.dtype)
+        return x_next, exists_next, log_ratio
 
     def propose(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator,
                 z: PointMeasurement | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -332,7 +377,8 @@ class BirthDeath(nn.Module):
     def extra_repr(self) -> str:
         """The model parameters, shown inside ``repr(module)``."""
         return (f"p_birth={self.p_birth}, p_death={self.p_death}, velocity_std={self.velocity_std}, "
-                f"birth_std={self.birth_std}, p_uniform={self.p_uniform}")
+                f"birth_std={self.birth_std}, p_uniform={self.p_uniform}, birth_proposal={self.birth_proposal}, "
+                f"death_proposal={self.death_proposal}")
 
 
 class TargetDynamics(NamedTuple):
