@@ -262,9 +262,9 @@ class Filter(nn.Module):
         record = _record(state)
         if record is None:
             return False
-        for r in self._trusted:
+        for i, r in enumerate(self._trusted):
             if _same(record, r):  # most recently used last: a state stepped again and again stays trusted
-                self._trusted.remove(r)
+                del self._trusted[i]  # by position: weak references compare their tensors by value
                 self._trusted.append(r)
                 return True
         return False
