@@ -41,6 +41,35 @@ __all__ = ["PoissonClutterPoints", "PointFrame", "as_area"]
 AreaLike = Tensor | Sequence[Sequence[float]]
 
 
+@torch.library.custom_op("torchmcmcpf::logsumexp", mutates_args=())
+def _logsumexp(x: Tensor, dim: int) -> Tensor:
+    """``torch.logsumexp(x, dim)``, opaque to ``torch.compile``: a compiled kernel calls the
+    same ATen kernel as eager code, so its bits are eager's (Inductor's own ``exp`` differs
+    from ATen's in the last bit, and a filter's ``compile_step=True`` must equal eager).
+    """
+    return torch.logsumexp(x, dim)
+
+
+@_logsumexp.register_fake
+def _(x: Tensor, dim: int) -> Tensor:
+    return x.sum(dim)
+
+
+def _logsumexp_context(ctx, inputs, output):
+    ctx.save_for_backward(inputs[0], output)
+    ctx.dim = inputs[1]
+
+
+def _logsumexp_backward(ctx, grad):
+    x, out = ctx.saved_tensors
+    # d/dx logsumexp = softmax; a slice of -inf values (out = -inf) gets no gradient, not NaN
+    soft = torch.exp(x - torch.where(torch.isneginf(out), 0.0, out).unsqueeze(ctx.dim))
+    return grad.unsqueeze(ctx.dim) * soft, None
+
+
+_logsumexp.register_autograd(_logsumexp_backward, setup_context=_logsumexp_context)
+
+
 def as_area(area: AreaLike, name: str = "area") -> Tensor:
     """``((x_lo, x_hi), (y_lo, y_hi))`` -> a ``(2, 2)`` float64 tensor, checked (lo < hi)."""
     a = torch.as_tensor(area, dtype=torch.float64)
@@ -151,11 +180,19 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
         log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
         clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
-        per_point = torch.logsumexp(torch.cat([clutter, terms], -2), dim=-2)  # (B, *S, M)
+        # compiled: through the opaque op, so that a compiled kernel gives eager's bits; eager:
+        # torch.logsumexp itself (the same kernel, and torch.func transforms see through it)
+        lse = _logsumexp if torch.compiler.is_compiling() else torch.logsumexp
+        per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
-        return per_point.sum(-1) - (self.clutter_rate + self.detection_rate * n_live)
+        # The sum over the points as a product with a column of ones: eager and compiled code
+        # then make the same BLAS call, so ``compile_step=True`` gives eager's bits (Inductor's
+        # own inner reduction adds the M terms in another order: last-bit differences).
+        ones = torch.ones(per_point.shape[-1], 1, dtype=per_point.dtype, device=per_point.device)
+        total = (per_point.reshape(-1, per_point.shape[-1]) @ ones).reshape(per_point.shape[:-1])
+        return total - (self.clutter_rate + self.detection_rate * n_live)
 
     # -- simulation ---------------------------------------------------------------------
     def simulate(
