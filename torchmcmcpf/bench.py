@@ -49,8 +49,8 @@ if TYPE_CHECKING:
     from .typing import Measurement
 
 __all__ = ["Figure", "run", "time_step", "time_interleaved", "radar_problem", "stonesoup_step", "point_filter",
-           "point_sir_forward", "point_sir_step", "particles_runs", "kalman_log_evidence", "evidence_errors",
-           "TARGETS_S"]
+           "point_sir_forward", "point_sir_step", "point_floor", "particles_runs", "kalman_log_evidence",
+           "evidence_errors", "TARGETS_S"]
 
 #: issue 12's targets on a 2-core CPU [s per step] (per run for the batched IP-MCMC-PF)
 TARGETS_S = {"radar-sir": 0.030, "ipmcmc-5000": 0.040, "ipmcmc-500-B10": 0.015, "mcmc-pf": 0.2}
@@ -252,6 +252,26 @@ def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torc
                                    generator=g, kernel=filt.kernel())
         state[1] = t + 1
         return state[0]
+
+    return step
+
+
+def point_floor(n: int, b: int, device: torch.device, dtype: torch.dtype = torch.float32) -> Callable[[], object]:
+    """The floor of one point SIR step (B runs, N particles, K = 1, D = 4): what no
+    implementation of the step can avoid with torch's generator. The random numbers it must
+    draw (4 normals per particle, one uniform per run) and one pass over the memory it must
+    touch (read the cloud and the noise, write the new cloud; read and write the weights).
+    """
+    g = torch.Generator(device).manual_seed(0)
+    x = torch.randn(b, n, 1, 4, generator=g, device=device, dtype=dtype)
+    eps, out = torch.empty_like(x), torch.empty_like(x)
+    log_w = torch.randn(b, n, generator=g, device=device, dtype=dtype)
+
+    def step():
+        torch.randn(x.shape, generator=g, out=eps)
+        torch.rand(b, 1, generator=g, device=device, dtype=torch.float64)
+        torch.add(x, eps, out=out)
+        return log_w.neg_()
 
     return step
 
@@ -515,6 +535,7 @@ def _point_figures(cfg: dict, dev: torch.device, add: Callable[[Figure], None], 
         single = {f"point-sir-step{'-compiled' if c else ''}-B{b}": point_sir_step(n, b, steps + 2, dev, compile_step=c)
                   for c in modes}
         single[f"point-sir-kernel-B{b}"] = point_sir_step(n, b, steps + 2, dev, public=False)
+        single[f"point-floor-B{b}"] = point_floor(n, b, dev)
         peers = {}
         if stonesoup:
             try:
@@ -526,13 +547,16 @@ def _point_figures(cfg: dict, dev: torch.device, add: Callable[[Figure], None], 
         times = time_interleaved(forward, repeats=rounds, device=dev, per_call=steps)
         times.update(time_interleaved({**single, **{f"stonesoup[{w}]": f for w, f in peers.items()}},
                                       repeats=rounds, device=dev))
-        kernel = times[f"point-sir-kernel-B{b}"]
+        kernel, floor = times[f"point-sir-kernel-B{b}"], times[f"point-floor-B{b}"]
         ours = {}
         for name in (*forward, *single):
             secs = times[name]
-            path = "pure sir_step" if "kernel" in name else "public step" if "step" in name else "public forward"
-            note = f"step / pure sir_step = {secs / kernel:.3f}" if path == "public step" else ""
-            if path != "pure sir_step":
+            path = ("pure sir_step" if "kernel" in name else "floor" if "floor" in name
+                    else "public step" if "step" in name else "public forward")
+            note = "" if path == "floor" else f"{secs / floor:.2f}x the floor"
+            if path == "public step":
+                note += f"; step / pure sir_step = {secs / kernel:.3f}"
+            if path.startswith("public"):
                 ours[name] = secs
             add(Figure(name, secs, dict(N=n, B=b, compiled="compiled" in name, path=path), note=note))
         if not peers:

@@ -73,9 +73,12 @@ def normalize_ess(log_w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     shifted weights is the log of the sum of their exponentials, summed alike);
     ess : (B,) ``(sum w)^2 / sum w^2`` in ``[1, N]``, ``N`` for an all ``-inf`` row (uniform).
     """
-    top, dead, shifted = _shift(log_w)
+    top = log_w.amax(dim=-1, keepdim=True)
+    # a dead row (all -inf) subtracts a finite number and stays -inf; a live row its maximum
+    shifted = log_w - top.clamp(min=torch.finfo(log_w.dtype).min)
     w = torch.exp(shifted)  # <= 1: the row maximum is 0
-    total = w.sum(-1, keepdim=True)
+    total = w.sum(-1, keepdim=True)  # >= 1, or 0 for a dead row
+    dead = total == 0
     ess_ = (total.squeeze(-1) / torch.linalg.vector_norm(w, dim=-1)).square()
     ess_ = torch.where(dead.squeeze(-1), float(log_w.shape[-1]), ess_)
     return *_finish(log_w, top, dead, shifted, torch.log(total)), ess_
