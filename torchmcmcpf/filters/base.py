@@ -7,7 +7,9 @@ types):
   compile_step=False)``; the settings live in one frozen dataclass per algorithm
   (``filt.settings``), which the pure step function also takes:
   ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``;
-- ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments;
+- ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments: ``z`` and
+  ``generator`` always, the state in full unless it is one the filter made itself and that
+  is unchanged since (``Filter.step``), so that stepping its own output costs the step;
 - ``forward(measurements, *, init, generator, progress=None) -> FilterResult`` validates the
   whole sequence once, before the first step, then runs the steps without checks;
 - ``compile_step=True`` compiles the filter's *kernel* (one MCMC iteration, one HMC
