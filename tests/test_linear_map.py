@@ -55,3 +55,13 @@ def test_the_cached_block_follows_the_matrix():
     linear_map(x, P).sum().backward()
     torch.testing.assert_close(P.grad, torch.ones(4, 1, dtype=x.dtype) * x.reshape(-1, 4).sum(0), rtol=1e-12,
                                atol=1e-12)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_squared_norm(d):
+    from torchmcmcpf.models.base import squared_norm
+
+    v = torch.randn(3, 7, 2, d, generator=torch.Generator().manual_seed(d), dtype=torch.float64)
+    torch.testing.assert_close(squared_norm(v), v.square().sum(-1), rtol=1e-15, atol=0)
+    if d == 2:  # two terms: the same single addition as the reduction
+        assert torch.equal(squared_norm(v.float()), v.float().square().sum(-1))

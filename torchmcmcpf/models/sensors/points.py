@@ -33,7 +33,7 @@ import torch
 
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...typing import Tensor, X, Y
-from ..base import SensorModel
+from ..base import SensorModel, squared_norm
 from .association import PointFrame, PointMeasurement, _split
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area"]
@@ -155,7 +155,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         zb = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])  # (B, 1.., M, 2)
         r = zb.unsqueeze(-3) - pos.unsqueeze(-2)  # (B, *S, K, M, 2): L^{-1} (z_m - H x_n)
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        return log_rate + self._log_norm - 0.5 * r.square().sum(-1)
+        return log_rate + self._log_norm - 0.5 * squared_norm(r)
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
