@@ -413,11 +413,11 @@ def evidence_errors(log_z: torch.Tensor, exact: torch.Tensor) -> dict:
 # -- the run -------------------------------------------------------------------------------------
 #: sizes of the full run (the issue's headline figures) and of ``--quick`` (seconds, for tests)
 FULL: dict[str, Any] = dict(n=5000, k=10, chains=50, burn_in=100, n_small=500, b_small=10, b_gpu=100, point_b=(1, 100),
-            point_steps=10, particles=dict(n=2000, b=100, steps=25), repeats=5,
+            point_steps=10, point_rounds=9, particles=dict(n=2000, b=100, steps=25), repeats=5,
             slow_repeats=3, compiled=True, sweep_n=(500, 1000, 2000, 5000), sweep_k=(1, 2, 5, 10),
             sweep_b=(1, 2, 5, 10), sweep_base=dict(n=1000, k=10, b=1), sweep_burn_in=20)
 QUICK: dict[str, Any] = dict(n=200, k=2, chains=10, burn_in=5, n_small=100, b_small=3, b_gpu=2, point_b=(1, 10),
-             point_steps=3, particles=dict(n=200, b=4, steps=5), repeats=1,
+             point_steps=3, point_rounds=1, particles=dict(n=200, b=4, steps=5), repeats=1,
              slow_repeats=1, compiled=False, sweep_n=(50, 100, 200), sweep_k=(1, 2, 4), sweep_b=(1, 2, 4),
              sweep_base=dict(n=100, k=2, b=1), sweep_burn_in=2)
 
@@ -543,7 +543,7 @@ def _point_figures(cfg: dict, dev: torch.device, add: Callable[[Figure], None], 
             except ImportError as err:
                 log(f"Stone Soup skipped: {err} (pip install 'torchmcmcpf[bench]')")
                 stonesoup = False
-        rounds = cfg["repeats"] if b == 1 else max(1, cfg["repeats"] // 2 + 1)
+        rounds = cfg["point_rounds"]
         times = time_interleaved(forward, repeats=rounds, device=dev, per_call=steps)
         times.update(time_interleaved({**single, **{f"stonesoup[{w}]": f for w, f in peers.items()}},
                                       repeats=rounds, device=dev))
