@@ -87,19 +87,9 @@ def _sync(device: torch.device) -> None:
 
 def time_step(step: Callable[[], object], *, repeats: int, device: torch.device, warmup: int = 1) -> float:
     """Minimum wall time [s] of ``step()`` over ``repeats`` calls after ``warmup`` calls
-    (compilation happens in the warm-up).
+    (compilation happens in the warm-up): :func:`time_interleaved` of one variant.
     """
-    with torch.no_grad():
-        for _ in range(warmup):
-            step()
-        _sync(device)
-        best = math.inf
-        for _ in range(repeats):
-            start = time.perf_counter()
-            step()
-            _sync(device)
-            best = min(best, time.perf_counter() - start)
-    return best
+    return time_interleaved({"step": step}, repeats=repeats, device=device, warmup=warmup)["step"]
 
 
 def time_interleaved(steps: dict[str, Callable[[], object]], *, repeats: int, device: torch.device,
