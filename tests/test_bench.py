@@ -4,8 +4,10 @@ The figures themselves are timings (benchmarks/README.md); these tests check tha
 command writes its files and that both libraries filter the same model (their posterior
 means agree with the exact Kalman filter)."""
 
+import argparse
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,7 +33,13 @@ def test_bench_quick_writes_table_json_and_plot(tmp_path, capsys, restore_thread
     assert result["threads"] == 1 and result["quick"] and result["torch"] == torch.__version__
     assert result["device"] and result["device_type"] == "cpu"
     names = [f["name"] for f in result["figures"]]
-    assert {"radar-sir", "mcmc-pf", "point-sir-B1", "stonesoup-B1", "stonesoup-B10"} <= set(names)
+    assert {"radar-sir", "mcmc-pf", "point-sir-B1", "point-sir-step-B1", "point-sir-kernel-B1", "stonesoup-B1",
+            "stonesoup-B10", "particles-ours-B4", "particles-B4"} <= set(names)
+    by_name = {f["name"]: f for f in result["figures"]}
+    assert set(by_name["stonesoup-B1"]["check"]["configurations_s"]) == set(bench.STONESOUP_WEIGHTS)
+    for name in ("particles-ours-B4", "particles-B4"):  # the correctness check of the comparison
+        err = by_name[name]["check"]["log_evidence_error"]
+        assert abs(err["median"]) < 2.0 and err["iqr"] >= 0, (name, err)
     assert any(n.startswith("ipmcmc-") and n.endswith("-B3") for n in names)
     for f in result["figures"]:
         assert f["seconds"] > 0 and math.isclose(f["per_run_s"], f["seconds"] / f["params"].get("B", 1))
@@ -44,6 +52,25 @@ def test_bench_quick_writes_table_json_and_plot(tmp_path, capsys, restore_thread
     assert "| radar-sir |" in table and "1 threads" in table
     assert (out / "bench_scaling.png").stat().st_size > 0
     assert "wrote" in capsys.readouterr().out
+
+
+def test_bench_out_that_is_a_file_is_a_one_line_argument_error(tmp_path, capsys):
+    readme = tmp_path / "README.md"
+    readme.write_text("x")
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "--quick", "--out", str(readme)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --out" in err and "existing file" in err and "Traceback" not in err
+
+
+def test_bench_writes_under_results_by_default(tmp_path, monkeypatch):
+    from torchmcmcpf.__main__ import _bench_parser
+
+    parser = argparse.ArgumentParser()
+    _bench_parser(parser.add_subparsers())
+    args = parser.parse_args(["bench", "--quick"])
+    assert args.out == Path("results") / "bench"  # results/ is ignored by git: the repository stays clean
 
 
 def test_bench_cuda_without_gpu_is_an_argument_error():
@@ -80,3 +107,40 @@ def test_point_sir_matches_kalman(library):
     means, covs = kalman_filter(F, Q, H, R, m0, torch.eye(4, dtype=torch.float64), z)
     se = torch.sqrt(4.0 * torch.diagonal(covs[-1], dim1=-2, dim2=-1) / N)
     assert torch.all((mean - means[-1]).abs() <= 6 * se), (mean, means[-1], se)
+
+
+def test_kalman_log_evidence_matches_the_reference_filter():
+    # the bench's exact value, against the tests' Kalman filter (its predictive densities)
+    B, T = 3, 6
+    _, z = bench._point_track(B, T)
+    F, Q = cv_matrices(bench.POINT_MODEL["dt"], bench.POINT_MODEL["q"], dtype=torch.float64)
+    H = torch.zeros(2, 4, dtype=torch.float64)
+    H[0, 0] = H[1, 2] = 1.0
+    R = torch.eye(2, dtype=torch.float64)
+    m, P = torch.tensor(bench.POINT_M0, dtype=torch.float64).expand(B, 4), torch.eye(4, dtype=torch.float64)
+    total = torch.zeros(B, dtype=torch.float64)
+    for t in range(T):
+        mp, Pp = m @ F.mT, F @ P @ F.mT + Q
+        pred = torch.distributions.MultivariateNormal(mp @ H.mT, H @ Pp @ H.mT + R)
+        total += pred.log_prob(z[t])
+        means, covs = kalman_filter(F, Q, H, R, m, P, z[t:t + 1])
+        m, P = means[0], covs[0][0]
+    torch.testing.assert_close(bench.kalman_log_evidence(z), total, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("library", ["ours", "particles"])
+def test_log_evidence_against_kalman(library):
+    # both filters of the particles comparison estimate log p(z_1:T) of the same model: over
+    # B runs, the median error against the exact value is within a few standard errors of 0
+    # (the estimate's sd at N = 1000, T = 10 is about 0.3; its bias -var/2 about -0.05)
+    pytest.importorskip("particles")
+    B, T, N = 40, 10, 1000
+    exact = bench.kalman_log_evidence(bench._point_track(B, T)[1])
+    if library == "ours":
+        filt, z, x0 = bench.point_filter(N, B, T, torch.device("cpu"), torch.float64)
+        log_z = filt(z, init=x0, generator=torch.Generator().manual_seed(4)).log_evidence
+    else:
+        log_z = bench.particles_runs(N, B, T)()
+    err = log_z - exact
+    se = 1.2533 * err.std() / math.sqrt(B)  # standard error of a median
+    assert abs(float(err.median())) < 4 * float(se) + 0.1, (err.median(), se)

@@ -38,3 +38,30 @@ def test_non_finite_row_stays_in_its_run():
     out = linear_map(x, torch.eye(4))
     assert torch.isfinite(out[0]).all() and torch.isfinite(out[2]).all()
     assert torch.isfinite(out[1, :4]).all() and torch.isfinite(out[1, 8:]).all()  # other groups of run 1
+
+
+def test_the_cached_block_follows_the_matrix():
+    # the block matrix is built once per model matrix and rebuilt when the matrix changes in
+    # place; a matrix that needs a gradient is never cached (the gradient must reach it)
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(2, 64, 1, 4, generator=g, dtype=torch.float64)
+    M = torch.randn(4, 4, generator=g, dtype=torch.float64)
+    first = linear_map(x, M)
+    torch.testing.assert_close(linear_map(x, M), x @ M.mT, rtol=0, atol=1e-14)
+    assert torch.equal(linear_map(x, M), first)
+    M.mul_(2.0)  # in place: a new version
+    torch.testing.assert_close(linear_map(x, M), x @ M.mT, rtol=0, atol=1e-14)
+    P = M.clone().requires_grad_(True)
+    linear_map(x, P).sum().backward()
+    torch.testing.assert_close(P.grad, torch.ones(4, 1, dtype=x.dtype) * x.reshape(-1, 4).sum(0), rtol=1e-12,
+                               atol=1e-12)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_squared_norm(d):
+    from torchmcmcpf.models.base import squared_norm
+
+    v = torch.randn(3, 7, 2, d, generator=torch.Generator().manual_seed(d), dtype=torch.float64)
+    torch.testing.assert_close(squared_norm(v), v.square().sum(-1), rtol=1e-15, atol=0)
+    if d == 2:  # two terms: the same single addition as the reduction
+        assert torch.equal(squared_norm(v.float()), v.float().square().sum(-1))

@@ -117,3 +117,20 @@ def test_stratified_points_edge_uniforms():
     assert torch.equal(rs.systematic(log_w, zero), torch.tensor([[0, 1, 2]]))
     near_one = torch.full((1, 1), 1.0 - 2.0 ** -53, dtype=torch.float64)
     assert torch.equal(rs.systematic(log_w, near_one), torch.tensor([[1, 2, 2]]))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_normalize_ess_equals_normalize_and_ess(dtype):
+    # one pass for the SIR step's three outputs: normalize's bits, ess() to round-off, and a
+    # dead row (every weight -inf) uniform with ESS = N and evidence -inf, not NaN
+    g = torch.Generator().manual_seed(0)
+    log_w = torch.randn(6, 1000, generator=g, dtype=dtype) * 30
+    log_w[1] = -math.inf
+    log_w[2, :500] = -math.inf
+    log_w[3] -= 1e4
+    log_w_norm, log_mean, ess_ = rs.normalize_ess(log_w)
+    ref_norm, ref_mean = rs.normalize(log_w)
+    assert torch.equal(log_w_norm, ref_norm) and torch.equal(log_mean, ref_mean)
+    torch.testing.assert_close(ess_, rs.ess(ref_norm), rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0)
+    assert ess_[1] == 1000 and torch.isneginf(log_mean[1]) and bool((log_w_norm[1] == -math.log(1000)).all())
+    assert bool(torch.isfinite(ess_).all()) and bool(((ess_ >= 1) & (ess_ <= 1000)).all())

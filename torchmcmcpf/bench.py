@@ -1,8 +1,11 @@
-"""The headline benchmarks of ``python -m torchmcmcpf bench`` (issue 12), in one run.
+"""The headline benchmarks of ``python -m torchmcmcpf bench`` (issues 12 and 26), in one run.
 
-Each figure is the minimum over repeated calls of one filter step (warm-up and compilation
-excluded), timed with the device synchronised; ``per_run_s`` divides by the B runs of the
-batch. Written to ``bench.json`` (device name, torch version, thread count, every figure),
+Every figure times what a user calls: the public :meth:`~torchmcmcpf.filters.base.Filter.step`
+and :meth:`~torchmcmcpf.filters.base.Filter.forward` (per step), never a private method.
+Each is the minimum over repeated calls (warm-up and compilation excluded), timed with the
+device synchronised; figures compared with each other are timed in turn within the same
+rounds (:func:`time_interleaved`). ``per_run_s`` divides by the B runs of the batch. Written
+to ``bench.json`` (device name, torch version, thread count, every figure),
 ``bench.md`` (the table) and ``bench_scaling.png`` (time per step against N, K and B, log-log).
 
 Headlines (``--quick``: tiny sizes, eager, one repeat, seconds):
@@ -13,9 +16,15 @@ Headlines (``--quick``: tiny sizes, eager, one repeat, seconds):
 - sequential MCMC-PF step, C = 50 chains, N = 5000, K = 10 (burn-in 0, thinning 1, the
   mixture moves of paper 004), compiled;
 - point-measurement SIR (one target, known association, :class:`LinearGaussian` position
-  sensor, :class:`ConstantVelocity` motion, systematic resampling at every step) against
-  Stone Soup 1.9.1's ``ParticlePredictor`` + ``ParticleUpdater`` + ``SystematicResampler``
-  on the same model, N = 5000, B = 1 and B = 100 (Stone Soup loops over the runs).
+  sensor, :class:`ConstantVelocity` motion, systematic resampling at every step), N = 5000,
+  B = 1 and B = 100, through ``forward`` and ``step``, eager and compiled, and the pure step
+  function :func:`~torchmcmcpf.filters.sir_step` (what ``step``'s checks add), against
+  Stone Soup 1.9.1's ``ParticlePredictor`` + ``ParticleUpdater`` + ``SystematicResampler`` on
+  the same model in each documented way of giving the weights (the fastest is kept; Stone
+  Soup loops over the runs);
+- the same model against ``particles`` (Chopin's SMC library): bootstrap filter, systematic
+  resampling at every step, T = 25, N = 2000, B = 100 runs (``particles`` loops over them),
+  with both log-evidences compared with the exact Kalman value of each run.
 
 The R-hat extensions of the IP-MCMC-PF are off (``max_extensions=0``) so that a step always
 runs ``burn_in + Np / C`` iterations. Use :func:`run` from Python, or the command line.
@@ -23,6 +32,7 @@ runs ``burn_in + Np / C`` iterations. Use :func:`run` from Python, or the comman
 
 from __future__ import annotations
 
+import gc
 import json
 import math
 import platform
@@ -39,15 +49,19 @@ if TYPE_CHECKING:
     from .scenarios.ground_radar import Scenario
     from .typing import Measurement
 
-__all__ = ["Figure", "run", "time_step", "radar_problem", "stonesoup_step", "point_sir_step", "TARGETS_S"]
+__all__ = ["Figure", "run", "time_step", "time_interleaved", "radar_problem", "stonesoup_step", "point_filter",
+           "point_sir_forward", "point_sir_step", "point_floor", "particles_runs", "kalman_log_evidence",
+           "evidence_errors", "TARGETS_S"]
 
 #: issue 12's targets on a 2-core CPU [s per step] (per run for the batched IP-MCMC-PF)
 TARGETS_S = {"radar-sir": 0.030, "ipmcmc-5000": 0.040, "ipmcmc-500-B10": 0.015, "mcmc-pf": 0.2}
 #: issue 12's aim on one GPU: the IP-MCMC-PF step at Np = 5000 for all 100 runs of Table II
 #: in <= 10 ms, i.e. 0.1 ms per run (figure ``ipmcmc-5000-B100``, measured with --device cuda)
 GPU_TARGETS_S = {"ipmcmc-5000-B100": 0.010 / 100}
-#: point SIR: Stone Soup / ours at least this
-TARGET_SPEEDUP = {1: 3.0, 100: 10.0}
+#: point SIR (issue 26): Stone Soup's fastest configuration / ours (public path) at least this, by B
+TARGET_SPEEDUP = {1: 5.0, 100: 20.0}
+#: the bootstrap filter of ``particles`` per run / ours per run (B runs batched) at least this, by B
+TARGET_SPEEDUP_PARTICLES = {100: 20.0}
 
 
 @dataclass
@@ -59,6 +73,7 @@ class Figure:
     params: dict
     target_s: float | None = None
     note: str = ""
+    check: dict = field(default_factory=dict)
     per_run_s: float = field(init=False)
 
     def __post_init__(self):
@@ -72,19 +87,38 @@ def _sync(device: torch.device) -> None:
 
 def time_step(step: Callable[[], object], *, repeats: int, device: torch.device, warmup: int = 1) -> float:
     """Minimum wall time [s] of ``step()`` over ``repeats`` calls after ``warmup`` calls
-    (compilation happens in the warm-up).
+    (compilation happens in the warm-up): :func:`time_interleaved` of one variant.
     """
+    return time_interleaved({"step": step}, repeats=repeats, device=device, warmup=warmup)["step"]
+
+
+def time_interleaved(steps: dict[str, Callable[[], object]], *, repeats: int, device: torch.device,
+                     warmup: int = 1, per_call: int = 1) -> dict[str, float]:
+    """Minimum wall time [s] of each of ``steps`` over ``repeats`` rounds, the variants called
+    in turn within each round (so that a burst of load on a shared machine hits them alike),
+    divided by ``per_call`` (the steps one call makes). Warm-up calls first (compilation).
+    As ``timeit``, Python's garbage collector is run before each timed call and kept off
+    during it: otherwise the call after Stone Soup's paid for its objects (a public step at
+    B = 1 measured 10-30 ms instead of 0.4).
+    """
+    best = dict.fromkeys(steps, math.inf)
     with torch.no_grad():
-        for _ in range(warmup):
-            step()
+        for fn in steps.values():
+            for _ in range(warmup):
+                fn()
         _sync(device)
-        best = math.inf
         for _ in range(repeats):
-            start = time.perf_counter()
-            step()
-            _sync(device)
-            best = min(best, time.perf_counter() - start)
-    return best
+            for name, fn in steps.items():
+                gc.collect()  # the garbage of the previous call (Stone Soup makes much) is not this one's
+                gc.disable()  # as timeit: no collection inside a timed call
+                try:
+                    start = time.perf_counter()
+                    fn()
+                    _sync(device)
+                    best[name] = min(best[name], time.perf_counter() - start)
+                finally:
+                    gc.enable()
+    return {name: t / per_call for name, t in best.items()}
 
 
 # -- radar TBD filters -------------------------------------------------------------------------
@@ -101,14 +135,15 @@ def radar_problem(n: int, k: int, b: int, device: torch.device, seed: int = 0) -
 
 def filter_step(filt: Filter, x0: torch.Tensor, z: Measurement, device: torch.device, seed: int = 1
                 ) -> Callable[[], object]:
-    """One step of ``filt`` from ``x0`` on the frame ``z``, as :meth:`Filter.forward` runs it
-    (arguments validated once, here, not in the timed call).
+    """One step of ``filt`` from ``x0`` on the frame ``z`` through the public
+    :meth:`~torchmcmcpf.filters.base.Filter.step` (every call from the same initial state,
+    which the filter made with :meth:`~torchmcmcpf.filters.base.Filter.init` and so checks
+    cheaply).
     """
     filt = filt.to(device)
     state = filt.init(x0)
-    filt.validate(state, z, sequence=False)
     g = torch.Generator(device).manual_seed(seed)
-    return lambda: filt._step(state, z, g)
+    return lambda: filt.step(state, z, generator=g)
 
 
 def radar_sir(n: int, k: int, b: int, compiled: bool, device: torch.device) -> Callable[[], object]:
@@ -138,19 +173,24 @@ def radar_mcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, 
     return filter_step(filt, x0, scn.measurements[0], device)
 
 
-# -- point measurements: ours against Stone Soup ------------------------------------------------
+# -- point measurements: ours against Stone Soup and particles ----------------------------------
+#: the point problem: one target, constant velocity (dt, q), its position measured with unit noise
 POINT_MODEL = dict(dt=1.0, q=0.1, noise_std=1.0)
+#: mean of the initial cloud ``N(m0, I)`` (every library starts from it)
+POINT_M0 = (0.0, 1.0, 0.0, 1.0)
+#: Stone Soup's documented ways of giving the particles' weights (all timed; the fastest is kept)
+STONESOUP_WEIGHTS = ("weight", "log_weight", "Probability")
 
 
 def _point_track(b: int, steps: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """Constant-velocity truth ``(steps, B, 4)`` and its noisy position measurements
-    ``(steps, B, 2)`` (float64, CPU; both libraries filter the same numbers).
+    ``(steps, B, 2)`` (float64, CPU; every library filters the same numbers).
     """
     from .models import ConstantVelocity
 
     g = torch.Generator().manual_seed(seed)
     motion = ConstantVelocity(POINT_MODEL["dt"], POINT_MODEL["q"]).double()
-    x = torch.tensor([0.0, 1.0, 0.0, 1.0], dtype=torch.float64).expand(b, 1, 4)
+    x = torch.tensor(POINT_M0, dtype=torch.float64).expand(b, 1, 4)
     truth, z = [], []
     for _ in range(steps):
         x = motion.sample(x, generator=g)
@@ -159,37 +199,91 @@ def _point_track(b: int, steps: int, seed: int = 0) -> tuple[torch.Tensor, torch
     return torch.stack(truth), torch.stack(z)
 
 
-def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32
-                   ) -> Callable[[], object]:
-    """Our SIR filter on the point problem: each call filters the next measurement (B runs at once)."""
+def point_filter(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
+                 compile_step: bool = False, seed: int = 0) -> tuple[Filter, torch.Tensor, torch.Tensor]:
+    """Our SIR filter on the point problem (systematic resampling at every step), the
+    measurements ``(T, B, K = 1, 2)`` and an initial cloud ``(B, N, 1, 4)`` drawn from
+    ``N(m0, I)``: ``(filt, z, x0)``.
+    """
     from .filters import SIRFilter
     from .models import ConstantVelocity, LinearGaussian
 
-    _, z = _point_track(b, steps)
-    z = z.to(device=device, dtype=dtype).unsqueeze(2)  # (T, B, K = 1, 2)
+    _, z = _point_track(b, steps, seed)
+    z = z.to(device=device, dtype=dtype).unsqueeze(2)
     motion = ConstantVelocity(POINT_MODEL["dt"], POINT_MODEL["q"])
-    filt = SIRFilter(motion, LinearGaussian.position(POINT_MODEL["noise_std"]), n,
-                     resample_method="systematic").to(device=device, dtype=dtype)
-    g = torch.Generator(device).manual_seed(1)
-    x0 = torch.tensor([0.0, 1.0, 0.0, 1.0], device=device, dtype=dtype) + torch.randn(
-        b, n, 1, 4, generator=g, device=device, dtype=dtype)
-    init = filt.init(x0)
-    filt.validate(init, z, sequence=True)
-    state: list[Any] = [init, 0]
+    filt = SIRFilter(motion, LinearGaussian.position(POINT_MODEL["noise_std"]), n, resample_method="systematic",
+                     compile_step=compile_step).to(device=device, dtype=dtype)
+    g = torch.Generator(device).manual_seed(seed + 1)
+    x0 = torch.tensor(POINT_M0, device=device, dtype=dtype) + torch.randn(b, n, 1, 4, generator=g, device=device,
+                                                                          dtype=dtype)
+    return filt, z, x0
+
+
+def point_sir_forward(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
+                      compile_step: bool = False) -> Callable[[], object]:
+    """Each call filters the whole sequence of ``steps`` frames through the public
+    ``filt(z, init=x0, generator=g)`` (divide its time by ``steps`` for a time per step).
+    """
+    filt, z, x0 = point_filter(n, b, steps, device, dtype, compile_step=compile_step)
+    g = torch.Generator(device).manual_seed(2)
+    return lambda: filt(z, init=x0, generator=g)
+
+
+def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
+                   compile_step: bool = False, public: bool = True) -> Callable[[], object]:
+    """Each call filters the next frame (B runs at once) from the state the previous call
+    returned: through the public ``filt.step`` (``public``), or through the pure step
+    function :func:`~torchmcmcpf.filters.sir_step` with the filter's kernel, which checks
+    nothing (the cost of the step itself, to measure what ``step``'s checks add).
+    """
+    from .filters import sir_step
+
+    filt, z, x0 = point_filter(n, b, steps, device, dtype, compile_step=compile_step)
+    g = torch.Generator(device).manual_seed(2)
+    state: list[Any] = [filt.init(x0), 0]
 
     def step():
         s, t = state
-        state[0], _ = filt._step(s, z[t % steps], g)
+        if public:
+            state[0], _ = filt.step(s, z[t % steps], generator=g)
+        else:
+            state[0], _ = sir_step(s, z[t % steps], motion=filt.motion, sensor=filt.sensor, settings=filt.settings,
+                                   generator=g, kernel=filt.kernel())
         state[1] = t + 1
         return state[0]
 
     return step
 
 
-def stonesoup_step(n: int, b: int, steps: int) -> Callable[[], object]:
+def point_floor(n: int, b: int, device: torch.device, dtype: torch.dtype = torch.float32) -> Callable[[], object]:
+    """The floor of one point SIR step (B runs, N particles, K = 1, D = 4): what no
+    implementation of the step can avoid with torch's generator. The random numbers it must
+    draw (4 normals per particle, one uniform per run) and one pass over the memory it must
+    touch (read the cloud and the noise, write the new cloud; read and write the weights).
+    """
+    g = torch.Generator(device).manual_seed(0)
+    x = torch.randn(b, n, 1, 4, generator=g, device=device, dtype=dtype)
+    eps, out = torch.empty_like(x), torch.empty_like(x)
+    log_w = torch.randn(b, n, generator=g, device=device, dtype=dtype)
+
+    def step():
+        torch.randn(x.shape, generator=g, out=eps)
+        torch.rand(b, 1, generator=g, device=device, dtype=torch.float64)
+        torch.add(x, eps, out=out)
+        return log_w.neg_()
+
+    return step
+
+
+def stonesoup_step(n: int, b: int, steps: int, weights: str = "weight") -> Callable[[], object]:
     """Stone Soup's particle filter on the same problem: ``ParticlePredictor`` +
     ``ParticleUpdater`` with a ``SystematicResampler`` (resampling at every update), a
     Python loop over the B runs; each call filters the next measurement of every run.
+
+    ``weights``: how the initial ``ParticleState`` gets its weights, one of
+    :data:`STONESOUP_WEIGHTS`: ``"weight"`` (a float array), ``"log_weight"`` (a float
+    array of logs), ``"Probability"`` (an array of Stone Soup ``Probability``, as in its
+    particle filter tutorial). Stone Soup draws from NumPy's global generator.
     """
     import datetime
 
@@ -202,9 +296,12 @@ def stonesoup_step(n: int, b: int, steps: int) -> Callable[[], object]:
     from stonesoup.types.array import StateVectors
     from stonesoup.types.detection import Detection
     from stonesoup.types.hypothesis import SingleHypothesis
+    from stonesoup.types.numeric import Probability
     from stonesoup.types.state import ParticleState as SSParticleState
     from stonesoup.updater.particle import ParticleUpdater
 
+    if weights not in STONESOUP_WEIGHTS:
+        raise ValueError(f"weights must be one of {STONESOUP_WEIGHTS}, got {weights!r}")
     z = _point_track(b, steps)[1].numpy()
     q, r = POINT_MODEL["q"], POINT_MODEL["noise_std"] ** 2
     transition = CombinedLinearGaussianTransitionModel([SSConstantVelocity(q), SSConstantVelocity(q)])
@@ -214,8 +311,16 @@ def stonesoup_step(n: int, b: int, steps: int) -> Callable[[], object]:
     start = datetime.datetime(2026, 1, 1)
     dt = datetime.timedelta(seconds=POINT_MODEL["dt"])
     rng = np.random.default_rng(1)
-    priors = [SSParticleState(StateVectors(np.array([[0.0], [1.0], [0.0], [1.0]]) + rng.standard_normal((4, n))),
-                              log_weight=np.full(n, -math.log(n)), timestamp=start) for _ in range(b)]
+
+    def prior():
+        sv = StateVectors(np.array(POINT_M0).reshape(4, 1) + rng.standard_normal((4, n)))
+        if weights == "weight":
+            return SSParticleState(sv, weight=np.full(n, 1.0 / n), timestamp=start)
+        if weights == "log_weight":
+            return SSParticleState(sv, log_weight=np.full(n, -math.log(n)), timestamp=start)
+        return SSParticleState(sv, weight=np.array([Probability(1.0 / n)] * n), timestamp=start)
+
+    priors = [prior() for _ in range(b)]
     t = [0]
 
     def step():
@@ -230,14 +335,88 @@ def stonesoup_step(n: int, b: int, steps: int) -> Callable[[], object]:
     return step
 
 
+def kalman_log_evidence(z: torch.Tensor) -> torch.Tensor:
+    """Exact ``log p(z_1:T)`` of the point problem for each run (Kalman filter, float64):
+    ``z (T, B, 2) -> (B,)``. The state starts from ``N(m0, I)`` and is predicted once before
+    each measurement, as :meth:`~torchmcmcpf.filters.base.Filter.forward` runs.
+    """
+    from .models.motion import cv_matrices
+
+    z = z.to(torch.float64)
+    F, Q = cv_matrices(POINT_MODEL["dt"], POINT_MODEL["q"], dtype=torch.float64)
+    H = torch.zeros(2, 4, dtype=torch.float64)
+    H[0, 0] = H[1, 2] = 1.0
+    R = POINT_MODEL["noise_std"] ** 2 * torch.eye(2, dtype=torch.float64)
+    m = torch.tensor(POINT_M0, dtype=torch.float64).expand(z.shape[1], 4)
+    P = torch.eye(4, dtype=torch.float64)  # the same for every run: it does not depend on the data
+    total = torch.zeros(z.shape[1], dtype=torch.float64)
+    for zt in z:
+        m, P = m @ F.mT, F @ P @ F.mT + Q
+        S = H @ P @ H.mT + R
+        v = zt - m @ H.mT  # (B, 2) innovations
+        total += -0.5 * (2 * math.log(2 * math.pi) + torch.logdet(S) + (v @ torch.linalg.inv(S) * v).sum(-1))
+        G = P @ H.mT @ torch.linalg.inv(S)
+        m = m + v @ G.mT
+        P = (torch.eye(4, dtype=torch.float64) - G @ H) @ P
+    return total
+
+
+def particles_runs(n: int, b: int, steps: int, seed: int = 0) -> Callable[[], torch.Tensor]:
+    """``particles`` (Chopin's SMC library) on the point problem, one run at a time: each
+    call runs a bootstrap filter (``ssm.Bootstrap`` on ``kalman.MVLinearGauss``,
+    ``SMC(resampling="systematic", ESSrmin=1.0, store_history=False, collect="off")``,
+    i.e. systematic resampling at every step, nothing recorded) over the ``steps`` frames
+    of each of the B runs and returns their log-evidence ``(B,)``. One short run is made
+    here, before the first call, so that numba's compilation is not timed. Its initial law is the
+    predicted one, ``N(F m0, F F' + Q)``, so that its first weighting matches ours.
+    """
+    import numpy as np
+    import particles
+    from particles import kalman
+    from particles import state_space_models as ssm
+
+    from .models.motion import cv_matrices
+
+    F, Q = (a.numpy() for a in cv_matrices(POINT_MODEL["dt"], POINT_MODEL["q"], dtype=torch.float64))
+    H = np.zeros((2, 4))
+    H[0, 0] = H[1, 2] = 1.0
+    model = kalman.MVLinearGauss(F=F, G=H, covX=Q, covY=POINT_MODEL["noise_std"] ** 2 * np.eye(2),
+                                 mu0=F @ np.array(POINT_M0), cov0=F @ F.T + Q)
+    z = _point_track(b, steps, seed)[1].numpy()
+    # warm-up: particles compiles its resampling with numba on first use (seconds)
+    particles.SMC(fk=ssm.Bootstrap(ssm=model, data=list(z[:2, 0])), N=n, resampling="systematic", ESSrmin=1.0,
+                  store_history=False, collect="off", verbose=False).run()
+
+    def runs():
+        np.random.seed(seed + 3)  # particles draws from NumPy's global generator
+        out = np.empty(b)
+        for i in range(b):  # particles filters one run at a time
+            pf = particles.SMC(fk=ssm.Bootstrap(ssm=model, data=list(z[:, i])), N=n, resampling="systematic",
+                               ESSrmin=1.0, store_history=False, collect="off", verbose=False)
+            pf.run()
+            out[i] = pf.logLt
+        return torch.from_numpy(out)
+
+    return runs
+
+
+def evidence_errors(log_z: torch.Tensor, exact: torch.Tensor) -> dict:
+    """Median and inter-quartile range of ``log_z - exact`` over runs (the check that a
+    library filters the model it is timed on: a wrong model is off by tens of nats).
+    """
+    err = (log_z.to(torch.float64) - exact).cpu()
+    q = torch.quantile(err, torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64))
+    return dict(median=float(q[1]), iqr=float(q[2] - q[0]))
+
+
 # -- the run -------------------------------------------------------------------------------------
 #: sizes of the full run (the issue's headline figures) and of ``--quick`` (seconds, for tests)
 FULL: dict[str, Any] = dict(n=5000, k=10, chains=50, burn_in=100, n_small=500, b_small=10, b_gpu=100, point_b=(1, 100),
-            repeats=5,
+            point_steps=10, point_rounds=9, particles=dict(n=2000, b=100, steps=25), repeats=5,
             slow_repeats=3, compiled=True, sweep_n=(500, 1000, 2000, 5000), sweep_k=(1, 2, 5, 10),
             sweep_b=(1, 2, 5, 10), sweep_base=dict(n=1000, k=10, b=1), sweep_burn_in=20)
 QUICK: dict[str, Any] = dict(n=200, k=2, chains=10, burn_in=5, n_small=100, b_small=3, b_gpu=2, point_b=(1, 10),
-             repeats=1,
+             point_steps=3, point_rounds=1, particles=dict(n=200, b=4, steps=5), repeats=1,
              slow_repeats=1, compiled=False, sweep_n=(50, 100, 200), sweep_k=(1, 2, 4), sweep_b=(1, 2, 4),
              sweep_base=dict(n=100, k=2, b=1), sweep_burn_in=2)
 
@@ -319,22 +498,8 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
     add(Figure("mcmc-pf", time_step(radar_mcmc(n, k, 1, compiled, dev, chains=c), repeats=cfg["slow_repeats"],
                                     device=dev),
                dict(N=n, C=c, K=k, B=1, compiled=compiled), target("mcmc-pf")))
-    for b in cfg["point_b"]:
-        steps = cfg["repeats"] + 1
-        ours = time_step(point_sir_step(n, b, steps, dev), repeats=cfg["repeats"], device=dev)
-        add(Figure(f"point-sir-B{b}", ours, dict(N=n, B=b, compiled=False)))
-        if not stonesoup:
-            continue
-        try:
-            ss = stonesoup_step(n, b, steps)
-        except ImportError as err:
-            log(f"Stone Soup skipped: {err} (pip install 'torchmcmcpf[bench]')")
-            stonesoup = False
-            continue
-        secs = time_step(ss, repeats=cfg["repeats"], device=torch.device("cpu"))
-        wanted = None if quick else TARGET_SPEEDUP.get(b)
-        add(Figure(f"stonesoup-B{b}", secs, dict(N=n, B=b), note=f"Stone Soup / ours = {secs / ours:.1f}x"
-                   + (f" (target >= {wanted:g}x: {'met' if secs / ours >= wanted else 'not met'})" if wanted else "")))
+    stonesoup = _point_figures(cfg, dev, add, quick, stonesoup, log)
+    _particles_figures(cfg, dev, add, quick, log)
     sweeps = {}
     if scaling:
         sweeps = _sweeps(cfg, dev, log, started)
@@ -352,6 +517,101 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
             plot_scaling(sweeps, out / "bench_scaling.png", title=f"{result['device']}, {result['threads']} threads")
         log(f"wrote {out / 'bench.json'}, {out / 'bench.md'}" + (f", {out / 'bench_scaling.png'}" if sweeps else ""))
     return result
+
+
+def _point_figures(cfg: dict, dev: torch.device, add: Callable[[Figure], None], quick: bool, stonesoup: bool,
+                   log: Callable[[str], None]) -> bool:
+    """Point SIR at N = ``cfg['n']`` for each B of ``cfg['point_b']``: ours through the public
+    ``forward`` (per step) and ``step``, eager and (full size) compiled, the pure step function
+    (what ``step``'s checks add), against Stone Soup in each of its weight configurations,
+    all timed in turn in the same rounds. Returns whether Stone Soup is available.
+    """
+    n, steps = cfg["n"], cfg["point_steps"]
+    modes = (False, True) if cfg["compiled"] else (False,)
+    for b in cfg["point_b"]:
+        forward = {f"point-sir{'-compiled' if c else ''}-B{b}": point_sir_forward(n, b, steps, dev, compile_step=c)
+                   for c in modes}
+        single = {f"point-sir-step{'-compiled' if c else ''}-B{b}": point_sir_step(n, b, steps + 2, dev, compile_step=c)
+                  for c in modes}
+        single[f"point-sir-kernel-B{b}"] = point_sir_step(n, b, steps + 2, dev, public=False)
+        single[f"point-floor-B{b}"] = point_floor(n, b, dev)
+        peers = {}
+        if stonesoup:
+            try:
+                peers = {w: stonesoup_step(n, b, steps + 2, w) for w in STONESOUP_WEIGHTS}
+            except ImportError as err:
+                log(f"Stone Soup skipped: {err} (pip install 'torchmcmcpf[bench]')")
+                stonesoup = False
+        rounds = cfg["point_rounds"]
+        times = time_interleaved(forward, repeats=rounds, device=dev, per_call=steps)
+        times.update(time_interleaved({**single, **{f"stonesoup[{w}]": f for w, f in peers.items()}},
+                                      repeats=rounds, device=dev))
+        kernel, floor = times[f"point-sir-kernel-B{b}"], times[f"point-floor-B{b}"]
+        ours = {}
+        for name in (*forward, *single):
+            secs = times[name]
+            path = ("pure sir_step" if "kernel" in name else "floor" if "floor" in name
+                    else "public step" if "step" in name else "public forward")
+            note = "" if path == "floor" else f"{secs / floor:.2f}x the floor"
+            if path == "public step":
+                note += f"; step / pure sir_step = {secs / kernel:.3f}"
+            if path.startswith("public"):
+                ours[name] = secs
+            add(Figure(name, secs, dict(N=n, B=b, compiled="compiled" in name, path=path), note=note))
+        if not peers:
+            continue
+        configs = {w: times[f"stonesoup[{w}]"] for w in peers}
+        fastest = min(configs, key=configs.__getitem__)
+        best_ours = min(ours, key=ours.__getitem__)
+        ratio = configs[fastest] / ours[best_ours]
+        wanted = None if quick else TARGET_SPEEDUP.get(b)
+        add(Figure(f"stonesoup-B{b}", configs[fastest], dict(N=n, B=b, weights=fastest),
+                   note=f"Stone Soup's fastest / ours ({best_ours}) = {ratio:.1f}x"
+                   + (f" (target >= {wanted:g}x: {'met' if ratio >= wanted else 'not met'})" if wanted else ""),
+                   check={"configurations_s": configs, "ours": best_ours, "ratio": ratio}))
+    return stonesoup
+
+
+def _particles_figures(cfg: dict, dev: torch.device, add: Callable[[Figure], None], quick: bool,
+                       log: Callable[[str], None]) -> None:
+    """Our SIR filter (B runs in one batch, public ``forward``) against ``particles`` (one run
+    at a time) on the point problem with ``cfg['particles']`` sizes, per run, with both
+    log-evidences against the exact Kalman value of each run.
+    """
+    p = cfg["particles"]
+    n, b, steps = p["n"], p["b"], p["steps"]
+    exact = kalman_log_evidence(_point_track(b, steps)[1])
+    try:
+        theirs = particles_runs(n, b, steps)
+    except ImportError as missing:
+        log(f"particles skipped: {missing} (pip install 'torchmcmcpf[bench]')")
+        return
+    modes = (False, True) if cfg["compiled"] else (False,)
+    ours: dict[str, float] = {}
+    for c in modes:
+        filt, z, x0 = point_filter(n, b, steps, dev, compile_step=c)
+        g = torch.Generator(dev).manual_seed(2)
+        results: list[Any] = [None]
+        name = f"particles-ours{'-compiled' if c else ''}-B{b}"
+        secs = time_interleaved({name: lambda: results.__setitem__(0, filt(z, init=x0, generator=g))},
+                                repeats=cfg["slow_repeats"], device=dev, per_call=steps)[name]
+        ours[name] = secs
+        err = evidence_errors(results[0].log_evidence, exact)
+        add(Figure(name, secs, dict(N=n, B=b, T=steps, compiled=c, path="public forward"),
+                   note=f"log-evidence - Kalman: median {err['median']:+.3f}, IQR {err['iqr']:.3f}",
+                   check={"log_evidence_error": err}))
+    log_z: list[torch.Tensor] = []
+    secs = time_interleaved({"particles": lambda: log_z.append(theirs())}, repeats=1, device=torch.device("cpu"),
+                            warmup=0, per_call=steps)["particles"]
+    err = evidence_errors(log_z[-1], exact)
+    best = min(ours, key=ours.__getitem__)
+    ratio = secs / ours[best]
+    wanted = None if quick else TARGET_SPEEDUP_PARTICLES.get(b)
+    add(Figure(f"particles-B{b}", secs, dict(N=n, B=b, T=steps),
+               note=f"particles / ours ({best}) = {ratio:.1f}x"
+               + (f" (target >= {wanted:g}x: {'met' if ratio >= wanted else 'not met'})" if wanted else "")
+               + f"; log-evidence - Kalman: median {err['median']:+.3f}, IQR {err['iqr']:.3f}",
+               check={"log_evidence_error": err, "ours": best, "ratio": ratio}))
 
 
 def _sweeps(cfg: dict, dev: torch.device, log: Callable[[str], None], started: float) -> dict:

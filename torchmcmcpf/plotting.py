@@ -147,7 +147,7 @@ def plot_particles(ax: Axes, particles: ArrayLike, *, weights: ArrayLike | None 
     p = _np(particles)
     if p.ndim != 3 or p.shape[-1] <= Y:
         raise ValueError(f"particles has shape {p.shape}, expected (N, K, D) with D >= 3")
-    s = size
+    s: Any = size  # a float, or one area per particle (N,)
     if weights is not None:
         w = _np(weights)
         if w.shape != p.shape[:1]:

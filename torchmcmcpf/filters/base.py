@@ -7,7 +7,9 @@ types):
   compile_step=False)``; the settings live in one frozen dataclass per algorithm
   (``filt.settings``), which the pure step function also takes:
   ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``;
-- ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments;
+- ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments: ``z`` and
+  ``generator`` always, the state in full unless it is one the filter made itself and that
+  is unchanged since (``Filter.step``), so that stepping its own output costs the step;
 - ``forward(measurements, *, init, generator, progress=None) -> FilterResult`` validates the
   whole sequence once, before the first step, then runs the steps without checks;
 - ``compile_step=True`` compiles the filter's *kernel* (one MCMC iteration, one HMC
@@ -23,6 +25,8 @@ stored on the module, so filters are reentrant. Resume = the state plus
 from __future__ import annotations
 
 import dataclasses
+import weakref
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -210,6 +214,26 @@ def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
                          f"{tuple(state.x.shape[:1] + state.x.shape[2:3])}")
     prob = present.to(mean.dtype)
     return ExistenceEstimate(prob, prob.sum(-1), mean, present)
+#: how many states a filter remembers as its own (:meth:`Filter._trust`): the last few outputs
+#: and initial states, so that stepping a few states in turn stays cheap
+_TRUSTED_STATES = 4
+
+
+def _record(state: ParticleState) -> tuple | None:
+    """``(ref(x), version of x, ref(exists) or None, version of exists)``, or ``None`` for
+    inference tensors (no version counter).
+    """
+    x, e = state.x, state.exists
+    if not torch.is_tensor(x) or x.is_inference() or (e is not None and (not torch.is_tensor(e) or e.is_inference())):
+        return None
+    return (weakref.ref(x), x._version, None if e is None else weakref.ref(e), 0 if e is None else e._version)
+
+
+def _same(a: tuple, b: tuple) -> bool:
+    """The two records name the same live tensors at the same versions."""
+    x = a[0]()
+    return (x is not None and x is b[0]() and a[1] == b[1] and a[3] == b[3]
+            and (a[2] is None) == (b[2] is None) and (a[2] is None or a[2]() is b[2]()))
 
 
 def check_existence(existence: object) -> BirthDeath | None:
@@ -307,6 +331,45 @@ class Filter(nn.Module):
         self.compile_step = compile_step
         self._compiled: Callable | None = None
         self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
+        self._trusted: deque = deque(maxlen=_TRUSTED_STATES)
+
+    # -- the states this filter vouches for ----------------------------------------------
+    def _trust(self, state: ParticleState) -> ParticleState:
+        """Remember ``state`` (checked at the door or produced by a step) as valid, so that
+        :meth:`step` skips its full check when it comes back unchanged; returns ``state``.
+
+        The record holds weak references to ``state.x`` and ``state.exists`` and their
+        version counters: a new tensor (a state built elsewhere) is not the object recorded,
+        and an in-place change (``x[...] = nan``, ``x.add_(1)``) bumps the counter, so both
+        get the full check. Inference tensors (``torch.inference_mode``) keep no counter, so
+        states made of them are never trusted.
+        """
+        record = _record(state)
+        if record is not None:
+            self._trusted.append(record)
+        return state
+
+    def _is_trusted(self, state: ParticleState) -> bool:
+        """Whether ``state`` is one that :meth:`_trust` recorded, unchanged since."""
+        record = _record(state)
+        if record is None:
+            return False
+        for i, r in enumerate(self._trusted):
+            if _same(record, r):  # most recently used last: a state stepped again and again stays trusted
+                del self._trusted[i]  # by position: weak references compare their tensors by value
+                self._trusted.append(r)
+                return True
+        return False
+
+    def __getstate__(self) -> dict:
+        """Pickle without the weak references of :meth:`_trust` (a copy trusts nothing)."""
+        d = super().__getstate__()
+        d["_trusted"] = None
+        return d
+
+    def __setstate__(self, d: dict) -> None:
+        super().__setstate__(d)
+        self._trusted = deque(maxlen=_TRUSTED_STATES)
 
     # -- the compiled kernel -------------------------------------------------------------
     def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
@@ -346,7 +409,7 @@ class Filter(nn.Module):
         b, n = particles.shape[:2]
         log_w = torch.full((b, n), -torch.log(torch.tensor(float(n), dtype=torch.float64)).item(),
                            device=particles.device, dtype=particles.dtype)
-        return ParticleState(particles, log_w, exists)
+        return self._trust(ParticleState(particles, log_w, exists))
 
     def _check_state_tensors(self, x: Tensor, exists: Tensor | None) -> None:
         check_shape(x, "init", (None, self.num_particles, None, self.motion.dim))
@@ -466,14 +529,22 @@ class Filter(nn.Module):
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
              ) -> tuple[ParticleState, StepInfo]:
         """Advance ``state`` by one measurement ``z (B, *G)``; returns ``(state, info)``.
-        Validates ``state``, ``z`` and ``generator`` first (one host synchronisation).
+
+        Validates ``z`` and ``generator`` (one host synchronisation) and ``state``: in full
+        (shapes, finite values, the sensor's :meth:`~SensorModel.validate_state`) unless it is
+        a state this filter returned from :meth:`init`, :meth:`step` or :meth:`forward` and
+        that has not been changed in place since (a cheap marker: the tensors' identity and
+        version counters), so that stepping a state the filter produced costs the step
+        itself. A state from elsewhere, or an altered one, gets the full check.
         """
         check_generator(generator)
         if not isinstance(state, ParticleState):
             raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
-        self._check_state_tensors(state.x, state.exists)
+        if not self._is_trusted(state):
+            self._check_state_tensors(state.x, state.exists)
         self.validate(state, z, sequence=False, name="z")
-        return self._step(state, z, generator)
+        new, info = self._step(state, z, generator)
+        return self._trust(new), info
 
     # -- a whole sequence ----------------------------------------------------------------
     def forward(
@@ -530,7 +601,7 @@ class Filter(nn.Module):
         info = stack_infos(infos)
         return FilterResult(
             mean=torch.stack(means),
-            state=state,
+            state=self._trust(state),
             info=info,
             log_evidence=info.log_evidence.sum(0),
             exists_prob=torch.stack(exists_prob) if exists_prob else None,

@@ -17,7 +17,7 @@ import torch
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, log_exclusion
-from ..resampling import RESAMPLERS, ess, gather_particles, normalize
+from ..resampling import RESAMPLERS, ess, gather_particles, normalize_ess
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
@@ -71,17 +71,24 @@ def sir_kernel(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, 
     """
     n = x.shape[1]
     # Resample the previous cloud where its ESS is low; where not, keep it and its weights.
-    idx = RESAMPLERS[settings.resample_method][1](log_w, u, n)
-    keep = torch.arange(n, device=x.device).expand_as(idx)
-    idx = torch.where(need.unsqueeze(-1), idx, keep)
-    x = gather_particles(x, idx)
-    log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
-    if exists is not None:
-        exists = gather_particles(exists, idx)
+    # The two fixed thresholds are decided here, statically: resampling every step (Boers and
+    # Driessen; the default) or never costs no per-run selection.
+    every_step = settings.ess_threshold >= 1.0  # then the weights are -log N after resampling: a constant
+    if settings.ess_threshold > 0.0:
+        idx = RESAMPLERS[settings.resample_method][1](log_w, u, n)
+        if not every_step:
+            keep = torch.arange(n, device=x.device).expand_as(idx)
+            idx = torch.where(need.unsqueeze(-1), idx, keep)
+            log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
+        x = gather_particles(x, idx)
+        if exists is not None:
+            exists = gather_particles(exists, idx)
     # (x, exists) propagated jointly: one code path whatever the number of targets
     x, exists, log_ratio = TargetDynamics(motion, existence).propagate(x, exists, eps, birth)
-    log_lik = sensor.log_likelihood(x, z, exists) + log_ratio.sum(-1)  # (B, N), with the birth correction
-    return x, exists, log_w + log_lik + log_exclusion(settings.exclusion, sensor, x, exists)
+    log_lik = sensor.log_likelihood(x, z, exists) + log_exclusion(settings.exclusion, sensor, x, exists)  # (B, N)
+    if existence is not None:
+        log_lik = log_lik + log_ratio.sum(-1)  # the birth correction p_0 / q_0
+    return x, exists, (log_lik - math.log(n)) if every_step else log_w + log_lik
 
 
 def sir_step(
@@ -135,11 +142,10 @@ def sir_step(
     if kernel is None:
         kernel = _bind(motion, sensor, settings, existence)
     x, exists, log_w = kernel(x, log_w, exists, z, need, u, eps, birth)
-    log_w_new, log_mean = normalize(log_w)
+    log_w_new, log_mean, ess_new = normalize_ess(log_w)
     # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
     log_evidence = log_mean + math.log(n)
-    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess(log_w_new),
-                                                              log_evidence=log_evidence)
+    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess_new, log_evidence=log_evidence)
 
 
 def _bind(motion: MotionModel, sensor: SensorModel, settings: SIRSettings, existence: BirthDeath | None

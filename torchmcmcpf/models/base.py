@@ -8,6 +8,7 @@ dims ``(*S, K, D)`` and reduces only trailing ones, so one model serves particle
 from __future__ import annotations
 
 import math
+import weakref
 from typing import Generic, TypeVar
 
 import torch
@@ -16,7 +17,7 @@ from torch import nn
 from .._validation import check_batch, check_finite, check_shape
 from ..typing import Measurement, Tensor
 
-__all__ = ["MotionModel", "SensorModel", "linear_map"]
+__all__ = ["MotionModel", "SensorModel", "linear_map", "squared_norm"]
 
 
 def linear_map(x: Tensor, M: Tensor) -> Tensor:
@@ -31,8 +32,11 @@ def linear_map(x: Tensor, M: Tensor) -> Tensor:
     sum of ``D`` products (up to summation order), 2-8x faster (measured: 1.6 -> 0.54 ms at
     ``D = d = 4``, 1.3 -> 0.40 ms at ``D = 4, d = 2``). ``g`` divides the rows of one run
     (``prod(x.shape[1:-1])``), so a non-finite row can only affect rows of its own run,
-    whose normalisation it already spoils. On other devices, under ``torch.compile`` (which
-    fuses the product into its loops) or when no such ``g`` exists, it is ``x @ M.mT``.
+    whose normalisation it already spoils. Under ``torch.compile`` the same block product is
+    traced, so a compiled kernel calls the same BLAS product as eager code (the same bits:
+    ``compile_step=True`` equals eager) at the grouped product's speed (a plain ``x @ M.mT``
+    there cost the compiled point SIR step 4.6 of its 14 ms at B = 100, N = 5000). On other
+    devices, or when no such ``g`` exists, it is ``x @ M.mT``.
     """
     M = M.to(x.dtype)
     d, D = M.shape
@@ -40,10 +44,45 @@ def linear_map(x: Tensor, M: Tensor) -> Tensor:
     rows = math.prod(x.shape[1:-1]) if x.dim() > 1 else 1
     while g > 1 and rows % g:
         g //= 2
-    if g == 1 or x.device.type != "cpu" or torch.compiler.is_compiling() or x.dim() < 2:
+    if g == 1 or x.device.type != "cpu" or x.dim() < 2:
         return x @ M.mT
-    block = torch.block_diag(*([M.mT] * g))  # (g D, g d): I_g (x) M^T
-    return (x.reshape(-1, g * D) @ block).reshape(x.shape[:-1] + (d,))
+    return (x.reshape(-1, g * D) @ _block(M, g)).reshape(x.shape[:-1] + (d,))
+
+
+def squared_norm(v: Tensor) -> Tensor:
+    """``(v ** 2).sum(-1)`` for a short last dim (a whitened residual of 2 or 3 components):
+    ``(B, ..., d) -> (B, ...)``, as explicit additions ``((v_0^2 + v_1^2) + v_2^2) ...``.
+
+    ATen reduces a last dim of 2 elements row by row: 1.5 ms for ``(100, 5000, 1, 2)`` on one
+    core, against 0.34 ms for the additions (the point SIR step's likelihood, B = 100,
+    N = 5000). Compiled, the same additions in the same order: the same bits as eager.
+    """
+    out = v[..., 0].square()
+    for i in range(1, v.shape[-1]):  # over the components of one measurement
+        out = out + v[..., i].square()
+    return out
+
+
+#: id(M) -> (weak reference to M, its version, g, I_g (x) M^T): the block matrices of
+#: :func:`linear_map`, built once per model matrix in eager code
+_BLOCKS: dict[int, tuple] = {}
+
+
+def _block(M: Tensor, g: int) -> Tensor:
+    """``I_g (x) M^T`` ``(g D, g d)``, cached for a matrix that needs no gradient (a model's
+    buffer): building it took three of a point SIR step's 85 operations, 10 % of a step at
+    B = 1. Rebuilt when ``M`` changes in place (version counter); traced under ``torch.compile``.
+    """
+    if M.requires_grad or torch.compiler.is_compiling() or M.is_inference():
+        return torch.block_diag(*([M.mT] * g))
+    hit = _BLOCKS.get(id(M))
+    if hit is not None and hit[0]() is M and hit[1] == M._version and hit[2] == g:
+        return hit[3]
+    if len(_BLOCKS) > 256:  # matrices of dead models
+        _BLOCKS.clear()
+    block = torch.block_diag(*([M.mT] * g))
+    _BLOCKS[id(M)] = (weakref.ref(M), M._version, g, block)
+    return block
 
 
 class MotionModel(nn.Module):

@@ -12,7 +12,7 @@ import torch
 
 from ..._validation import check_positive
 from ...typing import Tensor
-from ..base import SensorModel, linear_map
+from ..base import SensorModel, linear_map, squared_norm
 
 __all__ = ["LinearGaussian"]
 
@@ -98,7 +98,8 @@ class LinearGaussian(SensorModel[Tensor]):
         -------
         (B, *S).
         """
-        return self.log_likelihood_per_target(x, z, exists).sum(-1)
+        per_target = self.log_likelihood_per_target(x, z, exists)
+        return per_target[..., 0] if per_target.shape[-1] == 1 else per_target.sum(-1)  # one target: a view
 
     def log_likelihood_per_target(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Per-slot terms ``log N(z_j; H x_j, R)`` of :meth:`log_likelihood` (targets do not
@@ -116,7 +117,7 @@ class LinearGaussian(SensorModel[Tensor]):
         wz = z.to(x.dtype) @ self.W.to(x.dtype).mT  # (B, K, d): whitened once per call
         wz = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])
         white = wz - linear_map(x, self.WH)  # (B, *S, K, d) = L^{-1} (z - H x)
-        per_target = self._log_norm - 0.5 * white.square().sum(-1)
+        per_target = self._log_norm - 0.5 * squared_norm(white)
         if exists is not None:
             per_target = torch.where(exists, per_target, torch.zeros_like(per_target))
         return per_target

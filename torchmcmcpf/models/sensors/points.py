@@ -34,12 +34,41 @@ import torch
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...resampling import cdf, inverse_cdf
 from ...typing import Tensor, X, Y
-from ..base import SensorModel
+from ..base import SensorModel, squared_norm
 from .association import PointFrame, PointMeasurement, _split
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 
 AreaLike = Tensor | Sequence[Sequence[float]]
+
+
+@torch.library.custom_op("torchmcmcpf::logsumexp", mutates_args=())
+def _logsumexp(x: Tensor, dim: int) -> Tensor:
+    """``torch.logsumexp(x, dim)``, opaque to ``torch.compile``: a compiled kernel calls the
+    same ATen kernel as eager code, so its bits are eager's (Inductor's own ``exp`` differs
+    from ATen's in the last bit, and a filter's ``compile_step=True`` must equal eager).
+    """
+    return torch.logsumexp(x, dim)
+
+
+@_logsumexp.register_fake
+def _(x: Tensor, dim: int) -> Tensor:
+    return x.sum(dim)
+
+
+def _logsumexp_context(ctx, inputs, output):
+    ctx.save_for_backward(inputs[0], output)
+    ctx.dim = inputs[1]
+
+
+def _logsumexp_backward(ctx, grad):
+    x, out = ctx.saved_tensors
+    # d/dx logsumexp = softmax; a slice of -inf values (out = -inf) gets no gradient, not NaN
+    soft = torch.exp(x - torch.where(torch.isneginf(out), 0.0, out).unsqueeze(ctx.dim))
+    return grad.unsqueeze(ctx.dim) * soft, None
+
+
+_logsumexp.register_autograd(_logsumexp_backward, setup_context=_logsumexp_context)
 
 
 def as_area(area: AreaLike, name: str = "area") -> Tensor:
@@ -177,7 +206,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         zb = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])  # (B, 1.., M, 2)
         r = zb.unsqueeze(-3) - pos.unsqueeze(-2)  # (B, *S, K, M, 2): L^{-1} (z_m - H x_n)
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        return log_rate + self._log_norm - 0.5 * r.square().sum(-1)
+        return log_rate + self._log_norm - 0.5 * squared_norm(r)
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
@@ -202,11 +231,19 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
         log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
         clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
-        per_point = torch.logsumexp(torch.cat([clutter, terms], -2), dim=-2)  # (B, *S, M)
+        # compiled: through the opaque op, so that a compiled kernel gives eager's bits; eager:
+        # torch.logsumexp itself (the same kernel, and torch.func transforms see through it)
+        lse = _logsumexp if torch.compiler.is_compiling() else torch.logsumexp
+        per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
-        return per_point.sum(-1) - (self.clutter_rate + self.detection_rate * n_live)
+        # The sum over the points as a product with a column of ones: eager and compiled code
+        # then make the same BLAS call, so ``compile_step=True`` gives eager's bits (Inductor's
+        # own inner reduction adds the M terms in another order: last-bit differences).
+        ones = torch.ones(per_point.shape[-1], 1, dtype=per_point.dtype, device=per_point.device)
+        total = (per_point.reshape(-1, per_point.shape[-1]) @ ones).reshape(per_point.shape[:-1])
+        return total - (self.clutter_rate + self.detection_rate * n_live)
 
     # -- the multitarget prior's hooks --------------------------------------------------
     #: weight of the uniform part of the data-driven density (:meth:`sample_from_data`)
