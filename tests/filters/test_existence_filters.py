@@ -139,7 +139,12 @@ def test_mcmc_filters_on_clutter_only_report_no_target(kind, gen):
     result = run_mcmc(kind, z, gen)
     assert result.exists_prob.shape == (T, B, K) and result.state.exists.shape == (B, N_MCMC, K)
     count = result.exists_prob.sum(-1)  # (T, B)
-    assert float(count.max()) < 0.5, count.T
+    # Two clutter points that fall within ~20 m of each other make a birth about as likely as
+    # not under the exact posterior (each point ~9.5 nats against clutter, minus L_x = 4 and
+    # ~11 nats for p_0's area, against the prior odds P_B / (1 - P_B) of -3.9), and the next
+    # frame, with no point there, takes it away. A sampler that proposes births (the MCMC
+    # filters' existence_proposal) finds such frames; so: rarely and briefly above 0.5.
+    assert float((count > 0.5).double().mean()) <= 2 / count.numel(), count.T
     assert float(count.mean()) < 0.05, count.T
 
 

@@ -423,7 +423,8 @@ def ipmcmc_step(
     dynamics = TargetDynamics(motion, existence, recapture, sensor)
     x0 = gather_particles(x_prev, start)
     e0 = None if exists is None else gather_particles(exists, start)
-    y, e, log_r, kind = dynamics.propagate_labelled(x0, e0, *dynamics.draw_noise(x0, z, generator=generator))
+    y, e, log_r, kind = dynamics.propagate_labelled(x0, e0, *dynamics.draw_noise(x0, z, generator=generator),
+                                                    start=True)
     chain = (y, sensor.log_likelihood(y, z, e), e, None if existence is None and recapture is None else log_r, kind)
     # The chains' amplitudes per cell (grid sensors): a move then reads its two boxes instead
     # of summing the other targets' spreads there, and the accepted moves' changes are added

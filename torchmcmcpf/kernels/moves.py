@@ -178,8 +178,8 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
 
 
 def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
-                     sensor: SensorModel, existence: BirthDeath | None, recapture: Recapture | None = None
-                     ) -> ChainState:
+                     sensor: SensorModel, existence: BirthDeath | None, recapture: Recapture | None = None,
+                     start: bool = False) -> ChainState:
     """The joint-draw proposal as a scored :class:`ChainState`: an ancestor by weight, then
     ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births
     and re-capture).
@@ -188,7 +188,8 @@ def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, mo
     x_prev = gather_particles(cloud.x, a)
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
     dynamics = TargetDynamics(motion, existence, recapture, sensor)
-    x, exists, log_ratio = dynamics.propagate(x_prev, exists_prev, noise.eps, noise.birth, noise.relocation)
+    x, exists, log_ratio, _ = dynamics.propagate_labelled(x_prev, exists_prev, noise.eps, noise.birth,
+                                                          noise.relocation, start=start)
     return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev,
                       None if existence is None and recapture is None else log_ratio)
 
@@ -208,11 +209,15 @@ def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, moti
     recapture : :class:`~torchmcmcpf.models.multitarget.Recapture`, optional (``noise.relocation``
     needed).
 
+    The existence flags come from the chain itself (not ``existence``'s proposal), so the
+    chains start where births are as rare as the model says; their ratios are still taken
+    against the proposal the moves use.
+
     Returns
     -------
     ChainState with ``x (B, C, K, D)`` (and, with existence, ``exists (B, C, K)``).
     """
-    return _joint_candidate(cloud, noise, z, motion, sensor, existence, recapture)
+    return _joint_candidate(cloud, noise, z, motion, sensor, existence, recapture, start=True)
 
 
 def _log_ratio_sum(chain: ChainState) -> Tensor:

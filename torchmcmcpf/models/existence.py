@@ -303,8 +303,8 @@ class BirthDeath(nn.Module):
         log_x = torch.where(born, self.birth_log_prob(x_next), log_x)
         return log_e + log_x
 
-    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: BirthNoise, *, motion: MotionModel
-                  ) -> tuple[Tensor, Tensor, Tensor]:
+    def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: BirthNoise, *, motion: MotionModel,
+                  from_prior: bool = False) -> tuple[Tensor, Tensor, Tensor]:
         """The birth/death law from pre-drawn noise (the one implementation every filter and
         move uses): ``e_k ~ p(e_k | e_{k-1})`` (eq. 25) by ``birth.u < p(e_k = 1 | e_{k-1})``,
         survivors moved by ``motion.propagate``, newborns from ``birth.x`` (the birth proposal),
@@ -314,6 +314,9 @@ class BirthDeath(nn.Module):
         ----------
         x : (*S, K, D); exists : (*S, K) bool; eps : (*S, K, noise_dim) motion noise;
         birth : :class:`BirthNoise` with leading ``(*S, K)``; motion : MotionModel.
+        from_prior : draw the flags from the chain itself even when the proposal differs (an
+            MCMC filter's starting points: close to the posterior where births are rare),
+            the ratio still taken against the proposal, as the moves that follow need it.
 
         Returns
         -------
@@ -323,7 +326,7 @@ class BirthDeath(nn.Module):
         ``birth_proposal`` / ``death_proposal`` rather than the chain.
         """
         q_on = self._p_on(exists, proposal=True)
-        exists_next = birth.u.to(torch.float64) < q_on
+        exists_next = birth.u.to(torch.float64) < (self._p_on(exists) if from_prior else q_on)
         born = exists_next & ~exists
         x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
         x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
@@ -429,11 +432,13 @@ class TargetDynamics(NamedTuple):
         return x, exists, log_ratio
 
     def propagate_labelled(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
-                           relocation: RelocationNoise | None = None, p_propose: float | None = None
-                           ) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
+                           relocation: RelocationNoise | None = None, p_propose: float | None = None, *,
+                           start: bool = False) -> tuple[Tensor, Tensor | None, Tensor, Tensor | None]:
         """:meth:`propagate`, with the relocation's proposal probability ``p_propose``
         (default ``recapture.p_propose``) and each slot's component ``kind (B, *S, K)`` int8
-        (:func:`~torchmcmcpf.models.multitarget.relocate`; None without re-capture).
+        (:func:`~torchmcmcpf.models.multitarget.relocate`; None without re-capture). With
+        ``start`` the existence flags are drawn from the chain (an MCMC filter's starting
+        points, :meth:`BirthDeath.propagate` ``from_prior``).
         """
         if self.existence is None:
             x_next, exists_next, log_ratio = self.motion.propagate(x, eps), exists, torch.zeros_like(x[..., 0])
@@ -443,7 +448,8 @@ class TargetDynamics(NamedTuple):
                 exists = torch.zeros(x.shape[:-1], dtype=torch.bool, device=x.device)
             if birth is None:
                 raise ValueError("birth is None; a model with births and deaths needs the BirthNoise of draw_noise")
-            x_next, exists_next, log_ratio = self.existence.propagate(x, exists, eps, birth, motion=self.motion)
+            x_next, exists_next, log_ratio = self.existence.propagate(x, exists, eps, birth, motion=self.motion,
+                                                                      from_prior=start)
             survive = exists & exists_next
         if self.recapture is None or relocation is None:
             return x_next, exists_next, log_ratio, None
