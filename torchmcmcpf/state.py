@@ -378,11 +378,12 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
     means means of *targets*. The cost of giving particle slot ``a`` the reference label
     ``r`` is the squared position distance, cut off at ``cutoff^2`` (OSPA-like); with
     existence flags a live slot against an absent reference slot, or a dead slot against a
-    present one, costs ``cutoff^2 / 2`` and two absent ones 0. The search swaps the pair of
-    labels that lowers a particle's cost most, sweep after sweep (vectorised over runs and
-    particles; one host check per sweep ends it when no particle improves), so it reaches a
-    permutation no single swap improves: the optimal one when labels are exchanged in
-    pairs, the usual case after targets cross.
+    present one, costs ``cutoff^2 / 2`` and two absent ones 0. Where every slot's cheapest
+    label differs, that permutation is optimal and one pass finds it; the other particles go
+    through a search that swaps the pair of labels lowering a particle's cost most, sweep
+    after sweep (vectorised over them; one host check per sweep ends it when none improves),
+    so it reaches a permutation no single swap improves: the optimal one when labels are
+    exchanged in pairs, the usual case after targets cross.
 
     Parameters
     ----------
@@ -405,23 +406,46 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
         raise ValueError(f"reference has shape {tuple(reference.shape)}, expected {(b, k, x.shape[-1])}")
     if not cutoff > 0:
         raise ValueError(f"cutoff must be > 0, got {cutoff!r}")
-    pos = x[..., [X, Y]]
-    ref = reference[..., [X, Y]].to(x.dtype)
-    cost = (pos.unsqueeze(-2) - ref[:, None, None]).square().sum(-1).clamp(max=cutoff**2)  # (B, N, K, K)
+    pos = torch.stack([x[..., X], x[..., Y]], -1).reshape(b, n * k, 2)
+    ref = torch.stack([reference[..., X], reference[..., Y]], -1).to(x.dtype)  # (B, K, 2)
+    # |p - r|^2 = |p|^2 + |r|^2 - 2 p.r: one batched product, not a (B, N, K, K, 2) difference
+    norms = pos.square().sum(-1, keepdim=True) + ref.square().sum(-1).unsqueeze(1)  # (B, N K, K)
+    cost = torch.baddbmm(norms, pos, ref.mT, alpha=-2.0).clamp_(min=0.0, max=cutoff**2).reshape(b, n, k, k)
     if exists is not None or reference_exists is not None:
         e = torch.ones((b, n, k), dtype=torch.bool, device=x.device) if exists is None else exists
         r = torch.ones((b, k), dtype=torch.bool, device=x.device) if reference_exists is None else reference_exists
         live, present = e.unsqueeze(-1), r[:, None, None, :]
         cost = torch.where(live & present, cost,
                            torch.where(live ^ present, torch.full_like(cost, cutoff**2 / 2), torch.zeros_like(cost)))
-    label = torch.arange(k, device=x.device).expand(b, n, k).clone()  # particle slot a carries label[a]
-    pair = torch.ones((k, k), dtype=torch.bool, device=x.device).triu(1)
-    for _ in range(k * (k - 1) // 2 if max_sweeps is None else max_sweeps):  # sweeps, not slots
-        cross = torch.take_along_dim(cost, label.unsqueeze(-2).expand(b, n, k, k), -1)  # [a, c] = cost[a, label[c]]
-        own = torch.diagonal(cross, dim1=-2, dim2=-1)  # (B, N, K)
+    # Where every slot's cheapest label is a different one, that permutation is optimal (each
+    # slot at its row minimum): one pass settles most particles. The others (two slots
+    # nearest to one label: the targets they hold are close) go through the swap search.
+    nearest = cost.argmin(-1)  # (B, N, K)
+    distinct = (nearest.sort(-1).values == torch.arange(k, device=x.device)).all(-1)  # (B, N): a permutation
+    label = torch.where(distinct.unsqueeze(-1), nearest, torch.arange(k, device=x.device))
+    rows = (~distinct).flatten().nonzero().squeeze(1)  # one host read: the particles left
+    if rows.numel():
+        sub = _swap_search(cost.reshape(b * n, k, k)[rows], label.reshape(b * n, k)[rows], cutoff,
+                           k * (k - 1) // 2 if max_sweeps is None else max_sweeps)
+        label = label.reshape(b * n, k).index_copy(0, rows, sub).reshape(b, n, k)
+    slot_of = torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
+    x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
+    return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+
+
+def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Tensor:
+    """Pairwise label swaps of :func:`relabel` on ``cost (P, K, K)`` from ``label (P, K)``
+    (particle slot ``a`` carries ``label[a]``): each sweep makes, in every row, the swap that
+    lowers its cost most, until none does. Returns the labels ``(P, K)``.
+    """
+    p, k = label.shape
+    pair = torch.ones((k, k), dtype=torch.bool, device=cost.device).triu(1)
+    for _ in range(sweeps):  # sweeps, not slots
+        cross = torch.take_along_dim(cost, label.unsqueeze(-2).expand(p, k, k), -1)  # [a, c] = cost[a, label[c]]
+        own = torch.diagonal(cross, dim1=-2, dim2=-1)  # (P, K)
         gain = own.unsqueeze(-1) + own.unsqueeze(-2) - cross - cross.mT  # swap a <-> c
         gain = torch.where(pair, gain, torch.zeros_like(gain)).flatten(-2)
-        best, at = gain.max(-1)  # (B, N)
+        best, at = gain.max(-1)  # (P,)
         swap = best > 1e-9 * cutoff**2
         if not bool(swap.any()):
             break
@@ -429,9 +453,7 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
         la, lc = torch.take_along_dim(label, a.unsqueeze(-1), -1), torch.take_along_dim(label, c.unsqueeze(-1), -1)
         new = label.scatter(-1, a.unsqueeze(-1), lc).scatter(-1, c.unsqueeze(-1), la)
         label = torch.where(swap.unsqueeze(-1), new, label)
-    slot_of = torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
-    x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
-    return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+    return label
 
 
 def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *,
