@@ -102,6 +102,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"the rows to run, among {', '.join(repr(a) for a in ALGORITHMS)} (default all)")
     parser.add_argument("--compile", action="store_true",
                         help="compile each filter's step (compile_step=True; PMMH: its candidates' SIR kernel)")
+    parser.add_argument("--factorised", action="store_true",
+                        help="the paper's factorised targets: no exclusion between slots, and the IP-MCMC-PF's plain "
+                             "exchange move (exclusion=None, recapture=None; default: the library's defaults)")
 
 
 def settings(args: argparse.Namespace) -> dict[str, Any]:
@@ -114,6 +117,7 @@ def settings(args: argparse.Namespace) -> dict[str, Any]:
             cfg[key] = tuple(value) if key in ("particles", "algorithms") else value
     cfg["algorithms"] = tuple(a for a in ALGORITHMS if a in cfg.get("algorithms", ALGORITHMS))
     cfg["compile"] = bool(getattr(args, "compile", False))
+    cfg["factorised"] = bool(getattr(args, "factorised", False))
     for key in ("shard_size",):
         if getattr(args, key, None) is not None:
             cfg[key] = getattr(args, key)
@@ -144,12 +148,15 @@ def _run_pmmh(scn, n, cfg, g, progress):
 def _make_filter(name: str, scn: Scenario, n: int, cfg: dict) -> SIRFilter | PartitionedSIRFilter | IPMCMCFilter:
     """The row ``name``'s filter with Np = ``n`` (``cfg["compile"]``: ``compile_step=True``)."""
     c = bool(cfg.get("compile", False))
+    plain: dict = dict(exclusion=None) if cfg.get("factorised", False) else {}
     if name == "SIR PF":
-        return SIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c)
+        return SIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
     if name == "Partitioned PF":
-        return PartitionedSIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c)
+        return PartitionedSIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
+    if plain:
+        plain["recapture"] = None
     return IPMCMCFilter(scn.motion, scn.sensor, num_particles=n, num_chains=cfg["chains"], burn_in=cfg["burn_in"],
-                        max_extensions=cfg["max_extensions"], compile_step=c)
+                        max_extensions=cfg["max_extensions"], compile_step=c, **plain)
 
 
 def _key(num_targets: int, name: str, n: int) -> str:
@@ -186,6 +193,7 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
                         if name == "IP-MCMC-PF":
                             extra = {"rhat_mean": res.info.extras["rhat"].mean(0),
                                      "extensions_mean": res.info.extras["extensions"].float().mean(0),
+                                     "extended_share": (res.info.extras["extensions"] > 0).float().mean(0),
                                      "acceptance": res.info.acceptance.mean(0)}
                 seconds[key] = timer.seconds
                 per_run[f"{key}|se"] = metrics.position_error(est, scn.truth).square().mean(-1).T
@@ -210,7 +218,7 @@ def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
                 key = _key(k, name, n)
                 se = per_run[f"{key}|se"]  # (B, T)
                 extra = {e: per_run[f"{key}|{e}"].mean()
-                         for e in ("rhat_mean", "extensions_mean", "acceptance", "theta_mean")
+                         for e in ("rhat_mean", "extensions_mean", "extended_share", "acceptance", "theta_mean")
                          if f"{key}|{e}" in per_run}
                 rows[f"{name} | {n}"] = {
                     "algorithm": name, "num_particles": n,
