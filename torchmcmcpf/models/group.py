@@ -73,6 +73,9 @@ __all__ = [
     "gaussian_closeness",
     "to_axes",
     "from_axes",
+    "ExistenceLimit",
+    "localised_existence",
+    "existence_limit",
 ]
 
 LOG_2PI = math.log(2 * math.pi)
@@ -367,6 +370,124 @@ class GroupExistence(nn.Module):
         a = self.area.to(dtype=dtype, device=device)
         u = torch.rand(tuple(shape) + (2,), generator=generator, dtype=dtype, device=device)
         return a[:, 0] + (a[:, 1] - a[:, 0]) * u
+
+
+# ----------------------------------------------------------------------------------------
+# the Bayes limit of detection: one perfectly localised target (eqs. 25, 33, 41)
+# ----------------------------------------------------------------------------------------
+class ExistenceLimit(NamedTuple):
+    """What the existence model allows for one target whose position is known exactly
+    (:func:`existence_limit`).
+
+    Attributes
+    ----------
+    per_step : (T,) float64 ``E[P(alive at t | d_1:t)]`` over the detections of a target that
+        is alive from step 1 on, starting from ``P(alive) = 0`` (an all-inactive start).
+    per_step_error : (T,) half-width of the bracket around ``per_step`` (0 where the
+        expectation is an exact enumeration, ``t <= window``).
+    stationary : the long-run mean of the posterior, ``lim_t E[P(alive at t | d_1:t)]``.
+    stationary_error : half-width of its bracket.
+    """
+
+    per_step: Tensor
+    per_step_error: Tensor
+    stationary: float
+    stationary_error: float
+
+
+def _check_existence_law(p_birth: float, p_death: float, p_d1: float, p_fa: float, p_here: float) -> None:
+    for name, v in (("p_birth", p_birth), ("p_death", p_death), ("p_here", p_here)):
+        if not 0.0 <= float(v) <= 1.0:
+            raise ValueError(f"{name} must be a probability in [0, 1], got {v!r}")
+    if not 0.0 < float(p_fa) < float(p_d1) < 1.0:
+        raise ValueError(f"need 0 < p_fa < p_d1 < 1, got p_fa={p_fa!r}, p_d1={p_d1!r}")
+
+
+def localised_existence(detected: Tensor, *, p_birth: float, p_death: float, p_d1: float, p_fa: float,
+                        p_here: float = 1.0, p_alive: float | Tensor = 0.0) -> Tensor:
+    """Exact posterior existence of one target at a known pixel: a two-state hidden Markov
+    model over its detection sequence (paper 004 eqs. 25, 33, 41).
+
+    The hidden state is "the target is alive at the pixel" (1) or not (0). From 1 it stays
+    with ``1 - P_D`` (eq. 25); from 0 it appears at the pixel with ``P_B p_here``, ``p_here``
+    the chance that a newborn's uniform position (eq. 33) falls in this pixel (pixel area
+    over scene area: 1e-4 for paper 004's 100 x 100 pixels; 1 if newborns appear at the
+    known pixel). The pixel fires with ``P_d,1`` in state 1 and ``P_fa`` in state 0 (eq. 41).
+    The forward recursion, in probability space (two states, renormalised every step)::
+
+        prior_t = p_{t-1} (1 - P_D) + (1 - p_{t-1}) P_B p_here
+        p_t = prior_t l_1(d_t) / (prior_t l_1(d_t) + (1 - prior_t) l_0(d_t)).
+
+    Every filter of the group model that knows the target's pixel perfectly can do no better
+    than this; a real filter, which must also find the pixel, does worse on the target (its
+    expected count can still exceed ``K p_t`` through targets it believes born on false
+    alarms).
+
+    Parameters
+    ----------
+    detected : (*S, T) bool, the pixel's value in frames 1..T.
+    p_birth, p_death, p_d1, p_fa, p_here : the model above.
+    p_alive : ``P(alive)`` before frame 1, a float or ``(*S,)`` (default 0: inactive).
+
+    Returns
+    -------
+    (*S, T) float64, ``P(alive at t | d_1:t)``.
+    """
+    _check_existence_law(p_birth, p_death, p_d1, p_fa, p_here)
+    d = torch.as_tensor(detected).to(torch.bool)
+    p = torch.as_tensor(p_alive, dtype=torch.float64, device=d.device).expand(d.shape[:-1])
+    one = torch.ones((), dtype=torch.float64, device=d.device)  # float64 probabilities (not torch.where's float32)
+    out = []
+    for t in range(d.shape[-1]):
+        prior = p * (1.0 - p_death) + (1.0 - p) * (p_birth * p_here)
+        l1 = torch.where(d[..., t], one * p_d1, one - p_d1)
+        l0 = torch.where(d[..., t], one * p_fa, one - p_fa)
+        p = prior * l1 / (prior * l1 + (1.0 - prior) * l0)
+        out.append(p)
+    return torch.stack(out, -1) if out else p.new_zeros(d.shape)
+
+
+def existence_limit(num_steps: int, *, p_birth: float, p_death: float, p_d1: float, p_fa: float,
+                    p_here: float = 1.0, window: int = 20) -> ExistenceLimit:
+    """The mean posterior existence of a perfectly localised target that is alive from step 1
+    on (:func:`localised_existence`), per step and in the long run: multiply by the number
+    of targets for the ceiling of the expected number of targets.
+
+    The expectation is over the target's detections, independent ``Bernoulli(P_d,1)``. For
+    ``t <= window`` it is an exact sum over all ``2^t`` sequences (from ``P(alive) = 0``).
+    Beyond, the posterior depends on the last ``window`` detections and on ``p_{t-window}``,
+    and it increases with ``p_{t-window}``, so the sums over the last ``window`` detections
+    started from 0 and from 1 bracket it; ``per_step`` is the midpoint and
+    ``per_step_error`` the half-width (below 1e-5 for paper 004's numbers at the default
+    window). The stationary mean has the same bracket.
+
+    Parameters
+    ----------
+    num_steps : T >= 1; p_birth, p_death, p_d1, p_fa, p_here : as :func:`localised_existence`.
+    window : enumeration length (``2^window`` sequences; default 20, about 1e6).
+
+    Returns
+    -------
+    ExistenceLimit.
+    """
+    t_max = check_positive_int(num_steps, "num_steps")
+    w = check_positive_int(window, "window")
+    if w > 24:
+        raise ValueError(f"window must be <= 24 (2^window sequences are enumerated), got {window}")
+    _check_existence_law(p_birth, p_death, p_d1, p_fa, p_here)
+    codes = torch.arange(2 ** w)
+    d = ((codes.unsqueeze(-1) >> torch.arange(w)) & 1).to(torch.bool)  # (2^w, w), every sequence once
+    one = torch.ones((), dtype=torch.float64)
+    prob = torch.where(d, one * p_d1, one - p_d1).prod(-1)  # (2^w,)
+    law = dict(p_birth=p_birth, p_death=p_death, p_d1=p_d1, p_fa=p_fa, p_here=p_here)
+    lo = prob @ localised_existence(d, **law, p_alive=0.0)  # (w,): exact from an inactive start
+    hi = prob @ localised_existence(d, **law, p_alive=1.0)
+    lo_w, hi_w = float(lo[-1]), float(hi[-1])
+    mean = torch.full((t_max,), 0.5 * (lo_w + hi_w), dtype=torch.float64)
+    err = torch.full((t_max,), 0.5 * (hi_w - lo_w), dtype=torch.float64)
+    n = min(t_max, w)
+    mean[:n], err[:n] = lo[:n], 0.0
+    return ExistenceLimit(mean, err, 0.5 * (lo_w + hi_w), 0.5 * (hi_w - lo_w))
 
 
 # ----------------------------------------------------------------------------------------
