@@ -608,3 +608,17 @@ def test_existence_limit_is_the_mean_over_detection_sequences():
                                rtol=0)
     with pytest.raises(ValueError, match="p_d1"):
         existence_limit(5, **{**LAW, "p_d1": 0.001})
+
+
+def test_closeness_power_and_scenario_scale():
+    from torchmcmcpf.models.group import gaussian_closeness
+    from torchmcmcpf.scenarios.group_merge import group_merge
+
+    a, b = torch.zeros(2, dtype=torch.float64), torch.tensor([300.0, 400.0], dtype=torch.float64)  # 500 m apart
+    assert math.isclose(float(gaussian_closeness(500.0)(a, b)), math.exp(-0.5), rel_tol=1e-12)
+    assert math.isclose(float(gaussian_closeness(500.0, 4.0)(a, b)), math.exp(-0.5), rel_tol=1e-12)
+    assert math.isclose(float(gaussian_closeness(1000.0, 4.0)(a, b)), math.exp(-0.5 / 16), rel_tol=1e-12)
+    # the scenario's prior scores two groups of two before the merge and one group after
+    scn = group_merge(1, torch.Generator().manual_seed(0))
+    pi = scn.structure_prior.log_scores(scn.positions[:, 0], scn.exists[:, 0]).exp()  # (T, 15)
+    assert float(pi[10:45, [3, 6, 8]].sum(-1).mean()) > 0.9 and float(pi[45:, 0].mean()) > 0.98

@@ -163,7 +163,18 @@ class BirthDeath(nn.Module):
 
         return torch.where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
 
+    def draw_exists(self, exists: Tensor, u: Tensor) -> Tensor:
+        """``e_k ~ p(e_k | e_{k-1})`` (eq. 25) from uniforms ``u`` shaped like ``exists (*S, K)``:
+        ``u < p(e_k = 1 | e_{k-1})`` (the law of :meth:`propagate`, shared with the group filter).
+        """
+        return u.to(torch.float64) < self._p_on(exists)
+
     # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
+    def uniform_position(self, u: Tensor) -> Tensor:
+        """Positions uniform over the area (eq. 32) from uniforms ``u (*S, 2)`` in [0, 1)."""
+        a = self.area.to(u.dtype)
+        return a[:, 0] + (a[:, 1] - a[:, 0]) * u
+
     def _in_area(self, pos: Tensor) -> Tensor:
         a = self.area.to(pos.dtype)
         return ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
@@ -198,9 +209,8 @@ class BirthDeath(nn.Module):
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
         ``(*shape)``; ``shape = (B, *S, K)``.
         """
-        a = self.area.to(dtype)
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
-        pos = a[:, 0] + (a[:, 1] - a[:, 0]) * u
+        pos = self.uniform_position(u)
         vel_eps = torch.randn(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         if z is None or self.birth_std is None:
             return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
@@ -283,8 +293,7 @@ class BirthDeath(nn.Module):
         x_next : (*S, K, D); exists_next : (*S, K) bool;
         log_ratio : (*S, K) ``log p_0(x) - log q_0(x)`` of each newborn slot, 0 elsewhere.
         """
-        p_on = self._p_on(exists)
-        exists_next = birth.u.to(torch.float64) < p_on
+        exists_next = self.draw_exists(exists, birth.u)
         born = exists_next & ~exists
         x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
         x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
