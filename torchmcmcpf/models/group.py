@@ -505,6 +505,8 @@ class VirtualLeaderMotion(nn.Module):
         switches the repulsion off.
     """
 
+    #: per-target state size of the ``[x, vx, y, vy]`` layout (the filters' ``motion.dim``)
+    dim = 4
     # per-axis 2 x 2 blocks ([pos, vel]) of F, R, Q read from ``matrices(2)`` (module docstring)
     F_ss: Tensor  # member <- itself
     F_sl: Tensor  # member <- its leader
