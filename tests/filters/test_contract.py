@@ -80,7 +80,8 @@ FILTERS = {
     "partitioned": (lambda m, s, c: PartitionedSIRFilter(m, s, N, compile_step=c), (True, False, False, {"ess_min"})),
     # paper 004's group filter with the past move (issue 23): extras of shape (B, ...)
     "group": (_group, (False, False, True, {"acceptance_joint", "acceptance_structure", "acceptance_target",
-                                            "acceptance_past", "structure_prob", "exists_prob", "expected_count"})),
+                                            "acceptance_past", "structure_prob", "exists_prob", "expected_count",
+                                            "all_exist_prob", "structure_prob_all_exist"})),
 }
 #: filters that need a problem of their own (default :func:`problem`)
 PROBLEMS = {"group": group_problem}

@@ -951,7 +951,9 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     info : ``acceptance (B,)`` over all MH decisions; ``extras``: ``acceptance_joint``,
         ``acceptance_structure``, ``acceptance_target`` and, with a lag, ``acceptance_past``
         (B,) (NaN where the move never ran), ``structure_prob (B, Bell(K))``,
-        ``exists_prob (B, K)``, ``expected_count (B,)``.
+        ``exists_prob (B, K)``, ``expected_count (B,)``, ``all_exist_prob (B,)`` (every slot
+        alive) and ``structure_prob_all_exist (B, Bell(K))``, the structure given that every
+        slot is alive (NaN where no particle has them all).
     """
     b, n, k, _ = state.x.shape
     settings.check(n)
@@ -987,10 +989,13 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     vel = extras["w_mean"][..., :k].transpose(-1, -2)  # (B, N, K, 2)
     x = torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
     new = ParticleState(x, x.new_full((b, n), -math.log(n)), exists, extras)
-    structure_prob = F.one_hot(g, cloud.table.shape[0]).to(x.dtype).mean(1)
+    one_hot = F.one_hot(g, cloud.table.shape[0]).to(x.dtype)  # (B, N, G)
+    all_exist = exists.all(-1).to(x.dtype)  # (B, N)
     exists_prob = exists.to(x.dtype).mean(1)
     info = {f"acceptance_{name}": acc[name] / cnt[name] for name in names}
-    info.update(structure_prob=structure_prob, exists_prob=exists_prob, expected_count=exists_prob.sum(-1))
+    info.update(structure_prob=one_hot.mean(1), exists_prob=exists_prob, expected_count=exists_prob.sum(-1),
+                all_exist_prob=all_exist.mean(1),
+                structure_prob_all_exist=(one_hot * all_exist.unsqueeze(-1)).sum(1) / all_exist.sum(1, keepdim=True))
     acceptance = sum(acc.values(), x.new_zeros(b)) / sum(cnt.values(), x.new_zeros(b))
     return new, StepInfo.make(acceptance, acceptance=acceptance, extras=info)
 
