@@ -1038,8 +1038,8 @@ class GroupMCMCFilter(Filter):
         GroupStructurePrior (eq. 19).
     num_chains : C; default :func:`default_chains` (the largest divisor of N up to 20).
     burn_in : per chain and step (default 100; the paper's 1000 is for its one chain).
-    thinning, xi, p_a, p_i, marginalise, alpha, birth, lag, p_past, past_step,
-        max_memory_gb : :class:`GroupMCMCSettings`.
+    thinning, xi, p_a, p_i, marginalise, alpha, birth, lag, p_past, past_step, max_memory_gb :
+        :class:`GroupMCMCSettings`.
     compile_step : compile each move (``torch.compile(fullgraph=True)``; noise drawn
         eagerly, so compiled == eager).
 
