@@ -83,61 +83,60 @@ def test_pairwise_kalman_update_compiled(benchmark):
 RUNS, CHAINS, KEPT = 40, 20, 4000
 
 
-def group_problem(chains=CHAINS, kept=KEPT, burn_in=1000):
+def group_problem(chains=CHAINS, kept=KEPT, burn_in=1000, **settings):
     from torchmcmcpf.filters.group import GroupMCMCFilter
     from torchmcmcpf.scenarios.group_merge import group_merge
 
     g = torch.Generator().manual_seed(0)
     scn = group_merge(RUNS, generator=g, num_steps=3)
     filt = GroupMCMCFilter(scn.motion, scn.sensor, kept, existence=scn.existence,
-                           structure_prior=scn.structure_prior, num_chains=chains, burn_in=burn_in, thinning=6)
+                           structure_prior=scn.structure_prior, num_chains=chains, burn_in=burn_in, thinning=6,
+                           **settings)
     # a cloud after two short steps (targets born) to start from
     warm = GroupMCMCFilter(scn.motion, scn.sensor, kept, existence=scn.existence,
-                           structure_prior=scn.structure_prior, num_chains=chains, burn_in=5, thinning=1)
+                           structure_prior=scn.structure_prior, num_chains=chains, burn_in=5, thinning=1, **settings)
     with torch.no_grad():
         state = warm(scn.frames[:2], init=warm.init_inactive(RUNS), generator=g).state
     return filt, state, scn.frames[2], g
 
 
+#: the past move (issue 23) runs with a lag of 2; the other moves are timed without
+PAST = dict(lag=2, p_past=0.25, xi=0.5)
+
+
 def _iteration_args(move):
-    from torchmcmcpf.filters.group import (
-        Models,
-        draw_joint_noise,
-        draw_refine_noise,
-        joint_proposal,
-        make_cloud,
-    )
+    from torchmcmcpf.filters.group import NOISES, joint_proposal, make_cloud
 
-    filt, state, z, g = group_problem()
-    models = Models(filt.motion, filt.sensor, filt.existence, 0.01, 0.5)
-    cloud = make_cloud(state, z, structure_prior=filt.structure_prior, models=models, settings=filt.settings)
+    filt, state, z, g = group_problem(**(PAST if move == "past" else {}))
+    models = filt.models()
+    cloud = make_cloud(state, z, models=models, settings=filt.settings)
     shape = (RUNS, CHAINS, 4)
-    chain = joint_proposal(draw_joint_noise(shape, generator=g, dtype=torch.float64), cloud, z, models)
-    noise = (draw_joint_noise(shape, generator=g, dtype=torch.float64) if move == "joint"
-             else draw_refine_noise(shape, generator=g, dtype=torch.float64))
-    return models, (chain, noise, cloud, z)
+    chain = joint_proposal(NOISES["joint"].draw(shape, generator=g), cloud, z, models)
+    return models, (chain, NOISES[move].draw(shape, generator=g), cloud, z)
 
 
-@pytest.mark.parametrize("move", ["joint", "refine"])
+@pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_eager(benchmark, move):
     from torchmcmcpf.filters.group import _bind
 
     models, args = _iteration_args(move)
+    kernel = _bind(models)
     benchmark.group = f"group-iteration-{move}-B{RUNS}-C{CHAINS}"
     with torch.no_grad():
-        benchmark.pedantic(_bind(models)[move], args=args, rounds=5, iterations=1, warmup_rounds=1)
+        benchmark.pedantic(lambda *a: kernel(move, *a), args=args, rounds=5, iterations=1, warmup_rounds=1)
 
 
 @pytest.mark.compile
-@pytest.mark.parametrize("move", ["joint", "refine"])
+@pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_compiled(benchmark, move):
+    from torchmcmcpf.filters.base import compile_kernel
     from torchmcmcpf.filters.group import _bind
 
     models, args = _iteration_args(move)
-    fn = torch.compile(_bind(models)[move], fullgraph=True, dynamic=False)
+    kernel = _bind(models, compile_kernel)
     benchmark.group = f"group-iteration-{move}-B{RUNS}-C{CHAINS}"
     with torch.no_grad():
-        benchmark.pedantic(fn, args=args, rounds=5, iterations=1, warmup_rounds=1)
+        benchmark.pedantic(lambda *a: kernel(move, *a), args=args, rounds=5, iterations=1, warmup_rounds=1)
 
 
 @pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=pytest.mark.compile)])
@@ -148,5 +147,5 @@ def test_group_step_paper_budget(benchmark, compiled):
     benchmark.group = f"group-step-paper-budget-B{RUNS}"
     with torch.no_grad():
         if compiled:
-            filt.kernels()
+            filt.kernel()
         benchmark.pedantic(lambda: filt.step(state, z, generator=g), rounds=1, iterations=1)

@@ -18,7 +18,7 @@ MODULES = ["torchmcmcpf", "torchmcmcpf.models", "torchmcmcpf.models.group", "tor
            "torchmcmcpf.state", "torchmcmcpf.resampling", "torchmcmcpf.plotting", "torchmcmcpf.runtime",
            "torchmcmcpf.typing"]
 #: classes whose example another branch of issue 25 rewrites; remove the entry when it lands
-PENDING = {"GroupMCMCFilter": "its example is rewritten with the group-filter work of issue 25"}
+PENDING: dict[str, str] = {}
 
 
 def public_classes() -> dict[str, type]:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -551,3 +552,73 @@ def test_compiled_update_equals_eager(gen):
     args = (mean, cov, pos_prev, pos, lp, lab, ep, e)
     for got, ref in zip(torch.compile(update, fullgraph=True)(*args), update(*args)):
         torch.testing.assert_close(got, ref, rtol=1e-9, atol=1e-9)
+
+
+# -- the Bayes limit of detection (issue 23 item 1) ---------------------------------------
+LAW = dict(p_birth=0.2, p_death=0.05, p_d1=0.7, p_fa=0.002, p_here=1e-4)
+
+
+def _brute_posterior(d, p_birth, p_death, p_d1, p_fa, p_here, p_alive):
+    """P(alive at T | d_1:T) by summing the probability of every hidden path e_0..e_T."""
+    num = den = 0.0
+    for path in itertools.product((0, 1), repeat=len(d) + 1):
+        p = p_alive if path[0] else 1 - p_alive
+        for prev, cur, obs in zip(path, path[1:], d):
+            p *= ((1 - p_death) if cur else p_death) if prev else ((p_birth * p_here) if cur else 1 - p_birth * p_here)
+            p *= (p_d1 if obs else 1 - p_d1) if cur else (p_fa if obs else 1 - p_fa)
+        den += p
+        num += p * path[-1]
+    return num / den
+
+
+@pytest.mark.parametrize("p_alive", [0.0, 0.3, 1.0])
+def test_localised_existence_equals_brute_force_over_hidden_paths(p_alive):
+    from torchmcmcpf.models.group import localised_existence
+
+    law = {**LAW, "p_here": 0.05}  # a large p_here exercises the birth branch
+    seqs = torch.tensor(list(itertools.product((False, True), repeat=5)))  # every detection sequence of length 5
+    post = localised_existence(seqs, **law, p_alive=p_alive)
+    for s in range(seqs.shape[0]):
+        for t in range(1, 6):
+            ref = _brute_posterior(seqs[s, :t].tolist(), **law, p_alive=p_alive)
+            assert math.isclose(float(post[s, t - 1]), ref, rel_tol=1e-12, abs_tol=1e-15)
+
+
+def test_existence_limit_is_the_mean_over_detection_sequences():
+    """The per-step mean is the probability-weighted mean over every detection sequence (an
+    independent brute-force sum), and the bracket beyond the window holds the exact value."""
+    from torchmcmcpf.models.group import existence_limit, localised_existence
+
+    lim = existence_limit(8, **LAW, window=6)
+    for t in range(1, 9):
+        ref = 0.0
+        for seq in itertools.product((False, True), repeat=t):
+            p = math.prod(LAW["p_d1"] if s else 1 - LAW["p_d1"] for s in seq)
+            ref += p * float(localised_existence(torch.tensor([seq]), **LAW)[0, -1])
+        assert abs(float(lim.per_step[t - 1]) - ref) <= float(lim.per_step_error[t - 1]) + 1e-12
+        if t <= 6:
+            assert float(lim.per_step_error[t - 1]) == 0.0
+    # issue 23: four targets at P_d,1 = 0.7 allow about 3.67, at the paper's 17 dB (0.885) 3.82
+    full = existence_limit(60, **LAW)
+    assert abs(4 * full.stationary - 3.670) < 1e-3 and full.stationary_error < 1e-5
+    assert abs(4 * existence_limit(60, **{**LAW, "p_d1": 0.885}).stationary - 3.825) < 1e-3
+    # 1, 2, 3 misses after a long detected run: 0.85, 0.56, 0.25 (issue 23)
+    after = localised_existence(torch.tensor([[True] * 30 + [False] * 3]), **LAW, p_alive=1.0)[0, -3:]
+    torch.testing.assert_close(after, torch.tensor([0.8506, 0.5586, 0.2537], dtype=torch.float64), atol=1e-4,
+                               rtol=0)
+    with pytest.raises(ValueError, match="p_d1"):
+        existence_limit(5, **{**LAW, "p_d1": 0.001})
+
+
+def test_closeness_power_and_scenario_scale():
+    from torchmcmcpf.models.group import gaussian_closeness
+    from torchmcmcpf.scenarios.group_merge import group_merge
+
+    a, b = torch.zeros(2, dtype=torch.float64), torch.tensor([300.0, 400.0], dtype=torch.float64)  # 500 m apart
+    assert math.isclose(float(gaussian_closeness(500.0)(a, b)), math.exp(-0.5), rel_tol=1e-12)
+    assert math.isclose(float(gaussian_closeness(500.0, 4.0)(a, b)), math.exp(-0.5), rel_tol=1e-12)
+    assert math.isclose(float(gaussian_closeness(1000.0, 4.0)(a, b)), math.exp(-0.5 / 16), rel_tol=1e-12)
+    # the scenario's prior scores two groups of two before the merge and one group after
+    scn = group_merge(1, generator=torch.Generator().manual_seed(0))
+    pi = scn.structure_prior.log_scores(scn.positions[:, 0], scn.exists[:, 0]).exp()  # (T, 15)
+    assert float(pi[10:45, [3, 6, 8]].sum(-1).mean()) > 0.9 and float(pi[45:, 0].mean()) > 0.98

@@ -17,7 +17,7 @@
 """
 
 from .base import Filter
-from .group import GroupMCMCFilter, GroupMCMCSettings, GroupState, group_mcmc_step
+from .group import GroupMCMCFilter, GroupMCMCSettings, group_mcmc_step
 from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
 from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
 from .partitioned import (
@@ -63,6 +63,5 @@ __all__ = [
     "resample_move_step",
     "GroupMCMCFilter",
     "GroupMCMCSettings",
-    "GroupState",
     "group_mcmc_step",
 ]

@@ -313,12 +313,15 @@ class Filter(nn.Module):
     #: 2-core CPU (5-target ground radar, ``benchmarks/bench_compile.py``); shown in the progress
     #: bar while that step runs
     compile_seconds: float = 20.0
+    #: the class of motion model the filter takes (the group filter's is a whole-configuration
+    #: model, :class:`~torchmcmcpf.models.group.VirtualLeaderMotion`, with ``dim``)
+    motion_type: type = MotionModel
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
                  existence: BirthDeath | None = None, compile_step: bool = False):
         super().__init__()
-        if not isinstance(motion, MotionModel):
-            raise ValueError(f"motion must be a MotionModel, got {type(motion).__name__}")
+        if not isinstance(motion, self.motion_type):
+            raise ValueError(f"motion must be a {self.motion_type.__name__}, got {type(motion).__name__}")
         if not isinstance(sensor, SensorModel):
             raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
         if not isinstance(compile_step, bool):

@@ -1,11 +1,14 @@
 """Marginalised MCMC-based particle filter for coordinated groups (Septier, Pang, Godsill and
-Carmi 2009, paper 004, sec. 4, Algorithms 1-2, eqs. 59-66).
+Carmi 2009, paper 004, sec. 4, Algorithms 1-2, eqs. 59-66), with a fixed-lag move on each
+target's recent past.
 
 The state of a particle is ``(x_{p,t}, g_t, e_t)``: the positions ``x_p (K, 2)``, the group
-structure ``g`` (canonical labels ``(K,)``) and the existence flags ``e (K,)`` of ``K = N_max``
-slots; the velocities and the virtual leaders ``w`` are integrated out by one pairwise
-Kalman filter per particle (:mod:`torchmcmcpf.models.group`, eqs. 42-58). Each chain samples
-the target of eq. 43 with the previous cloud in place of the previous posterior (eq. 59),
+structure ``g`` (canonical labels ``(K,)``, row ``g`` of
+:func:`~torchmcmcpf.models.group.group_structures`) and the existence flags ``e (K,)`` of
+``K = N_max`` slots; the velocities and the virtual leaders ``w`` are integrated out by one
+pairwise Kalman filter per particle (:mod:`torchmcmcpf.models.group`, eqs. 42-58). Each chain
+samples the target of eq. 43 with the previous cloud in place of the previous posterior
+(eq. 59),
 
     pi(j, g, e, x) ∝ w_j p(g | j) p(e | e^j) p(x | j, g, e) p(Z_t | x, e),
 
@@ -19,62 +22,99 @@ dead slots) and ``p(Z | x, e)`` the thresholded-pixel likelihood ratio (eqs. 39-
 Moves and their acceptance ratios
 ---------------------------------
 **Joint draw** (Algorithm 1, eq. 60). Propose ``j* ~ q(j) = P_a alpha_j + (1 - P_a) w_j``
-(eqs. 61-62; ``alpha_j ∝ w_j p(Z_t | x~^j, e^j)`` scores particle ``j``'s positions
-predicted by its Kalman filter with its structure and existence unchanged), ``g* ~ p(g | j*)``
-(eq. 19), ``e* ~ p(e | e^{j*})`` (eq. 25), the survivors' and group births' positions from
-the Kalman predictive ``N(x~, L)`` (eq. 58) and the independent newborns' from the
-data-driven ``q_0`` (eqs. 63-65). The prior terms ``p(g | j)``, ``p(e | e^j)`` and the
-Gaussian ``N(x_obs; x~, L)`` appear in target and proposal alike and cancel:
+(eqs. 61-62), ``g* ~ p(g | j*)`` (eq. 19), ``e* ~ p(e | e^{j*})`` (eq. 25), the survivors'
+and group births' positions from the Kalman predictive ``N(x~, L)`` (eq. 58) and the
+independent newborns' from the data-driven ``q_0`` (eqs. 63-65). The prior terms cancel:
 
     rho_1 = min(1, [p(Z|x*, e*) w_{j*} / q(j*) prod_{free*} p_0(x*_i) / q_0(x*_i)]
                  / [p(Z|x, e)   w_j    / q(j)  prod_{free}  p_0(x_i)  / q_0(x_i) ]).
 
-**Structure** (Algorithm 2, step 1-3). Propose ``g* ~ p(g | j)`` (eq. 19, the current ``j``);
-``p(g | j)`` cancels and
+Any ``alpha`` and any ``q_0`` keep the move exact (they are proposals): ``alpha="mean"``
+scores particle ``j``'s predicted mean positions with its structure and existence unchanged,
+``alpha_j ∝ w_j p(Z_t | x~^j, e^j)`` (eq. 62); ``alpha="predictive"`` by its predictive
+likelihood ``w_j prod_i [(1 - P_D) E_{N(x~_i, L_ii)} p(Z_t | x_i) + P_D]`` over its live
+slots (the Gaussian's mass on each pixel of a 5 x 5 window times the pixel's ratio, 1 outside:
+a target 2 m from a pixel edge counts half, not all or nothing). ``birth="eq65"`` draws
+newborns on the detections of ``Z_t`` with a detection of ``Z_{t-1}`` in their 3 x 3
+neighbourhood (eq. 65); ``birth="frame"`` on every detection of ``Z_t``, so a target can be
+born at its first detection.
 
-    rho_2 = min(1, p(x | j, g*, e) / p(x | j, g, e))
-
-with ``p(x | ...)`` the full density above (Gaussian part and ``p_0`` terms: a newborn may
-change from independent to group birth with the structure).
+**Structure** (Algorithm 2, steps 1-3). Propose ``g* ~ p(g | j)``; ``p(g | j)`` cancels and
+``rho_2 = min(1, p(x | j, g*, e) / p(x | j, g, e))``.
 
 **Each target** (Algorithm 2, steps 4-10, eq. 66), for slot ``i = 0 .. K-1`` in turn:
-``e_i* ~ p(e_i | e^j_i)`` (eq. 25, cancels), then ``x_i*`` from ``q_i``: the conditional of
-the Kalman predictive given the other observed slots ``N(x_i; x~_i|rest, L_i|rest)`` if ``i``
-is a survivor or a group birth under ``(g, e*)``, ``q_0`` (eq. 64) if it is an independent
-newborn, ``x_death`` (a point mass, ``q = 1``) if dead:
+``e_i* ~ p(e_i | e^j_i)`` (cancels), then ``x_i*`` from ``q_i``: the conditional of the
+Kalman predictive given the other observed slots if ``i`` is a survivor or a group birth,
+``q_0`` if an independent newborn, ``x_death`` if dead:
 
     rho_3 = min(1, [p(Z|x*, e*) p(x* | j, g, e*) / q_i(x_i* | x_rest, e*)]
                  / [p(Z|x, e)   p(x  | j, g, e)  / q_i(x_i  | x_rest, e) ]).
 
-The mixture kernel makes a joint draw with probability ``xi`` (paper: 0.75), else one
-refinement sweep (structure, then each target). One uniform per iteration picks the move
-for every chain of every run (the pick does not depend on the state, so each chain's kernel
-is still the mixture; only one move is computed per iteration).
+**A target's recent past** (``lag = L >= 1``; issue 23). With the tiny process noise of
+Table 1 (a predictive standard deviation of about 2 m against 50 m pixels), a particle's
+velocities are fixed by its own past positions, and the moves above can change them only by
+changing the ancestor ``j`` (the joint draw, which must then predict every target at once).
+This move changes the past instead, as in MCMC-based smoothing (fixed-lag resample-move,
+Gilks and Berzuini 2001): each chain carries its own copy of its ancestor's positions at
+``t - L .. t - 1``, ``x_w`` (the window), and its pairwise Kalman statistics are re-run from
+those at ``t - L - 1`` (stored per particle, the *anchor*). The target is extended to the
+window given the ancestor's prefix ``x^j_{0:t-L-1}``,
+
+    pi(j, x_w, g, e, x) ∝ w_j prod_{s in window} p(x_s | x_{0:s-1}) p(g_s | .) p(Z_s | x_s)
+                           / c_j  x  p(g | x_w) p(e | e^j) p(x | x_w, g, e) p(Z_t | x, e),
+
+whose marginal in ``(j, g, e, x)`` is the posterior when the window's conditional given
+the prefix is exact (``c_j`` its normaliser, the same for every window of ``j``). The move
+picks one slot ``i`` and translates its live positions at ``t - L .. t`` by ``a + b (s - t)``
+(``a, b ~ N(0, diag(past_step^2))`` per axis: a shift and a change of velocity, a symmetric
+proposal), re-runs the Kalman filter over the window from the anchor and accepts with
+
+    rho_4 = min(1, pi(j, x_w*, g, e, x*) / pi(j, x_w, g, e, x))
+
+(``w_j``, ``c_j``, ``p(e | e^j)`` cancel; the structure prior terms stay, as they depend on
+the positions). A mispredicted target is then corrected in place rather than killed and
+re-born. The joint draw copies ``j*``'s window as it is, i.e. treats the previous particles'
+windows as draws from their conditional (the sequential MCMC approximation, eq. 59, one
+level down); each move is invariant for its target (tests/filters/test_group_filter.py).
+
+Each MH iteration runs one move for every chain of every run: the joint draw with
+probability ``xi`` (paper: 0.75), the past move with ``p_past`` (``lag >= 1``), else one
+refinement sweep. The picks of a whole step are drawn at once
+(:func:`~torchmcmcpf.filters.mcmc.pick_moves`, one host transfer per step); they do not
+depend on the state, so each chain's kernel is the mixture.
 
 Chains
 ------
 ``C`` chains per run are a tensor dimension (``(B, C, ...)``); each starts from a joint
 proposal (accepted), runs ``burn_in + thinning N / C`` iterations and keeps every
 ``thinning``-th state after the burn-in (``N / C`` each). The kept states' Kalman statistics
-(eqs. 56-57) are computed once, after the chains ran. ``marginalise=False`` gives the
-same sampler without Rao-Blackwellisation: each kept particle *samples* its velocities and
-leaders from their Kalman posterior and carries a point mass (zero covariance), so the next
-step's position prior is conditional on sampled ``w`` (issue 11, item 4a).
+(eqs. 56-57; from the anchor through the window with ``lag``) are computed once, after the
+chains ran. ``marginalise=False`` gives the same sampler without Rao-Blackwellisation: each
+kept particle *samples* its velocities and leaders from their Kalman posterior and carries a
+point mass (zero covariance), so the next step's position prior is conditional on sampled
+``w`` (issue 11, item 4a).
 
-Outputs
--------
-``GroupState.x (B, N, K, 4)`` holds ``[x, vx, y, vy]``: the sampled positions and each
-particle's Kalman posterior-mean velocities, so the MMSE estimate (``existence_estimate``)
-gives positions and velocities; ``StepInfo.extras`` has ``structure_prob (B, Bell(K))``
-(posterior probability of every row of :func:`~torchmcmcpf.models.group.group_structures`),
-``exists_prob (B, K)``, ``expected_count (B,)`` and the acceptance rate of each move.
+State and outputs
+-----------------
+The filtering state is a :class:`~torchmcmcpf.state.ParticleState` like every filter's:
+``x (B, N, K, 4)`` holds ``[x, vx, y, vy]`` (the sampled positions and each particle's Kalman
+posterior-mean velocities, so ``existence_estimate`` gives positions and velocities),
+``log_w``, ``exists``, and ``extras`` holds the rest (run dim first):
 
-Contract deviations
--------------------
-The filtering state is a :class:`GroupState` (``x, log_w, exists`` as in ``ParticleState``
-plus the structure labels, the Kalman statistics and the previous frame for eq. 65), and
-the step function also takes the ``structure_prior`` (eq. 19). The per-target refinement
-loops over the ``K`` slots (a Gibbs sweep is sequential by definition).
+- ``labels (B, N, K)`` int64, the structure; ``w_mean (B, N, 2, 3K)``, ``w_cov (B, N, 3K,
+  3K)``, the Kalman statistics of ``w = [velocities, leader positions, leader velocities]``
+  per axis; ``frames (B, F, H, W)`` bool, the last ``F`` frames (eq. 65 and the window);
+- with ``lag >= 1``, the path ``t - P + 1 .. t`` (``P <= L + 1`` entries, the first the
+  anchor): ``path_pos (B, N, P, K, 2)``, ``path_labels``, ``path_exists (B, N, P, K)``,
+  ``path_log (B, N, P)`` (each entry's term of the target above), ``anchor_w_mean``,
+  ``anchor_w_cov``.
+
+``StepInfo.extras`` has ``structure_prob (B, Bell(K))`` (posterior probability of every row
+of :func:`~torchmcmcpf.models.group.group_structures`), ``exists_prob (B, K)``,
+``expected_count (B,)`` and the acceptance rate of each move. The group filter takes the
+group models in place of ``Filter``'s (:class:`VirtualLeaderMotion`, a
+:class:`GroupExistence`, which is a ``BirthDeath``, and the structure prior of eq. 19); the
+per-target refinement loops over the ``K`` slots (a Gibbs sweep is sequential by definition).
 """
 
 from __future__ import annotations
@@ -86,14 +126,15 @@ from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
-from torch import nn
+from torch.utils._pytree import tree_map
 
-from .._validation import check_generator, check_positive_int, check_shape
+from .._validation import check_positive, check_positive_int, check_shape
 from ..models.group import (
     GroupExistence,
     GroupStructurePrior,
     KalmanStats,
     VirtualLeaderMotion,
+    bell_number,
     group_structures,
     pairwise_kalman_init,
     pairwise_kalman_predict,
@@ -102,116 +143,258 @@ from ..models.group import (
 )
 from ..models.sensors.pixels import ThresholdedPixels
 from ..resampling import cdf, inverse_cdf
-from ..state import FilterResult, StepInfo, existence_estimate, stack_infos, weighted_mean
+from ..state import ParticleState, StepInfo
 from ..typing import Tensor
-from .base import Filter, compile_kernel
+from .base import Filter
+from .mcmc import pick_moves
 
-__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "GroupState", "group_mcmc_step"]
+__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "JointNoise", "RefineNoise", "PastNoise",
+           "default_chains", "estimate_step_bytes"]
 
 LOG_2PI = math.log(2 * math.pi)
+ALPHAS = ("mean", "predictive")
+BIRTHS = ("eq65", "frame")
 
-Noise = dict[str, Tensor]
-"""The uniforms and normals of one move, by name (:func:`draw_joint_noise`, :func:`draw_refine_noise`)."""
+
+def default_chains(num_particles: int, most: int = 20) -> int:
+    """The largest divisor of ``num_particles`` not above ``most`` (20): the default number of
+    chains of :class:`GroupMCMCFilter`.
+
+    Why 20: chains are a tensor dimension, so an iteration of 20 chains costs about what one
+    of one chain costs on a CPU (B = 40 runs: 6 ms for the joint draw), while 20 chains need
+    20x fewer iterations for the same number of kept samples (each with its own burn-in).
+    With paper 004's one chain, burn-in 1000 and thinning 6, a step of N = 400 is 3400
+    iterations; with 20 chains and burn-in 100 it is 220 (README, issue 11 item 4b: equal
+    accuracy at equal kept samples, 19x less time).
+    """
+    n = check_positive_int(num_particles, "num_particles")
+    return max(d for d in range(1, min(most, n) + 1) if n % d == 0)
+
+
+def estimate_step_bytes(batch_size: int, num_particles: int, num_slots: int, *, lag: int = 0) -> int:
+    """A rough upper estimate of the memory [bytes] one step of :class:`GroupMCMCFilter` needs.
+
+    The terms that grow: the ``Bell(K)`` structures (the same-group masks ``(Bell(K), K, K)``
+    of eq. 21, twice, and ``p(g | j)`` of every structure for every particle
+    ``(B, N, Bell(K))``, with the step's structure histogram), float64; and the Kalman
+    statistics ``(B, N, 3K, 3K)`` (in, out and the temporaries of a chunked update; twice
+    more with a lag). ``Bell(K)`` grows faster than exponentially: 15 structures at K = 4,
+    115,975 at 10, 4,213,597 at 12.
+    """
+    b, n = check_positive_int(batch_size, "batch_size"), check_positive_int(num_particles, "num_particles")
+    k = check_positive_int(num_slots, "num_slots")
+    g = bell_number(k)
+    structures = 8 * g * (2 * k * k + 3 * b * n)
+    kalman = 8 * b * n * (3 * k) ** 2 * (3 + (2 if lag else 0))
+    return structures + kalman
 
 
 @dataclass(frozen=True)
 class GroupMCMCSettings:
-    """Settings of :class:`GroupMCMCFilter` (paper 004 sec. 5 values as defaults where given).
+    """Settings of :class:`GroupMCMCFilter` (paper 004 sec. 5 values where given).
 
     Attributes
     ----------
-    num_chains : C >= 1 chains per run (a divisor of N).
-    burn_in : iterations discarded per chain and step (paper: 1000).
+    num_chains : C >= 1 chains per run (a divisor of N; :func:`default_chains`).
+    burn_in : iterations discarded per chain and step (paper, one chain: 1000).
     thinning : keep every ``thinning``-th state (paper: 6).
-    xi : probability of the joint draw in the mixture kernel (paper: 0.75).
-    p_a : ``P_a`` of eq. 61, weight of the likelihood-weighted choice of the ancestor (0.5).
-    p_i : ``P_I`` of eq. 64, weight of the uniform birth proposal (0.01).
+    xi : probability of the joint draw per iteration (paper: 0.75).
+    p_a : ``P_a`` of eq. 61, weight of ``alpha`` in the choice of the ancestor (paper: 0.5).
+    p_i : ``P_I`` of eq. 64, weight of the uniform birth proposal (paper: 0.01).
     marginalise : integrate the velocities and leaders out (paper); ``False`` samples them.
+    alpha : ``"mean"`` (eq. 62) or ``"predictive"`` (module docstring).
+    birth : ``"eq65"`` (paper) or ``"frame"`` (module docstring).
+    lag : L >= 0, positions of each target's past the past move changes (0: no past move).
+    p_past : probability of the past move per iteration (needs ``lag >= 1``).
+    past_step : ``(s_a [m], s_b [m per step])``, the shift and velocity steps of the past move.
+    max_memory_gb : refuse a problem whose step needs more (:func:`estimate_step_bytes`).
     """
 
-    num_chains: int = 1
-    burn_in: int = 1000
+    num_chains: int = 20
+    burn_in: int = 100
     thinning: int = 6
     xi: float = 0.75
     p_a: float = 0.5
     p_i: float = 0.01
     marginalise: bool = True
+    alpha: str = "mean"
+    birth: str = "eq65"
+    lag: int = 0
+    p_past: float = 0.0
+    past_step: tuple[float, float] = (10.0, 5.0)
+    max_memory_gb: float = 8.0
 
     def __post_init__(self) -> None:
         check_positive_int(self.num_chains, "num_chains")
         check_positive_int(self.burn_in, "burn_in", minimum=0)
         check_positive_int(self.thinning, "thinning")
-        for name, lo_open in (("xi", False), ("p_a", False), ("p_i", True)):
+        check_positive_int(self.lag, "lag", minimum=0)
+        for name, lo_open in (("xi", False), ("p_a", False), ("p_i", True), ("p_past", False)):
             v = float(getattr(self, name))
             if not (0.0 <= v <= 1.0) or (lo_open and v == 0.0):
                 raise ValueError(f"{name} must be a probability in {'(0, 1]' if lo_open else '[0, 1]'}, got {v!r}")
         if not isinstance(self.marginalise, bool):
             raise ValueError(f"marginalise must be a bool, got {self.marginalise!r}")
+        if self.alpha not in ALPHAS:
+            raise ValueError(f"alpha must be one of {ALPHAS}, got {self.alpha!r}")
+        if self.birth not in BIRTHS:
+            raise ValueError(f"birth must be one of {BIRTHS}, got {self.birth!r}")
+        if (self.lag > 0) != (self.p_past > 0):
+            raise ValueError(f"lag >= 1 and p_past > 0 go together (the past move needs a past), got lag={self.lag}, "
+                             f"p_past={self.p_past}")
+        if self.xi + self.p_past > 1.0 + 1e-12:
+            raise ValueError(f"xi + p_past must be <= 1 (the rest is the refinement's), got {self.xi} + {self.p_past}")
+        if self.xi == 0.0:
+            raise ValueError("xi must be > 0: only the joint draw changes a chain's ancestor")
+        if self.lag > 0 and not self.marginalise:
+            raise ValueError("lag >= 1 needs marginalise=True (the window's Kalman statistics are re-run)")
+        if len(self.past_step) != 2:
+            raise ValueError(f"past_step must be (shift [m], velocity step [m per step]), got {self.past_step!r}")
+        object.__setattr__(self, "past_step", tuple(check_positive(s, "past_step") for s in self.past_step))
+        check_positive(self.max_memory_gb, "max_memory_gb")
 
     def check(self, num_particles: int) -> None:
         """Raise ``ValueError`` unless ``num_particles`` is a multiple of ``num_chains``."""
         if num_particles % self.num_chains:
-            raise ValueError(f"num_particles ({num_particles}) must be a multiple of num_chains ({self.num_chains})")
+            raise ValueError(f"num_particles ({num_particles}) must be a multiple of num_chains ({self.num_chains}): "
+                             f"each chain keeps num_particles / num_chains samples (default_chains({num_particles}) "
+                             f"= {default_chains(num_particles)})")
+
+    def moves(self) -> tuple[tuple[str, float], ...]:
+        """The mixture's ``(move, probability)`` pairs with probability > 0."""
+        pairs = (("joint", self.xi), ("refine", 1.0 - self.xi - self.p_past), ("past", self.p_past))
+        return tuple((name, p) for name, p in pairs if p > 1e-12)
 
 
-class GroupState(NamedTuple):
-    """Particle approximation of ``p(x_p, g, e | Z_1:t)`` with each particle's Kalman filter.
+# ----------------------------------------------------------------------------------------
+# the noise of one move (drawn eagerly, passed into the pure moves)
+# ----------------------------------------------------------------------------------------
+def _uniforms(generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None
+              ) -> Callable[..., Tensor]:
+    def u(*shape: int) -> Tensor:
+        return torch.rand(shape, generator=generator, dtype=dtype, device=device)
+    return u
 
-    Attributes
-    ----------
-    x : (B, N, K, 4) ``[x, vx, y, vy]``: sampled positions, Kalman posterior-mean velocities.
-    log_w : (B, N) normalised log-weights (equal after an MCMC step).
-    exists : (B, N, K) bool.
-    labels : (B, N, K) int64 canonical structure labels.
-    w_mean : (B, N, 2, 3K) Kalman mean of ``w = [velocities, leader pos, leader vel]`` per axis.
-    w_cov : (B, N, 3K, 3K) its covariance (zero with ``marginalise=False``).
-    frame_prev : (B, H, W) bool, the previous frame (birth proposal, eq. 65); ``None`` at the
-        start (the current frame is used).
+
+class JointNoise(NamedTuple):
+    """Uniforms and normals of one joint draw for chains ``(B, C)`` of ``K`` slots: ``mix``,
+    ``j``, ``g``, ``u (B, C)``; ``e (B, C, K)``; ``eps (B, C, K, 2)``; the birth proposal's
+    ``b_sel``, ``b_pix (B, C, K)`` and ``b_xy (B, C, K, 2)`` (eqs. 64-65).
     """
 
-    x: Tensor
-    log_w: Tensor
-    exists: Tensor
+    mix: Tensor
+    j: Tensor
+    g: Tensor
+    e: Tensor
+    eps: Tensor
+    u: Tensor
+    b_sel: Tensor
+    b_pix: Tensor
+    b_xy: Tensor
+
+    @classmethod
+    def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
+             device: torch.device | str | None = None) -> JointNoise:
+        """Draw for ``shape = (B, C, K)``."""
+        b, c, k = shape
+        u = _uniforms(generator, dtype, device)
+        mix, j, g, e = u(b, c), u(b, c), u(b, c), u(b, c, k)
+        eps = torch.randn((b, c, k, 2), generator=generator, dtype=dtype, device=device)
+        return cls(mix, j, g, e, eps, u(b, c), u(b, c, k), u(b, c, k), u(b, c, k, 2))
+
+
+class RefineNoise(NamedTuple):
+    """Uniforms and normals of one refinement sweep for chains ``(B, C)`` of ``K`` slots:
+    ``g``, ``u_g (B, C)``; ``e``, ``u_x (B, C, K)``; ``eps (B, C, K, 2)``; the birth uniforms.
+    """
+
+    g: Tensor
+    u_g: Tensor
+    e: Tensor
+    eps: Tensor
+    u_x: Tensor
+    b_sel: Tensor
+    b_pix: Tensor
+    b_xy: Tensor
+
+    @classmethod
+    def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
+             device: torch.device | str | None = None) -> RefineNoise:
+        """Draw for ``shape = (B, C, K)``."""
+        b, c, k = shape
+        u = _uniforms(generator, dtype, device)
+        g, u_g, e = u(b, c), u(b, c), u(b, c, k)
+        eps = torch.randn((b, c, k, 2), generator=generator, dtype=dtype, device=device)
+        return cls(g, u_g, e, eps, u(b, c, k), u(b, c, k), u(b, c, k), u(b, c, k, 2))
+
+
+class PastNoise(NamedTuple):
+    """Noise of one past move for chains ``(B, C)``: ``slot`` uniforms (the slot moved),
+    ``step (B, C, 2, 2)`` standard normals (shift, velocity step; per axis), ``u (B, C)``.
+    """
+
+    slot: Tensor
+    step: Tensor
+    u: Tensor
+
+    @classmethod
+    def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
+             device: torch.device | str | None = None) -> PastNoise:
+        """Draw for ``shape = (B, C, K)``."""
+        b, c, _ = shape
+        u = _uniforms(generator, dtype, device)
+        slot = u(b, c)
+        return cls(slot, torch.randn((b, c, 2, 2), generator=generator, dtype=dtype, device=device), u(b, c))
+
+
+NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise}
+
+
+# ----------------------------------------------------------------------------------------
+# the containers of one step
+# ----------------------------------------------------------------------------------------
+class GroupView(NamedTuple):
+    """A state's fields unpacked from its ``ParticleState`` (:func:`unpack`), ``(B, N, ...)``:
+    the particles at ``t - 1`` (``pos``, ``g``, ``labels``, ``exists``, ``w_mean``, ``w_cov``,
+    ``log_w``), ``frames (B, F, H, W)`` (the last ``F`` frames, the window's last), and the
+    path: the anchor (``anchor_*``) and the window ``win_* (B, N, W, ...)`` of ``W`` past
+    steps with their terms ``win_log (B, N, W)`` (``W = 0`` and the anchor the particles
+    themselves without a lag).
+    """
+
+    pos: Tensor
+    g: Tensor
     labels: Tensor
+    exists: Tensor
     w_mean: Tensor
     w_cov: Tensor
-    frame_prev: Tensor | None = None
-
-    @property
-    def batch_size(self) -> int:
-        """``B``, the number of independent runs."""
-        return self.x.shape[0]
-
-    @property
-    def num_particles(self) -> int:
-        """``N``, the number of particles per run."""
-        return self.x.shape[1]
-
-    def mean(self) -> Tensor:
-        """Weighted mean of the particles, ``(B, K, 4)`` (ignores existence: see
-        :func:`~torchmcmcpf.state.existence_estimate` for the mean given existence).
-        """
-        return weighted_mean(self.x, self.log_w)
-
-
-torch.serialization.add_safe_globals([GroupState])
+    log_w: Tensor
+    frames: Tensor
+    anchor_pos: Tensor
+    anchor_g: Tensor
+    anchor_labels: Tensor
+    anchor_exists: Tensor
+    anchor_w_mean: Tensor
+    anchor_w_cov: Tensor
+    win_pos: Tensor
+    win_g: Tensor
+    win_labels: Tensor
+    win_exists: Tensor
+    win_log: Tensor
 
 
 class Cloud(NamedTuple):
     """The previous particles and the per-step quantities of the proposals (eager, once per
-    step). ``pos (B, N, K, 2)``, ``labels (B, N, K)``, ``exists (B, N, K)``, ``w_mean``,
-    ``w_cov``; ``log_pg (B, N, G)`` eq. 19 for every structure; ``cdf_alpha (B, N)``,
-    ``cdf_w (B, N)`` float64 cumulative weights of ``alpha`` and ``w``; ``log_wq (B, N)``
-    ``log w_j - log q(j)`` (eq. 61); ``beta (B, HW)`` bool pixels of eq. 65, ``cdf_beta (B, HW)``,
+    step): ``view`` (:class:`GroupView`); ``log_pg (B, N, G)`` eq. 19 for every structure;
+    ``log_win (B, N)`` the window's terms; ``cdf_alpha``, ``cdf_w (B, N)`` float64 cumulative
+    weights of ``alpha`` and ``w``; ``log_wq (B, N)`` ``log w_j - log q(j)`` (eq. 61);
+    ``beta (B, HW)`` bool, the pixels of the birth proposal, ``cdf_beta (B, HW)``,
     ``n_obs (B,)``; ``table (G, K)`` the structures.
     """
 
-    pos: Tensor
-    labels: Tensor
-    exists: Tensor
-    w_mean: Tensor
-    w_cov: Tensor
+    view: GroupView
     log_pg: Tensor
+    log_win: Tensor
     cdf_alpha: Tensor
     cdf_w: Tensor
     log_wq: Tensor
@@ -221,14 +404,34 @@ class Cloud(NamedTuple):
     table: Tensor
 
 
+class Prev(NamedTuple):
+    """A chain's past ``(B, C, ...)``: the positions, structure (``g`` row, ``labels``),
+    existence and Kalman statistics at ``t - 1``; ``log_pg (B, C, G)``, ``p(g_t | .)`` of
+    every structure; the window positions ``win_pos (B, C, W, K, 2)`` at ``t - W .. t - 1``
+    and their terms ``log_win (B, C)``.
+    """
+
+    pos: Tensor
+    g: Tensor
+    labels: Tensor
+    exists: Tensor
+    w_mean: Tensor
+    w_cov: Tensor
+    log_pg: Tensor
+    win_pos: Tensor
+    log_win: Tensor
+
+
 class Chain(NamedTuple):
-    """Chain states ``(B, C, ...)``: ancestor ``j``, ``labels``, ``exists``, ``pos (B, C, K, 2)``;
-    cached ``log_lik`` (eq. 40), ``log_px`` (``log p(x | j, g, e)``), ``log_wq``
-    (``log w_j - log q(j)``), ``log_birth`` (``sum_free log p_0 - log q_0``); and the
-    configuration's predictive: ``pm (B, C, K, 2)``, ``S (B, C, K, K)``, ``observed``, ``free``.
+    """Chain states ``(B, C, ...)``: ancestor ``j``, structure ``g`` (row) and ``labels``,
+    ``exists``, ``pos (B, C, K, 2)``; cached ``log_lik`` (eq. 40), ``log_px``
+    (``log p(x | past, g, e)``), ``log_wq`` (``log w_j - log q(j)``), ``log_birth``
+    (``sum_free log p_0 - log q_0``); the configuration's predictive ``pm (B, C, K, 2)``,
+    ``S (B, C, K, K)``, ``observed``, ``free``; and its :class:`Prev`.
     """
 
     j: Tensor
+    g: Tensor
     labels: Tensor
     exists: Tensor
     pos: Tensor
@@ -240,6 +443,7 @@ class Chain(NamedTuple):
     S: Tensor
     observed: Tensor
     free: Tensor
+    prev: Prev
 
 
 class Models(NamedTuple):
@@ -248,8 +452,10 @@ class Models(NamedTuple):
     motion: VirtualLeaderMotion
     sensor: ThresholdedPixels
     existence: GroupExistence
+    structure_prior: GroupStructurePrior
     p_i: float
     p_a: float
+    past_step: tuple[float, float] = (10.0, 5.0)
 
 
 # ----------------------------------------------------------------------------------------
@@ -276,20 +482,23 @@ def _gather(t: Tensor, j: Tensor) -> Tensor:
     return t[b, j]
 
 
-def _predict(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, models: Models
-             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Kalman predictive of the positions of configuration ``(j, g, e)``: ``pm (B, C, K, 2)``,
-    ``S (B, C, K, K)``, ``observed``, ``free (B, C, K)`` (eqs. 47, 51-52).
+def _death_pos(existence: GroupExistence, like: Tensor) -> Tensor:
+    """The position ``(2,)`` of ``x_death`` in ``like``'s dtype and device."""
+    return existence.x_death[0::2].to(like)
+
+
+def _predict(prev: Prev, labels: Tensor, exists: Tensor, models: Models) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Kalman predictive of the positions of configuration ``(g, e)`` after ``prev``:
+    ``pm (B, C, K, 2)``, ``S (B, C, K, K)``, ``observed``, ``free (B, C, K)`` (eqs. 47, 51-52).
     """
-    pos_prev = _gather(cloud.pos, j)
-    tr = models.motion.transition(pos_prev, _gather(cloud.labels, j), labels, _gather(cloud.exists, j), exists,
-                                  existence=models.existence)
-    pred = pairwise_kalman_predict(KalmanStats(_gather(cloud.w_mean, j), _gather(cloud.w_cov, j)), pos_prev, tr)
-    return pred.position_mean, pred.position_cov, tr.observed, tr.free_birth
+    tr = models.motion.transition(prev.pos, prev.labels, labels, prev.exists, exists, existence=models.existence)
+    pred = pairwise_kalman_predict(KalmanStats(prev.w_mean, prev.w_cov), prev.pos, tr)
+    # contiguous: a chain's fields keep one layout, eager or compiled (no recompilation)
+    return pred.position_mean.contiguous(), pred.position_cov.contiguous(), tr.observed, tr.free_birth
 
 
 def _log_px(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, free: Tensor, existence: GroupExistence) -> Tensor:
-    """``log p(x | j, g, e)`` (eq. 44): Gaussian over the observed slots (both axes) plus
+    """``log p(x | past, g, e)`` (eq. 44): Gaussian over the observed slots (both axes) plus
     ``log p_0`` of the free births: ``-> (B, C)``.
     """
     o = obs.to(pos.dtype)
@@ -317,22 +526,19 @@ def _log_q0(pos: Tensor, cloud: Cloud, sensor: ThresholdedPixels, existence: Gro
     return torch.where(torch.isfinite(log_p0), q.log(), log_p0)
 
 
-def _draw_q0(noise: Noise, cloud: Cloud, sensor: ThresholdedPixels, existence: GroupExistence, p_i: float
-             ) -> Tensor:
-    """Positions from ``q_0`` (eqs. 64-65): ``(B, C, K, 2)`` from the birth noise."""
-    u_sel, u_pix, u_xy = noise["b_sel"], noise["b_pix"], noise["b_xy"]
-    a = existence.area.to(u_xy.dtype)
-    uniform = a[:, 0] + (a[:, 1] - a[:, 0]) * u_xy
-    b = u_pix.shape[0]
-    total = cloud.cdf_beta[:, -1:]
-    idx = torch.searchsorted(cloud.cdf_beta, (u_pix.reshape(b, -1) * total).contiguous(), right=True)
-    idx = idx.clamp(max=cloud.cdf_beta.shape[-1] - 1).reshape(u_pix.shape)
+def _draw_q0(noise: JointNoise | RefineNoise, cloud: Cloud, sensor: ThresholdedPixels, existence: GroupExistence,
+             p_i: float) -> Tensor:
+    """Positions from ``q_0`` (eqs. 64-65): ``(B, C, K, 2)`` from the birth noise (pixels by
+    the shared inverse CDF).
+    """
+    uniform = existence.uniform_position(noise.b_xy)
+    b = noise.b_pix.shape[0]
+    idx = inverse_cdf(cloud.cdf_beta, noise.b_pix.reshape(b, -1)).reshape(noise.b_pix.shape)
     w = sensor.shape[1]
-    s = sensor.pixel_size
-    pix = torch.stack([(idx % w).to(u_xy.dtype), (idx // w).to(u_xy.dtype)], -1)
-    in_pixel = (pix + u_xy) * s
-    n = cloud.n_obs.reshape((-1,) + (1,) * (u_sel.dim() - 1))
-    use_uniform = (u_sel < p_i) | (n == 0)
+    pix = torch.stack([(idx % w).to(noise.b_xy.dtype), (idx // w).to(noise.b_xy.dtype)], -1)
+    in_pixel = (pix + noise.b_xy) * sensor.pixel_size
+    n = cloud.n_obs.reshape((-1,) + (1,) * (noise.b_sel.dim() - 1))
+    use_uniform = (noise.b_sel < p_i) | (n == 0)
     return torch.where(use_uniform.unsqueeze(-1), uniform, in_pixel)
 
 
@@ -347,71 +553,104 @@ def _draw_structure(log_pg: Tensor, u: Tensor) -> Tensor:
     return inverse_cdf(cdf(log_pg), u.unsqueeze(-1)).squeeze(-1)
 
 
-def _draw_exists(e_prev: Tensor, u: Tensor, existence: GroupExistence) -> Tensor:
-    """``e ~ p(e | e_prev)`` (eq. 25) from uniforms ``u`` of ``e_prev``'s shape."""
-    p_alive = torch.where(e_prev, torch.full_like(u, 1.0 - existence.p_death), torch.full_like(u, existence.p_birth))
-    return u < p_alive
-
-
-def _select(mask: Tensor, new: Chain, old: Chain) -> Chain:
-    """Chain-wise ``torch.where`` over every field; ``mask (B, C)``."""
+def _select(mask: Tensor, new: Any, old: Any) -> Any:
+    """Chain-wise ``torch.where`` over every tensor of two chain states; ``mask (B, C)``."""
     def pick(a: Tensor, b: Tensor) -> Tensor:
         m = mask.reshape(mask.shape + (1,) * (a.dim() - mask.dim()))
         return torch.where(m, a, b)
-    return type(old)(*(pick(a, b) for a, b in zip(new, old)))
+    return tree_map(pick, new, old)
 
 
-def _death_pos(existence: GroupExistence, like: Tensor) -> Tensor:
-    """The position ``(2,)`` of ``x_death`` in ``like``'s dtype and device."""
-    return existence.x_death[0::2].to(like)
+def _path_step(stats: KalmanStats, pos_p: Tensor, g_p: Tensor, lab_p: Tensor, ex_p: Tensor, pos: Tensor, g: Tensor,
+               lab: Tensor, ex: Tensor, z: Tensor, models: Models) -> tuple[Tensor, KalmanStats]:
+    """One step of a particle's path: its term of the target, ``log p(x_s | x_{0:s-1}, g, e)
+    + log p(g_s | x_{s-1}, g_{s-1}, e_{s-1}) + log p(Z_s | x_s, e_s)`` (eqs. 19, 44, 40; the
+    existence prior, which the past move does not change, left out), and the Kalman
+    statistics at ``s``. Leading dims ``(B, *S)``.
+    """
+    tr = models.motion.transition(pos_p, lab_p, lab, ex_p, ex, existence=models.existence)
+    log_pred, stats = pairwise_kalman_update(pairwise_kalman_predict(stats, pos_p, tr), pos)
+    log_p0 = torch.where(tr.free_birth, models.existence.log_p0_position(pos), torch.zeros_like(pos[..., 0])).sum(-1)
+    log_pg = models.structure_prior.log_probs(g_p, pos_p, ex_p)
+    log_g = torch.gather(log_pg, -1, g.unsqueeze(-1)).squeeze(-1)
+    return log_pred + log_p0 + log_g + _log_lik(pos, ex, z, models.sensor), stats
+
+
+def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models) -> Prev:
+    """The past of chains with ancestors ``j (B, C)`` and window positions ``win_pos (B, C, W,
+    K, 2)``: the Kalman filter re-run from the anchor through the window (:class:`Prev`).
+    """
+    v = cloud.view
+    stats = KalmanStats(_gather(v.anchor_w_mean, j), _gather(v.anchor_w_cov, j))
+    pos, g, lab, ex = (_gather(t, j) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels, v.anchor_exists))
+    win_g, win_lab, win_ex = (_gather(t, j) for t in (v.win_g, v.win_labels, v.win_exists))
+    log_win = torch.zeros_like(pos[..., 0, 0])
+    off = v.frames.shape[1] - win_pos.shape[2]  # the window's frames are the last W
+    for s in range(win_pos.shape[2]):  # the window's steps (time, not particles)
+        term, stats = _path_step(stats, pos, g, lab, ex, win_pos[:, :, s], win_g[:, :, s], win_lab[:, :, s],
+                                 win_ex[:, :, s], v.frames[:, off + s], models)
+        log_win = log_win + term
+        pos, g, lab, ex = win_pos[:, :, s], win_g[:, :, s], win_lab[:, :, s], win_ex[:, :, s]
+    log_pg = models.structure_prior.log_probs(g, pos, ex)
+    return Prev(pos, g, lab, ex, stats.mean, stats.cov, log_pg, win_pos, log_win)
+
+
+def _prev_of(cloud: Cloud, j: Tensor) -> Prev:
+    """The past of chains whose ancestors are ``j (B, C)``, as the cloud holds it."""
+    v = cloud.view
+    return Prev(*(_gather(t, j) for t in (v.pos, v.g, v.labels, v.exists, v.w_mean, v.w_cov, cloud.log_pg,
+                                          v.win_pos, cloud.log_win)))
 
 
 # ----------------------------------------------------------------------------------------
 # the moves (pure: noise in, no generator; compile-friendly)
 # ----------------------------------------------------------------------------------------
-def make_chain(j: Tensor, labels: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, z: Tensor, models: Models
-               ) -> Chain:
-    """A chain state ``(B, C, ...)`` with its caches from ``(j, g, e, x_p)`` (dead slots' positions
-    are set to ``x_death``).
+def make_chain(j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, z: Tensor, models: Models,
+               win_pos: Tensor | None = None) -> Chain:
+    """A chain state ``(B, C, ...)`` with its caches from ``(j, g, e, x_p)`` and, optionally,
+    its window ``win_pos (B, C, W, K, 2)`` (default the ancestor's); dead slots' positions
+    are set to ``x_death``.
     """
-    pm, S, obs, free = _predict(cloud, j, labels, exists, models)
+    prev = _prev_of(cloud, j) if win_pos is None else _past(j, win_pos, cloud, models)
+    labels = cloud.table[g]
+    pm, S, obs, free = _predict(prev, labels, exists, models)
     pos = torch.where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
-    return Chain(j, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
+    return Chain(j, g, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
                  _log_px(pos, pm, S, obs, free, models.existence), _gather(cloud.log_wq, j),
-                 _birth_ratio(pos, free, cloud, models), pm, S, obs, free)
+                 _birth_ratio(pos, free, cloud, models), pm, S, obs, free, prev)
 
 
-def joint_proposal(noise: Noise, cloud: Cloud, z: Tensor, models: Models) -> Chain:
+def joint_proposal(noise: JointNoise, cloud: Cloud, z: Tensor, models: Models) -> Chain:
     """Algorithm 1 steps 1-4 (eqs. 61-65) for every chain: the proposed state with its caches."""
     existence = models.existence
-    use_alpha = noise["mix"] < models.p_a
-    j = torch.where(use_alpha, inverse_cdf(cloud.cdf_alpha, noise["j"]), inverse_cdf(cloud.cdf_w, noise["j"]))
-    g = _draw_structure(_gather(cloud.log_pg, j), noise["g"])
+    use_alpha = noise.mix < models.p_a
+    j = torch.where(use_alpha, inverse_cdf(cloud.cdf_alpha, noise.j), inverse_cdf(cloud.cdf_w, noise.j))
+    prev = _prev_of(cloud, j)
+    g = _draw_structure(prev.log_pg, noise.g)
     labels = cloud.table[g]
-    exists = _draw_exists(_gather(cloud.exists, j), noise["e"], existence)
-    pm, S, obs, free = _predict(cloud, j, labels, exists, models)
+    exists = existence.draw_exists(prev.exists, noise.e)
+    pm, S, obs, free = _predict(prev, labels, exists, models)
     o = obs.to(pm.dtype)
     L = torch.linalg.cholesky(S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o))
-    x_obs = pm + L @ noise["eps"]
+    x_obs = pm + L @ noise.eps
     x_born = _draw_q0(noise, cloud, models.sensor, existence, models.p_i)
     pos = torch.where(obs.unsqueeze(-1), x_obs, torch.where(free.unsqueeze(-1), x_born, _death_pos(existence, pm)))
-    log_lik = _log_lik(pos, exists, z, models.sensor)
-    log_px = _log_px(pos, pm, S, obs, free, existence)
-    return Chain(j, labels, exists, pos, log_lik, log_px, _gather(cloud.log_wq, j),
-                 _birth_ratio(pos, free, cloud, models), pm, S, obs, free)
+    return Chain(j, g, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
+                 _log_px(pos, pm, S, obs, free, existence), _gather(cloud.log_wq, j),
+                 _birth_ratio(pos, free, cloud, models), pm, S, obs, free, prev)
 
 
-def joint_move(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
+def joint_move(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
     """Algorithm 1 with the acceptance ratio ``rho_1`` of eq. 60 (module docstring).
     Returns the new chain and ``accepted (B, C)`` bool.
     """
     prop = joint_proposal(noise, cloud, z, models)
     log_rho = (prop.log_lik + prop.log_wq + prop.log_birth) - (chain.log_lik + chain.log_wq + chain.log_birth)
-    acc = torch.log(noise["u"]) < log_rho
+    acc = torch.log(noise.u) < log_rho
     return _select(acc, prop, chain), acc
 
 
-def refine_move(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor, models: Models
+def refine_move(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor, models: Models
                 ) -> tuple[Chain, Tensor, Tensor]:
     """Algorithm 2: the structure by ``rho_2``, then each slot's ``(x_i, e_i)`` by ``rho_3``
     (eq. 66; module docstring). Returns the chain, ``accepted_structure (B, C)`` bool and
@@ -419,27 +658,27 @@ def refine_move(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor, models: Mod
     """
     existence, sensor = models.existence, models.sensor
     k = chain.pos.shape[-2]
+    prev = chain.prev
     # -- structure (rho_2)
-    g = _draw_structure(_gather(cloud.log_pg, chain.j), noise["g"])
+    g = _draw_structure(prev.log_pg, noise.g)
     labels = cloud.table[g]
-    pm, S, obs, free = _predict(cloud, chain.j, labels, chain.exists, models)
+    pm, S, obs, free = _predict(prev, labels, chain.exists, models)
     log_px = _log_px(chain.pos, pm, S, obs, free, existence)
-    acc_g = torch.log(noise["u_g"]) < log_px - chain.log_px
-    prop = chain._replace(labels=labels, log_px=log_px, log_birth=_birth_ratio(chain.pos, free, cloud, models),
+    acc_g = torch.log(noise.u_g) < log_px - chain.log_px
+    prop = chain._replace(g=g, labels=labels, log_px=log_px, log_birth=_birth_ratio(chain.pos, free, cloud, models),
                           pm=pm, S=S, observed=obs, free=free)
     chain = _select(acc_g, prop, chain)
     # -- each target (rho_3)
-    e_prev = _gather(cloud.exists, chain.j)
     x_born = _draw_q0(noise, cloud, sensor, existence, models.p_i)  # (B, C, K, 2)
     dead = _death_pos(existence, chain.pos)
     accs = []
     for i in range(k):
         onehot = torch.arange(k, device=chain.pos.device) == i
-        e_i = _draw_exists(e_prev[..., i], noise["e"][..., i], existence)
+        e_i = existence.draw_exists(prev.exists[..., i], noise.e[..., i])
         exists = torch.where(onehot, e_i.unsqueeze(-1), chain.exists)
-        pm, S, obs, free = _predict(cloud, chain.j, chain.labels, exists, models)
+        pm, S, obs, free = _predict(prev, chain.labels, exists, models)
         cm, cv = _conditional(chain.pos, pm, S, obs, i)
-        x_i = torch.where(obs[..., i, None], cm + cv.sqrt().unsqueeze(-1) * noise["eps"][..., i, :],
+        x_i = torch.where(obs[..., i, None], cm + cv.sqrt().unsqueeze(-1) * noise.eps[..., i, :],
                           torch.where(free[..., i, None], x_born[..., i, :], dead))
         pos = torch.where(onehot.unsqueeze(-1), x_i.unsqueeze(-2), chain.pos)
         log_q_fwd = _log_q_slot(x_i, cm, cv, obs[..., i], free[..., i], cloud, models)
@@ -449,12 +688,47 @@ def refine_move(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor, models: Mod
         log_lik = _log_lik(pos, exists, z, sensor)
         log_px = _log_px(pos, pm, S, obs, free, existence)
         log_rho = (log_lik + log_px - log_q_fwd) - (chain.log_lik + chain.log_px - log_q_rev)
-        acc = torch.log(noise["u_x"][..., i]) < log_rho
+        acc = torch.log(noise.u_x[..., i]) < log_rho
         prop = chain._replace(exists=exists, pos=pos, log_lik=log_lik, log_px=log_px,
                               log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free)
         chain = _select(acc, prop, chain)
         accs.append(acc)
     return chain, acc_g, torch.stack(accs, -1)
+
+
+def past_move(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
+    """One slot's live positions at ``t - W .. t`` translated by ``a + b (s - t)`` and
+    accepted by ``rho_4`` (module docstring, "A target's recent past"). Returns the new
+    chain and ``accepted (B, C)`` bool.
+    """
+    k = chain.pos.shape[-2]
+    prev = chain.prev
+    w = prev.win_pos.shape[2]
+    onehot = F.one_hot((noise.slot * k).long().clamp(max=k - 1), k).to(torch.bool)  # (B, C, K)
+    a = noise.step[..., 0, :] * models.past_step[0]  # (B, C, 2)
+    b = noise.step[..., 1, :] * models.past_step[1]
+    tau = torch.arange(-w, 0, device=a.device, dtype=a.dtype)  # (W,) time relative to t
+    win_live = _gather(cloud.view.win_exists, chain.j) & onehot.unsqueeze(-2)  # (B, C, W, K)
+    shift = a[:, :, None, None, :] + b[:, :, None, None, :] * tau[:, None, None]  # (B, C, W, 1, 2)
+    win_pos = prev.win_pos + shift * win_live.unsqueeze(-1).to(a.dtype)
+    pos = chain.pos + a.unsqueeze(-2) * (chain.exists & onehot).unsqueeze(-1).to(a.dtype)
+    new_prev = _past(chain.j, win_pos, cloud, models)
+    pm, S, obs, free = _predict(new_prev, chain.labels, chain.exists, models)
+    prop = chain._replace(pos=pos, log_lik=_log_lik(pos, chain.exists, z, models.sensor),
+                          log_px=_log_px(pos, pm, S, obs, free, models.existence),
+                          log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free,
+                          prev=new_prev)
+    acc = torch.log(noise.u) < _past_log_target(prop) - _past_log_target(chain)
+    return _select(acc, prop, chain), acc
+
+
+def _past_log_target(chain: Chain) -> Tensor:
+    """``log pi(j, x_w, g, e, x)`` of the past move's target up to the terms it does not change
+    (``w_j``, ``c_j``, the existence prior): the window's terms, ``log p(g | x_{t-1}, .)``,
+    ``log p(x | past, g, e)`` and ``log p(Z_t | x, e)``, ``(B, C)``.
+    """
+    log_g = torch.gather(chain.prev.log_pg, -1, chain.g.unsqueeze(-1)).squeeze(-1)
+    return chain.prev.log_win + log_g + chain.log_px + chain.log_lik
 
 
 def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tuple[Tensor, Tensor]:
@@ -483,191 +757,270 @@ def _log_q_slot(x_i: Tensor, cm: Tensor, cv: Tensor, obs_i: Tensor, free_i: Tens
 
 
 # ----------------------------------------------------------------------------------------
-# noise (eager)
+# the state: a ParticleState whose extras hold the group fields
 # ----------------------------------------------------------------------------------------
-def _birth_noise(shape: tuple[int, int, int], g: torch.Generator, *, dtype: torch.dtype,
-                 device: torch.device | str | None) -> Noise:
-    """Uniforms of the birth proposal ``q_0`` (eqs. 64-65): ``b_sel``, ``b_pix (B, C, K)``,
-    ``b_xy (B, C, K, 2)``.
+PATH_KEYS = ("path_pos", "path_labels", "path_exists", "path_log", "anchor_w_mean", "anchor_w_cov")
+
+
+def unpack(state: ParticleState, lag: int) -> GroupView:
+    """The group fields of a state (module docstring, "State and outputs") as a
+    :class:`GroupView`; a state without a path (or with a longer one than ``lag``) starts one
+    at its current step.
     """
-    return {"b_sel": torch.rand(shape, generator=g, dtype=dtype, device=device),
-            "b_pix": torch.rand(shape, generator=g, dtype=dtype, device=device),
-            "b_xy": torch.rand(shape + (2,), generator=g, dtype=dtype, device=device)}
-
-
-def draw_joint_noise(shape: tuple[int, int, int], *, generator: torch.Generator,
-                     dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Noise:
-    """Uniforms and normals of one joint draw for chains of ``shape = (B, C, K)``: ``mix``,
-    ``j``, ``g``, ``u (B, C)``, ``e (B, C, K)``, ``eps (B, C, K, 2)`` and the birth uniforms.
-    """
-    b, c, k = shape
-    g = generator
-    noise = {"mix": torch.rand((b, c), generator=g, dtype=dtype, device=device),
-             "j": torch.rand((b, c), generator=g, dtype=dtype, device=device),
-             "g": torch.rand((b, c), generator=g, dtype=dtype, device=device),
-             "e": torch.rand((b, c, k), generator=g, dtype=dtype, device=device),
-             "eps": torch.randn((b, c, k, 2), generator=g, dtype=dtype, device=device),
-             "u": torch.rand((b, c), generator=g, dtype=dtype, device=device)}
-    noise.update(_birth_noise((b, c, k), g, dtype=dtype, device=device))
-    return noise
-
-
-def draw_refine_noise(shape: tuple[int, int, int], *, generator: torch.Generator,
-                      dtype: torch.dtype = torch.float64, device: torch.device | str | None = None) -> Noise:
-    """Uniforms and normals of one refinement sweep for chains of ``shape = (B, C, K)``:
-    ``g``, ``u_g (B, C)``, ``e``, ``u_x (B, C, K)``, ``eps (B, C, K, 2)`` and the birth uniforms.
-    """
-    b, c, k = shape
-    g = generator
-    noise = {"g": torch.rand((b, c), generator=g, dtype=dtype, device=device),
-             "u_g": torch.rand((b, c), generator=g, dtype=dtype, device=device),
-             "e": torch.rand((b, c, k), generator=g, dtype=dtype, device=device),
-             "eps": torch.randn((b, c, k, 2), generator=g, dtype=dtype, device=device),
-             "u_x": torch.rand((b, c, k), generator=g, dtype=dtype, device=device)}
-    noise.update(_birth_noise((b, c, k), g, dtype=dtype, device=device))
-    return noise
+    ex = state.extras or {}
+    pos = state.x[..., 0::2]
+    exists = state.exists if state.exists is not None else torch.zeros(pos.shape[:-1], dtype=torch.bool,
+                                                                       device=pos.device)
+    labels, w_mean, w_cov, frames = ex["labels"], ex["w_mean"], ex["w_cov"], ex["frames"]
+    g = structure_index(labels)
+    b, n, k = labels.shape
+    if lag > 0 and all(key in ex for key in PATH_KEYS) and ex["path_pos"].shape[2] <= lag + 1:
+        pp, pl, pe, plog = ex["path_pos"], ex["path_labels"], ex["path_exists"], ex["path_log"]
+        pg = structure_index(pl)
+        return GroupView(pos, g, labels, exists, w_mean, w_cov, state.log_w, frames,
+                         pp[:, :, 0], pg[:, :, 0], pl[:, :, 0], pe[:, :, 0], ex["anchor_w_mean"], ex["anchor_w_cov"],
+                         pp[:, :, 1:], pg[:, :, 1:], pl[:, :, 1:], pe[:, :, 1:], plog[:, :, 1:])
+    none = pos.new_zeros((b, n, 0))
+    return GroupView(pos, g, labels, exists, w_mean, w_cov, state.log_w, frames,
+                     pos, g, labels, exists, w_mean, w_cov, pos.new_zeros((b, n, 0, k, 2)), g.new_zeros((b, n, 0)),
+                     labels.new_zeros((b, n, 0, k)), exists.new_zeros((b, n, 0, k)), none)
 
 
 # ----------------------------------------------------------------------------------------
 # the step
 # ----------------------------------------------------------------------------------------
-def _predicted_positions(state: GroupState, models: Models, chunk: int = 512) -> Tensor:
-    """``x~^j`` of eq. 62: each particle's positions predicted with its structure and existence
-    unchanged, ``(B, N, K, 2)`` (chunks of particles bound the memory).
+def _predictive_log_lik(pm: Tensor, var: Tensor, exists: Tensor, z: Tensor, sensor: ThresholdedPixels,
+                        p_death: float, radius: int = 2) -> Tensor:
+    """``sum_i log[(1 - P_D) E_{N(pm_i, var_i I)} p(Z | x_i) + P_D]`` over the live slots
+    (alpha ``"predictive"``, module docstring): ``pm (B, n, K, 2)``, ``var (B, n, K)`` ->
+    ``(B, n)``. The Gaussian's mass on each pixel of a ``(2 radius + 1)^2`` window around its
+    mean times the pixel's one-target ratio (eq. 40); mass outside the window or the grid
+    counts with ratio 1 (the mean ratio of a pixel without a target is ``1``).
+    """
+    s = sensor.pixel_size
+    h, w = sensor.shape
+    sd = var.clamp(min=1e-12).sqrt().unsqueeze(-1)
+    offs = torch.arange(-radius, radius + 1, device=pm.device, dtype=pm.dtype)
+    cols = torch.floor(pm[..., 0] / s).unsqueeze(-1) + offs  # (B, n, K, R)
+    rows = torch.floor(pm[..., 1] / s).unsqueeze(-1) + offs
+
+    def mass(c: Tensor, mu: Tensor) -> Tensor:
+        mu = mu.unsqueeze(-1)
+        return torch.special.ndtr(((c + 1) * s - mu) / sd) - torch.special.ndtr((c * s - mu) / sd)
+
+    m2 = mass(rows, pm[..., 1]).unsqueeze(-1) * mass(cols, pm[..., 0]).unsqueeze(-2)  # (B, n, K, R, R)
+    inside = (((rows >= 0) & (rows < h)).unsqueeze(-1) & ((cols >= 0) & (cols < w)).unsqueeze(-2))
+    flat = (rows.clamp(0, h - 1).long().unsqueeze(-1) * w + cols.clamp(0, w - 1).long().unsqueeze(-2))
+    b = flat.shape[0]
+    hit = torch.gather(z.reshape(b, -1).to(torch.bool), 1, flat.reshape(b, -1)).reshape(flat.shape)
+    lr1 = sensor.p_d1 / sensor.p_fa
+    lr0 = (1.0 - sensor.p_d1) / (1.0 - sensor.p_fa)
+    lr = torch.where(inside, hit.to(pm.dtype) * (lr1 - lr0) + lr0, torch.ones_like(m2))
+    e_lr = (m2 * lr).sum((-1, -2)) + (1.0 - m2.sum((-1, -2))).clamp(min=0.0)
+    term = torch.log((1.0 - p_death) * e_lr + p_death)
+    return torch.where(exists, term, torch.zeros_like(term)).sum(-1)
+
+
+def _log_alpha_lik(v: GroupView, z: Tensor, models: Models, alpha: str, chunk: int = 512) -> Tensor:
+    """``log p(Z_t | j)`` of eq. 62 (``"mean"``) or the predictive likelihood
+    (``"predictive"``) of every particle, ``(B, N)`` (chunks of particles bound the memory).
     """
     out = []
-    pos = state.x[..., 0::2]
-    for s in range(0, pos.shape[1], chunk):
+    for s in range(0, v.pos.shape[1], chunk):
         sl = slice(s, s + chunk)
-        tr = models.motion.transition(pos[:, sl], state.labels[:, sl], state.labels[:, sl], state.exists[:, sl],
-                                      state.exists[:, sl], existence=models.existence)
-        pred = pairwise_kalman_predict(KalmanStats(state.w_mean[:, sl], state.w_cov[:, sl]), pos[:, sl], tr)
-        out.append(torch.where(state.exists[:, sl].unsqueeze(-1), pred.position_mean,
-                               _death_pos(models.existence, pos)))
+        pos, lab, ex = v.pos[:, sl], v.labels[:, sl], v.exists[:, sl]
+        tr = models.motion.transition(pos, lab, lab, ex, ex, existence=models.existence)
+        pred = pairwise_kalman_predict(KalmanStats(v.w_mean[:, sl], v.w_cov[:, sl]), pos, tr)
+        if alpha == "mean":
+            pm = torch.where(ex.unsqueeze(-1), pred.position_mean, _death_pos(models.existence, pos))
+            out.append(_log_lik(pm, ex, z, models.sensor))
+        else:
+            var = torch.diagonal(pred.position_cov, dim1=-2, dim2=-1)
+            out.append(_predictive_log_lik(pred.position_mean, var, ex, z, models.sensor, models.existence.p_death))
     return torch.cat(out, 1)
 
 
-def make_cloud(state: GroupState, z: Tensor, *, structure_prior: GroupStructurePrior, models: Models,
-               settings: GroupMCMCSettings) -> Cloud:
+def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: GroupMCMCSettings) -> Cloud:
     """Per-step quantities of the proposals (eqs. 19, 61-62, 65), eager."""
-    sensor = models.sensor
-    pos = state.x[..., 0::2]
-    b, _, k = state.exists.shape
-    table = group_structures(k, device=pos.device)
-    log_pg = structure_prior.log_probs(structure_index(state.labels), pos, state.exists)
+    v = unpack(state, settings.lag)
+    b, _, k = v.exists.shape
+    table = group_structures(k, device=v.pos.device)
+    log_pg = models.structure_prior.log_probs(v.g, v.pos, v.exists)
     log_w = torch.log_softmax(state.log_w.to(torch.float64), -1)
-    pred = _predicted_positions(state, models)
-    log_alpha = torch.log_softmax(log_w + _log_lik(pred, state.exists, z, sensor).to(torch.float64), -1)
+    log_alpha = torch.log_softmax(log_w + _log_alpha_lik(v, z, models, settings.alpha).to(torch.float64), -1)
     log_q = torch.log(settings.p_a * log_alpha.exp() + (1.0 - settings.p_a) * log_w.exp())  # eq. 61
     zb = z.to(torch.bool)
-    prev = zb if state.frame_prev is None else state.frame_prev.to(torch.bool)
-    near = F.max_pool2d(prev.to(torch.float64).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
-    beta = (zb & near).reshape(b, -1)
-    return Cloud(pos, state.labels, state.exists, state.w_mean, state.w_cov, log_pg,
-                 cdf(log_alpha), cdf(log_w),
-                 (log_w - log_q).to(pos.dtype), beta, beta.to(torch.float64).cumsum(-1), beta.sum(-1), table)
+    if settings.birth == "eq65":  # without a previous frame (or an empty one: the start), the current one
+        prev = zb if v.frames.shape[1] == 0 else v.frames[:, -1].to(torch.bool)
+        prev = torch.where(prev.flatten(1).any(-1)[:, None, None], prev, zb)
+        near = F.max_pool2d(prev.to(torch.float64).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
+        beta = (zb & near).reshape(b, -1)
+    else:
+        beta = zb.reshape(b, -1)
+    any_obs = beta.any(-1, keepdim=True)
+    log_beta = torch.where(beta | ~any_obs, 0.0, -math.inf).to(torch.float64)  # no detection: unused, kept finite
+    return Cloud(v, log_pg, v.win_log.sum(-1), cdf(log_alpha), cdf(log_w), (log_w - log_q).to(v.pos.dtype),
+                 beta, cdf(log_beta), beta.sum(-1), table)
 
 
-def _kalman_at_keep(cloud: Cloud, j: Tensor, labels: Tensor, exists: Tensor, pos: Tensor, models: Models,
-                    marginalise: bool, generator: torch.Generator, chunk: int = 512) -> tuple[Tensor, Tensor]:
-    """Kalman statistics at ``t`` of kept states ``(B, N, ...)`` (eqs. 53-57); sampled with zero
-    covariance when not marginalising.
+def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, z: Tensor,
+          models: Models, settings: GroupMCMCSettings, generator: torch.Generator, chunk: int = 512
+          ) -> dict[str, Tensor]:
+    """The extras of the kept states ``(B, N, ...)`` at ``t``: the Kalman statistics (eqs.
+    53-57; from the anchor through the window with a lag, sampled with zero covariance when
+    not marginalising), the frames and, with a lag, the new path.
     """
-    means, covs = [], []
+    v = cloud.view
+    lag, w = settings.lag, win_pos.shape[2]
+    labels = cloud.table[g]
+    trim = lag > 0 and w == lag  # the path is full: its first entry leaves, the next is the anchor
+    parts: dict[str, list[Tensor]] = {}
     for s in range(0, j.shape[1], chunk):
         sl = slice(s, s + chunk)
         jj = j[:, sl]
-        pos_prev = _gather(cloud.pos, jj)
-        tr = models.motion.transition(pos_prev, _gather(cloud.labels, jj), labels[:, sl], _gather(cloud.exists, jj),
-                                      exists[:, sl], existence=models.existence)
-        pred = pairwise_kalman_predict(KalmanStats(_gather(cloud.w_mean, jj), _gather(cloud.w_cov, jj)), pos_prev, tr)
-        _, st = pairwise_kalman_update(pred, pos[:, sl])
-        mean, cov = st.mean, st.cov
-        if not marginalise:
-            d = cov.shape[-1]
-            jitter = 1e-9 * (1.0 + torch.diagonal(cov, dim1=-2, dim2=-1).amax(-1))[..., None, None]
-            L = torch.linalg.cholesky(cov + jitter * torch.eye(d, dtype=cov.dtype, device=cov.device))
-            eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
-            mean = mean + eps @ L.transpose(-1, -2)
-            cov = torch.zeros_like(cov)
-        means.append(mean)
-        covs.append(cov)
-    return torch.cat(means, 1), torch.cat(covs, 1)
+        if lag == 0:
+            prev = _prev_of(cloud, jj)
+            tr = models.motion.transition(prev.pos, prev.labels, labels[:, sl], prev.exists, exists[:, sl],
+                                          existence=models.existence)
+            _, st = pairwise_kalman_update(pairwise_kalman_predict(KalmanStats(prev.w_mean, prev.w_cov), prev.pos, tr),
+                                           pos[:, sl])
+            mean, cov = st.mean, st.cov
+            if not settings.marginalise:
+                d = cov.shape[-1]
+                jitter = 1e-9 * (1.0 + torch.diagonal(cov, dim1=-2, dim2=-1).amax(-1))[..., None, None]
+                L = torch.linalg.cholesky(cov + jitter * torch.eye(d, dtype=cov.dtype, device=cov.device))
+                eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
+                mean = mean + eps @ L.transpose(-1, -2)
+                cov = torch.zeros_like(cov)
+            parts.setdefault("w_mean", []).append(mean)
+            parts.setdefault("w_cov", []).append(cov)
+            continue
+        stats = KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
+        a_pos, a_g, a_lab, a_ex = (_gather(t, jj) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels,
+                                                             v.anchor_exists))
+        wg, wl, we = (_gather(t, jj) for t in (v.win_g, v.win_labels, v.win_exists))
+        off = v.frames.shape[1] - w  # the window's frames are the last W
+        steps = [(win_pos[:, sl, i], wg[:, :, i], wl[:, :, i], we[:, :, i], v.frames[:, off + i]) for i in range(w)]
+        steps.append((pos[:, sl], g[:, sl], labels[:, sl], exists[:, sl], z))
+        path = [(a_pos, a_lab, a_ex)]
+        terms, first = [], stats
+        p_pos, p_g, p_lab, p_ex = a_pos, a_g, a_lab, a_ex
+        for i, (q_pos, q_g, q_lab, q_ex, q_z) in enumerate(steps):
+            term, stats = _path_step(stats, p_pos, p_g, p_lab, p_ex, q_pos, q_g, q_lab, q_ex, q_z, models)
+            terms.append(term)
+            path.append((q_pos, q_lab, q_ex))
+            if i == 0:
+                first = stats
+            p_pos, p_g, p_lab, p_ex = q_pos, q_g, q_lab, q_ex
+        anchor = first if trim else KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
+        if trim:
+            path, terms = path[1:], terms[1:]
+        for key, val in (("w_mean", stats.mean), ("w_cov", stats.cov), ("anchor_w_mean", anchor.mean),
+                         ("anchor_w_cov", anchor.cov), ("path_pos", torch.stack([p[0] for p in path], 2)),
+                         ("path_labels", torch.stack([p[1] for p in path], 2)),
+                         ("path_exists", torch.stack([p[2] for p in path], 2)),
+                         ("path_log", torch.stack([torch.zeros_like(terms[0])] + terms, 2))):
+            parts.setdefault(key, []).append(val)
+    extras = {key: torch.cat(val, 1) for key, val in parts.items()}
+    frames = torch.cat([v.frames, z.to(torch.bool).unsqueeze(1)], 1)
+    extras["frames"] = frames[:, frames.shape[1] - (extras["path_pos"].shape[2] - 1 if lag else 1):].contiguous()
+    extras["labels"] = labels
+    return extras
 
 
-def group_mcmc_step(state: GroupState, z: Tensor, *, motion: VirtualLeaderMotion, sensor: ThresholdedPixels,
+def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMotion, sensor: ThresholdedPixels,
                     settings: GroupMCMCSettings = GroupMCMCSettings(), generator: torch.Generator,
                     existence: GroupExistence, structure_prior: GroupStructurePrior,
-                    kernels: dict[str, Callable[..., Any]] | None = None) -> tuple[GroupState, StepInfo]:
+                    kernel: Callable[..., Any] | None = None) -> tuple[ParticleState, StepInfo]:
     """One time step of the marginalised MCMC-based particle filter (module docstring).
 
     Parameters
     ----------
-    state : GroupState at ``t - 1`` (``x (B, N, K, 4)``).
+    state : ParticleState at ``t - 1`` with the group extras (``x (B, N, K, 4)``;
+        :meth:`GroupMCMCFilter.init`).
     z : (B, H, W) binary frame at ``t``.
     motion, sensor, existence, structure_prior : the models (eqs. 13, 41, 25/33, 19).
     settings : GroupMCMCSettings; generator : the only source of randomness (eager draws).
-    kernels : ``{"joint": f, "refine": f}``, :func:`joint_move` / :func:`refine_move` with the
-        models bound, ``f(chain, noise, cloud, z)`` (compiled ones,
-        ``GroupMCMCFilter(compile_step=True)``); default eager.
+    kernel : ``kernel(move, chain, noise, cloud, z)`` running the move ``"joint"``,
+        ``"refine"`` or ``"past"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
+        default eager.
 
     Returns
     -------
-    state : GroupState at ``t`` (chain-major particles, equal weights).
+    state : ParticleState at ``t`` (chain-major particles, equal weights).
     info : ``acceptance (B,)`` over all MH decisions; ``extras``: ``acceptance_joint``,
-        ``acceptance_structure``, ``acceptance_target`` (B,) (NaN where the move never ran),
-        ``structure_prob (B, Bell(K))``, ``exists_prob (B, K)``, ``expected_count (B,)``.
+        ``acceptance_structure``, ``acceptance_target`` and, with a lag, ``acceptance_past``
+        (B,) (NaN where the move never ran), ``structure_prob (B, Bell(K))``,
+        ``exists_prob (B, K)``, ``expected_count (B,)``, ``all_exist_prob (B,)`` (every slot
+        alive) and ``structure_prob_all_exist (B, Bell(K))``, the structure given that every
+        slot is alive (NaN where no particle has them all).
     """
     b, n, k, _ = state.x.shape
     settings.check(n)
     c = settings.num_chains
-    models = Models(motion, sensor, existence, float(settings.p_i), float(settings.p_a))
-    kernels = kernels or _bind(models)
+    models = Models(motion, sensor, existence, structure_prior, float(settings.p_i), float(settings.p_a),
+                    settings.past_step)
+    kernel = kernel or _bind(models)
     dtype, dev = state.x.dtype, state.x.device
-    cloud = make_cloud(state, z, structure_prior=structure_prior, models=models, settings=settings)
-    chain = joint_proposal(draw_joint_noise((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
+    cloud = make_cloud(state, z, models=models, settings=settings)
+    chain = joint_proposal(JointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
     per_chain = n // c
-    acc = {name: state.x.new_zeros(b) for name in ("joint", "structure", "target")}
-    cnt = {name: state.x.new_zeros(b) for name in acc}
+    names = ["joint", "structure", "target"] + (["past"] if settings.lag else [])
+    acc = {name: state.x.new_zeros(b) for name in names}
+    cnt = {name: state.x.new_zeros(b) for name in names}
     kept = []
-    for m in range(1, settings.burn_in + settings.thinning * per_chain + 1):
-        if float(torch.rand((), generator=generator, dtype=torch.float64)) < settings.xi:
-            noise = draw_joint_noise((b, c, k), generator=generator, dtype=dtype, device=dev)
-            chain, a = kernels["joint"](chain, noise, cloud, z)
-            acc["joint"] += a.to(dtype).sum(1)
-            cnt["joint"] += c
-        else:
-            noise = draw_refine_noise((b, c, k), generator=generator, dtype=dtype, device=dev)
-            chain, a_g, a_x = kernels["refine"](chain, noise, cloud, z)
-            acc["structure"] += a_g.to(dtype).sum(1)
+    count = settings.burn_in + settings.thinning * per_chain
+    for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
+        noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev)
+        out = kernel(move, chain, noise, cloud, z)
+        chain = out[0]
+        if move == "refine":
+            acc["structure"] += out[1].to(dtype).sum(1)
             cnt["structure"] += c
-            acc["target"] += a_x.to(dtype).sum((1, 2))
+            acc["target"] += out[2].to(dtype).sum((1, 2))
             cnt["target"] += c * k
+        else:
+            acc[move] += out[1].to(dtype).sum(1)
+            cnt[move] += c
         if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
-            kept.append((chain.j, chain.labels, chain.exists, chain.pos))
-    j, labels, exists, pos = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
-    w_mean, w_cov = _kalman_at_keep(cloud, j, labels, exists, pos, models, settings.marginalise, generator)
-    vel = w_mean[..., :k].transpose(-1, -2)  # (B, N, K, 2)
+            kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos))
+    j, g, exists, pos, win_pos = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
+    extras = _keep(cloud, j, g, exists, pos, win_pos, z, models, settings, generator)
+    vel = extras["w_mean"][..., :k].transpose(-1, -2)  # (B, N, K, 2)
     x = torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
-    new = GroupState(x, x.new_full((b, n), -math.log(n)), exists, labels, w_mean, w_cov, z.to(torch.bool))
-    g = group_structures(k, device=x.device).shape[0]
-    structure_prob = F.one_hot(structure_index(labels), g).to(x.dtype).mean(1)
+    new = ParticleState(x, x.new_full((b, n), -math.log(n)), exists, extras)
+    one_hot = F.one_hot(g, cloud.table.shape[0]).to(x.dtype)  # (B, N, G)
+    all_exist = exists.all(-1).to(x.dtype)  # (B, N)
     exists_prob = exists.to(x.dtype).mean(1)
-    extras = {f"acceptance_{name}": acc[name] / cnt[name] for name in acc}
-    extras.update(structure_prob=structure_prob, exists_prob=exists_prob, expected_count=exists_prob.sum(-1))
-    acceptance = (acc["joint"] + acc["structure"] + acc["target"]) / (cnt["joint"] + cnt["structure"] + cnt["target"])
-    return new, StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
+    info = {f"acceptance_{name}": acc[name] / cnt[name] for name in names}
+    info.update(structure_prob=one_hot.mean(1), exists_prob=exists_prob, expected_count=exists_prob.sum(-1),
+                all_exist_prob=all_exist.mean(1),
+                structure_prob_all_exist=(one_hot * all_exist.unsqueeze(-1)).sum(1) / all_exist.sum(1, keepdim=True))
+    acceptance = sum(acc.values(), x.new_zeros(b)) / sum(cnt.values(), x.new_zeros(b))
+    return new, StepInfo.make(acceptance, acceptance=acceptance, extras=info)
 
 
-def _bind(models: Models) -> dict[str, Callable[..., Any]]:
-    """The two moves with the models bound: ``{"joint": f(chain, noise, cloud, z), "refine": ...}``."""
-    def joint(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor) -> tuple[Chain, Tensor]:
+def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None) -> Callable[..., Any]:
+    """``kernel(move, chain, noise, cloud, z)``: the moves with the models bound (each compiled
+    on its own with ``compile``: three functions, so that each has its own compile cache).
+    """
+    def joint(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor) -> Any:
         return joint_move(chain, noise, cloud, z, models)
 
-    def refine(chain: Chain, noise: Noise, cloud: Cloud, z: Tensor) -> tuple[Chain, Tensor, Tensor]:
+    def refine(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor) -> Any:
         return refine_move(chain, noise, cloud, z, models)
 
-    return {"joint": joint, "refine": refine}
+    def past(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor) -> Any:
+        return past_move(chain, noise, cloud, z, models)
+
+    moves: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past}
+    if compile is not None:
+        moves = {name: compile(fn) for name, fn in moves.items()}
+
+    def kernel(move: str, chain: Chain, noise: Any, cloud: Cloud, z: Tensor) -> Any:
+        return moves[move](chain, noise, cloud, z)
+
+    return kernel
 
 
 # ----------------------------------------------------------------------------------------
@@ -683,75 +1036,95 @@ class GroupMCMCFilter(Filter):
     num_particles : N, a multiple of ``num_chains``.
     existence : GroupExistence (eq. 25, births eqs. 29-37); structure_prior :
         GroupStructurePrior (eq. 19).
-    num_chains, burn_in, thinning, xi, p_a, p_i, marginalise : :class:`GroupMCMCSettings`.
-    compile_step : compile the joint move and the refinement sweep
-        (``torch.compile(fullgraph=True)``; noise drawn eagerly, so compiled == eager).
+    num_chains : C; default :func:`default_chains` (the largest divisor of N up to 20).
+    burn_in : per chain and step (default 100; the paper's 1000 is for its one chain).
+    thinning, xi, p_a, p_i, marginalise, alpha, birth, lag, p_past, past_step, max_memory_gb :
+        :class:`GroupMCMCSettings`.
+    compile_step : compile each move (``torch.compile(fullgraph=True)``; noise drawn
+        eagerly, so compiled == eager).
 
     Example
     -------
-    >>> scn = group_merge(2, generator=torch.Generator().manual_seed(0))    # doctest: +SKIP
-    >>> filt = GroupMCMCFilter(scn.motion, scn.sensor, 400, existence=scn.existence,
-    ...                        structure_prior=scn.structure_prior, num_chains=20, burn_in=50)
-    >>> res = filt(scn.frames, init=filt.init_inactive(2), generator=g)     # doctest: +SKIP
-    >>> res.info.extras["structure_prob"].shape                               # (T, B, 15)
+    >>> import torch
+    >>> from torchmcmcpf import GroupMCMCFilter
+    >>> from torchmcmcpf.scenarios.group_merge import group_merge
+    >>> scn = group_merge(2, generator=torch.Generator().manual_seed(0), num_steps=3)
+    >>> filt = GroupMCMCFilter(scn.motion, scn.sensor, 40, existence=scn.existence,
+    ...                        structure_prior=scn.structure_prior, burn_in=10)
+    >>> filt.settings.num_chains
+    20
+    >>> res = filt(scn.frames, init=filt.init_inactive(2), generator=torch.Generator().manual_seed(1))
+    >>> res.info.extras["structure_prob"].shape  # (T, B, Bell(4)): the probability of each structure
+    torch.Size([3, 2, 15])
+    >>> res.exists_prob.shape  # (T, B, K)
+    torch.Size([3, 2, 4])
     """
 
-    # Contract deviation (module docstring): the group models replace Filter's MotionModel and
-    # BirthDeath, and the filtering state is a GroupState, not a ParticleState; hence the
-    # targeted ``type: ignore[assignment]`` / ``[override]`` / ``[arg-type]`` in this class.
-    motion: VirtualLeaderMotion  # type: ignore[assignment]
+    motion: VirtualLeaderMotion  # type: ignore[assignment]  # a whole-configuration motion (motion_type)
     sensor: ThresholdedPixels
-    existence: GroupExistence  # type: ignore[assignment]
+    existence: GroupExistence
+    settings: GroupMCMCSettings
+    motion_type = VirtualLeaderMotion
 
     def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int, *,
-                 existence: GroupExistence, structure_prior: GroupStructurePrior, num_chains: int = 1,
-                 burn_in: int = 1000, thinning: int = 6, xi: float = 0.75, p_a: float = 0.5, p_i: float = 0.01,
-                 marginalise: bool = True, compile_step: bool = False) -> None:
-        nn.Module.__init__(self)
-        if not isinstance(motion, VirtualLeaderMotion):
-            raise ValueError(f"motion must be a VirtualLeaderMotion, got {type(motion).__name__}")
+                 existence: GroupExistence, structure_prior: GroupStructurePrior, num_chains: int | None = None,
+                 burn_in: int = 100, thinning: int = 6, xi: float = 0.75, p_a: float = 0.5, p_i: float = 0.01,
+                 marginalise: bool = True, alpha: str = "mean", birth: str = "eq65", lag: int = 0,
+                 p_past: float = 0.0, past_step: tuple[float, float] = (10.0, 5.0), max_memory_gb: float = 8.0,
+                 compile_step: bool = False) -> None:
         if not all(hasattr(sensor, a) for a in ("shape", "pixel_size", "position_index", "log_likelihood")):
             raise ValueError(f"sensor must be a pixel sensor (ThresholdedPixels), got {type(sensor).__name__}")
         if not isinstance(existence, GroupExistence):
             raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
         if not isinstance(structure_prior, GroupStructurePrior):
             raise ValueError(f"structure_prior must be a GroupStructurePrior, got {type(structure_prior).__name__}")
-        if not isinstance(compile_step, bool):
-            raise ValueError(f"compile_step must be a bool, got {compile_step!r}")
-        self.motion, self.sensor, self.existence, self.structure_prior = motion, sensor, existence, structure_prior
-        self.num_particles = check_positive_int(num_particles, "num_particles")
-        self.settings = GroupMCMCSettings(num_chains, burn_in, thinning, xi, p_a, p_i, marginalise)
-        self.settings.check(self.num_particles)
-        self.compile_step = compile_step
-        self._compiled_moves: dict[str, Callable[..., Any]] | None = None
+        n = check_positive_int(num_particles, "num_particles")
+        chains = default_chains(n) if num_chains is None else num_chains
+        settings = GroupMCMCSettings(chains, burn_in, thinning, xi, p_a, p_i, marginalise, alpha, birth, lag, p_past,
+                                     tuple(past_step), max_memory_gb)  # type: ignore[arg-type]
+        super().__init__(motion, sensor, n, settings, existence=existence,  # type: ignore[arg-type]
+                         compile_step=compile_step)
+        settings.check(n)
+        self.structure_prior = structure_prior
 
-    def kernels(self) -> dict[str, Callable[..., Any]] | None:
-        """The moves passed to :func:`group_mcmc_step`: ``None`` (its eager ones) unless
-        ``compile_step``, then ``{"joint": f, "refine": f}`` compiled once
-        (:func:`~torchmcmcpf.filters.base.compile_kernel`), ``f(chain, noise, cloud, z)``.
+    def models(self) -> Models:
+        """The models and proposal constants the moves are bound to."""
+        s = self.settings
+        return Models(self.motion, self.sensor, self.existence, self.structure_prior, float(s.p_i), float(s.p_a),
+                      s.past_step)
+
+    def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
+        return _bind(self.models(), compile)
+
+    # -- state ---------------------------------------------------------------------------
+    def check_memory(self, batch_size: int, num_slots: int) -> None:
+        """Refuse (``ValueError`` with the estimate) a problem whose step would need more than
+        ``max_memory_gb`` (:func:`estimate_step_bytes`), before anything is allocated.
         """
-        if not self.compile_step:
-            return None
-        if self._compiled_moves is None:
-            models = Models(self.motion, self.sensor, self.existence, float(self.settings.p_i),
-                            float(self.settings.p_a))
-            self._compiled_moves = {name: compile_kernel(fn) for name, fn in _bind(models).items()}
-        return self._compiled_moves
+        need = estimate_step_bytes(batch_size, self.num_particles, num_slots, lag=self.settings.lag)
+        if need > self.settings.max_memory_gb * 2**30:
+            raise ValueError(
+                f"num_slots={num_slots} with batch_size={batch_size} and num_particles={self.num_particles} needs "
+                f"about {need / 2**30:.1f} GiB per step (Bell({num_slots}) = {bell_number(num_slots)} group "
+                f"structures), above max_memory_gb={self.settings.max_memory_gb:g}; use fewer slots (N_max) or "
+                "particles, or raise max_memory_gb")
 
     def init(self, particles: Tensor, exists: Tensor | None = None,  # type: ignore[override]
-             labels: Tensor | None = None) -> GroupState:
+             labels: Tensor | None = None) -> ParticleState:
         """Wrap initial particles ``(B, N, K, 4)`` (``[x, vx, y, vy]``; ``exists (B, N, K)``,
         default all inactive; ``labels (B, N, K)``, default each slot its own group) into a
-        GroupState with exact (zero-covariance) Kalman statistics: velocities from
-        ``particles``, leaders at ``v_death``.
+        state with exact (zero-covariance) Kalman statistics: velocities from ``particles``,
+        leaders at ``v_death``.
         """
-        check_shape(particles, "init", (None, self.num_particles, None, 4))
-        if not particles.is_floating_point() or not bool(torch.isfinite(particles).all()):
-            raise ValueError("init must be a finite floating tensor (B, N, K, 4)")
+        self._check_state_tensors(particles, exists)
         b, n, k, _ = particles.shape
+        self.check_memory(b, k)
+        for t in list(self.buffers()) + list(self.parameters()):  # init reads the models (x_death, v_death)
+            if t.device != particles.device:
+                raise ValueError(f"the models' parameters are on {t.device}, expected {particles.device} (the device "
+                                 "of init); move them with filt.to(device)")
         if exists is None:
             exists = torch.zeros((b, n, k), dtype=torch.bool, device=particles.device)
-        check_shape(exists, "init.exists", (b, n, k))
         if labels is None:
             labels = torch.arange(k, device=particles.device).expand(b, n, k)
         check_shape(labels, "init.labels", (b, n, k))
@@ -760,69 +1133,78 @@ class GroupMCMCFilter(Filter):
         st = pairwise_kalman_init((b, n), k, existence=self.existence, dtype=particles.dtype, device=particles.device)
         w_mean = st.mean.clone()
         w_mean[..., :k] = x[..., 1::2].transpose(-1, -2)
-        log_w = particles.new_full((b, n), -math.log(n))
-        return GroupState(x, log_w, exists, labels.to(torch.int64).contiguous(), w_mean, st.cov)
+        labels = labels.to(torch.int64).contiguous()
+        h, w = self.sensor.shape
+        extras = {"labels": labels, "w_mean": w_mean, "w_cov": st.cov,
+                  "frames": torch.zeros((b, 0, h, w), dtype=torch.bool, device=particles.device)}
+        lag = self.settings.lag
+        if lag:
+            # all inactive: a past of L inactive steps (empty frames) is the same start, and the state
+            # has its final shapes from the first step on (compiled moves compile once)
+            p = lag + 1 if not bool(exists.any()) else 1
+            extras.update(path_pos=x[..., 0::2].unsqueeze(2).expand(b, n, p, k, 2).clone(),
+                          path_labels=labels.unsqueeze(2).expand(b, n, p, k).clone(),
+                          path_exists=exists.unsqueeze(2).expand(b, n, p, k).clone(), path_log=x.new_zeros((b, n, p)),
+                          anchor_w_mean=w_mean.clone(), anchor_w_cov=st.cov.clone())
+            extras["frames"] = torch.zeros((b, p - 1, h, w), dtype=torch.bool, device=particles.device)
+        return ParticleState(x, particles.new_full((b, n), -math.log(n)), exists, extras)
 
     def init_inactive(self, batch_size: int, num_slots: int = 4, *, dtype: torch.dtype = torch.float64,
-                      device: torch.device | str | None = None) -> GroupState:
-        """``K = num_slots`` slots, all inactive in every particle of every run (paper 004 sec. 5)."""
+                      device: torch.device | str | None = None) -> ParticleState:
+        """``K = num_slots`` slots, all inactive in every particle of every run (paper 004 sec. 5).
+        Refuses a ``num_slots`` whose ``Bell(K)`` structures do not fit ``max_memory_gb``.
+        """
         b = check_positive_int(batch_size, "batch_size")
         k = check_positive_int(num_slots, "num_slots")
+        self.check_memory(b, k)
         return self.init(torch.zeros((b, self.num_particles, k, 4), dtype=dtype, device=device))
 
-    def _check(self, state: GroupState, z: Tensor, name: str = "z") -> None:
-        if not isinstance(state, GroupState):
-            raise ValueError(f"state must be a GroupState, got {type(state).__name__}")
-        check_shape(z, name, (state.batch_size,) + tuple(self.sensor.shape))
-        self.sensor.validate(z, state.batch_size, name)
+    def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
+        state = super()._as_state(init)
+        if state.extras is None:  # a plain ParticleState: the group fields start as init's
+            state = self.init(state.x, state.exists)._replace(log_w=state.log_w)
+        return state
 
-    def step(self, state: GroupState, z: Tensor, *,  # type: ignore[override]
-             generator: torch.Generator) -> tuple[GroupState, StepInfo]:
-        """Advance by one frame ``z (B, H, W)``."""
-        check_generator(generator)
-        self._check(state, z)
-        return self._step(state, z, generator)
+    def check_extras(self, state: ParticleState) -> None:
+        """The group fields of ``state.extras`` (module docstring): keys, shapes, dtypes and
+        devices against ``x (B, N, K, 4)``; ``ValueError`` naming the field otherwise.
+        """
+        b, n, k, _ = state.x.shape
+        if state.exists is None:
+            raise ValueError("state.exists is None; the group filter's state has existence flags (filt.init)")
+        ex = state.extras or {}
+        h, w = self.sensor.shape
+        f = ex["frames"].shape[1] if torch.is_tensor(ex.get("frames")) and ex["frames"].dim() == 4 else None
+        p = ex["path_pos"].shape[2] if torch.is_tensor(ex.get("path_pos")) and ex["path_pos"].dim() == 5 else None
+        expected: dict[str, tuple[tuple[int | None, ...], torch.dtype | None]] = {
+            "labels": ((b, n, k), torch.int64), "w_mean": ((b, n, 2, 3 * k), state.x.dtype),
+            "w_cov": ((b, n, 3 * k, 3 * k), state.x.dtype), "frames": ((b, f, h, w), torch.bool)}
+        if any(key in ex for key in PATH_KEYS):
+            expected.update(path_pos=((b, n, p, k, 2), state.x.dtype), path_labels=((b, n, p, k), torch.int64),
+                            path_exists=((b, n, p, k), torch.bool), path_log=((b, n, p), state.x.dtype),
+                            anchor_w_mean=((b, n, 2, 3 * k), state.x.dtype),
+                            anchor_w_cov=((b, n, 3 * k, 3 * k), state.x.dtype))
+        for key, (shape, dtype) in expected.items():
+            t = ex.get(key)
+            if not torch.is_tensor(t):
+                raise ValueError(f"state.extras[{key!r}] is missing; expected a tensor of shape {shape} "
+                                 "(build the state with filt.init or filt.init_inactive)")
+            check_shape(t, f"state.extras[{key!r}]", shape)
+            if t.dtype != dtype or t.device != state.x.device:
+                raise ValueError(f"state.extras[{key!r}] is {t.dtype} on {t.device}, expected {dtype} on "
+                                 f"{state.x.device}")
 
-    def _step(self, state: GroupState, z: Tensor,  # type: ignore[override]
-              generator: torch.Generator) -> tuple[GroupState, StepInfo]:
+    def validate(self, state: ParticleState, measurements: Any, *, sequence: bool,
+                 name: str = "measurements") -> None:
+        """:meth:`Filter.validate`, the group fields (:meth:`check_extras`) and the memory
+        estimate (:meth:`check_memory`).
+        """
+        super().validate(state, measurements, sequence=sequence, name=name)
+        self.check_extras(state)
+        self.check_memory(state.batch_size, state.num_targets)
+
+    def _step(self, state: ParticleState, z: Any, generator: torch.Generator) -> tuple[ParticleState, StepInfo]:
         """One call of :func:`group_mcmc_step` with this filter's models and settings."""
         return group_mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
                                generator=generator, existence=self.existence, structure_prior=self.structure_prior,
-                               kernels=self.kernels())
-
-    def forward(self, measurements: Tensor, *, init: GroupState,  # type: ignore[override]
-                generator: torch.Generator, progress: bool | None = None) -> FilterResult:
-        """Filter frames ``(T, B, H, W)`` from ``init`` (a GroupState, e.g. :meth:`init_inactive`).
-
-        Returns FilterResult: ``mean (T, B, K, 4)`` (each slot's mean given existence),
-        ``exists_prob (T, B, K)``, ``info.extras`` stacked ``(T, B, ...)``.
-        """
-        check_generator(generator)
-        if not torch.is_tensor(measurements) or measurements.dim() != 4 or measurements.shape[0] == 0:
-            raise ValueError(f"measurements must be frames (T, B, H, W) with T >= 1, got "
-                             f"{getattr(measurements, 'shape', type(measurements).__name__)}")
-        if not isinstance(init, GroupState):
-            raise ValueError(f"init must be a GroupState (filt.init / filt.init_inactive), got {type(init).__name__}")
-        self._check(init, measurements[0], "measurements[0]")
-        self.sensor.validate(measurements.flatten(0, 1), None, "measurements")
-        state = init
-        steps: Any = range(measurements.shape[0])
-        if progress:
-            from tqdm.auto import tqdm
-
-            steps = tqdm(steps, desc=type(self).__name__, leave=False)
-        means, infos, probs = [], [], []
-        for t in steps:
-            state, info = self._step(state, measurements[t], generator)
-            est = existence_estimate(state, x_death=self.existence.x_death)  # type: ignore[arg-type]  # GroupState
-            means.append(est.mean)
-            probs.append(est.exists_prob)
-            infos.append(info)
-        info = stack_infos(infos)
-        # the result holds the GroupState (resume with init=result.state)
-        return FilterResult(torch.stack(means), state, info,  # type: ignore[arg-type]
-                            info.log_evidence.sum(0), torch.stack(probs))
-
-    def estimate(self, state: GroupState) -> Tensor:  # type: ignore[override]
-        """Each slot's mean given existence, ``(B, K, 4)`` (``x_death`` where no particle has it)."""
-        return existence_estimate(state, x_death=self.existence.x_death).mean  # type: ignore[arg-type]
+                               kernel=self.kernel())

@@ -212,7 +212,18 @@ class BirthDeath(nn.Module):
             return torch.where(exists, f64(1.0 - self.death_proposal), f64(self.birth_proposal))
         return torch.where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
 
+    def draw_exists(self, exists: Tensor, u: Tensor) -> Tensor:
+        """``e_k ~ p(e_k | e_{k-1})`` (eq. 25) from uniforms ``u`` shaped like ``exists (*S, K)``:
+        ``u < p(e_k = 1 | e_{k-1})`` (the law of :meth:`propagate`, shared with the group filter).
+        """
+        return u.to(torch.float64) < self._p_on(exists)
+
     # -- the birth density p_0 (paper 004 eqs. 32-33) ------------------------------------
+    def uniform_position(self, u: Tensor) -> Tensor:
+        """Positions uniform over the area (eq. 32) from uniforms ``u (*S, 2)`` in [0, 1)."""
+        a = self.area.to(u.dtype)
+        return a[:, 0] + (a[:, 1] - a[:, 0]) * u
+
     def _in_area(self, pos: Tensor) -> Tensor:
         a = self.area.to(pos.dtype)
         return ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
@@ -247,9 +258,8 @@ class BirthDeath(nn.Module):
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
         ``(*shape)``; ``shape = (B, *S, K)``.
         """
-        a = self.area.to(dtype)
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
-        pos = a[:, 0] + (a[:, 1] - a[:, 0]) * u
+        pos = self.uniform_position(u)
         vel_eps = torch.randn(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         if z is None or self.birth_std is None:
             return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)

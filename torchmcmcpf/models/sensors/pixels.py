@@ -29,7 +29,7 @@ from collections.abc import Sequence
 
 import torch
 
-from ..._validation import check_positive, check_shape
+from ..._validation import check_finite, check_positive, check_shape
 from ...typing import Tensor, X, Y
 from ..base import SensorModel
 
@@ -160,6 +160,8 @@ class ThresholdedPixels(SensorModel[Tensor]):
         check_shape(z, name, (None,) + self.shape)
         if batch_size is not None and z.shape[0] != batch_size:
             raise ValueError(f"{name} has batch size {z.shape[0]}, expected {batch_size}")
+        if z.is_floating_point():
+            check_finite(z, name)
         if z.dtype != torch.bool and not bool(((z == 0) | (z == 1)).all()):
             raise ValueError(f"{name} must be binary (0/1 or bool), got values outside {{0, 1}}")
         return z
