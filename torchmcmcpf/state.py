@@ -195,7 +195,7 @@ class FilterResult(NamedTuple):
     >>> result.to_numpy()["info.ess"].shape            # a flat dict of NumPy arrays
     (5, 2)
     >>> result.meta["filter"], result.meta["settings"]
-    ('SIRFilter', {'resample_method': 'systematic', 'ess_threshold': 1.0})
+    ('SIRFilter', {'resample_method': 'systematic', 'ess_threshold': 1.0, 'exclusion': None})
     """
 
     mean: Tensor

@@ -316,6 +316,9 @@ class Filter(nn.Module):
     #: the class of motion model the filter takes (the group filter's is a whole-configuration
     #: model, :class:`~torchmcmcpf.models.group.VirtualLeaderMotion`, with ``dim``)
     motion_type: type = MotionModel
+    #: whether :meth:`estimate_targets` may relabel the particles' slots (False where a
+    #: slot's label is part of the model, as the group filter's group structure)
+    relabels: bool = True
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
                  existence: BirthDeath | None = None, compile_step: bool = False):
@@ -464,7 +467,8 @@ class Filter(nn.Module):
 
         A sensor without :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`
         (labelled measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says
-        which slot is which target: there the particles are not relabelled.
+        which slot is which target, as does a filter whose slots' labels are part of its model
+        (:attr:`relabels`, the group filter): there the particles are not relabelled.
 
         Returns
         -------
@@ -476,7 +480,7 @@ class Filter(nn.Module):
                   ) -> tuple[ExistenceEstimate, ParticleState]:
         """:meth:`estimate_targets` and the relabelled cloud it averaged."""
         x_death = None if self.existence is None else self.existence.x_death
-        if not self.sensor.resolved:  # labelled measurements (e.g. LinearGaussian): the slots are the targets
+        if not (self.relabels and self.sensor.resolved):  # labelled measurements or slots: the slots are the targets
             return relabelled_estimate(state, x_death=x_death, iterations=0)
         ref = present = None
         if reference is not None:

@@ -1065,6 +1065,7 @@ class GroupMCMCFilter(Filter):
     existence: GroupExistence
     settings: GroupMCMCSettings
     motion_type = VirtualLeaderMotion
+    relabels = False  # a slot's label is its place in the group structure
 
     def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int, *,
                  existence: GroupExistence, structure_prior: GroupStructurePrior, num_chains: int | None = None,
