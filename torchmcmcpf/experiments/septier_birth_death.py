@@ -1,9 +1,12 @@
 """Unknown, time-varying number of targets: the setting of Septier, Pang, Carmi and Godsill
 (paper 001): 5000 x 5000 m, up to 5 targets with random births and deaths, nearly constant
-velocity, point measurements in Poisson clutter (:mod:`torchmcmcpf.scenarios.septier`).
+velocity, point measurements in Poisson clutter (:mod:`torchmcmcpf.scenarios.septier`), and
+the head-to-head against the trackers a user would pick instead (issue 27).
 
 What runs
 ---------
+Ours, every particle starting with all slots inactive, all with the same birth proposal:
+
 - SIR PF with existence (:class:`~torchmcmcpf.filters.sir.SIRFilter` with a
   :class:`~torchmcmcpf.models.existence.BirthDeath` model, births near the measurements),
 - MCMC-PF (:class:`~torchmcmcpf.filters.mcmc.MCMCFilter`, paper 001's adapted algorithm:
@@ -11,48 +14,115 @@ What runs
   samples each after ``burn_in`` iterations),
 - IP-MCMC-PF (:class:`~torchmcmcpf.filters.ipmcmc.IPMCMCFilter`, exchange moves with the
   existence chain; ``N / 10`` chains, ``2 burn_in`` iterations of burn-in, R-hat
-  extensions),
+  extensions).
 
-all with the same birth proposal, every particle starting with all slots inactive.
+Stone Soup's (:mod:`torchmcmcpf.interop.stonesoup_trackers`, when Stone Soup is installed;
+otherwise the study says so and runs ours alone), on the same frames with the scene's true
+model (constant velocity ``q = 1``, ``R = 100 I``, ``P_d = 1 - e^-4``, clutter density
+``L_C / V``, survival ``1 - P_D``, births as the scene's), built as Stone Soup's tutorials
+build them:
 
-Estimates: per slot the existence probability, the expected number of targets (their sum)
-and, for the slots with existence probability > 0.5, the mean given existence
-(:func:`~torchmcmcpf.models.existence.existence_estimate`).
+- GM-PHD on the raw points,
+- GM-PHD on the points clustered per frame (one detection per cluster, at its centroid
+  with noise ``R / n``),
+- JPDA with EHM on the clustered points, with a multi-measurement initiator and an
+  update-time deleter.
 
-Writes ``metrics.json`` (per-step OSPA and GOSPA, c = 100 m, p = 2, averaged over the runs;
-mean true and expected number of targets per step; their time averages; the mean
-cardinality error; seconds per step; the device), ``tracks.png`` (run 0, one panel per
-filter), ``cardinality.png`` (every filter) and ``ospa.png``.
+Their free knobs (:data:`STONESOUP`) were tuned by ``reproduce septier-birth-death --tune``:
+a grid (:data:`TUNE_GRIDS`) scored by the mean OSPA on scenes of seeds 100-104
+(:data:`TUNE_SEEDS`, 2 runs x 60 steps each), never on the reported seed's scenes; it writes
+every grid point's scores to ``tuning.json``.
 
-The runs are cut into shards of ``--shard-size`` runs (5, quick 1), each from the generator
+Scores
+------
+Every tracker reports a set of targets per step: ours the slots with existence probability
+> 0.5 at their mean given existence
+(:func:`~torchmcmcpf.models.existence.existence_estimate`), GM-PHD the components above the
+extraction threshold, JPDA its confirmed tracks. Per step and run: OSPA and GOSPA (c = 100 m,
+p = 2, alpha = 2) with GOSPA's localisation, missed and false parts
+(:func:`~torchmcmcpf.metrics.gospa_parts`), the number of targets reported and its error
+``|reported - true|``; their means over the runs per step, over all steps and per third of
+the run; the wall-clock time per step and run (ours: a shard's runs filtered as one batch,
+the time divided by its runs; Stone Soup: one run at a time), overall and per third.
+Ours also record the expected number of targets (the sum of existence probabilities).
+
+Writes ``metrics.json``, ``tracks.png`` (run 0, one panel per filter of ours),
+``cardinality.png`` (every tracker) and ``ospa.png`` (OSPA and GOSPA over time, every
+tracker).
+
+The runs are cut into shards of ``--shard-size`` runs (10, quick 1), each from the generator
 of ``(seed, shard index)`` (:func:`run_shard`), so ``--workers N`` on Ray writes the same
-numbers.
+numbers. Ours filter each third of the run as one call resumed from the previous one's
+state (the same numbers as one call), so each third is timed.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import importlib.util
+import itertools
+import json
+import time
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.mcmc import MCMCFilter
 from ..filters.sir import SIRFilter
+from ..interop.stonesoup_trackers import GMPHDSettings, JPDASettings, PointScene, pad_estimates, track_run
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..scenarios.septier import septier
 from ..typing import X, Y
-from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
+from ._common import (
+    StepTimer,
+    defaults_help,
+    np_label,
+    positive_int,
+    run_shards,
+    save_figure,
+    shard_generator,
+    write_metrics,
+)
 
 NAME = "septier-birth-death"
-DESCRIPTION = "Septier et al. setting: up to 5 targets with births/deaths in Poisson clutter (OSPA, GOSPA, cardinality)"
+DESCRIPTION = ("Septier et al. setting: up to 5 targets with births/deaths in Poisson clutter; ours against Stone "
+               "Soup's GM-PHD and JPDA (OSPA, GOSPA parts, cardinality, time per step)")
 
 QUICK = dict(runs=3, steps=25, particles=300, burn_in=10, shard_size=1)
-FULL = dict(runs=20, steps=60, particles=2000, burn_in=20, shard_size=5)
+#: 10 runs x 60 steps, the runs filtered as one batch: the size of issue 27's measurement
+FULL = dict(runs=10, steps=60, particles=2000, burn_in=20, shard_size=10)
 CUTOFF, ORDER = 100.0, 2.0
 FILTERS = ("SIR PF", "MCMC-PF", "IP-MCMC-PF")
-OUTPUTS = ("metrics.json", "tracks.png", "cardinality.png", "ospa.png", "shards")
+OUTPUTS = ("metrics.json", "tracks.png", "cardinality.png", "ospa.png", "shards", "tuning.json")
+PARTS = ("ospa", "gospa", "localisation", "missed", "false", "reported", "cardinality_error")
+
+#: Stone Soup's trackers: name -> (kind, settings). Tuned by ``--tune`` (module docstring) on
+#: seeds 100-104: each the grid point of :data:`TUNE_GRIDS` with the least mean OSPA there.
+STONESOUP: dict[str, tuple[str, GMPHDSettings | JPDASettings]] = {
+    "Stone Soup GM-PHD": ("gmphd", GMPHDSettings(cluster=None, birth_weight=0.05, extraction_threshold=0.9,
+                                                 merge_threshold=16.0)),
+    "Stone Soup GM-PHD, clustered": ("gmphd", GMPHDSettings(cluster=40.0, birth_weight=0.25,
+                                                            extraction_threshold=0.7, merge_threshold=16.0)),
+    "Stone Soup JPDA (EHM), clustered": ("jpda", JPDASettings(cluster=40.0, min_points=2, deleter_steps=2)),
+}
+#: the tuning: scenes of these seeds (each ``septier(runs, steps)`` from the generator of
+#: ``(seed, 0)``), never the reported seed's
+TUNE_SEEDS = (100, 101, 102, 103, 104)
+TUNE = dict(runs=2, steps=60)
+#: the grid per tracker: every combination of these values (the other fields keep the
+#: defaults of :class:`GMPHDSettings`, :class:`JPDASettings`: Stone Soup's tutorial values)
+TUNE_GRIDS: dict[str, dict[str, tuple]] = {
+    "Stone Soup GM-PHD": dict(cluster=(None,), birth_weight=(0.05, 0.25, 1.0),
+                              extraction_threshold=(0.25, 0.5, 0.7, 0.9), merge_threshold=(5.0, 16.0)),
+    "Stone Soup GM-PHD, clustered": dict(cluster=(20.0, 40.0), birth_weight=(0.05, 0.25, 1.0),
+                                         extraction_threshold=(0.25, 0.5, 0.7, 0.9), merge_threshold=(5.0, 16.0)),
+    "Stone Soup JPDA (EHM), clustered": dict(cluster=(20.0, 30.0, 40.0), min_points=(2, 3), deleter_steps=(1, 2, 3)),
+}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -68,14 +138,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--particles", type=positive_int, help=h("particles", "particles Np"))
     parser.add_argument("--burn-in", dest="burn_in", type=positive_int,
                         help=h("burn_in", "MCMC-PF burn-in per step; IP-MCMC-PF uses twice it"))
+    parser.add_argument("--tune", action="store_true",
+                        help="instead of the study: tune Stone Soup's trackers on the scenes of seeds "
+                             f"{TUNE_SEEDS[0]}-{TUNE_SEEDS[-1]} ({TUNE['runs']} runs x {TUNE['steps']} steps each; "
+                             "--quick: 1 run x 10 steps, the first grid points) and write tuning.json")
 
 
 def _config(args: argparse.Namespace) -> dict:
-    cfg = dict(QUICK if args.quick else FULL)
+    cfg: dict = dict(QUICK if args.quick else FULL)
     for key in cfg:
         if getattr(args, key, None) is not None:
             cfg[key] = getattr(args, key)
     cfg["quick"] = bool(args.quick)
+    have = importlib.util.find_spec("stonesoup") is not None
+    cfg["stonesoup"] = {name: {"kind": kind, **dataclasses.asdict(s)} for name, (kind, s) in STONESOUP.items()} \
+        if have else None
     return cfg
 
 
@@ -89,6 +166,14 @@ def _masked_positions(x: torch.Tensor, keep: torch.Tensor) -> torch.Tensor:
     return torch.where(keep.unsqueeze(-1), x, torch.full_like(x, float("nan")))
 
 
+def thirds(steps: int) -> list[range]:
+    """Steps ``0 .. steps - 1`` in three consecutive parts as equal as can be (60 steps:
+    1-20, 21-40, 41-60 counted from 1); fewer than 3 steps give empty parts.
+    """
+    cuts = [round(i * steps / 3) for i in range(4)]
+    return [range(a, b) for a, b in zip(cuts, cuts[1:])]
+
+
 def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel, existence: BirthDeath) -> dict:
     n, burn_in = cfg["particles"], cfg["burn_in"]
     return {
@@ -100,16 +185,42 @@ def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel, existence: Bir
     }
 
 
+def set_scores(est: torch.Tensor, present: torch.Tensor, truth: torch.Tensor, alive: torch.Tensor) -> dict:
+    """Per step and run, the scores of one tracker's reported sets (:data:`PARTS`).
+
+    Parameters
+    ----------
+    est : (T, B, W, D) reported states (layout ``[x, vx, y, vy]``); present : (T, B, W) bool,
+        which are reported; truth : (T, B, K, D); alive : (T, B, K) bool.
+
+    Returns
+    -------
+    dict of ``(B, T)`` tensors: ``ospa``, ``gospa`` and its ``localisation`` [m], ``missed``,
+    ``false``, ``reported`` (number of targets reported) and ``cardinality_error``
+    (``|reported - true|``).
+    """
+    est_pos, true_pos = est[..., [X, Y]], truth[..., [X, Y]]
+    parts = metrics.gospa_parts(est_pos, true_pos, c=CUTOFF, p=ORDER, x_mask=present, y_mask=alive)
+    reported = present.sum(-1).to(truth.dtype)
+    return {k: v.T for k, v in {
+        "ospa": metrics.ospa(est_pos, true_pos, c=CUTOFF, p=ORDER, x_mask=present, y_mask=alive),
+        "gospa": parts.total, "localisation": parts.localisation, "missed": parts.missed, "false": parts.false,
+        "reported": reported, "cardinality_error": metrics.cardinality_error(reported, alive.sum(-1)),
+    }.items()}
+
+
 def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
               progress: bool = False) -> tuple[dict, dict]:
-    """Simulate the runs ``runs`` and filter them with every filter (one batch).
+    """Simulate the runs ``runs`` and track them with every tracker (ours: one batch).
 
     Returns
     -------
     ``per_run`` with ``"truth"`` ``(R, T, K, 4)`` (NaN where absent), ``"true_count"``
-    ``(R, T)`` and per filter ``f``: ``"f|ospa"``, ``"f|gospa"``, ``"f|count"`` (expected
-    number of targets), ``"f|cardinality_error"`` ``(R, T)`` and ``"f|estimate"``
-    ``(R, T, K, 4)`` (NaN where the existence probability is <= 0.5); ``seconds`` per filter.
+    ``(R, T)`` and per tracker ``f``: ``"f|<score>"`` ``(R, T)`` for every score of
+    :func:`set_scores`; ours also ``"f|count"`` (expected number of targets) and
+    ``"f|estimate"`` ``(R, T, K, 4)`` (NaN where the existence probability is <= 0.5).
+    ``seconds``: per tracker and third ``i`` of the run, ``"f|i"``, the wall-clock time of
+    those steps for all the shard's runs.
     """
     scn = septier(len(runs), cfg["steps"], generator=generator)
     scn = scn._replace(truth=scn.truth.to(device))
@@ -119,47 +230,182 @@ def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: tor
     per_run = {"truth": _masked_positions(scn.truth, scn.alive).movedim(1, 0),
                "true_count": scn.true_count.movedim(1, 0)}
     seconds = {}
+    parts = [p for p in thirds(cfg["steps"]) if len(p)]
+    z = scn.measurements
     for name, filt in _filters(cfg, motion, sensor, existence).items():
-        with StepTimer(device, cfg["steps"]) as timer:
-            res = filt(scn.measurements, init=init, generator=generator, progress=progress)
-        seconds[name] = timer.seconds
-        present = res.exists_prob > 0.5  # (T, B, K)
-        est_pos, true_pos = res.mean[..., [X, Y]], scn.truth[..., [X, Y]]
-        count = res.exists_prob.sum(-1)  # (T, B)
-        per_run[f"{name}|ospa"] = metrics.ospa(est_pos, true_pos, c=CUTOFF, p=ORDER, x_mask=present,
-                                              y_mask=scn.alive).T
-        per_run[f"{name}|gospa"] = metrics.gospa(est_pos, true_pos, c=CUTOFF, p=ORDER, x_mask=present,
-                                                y_mask=scn.alive).T
-        per_run[f"{name}|count"] = count.T
-        per_run[f"{name}|cardinality_error"] = metrics.cardinality_error(count, scn.true_count).T
-        per_run[f"{name}|estimate"] = _masked_positions(res.mean, present).movedim(1, 0)
+        state, means, probs = init, [], []
+        for i, part in enumerate(parts):  # each third resumed from the last one's state: timed apart
+            zi = type(z)(*(a[part.start:part.stop] for a in z))
+            with StepTimer(device, len(part)) as timer:
+                res = filt(zi, init=state, generator=generator, progress=progress)
+            seconds[f"{name}|{i}"] = timer.seconds
+            state = res.state
+            means.append(res.mean)
+            probs.append(res.exists_prob)
+        mean, exists_prob = torch.cat(means), torch.cat(probs)
+        present = exists_prob > 0.5  # (T, B, K)
+        for key, value in set_scores(mean, present, scn.truth, scn.alive).items():
+            per_run[f"{name}|{key}"] = value
+        per_run[f"{name}|count"] = exists_prob.sum(-1).T
+        per_run[f"{name}|estimate"] = _masked_positions(mean, present).movedim(1, 0)
+    if cfg.get("stonesoup"):
+        scene = PointScene.from_models(scn.motion, scn.sensor, scn.existence, k)
+        for name, (kind, settings) in STONESOUP.items():
+            done = [track_run(kind, settings, scene, z, r) for r in range(b)]  # Stone Soup: one run at a time
+            est, present = pad_estimates([d.estimates for d in done])
+            for key, value in set_scores(est.to(device), present.to(device), scn.truth, scn.alive).items():
+                per_run[f"{name}|{key}"] = value
+            step_seconds = np.sum([d.step_seconds for d in done], axis=0)
+            for i, part in enumerate(parts):
+                seconds[f"{name}|{i}"] = float(step_seconds[part.start:part.stop].sum())
     return per_run, seconds
 
 
+def _names(per_run: dict) -> list[str]:
+    """The trackers present in ``per_run``: ours, then Stone Soup's."""
+    return [n for n in (*FILTERS, *STONESOUP) if f"{n}|ospa" in per_run]
+
+
 def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
-    """Per filter: per-step means over the runs and their time averages."""
+    """Per tracker: per-step means over the runs, their time averages overall and per third,
+    and the seconds per step and run, overall and per third.
+    """
+    runs, steps = per_run["true_count"].shape
+    parts = [p for p in thirds(steps) if len(p)]
     results = {}
-    for name in FILTERS:
-        o, g, c = (per_run[f"{name}|{m}"] for m in ("ospa", "gospa", "count"))
-        results[name] = {
-            "ospa_per_step": o.mean(0), "gospa_per_step": g.mean(0), "expected_count_per_step": c.mean(0),
-            "ospa": o.mean(), "gospa": g.mean(), "cardinality_error": per_run[f"{name}|cardinality_error"].mean(),
-            "seconds_per_step": seconds[name] / cfg["steps"],
-        }
+    for name in _names(per_run):
+        r: dict = {}
+        for key in PARTS:
+            v = per_run[f"{name}|{key}"].double()
+            r[f"{key}_per_step"] = v.mean(0)
+            r[key] = v.mean()
+            r[f"{key}_thirds"] = [v[:, p.start:p.stop].mean() for p in parts]
+        secs = [seconds[f"{name}|{i}"] for i in range(len(parts))]
+        r["seconds_per_step"] = sum(secs) / (steps * runs)
+        r["seconds_per_step_thirds"] = [s / (len(p) * runs) for s, p in zip(secs, parts)]
+        if f"{name}|count" in per_run:
+            r["expected_count_per_step"] = per_run[f"{name}|count"].double().mean(0)
+        results[name] = r
     return results
 
 
+def _third_labels(steps: int) -> str:
+    return " / ".join(f"{p.start + 1}-{p.stop}" for p in thirds(steps) if len(p))
+
+
 def summary(payload: dict) -> str:
-    """Headline table: OSPA, GOSPA, cardinality error per filter."""
-    lines = ["| filter | OSPA [m] | GOSPA [m] | cardinality error | s / step |", "|---|---|---|---|---|"]
-    for name, r in payload["results"].items():
-        lines.append(f"| {name} | {float(r['ospa']):.1f} | {float(r['gospa']):.1f} | "
-                     f"{float(r['cardinality_error']):.2f} | {r['seconds_per_step']:.3f} |")
+    """Headline tables: every tracker overall, then per third of the run (or, after
+    ``--tune``, the best grid points per Stone Soup tracker).
+    """
+    if "tuning" in payload:
+        return tuning_summary(payload["tuning"])
+    res, cfg = payload["results"], payload["config"]
+    true = float(torch.as_tensor(payload["true_count_per_step"]).double().mean())
+    batch = min(cfg["shard_size"], cfg["runs"])
+
+    def f(v, fmt=".1f"):
+        return format(float(v), fmt)
+
+    def thirds_of(r, key, fmt=".1f"):
+        return " / ".join(f(v, fmt) for v in r[f"{key}_thirds"])
+
+    def ms(name, v):
+        return f"{1e3 * v:.0f}" + (f" ({batch} runs batched)" if name in FILTERS and batch > 1 else "")
+
+    lines = [f"| tracker | OSPA [m] | GOSPA [m] | GOSPA localisation [m] | missed / false per step | targets reported "
+             f"(true {true:.2f}) | ms per step per run |", "|---|---|---|---|---|---|---|"]
+    for name, r in res.items():
+        lines.append(f"| {name} | {f(r['ospa'])} | {f(r['gospa'])} | {f(r['localisation'])} | "
+                     f"{f(r['missed'], '.2f')} / {f(r['false'], '.2f')} | {f(r['reported'], '.2f')} | "
+                     f"{ms(name, r['seconds_per_step'])} |")
+    lines += ["", f"per third of the run (steps {_third_labels(cfg['steps'])}):", "",
+              "| tracker | OSPA [m] | GOSPA [m] | missed per step | false per step | targets reported | "
+              "ms per step per run |", "|---|---|---|---|---|---|---|"]
+    for name, r in res.items():
+        secs = " / ".join(f"{1e3 * v:.0f}" for v in r["seconds_per_step_thirds"])
+        lines.append(f"| {name} | {thirds_of(r, 'ospa')} | {thirds_of(r, 'gospa')} | {thirds_of(r, 'missed', '.2f')} | "
+                     f"{thirds_of(r, 'false', '.2f')} | {thirds_of(r, 'reported', '.2f')} | {secs} |")
+    if cfg.get("stonesoup") is None:
+        lines += ["", "Stone Soup is not installed: its rows are missing (pip install 'torchmcmcpf[bench]')."]
     return "\n".join(lines) + "\n"
 
 
+# -- tuning Stone Soup's knobs on other seeds -----------------------------------------------
+
+
+def _grid(name: str, quick: bool) -> list:
+    kind, base = STONESOUP[name]
+    keys, values = zip(*TUNE_GRIDS[name].items())
+    points = [dataclasses.replace(type(base)(), **dict(zip(keys, combo))) for combo in itertools.product(*values)]
+    return points[:2] if quick else points
+
+
+def tuning_scenes(quick: bool = False) -> list:
+    """The scenes the tuning scores on: ``septier(runs, steps)`` from the generator of
+    ``(seed, 0)`` for each of :data:`TUNE_SEEDS` (:data:`TUNE`; quick: 1 run x 10 steps).
+    """
+    runs, steps = (1, 10) if quick else (TUNE["runs"], TUNE["steps"])
+    return [septier(runs, steps, generator=shard_generator("cpu", s, 0)) for s in TUNE_SEEDS]
+
+
+def score_settings(kind: str, settings: GMPHDSettings | JPDASettings, scenes: list) -> dict:
+    """Mean scores (:func:`set_scores`) and seconds per step and run of one Stone Soup tracker
+    setting over every run and step of ``scenes``.
+    """
+    scores: dict[str, list] = {key: [] for key in PARTS}
+    secs, steps = 0.0, 0
+    for scn in scenes:
+        scene = PointScene.from_models(scn.motion, scn.sensor, scn.existence, scn.alive.shape[-1])
+        done = [track_run(kind, settings, scene, scn.measurements, r) for r in range(scn.alive.shape[1])]
+        est, present = pad_estimates([d.estimates for d in done])
+        for key, value in set_scores(est, present, scn.truth, scn.alive).items():
+            scores[key].append(value)
+        secs += sum(float(d.step_seconds.sum()) for d in done)
+        steps += scn.alive.shape[0] * scn.alive.shape[1]
+    return {"settings": dataclasses.asdict(settings),
+            **{key: float(torch.cat(v).double().mean()) for key, v in scores.items()},
+            "seconds_per_step": secs / steps}
+
+
+def tune(*, quick: bool = False, progress: bool = False) -> dict:
+    """Score every grid point of :data:`TUNE_GRIDS` on :func:`tuning_scenes`.
+
+    Returns
+    -------
+    dict tracker name -> ``{"grid": [settings and mean ospa, gospa, missed, false, reported,
+    seconds per step, best first], "best": the settings with the least mean OSPA}``.
+    """
+    from tqdm.auto import tqdm
+
+    scenes = tuning_scenes(quick)
+    out = {}
+    for name, (kind, _) in STONESOUP.items():
+        rows = [score_settings(kind, settings, scenes)
+                for settings in tqdm(_grid(name, quick), desc=name, disable=not progress)]
+        rows.sort(key=lambda r: r["ospa"])
+        out[name] = {"grid": rows, "best": rows[0]["settings"]}
+    return out
+
+
+def tuning_summary(tuning: dict, top: int = 5) -> str:
+    """The ``top`` grid points per tracker, best first."""
+    lines = []
+    for name, t in tuning.items():
+        keys = list(TUNE_GRIDS[name])
+        lines += [f"{name}: best of {len(t['grid'])} grid points (mean over seeds {TUNE_SEEDS[0]}-{TUNE_SEEDS[-1]})",
+                  "", "| " + " | ".join(keys) + " | OSPA [m] | GOSPA [m] | missed / false per step | reported |",
+                  "|" + "---|" * (len(keys) + 4)]
+        for row in t["grid"][:top]:
+            lines.append("| " + " | ".join(str(row["settings"][k]) for k in keys) + f" | {row['ospa']:.2f} | "
+                         f"{row['gospa']:.2f} | {row['missed']:.3f} / {row['false']:.3f} | {row['reported']:.2f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> dict:
-    """Run the study in shards (see the module docstring); writes into ``args.out``."""
+    """Run the study in shards (see the module docstring), or with ``args.tune`` the tuning;
+    writes into ``args.out``.
+    """
     import sys
 
     import matplotlib
@@ -168,6 +414,16 @@ def run(args: argparse.Namespace) -> dict:
     import matplotlib.pyplot as plt
 
     from ..plotting import plot_cardinality, plot_rmse, plot_tracks
+
+    if getattr(args, "tune", False):
+        if importlib.util.find_spec("stonesoup") is None:
+            raise ValueError("--tune needs Stone Soup: pip install 'torchmcmcpf[bench]'")
+        start = time.perf_counter()
+        tuning = tune(quick=bool(args.quick), progress=bool(getattr(args, "progress", False)))
+        payload = {"tuning": tuning, "seeds": TUNE_SEEDS, "tune": TUNE, "grids": TUNE_GRIDS,
+                   "wall_seconds": time.perf_counter() - start}
+        Path(args.out, "tuning.json").write_text(json.dumps(payload, indent=1, default=str))
+        return payload
 
     cfg = _config(args)
     device = args.device
@@ -178,6 +434,9 @@ def run(args: argparse.Namespace) -> dict:
     runs = pr["true_count"].shape[0]
     true_count = pr["true_count"].double().mean(0)
 
+    def label(name):
+        return np_label(name, n) if name in FILTERS else name
+
     fig, axes = plt.subplots(1, len(FILTERS), figsize=(5.5 * len(FILTERS), 5.5), squeeze=False,
                              layout="constrained")
     for ax, name in zip(axes[0], FILTERS):
@@ -185,17 +444,23 @@ def run(args: argparse.Namespace) -> dict:
         ax.set_title(f"{name} (existence > 0.5)")
     fig.suptitle(f"run 0: true tracks (solid) and estimates (dashed){quick}")
     save_figure(fig, args.out, "tracks.png", quick=cfg["quick"])
-    fig, ax = plt.subplots(figsize=(7, 4))
-    plot_cardinality(ax, true_count, {f"{np_label(name, n)}: expected number": results[name]["expected_count_per_step"]
-                                      for name in FILTERS})
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    curves = {f"{label(name)}: expected number": r["expected_count_per_step"] for name, r in results.items()
+              if "expected_count_per_step" in r}
+    curves.update({f"{label(name)}: reported": r["reported_per_step"] for name, r in results.items()})
+    plot_cardinality(ax, true_count, curves)
+    ax.legend(fontsize="x-small")
     ax.set_title(f"mean number of targets over {runs} runs{quick}")
     save_figure(fig, args.out, "cardinality.png", quick=cfg["quick"])
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4), layout="constrained")
-    plot_rmse(axes[0], {np_label(k, n): r["ospa_per_step"] for k, r in results.items()},
-              ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
-    plot_rmse(axes[1], {np_label(k, n): r["gospa_per_step"] for k, r in results.items()},
-              ylabel=f"GOSPA (c = {CUTOFF:g} m, p = {ORDER:g}, alpha = 2) [m]")
-    fig.suptitle(f"mean over {runs} runs{quick}")
+    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), layout="constrained")
+    for i, name in enumerate(results):
+        color, ls = f"C{i}", "-" if name in FILTERS else "--"
+        plot_rmse(axes[0], {label(name): results[name]["ospa_per_step"]}, color=color, ls=ls,
+                  ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
+        plot_rmse(axes[1], {label(name): results[name]["gospa_per_step"]}, color=color, ls=ls,
+                  ylabel=f"GOSPA (c = {CUTOFF:g} m, p = {ORDER:g}, alpha = 2) [m]")
+    axes[0].legend(fontsize="x-small")
+    fig.suptitle(f"mean over {runs} runs{quick}: ours (solid), Stone Soup (dashed)")
     save_figure(fig, args.out, "ospa.png", quick=cfg["quick"])
 
     payload = {"config": cfg, "cutoff": CUTOFF, "order": ORDER, "true_count_per_step": true_count,

@@ -11,7 +11,10 @@ Optional packages, imported only when a function here is called (``pip install
   ``time, run, target, component``;
 - :func:`chains_to_arviz` and :func:`result_to_arviz` (``FilterResult.to_arviz``): the kept
   samples of an MCMC filter's chains at one step as ArviZ ``InferenceData`` (``chain``,
-  ``draw``), for ``az.rhat``, ``az.ess``, ``az.plot_trace``.
+  ``draw``), for ``az.rhat``, ``az.ess``, ``az.plot_trace``;
+- :mod:`torchmcmcpf.interop.stonesoup_trackers`: the other way round, Stone Soup's own GM-PHD
+  and JPDA trackers run on the library's point frames with the scene's true model (the
+  baselines of the ``septier-birth-death`` study).
 
 The guide "Use torchmcmcpf inside a Stone Soup workflow" (``docs/guides/stonesoup.md``) shows
 them at work. State components are named from the layout of :mod:`torchmcmcpf.typing`:
