@@ -193,7 +193,8 @@ def test_pick_moves_frequencies_and_seed():
 def test_mcmc_iteration_refuses_a_move_with_another_moves_noise(gen):
     """The picked move and its noise must agree: a ValueError names both."""
     from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration
-    from torchmcmcpf.kernels.moves import JointNoise, init_chains, previous_cloud
+    from torchmcmcpf.kernels.chains import JointNoise, previous_cloud
+    from torchmcmcpf.kernels.moves import init_chains
 
     motion, sensor, zs, init, _, _ = _problem(gen, B=2, N=8)
     cloud = previous_cloud(init[:, :8], torch.full((2, 8), -math.log(8), dtype=DT), None, motion=motion)

@@ -32,17 +32,9 @@ from _kalman import mixture_posterior
 
 from torchmcmcpf import ConstantVelocity, LinearGaussian
 from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration, pick_moves
-from torchmcmcpf.kernels.moves import (
-    ChainState,
-    JointNoise,
-    RefineNoise,
-    evaluate,
-    init_chains,
-    log_transition,
-    previous_cloud,
-    propose_joint,
-    refine_move,
-)
+from torchmcmcpf.kernels.chains import ChainState, JointNoise, RefineNoise, evaluate, previous_cloud
+from torchmcmcpf.kernels.moves import init_chains, propose_joint, refine_move
+from torchmcmcpf.kernels.random_walk import log_transition
 from torchmcmcpf.models.base import MotionModel, SensorModel
 from torchmcmcpf.resampling import gather_particles, multinomial
 

@@ -15,8 +15,9 @@ import pytest
 import torch
 from torch.utils._pytree import tree_map
 
+from torchmcmcpf.kernels.chains import JointNoise, RefineNoise, previous_cloud
 from torchmcmcpf.kernels.exchange import draw_exchange_noise, exchange_iteration
-from torchmcmcpf.kernels.moves import JointNoise, RefineNoise, init_chains, joint_move, previous_cloud, refine_move
+from torchmcmcpf.kernels.moves import init_chains, joint_move, refine_move
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.existence import TargetDynamics
 from torchmcmcpf.models.motion import LinearGaussianMotion

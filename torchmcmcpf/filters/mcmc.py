@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import torch
 
 from .._validation import check_positive_int
-from ..kernels.chains import evaluate
+from ..kernels.chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
 from ..kernels.hmc_refine import (
     HMCRefine,
     HMCRefineNoise,
@@ -37,21 +37,8 @@ from ..kernels.hmc_refine import (
     hmc_refine,
     with_exclusion,
 )
-from ..kernels.moves import (
-    MOVES,
-    ChainState,
-    JointNoise,
-    PreviousCloud,
-    RandomWalkNoise,
-    RefineNoise,
-    init_chains,
-    joint_move,
-    previous_cloud,
-    random_walk_move,
-    refine_move,
-    refine_slot,
-)
-from ..kernels.random_walk import RunningMoments, adapted_step, prior_covariance
+from ..kernels.moves import MOVES, init_chains, joint_move, refine_move, refine_slot
+from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step, prior_covariance, random_walk_move
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..models.multitarget import Exclusion, Recapture

@@ -63,13 +63,12 @@ from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, log_exclusion
 from ..models.sensors.association import (
     AssociationSensor,
-    _split,
     metropolis_association,
     padded_pair_log_likelihood,
 )
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
 from ..state import ParticleState, StepInfo
-from ..typing import Measurement, Tensor
+from ..typing import Measurement, Tensor, split_points
 from .base import Filter, active_prior
 
 __all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "ASSOCIATIONS"]
@@ -184,7 +183,7 @@ def resample_move_step(
         if not isinstance(sensor, AssociationSensor):
             raise ValueError(f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}")
         assoc = sensor
-        zz, mask = _split(z)
+        zz, mask = split_points(z)
         square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists_new, mask)
         assignment, _, _ = metropolis_association(square, num_iters=settings.association_iters, generator=generator)
         log_lik_slot = sensor.assigned_log_likelihood(x, z, assignment, exists_new)  # (B, N, K)

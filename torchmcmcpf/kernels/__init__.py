@@ -8,28 +8,13 @@ Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decide
 ``torch.where``, so chains, targets and runs are tensor dimensions.
 """
 
+from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
 from .exchange import ExchangeNoise, draw_exchange_noise, exchange_iteration
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
-from .moves import (
-    MOVES,
-    ChainState,
-    JointNoise,
-    PreviousCloud,
-    RandomWalkNoise,
-    RefineNoise,
-    evaluate,
-    init_chains,
-    joint_move,
-    log_transition,
-    previous_cloud,
-    propose_joint,
-    propose_random_walk,
-    random_walk_move,
-    refine_move,
-    refine_slot,
-)
+from .moves import MOVES, init_chains, joint_move, propose_joint, refine_move, refine_slot
+from .random_walk import RandomWalkNoise, log_transition, propose_random_walk, random_walk_move
 
 __all__ = [
     "mh_accept",

@@ -16,7 +16,8 @@ from ..models.multitarget import Recapture, RelocationNoise, draw_relocation
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 
-__all__ = ["ChainState", "PreviousCloud", "previous_cloud", "JointNoise", "RefineNoise", "evaluate"]
+__all__ = ["ChainState", "PreviousCloud", "previous_cloud", "draw_ancestors", "uniforms", "normals", "JointNoise",
+           "RefineNoise", "evaluate", "whiten"]
 
 
 class ChainState(NamedTuple):
@@ -85,16 +86,18 @@ def previous_cloud(x: Tensor, log_w: Tensor, exists: Tensor | None = None, *,
     return PreviousCloud(x, log_w, cdf(log_w), exists, white)
 
 
-def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
+def draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
     """Ancestor indices ``(B, C)`` with ``P(a) = w^a``, by inversion of uniforms ``u (B, C)``."""
     return inverse_cdf(cloud.cdf, u)
 
 
-def _uniform(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+def uniforms(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+    """``U(0, 1)`` draws of ``shape`` with the dtype and device of ``x``."""
     return torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
-def _normal(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+    """Standard normal draws of ``shape`` with the dtype and device of ``x``."""
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
@@ -131,8 +134,8 @@ class JointNoise(NamedTuple):
         (both need the frame ``z``; the relocation the ``sensor``).
         """
         b, c, k, _ = x.shape
-        return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
-                   _uniform((b, c), x, generator), _births(x, existence, z, generator),
+        return cls(uniforms((b, c), x, generator), normals((b, c, k, motion.noise_dim), x, generator),
+                   uniforms((b, c), x, generator), _births(x, existence, z, generator),
                    _relocations(x, recapture, sensor, z, generator))
 
 
@@ -155,7 +158,7 @@ class RefineNoise(NamedTuple):
         ``recapture``, ``sensor``: as :meth:`JointNoise.draw`).
         """
         b, c, k, _ = x.shape
-        return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator),
+        return cls(normals((b, c, k, motion.noise_dim), x, generator), uniforms((b, c, k), x, generator),
                    _births(x, existence, z, generator), _relocations(x, recapture, sensor, z, generator))
 
 

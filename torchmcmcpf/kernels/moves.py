@@ -105,52 +105,17 @@ from collections.abc import Callable
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
+from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, exclusion_change, log_exclusion
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
-from .chains import (  # noqa: F401  (re-exported: the chain state of these moves)
-    ChainState,
-    JointNoise,
-    PreviousCloud,
-    RefineNoise,
-    _draw_ancestors,
-    _uniform,
-    evaluate,
-    previous_cloud,
-)
+from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, draw_ancestors, evaluate
 from .mh import mh_accept, mh_select
-from .random_walk import (  # noqa: F401  (re-exported)
-    RandomWalkNoise,
-    log_transition,
-    propose_random_walk,
-    random_walk_move,
-)
 
-__all__ = [
-    "MOVES",
-    "ChainState",
-    "PreviousCloud",
-    "JointNoise",
-    "RefineNoise",
-    "RandomWalkNoise",
-    "BirthNoise",
-    "previous_cloud",
-    "evaluate",
-    "init_chains",
-    "propose_joint",
-    "joint_move",
-    "refine_move",
-    "refine_slot",
-    "log_transition",
-    "propose_random_walk",
-    "random_walk_move",
-]
+__all__ = ["MOVES", "init_chains", "propose_joint", "joint_move", "refine_move", "refine_slot"]
 
-#: Names of the primitive moves.
+#: Names of the primitive moves (joint draw and refinement here, the random walk in :mod:`.random_walk`).
 MOVES = ("joint", "refine", "random_walk")
-
-#: Elements of one ``(B, C, n, K, D)`` chunk in :func:`log_transition` (bounds its memory).
 
 
 # -- joint draw ------------------------------------------------------------------------------
@@ -172,7 +137,7 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
     log_ratio : (B, C) zeros: ``q(x', a') = w^{a'} p(x' | x^{a'})`` equals the prior part of
         ``pi``, so prior and proposal cancel (paper 004 eq. 60 with ``P_a = 0``).
     """
-    x_prev = gather_particles(cloud.x, _draw_ancestors(cloud, noise.u_ancestor))
+    x_prev = gather_particles(cloud.x, draw_ancestors(cloud, noise.u_ancestor))
     x = motion.propagate(x_prev, noise.eps)
     return x, x_prev, torch.zeros_like(noise.u)
 
@@ -184,7 +149,7 @@ def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, mo
     ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births
     and re-capture).
     """
-    a = _draw_ancestors(cloud, noise.u_ancestor)
+    a = draw_ancestors(cloud, noise.u_ancestor)
     x_prev = gather_particles(cloud.x, a)
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
     dynamics = TargetDynamics(motion, existence, recapture, sensor)

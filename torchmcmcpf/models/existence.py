@@ -48,10 +48,9 @@ from torch import nn
 
 from .._validation import check_positive
 from ..resampling import cdf, inverse_cdf
-from ..typing import VX, VY, Measurement, Tensor, X, Y
+from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
 from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
-from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area, log_near_points
 
 __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
@@ -253,7 +252,7 @@ class BirthDeath(nn.Module):
         vel_eps = torch.randn(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         if z is None or self.birth_std is None:
             return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
-        pts, mask = _split(z)
+        pts, mask = split_points(z)
         b, m = pts.shape[:2]
         if m == 0:
             return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
