@@ -10,9 +10,9 @@ from typing import NamedTuple
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise
+from ..models.existence import BirthNoise, TargetDynamics
 from ..models.motion import LinearGaussianMotion
-from ..models.multitarget import Recapture, RelocationNoise, draw_relocation
+from ..models.multitarget import RelocationNoise
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 
@@ -101,17 +101,6 @@ def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tens
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
-def _births(x: Tensor, existence: BirthDeath | None, z: Measurement | None, generator: torch.Generator
-            ) -> BirthNoise | None:
-    return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
-
-
-def _relocations(x: Tensor, recapture: Recapture | None, sensor: SensorModel | None, z: Measurement | None,
-                 generator: torch.Generator) -> RelocationNoise | None:
-    return draw_relocation(recapture, sensor, tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
-                           device=x.device)
-
-
 class JointNoise(NamedTuple):
     """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
     K, noise_dim)`` standard normals (the transition noise of every target), with existence
@@ -126,17 +115,16 @@ class JointNoise(NamedTuple):
     relocation: RelocationNoise | None = None
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: BirthDeath | None = None, z: Measurement | None = None,
-             recapture: Recapture | None = None, sensor: SensorModel | None = None) -> JointNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``); the
-        birth noise only with ``existence``, the relocation noise only with ``recapture``
-        (both need the frame ``z``; the relocation the ``sensor``).
+    def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
+             z: Measurement | None = None) -> JointNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``) moved by
+        ``dynamics``: the birth noise only with its existence model, the relocation noise only
+        with its re-capture (both from the frame ``z``).
         """
         b, c, k, _ = x.shape
-        return cls(uniforms((b, c), x, generator), normals((b, c, k, motion.noise_dim), x, generator),
-                   uniforms((b, c), x, generator), _births(x, existence, z, generator),
-                   _relocations(x, recapture, sensor, z, generator))
+        return cls(uniforms((b, c), x, generator), normals((b, c, k, dynamics.motion.noise_dim), x, generator),
+                   uniforms((b, c), x, generator), dynamics.draw_births(x, z, generator=generator),
+                   _relocations(x, dynamics, z, generator))
 
 
 class RefineNoise(NamedTuple):
@@ -151,15 +139,19 @@ class RefineNoise(NamedTuple):
     relocation: RelocationNoise | None = None
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: BirthDeath | None = None, z: Measurement | None = None,
-             recapture: Recapture | None = None, sensor: SensorModel | None = None) -> RefineNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``,
-        ``recapture``, ``sensor``: as :meth:`JointNoise.draw`).
+    def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
+             z: Measurement | None = None) -> RefineNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``: as
+        :meth:`JointNoise.draw`).
         """
         b, c, k, _ = x.shape
-        return cls(normals((b, c, k, motion.noise_dim), x, generator), uniforms((b, c, k), x, generator),
-                   _births(x, existence, z, generator), _relocations(x, recapture, sensor, z, generator))
+        return cls(normals((b, c, k, dynamics.motion.noise_dim), x, generator), uniforms((b, c, k), x, generator),
+                   dynamics.draw_births(x, z, generator=generator), _relocations(x, dynamics, z, generator))
+
+
+def _relocations(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator
+                 ) -> RelocationNoise | None:
+    return dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype, device=x.device)
 
 
 # -- likelihood ------------------------------------------------------------------------------

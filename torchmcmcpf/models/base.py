@@ -232,7 +232,7 @@ class SensorModel(nn.Module, Generic[Z]):
         ``log p(z | ref[b] with slot k set to x[b, *s, k]) - log p(z | ref[b])``.
 
         The weights of the independent-partition filter
-        (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_kernel`). The default is
+        (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_body`). The default is
         exact: the difference of per-target terms for a :attr:`separable` sensor, else
         :meth:`log_likelihood_delta` with the reference repeated for every sample and slot
         (``K`` one-slot changes per sample); grid sensors override it with one amplitude grid

@@ -415,8 +415,22 @@ class TargetDynamics(NamedTuple):
             birth = None
         else:
             eps, birth = self.existence.draw_noise(x, self.motion, z, generator=generator)
-        return eps, birth, draw_relocation(self.recapture, self.sensor, tuple(x.shape[:-1]), z,
-                                           generator=generator, dtype=x.dtype, device=x.device)
+        return eps, birth, self.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
+                                                 device=x.device)
+
+    def draw_births(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator
+                    ) -> BirthNoise | None:
+        """:class:`BirthNoise` for slots shaped like ``x (B, *S, K, D)`` (births near the points
+        of ``z`` when the model draws them so); ``None`` without an existence model.
+        """
+        return None if self.existence is None else BirthNoise.draw(x, self.existence, z, generator=generator)
+
+    def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
+                         dtype: torch.dtype, device: torch.device | str) -> RelocationNoise | None:
+        """:class:`~torchmcmcpf.models.multitarget.RelocationNoise` for slots of leading
+        ``shape (B, *S, K)``, drawn from the frame ``z``; ``None`` without re-capture.
+        """
+        return draw_relocation(self.recapture, self.sensor, shape, z, generator=generator, dtype=dtype, device=device)
 
     def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
                   relocation: RelocationNoise | None = None) -> tuple[Tensor, Tensor | None, Tensor]:

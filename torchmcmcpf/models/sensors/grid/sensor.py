@@ -265,15 +265,8 @@ class SeparableGridSensor(SensorModel[Tensor]):
         slots, ``max_neighbours`` unless some box of the call overlaps more boxes) and
         ``K * prod(W_a)`` cell log-ratios, independent of the grid size. Blocks of at most
         :meth:`window_chunk_size` samples are processed at a time (checkpointed under
-        autograd), so temporaries stay within ``memory_budget``.
-
-        Parameters
-        ----------
-        x : (B, *S, K, D); z : (B, *G); exists : (B, *S, K) bool, optional.
-
-        Returns
-        -------
-        (B, *S).
+        autograd), so temporaries stay within ``memory_budget``. Arguments and result as
+        :meth:`log_likelihood_grid`.
         """
         return window.log_likelihood(self, x, z, exists)
 
