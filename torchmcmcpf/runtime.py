@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import inspect
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -185,6 +186,12 @@ class Program:
     """
 
     def __init__(self, fn: Callable):
+        if not inspect.isfunction(fn):
+            # torch.compile wraps any other callable (a functools.partial, an object) in one
+            # shared code object (torch/_dynamo/external_utils.py, inner): every such program
+            # of the process would then count against that object's recompile limit (8)
+            raise TypeError(f"compile_program takes a Python function (a def or a lambda binding its models), "
+                            f"got {type(fn).__name__}")
         self._fn = fn
         self._plain = torch.compile(fn, fullgraph=True, dynamic=False)
         self._graphed: Callable | None = None

@@ -41,7 +41,7 @@ from torch.utils._pytree import tree_flatten, tree_map
 
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, TargetDynamics
 from ..runtime import compile_program
 from ..state import (
     ExistenceEstimate,
@@ -305,6 +305,14 @@ class Filter(nn.Module):
         ``ValueError`` naming the setting); none by default.
         """
 
+    @property
+    def dynamics(self) -> TargetDynamics:
+        """The slots' joint model of this filter: its motion, existence model (with the
+        settings' existence proposal), re-capture (when its settings have one) and sensor,
+        the :class:`~torchmcmcpf.models.existence.TargetDynamics` its compiled programs bind.
+        """
+        return TargetDynamics(self.motion, self.existence, getattr(self.settings, "recapture", None), self.sensor)
+
     # -- the states this filter vouches for ----------------------------------------------
     def _trust(self, state: ParticleState) -> ParticleState:
         """Remember ``state`` (checked at the door or produced by a step) as valid, so that
@@ -430,11 +438,10 @@ class Filter(nn.Module):
         state : ParticleState.
         reference : the previous step's estimate, optional: predicted by the motion model,
             it is the starting reference, so the labels stay the same over time
-            (``forward`` passes it).
-
-        A sensor without :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`
-        (labelled measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says
-        which slot is which target: there the particles are not relabelled.
+            (``forward`` passes it). A sensor without
+            :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords` (labelled
+            measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says which slot
+            is which target: there the particles are not relabelled.
 
         Returns
         -------

@@ -138,8 +138,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch.utils._pytree import tree_map
@@ -544,9 +543,12 @@ def ipmcmc_step(
 
 def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None) -> Callable:
     """:func:`exchange_iteration` with the models and the exclusion term bound:
-    ``iteration(chains, x_prev, exists_prev, z, noise)``.
+    ``iteration(chains, x_prev, exists_prev, z, noise)`` (a function of its own, the program
+    ``compile_step=True`` compiles).
     """
-    return partial(exchange_iteration, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+    def iteration(*args: Any) -> tuple[ExchangeChains, Tensor, tuple[Tensor, Tensor] | None]:
+        return exchange_iteration(*args, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+    return iteration
 
 
 class IPMCMCFilter(Filter):
@@ -596,8 +598,7 @@ class IPMCMCFilter(Filter):
             check_hmc_motion(self.motion, self.existence)
 
     def _build_compiled(self, compile: Callable) -> Callable:
-        dynamics = TargetDynamics(self.motion, self.existence, self.settings.recapture, self.sensor)
-        return compile(bind_iteration(dynamics, self.sensor, self.settings.exclusion))
+        return compile(bind_iteration(self.dynamics, self.sensor, self.settings.exclusion))
 
     def _step(self, state, z, generator):
         return ipmcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

@@ -445,7 +445,7 @@ def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, settings: MCMC
                 programs["refine"] = compile(lambda chain, noise, z: refine_move(
                     chain, noise, z=z, dynamics=dynamics, sensor=sensor))
             else:
-                slot = compile(partial(refine_slot, sensor=sensor, exclusion=exclusion))
+                slot = compile(lambda *args: refine_slot(*args, sensor=sensor, exclusion=exclusion))
                 programs["refine"] = partial(_refine_with, dynamics=dynamics, sensor=sensor, exclusion=exclusion,
                                              slot_program=slot)
         if "random_walk" in names:
@@ -516,8 +516,7 @@ class MCMCFilter(Filter):
             check_hmc_motion(self.motion, self.existence)
 
     def _build_compiled(self, compile: Callable) -> Callable:
-        dynamics = TargetDynamics(self.motion, self.existence, self.settings.recapture, self.sensor)
-        return bind_iteration(dynamics, self.sensor, self.settings, compile)
+        return bind_iteration(self.dynamics, self.sensor, self.settings, compile)
 
     def _step(self, state, z, generator):
         return mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

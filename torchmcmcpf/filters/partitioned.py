@@ -34,7 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
+from typing import Any
 
 import torch
 
@@ -102,6 +102,15 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     return x_new.transpose(1, 2), log_lik
 
 
+def bind_body(motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings) -> Callable:
+    """:func:`partitioned_sir_body` with the models bound: ``body(x, log_w, z, u, eps)`` (a
+    function of its own, the program ``compile_step=True`` compiles).
+    """
+    def body(*args: Any) -> tuple[Tensor, Tensor]:
+        return partitioned_sir_body(*args, motion=motion, sensor=sensor, settings=settings)
+    return body
+
+
 def partitioned_sir_step(
     state: ParticleState,
     z: Measurement,
@@ -140,7 +149,7 @@ def partitioned_sir_step(
     u = draw(b * k, n, generator=generator, device=x.device)
     eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
     if body is None:
-        body = partial(partitioned_sir_body, motion=motion, sensor=sensor, settings=settings)
+        body = bind_body(motion, sensor, settings)
     x_new, log_lik = body(x, log_w, z, u, eps)
     ess_k = ess(normalize(log_lik)[0])  # (B, K); a partition with all weights -inf: uniform, not NaN
     log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
@@ -191,7 +200,7 @@ class PartitionedSIRFilter(Filter):
             raise ValueError("existence must be None: PartitionedSIRFilter tracks a known number of targets")
 
     def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(partial(partitioned_sir_body, motion=self.motion, sensor=self.sensor, settings=self.settings))
+        return compile(bind_body(self.motion, self.sensor, self.settings))
 
     def _step(self, state, z, generator):
         return partitioned_sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

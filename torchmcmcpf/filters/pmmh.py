@@ -46,7 +46,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 from typing import Any, NamedTuple
 
 import torch
@@ -61,7 +60,7 @@ from ..resampling import ess, normalize
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
-from .sir import SIRFilter, SIRSettings, sir_body, sir_step
+from .sir import SIRFilter, SIRSettings, bind_body, sir_step
 
 __all__ = ["pmmh", "PMMHResult", "sir_log_evidence", "ProcessNoiseScale", "PMMHFilter", "PMMHSettings",
            "pmmh_step"]
@@ -314,8 +313,7 @@ def pmmh_step(
     sub = ParticleState(x.reshape(b * lc, m, k, d), extras["log_w_candidate"].reshape(b * lc, m),
                         None if exists is None else exists.reshape(b * lc, m, k))
     zc = tree_map(lambda a: a.repeat_interleave(lc, dim=0), z)
-    base = body if body is not None else partial(sir_body, dynamics=TargetDynamics(motion, existence), sensor=sensor,
-                                                 settings=settings.sir)
+    base = body if body is not None else bind_body(TargetDynamics(motion, existence), sensor, settings.sir)
     scale = (0.5 * theta).exp().reshape(b * lc, 1, 1, 1)
 
     def scaled(x_, log_w_, exists_, z_, need, u, eps, birth):
@@ -399,8 +397,7 @@ class PMMHFilter(Filter):
                              f"got {self.num_particles}")
 
     def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(partial(sir_body, dynamics=TargetDynamics(self.motion, self.existence), sensor=self.sensor,
-                               settings=self.settings.sir))
+        return compile(bind_body(self.dynamics, self.sensor, self.settings.sir))
 
     def _step(self, state, z, generator):
         return pmmh_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

@@ -339,7 +339,7 @@ class ResampleMoveFilter(Filter):
             )
 
     def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(bind_move(TargetDynamics(self.motion, self.existence), self.sensor, self.settings))
+        return compile(bind_move(self.dynamics, self.sensor, self.settings))
 
     def _step(self, state, z, generator):
         return resample_move_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
+from typing import Any
 
 import torch
 
@@ -23,7 +23,7 @@ from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_body"]
+__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_body", "bind_body"]
 
 
 @dataclass(frozen=True)
@@ -96,6 +96,16 @@ def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, ne
     return x, exists, (log_lik - math.log(n)) if every_step else log_w + log_lik
 
 
+def bind_body(dynamics: TargetDynamics, sensor: SensorModel, settings: SIRSettings) -> Callable:
+    """:func:`sir_body` with the models bound: ``body(x, log_w, exists, z, need, u, eps,
+    birth)`` (a function of its own, the program ``compile_step=True`` compiles; see
+    :class:`~torchmcmcpf.runtime.Program` on why not a ``functools.partial``).
+    """
+    def body(*args: Any) -> tuple[Tensor, Tensor | None, Tensor]:
+        return sir_body(*args, dynamics=dynamics, sensor=sensor, settings=settings)
+    return body
+
+
 def sir_step(
     state: ParticleState,
     z: Measurement,
@@ -146,7 +156,7 @@ def sir_step(
     else:
         need = ess(log_w) < settings.ess_threshold * n  # (B,)
     if body is None:
-        body = partial(sir_body, dynamics=dynamics, sensor=sensor, settings=settings)
+        body = bind_body(dynamics, sensor, settings)
     x, exists, log_w = body(x, log_w, exists, z, need, u, eps, birth)
     log_w_new, log_mean, ess_new = normalize_ess(log_w)
     # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
@@ -191,8 +201,7 @@ class SIRFilter(Filter):
     settings: SIRSettings
 
     def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(partial(sir_body, dynamics=TargetDynamics(self.motion, self.existence), sensor=self.sensor,
-                               settings=self.settings))
+        return compile(bind_body(self.dynamics, self.sensor, self.settings))
 
     def _step(self, state, z, generator):
         return sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,

@@ -1,15 +1,18 @@
-"""Pure, batched MCMC kernels: Metropolis-Hastings accept/reject (:mod:`.mh`); the moves of
-the sequential MCMC particle filter, by concern: chain states and noise (:mod:`.chains`),
-joint draw and per-target refinement (:mod:`.moves`), random walk (:mod:`.random_walk`); the
-IP-MCMC exchange move (:mod:`.exchange`); Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC
-refinement move of the MCMC filters (:mod:`.hmc_refine`).
+"""Pure, batched Markov kernels, one move per kind: Metropolis-Hastings accept/reject
+(:mod:`.mh`); the moves of the sequential MCMC particle filter, by concern: chain states and
+noise (:mod:`.chains`), joint draw and per-target refinement (:mod:`.moves`), random walk
+(:mod:`.random_walk`); the IP-MCMC exchange move and its iteration (:mod:`.exchange`);
+Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC refinement move of the MCMC filters
+(:mod:`.hmc_refine`).
 
-Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decides with
-``torch.where``, so chains, targets and runs are tensor dimensions.
+Every move takes its noise pre-drawn (or an explicit ``generator``) and decides with
+``torch.where``, so chains, targets and runs are tensor dimensions. (Vocabulary: a *move* is
+one MH transition of every chain, an *iteration* one MCMC iteration of the chains, a
+*program* what :mod:`torchmcmcpf.runtime` compiles.)
 """
 
 from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
-from .exchange import ExchangeNoise, draw_exchange_noise, exchange_iteration
+from .exchange import ExchangeChains, ExchangeNoise, draw_exchange_noise, exchange_iteration, with_accepted_amplitudes
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
@@ -35,7 +38,9 @@ __all__ = [
     "log_transition",
     "propose_random_walk",
     "random_walk_move",
+    "ExchangeChains",
     "ExchangeNoise",
+    "with_accepted_amplitudes",
     "draw_exchange_noise",
     "exchange_iteration",
     "HMCInfo",

@@ -201,10 +201,12 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
 
     Parameters
     ----------
-    chain : ChainState ``(B, C, K, D)``; noise : :class:`JointNoise`; cloud : previous
-    particles; z : frame ``(B, *G)``; dynamics : the slots' joint model (motion, optionally
-    births and deaths and re-capture); sensor : the SensorModel; exclusion : the exclusion
-    term (:mod:`torchmcmcpf.models.multitarget`), optional.
+    chain : ChainState ``(B, C, K, D)``.
+    noise : :class:`JointNoise`.
+    cloud : the previous particles; z : frame ``(B, *G)``.
+    dynamics : the slots' joint model (motion, optionally births and deaths and re-capture).
+    sensor : the SensorModel.
+    exclusion : the exclusion term (:mod:`torchmcmcpf.models.multitarget`), optional.
 
     Returns
     -------
@@ -236,10 +238,12 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, dynami
 
     Parameters
     ----------
-    chain : ChainState ``(B, C, K, D)``; noise : :class:`RefineNoise`; z : frame ``(B, *G)``;
-    dynamics : the slots' joint model; sensor : the SensorModel; exclusion : the exclusion
-    term, optional; slot_program : :func:`refine_slot` compiled
-    (:func:`~torchmcmcpf.runtime.compile_program`, called with a tensor slot), optional.
+    chain : ChainState ``(B, C, K, D)``.
+    noise : :class:`RefineNoise`; z : frame ``(B, *G)``.
+    dynamics : the slots' joint model; sensor : the SensorModel.
+    exclusion : the exclusion term, optional.
+    slot_program : :func:`refine_slot` compiled (:func:`~torchmcmcpf.runtime.compile_program`,
+        called with a tensor slot), optional.
 
     Returns
     -------
@@ -272,14 +276,15 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
 
     Parameters
     ----------
-    x : (B, C, K, D), log_lik : (B, C), e, log_r : (B, C, K) or None: the chains (``log_r``
-    the cached ``log r_n``, :attr:`ChainState.log_ratio`).
-    x_prop : (B, C, K, D), e_prop, r_prop : (B, C, K) or None, log_ratio, u : (B, C, K):
-    the proposals of every slot (``r_prop`` their ``log r'_n``, ``log_ratio`` the difference
-    ``log r'_n - log r_n`` taken against the sweep's start); n : Python int, or (B, C) int64
-    (the same slot everywhere, as a tensor so that one compiled graph serves every slot);
-    z : the frame; sensor : the SensorModel; exclusion : the exclusion term, optional (its
-    ``K - 1`` factors of slot ``n``).
+    x, log_lik, e, log_r : the chains, ``(B, C, K, D)``, ``(B, C)``, ``(B, C, K)`` or None
+        (``log_r`` the cached ``log r_n``, :attr:`ChainState.log_ratio`).
+    x_prop, e_prop, r_prop, log_ratio, u : the proposals of every slot, ``(B, C, K, D)``,
+        then ``(B, C, K)`` (``e_prop``, ``r_prop`` or None; ``r_prop`` their ``log r'_n``,
+        ``log_ratio`` the difference ``log r'_n - log r_n`` taken against the sweep's start).
+    n : Python int, or (B, C) int64 (the same slot everywhere, as a tensor so that one
+        compiled graph serves every slot).
+    z : the frame; sensor : the SensorModel.
+    exclusion : the exclusion term, optional (its ``K - 1`` factors of slot ``n``).
 
     Returns
     -------

@@ -37,11 +37,12 @@ class SeparableGridSensor(SensorModel[Tensor]):
 
     Parameters
     ----------
-    axes : ``{buffer name: (bins, width)}`` in frame order, e.g. ``{"range_bins": (r, None),
-        ...}``. ``bins (N_a,)``: the cell centres of the axis, increasing and uniformly
-        spaced, stored as a float64 buffer of that name (computations follow the dtype of
-        ``x``). ``width``: the point-spread standard deviation ``w_a`` in the axis' unit;
-        ``None`` means the cell spacing (error messages call it ``<axis>_width``).
+    axes : ``{buffer name: (bins, width)}`` in frame order (the radar's: ``"range_bins"``,
+        ``"doppler_bins"``, ``"bearing_bins"``). ``bins (N_a,)``: the cell centres of the
+        axis, increasing and uniformly spaced, stored as a float64 buffer of that name
+        (computations follow the dtype of ``x``). ``width``: the point-spread standard
+        deviation ``w_a`` in the axis' unit; ``None`` means the cell spacing (error messages
+        call it ``<axis>_width``).
     window : int >= 0
         Half-width, in cells, of the box evaluated around each target by the windowed path.
     method : {"window", "grid"}
