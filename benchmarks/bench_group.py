@@ -129,11 +129,11 @@ def test_group_iteration_eager(benchmark, move):
 @pytest.mark.compile
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_compiled(benchmark, move):
-    from torchmcmcpf.filters.base import compile_kernel
+    from torchmcmcpf.runtime import compile_program
     from torchmcmcpf.filters.group import _bind
 
     models, args = _iteration_args(move)
-    kernel = _bind(models, compile_kernel)
+    kernel = _bind(models, compile_program)
     benchmark.group = f"group-iteration-{move}-B{RUNS}-C{CHAINS}"
     with torch.no_grad():
         benchmark.pedantic(lambda *a: kernel(move, *a), args=args, rounds=5, iterations=1, warmup_rounds=1)
@@ -147,5 +147,5 @@ def test_group_step_paper_budget(benchmark, compiled):
     benchmark.group = f"group-step-paper-budget-B{RUNS}"
     with torch.no_grad():
         if compiled:
-            filt.kernel()
+            filt.compiled()
         benchmark.pedantic(lambda: filt.step(state, z, generator=g), rounds=1, iterations=1)

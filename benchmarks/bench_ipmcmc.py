@@ -73,7 +73,7 @@ def test_ipmcmc_step(benchmark, scenario, variant, n):
 @pytest.mark.parametrize("b", [1, 100])
 def test_ipmcmc_step_cuda(benchmark, variant, b):
     """On a GPU, Np = 5000, compiled: each segment of MH iterations captured as one CUDA graph
-    (``CompiledKernel.capture``, what ``compile_step=True`` does) against one graph replay per
+    (``runtime.Program.capture``, what ``compile_step=True`` does) against one graph replay per
     iteration (the kernel without its ``capture``), B = 1 and B = 100 runs.
     """
     n = 5000
@@ -82,8 +82,8 @@ def test_ipmcmc_step_cuda(benchmark, variant, b):
     filt = IPMCMCFilter(scn.motion, scn.sensor, n, num_chains=CHAINS, burn_in=BURN_IN, max_extensions=0,
                         compile_step=True).to("cuda")
     if variant == "per-iteration-graphs":
-        kernel = filt.kernel()
-        filt._compiled = lambda *args: kernel(*args)  # no capture(): a graph replay per iteration
+        program = filt.compiled()
+        filt._compiled = lambda *args: program(*args)  # no capture(): a graph replay per iteration
     state, z = filt.init(x0), scn.measurements[0]
 
     def step():

@@ -188,12 +188,15 @@ def _demo(args: argparse.Namespace) -> dict:
 
     import torch
 
+    from . import runtime
     from .metrics import position_rmse, track_loss
     from .scenarios import ground_radar
 
     out = prepare_out(args.out, DEMO_OUTPUTS)
     if args.threads:
         torch.set_num_threads(args.threads)
+    if args.memory_budget:
+        runtime.set_memory_budget(args.memory_budget)
     g = generator(args.device, args.seed)
     scenario = ground_radar(args.targets, args.steps, args.runs, generator=g, device=args.device)
     filt = _build_filter(args, scenario).to(args.device)

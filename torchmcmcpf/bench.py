@@ -233,7 +233,7 @@ def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torc
                    compile_step: bool = False, public: bool = True) -> Callable[[], object]:
     """Each call filters the next frame (B runs at once) from the state the previous call
     returned: through the public ``filt.step`` (``public``), or through the pure step
-    function :func:`~torchmcmcpf.filters.sir_step` with the filter's kernel, which checks
+    function :func:`~torchmcmcpf.filters.sir_step` with the filter's step body, which checks
     nothing (the cost of the step itself, to measure what ``step``'s checks add).
     """
     from .filters import sir_step
@@ -248,7 +248,7 @@ def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torc
             state[0], _ = filt.step(s, z[t % steps], generator=g)
         else:
             state[0], _ = sir_step(s, z[t % steps], motion=filt.motion, sensor=filt.sensor, settings=filt.settings,
-                                   generator=g, kernel=filt.kernel())
+                                   generator=g, body=filt.compiled())
         state[1] = t + 1
         return state[0]
 

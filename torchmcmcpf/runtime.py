@@ -1,5 +1,35 @@
-"""Process-level settings for fast batched CPU steps.
+"""The runtime: every choice that depends on where and how the code runs, in one module.
 
+Models, moves and filters compute the same mathematics on every device; *how* a piece of it
+is best evaluated depends on the device (CPU or CUDA), on whether ``torch.compile`` is
+tracing it, and on whether a ``torch.func`` transform is active. Those questions are asked
+here, by name, and each answer is written down once with its reason:
+
+- :func:`on_cuda`, :func:`compiling`, :func:`in_function_transform`: the facts;
+- :func:`neighbour_count`: how the windowed grid likelihood sizes its neighbour slots
+  (dense on a GPU, one host read eager on a CPU, ``torch.cond`` compiled);
+- :func:`broadcast_sums`: a sum of products as one broadcast reduction (GPU) or as
+  products and a batched matrix product (CPU);
+- :func:`compiled_for_cpu`: Inductor-on-CPU layout choices (a buffer of its own, a matmul
+  for an outer product);
+- :func:`blocked_linear_map`: the block-diagonal product of the small per-target maps (CPU);
+- :func:`fused_elementwise`, :func:`generated_reductions`: what compiling changes in the
+  numerics (a polynomial fuses; a reduction must keep eager's bits);
+- :class:`Program` and :func:`compile_program`: ``torch.compile(fullgraph=True)`` of a pure
+  function, with CUDA graphs on a GPU (per call, or a whole loop captured as one graph);
+- :func:`memory_budget`: the bytes of temporaries a grid sensor may hold at once, a
+  process-wide default (``--memory-budget`` on the command line);
+- :func:`tune_cpu_allocator`: glibc's allocator kept from returning large blocks.
+
+Vocabulary (one word, one meaning): a **move** is one Metropolis-Hastings transition of every
+chain of one kind (joint draw, refinement, random walk, exchange, HMC); an **iteration** is
+one MCMC iteration of every chain (the move picked for it, applied); a **program** is a pure
+function compiled here (an iteration, a move, the body of an SIR step).
+
+Nothing here imports a model or a filter: the models and the filters ask.
+
+CPU allocator
+-------------
 The windowed TBD likelihood of a batched step holds per-cell temporaries of tens of MB (at
 N = 5000 particles and K = 10 targets, ``(N * K, 7, 49)`` float32 blocks of 68-98 MB). glibc's
 ``malloc`` serves blocks above its mmap threshold (128 KiB to 32 MiB, adaptive) with fresh
@@ -17,11 +47,237 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import inspect
 import sys
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 
 from ._validation import check_positive_int
 
-__all__ = ["tune_cpu_allocator"]
+__all__ = ["on_cuda", "compiling", "in_function_transform", "neighbour_count", "broadcast_sums", "compiled_for_cpu",
+           "blocked_linear_map", "fused_elementwise", "generated_reductions", "Program", "compile_program",
+           "memory_budget", "set_memory_budget", "tune_cpu_allocator"]
+
+
+# ----------------------------------------------------------------------------- the facts
+def on_cuda(t: torch.Tensor) -> bool:
+    """Whether ``t`` lives on a CUDA device."""
+    return t.device.type == "cuda"
+
+
+def compiling() -> bool:
+    """Whether ``torch.compile`` is tracing the caller."""
+    return torch.compiler.is_compiling()
+
+
+def in_function_transform() -> bool:
+    """Whether a ``torch.func`` transform (``grad``, ``vmap``) is active around the caller
+    (torch's only way to ask is a private call; it is made here and nowhere else).
+    """
+    return bool(torch._C._are_functorch_transforms_active())
+
+
+# ----------------------------------------------------------------------------- the decisions
+def neighbour_count(t: torch.Tensor) -> str:
+    """How the windowed grid likelihood sizes the neighbour slots of a box
+    (:meth:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor.log_likelihood_window`) for
+    a call whose tensors live where ``t`` does.
+
+    - ``"dense"`` on a GPU: every target in every box, no device sync for the count and no
+      branch, so that a compiled kernel is captured whole in a CUDA graph
+      (:meth:`Program.capture`); also under a ``torch.func`` transform while compiling
+      (``torch.cond`` cannot be traced inside ``torch.func.grad``: the compiled HMC move);
+    - ``"count"`` eager on a CPU: the most targets overlapping one box, read from the device
+      (one host read, cheap there);
+    - ``"cond"`` compiled on a CPU: ``torch.cond`` between the fixed small count and the dense
+      form (both branches compiled; the graph stays whole and its shapes static).
+
+    All three are exact: they differ in how many zero terms a box sums.
+    """
+    if on_cuda(t):
+        return "dense"
+    if not compiling():
+        return "count"
+    return "dense" if in_function_transform() else "cond"
+
+
+def broadcast_sums(t: torch.Tensor) -> bool:
+    """Whether a sum of products over a short dim is best one broadcast product summed
+    (True, on a GPU: fused by ``torch.compile``; a batched matrix product there would be tens
+    of thousands of tiny matrices, which cuBLAS runs at a few percent of the card: its gemms
+    were 70 % of the IP-MCMC-PF's GPU time on an H200, benchmarks/README.md) or outer
+    products and one batched matrix product / term-by-term sums (False, on a CPU).
+    """
+    return on_cuda(t)
+
+
+def compiled_for_cpu(t: torch.Tensor) -> bool:
+    """Whether Inductor is compiling the caller for the CPU. There a cheap pointwise tensor
+    inlined into a vectorised per-cell loop whose index needs a division falls back to
+    scalar code, and an outer product fuses better as a matmul with inner size 1 (measured,
+    benchmarks/bench_likelihood.py), so the grid sensor gives such tensors buffers of their
+    own; eager, or on a GPU, the plain forms are faster.
+    """
+    return compiling() and t.device.type == "cpu"
+
+
+def blocked_linear_map(x: torch.Tensor) -> bool:
+    """Whether :func:`~torchmcmcpf.models.base.linear_map` multiplies groups of rows by a
+    block-diagonal matrix (on the CPU, where BLAS is slow on tall products with 2-5 columns;
+    eager and compiled alike, so the two give the same bits) rather than ``x @ M.mT``.
+    """
+    return x.device.type == "cpu"
+
+
+def fused_elementwise() -> bool:
+    """Whether chains of elementwise operations run fused into one loop (while compiling): a
+    polynomial of a few dozen operations then costs about one pass over memory, less than a
+    special function's own kernel (the radar's ``log I0``: about 1.5 ns per element compiled
+    against 15 for ``i0e``, :func:`~torchmcmcpf.models.sensors.radar.log_i0`); eager, each
+    operation is a pass of its own.
+    """
+    return compiling()
+
+
+def generated_reductions() -> bool:
+    """Whether Inductor generates the reductions of the caller (while compiling): its ``exp``
+    and its summation order differ from ATen's in the last bit, so a reduction whose bits
+    must equal eager code's (``compile_step=True`` equals eager) goes through an op the
+    compiler cannot see into (the point sensors' ``logsumexp``).
+    """
+    return compiling()
+
+
+# ----------------------------------------------------------------------------- programs
+def _first_on_cuda(args: tuple) -> bool:
+    """Whether the first tensor among ``args`` (and the tuples in them, one level down; a
+    program's first argument is a tensor or a chain tuple) is on a CUDA device. Cheaper than
+    flattening the arguments: it runs once per MH iteration.
+    """
+    for a in args:
+        for t in (a if isinstance(a, tuple) else (a,)):
+            if torch.is_tensor(t):
+                return on_cuda(t)
+    return False
+
+
+class Program:
+    """A pure function compiled with ``torch.compile(fn, fullgraph=True, dynamic=False)``,
+    with CUDA graphs on a GPU (:func:`compile_program` builds it).
+
+    Called on CPU tensors it is the compiled ``fn``. Called on CUDA tensors (the first tensor
+    argument decides) it is ``fn`` compiled with ``mode="reduce-overhead"``: each call
+    replays one CUDA graph instead of launching the graph's kernels one by one. The MCMC
+    filters call their iteration hundreds of times per step, and on a GPU those launches
+    were the step's cost (benchmarks/README.md, H200: about 1 ms per iteration). A replay
+    writes its outputs into the graph's static buffers, which the next replay overwrites,
+    and the filters keep every iteration's chain state (the R-hat trace, the kept samples),
+    so the outputs are cloned before they are returned. That mode is a second compilation
+    of ``fn``, whose reductions may round differently from the plain one (float32 rounding:
+    4e-6 relative on the SIR step's mean, H200).
+
+    :meth:`capture` goes further: a whole loop of calls (a segment of MH iterations)
+    captured as one CUDA graph of the plain compiled program (bit for bit its results), so
+    that a GPU step costs the kernels' own time, not a graph launch and its Python per
+    iteration: the IP-MCMC-PF step at Np = 5000 went from 73 to 16 ms on an H200.
+    """
+
+    def __init__(self, fn: Callable):
+        if not inspect.isfunction(fn):
+            # torch.compile wraps any other callable (a functools.partial, an object) in one
+            # shared code object (torch/_dynamo/external_utils.py, inner): every such program
+            # of the process would then count against that object's recompile limit (8)
+            raise TypeError(f"compile_program takes a Python function (a def or a lambda binding its models), "
+                            f"got {type(fn).__name__}")
+        self._fn = fn
+        self._plain = torch.compile(fn, fullgraph=True, dynamic=False)
+        self._graphed: Callable | None = None
+        self._inside = False  # warming up or capturing a loop: the plain program, no nested graphs
+        self._loops: dict = {}
+
+    def __call__(self, *args: Any) -> Any:
+        """``fn(*args)``, compiled; on CUDA tensors one CUDA graph replay (class docstring)."""
+        if self._inside or not _first_on_cuda(args):
+            return self._plain(*args)
+        if self._graphed is None:
+            self._graphed = torch.compile(self._fn, fullgraph=True, dynamic=False, mode="reduce-overhead")
+        torch.compiler.cudagraph_mark_step_begin()
+        return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, self._graphed(*args))
+
+    def capture(self, loop: Callable, *args: Any) -> Any:
+        """``loop(self, *args)``; on CUDA tensors as one CUDA graph.
+
+        ``loop`` calls this program (any number of times) and must read tensors only through
+        ``args`` (pytrees of tensors, ``None`` and hashable constants) and never wait for the
+        device (no ``.item()``, no data-dependent Python branch). On CUDA the first call for a
+        given ``loop`` and signature (shapes, dtypes, devices, constants) warms up on a side
+        stream, then captures ``loop`` on static copies of the tensor arguments; every call
+        copies the arguments in, replays the graph and returns clones of its outputs (so an
+        earlier result survives the next replay). Same kernels, same results as the loop
+        called eagerly with this program, which is what it is on the CPU. Each signature's
+        graph and its memory pool are kept for the program's life (the filter's).
+        """
+        leaves, spec = tree_flatten(args)
+        tensors = [a for a in leaves if torch.is_tensor(a)]
+        if not tensors or not on_cuda(tensors[0]):
+            return loop(self, *args)
+        key = (loop, spec, tuple((a.shape, a.dtype, a.device) if torch.is_tensor(a) else a for a in leaves))
+        entry = self._loops.get(key)
+        if entry is None:
+            static = [a.clone() if torch.is_tensor(a) else a for a in leaves]
+            static_args = tree_unflatten(static, spec)
+            side = torch.cuda.Stream(tensors[0].device)
+            side.wait_stream(torch.cuda.current_stream(tensors[0].device))
+            graph = torch.cuda.CUDAGraph()
+            self._inside = True
+            try:
+                with torch.cuda.stream(side):  # warm-up: compilation, library handles
+                    loop(self, *static_args)
+                torch.cuda.current_stream(tensors[0].device).wait_stream(side)
+                with torch.cuda.graph(graph):
+                    outputs = loop(self, *static_args)
+            finally:
+                self._inside = False
+            entry = self._loops[key] = (graph, static, outputs)
+        graph, static, outputs = entry
+        for dst, src in zip(static, leaves):
+            if torch.is_tensor(src):
+                dst.copy_(src)
+        graph.replay()
+        return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, outputs)
+
+
+def compile_program(fn: Callable) -> Program:
+    """``fn`` compiled as a filter's program: :class:`Program`."""
+    return Program(fn)
+
+
+# ----------------------------------------------------------------------------- memory
+#: the process-wide default of :func:`memory_budget` (bytes); :func:`set_memory_budget` sets it
+_memory_budget = [2**30]
+
+
+def memory_budget() -> int:
+    """Bytes of temporaries a grid sensor's likelihood may hold at once when the sensor was
+    built without its own ``memory_budget`` (default 1 GiB; the grid sensors chunk their
+    samples to stay within it, :mod:`torchmcmcpf.models.sensors.grid`).
+    """
+    return _memory_budget[0]
+
+
+def set_memory_budget(num_bytes: int) -> int:
+    """Set the process-wide :func:`memory_budget` (``--memory-budget`` on the command line);
+    returns the previous value.
+    """
+    old = _memory_budget[0]
+    _memory_budget[0] = check_positive_int(num_bytes, "memory_budget")
+    return old
+
+
+# ----------------------------------------------------------------------------- the allocator
 
 #: glibc ``mallopt`` parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3

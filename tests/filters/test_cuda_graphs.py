@@ -1,5 +1,5 @@
-"""``filters.base.compile_kernel`` on a GPU: CUDA graphs (per call, and a whole loop captured
-by ``CompiledKernel.capture``) give the plain compiled results.
+"""``runtime.compile_program`` on a GPU: CUDA graphs (per call, and a whole loop captured
+by ``Program.capture``) give the plain compiled results.
 
 Skipped without CUDA (CI has none); run on a GPU with ``pytest tests/filters/test_cuda_graphs.py``.
 The MCMC filters keep every iteration's chain state (R-hat trace, kept samples), so a graph
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from torchmcmcpf.filters import IPMCMCFilter, MCMCFilter, SIRFilter
-from torchmcmcpf.filters.base import compile_kernel
+from torchmcmcpf.runtime import compile_program
 from torchmcmcpf.scenarios.ground_radar import ground_radar
 
 pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -21,7 +21,7 @@ def _run(make, graphs: bool):
     x0 = scn.initial_particles(200, generator=torch.Generator("cuda").manual_seed(1))
     filt = make(scn).to("cuda")
     if not graphs:  # the same kernels without CUDA graphs
-        filt._compiled = filt._kernel(lambda f: torch.compile(f, fullgraph=True, dynamic=False))
+        filt._compiled = filt._build_compiled(lambda f: torch.compile(f, fullgraph=True, dynamic=False))
     return filt(scn.measurements, init=x0, generator=torch.Generator("cuda").manual_seed(2))
 
 
@@ -41,22 +41,22 @@ def test_graphs_match_plain_compile(make, rtol):
 
 
 def test_outputs_survive_the_next_replay():
-    f = compile_kernel(lambda x: x * 2.0)
+    f = compile_program(lambda x: x * 2.0)
     a = f(torch.ones(4, device="cuda"))
     b = f(torch.full((4,), 3.0, device="cuda"))
     assert a.tolist() == [2.0] * 4 and b.tolist() == [6.0] * 4
 
 
-def _loop(kernel, x, n):
+def _loop(program, x, n):
     out = []
     for _ in range(n):
-        x = kernel(x)
+        x = program(x)
         out.append(x)
     return x, torch.stack(out)
 
 
 def test_capture_replays_a_loop_and_its_outputs_survive():
-    f = compile_kernel(lambda x: x * 2.0 + 1.0)
+    f = compile_program(lambda x: x * 2.0 + 1.0)
     a = f.capture(_loop, torch.ones(4, device="cuda"), 3)
     b = f.capture(_loop, torch.full((4,), 2.0, device="cuda"), 3)  # a replay on new inputs
     assert a[0].tolist() == [15.0] * 4 and a[1][:, 0].tolist() == [3.0, 7.0, 15.0]

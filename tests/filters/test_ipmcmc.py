@@ -9,8 +9,14 @@ from _kalman import kalman_filter
 from torch.utils._pytree import tree_map
 
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
-from torchmcmcpf.kernels.exchange import draw_exchange_noise, exchange_iteration
+from torchmcmcpf.kernels.exchange import (
+    ExchangeChains,
+    draw_exchange_noise,
+    exchange_iteration,
+    with_accepted_amplitudes,
+)
 from torchmcmcpf.models.base import SensorModel
+from torchmcmcpf.models.existence import TargetDynamics
 from torchmcmcpf.models.motion import ConstantVelocity, LinearGaussianMotion
 from torchmcmcpf.models.sensors.linear import LinearGaussian
 
@@ -89,11 +95,13 @@ def test_exchange_move_targets_factorised_posterior(gen, start):
         iters = 60
     y = y.unsqueeze(-1)
     ll = sensor.log_likelihood(y, z)
-    noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), iters, c, k, 1, generator=gen, dtype=DT)
+    dynamics = TargetDynamics(motion)
+    noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), iters, c, k, dynamics=dynamics,
+                                generator=gen, dtype=DT)
     acc = 0.0
     for t in range(iters):
-        (y, ll, _, _, _), a, _ = exchange_iteration((y, ll, None, None, None), x_prev, None, z, _at(noise, t),
-                                                 motion=motion, sensor=sensor)
+        (y, ll, *_), a, _ = exchange_iteration(ExchangeChains(y, ll), x_prev, None, z, _at(noise, t),
+                                               dynamics=dynamics, sensor=sensor)
         acc += a.double().mean().item() / iters
     assert 0.2 < acc < 0.95  # the chains really move (an always-reject kernel is invariant too)
     torch.testing.assert_close(ll, sensor.log_likelihood(y, z))  # cached log-likelihoods stay exact
@@ -216,17 +224,17 @@ def test_rhat_window_is_second_half_of_iterations():
     state, info = filt.step(filt.init(x_prev), z, generator=torch.Generator().manual_seed(1))
     # replay the chains by hand with the same random stream
     from torchmcmcpf.diagnostics import rhat
-    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _bind, _run_chains
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _run_chains, bind_iteration
     from torchmcmcpf.resampling import gather_particles, systematic
     g = torch.Generator().manual_seed(1)
     log_w = torch.full((b, n), -math.log(n), dtype=DT)
     start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, generator=g), c)
     x0 = gather_particles(x_prev, start)
     y = motion.propagate(x0, torch.randn(x0.shape[:-1] + (1,), generator=g, dtype=DT))
-    noise = draw_exchange_noise(log_w, 5 + 3 * 4, c, 2, 1, generator=g, dtype=DT)
-    it = _bind(motion, sensor, None, None, None)
-    _, trace, _, _ = _run_chains((y, sensor.log_likelihood(y, z), None, None, None), SegmentNoise(noise),
-                              lambda ch, nz: it(ch, x_prev, None, z, nz)[:2])
+    noise = draw_exchange_noise(log_w, 5 + 3 * 4, c, 2, dynamics=TargetDynamics(motion), generator=g, dtype=DT)
+    it = bind_iteration(TargetDynamics(motion), sensor, None)
+    _, trace, _, _ = _run_chains(ExchangeChains(y, sensor.log_likelihood(y, z)), SegmentNoise(noise),
+                                 lambda ch, nz: it(ch, x_prev, None, z, nz), sensor)
     ys = torch.stack([t[0] for t in trace])  # (17, B, C, K, 1)
     expected = rhat(ys[17 // 2:], chain_dim=2, sample_dim=0).flatten(1)  # (B, K * D), D = 1
     torch.testing.assert_close(info.extras["rhat"], expected.amax(-1))
@@ -284,7 +292,7 @@ def _radar_exchange_problem(dtype, b=2, n=40, c=8, iterations=25):
     x_prev = (xt[:, None] + spread * torch.randn(b, n, 3, 5, generator=g, dtype=DT)).to(dtype)
     y = motion.sample(x_prev[:, :c], generator=g)
     noise = draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=dtype), iterations, c, 3,
-                                motion.noise_dim, generator=g, dtype=dtype)
+                                dynamics=TargetDynamics(motion), generator=g, dtype=dtype)
     return motion, sensor, z, x_prev, y, noise
 
 
@@ -300,10 +308,10 @@ def test_exchange_delta_path_equals_full_reevaluation():
         y, log_lik, accepted = y0, sensor.log_likelihood(y0, z), []
         cache = sensor.amplitude_cache(y0) if name == "cached" else None
         for t in range(noise.u.shape[0]):
-            (y, log_lik, _, _, _), acc, update = exchange_iteration(
-                (y, log_lik, None, None, None), x_prev, None, z, _at(noise, t), cache=cache, motion=motion, sensor=sens)
-            if cache is not None:
-                sensor.update_amplitude_cache(cache, *update, acc)
+            chains = ExchangeChains(y, log_lik, amplitude=cache)
+            new, acc, update = exchange_iteration(chains, x_prev, None, z, _at(noise, t),
+                                                  dynamics=TargetDynamics(motion), sensor=sens)
+            (y, log_lik, *_), cache = new, with_accepted_amplitudes(new, cache, update, acc, sensor).amplitude
             accepted.append(acc)
         runs[name] = y, log_lik, torch.stack(accepted)
         if cache is not None:  # the in-place updates kept the amplitudes of the chains
@@ -328,21 +336,22 @@ def test_exchange_iteration_compiles_with_radar_delta():
     motion, sensor, z, x_prev, y, noise = _radar_exchange_problem(torch.float32, iterations=3)
 
     def iterate(*args):
-        return exchange_iteration(*args, motion=motion, sensor=sensor)
+        return exchange_iteration(*args, dynamics=TargetDynamics(motion), sensor=sensor)
 
     compiled = torch.compile(iterate, fullgraph=True, dynamic=False)
     log_lik = sensor.log_likelihood(y, z)
     cache = sensor.amplitude_cache(y)
     for t in range(noise.u.shape[0]):
-        args = ((y, log_lik, None, None, None), x_prev, None, z, _at(noise, t))
-        (y_e, ll_e, _, _, _), acc_e, _ = iterate(*args)
-        (y_c, ll_c, _, _, _), acc_c, _ = compiled(*args)
-        (y_k, ll_k, _, _, _), acc_k, update = compiled(*args, cache)  # the amplitude cache's path
+        args = (x_prev, None, z, _at(noise, t))
+        (y_e, ll_e, *_), acc_e, _ = iterate(ExchangeChains(y, log_lik), *args)
+        (y_c, ll_c, *_), acc_c, _ = compiled(ExchangeChains(y, log_lik), *args)
+        new, acc_k, update = compiled(ExchangeChains(y, log_lik, amplitude=cache), *args)  # the cache's path
+        y_k, ll_k = new.y, new.log_lik
         assert torch.equal(acc_e, acc_c) and torch.equal(y_e, y_c)
         assert torch.equal(acc_e, acc_k) and torch.equal(y_e, y_k)
         torch.testing.assert_close(ll_c, ll_e, rtol=1e-4, atol=1e-3)
         torch.testing.assert_close(ll_k, ll_e, rtol=1e-4, atol=1e-3)
-        sensor.update_amplitude_cache(cache, *update, acc_k)
+        cache = with_accepted_amplitudes(new, cache, update, acc_k, sensor).amplitude
         y, log_lik = y_e, ll_e
 
 
@@ -403,22 +412,22 @@ def test_ipmcmc_with_hmc_matches_kalman_single_target(gen):
 
 
 def test_segment_is_run_chains_with_a_stacked_trace():
-    """The loop that ``CompiledKernel.capture`` runs as one CUDA graph (``_segment``) gives
+    """The loop that ``Program.capture`` runs as one CUDA graph (``_segment``) gives
     the chains, trace and acceptance counts of ``_run_chains``; ``_unstack`` restores the
     list of chain tuples."""
-    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _bind, _run_chains, _segment, _unstack
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _run_chains, _segment, _unstack, bind_iteration
     motion, sensor = _scalar_models(1.0, 1.0)
     b, n, c, k, steps = 2, 8, 3, 2, 7
     g = torch.Generator().manual_seed(4)
     x_prev = torch.randn(b, n, k, 1, generator=g, dtype=DT)
     z = torch.randn(b, k, 1, generator=g, dtype=DT)
     y = x_prev[:, :c] + 0.1
-    chain = (y, sensor.log_likelihood(y, z), None, None, None)
-    noise = SegmentNoise(draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), steps, c, k, 1,
-                                             generator=g, dtype=DT))
-    it = _bind(motion, sensor, None, None, None)
-    final, stacked, acc = _segment(it, chain, noise, x_prev, None, z, 3)
-    ref_final, ref_trace, ref_acc, _ = _run_chains(chain, noise, lambda ch, nz: it(ch, x_prev, None, z, nz)[:2],
+    chain = ExchangeChains(y, sensor.log_likelihood(y, z))
+    noise = SegmentNoise(draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), steps, c, k,
+                                             dynamics=TargetDynamics(motion), generator=g, dtype=DT))
+    it = bind_iteration(TargetDynamics(motion), sensor, None)
+    final, stacked, acc = _segment(it, chain, noise, x_prev, None, z, 3, sensor)
+    ref_final, ref_trace, ref_acc, _ = _run_chains(chain, noise, lambda ch, nz: it(ch, x_prev, None, z, nz), sensor,
                                                    record_from=3)
     assert stacked[0].shape == (steps - 3, b, c, k, 1) and all(t is None for t in stacked[2:])
     torch.testing.assert_close(final[0], ref_final[0], rtol=0, atol=0)
@@ -429,3 +438,60 @@ def test_segment_is_run_chains_with_a_stacked_trace():
         torch.testing.assert_close(got[0], want[0], rtol=0, atol=0)
         torch.testing.assert_close(got[1], want[1], rtol=0, atol=0)
         assert all(t is None for t in got[2:])
+
+
+# ----------------------------------------------------------------------------- the chains' amplitude cache
+def _uncached(sensor_class):
+    """The same sensor without the chains' amplitude cache (every move sums its neighbours)."""
+    class Uncached(sensor_class):
+        def amplitude_cache(self, x, exists=None):
+            return None
+    return Uncached
+
+
+@pytest.mark.parametrize("device, compile_step", [
+    ("cpu", False),
+    pytest.param("cpu", True, marks=pytest.mark.compile),
+    pytest.param("cuda", False, marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")),
+    pytest.param("cuda", True, marks=[pytest.mark.compile,
+                                      pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")]),
+])
+def test_amplitude_cache_is_a_speed_choice(device, compile_step):
+    """The chains' amplitude cache (``ExchangeChains.amplitude``) changes how a move's
+    log-likelihood ratio is summed, not the algorithm: in float64 the IP-MCMC-PF with the
+    cache and with a sensor that offers none takes the same decisions (the two ratios agree
+    to ~1e-12; a decision could differ only if a uniform fell that close to its threshold),
+    so the particles are the same, over 3 steps of crossing targets with the default
+    exclusion and re-capture (two-slot moves: the cache's change of two slots) and one R-hat
+    extension. The cache is used on every device (on a GPU, compiled, inside the captured
+    CUDA graph of each segment)."""
+    from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
+
+    deg = math.pi / 180
+    limits = ((2740, 2850), (-8, 8), (-5 * deg, 4 * deg))
+    cached = RangeDopplerBearingTBD.uniform(*limits).to(device=device, dtype=DT)
+    uncached = _uncached(RangeDopplerBearingTBD).uniform(*limits).to(device=device, dtype=DT)
+    motion = ConstantVelocity(1.0, 1.0, amplitude_q=0.01).to(device=device, dtype=DT)
+    g = torch.Generator(device).manual_seed(5)
+    r = torch.tensor([[2790.0, 2800.0, 2830.0], [2770.0, 2775.0, 2820.0]], dtype=DT, device=device)
+    bearing = torch.tensor([[0.2, 0.6, -2.0], [1.0, 1.5, -3.0]], dtype=DT, device=device) * deg
+    xt = torch.stack([r * torch.cos(bearing), torch.full_like(r, 2.0), r * torch.sin(bearing),
+                      torch.full_like(r, -1.0), torch.full_like(r, 5.0)], -1)  # (B, K = 3, 5)
+    frames = []
+    for _ in range(3):
+        xt = motion.propagate(xt, torch.zeros(xt.shape[:-1] + (motion.noise_dim,), dtype=DT, device=device))
+        frames.append(cached.simulate(xt, generator=g))
+    spread = torch.tensor([4.0, 1.0, 4.0, 1.0, 0.3], dtype=DT, device=device)
+    x0 = xt[:, None] + spread * torch.randn(2, 40, 3, 5, generator=g, dtype=DT, device=device)
+    results = []
+    for sensor in (cached, uncached):
+        filt = IPMCMCFilter(motion, sensor, 40, num_chains=8, burn_in=20, rhat_threshold=1.0, max_extensions=1,
+                            compile_step=compile_step)
+        results.append(filt(torch.stack(frames), init=x0, generator=torch.Generator(device).manual_seed(6)))
+    with_cache, without = results
+    assert cached.amplitude_cache(x0[:, :8]) is not None and uncached.amplitude_cache(x0[:, :8]) is None
+    assert torch.equal(with_cache.info.acceptance, without.info.acceptance)
+    assert 0.05 < float(with_cache.info.acceptance.mean()) < 0.95
+    assert (with_cache.info.extras["extensions"] > 0).any()  # the cache follows the chains into extensions
+    torch.testing.assert_close(with_cache.state.x, without.state.x, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(with_cache.mean, without.mean, rtol=1e-12, atol=1e-9)

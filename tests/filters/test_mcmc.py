@@ -193,14 +193,18 @@ def test_pick_moves_frequencies_and_seed():
 def test_mcmc_iteration_refuses_a_move_with_another_moves_noise(gen):
     """The picked move and its noise must agree: a ValueError names both."""
     from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration
-    from torchmcmcpf.kernels.moves import JointNoise, init_chains, previous_cloud
+    from torchmcmcpf.kernels.chains import JointNoise, previous_cloud
+    from torchmcmcpf.kernels.moves import init_chains
+    from torchmcmcpf.models.existence import TargetDynamics
 
     motion, sensor, zs, init, _, _ = _problem(gen, B=2, N=8)
     cloud = previous_cloud(init[:, :8], torch.full((2, 8), -math.log(8), dtype=DT), None, motion=motion)
     template = init.new_empty((2, 4) + init.shape[2:])
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=gen), zs[0], motion=motion, sensor=sensor)
-    noise = draw_iteration_noise("joint", chain.x, motion, generator=gen)
+    dynamics = TargetDynamics(motion)
+    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=gen), zs[0], dynamics=dynamics,
+                        sensor=sensor)
+    noise = draw_iteration_noise("joint", chain.x, dynamics, generator=gen)
     with pytest.raises(ValueError, match="move='refine' with JointNoise"):
-        mcmc_iteration(chain, noise, move="refine", cloud=cloud, z=zs[0], motion=motion, sensor=sensor)
+        mcmc_iteration(chain, noise, move="refine", cloud=cloud, z=zs[0], dynamics=dynamics, sensor=sensor)
     with pytest.raises(ValueError, match="move must be one of"):
-        draw_iteration_noise("hop", chain.x, motion, generator=gen)
+        draw_iteration_noise("hop", chain.x, dynamics, generator=gen)

@@ -32,18 +32,11 @@ from _kalman import mixture_posterior
 
 from torchmcmcpf import ConstantVelocity, LinearGaussian
 from torchmcmcpf.filters.mcmc import draw_iteration_noise, mcmc_iteration, pick_moves
-from torchmcmcpf.kernels.moves import (
-    ChainState,
-    JointNoise,
-    RefineNoise,
-    evaluate,
-    init_chains,
-    log_transition,
-    previous_cloud,
-    propose_joint,
-    refine_move,
-)
+from torchmcmcpf.kernels.chains import ChainState, JointNoise, RefineNoise, evaluate, previous_cloud
+from torchmcmcpf.kernels.moves import init_chains, propose_joint, refine_move
+from torchmcmcpf.kernels.random_walk import log_transition
 from torchmcmcpf.models.base import MotionModel, SensorModel
+from torchmcmcpf.models.existence import TargetDynamics
 from torchmcmcpf.resampling import gather_particles, multinomial
 
 DT = torch.float64
@@ -204,9 +197,9 @@ def _assert_far(chain: ChainState, post, cloud):
 def _run(chain, moves, iters, *, cloud, z, motion, sensor, gen, rw_scale=None):
     accepted = {name: torch.zeros(B, dtype=DT) for name, _ in moves}
     for move in pick_moves(moves, iters, generator=gen):
-        noise = draw_iteration_noise(move, chain.x, motion, generator=gen)
-        chain, acc = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
-                                    rw_scale=rw_scale)
+        noise = draw_iteration_noise(move, chain.x, TargetDynamics(motion), generator=gen)
+        chain, acc = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, dynamics=TargetDynamics(motion),
+                                    sensor=sensor, rw_scale=rw_scale)
         accepted[move] += acc.mean(1)
     return chain, accepted  # accepted: expected number of accepted moves per chain
 
@@ -221,7 +214,8 @@ def _exact_chains(post, cloud, z, sensor, gen):
 
 def _prior_chains(cloud, z, motion, sensor, gen):
     template = cloud.x.new_empty(B, C, K, D)
-    return init_chains(cloud, JointNoise.draw(template, motion, generator=gen), z, motion=motion, sensor=sensor)
+    dynamics = TargetDynamics(motion)
+    return init_chains(cloud, JointNoise.draw(template, dynamics, generator=gen), z, dynamics=dynamics, sensor=sensor)
 
 
 # -- tests -----------------------------------------------------------------------------------
@@ -305,8 +299,8 @@ def test_refine_vectorised_and_sequential_paths_agree(gen):
     for sensor in (inner, Opaque(inner), PerTargetAsDelta(inner)):
         g = torch.Generator().manual_seed(7)
         chain = _prior_chains(cloud, z, motion, sensor, g)
-        chain, accepted = refine_move(chain, RefineNoise.draw(chain.x, motion, generator=g), z=z, motion=motion,
-                                      sensor=sensor)
+        chain, accepted = refine_move(chain, RefineNoise.draw(chain.x, TargetDynamics(motion), generator=g), z=z,
+                                      dynamics=TargetDynamics(motion), sensor=sensor)
         results.append((chain, accepted))
     (ref, acc_ref), others = results[0], results[1:]
     assert acc_ref.any() and not acc_ref.all()  # a mix of accepts and rejects
@@ -332,8 +326,8 @@ def test_sequential_sweep_scores_slot_n_against_the_updated_slots(gen):
     motion, cloud, z, _ = _problem(sensor, gen, q=3.0)
     chain = _prior_chains(cloud, z, motion, sensor, gen)
     sensor.calls = []
-    new, accepted = refine_move(chain, RefineNoise.draw(chain.x, motion, generator=gen), z=z, motion=motion,
-                                sensor=sensor)
+    new, accepted = refine_move(chain, RefineNoise.draw(chain.x, TargetDynamics(motion), generator=gen), z=z,
+                                dynamics=TargetDynamics(motion), sensor=sensor)
     assert len(sensor.calls) == K and accepted[..., 0].any() and not accepted[..., 0].all()
     assert torch.equal(sensor.calls[1][..., 0, :], new.x[..., 0, :])
     assert torch.equal(sensor.calls[0][..., 1, :], chain.x[..., 1, :])
@@ -357,7 +351,7 @@ def test_log_transition_fast_path_matches_generic(gen):
 
 def test_joint_proposal_shapes_and_ratio(gen):
     motion, cloud, z, _ = _problem(LinearGaussian.position(2.0).to(DT), gen)
-    noise = JointNoise.draw(cloud.x.new_empty(B, 7, K, D), motion, generator=gen)
+    noise = JointNoise.draw(cloud.x.new_empty(B, 7, K, D), TargetDynamics(motion), generator=gen)
     x, x_prev, log_ratio = propose_joint(cloud, noise, motion=motion)
     assert x.shape == x_prev.shape == (B, 7, K, D)
     assert torch.equal(log_ratio, torch.zeros(B, 7, dtype=DT))
@@ -494,13 +488,13 @@ def test_existence_moves_converge_to_the_exact_posterior(xi, birth_std, gen):
     iters = _iterations(lambda m: (1 - xi * eps) ** m)
     moves = (("joint", 1.0),) if xi == 1.0 else (("joint", xi), ("refine", 1 - xi))
     template = cloud.x.new_empty(B, EX_C, K, D)
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=gen, existence=existence, z=z), z,
-                        motion=motion, sensor=sensor, existence=existence)
+    dynamics = TargetDynamics(motion, existence)
+    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=gen, z=z), z, dynamics=dynamics,
+                        sensor=sensor)
     assert float(_existence_discrepancy(chain, exact).max()) > 10  # the start is far from pi
     for move in pick_moves(moves, iters, generator=gen):
-        noise = draw_iteration_noise(move, chain.x, motion, generator=gen, existence=existence, z=z)
-        chain, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
-                                  existence=existence)
+        noise = draw_iteration_noise(move, chain.x, dynamics, generator=gen, z=z)
+        chain, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor)
     worst = _existence_discrepancy(chain, exact)
     assert float(worst.max()) <= Z_TOL, dict(zip(EX_STATS, worst.max(0).values.tolist()))
     # the cache is the likelihood of the flags and states; dead slots hold x_death
@@ -533,10 +527,11 @@ def test_existence_refine_uses_the_delta_hook_with_flags(gen):
     for sensor in (radar, Opaque(radar)):
         g = torch.Generator().manual_seed(5)
         template = prev.new_empty(1, c, 2, 5)
-        chain = init_chains(cloud, JointNoise.draw(template, motion, generator=g, existence=existence, z=z), z,
-                            motion=motion, sensor=sensor, existence=existence)
-        noise = RefineNoise.draw(chain.x, motion, generator=g, existence=existence, z=z)
-        results.append(refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence))
+        dynamics = TargetDynamics(motion, existence)
+        chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=g, z=z), z, dynamics=dynamics,
+                            sensor=sensor)
+        noise = RefineNoise.draw(chain.x, dynamics, generator=g, z=z)
+        results.append(refine_move(chain, noise, z=z, dynamics=dynamics, sensor=sensor))
     (ref, acc_ref), (full, acc_full) = results
     assert acc_ref.any() and not acc_ref.all()
     assert torch.equal(acc_ref, acc_full) and torch.equal(ref.exists, full.exists)

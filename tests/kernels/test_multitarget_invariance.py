@@ -15,8 +15,9 @@ import pytest
 import torch
 from torch.utils._pytree import tree_map
 
-from torchmcmcpf.kernels.exchange import draw_exchange_noise, exchange_iteration
-from torchmcmcpf.kernels.moves import JointNoise, RefineNoise, init_chains, joint_move, previous_cloud, refine_move
+from torchmcmcpf.kernels.chains import JointNoise, RefineNoise, previous_cloud
+from torchmcmcpf.kernels.exchange import ExchangeChains, draw_exchange_noise, exchange_iteration
+from torchmcmcpf.kernels.moves import init_chains, joint_move, refine_move
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.existence import TargetDynamics
 from torchmcmcpf.models.motion import LinearGaussianMotion
@@ -150,18 +151,15 @@ def test_exchange_moves_leave_the_extended_target_invariant(terms):
     src = torch.randint(n, (b, c), generator=g)
     x0 = torch.take_along_dim(xp, src[..., None, None], 1)
     y, _, log_r, kind = dyn.propagate_labelled(x0, None, *dyn.draw_noise(x0, zb, generator=g))
-    chain = (y, sensor.log_likelihood(y, zb), None, None if recapture is None else log_r, kind)
+    chain = ExchangeChains(y, sensor.log_likelihood(y, zb), None, None if recapture is None else log_r, kind)
     iterations, accepted, pair_acc = 150, 0.0, 0.0
     pairs = torch.tensor([[[False, True], [False, False]]])
-    single = draw_exchange_noise(log_w, iterations, c, k, 1, generator=g, dtype=DT, recapture=recapture,
-                                 sensor=sensor, z=zb)
-    double = draw_exchange_noise(log_w, iterations, c, k, 1, generator=g, dtype=DT, recapture=recapture,
-                                 sensor=sensor, z=zb, pairs=pairs)
+    single = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb)
+    double = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, pairs=pairs)
     for t in range(iterations):
         noise = single if (t + 1) % 3 else double
         nz = tree_map(lambda a: None if a is None else a[t], noise)
-        chain, acc, _ = exchange_iteration(chain, xp, None, zb, nz, motion=motion, sensor=sensor,
-                                           recapture=recapture, exclusion=exclusion)
+        chain, acc, _ = exchange_iteration(chain, xp, None, zb, nz, dynamics=dyn, sensor=sensor, exclusion=exclusion)
         accepted += float(acc.double().mean()) / iterations
         if not (t + 1) % 3:
             pair_acc += float(acc.double().mean()) / (iterations // 3)
@@ -188,18 +186,17 @@ def test_mcmc_moves_leave_the_extended_target_invariant(terms):
     zb = z.unsqueeze(0).expand(b, k, 1)
     cloud = previous_cloud(xp, torch.full((b, n), -math.log(n), dtype=DT))
     template = xp.new_empty((b, c, k, 1))
-    kw = dict(recapture=recapture, sensor=sensor)
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=g, z=zb, **kw), zb, motion=motion,
-                        sensor=sensor, recapture=recapture)
+    dyn = TargetDynamics(motion, None, recapture, sensor)
+    chain = init_chains(cloud, JointNoise.draw(template, dyn, generator=g, z=zb), zb, dynamics=dyn, sensor=sensor)
     acc_joint, acc_refine = 0.0, 0.0
     for t in range(160):
         if t % 2:
-            chain, acc = joint_move(chain, JointNoise.draw(template, motion, generator=g, z=zb, **kw), cloud=cloud,
-                                    z=zb, motion=motion, sensor=sensor, recapture=recapture, exclusion=exclusion)
+            chain, acc = joint_move(chain, JointNoise.draw(template, dyn, generator=g, z=zb), cloud=cloud,
+                                    z=zb, dynamics=dyn, sensor=sensor, exclusion=exclusion)
             acc_joint += float(acc.double().mean()) / 80
         else:
-            chain, acc = refine_move(chain, RefineNoise.draw(template, motion, generator=g, z=zb, **kw), z=zb,
-                                     motion=motion, sensor=sensor, recapture=recapture, exclusion=exclusion)
+            chain, acc = refine_move(chain, RefineNoise.draw(template, dyn, generator=g, z=zb), z=zb,
+                                     dynamics=dyn, sensor=sensor, exclusion=exclusion)
             acc_refine += float(acc.double().mean()) / 80
     assert acc_joint > 0.05 and acc_refine > 0.1
     exact = _moments(_mcmc_target(x_prev[..., 0], z[:, 0], exclusion, delta))

@@ -255,7 +255,7 @@ def test_owned_cells_count_each_cell_of_the_union_once(num_targets):
     """The ownership masks of the windowed path against brute force, with overlapping boxes,
     dead targets and more targets than one mask word holds (30 > 24); compiled too (the
     merged mask then goes through ``materialise``)."""
-    from torchmcmcpf.models.sensors.grid import materialise
+    from torchmcmcpf.models.sensors.grid import materialise, window
 
     sens = small_sensor(window=2)
     g = torch.Generator().manual_seed(7)
@@ -266,12 +266,12 @@ def test_owned_cells_count_each_cell_of_the_union_once(num_targets):
     xt = target_states(r, d, b, torch.full((1, k), 4.0, dtype=torch.float64))
     x = particles_near(xt, 6, g, pos=8.0, vel=2.0)  # (1, 6, K, 5)
     exists = torch.rand(x.shape[:-1], generator=g) < 0.8
-    u, s, e, zc, *firsts, _ = sens._window_parts(x, sens.simulate(xt, generator=g), exists)
+    u, s, e, zc, *firsts, _ = window.parts(sens, x, sens.simulate(xt, generator=g), exists)
     live = e > 0
     want = _owned_reference(sens, firsts, live)
     assert want.any() and (~want).any()
-    assert torch.equal(sens._owned_cells(firsts, live), want)
-    compiled = torch.compile(lambda f, lv: sens._owned_cells(f, lv), fullgraph=True)
+    assert torch.equal(sens.geometry.owned_cells(firsts, live), want)
+    compiled = torch.compile(lambda f, lv: sens.geometry.owned_cells(f, lv), fullgraph=True)
     assert torch.equal(compiled(firsts, live), want)
     ints, floats = torch.arange(-5, 5, dtype=torch.int32) * 2**20, torch.linspace(-1, 1, 7, dtype=torch.float64)
     got = torch.compile(lambda a, f: (materialise(a), materialise(f)), fullgraph=True)(ints, floats)
@@ -351,8 +351,8 @@ def test_neighbour_slots_equal_dense_form():
     for xt, x, bound in _crowd_and_spread(g):
         z = sens.simulate(xt, generator=g)
         u = sens.measurement_coords(x)
-        firsts = [sens._box_first(u[..., a], a) for a in range(3)]
-        most = int(sens._overlaps(firsts, firsts).sum(-1).max()) - 1  # other boxes overlapping one box
+        firsts = sens.geometry.box_firsts(u)
+        most = int(sens.geometry.overlaps(firsts, firsts).sum(-1).max()) - 1  # other boxes overlapping one box
         assert most >= 4 if bound == 4 else most <= 1
         torch.testing.assert_close(sens.log_likelihood_window(x, z), dense.log_likelihood_window(x, z),
                                    rtol=1e-12, atol=1e-10)

@@ -17,7 +17,7 @@ API
 ---
 ``add_common_arguments(parser, *, name, quick=True, shards=True)``
     Adds ``--quick`` (unless ``quick=False``), ``--out`` (default ``results/<name>``), ``--device``, ``--seed``,
-    ``--threads``, ``--no-progress`` and, with ``shards=True``, :func:`add_shard_arguments`.
+    ``--threads``, ``--memory-budget``, ``--no-progress`` and, with ``shards=True``, :func:`add_shard_arguments`.
 ``add_shard_arguments(parser)``
     Adds :data:`SHARD_OPTIONS` (``--shard-size``, ``--workers``, ``--ray-address``,
     ``--gpus-per-shard``): only studies that define ``run_shard`` accept them.
@@ -84,6 +84,8 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import torch
+
+from .. import runtime
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -203,6 +205,9 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: b
                             "torch intra-op threads of every shard, here or in a Ray worker (default: this "
                             "process's torch threads, so both compute alike; with --workers on one machine "
                             "use cores / workers)")
+    group.add_argument("--memory-budget", type=positive_int, default=None, metavar="BYTES",
+                       help="bytes of temporaries a grid sensor's likelihood may hold at once (its memory_budget, "
+                            "runtime.memory_budget; default: 1 GiB); smaller blocks of samples, same results")
     group.add_argument("--no-progress", dest="progress", action="store_false",
                        help="hide the progress bars")
     if shards:
@@ -460,24 +465,28 @@ def shard_layout(num_runs: int, shard_size: int) -> list[range]:
 
 
 @contextlib.contextmanager
-def _num_threads(threads: int | None) -> Iterator[None]:
-    old = torch.get_num_threads()
+def _num_threads(threads: int | None, memory_budget: int | None = None) -> Iterator[None]:
+    """Torch's intra-op threads and the grid sensors' memory budget for the block (then restored)."""
+    old, old_budget = torch.get_num_threads(), runtime.memory_budget()
     if threads:
         torch.set_num_threads(int(threads))
+    if memory_budget:
+        runtime.set_memory_budget(memory_budget)
     try:
         yield
     finally:
         torch.set_num_threads(old)
+        runtime.set_memory_budget(old_budget)
 
 
 def _compute_shard(module_name: str, cfg: dict, seed: int, index: int, start: int, stop: int, device: str,
-                   threads: int | None, progress: bool = False) -> dict:
+                   threads: int | None, progress: bool = False, memory_budget: int | None = None) -> dict:
     """Run one shard (in this process or in a Ray worker); CPU tensors out. ``progress``:
     the filters' own bars (only for a lone shard in this process; else one bar over shards).
     """
     module = importlib.import_module(module_name)
     dev = torch.device(device)
-    with _num_threads(threads):
+    with _num_threads(threads, memory_budget):
         t0 = time.perf_counter()
         per_run, seconds = module.run_shard(cfg, range(start, stop), generator=shard_generator(dev, seed, index),
                                             device=dev, progress=progress)
@@ -564,7 +573,8 @@ def _run_on_ray(todo: list, module_name: str, name: str, cfg: dict, args: argpar
         while queue or running:
             while queue and len(running) < args.workers:
                 index, runs, key = queue.pop(0)
-                ref = task.remote(module_name, cfg, args.seed, index, runs.start, runs.stop, str(device), threads)
+                ref = task.remote(module_name, cfg, args.seed, index, runs.start, runs.stop, str(device), threads,
+                                  False, getattr(args, "memory_budget", None))
                 running[ref] = (index, runs, key)
             done, _ = ray.wait(list(running), num_returns=1)
             index, runs, key = running.pop(done[0])
@@ -624,7 +634,7 @@ def run_shards(module: ModuleType, cfg: dict, args: argparse.Namespace) -> Shard
             for index, runs, key in todo:
                 try:
                     result = _compute_shard(module.__name__, cfg, seed, index, runs.start, runs.stop, str(device),
-                                            threads, progress=lone)
+                                            threads, progress=lone, memory_budget=getattr(args, "memory_budget", None))
                 except Exception as err:
                     raise _shard_failed(name, index, runs, err) from err
                 on_done(index, runs, key, result)

@@ -3,19 +3,23 @@
 One contract for every algorithm (BlackJAX-style ``init``/``step`` with fixed state and info
 types):
 
-- constructor ``(motion, sensor, num_particles, *, <settings>, existence=None,
-  compile_step=False)``; the settings live in one frozen dataclass per algorithm
-  (``filt.settings``), which the pure step function also takes:
-  ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``;
+- constructor ``(motion, sensor, num_particles, *, settings=None, existence=None,
+  compile_step=False, **shortcuts)``; the settings live in one frozen dataclass per
+  algorithm (:attr:`Filter.settings_class`, ``filt.settings``), which the pure step function
+  also takes: ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``.
+  Each field of the dataclass is also a keyword of the constructor (a shortcut:
+  ``IPMCMCFilter(m, s, n, burn_in=20)`` is ``IPMCMCFilter(m, s, n,
+  settings=IPMCMCSettings(burn_in=20))``), so every default is written once, in the
+  dataclass;
 - ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments: ``z`` and
   ``generator`` always, the state in full unless it is one the filter made itself and that
   is unchanged since (``Filter.step``), so that stepping its own output costs the step;
 - ``forward(measurements, *, init, generator, progress=None) -> FilterResult`` validates the
   whole sequence once, before the first step, then runs the steps without checks;
-- ``compile_step=True`` compiles the filter's *kernel* (one MCMC iteration, one HMC
-  iteration, or the noise-free part of an SIR step) with ``torch.compile(fullgraph=True)``;
-  the random numbers are drawn eagerly from the generator and passed in, so compiled and
-  eager runs consume the same random stream.
+- ``compile_step=True`` compiles the filter's programs (:mod:`torchmcmcpf.runtime`: an MCMC
+  iteration, each move of one, an HMC move, or the body of an SIR step) with
+  ``torch.compile(fullgraph=True)``; the random numbers are drawn eagerly from the
+  generator and passed in, so compiled and eager runs consume the same random stream.
 
 A filter holds models and settings; the filtering state is passed in and returned, never
 stored on the module, so filters are reentrant. Resume = the state plus
@@ -25,18 +29,20 @@ stored on the module, so filters are reentrant. Resume = the state plus
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import weakref
 from collections import deque
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
-from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
+from torch.utils._pytree import tree_flatten, tree_map
 
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, TargetDynamics
+from ..runtime import compile_program
 from ..state import (
     ExistenceEstimate,
     FilterResult,
@@ -49,105 +55,7 @@ from ..state import (
 )
 from ..typing import Measurement, Tensor
 
-__all__ = ["Filter", "CompiledKernel", "active_prior", "check_existence", "compile_kernel", "ESTIMATE", "PRESENT"]
-
-
-def _on_cuda(args: tuple) -> bool:
-    """Whether the first tensor among ``args`` (and the tuples in them, one level down; the
-    kernels' first argument is a tensor or the chain tuple) is on a CUDA device. Cheaper than
-    flattening the arguments: it runs once per MH iteration.
-    """
-    for a in args:
-        for t in (a if isinstance(a, tuple) else (a,)):
-            if torch.is_tensor(t):
-                return t.device.type == "cuda"
-    return False
-
-
-class CompiledKernel:
-    """A filter's kernel compiled with ``torch.compile(fn, fullgraph=True, dynamic=False)``,
-    with CUDA graphs on a GPU (:func:`compile_kernel` builds it).
-
-    Called on CPU tensors it is the compiled ``fn``. Called on CUDA tensors (the first tensor
-    argument decides) it is ``fn`` compiled with ``mode="reduce-overhead"``: each call
-    replays one CUDA graph instead of launching the graph's kernels one by one. The MCMC
-    filters call their kernel once per MH iteration, hundreds of times per step, and on a GPU
-    those launches were the step's cost (benchmarks/README.md, H200: about 1 ms per
-    iteration). A replay writes its outputs into the graph's static buffers, which the next
-    replay overwrites, and the filters keep every iteration's chain state (the R-hat trace,
-    the kept samples), so the outputs are cloned before they are returned. That mode is a
-    second compilation of ``fn``, whose reductions may round differently from the plain one
-    (float32 rounding: 4e-6 relative on the SIR step's mean, H200).
-
-    :meth:`capture` goes further: a whole loop of kernel calls (a segment of MH iterations)
-    captured as one CUDA graph of the plain compiled kernels (bit for bit their results),
-    so that a GPU step costs the kernels' own time, not a graph launch and its Python per
-    iteration: the IP-MCMC-PF step at Np = 5000 went from 73 to 16 ms on an H200.
-    """
-
-    def __init__(self, fn: Callable):
-        self._fn = fn
-        self._plain = torch.compile(fn, fullgraph=True, dynamic=False)
-        self._graphed: Callable | None = None
-        self._inside = False  # warming up or capturing a loop: the plain kernel, no nested graphs
-        self._loops: dict = {}
-
-    def __call__(self, *args: Any) -> Any:
-        """``fn(*args)``, compiled; on CUDA tensors one CUDA graph replay (class docstring)."""
-        if self._inside or not _on_cuda(args):
-            return self._plain(*args)
-        if self._graphed is None:
-            self._graphed = torch.compile(self._fn, fullgraph=True, dynamic=False,
-                                          mode="reduce-overhead")
-        torch.compiler.cudagraph_mark_step_begin()
-        return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, self._graphed(*args))
-
-    def capture(self, loop: Callable, *args: Any) -> Any:
-        """``loop(self, *args)``; on CUDA tensors as one CUDA graph.
-
-        ``loop`` calls this kernel (any number of times) and must read tensors only through
-        ``args`` (pytrees of tensors, ``None`` and hashable constants) and never wait for the
-        device (no ``.item()``, no data-dependent Python branch). On CUDA the first call for a
-        given ``loop`` and signature (shapes, dtypes, devices, constants) warms up on a side
-        stream, then captures ``loop`` on static copies of the tensor arguments; every call
-        copies the arguments in, replays the graph and returns clones of its outputs (so an
-        earlier result survives the next replay). Same kernels, same results as the loop
-        called eagerly with this kernel, which is what it is on the CPU. Each signature's
-        graph and its memory pool are kept for the kernel's life (the filter's).
-        """
-        leaves, spec = tree_flatten(args)
-        tensors = [a for a in leaves if torch.is_tensor(a)]
-        if not tensors or tensors[0].device.type != "cuda":
-            return loop(self, *args)
-        key = (loop, spec, tuple((a.shape, a.dtype, a.device) if torch.is_tensor(a) else a for a in leaves))
-        entry = self._loops.get(key)
-        if entry is None:
-            static = [a.clone() if torch.is_tensor(a) else a for a in leaves]
-            static_args = tree_unflatten(static, spec)
-            side = torch.cuda.Stream(tensors[0].device)
-            side.wait_stream(torch.cuda.current_stream(tensors[0].device))
-            graph = torch.cuda.CUDAGraph()
-            self._inside = True
-            try:
-                with torch.cuda.stream(side):  # warm-up: compilation, library handles
-                    loop(self, *static_args)
-                torch.cuda.current_stream(tensors[0].device).wait_stream(side)
-                with torch.cuda.graph(graph):
-                    outputs = loop(self, *static_args)
-            finally:
-                self._inside = False
-            entry = self._loops[key] = (graph, static, outputs)
-        graph, static, outputs = entry
-        for dst, src in zip(static, leaves):
-            if torch.is_tensor(src):
-                dst.copy_(src)
-        graph.replay()
-        return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, outputs)
-
-
-def compile_kernel(fn: Callable) -> CompiledKernel:
-    """``fn`` compiled for a filter's kernel: :class:`CompiledKernel`."""
-    return CompiledKernel(fn)
+__all__ = ["Filter", "active_prior", "check_existence", "settings_from", "ESTIMATE", "PRESENT"]
 
 
 def active_prior(settings: Any, sensor: SensorModel) -> Any:
@@ -162,6 +70,39 @@ def active_prior(settings: Any, sensor: SensorModel) -> Any:
     if getattr(settings, "recapture", None) is not None and not sensor.data_driven:
         changes["recapture"] = None
     return dataclasses.replace(settings, **changes) if changes else settings
+
+
+def settings_from(settings_class: type, settings: Any, shortcuts: Mapping[str, Any]) -> Any:
+    """A filter's settings: ``settings`` (an instance of ``settings_class``, or ``None`` for
+    its defaults) with the keyword ``shortcuts`` (fields of ``settings_class``) replaced.
+    An unknown keyword is a ``TypeError`` naming it and the fields.
+    """
+    fields = [f.name for f in dataclasses.fields(settings_class) if f.init]
+    unknown = sorted(set(shortcuts) - set(fields))
+    if unknown:
+        raise TypeError(f"unexpected keyword argument(s) {unknown}; the settings of this filter are "
+                        f"{fields} ({settings_class.__name__}), plus settings=, existence=, compile_step=")
+    if settings is None:
+        return settings_class(**shortcuts)
+    if not isinstance(settings, settings_class):
+        raise ValueError(f"settings must be a {settings_class.__name__}, got {type(settings).__name__}")
+    return dataclasses.replace(settings, **shortcuts) if shortcuts else settings  # type: ignore[type-var]
+
+
+def _signature(settings_class: type) -> inspect.Signature:
+    """The constructor signature of a filter whose settings are ``settings_class``: the
+    models, the size, ``settings``, ``existence``, ``compile_step`` and one keyword per field,
+    with the field's default (what ``help()`` and the documentation show).
+    """
+    kw = inspect.Parameter.KEYWORD_ONLY
+    params = [inspect.Parameter("motion", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+              inspect.Parameter("sensor", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+              inspect.Parameter("num_particles", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+              inspect.Parameter("settings", inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None),
+              inspect.Parameter("existence", kw, default=None),
+              inspect.Parameter("compile_step", kw, default=False)]
+    params += [inspect.Parameter(f.name, kw, default=f.default) for f in dataclasses.fields(settings_class) if f.init]
+    return inspect.Signature(params)
 
 
 def check_existence_proposal(value: object) -> tuple[float, float] | None:
@@ -285,7 +226,9 @@ class Filter(nn.Module):
     """Base of every particle filter in torchmcmcpf (module docstring: the contract).
 
     Subclasses set :attr:`settings_class` and implement :meth:`_step` (call the pure step
-    function) and, for ``compile_step``, :meth:`_kernel` (the eager kernel to compile).
+    function), for ``compile_step`` :meth:`_build_compiled` (what the step function takes,
+    with its programs compiled) and, when the settings must agree with the models or the
+    size, :meth:`_check_problem`.
 
     Example
     -------
@@ -320,9 +263,25 @@ class Filter(nn.Module):
     #: slot's label is part of the model, as the group filter's group structure)
     relabels: bool = True
 
-    def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any, *,
-                 existence: BirthDeath | None = None, compile_step: bool = False):
+    #: the settings dataclass of the algorithm: the ``settings=`` of the constructor, and its
+    #: fields the constructor's keyword shortcuts (:func:`settings_from`)
+    settings_class: ClassVar[type | None] = None
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Give a filter class with a :attr:`settings_class` the constructor signature its
+        settings imply (``inspect.signature``, ``help``, the documentation).
+        """
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("settings_class") is not None:
+            cls.__signature__ = _signature(cls.__dict__["settings_class"])  # type: ignore[attr-defined]
+
+    def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any = None, *,
+                 existence: BirthDeath | None = None, compile_step: bool = False, **shortcuts: Any):
         super().__init__()
+        if self.settings_class is not None:
+            settings = settings_from(self.settings_class, settings, shortcuts)
+        elif shortcuts:
+            raise TypeError(f"unexpected keyword argument(s) {sorted(shortcuts)} for {type(self).__name__}")
         if not isinstance(motion, self.motion_type):
             raise ValueError(f"motion must be a {self.motion_type.__name__}, got {type(motion).__name__}")
         if not isinstance(sensor, SensorModel):
@@ -334,10 +293,27 @@ class Filter(nn.Module):
         self.num_particles = check_positive_int(num_particles, "num_particles")
         self.existence = check_existence(existence)
         self.settings = active_prior(settings, sensor)
+        proposal = getattr(self.settings, "existence_proposal", None)
+        if self.existence is not None and proposal is not None:  # the MCMC filters' birth and death proposals
+            self.existence = self.existence.with_proposal(proposal)
         self.compile_step = compile_step
         self._compiled: Callable | None = None
         self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
         self._trusted: deque = deque(maxlen=_TRUSTED_STATES)
+        self._check_problem()
+
+    def _check_problem(self) -> None:
+        """Checks of the settings against the models and the number of particles (a
+        ``ValueError`` naming the setting); none by default.
+        """
+
+    @property
+    def dynamics(self) -> TargetDynamics:
+        """The slots' joint model of this filter: its motion, existence model (with the
+        settings' existence proposal), re-capture (when its settings have one) and sensor,
+        the :class:`~torchmcmcpf.models.existence.TargetDynamics` its compiled programs bind.
+        """
+        return TargetDynamics(self.motion, self.existence, getattr(self.settings, "recapture", None), self.sensor)
 
     # -- the states this filter vouches for ----------------------------------------------
     def _trust(self, state: ParticleState) -> ParticleState:
@@ -377,23 +353,24 @@ class Filter(nn.Module):
         super().__setstate__(d)
         self._trusted = deque(maxlen=_TRUSTED_STATES)
 
-    # -- the compiled kernel -------------------------------------------------------------
-    def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
-        """The kernel passed to the step function with ``compile`` applied to the pure parts
-        that should be compiled (one iteration / one step, never the loops over them).
+    # -- the compiled programs ------------------------------------------------------------
+    def _build_compiled(self, compile: Callable[[Callable], Callable]) -> Callable:
+        """What the step function takes for ``compile_step=True`` (the body of a step, an
+        iteration or a move), with ``compile`` applied to its pure programs (one iteration /
+        one step / one move, never the loops over them).
         """
         raise NotImplementedError
 
-    def kernel(self) -> Callable | None:
-        """The kernel passed to the step function: built once with its parts compiled
-        (:func:`compile_kernel`: ``torch.compile(fullgraph=True, dynamic=False)``, with CUDA
-        graphs on a GPU) when ``compile_step=True``, else ``None`` (the step function's
-        eager one).
+    def compiled(self) -> Callable | None:
+        """What the step function takes (:meth:`_build_compiled`), built once with its
+        programs compiled (:func:`~torchmcmcpf.runtime.compile_program`:
+        ``torch.compile(fullgraph=True, dynamic=False)``, with CUDA graphs on a GPU) when
+        ``compile_step=True``, else ``None`` (the step function's eager one).
         """
         if not self.compile_step:
             return None
         if self._compiled is None:
-            self._compiled = self._kernel(compile_kernel)
+            self._compiled = self._build_compiled(compile_program)
         return self._compiled
 
     # -- state ---------------------------------------------------------------------------
@@ -463,12 +440,11 @@ class Filter(nn.Module):
         state : ParticleState.
         reference : the previous step's estimate, optional: predicted by the motion model,
             it is the starting reference, so the labels stay the same over time
-            (``forward`` passes it).
-
-        A sensor without :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`
-        (labelled measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says
-        which slot is which target, as does a filter whose slots' labels are part of its model
-        (:attr:`relabels`, the group filter): there the particles are not relabelled.
+            (``forward`` passes it). A sensor without
+            :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords` (labelled
+            measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says which slot
+            is which target, as does a filter whose slots' labels are part of its model
+            (:attr:`relabels`, the group filter): there the particles are not relabelled.
 
         Returns
         -------

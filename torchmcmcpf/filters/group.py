@@ -931,7 +931,7 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
 def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMotion, sensor: ThresholdedPixels,
                     settings: GroupMCMCSettings = GroupMCMCSettings(), generator: torch.Generator,
                     existence: GroupExistence, structure_prior: GroupStructurePrior,
-                    kernel: Callable[..., Any] | None = None) -> tuple[ParticleState, StepInfo]:
+                    moves: Callable[..., Any] | None = None) -> tuple[ParticleState, StepInfo]:
     """One time step of the marginalised MCMC-based particle filter (module docstring).
 
     Parameters
@@ -941,7 +941,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     z : (B, H, W) binary frame at ``t``.
     motion, sensor, existence, structure_prior : the models (eqs. 13, 41, 25/33, 19).
     settings : GroupMCMCSettings; generator : the only source of randomness (eager draws).
-    kernel : ``kernel(move, chain, noise, cloud, z)`` running the move ``"joint"``,
+    moves : ``moves(move, chain, noise, cloud, z)`` running the move ``"joint"``,
         ``"refine"`` or ``"past"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
         default eager.
 
@@ -960,7 +960,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     c = settings.num_chains
     models = Models(motion, sensor, existence, structure_prior, float(settings.p_i), float(settings.p_a),
                     settings.past_step)
-    kernel = kernel or _bind(models)
+    moves = moves or _bind(models)
     dtype, dev = state.x.dtype, state.x.device
     cloud = make_cloud(state, z, models=models, settings=settings)
     chain = joint_proposal(JointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
@@ -972,7 +972,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     count = settings.burn_in + settings.thinning * per_chain
     for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
         noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev)
-        out = kernel(move, chain, noise, cloud, z)
+        out = moves(move, chain, noise, cloud, z)
         chain = out[0]
         if move == "refine":
             acc["structure"] += out[1].to(dtype).sum(1)
@@ -1001,7 +1001,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
 
 
 def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None) -> Callable[..., Any]:
-    """``kernel(move, chain, noise, cloud, z)``: the moves with the models bound (each compiled
+    """``moves(move, chain, noise, cloud, z)``: the moves with the models bound (each compiled
     on its own with ``compile``: three functions, so that each has its own compile cache).
     """
     def joint(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor) -> Any:
@@ -1013,14 +1013,14 @@ def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None)
     def past(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor) -> Any:
         return past_move(chain, noise, cloud, z, models)
 
-    moves: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past}
+    programs: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past}
     if compile is not None:
-        moves = {name: compile(fn) for name, fn in moves.items()}
+        programs = {name: compile(fn) for name, fn in programs.items()}
 
-    def kernel(move: str, chain: Chain, noise: Any, cloud: Cloud, z: Tensor) -> Any:
-        return moves[move](chain, noise, cloud, z)
+    def run(move: str, chain: Chain, noise: Any, cloud: Cloud, z: Tensor) -> Any:
+        return programs[move](chain, noise, cloud, z)
 
-    return kernel
+    return run
 
 
 # ----------------------------------------------------------------------------------------
@@ -1094,7 +1094,7 @@ class GroupMCMCFilter(Filter):
         return Models(self.motion, self.sensor, self.existence, self.structure_prior, float(s.p_i), float(s.p_a),
                       s.past_step)
 
-    def _kernel(self, compile: Callable[[Callable], Callable]) -> Callable:
+    def _build_compiled(self, compile: Callable[[Callable], Callable]) -> Callable:
         return _bind(self.models(), compile)
 
     # -- state ---------------------------------------------------------------------------
@@ -1208,4 +1208,4 @@ class GroupMCMCFilter(Filter):
         """One call of :func:`group_mcmc_step` with this filter's models and settings."""
         return group_mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
                                generator=generator, existence=self.existence, structure_prior=self.structure_prior,
-                               kernel=self.kernel())
+                               moves=self.compiled())

@@ -123,11 +123,14 @@ function that traces under ``torch.compile(fullgraph=True)``; ``IPMCMCFilter(com
 compiles it once per filter. Each iteration evaluates the sensor on the ``(B, C)``
 proposals only: for grid sensors the change of the log-likelihood caused by the one slot
 that moves (``sensor.log_likelihood_delta``, the cells of its old and new box), otherwise
-``sensor.log_likelihood`` of the proposal. On a GPU, a compiled kernel runs each segment
-(without HMC refinement) as one CUDA graph
-(:meth:`~torchmcmcpf.filters.base.CompiledKernel.capture`): the step then costs the
-kernels' own time instead of a launch and its Python per iteration (H200, Np = 5000:
-73 to 16 ms per step; benchmarks/README.md).
+``sensor.log_likelihood`` of the proposal; with the chains' amplitude cache (grid sensors,
+:class:`~torchmcmcpf.kernels.exchange.ExchangeChains`), a one-slot move reads the
+amplitudes at its two boxes instead of summing the other targets' spreads there, the same
+on every device. On a GPU, the compiled iteration runs each segment (without HMC
+refinement) as one CUDA graph (:meth:`~torchmcmcpf.runtime.Program.capture`), the cache's
+advance included: the step then costs the kernels' own time instead of a launch and its
+Python per iteration (H200, Np = 5000, without the cache: 73 to 16 ms per step;
+benchmarks/README.md).
 """
 
 from __future__ import annotations
@@ -135,7 +138,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from torch.utils._pytree import tree_map
@@ -143,10 +146,12 @@ from torch.utils._pytree import tree_map
 from .._validation import check_positive_int
 from ..diagnostics import RHAT_METHODS, rhat
 from ..kernels.exchange import (
+    ExchangeChains,
     ExchangeNoise,
     close_pairs,
     draw_exchange_noise,
     exchange_iteration,
+    with_accepted_amplitudes,
 )
 from ..kernels.hmc_refine import (
     HMCRefine,
@@ -164,8 +169,7 @@ from ..state import ParticleState, StepInfo, existence_estimate, weighted_mean
 from ..typing import Measurement, Tensor
 from .base import Filter, active_prior, check_existence_proposal
 
-__all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "exchange_iteration", "ExchangeNoise",
-           "draw_exchange_noise"]
+__all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_iteration"]
 
 
 class SegmentNoise(NamedTuple):
@@ -191,48 +195,54 @@ class SegmentNoise(NamedTuple):
         return self.single.u.shape[0]
 
 
-def _run_chains(chain: tuple, noise: SegmentNoise, step: Callable, refine: Callable | None = None,
-                every: int = 1, record_from: int = 0) -> tuple[tuple, list[tuple], Tensor, Tensor]:
-    """Run ``L`` iterations of ``step(chain, noise_t) -> (chain, accepted)`` on a chain tuple
-    ``(y, log_lik, ...)``, followed after every ``every``-th by ``refine(chain, i) ->
-    (chain, accepted)`` (the ``i``-th HMC refinement) when given; return the final chains,
-    the list of the chain tuples after iterations ``record_from .. L - 1`` (references, no
-    copies), the number of exchange acceptances per chain ``(B, C)`` and that of
-    refinements.
+def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable, sensor: SensorModel,
+                refine: Callable | None = None, every: int = 1, record_from: int = 0
+                ) -> tuple[ExchangeChains, list[ExchangeChains], Tensor, Tensor]:
+    """Run ``L`` iterations ``iteration(chains, noise_t) -> (chains, accepted, update)``
+    (:func:`exchange_iteration` with its models bound), each followed by the advance of the
+    chains' amplitude cache (:func:`with_accepted_amplitudes`) and, after every ``every``-th,
+    by ``refine(chains, i) -> (chains, accepted)`` (the ``i``-th HMC refinement) when given;
+    return the final chains, the list of the chains after iterations ``record_from .. L - 1``
+    (references, no copies, without their cache), the number of exchange acceptances per
+    chain ``(B, C)`` and that of refinements.
     """
     trace = []
-    log_lik = chain[1]
+    log_lik = chains.log_lik
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
     refined_count = torch.zeros_like(accepted_count)
     for t in range(noise.length):
-        chain, acc = step(chain, noise.at(t))
+        new, acc, update = iteration(chains, noise.at(t))
+        chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
         accepted_count = accepted_count + acc.to(accepted_count.dtype)
         if refine is not None and (t + 1) % every == 0:
-            chain, acc = refine(chain, (t + 1) // every - 1)
+            chains, acc = refine(chains, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
-            trace.append(chain)
-    return chain, trace, accepted_count, refined_count
+            trace.append(chains._replace(amplitude=None))
+    return chains, trace, accepted_count, refined_count
 
 
-def _segment(kernel: Callable, chain: tuple, noise: SegmentNoise, x_prev: Tensor, exists: Tensor | None,
-             z: Measurement, record_from: int) -> tuple[tuple, tuple, Tensor]:
-    """``L`` exchange iterations of every chain (no amplitude cache, no refinement), the loop
-    that :meth:`~torchmcmcpf.filters.base.CompiledKernel.capture` runs as one CUDA graph:
-    ``(chain, trace, accepted)`` as :func:`_run_chains` gives them, the trace stacked (each
-    entry with leading ``L - record_from``; :func:`_unstack` undoes it).
+def _segment(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x_prev: Tensor,
+             exists: Tensor | None, z: Measurement, record_from: int, sensor: SensorModel
+             ) -> tuple[ExchangeChains, ExchangeChains, Tensor]:
+    """``L`` exchange iterations of every chain (no refinement): ``(chains, trace, accepted)``
+    as :func:`_run_chains` gives them, the trace stacked (each entry with leading ``L -
+    record_from``; :func:`_unstack` undoes it). The loop that
+    :meth:`~torchmcmcpf.runtime.Program.capture` runs as one CUDA graph on a GPU, the
+    amplitude cache's advance included (a scatter-add: no host sync).
     """
     def step(ch, nz):
-        return kernel(ch, x_prev, exists, z, nz, None)[:2]
+        return iteration(ch, x_prev, exists, z, nz)
 
-    chain, trace, accepted, _ = _run_chains(chain, noise, step, record_from=record_from)
-    return chain, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *trace), accepted
+    chains, trace, accepted, _ = _run_chains(chains, noise, step, sensor, record_from=record_from)
+    return chains, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *trace), accepted
 
 
-def _unstack(stacked: tuple) -> list[tuple]:
-    """A stacked trace (:func:`_segment`) -> the list of chain tuples (views)."""
+def _unstack(stacked: ExchangeChains) -> list[ExchangeChains]:
+    """A stacked trace (:func:`_segment`) -> the list of chains (views)."""
     length = next(t for t in stacked if t is not None).shape[0]
-    return list(zip(*(t.unbind(0) if t is not None else (None,) * length for t in stacked)))
+    return [ExchangeChains(*row) for row in zip(*(t.unbind(0) if t is not None else (None,) * length
+                                                  for t in stacked))]
 
 
 def _kept(trace: list, keep: int, thinning: int) -> tuple:
@@ -368,7 +378,7 @@ def ipmcmc_step(
     settings: IPMCMCSettings = IPMCMCSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    kernel: Callable | None = None,
+    iteration: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One IP-MCMC-PF step (paper 000 Alg. 1-2); see the module docstring.
 
@@ -383,10 +393,11 @@ def ipmcmc_step(
     existence : BirthDeath, optional: births and deaths (module docstring); the starting
         points are predicted by :meth:`BirthDeath.propose` (births near the points of ``z``
         when it draws them so).
-    kernel : the iteration kernel, :func:`exchange_iteration` with the models bound;
+    iteration : one iteration of the chains, :func:`exchange_iteration` with the models
+        bound (``iteration(chains, x_prev, exists_prev, z, noise)``);
         ``IPMCMCFilter(compile_step=True)`` passes a compiled one
-        (:class:`~torchmcmcpf.filters.base.CompiledKernel`, whose ``capture`` runs each
-        segment as one CUDA graph on a GPU); default eager.
+        (:class:`~torchmcmcpf.runtime.Program`, whose ``capture`` runs each segment as one
+        CUDA graph on a GPU); default eager.
 
     Returns
     -------
@@ -413,30 +424,25 @@ def ipmcmc_step(
     settings.check(n)
     existence = None if existence is None else existence.with_proposal(settings.existence_proposal)
     keep = n // num_chains
-    recapture, exclusion = settings.recapture, settings.exclusion
-    iterate = _bind(motion, sensor, existence, recapture, exclusion) if kernel is None else kernel
+    recapture = settings.recapture
+    # (x, exists) jointly: one model of the slots with or without births and re-capture, for
+    # the starting points, the noise and the moves
+    dynamics = TargetDynamics(motion, existence, recapture, sensor)
+    if iteration is None:
+        iteration = bind_iteration(dynamics, sensor, settings.exclusion)
 
     # 1. starting points: C previous particles (systematic: one per stratum), predicted
     start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, generator=generator,
                                            device=x_prev.device), num_chains)
-    # (x, exists) jointly: one path with or without births and re-capture
-    dynamics = TargetDynamics(motion, existence, recapture, sensor)
     x0 = gather_particles(x_prev, start)
     e0 = None if exists is None else gather_particles(exists, start)
     y, e, log_r, kind = dynamics.propagate_labelled(x0, e0, *dynamics.draw_noise(x0, z, generator=generator),
                                                     start=True)
-    chain = (y, sensor.log_likelihood(y, z, e), e, None if existence is None and recapture is None else log_r, kind)
-    # The chains' amplitudes per cell (grid sensors): a move then reads its two boxes instead
-    # of summing the other targets' spreads there, and the accepted moves' changes are added
-    # in place after each iteration. Not on a GPU: a compiled kernel replayed as a CUDA graph
-    # copies every non-static input into its own buffers, the whole cache at every iteration.
-    cache = [sensor.amplitude_cache(y, e) if y.device.type != "cuda" else None]
-
-    def step(ch, nz):
-        ch, acc, update = iterate(ch, x_prev, exists, z, nz, cache[0])
-        if update is not None:
-            sensor.update_amplitude_cache(cache[0], *update, acc)
-        return ch, acc
+    # the chains' amplitudes per cell (grid sensors; ExchangeChains.amplitude): a move then
+    # reads its two boxes instead of summing the other targets' spreads there
+    chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
+                            None if existence is None and recapture is None else log_r, kind,
+                            sensor.amplitude_cache(y, e))
 
     # two-slot moves: every pair_every-th iteration, over the pairs of slots whose predicted
     # estimates are close (fixed for the step: a fixed mixture of invariant kernels)
@@ -455,9 +461,8 @@ def ipmcmc_step(
     # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
     def draw(steps: int, offset: int) -> SegmentNoise:
         def one(count: int, close: Tensor | None) -> ExchangeNoise:
-            return draw_exchange_noise(log_w, count, num_chains, k, motion.noise_dim, generator=generator,
-                                       dtype=x_prev.dtype, existence=existence, z=z, recapture=recapture,
-                                       sensor=sensor, pairs=close)
+            return draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
+                                       dtype=x_prev.dtype, z=z, pairs=close)
         at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)
         return SegmentNoise(one(steps, None), one(len(at_pairs), pairs) if at_pairs else None, at_pairs)
 
@@ -467,14 +472,14 @@ def ipmcmc_step(
     if hmc is not None:
         hmc_motion = check_hmc_motion(motion, existence)
         every = hmc.every
-        log_prior = with_exclusion(mixture_log_prior(x_prev, log_w, hmc_motion), exclusion, sensor)
+        log_prior = with_exclusion(mixture_log_prior(x_prev, log_w, hmc_motion), settings.exclusion, sensor)
 
         def refine(ch, i):
-            y_new, ll_new, acc = hmc_refine(ch[0], ch[1], HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
+            y_new, ll_new, acc = hmc_refine(ch.y, ch.log_lik, HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
                                             log_prior=log_prior, sensor=sensor, motion=hmc_motion, settings=hmc)
-            if cache[0] is not None:  # every slot may have moved: the amplitudes afresh
-                cache[0] = sensor.amplitude_cache(y_new, ch[2])
-            return (y_new, ll_new, *ch[2:]), acc
+            # every slot may have moved: the amplitudes afresh
+            amplitude = None if ch.amplitude is None else sensor.amplitude_cache(y_new, ch.exists)
+            return ch._replace(y=y_new, log_lik=ll_new, amplitude=amplitude), acc
 
     done = 0  # iterations run so far (the two-slot schedule counts across segments)
 
@@ -482,19 +487,20 @@ def ipmcmc_step(
         nonlocal hmc_noise, done
         noise = draw(steps, done)
         done += steps
-        if hmc is not None:
+        if hmc is not None:  # HMC refinements (eager, autograd) between the iterations
             hmc_noise = HMCRefineNoise.draw(y, generator=generator, leading=(steps // every,))
-        capture = getattr(iterate, "capture", None)
-        if capture is not None and hmc is None and cache[0] is None and y.device.type == "cuda":
-            # a compiled kernel on a GPU: the whole segment is one CUDA graph replay
-            ch, trace, acc = capture(_segment, chain, noise, x_prev, exists, z, record_from)
-            return ch, _unstack(trace), acc, torch.zeros_like(acc)
-        return _run_chains(chain, noise, step, refine, every, record_from)
+            return _run_chains(chains, noise, lambda ch, nz: iteration(ch, x_prev, exists, z, nz), sensor, refine,
+                               every, record_from)
+        # a compiled iteration runs the segment through its capture: one CUDA graph on a GPU
+        capture = getattr(iteration, "capture", None)
+        args = (chains, noise, x_prev, exists, z, record_from, sensor)
+        ch, trace, acc = capture(_segment, *args) if capture is not None else _segment(iteration, *args)
+        return ch, _unstack(trace), acc, torch.zeros_like(acc)
 
     hmc_noise = None
     # states before the first window (and before the kept ones) are not recorded
     record_from = min(_window_start(burn_in + segment), burn_in)
-    chain, trace, accepted, refined = run(burn_in + segment, record_from)
+    chains, trace, accepted, refined = run(burn_in + segment, record_from)
     history = _kept(trace, keep, settings.thinning)
     ys = [c[0] for c in trace]  # (B, C, K, D) after iterations record_from, ...: the R-hat window's source
     iterations = torch.full((b,), float(burn_in + segment), device=x_prev.device, dtype=x_prev.dtype)
@@ -509,7 +515,7 @@ def ipmcmc_step(
             break
         # every run iterates and goes on from where it is (the cache follows the chains); the
         # runs that did not need the extension keep their earlier kept states below
-        chain, trace_e, acc_e, ref_e = run(segment)
+        chains, trace_e, acc_e, ref_e = run(segment)
         hist_e = _kept(trace_e, keep, settings.thinning)
         history = tuple(None if h is None else torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
                         for he, h in zip(hist_e, history))
@@ -535,13 +541,14 @@ def ipmcmc_step(
     return ParticleState(x_new, log_w_new, exists_new), info
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None, recapture: Recapture | None,
-          exclusion: Exclusion | None) -> Callable:
-    """:func:`exchange_iteration` with the models and the multitarget prior's terms bound."""
-    def iterate(*args):
-        return exchange_iteration(*args, motion=motion, sensor=sensor, existence=existence, recapture=recapture,
-                                  exclusion=exclusion)
-    return iterate
+def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None) -> Callable:
+    """:func:`exchange_iteration` with the models and the exclusion term bound:
+    ``iteration(chains, x_prev, exists_prev, z, noise)`` (a function of its own, the program
+    ``compile_step=True`` compiles).
+    """
+    def iteration(*args: Any) -> tuple[ExchangeChains, Tensor, tuple[Tensor, Tensor] | None]:
+        return exchange_iteration(*args, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+    return iteration
 
 
 class IPMCMCFilter(Filter):
@@ -552,8 +559,10 @@ class IPMCMCFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, LinearGaussian, ...).
     num_particles : N; ``num_chains`` must divide it.
-    num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc, exclusion, recapture,
-    existence_proposal : see :class:`IPMCMCSettings` (``exclusion`` and ``recapture`` are on by default;
+    settings : :class:`IPMCMCSettings`, optional; its fields (``num_chains``, ``burn_in``,
+        ``rhat_threshold``, ``max_extensions``, ``rhat_method``, ``thinning``, ``hmc``,
+        ``exclusion``, ``recapture``, ``existence_proposal``) are also keywords of the
+        constructor, with the dataclass's defaults (``exclusion`` and ``recapture`` are on;
         ``None`` gives the paper's factorised target and exchange move).
     existence : BirthDeath, optional: births and deaths (module docstring); the estimate
         of a slot is then its mean given existence.
@@ -580,39 +589,17 @@ class IPMCMCFilter(Filter):
     """
 
     compile_seconds = 14.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    settings_class = IPMCMCSettings
+    settings: IPMCMCSettings
 
-    def __init__(
-        self,
-        motion: MotionModel,
-        sensor: SensorModel,
-        num_particles: int,
-        *,
-        num_chains: int = 50,
-        burn_in: int = 100,
-        rhat_threshold: float = 1.1,
-        max_extensions: int = 2,
-        rhat_method: str = "paper",
-        thinning: int = 1,
-        hmc: HMCRefine | None = None,
-        exclusion: Exclusion | None = Exclusion(),
-        recapture: Recapture | None = Recapture(),
-        existence_proposal: tuple[float, float] | None = (0.5, 0.1),
-        existence: BirthDeath | None = None,
-        compile_step: bool = False,
-    ):
-        settings = IPMCMCSettings(num_chains, burn_in, rhat_threshold, max_extensions, rhat_method, thinning, hmc,
-                                  exclusion, recapture, existence_proposal)
-        if hmc is not None:
-            check_hmc_motion(motion, existence)
-        if isinstance(existence, BirthDeath):
-            existence = existence.with_proposal(settings.existence_proposal)
-        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
-        settings.check(num_particles)
+    def _check_problem(self) -> None:
+        self.settings.check(self.num_particles)
+        if self.settings.hmc is not None:
+            check_hmc_motion(self.motion, self.existence)
 
-    def _kernel(self, compile: Callable) -> Callable:
-        return compile(_bind(self.motion, self.sensor, self.existence, self.settings.recapture,
-                             self.settings.exclusion))
+    def _build_compiled(self, compile: Callable) -> Callable:
+        return compile(bind_iteration(self.dynamics, self.sensor, self.settings.exclusion))
 
     def _step(self, state, z, generator):
         return ipmcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                           generator=generator, existence=self.existence, kernel=self.kernel())
+                           generator=generator, existence=self.existence, iteration=self.compiled())

@@ -24,11 +24,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
 
 import torch
 
 from .._validation import check_positive_int
-from ..kernels.chains import evaluate
+from ..kernels.chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
 from ..kernels.hmc_refine import (
     HMCRefine,
     HMCRefineNoise,
@@ -37,30 +39,17 @@ from ..kernels.hmc_refine import (
     hmc_refine,
     with_exclusion,
 )
-from ..kernels.moves import (
-    MOVES,
-    ChainState,
-    JointNoise,
-    PreviousCloud,
-    RandomWalkNoise,
-    RefineNoise,
-    init_chains,
-    joint_move,
-    previous_cloud,
-    random_walk_move,
-    refine_move,
-    refine_slot,
-)
-from ..kernels.random_walk import RunningMoments, adapted_step, prior_covariance
+from ..kernels.moves import MOVES, init_chains, joint_move, refine_move, refine_slot
+from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step, prior_covariance, random_walk_move
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter, active_prior, check_existence_proposal
 
-__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "draw_iteration_noise", "pick_moves",
-           "parse_moves", "MOVE_PRESETS"]
+__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "bind_iteration", "draw_iteration_noise",
+           "pick_moves", "parse_moves", "MOVE_PRESETS"]
 
 MoveSpec = str | Sequence[tuple[str, float]]
 MoveNoise = JointNoise | RefineNoise | RandomWalkNoise
@@ -128,7 +117,8 @@ class MCMCSettings:
     thinning : keep every ``thinning``-th state after the burn-in, >= 1.
     moves : a preset name or ``(name, probability)`` pairs (:func:`parse_moves`); stored parsed.
     pairs : the parsed ``moves``, ``((name, probability), ...)`` (set on construction).
-    rw_scale : random-walk step ``s``, a float or a ``(D,)`` tuple of floats (``S = diag(s^2)``,
+    rw_scale : random-walk step ``s``, a float or a ``(D,)`` vector (tuple or tensor; stored as a
+        tuple of floats) (``S = diag(s^2)``,
         paper 002 eq. 13); or ``"adaptive"``: a full per-target covariance ``S_k = 2.38^2 /
         (K D) * Sigma_k`` that fits the posterior (:func:`~torchmcmcpf.kernels.random_walk.adapted_step`),
         ``Sigma_k`` starting as the prior mixture's covariance of target k and, during the
@@ -164,7 +154,7 @@ class MCMCSettings:
     burn_in: int = 100
     thinning: int = 1
     moves: MoveSpec = "mixture"
-    rw_scale: float | Sequence[float] | str | None = None
+    rw_scale: float | Sequence[float] | Tensor | str | None = None
     hmc: HMCRefine | None = None
     exclusion: Exclusion | None = Exclusion()
     recapture: Recapture | None = Recapture()
@@ -188,7 +178,7 @@ class MCMCSettings:
                 raise ValueError("rw_scale must be given (a float, a (D,) tensor of steps or 'adaptive') "
                                  "for the 'random_walk' move")
             return
-        if self.rw_scale == "adaptive":
+        if isinstance(self.rw_scale, str) and self.rw_scale == "adaptive":
             return
         if isinstance(self.rw_scale, str):
             raise ValueError(f"rw_scale must be a float, a (D,) vector or 'adaptive', got {self.rw_scale!r}")
@@ -240,30 +230,27 @@ def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: t
     return [moves[i][0] for i in (u.unsqueeze(-1) >= edges).sum(-1).tolist()]
 
 
-def draw_iteration_noise(move: str, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-                         existence: BirthDeath | None = None, z: Measurement | None = None,
-                         recapture: Recapture | None = None, sensor: SensorModel | None = None) -> MoveNoise:
+def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
+                         z: Measurement | None = None) -> MoveNoise:
     """The noise of one MCMC iteration of the move ``move``, drawn in eager code from ``generator``.
 
     Parameters
     ----------
     move : ``"joint"``, ``"refine"`` or ``"random_walk"`` (:func:`pick_moves`).
-    x : (B, C, K, D) chain states (for shape, dtype, device); motion : MotionModel (noise size).
-    existence, z : with a BirthDeath model, the birth noise of the moves (births may be
-        drawn near the points of the frame ``z``).
-    recapture, sensor : with re-capture, the relocation noise (drawn from ``z`` by ``sensor``).
+    x : (B, C, K, D) chain states (for shape, dtype, device).
+    dynamics : the slots' joint model (:class:`~torchmcmcpf.models.existence.TargetDynamics`):
+        the motion's noise size; with births and deaths, the birth noise (births may be drawn
+        near the points of the frame ``z``); with re-capture, the relocation noise (from ``z``).
 
     Returns
     -------
     the move's noise NamedTuple (:class:`JointNoise`, :class:`RefineNoise`, :class:`RandomWalkNoise`).
     """
     if move == "random_walk":  # no existence variant (refused with existence)
-        return RandomWalkNoise.draw(x, motion, generator=generator)
+        return RandomWalkNoise.draw(x, dynamics.motion, generator=generator)
     if move not in ("joint", "refine"):
         raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
-    return (JointNoise if move == "joint" else RefineNoise).draw(x, motion, generator=generator,
-                                                                 existence=existence, z=z, recapture=recapture,
-                                                                 sensor=sensor)
+    return (JointNoise if move == "joint" else RefineNoise).draw(x, dynamics, generator=generator, z=z)
 
 
 def mcmc_iteration(
@@ -273,13 +260,11 @@ def mcmc_iteration(
     move: str,
     cloud: PreviousCloud,
     z: Measurement,
-    motion: MotionModel,
+    dynamics: TargetDynamics,
     sensor: SensorModel,
     rw_scale: Tensor | None = None,
-    existence: BirthDeath | None = None,
-    recapture: Recapture | None = None,
     exclusion: Exclusion | None = None,
-    compiled: dict | None = None,
+    programs: dict | None = None,
 ) -> tuple[ChainState, Tensor]:
     """One MCMC iteration of every chain by the move ``move`` (picked by :func:`pick_moves`).
 
@@ -290,12 +275,12 @@ def mcmc_iteration(
     chain : ChainState ``(B, C, K, D)``.
     noise : the move's noise (:func:`draw_iteration_noise`).
     move : ``"joint"``, ``"refine"`` or ``"random_walk"``.
-    cloud : the previous particles; z : frame ``(B, *G)``; motion, sensor : the models.
+    cloud : the previous particles; z : frame ``(B, *G)``.
+    dynamics : the slots' joint model (motion, optionally births and deaths and re-capture;
+        ``noise`` drawn with it); sensor : the SensorModel.
     rw_scale : (D,) or scalar step of the random walk.
-    existence : BirthDeath, optional: chains with existence flags (``noise`` drawn with it).
-    recapture, exclusion : the multitarget prior's terms, optional (``noise`` drawn with
-        ``recapture``).
-    compiled : move name -> its compiled move (``MCMCFilter(compile_step=True)``), optional.
+    exclusion : the exclusion term, optional.
+    programs : move name -> the move compiled (``MCMCFilter(compile_step=True)``), optional.
 
     Returns
     -------
@@ -303,22 +288,20 @@ def mcmc_iteration(
     accepted : (B, C) fraction of the move's accept/reject decisions that accepted (per
         target for ``refine``).
     """
-    if compiled is not None:
-        fn = compiled[move]
+    if programs is not None:
+        fn = programs[move]
         new, acc = (fn(chain, noise, z) if move == "refine" else
                     fn(chain, noise, cloud, z, rw_scale) if move == "random_walk" else
                     fn(chain, noise, cloud, z))
     elif move == "joint" and isinstance(noise, JointNoise):
-        new, acc = joint_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence,
-                              recapture=recapture, exclusion=exclusion)
+        new, acc = joint_move(chain, noise, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
     elif move == "refine" and isinstance(noise, RefineNoise):
-        new, acc = refine_move(chain, noise, z=z, motion=motion, sensor=sensor, existence=existence,
-                               recapture=recapture, exclusion=exclusion)
+        new, acc = refine_move(chain, noise, z=z, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
     elif move == "random_walk" and isinstance(noise, RandomWalkNoise):
         if rw_scale is None:
             raise ValueError("rw_scale must be given (a scalar or (D,) tensor) for the 'random_walk' move")
-        new, acc = random_walk_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=rw_scale,
-                                    exclusion=exclusion)
+        new, acc = random_walk_move(chain, noise, cloud=cloud, z=z, motion=dynamics.motion, sensor=sensor,
+                                    scale=rw_scale, exclusion=exclusion)
     else:
         raise ValueError(f"move must be one of {list(MOVES)} with its noise (draw_iteration_noise(move, ...)), "
                          f"got move={move!r} with {type(noise).__name__}")
@@ -336,7 +319,7 @@ def mcmc_step(
     settings: MCMCSettings = MCMCSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    kernel: Callable | None = None,
+    iteration: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One time step of the sequential MCMC particle filter.
 
@@ -357,9 +340,10 @@ def mcmc_step(
         algorithm; :mod:`torchmcmcpf.kernels.moves`, "Existence"). ``state.exists (B, N, K)``
         None means every slot starts inactive; births are drawn near the points of ``z``
         when ``existence`` draws them so. ``moves`` may not use ``"random_walk"``.
-    kernel : :func:`mcmc_iteration` with the models and settings bound, called as
-        ``kernel(chain, noise, move, cloud, z, rw_scale)`` (``MCMCFilter(compile_step=True)``
-        passes a compiled one); default eager.
+    iteration : one iteration of the chains, :func:`mcmc_iteration` with the models and
+        settings bound, called as ``iteration(chain, noise, move, cloud, z, rw_scale)``
+        (``MCMCFilter(compile_step=True)`` passes one whose moves are compiled,
+        :func:`bind_iteration`); default eager.
 
     Returns
     -------
@@ -386,14 +370,14 @@ def mcmc_step(
     adaptive = settings.rw_scale == "adaptive" and any(name == "random_walk" for name, _ in pairs)
     scale = None if settings.rw_scale is None or isinstance(settings.rw_scale, str) else torch.tensor(
         settings.rw_scale, device=x_prev.device, dtype=x_prev.dtype)
-    if kernel is None:
-        kernel = _bind(motion, sensor, settings, existence)
+    # (x, exists) jointly: one model of the slots with or without births and re-capture
+    dynamics = TargetDynamics(motion, existence, settings.recapture, sensor)
+    if iteration is None:
+        iteration = bind_iteration(dynamics, sensor, settings)
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
-    recapture = settings.recapture
-    chain = init_chains(cloud, JointNoise.draw(template, motion, generator=generator, existence=existence, z=z,
-                                               recapture=recapture, sensor=sensor), z,
-                        motion=motion, sensor=sensor, existence=existence, recapture=recapture)
+    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=generator, z=z), z, dynamics=dynamics,
+                        sensor=sensor)
 
     if adaptive:  # start from the prior mixture's per-target covariance (Haario et al. 2001 below)
         prior_cov = prior_covariance(cloud, motion)
@@ -407,9 +391,8 @@ def mcmc_step(
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
     for m, move in enumerate(pick_moves(pairs, burn_in + thinning * per_chain, generator=generator), start=1):
-        noise = draw_iteration_noise(move, chain.x, motion, generator=generator, existence=existence, z=z,
-                                     recapture=recapture, sensor=sensor)
-        chain, accepted = kernel(chain, noise, move, cloud, z, scale)
+        noise = draw_iteration_noise(move, chain.x, dynamics, generator=generator, z=z)
+        chain, accepted = iteration(chain, noise, move, cloud, z, scale)
         acc_sum[move] = acc_sum[move] + accepted.sum(1)
         sel_sum[move] = sel_sum[move] + num_chains
         if hmc is not None and hmc_motion is not None and m % hmc.every == 0:  # eager, also under compile_step
@@ -437,44 +420,48 @@ def mcmc_step(
     return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings, existence: BirthDeath | None,
-          compile: Callable | None = None) -> Callable:
-    """:func:`mcmc_iteration` with the models and settings bound: ``(chain, noise, move, cloud, z, rw_scale)``.
+def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, settings: MCMCSettings,
+                   compile: Callable | None = None) -> Callable:
+    """:func:`mcmc_iteration` with the models and settings bound: ``iteration(chain, noise,
+    move, cloud, z, rw_scale)``.
 
     With ``compile``, each move is compiled on its own (the joint draw; the refinement whole
     when the sensor is separable and no exclusion couples the slots, else its one-slot
-    update, one graph for every slot; the random walk), so the graph never holds K unrolled
-    slot updates; the mixture's choice between them is made once per iteration in eager code
-    (:func:`pick_moves`).
+    update, one program for every slot; the random walk), so a program never holds K
+    unrolled slot updates; the mixture's choice between them is made once per iteration in
+    eager code (:func:`pick_moves`).
     """
     settings = active_prior(settings, sensor)
-    recapture, exclusion = settings.recapture, settings.exclusion
-    moves = None
+    exclusion = settings.exclusion
+    programs = None
     if compile is not None:
         names = {name for name, _ in settings.pairs}
-        moves = {}
+        programs = {}
         if "joint" in names:
-            moves["joint"] = compile(lambda chain, noise, cloud, z: joint_move(
-                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, existence=existence,
-                recapture=recapture, exclusion=exclusion))
+            programs["joint"] = compile(lambda chain, noise, cloud, z: joint_move(
+                chain, noise, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor, exclusion=exclusion))
         if "refine" in names:
-            if sensor.separable and existence is None and (exclusion is None or not sensor.resolved):
-                moves["refine"] = compile(lambda chain, noise, z: refine_move(
-                    chain, noise, z=z, motion=motion, sensor=sensor, recapture=recapture))
+            if sensor.separable and dynamics.existence is None and (exclusion is None or not sensor.resolved):
+                programs["refine"] = compile(lambda chain, noise, z: refine_move(
+                    chain, noise, z=z, dynamics=dynamics, sensor=sensor))
             else:
                 slot = compile(lambda *args: refine_slot(*args, sensor=sensor, exclusion=exclusion))
-                moves["refine"] = lambda chain, noise, z: refine_move(
-                    chain, noise, z=z, motion=motion, sensor=sensor, existence=existence, recapture=recapture,
-                    exclusion=exclusion, slot_kernel=slot)
+                programs["refine"] = partial(_refine_with, dynamics=dynamics, sensor=sensor, exclusion=exclusion,
+                                             slot_program=slot)
         if "random_walk" in names:
-            moves["random_walk"] = compile(lambda chain, noise, cloud, z, scale: random_walk_move(
-                chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=scale, exclusion=exclusion))
+            programs["random_walk"] = compile(lambda chain, noise, cloud, z, scale: random_walk_move(
+                chain, noise, cloud=cloud, z=z, motion=dynamics.motion, sensor=sensor, scale=scale,
+                exclusion=exclusion))
+    return partial(_iteration, dynamics=dynamics, sensor=sensor, exclusion=exclusion, programs=programs)
 
-    def kernel(chain, noise, move, cloud, z, rw_scale):
-        return mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, motion=motion, sensor=sensor,
-                              rw_scale=rw_scale, existence=existence, recapture=recapture, exclusion=exclusion,
-                              compiled=moves)
-    return kernel
+
+def _iteration(chain: ChainState, noise: MoveNoise, move: str, cloud: PreviousCloud, z: Measurement,
+               rw_scale: Tensor | None, **bound: Any) -> tuple[ChainState, Tensor]:
+    return mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, rw_scale=rw_scale, **bound)
+
+
+def _refine_with(chain: ChainState, noise: RefineNoise, z: Measurement, **bound: Any) -> tuple[ChainState, Tensor]:
+    return refine_move(chain, noise, z=z, **bound)
 
 
 class MCMCFilter(Filter):
@@ -487,26 +474,21 @@ class MCMCFilter(Filter):
     sensor : SensorModel; a ``log_likelihood_per_target`` or ``log_likelihood_delta``
         method speeds up the per-target refinement (:mod:`torchmcmcpf.kernels.moves`).
     num_particles : N >= 1, a multiple of ``num_chains``.
-    num_chains : C >= 1 chains per run, run in parallel; each keeps N / C samples.
-    compile_step : compile each move of one MCMC iteration (the refinement as one slot
-        update) with ``torch.compile(fullgraph=True)`` (see ``_bind``).
-    burn_in : iterations discarded per chain and time step, >= 0.
-    thinning : keep every ``thinning``-th state after the burn-in, >= 1.
-    moves : ``"mixture"`` (default: joint draw w.p. 0.75, else a per-target refinement
-        sweep; paper 004), ``"joint"``, ``"random_walk"`` (paper 002), or a sequence of
-        ``(name, probability)`` pairs over ``"joint"``, ``"refine"``, ``"random_walk"``.
-    rw_scale : float or ``(D,)`` tensor, the random-walk step, or ``"adaptive"`` (see
-        :class:`MCMCSettings`); needed by ``"random_walk"``.
-    hmc : :class:`~torchmcmcpf.kernels.hmc_refine.HMCRefine`, optional: an HMC refinement of
-        ``x_k`` given the ancestor after every ``hmc.every``-th iteration (eager; extras
-        ``"acceptance_hmc"``); linear-Gaussian motion, no existence.
-    exclusion, recapture : the multitarget prior's terms (see :class:`MCMCSettings`, on by
-        default; re-capture is off with ``"random_walk"`` or ``hmc``).
-    existence_proposal : with ``existence``, the birth and death proposal probabilities (see
-        :class:`MCMCSettings`).
+    settings : :class:`MCMCSettings`, optional; its fields are also keywords of the
+        constructor, with the dataclass's defaults: ``num_chains`` (C chains per run, each
+        keeps N / C samples), ``burn_in``, ``thinning``, ``moves`` (``"mixture"``: joint draw
+        w.p. 0.75, else a per-target refinement sweep, paper 004; ``"joint"``;
+        ``"random_walk"``, paper 002; or ``(name, probability)`` pairs), ``rw_scale`` (float,
+        ``(D,)`` vector or ``"adaptive"``; needed by ``"random_walk"``), ``hmc`` (an HMC
+        refinement of ``x_k`` given the ancestor after every ``hmc.every``-th iteration,
+        eager, extras ``"acceptance_hmc"``; linear-Gaussian motion, no existence),
+        ``exclusion``, ``recapture`` (the multitarget prior's terms, on by default;
+        re-capture is off with ``"random_walk"`` or ``hmc``) and ``existence_proposal``.
     existence : BirthDeath, optional: births and deaths (see :func:`mcmc_step`); the
         estimate of a slot is then its mean given existence
         (:func:`torchmcmcpf.state.existence_estimate`).
+    compile_step : compile each move of one MCMC iteration (the refinement as one slot
+        update) with ``torch.compile(fullgraph=True)`` (:func:`bind_iteration`).
 
     Each time step runs ``burn_in + thinning * N / C`` iterations of every chain.
 
@@ -525,40 +507,17 @@ class MCMCFilter(Filter):
     """
 
     compile_seconds = 27.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    settings_class = MCMCSettings
+    settings: MCMCSettings
 
-    def __init__(
-        self,
-        motion: MotionModel,
-        sensor: SensorModel,
-        num_particles: int,
-        *,
-        num_chains: int = 1,
-        burn_in: int = 100,
-        thinning: int = 1,
-        moves: MoveSpec = "mixture",
-        rw_scale: float | Sequence[float] | Tensor | str | None = None,
-        hmc: HMCRefine | None = None,
-        exclusion: Exclusion | None = Exclusion(),
-        recapture: Recapture | None = Recapture(),
-        existence_proposal: tuple[float, float] | None = (0.5, 0.1),
-        existence: BirthDeath | None = None,
-        compile_step: bool = False,
-    ):
-        scale = rw_scale.tolist() if isinstance(rw_scale, Tensor) else rw_scale
-        if isinstance(scale, list):
-            scale = tuple(scale)
-        settings = MCMCSettings(num_chains, burn_in, thinning, moves, scale, hmc, exclusion, recapture,
-                                existence_proposal)
-        if isinstance(existence, BirthDeath):
-            existence = existence.with_proposal(settings.existence_proposal)
-        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
-        self.settings.check(num_particles, motion.dim, existence)
-        if hmc is not None:
-            check_hmc_motion(motion, existence)
+    def _check_problem(self) -> None:
+        self.settings.check(self.num_particles, self.motion.dim, self.existence)
+        if self.settings.hmc is not None:
+            check_hmc_motion(self.motion, self.existence)
 
-    def _kernel(self, compile: Callable) -> Callable:
-        return _bind(self.motion, self.sensor, self.settings, self.existence, compile)
+    def _build_compiled(self, compile: Callable) -> Callable:
+        return bind_iteration(self.dynamics, self.sensor, self.settings, compile)
 
     def _step(self, state, z, generator):
         return mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                         generator=generator, existence=self.existence, kernel=self.kernel())
+                         generator=generator, existence=self.existence, iteration=self.compiled())

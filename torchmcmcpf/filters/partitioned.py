@@ -34,6 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -45,7 +46,7 @@ from ..state import ParticleState, StepInfo, weighted_mean
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "partitioned_sir_kernel"]
+__all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "partitioned_sir_body"]
 
 
 @dataclass(frozen=True)
@@ -69,11 +70,12 @@ class PartitionedSIRSettings:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
 
 
-def partitioned_sir_kernel(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, eps: Tensor, *,
-                           motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings
-                           ) -> tuple[Tensor, Tensor]:
-    """The noise-free part of one independent-partition step (pure; what ``compile_step=True``
-    compiles): propose, weight each partition, resample each partition.
+def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, eps: Tensor, *,
+                         motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings
+                         ) -> tuple[Tensor, Tensor]:
+    """The body of one independent-partition step, all of it but its random draws (pure; the
+    program ``compile_step=True`` compiles): propose, weight each partition, resample each
+    partition.
 
     Parameters
     ----------
@@ -100,10 +102,13 @@ def partitioned_sir_kernel(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, 
     return x_new.transpose(1, 2), log_lik
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings) -> Callable:
-    def kernel(*args):
-        return partitioned_sir_kernel(*args, motion=motion, sensor=sensor, settings=settings)
-    return kernel
+def bind_body(motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings) -> Callable:
+    """:func:`partitioned_sir_body` with the models bound: ``body(x, log_w, z, u, eps)`` (a
+    function of its own, the program ``compile_step=True`` compiles).
+    """
+    def body(*args: Any) -> tuple[Tensor, Tensor]:
+        return partitioned_sir_body(*args, motion=motion, sensor=sensor, settings=settings)
+    return body
 
 
 def partitioned_sir_step(
@@ -115,7 +120,7 @@ def partitioned_sir_step(
     settings: PartitionedSIRSettings = PartitionedSIRSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    kernel: Callable | None = None,
+    body: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One independent-partition step (module docstring: weighting and approximation).
 
@@ -126,7 +131,7 @@ def partitioned_sir_step(
     motion, sensor : the models; settings : :class:`PartitionedSIRSettings`.
     generator : source of randomness (motion noise, resampling uniforms; drawn here, eagerly).
     existence : must be None (known number of targets).
-    kernel : :func:`partitioned_sir_kernel` with the models bound (compiled by
+    body : :func:`partitioned_sir_body` with the models bound (compiled by
         ``PartitionedSIRFilter(compile_step=True)``); default eager.
 
     Returns
@@ -143,9 +148,9 @@ def partitioned_sir_step(
     draw, _ = RESAMPLERS[settings.resample_method]
     u = draw(b * k, n, generator=generator, device=x.device)
     eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
-    if kernel is None:
-        kernel = _bind(motion, sensor, settings)
-    x_new, log_lik = kernel(x, log_w, z, u, eps)
+    if body is None:
+        body = bind_body(motion, sensor, settings)
+    x_new, log_lik = body(x, log_w, z, u, eps)
     ess_k = ess(normalize(log_lik)[0])  # (B, K); a partition with all weights -inf: uniform, not NaN
     log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
     return ParticleState(x_new, log_w_new), StepInfo.make(ess_k[:, 0], ess=ess_k.mean(-1),
@@ -163,9 +168,10 @@ class PartitionedSIRFilter(Filter):
     sensor : SensorModel (grid sensors use their one-slot likelihood change; separable
         sensors their per-target terms).
     num_particles : N >= 1 per partition.
-    resample_method, exclusion : see :class:`PartitionedSIRSettings`.
+    settings : :class:`PartitionedSIRSettings`, optional; its fields ``resample_method``,
+        ``exclusion`` are also keywords of the constructor.
     existence : must be None (known number of targets).
-    compile_step : compile :func:`partitioned_sir_kernel` (the whole step but its draws).
+    compile_step : compile :func:`partitioned_sir_body` (the whole step but its draws).
 
     Notes
     -----
@@ -186,18 +192,16 @@ class PartitionedSIRFilter(Filter):
     """
 
     compile_seconds = 16.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    settings_class = PartitionedSIRSettings
+    settings: PartitionedSIRSettings
 
-    def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, *,
-                 resample_method: str = "systematic", exclusion: Exclusion | None = Exclusion(),
-                 existence: BirthDeath | None = None, compile_step: bool = False):
-        if existence is not None:
+    def _check_problem(self) -> None:
+        if self.existence is not None:
             raise ValueError("existence must be None: PartitionedSIRFilter tracks a known number of targets")
-        super().__init__(motion, sensor, num_particles, PartitionedSIRSettings(resample_method, exclusion),
-                         existence=existence, compile_step=compile_step)
 
-    def _kernel(self, compile: Callable) -> Callable:
-        return compile(_bind(self.motion, self.sensor, self.settings))
+    def _build_compiled(self, compile: Callable) -> Callable:
+        return compile(bind_body(self.motion, self.sensor, self.settings))
 
     def _step(self, state, z, generator):
         return partitioned_sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                                    generator=generator, kernel=self.kernel())
+                                    generator=generator, body=self.compiled())

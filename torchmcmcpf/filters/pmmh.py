@@ -54,13 +54,13 @@ from torch.utils._pytree import tree_map
 from .._validation import as_int, check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath
+from ..models.existence import BirthDeath, TargetDynamics
 from ..models.motion import ProcessNoiseScale
 from ..resampling import ess, normalize
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
-from .sir import SIRFilter, SIRSettings, _bind, sir_step
+from .sir import SIRFilter, SIRSettings, bind_body, sir_step
 
 __all__ = ["pmmh", "PMMHResult", "sir_log_evidence", "ProcessNoiseScale", "PMMHFilter", "PMMHSettings",
            "pmmh_step"]
@@ -223,12 +223,14 @@ class PMMHSettings:
             raise ValueError(f"prior_mean must be finite, got {self.prior_mean!r}")
         if not (math.isfinite(float(self.prior_std)) and float(self.prior_std) > 0):
             raise ValueError(f"prior_std must be finite and > 0, got {self.prior_std!r}")
-        self.sir  # validates resample_method and ess_threshold
+        object.__setattr__(self, "prior_mean", float(self.prior_mean))
+        object.__setattr__(self, "prior_std", float(self.prior_std))
+        object.__setattr__(self, "ess_threshold", self.sir.ess_threshold)  # validates it and resample_method
 
     @property
     def sir(self) -> SIRSettings:
         """The settings of every candidate's SIR filter."""
-        return SIRSettings(self.resample_method, float(self.ess_threshold))
+        return SIRSettings(resample_method=self.resample_method, ess_threshold=self.ess_threshold)
 
 
 def _first_extras(state: ParticleState, settings: PMMHSettings, generator: torch.Generator) -> dict:
@@ -262,7 +264,7 @@ def pmmh_step(
     settings: PMMHSettings = PMMHSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    kernel: Callable | None = None,
+    body: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One step of the sequential PMMH filter (particle independent MH with theta, module
     docstring): advance the L candidates' SIR filters, then run the MH chain over them.
@@ -282,7 +284,7 @@ def pmmh_step(
     generator : the only source of randomness (theta at the first step, the SIR draws, the
         L MH uniforms).
     existence : BirthDeath, optional: passed to every candidate's SIR step.
-    kernel : :func:`~torchmcmcpf.filters.sir.sir_kernel` with the models bound (compiled by
+    body : :func:`~torchmcmcpf.filters.sir.sir_body` with the models bound (compiled by
         ``PMMHFilter(compile_step=True)``); default eager.
 
     Returns
@@ -311,14 +313,14 @@ def pmmh_step(
     sub = ParticleState(x.reshape(b * lc, m, k, d), extras["log_w_candidate"].reshape(b * lc, m),
                         None if exists is None else exists.reshape(b * lc, m, k))
     zc = tree_map(lambda a: a.repeat_interleave(lc, dim=0), z)
-    base = kernel if kernel is not None else _bind(motion, sensor, settings.sir, existence)
+    base = body if body is not None else bind_body(TargetDynamics(motion, existence), sensor, settings.sir)
     scale = (0.5 * theta).exp().reshape(b * lc, 1, 1, 1)
 
     def scaled(x_, log_w_, exists_, z_, need, u, eps, birth):
         return base(x_, log_w_, exists_, z_, need, u, eps * scale.to(eps.dtype), birth)
 
     sub, sub_info = sir_step(sub, zc, motion=motion, sensor=sensor, settings=settings.sir, generator=generator,
-                             existence=existence, kernel=scaled)
+                             existence=existence, body=scaled)
     log_ev_new = log_ev + sub_info.log_evidence.reshape(b, lc)  # (B, L)
 
     # the PIMH chain over the candidates, in order (MCMC iterations: a loop over L)
@@ -358,10 +360,11 @@ class PMMHFilter(Filter):
     motion : MotionModel (``theta`` scales its process noise by ``e^theta``).
     sensor : SensorModel.
     num_particles : N, a multiple of ``num_candidates`` (N / L particles per candidate).
-    num_candidates, burn_in, prior_mean, prior_std, resample_method, ess_threshold : see
-        :class:`PMMHSettings`.
+    settings : :class:`PMMHSettings`, optional; its fields ``num_candidates``, ``burn_in``,
+        ``prior_mean``, ``prior_std``, ``resample_method``, ``ess_threshold`` are also keywords
+        of the constructor.
     existence : BirthDeath, optional, passed to every candidate's SIR filter.
-    compile_step : compile the candidates' SIR kernel (:func:`~torchmcmcpf.filters.sir.sir_kernel`).
+    compile_step : compile the candidates' SIR step body (:func:`~torchmcmcpf.filters.sir.sir_body`).
 
     Notes
     -----
@@ -385,32 +388,17 @@ class PMMHFilter(Filter):
     """
 
     compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    settings_class = PMMHSettings
+    settings: PMMHSettings
 
-    def __init__(
-        self,
-        motion: MotionModel,
-        sensor: SensorModel,
-        num_particles: int,
-        *,
-        num_candidates: int = 10,
-        burn_in: int = 0,
-        prior_mean: float = 0.0,
-        prior_std: float = 1.0,
-        resample_method: str = "systematic",
-        ess_threshold: float = 1.0,
-        existence: BirthDeath | None = None,
-        compile_step: bool = False,
-    ):
-        settings = PMMHSettings(num_candidates, burn_in, float(prior_mean), float(prior_std), resample_method,
-                                float(ess_threshold))
-        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
-        if self.num_particles % num_candidates:
-            raise ValueError(f"num_particles must be a multiple of num_candidates = {num_candidates}, "
-                             f"got {num_particles}")
+    def _check_problem(self) -> None:
+        if self.num_particles % self.settings.num_candidates:
+            raise ValueError(f"num_particles must be a multiple of num_candidates = {self.settings.num_candidates}, "
+                             f"got {self.num_particles}")
 
-    def _kernel(self, compile: Callable) -> Callable:
-        return compile(_bind(self.motion, self.sensor, self.settings.sir, self.existence))
+    def _build_compiled(self, compile: Callable) -> Callable:
+        return compile(bind_body(self.dynamics, self.sensor, self.settings.sir))
 
     def _step(self, state, z, generator):
         return pmmh_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                         generator=generator, existence=self.existence, kernel=self.kernel())
+                         generator=generator, existence=self.existence, body=self.compiled())

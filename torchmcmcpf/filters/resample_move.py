@@ -63,16 +63,15 @@ from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, log_exclusion
 from ..models.sensors.association import (
     AssociationSensor,
-    _split,
     metropolis_association,
     padded_pair_log_likelihood,
 )
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
 from ..state import ParticleState, StepInfo
-from ..typing import Measurement, Tensor
+from ..typing import Measurement, Tensor, split_points
 from .base import Filter, active_prior
 
-__all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "ASSOCIATIONS"]
+__all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "bind_move", "ASSOCIATIONS"]
 
 ASSOCIATIONS = ("exact", "metropolis")
 
@@ -115,13 +114,12 @@ class ResampleMoveSettings:
             object.__setattr__(self, "exclusion", None)  # eq. 9's per-slot chains: a factorised target
 
 
-def _predict(x_prev: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None, motion: MotionModel,
-             existence: BirthDeath | None) -> tuple[Tensor, Tensor | None, Tensor]:
-    """``x_k = f(x_{k-1}, u)`` through :class:`TargetDynamics` (one path with or without
-    births and deaths); returns ``x``, ``exists`` and the per-particle birth weight
-    correction ``(B, N)``.
+def _predict(x_prev: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
+             dynamics: TargetDynamics) -> tuple[Tensor, Tensor | None, Tensor]:
+    """``x_k = f(x_{k-1}, u)`` through ``dynamics`` (one path with or without births and
+    deaths); returns ``x``, ``exists`` and the per-particle birth weight correction ``(B, N)``.
     """
-    x, e, log_ratio = TargetDynamics(motion, existence).propagate(x_prev, exists, eps, birth)
+    x, e, log_ratio = dynamics.propagate(x_prev, exists, eps, birth)
     return x, e, log_ratio.sum(-1)
 
 
@@ -134,7 +132,7 @@ def resample_move_step(
     settings: ResampleMoveSettings = ResampleMoveSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    kernel: Callable | None = None,
+    move: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One step of the particle filter with an HMC move (module docstring, paper 003).
 
@@ -151,9 +149,10 @@ def resample_move_step(
         every other filter (:meth:`BirthDeath.propagate`); the HMC move acts on the motion
         noise with the existence draws of the resampled pair fixed (``state.exists`` None:
         every slot starts inactive).
-    kernel : one HMC transition (:func:`~torchmcmcpf.kernels.hmc.hmc_transition` with the
-        target bound), called as ``kernel(eps, value, grad, p, u, x_prev, exists, birth, z,
-        assignment)``; ``ResampleMoveFilter(compile_step=True)`` passes a compiled one.
+    move : the HMC move, one transition (:func:`~torchmcmcpf.kernels.hmc.hmc_transition` with
+        the target bound, :func:`bind_move`), called as ``move(eps, value, grad, p, u, x_prev,
+        exists, birth, z, assignment)``; ``ResampleMoveFilter(compile_step=True)`` passes a
+        compiled one.
 
     Returns
     -------
@@ -174,8 +173,9 @@ def resample_move_step(
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
     settings = active_prior(settings, sensor)
-    eps, birth, _ = TargetDynamics(motion, existence).draw_noise(x_prev, z, generator=generator)
-    x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, motion, existence)
+    dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly, with or without births and deaths
+    eps, birth, _ = dynamics.draw_noise(x_prev, z, generator=generator)
+    x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, dynamics)
 
     assignment = None
     extras = {}
@@ -184,7 +184,7 @@ def resample_move_step(
         if not isinstance(sensor, AssociationSensor):
             raise ValueError(f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}")
         assoc = sensor
-        zz, mask = _split(z)
+        zz, mask = split_points(z)
         square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists_new, mask)
         assignment, _, _ = metropolis_association(square, num_iters=settings.association_iters, generator=generator)
         log_lik_slot = sensor.assigned_log_likelihood(x, z, assignment, exists_new)  # (B, N, K)
@@ -211,7 +211,7 @@ def resample_move_step(
         birth = BirthNoise(*(gather_particles(t, idx) for t in birth))
     uniform = torch.full_like(log_w, -math.log(n))
     if settings.num_hmc_steps == 0:
-        x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
+        x, exists_new, _ = _predict(x_prev, exists, eps, birth, dynamics)
         extras["ess_after_move"] = ess(normalize(gather_particles(log_g, idx))[0])
         if "ess_per_target" in extras:
             extras["ess_per_target_after_move"] = _ess_per_target(gather_particles(log_lik_slot, idx), exists_new)
@@ -220,18 +220,18 @@ def resample_move_step(
 
     if assignment is not None:
         assignment = gather_particles(assignment, idx)
-    if kernel is None:
-        kernel = _bind(motion, sensor, settings, existence)
-    target = _target(motion, sensor, existence, settings.exclusion)
+    if move is None:
+        move = bind_move(dynamics, sensor, settings)
+    target = _target(dynamics, sensor, settings.exclusion)
     value, grad = value_and_grad(lambda u: target(u, x_prev, exists, birth, z, assignment), eps)
     accepted = torch.zeros_like(value)
     for _ in range(settings.num_hmc_steps):
         p = torch.randn(eps.shape, generator=generator, device=eps.device, dtype=eps.dtype)
         u = torch.rand(value.shape, generator=generator, device=eps.device, dtype=eps.dtype)
-        eps, value, grad, accept = kernel(eps, value, grad, p, u, x_prev, exists, birth, z, assignment)
+        eps, value, grad, accept = move(eps, value, grad, p, u, x_prev, exists, birth, z, assignment)
         accepted = accepted + accept.to(accepted.dtype)
     acc = accepted / settings.num_hmc_steps
-    x, exists_new, _ = _predict(x_prev, exists, eps, birth, motion, existence)
+    x, exists_new, _ = _predict(x_prev, exists, eps, birth, dynamics)
     # g at the moved particles, evaluated eagerly (one likelihood evaluation; not read off the
     # HMC log-target, whose compiled value may differ from eager in the last bits)
     if assoc is not None and assignment is not None:  # per slot (B, N, K)
@@ -260,28 +260,26 @@ def _ess_per_target(log_w_slot: Tensor, exists: Tensor | None) -> Tensor:
     return (per * alive).sum(-1) / alive.sum(-1).clamp(min=1)
 
 
-def _target(motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None,
-            exclusion: Exclusion | None = None) -> Callable:
+def _target(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None) -> Callable:
     """``log_target(u, x_prev, exists, birth, z, assignment)`` of the HMC move: ``(B, N)``
     (one chain per particle, eq. 10, times the exclusion factor) or ``(B, N, K)`` with an
     association (eq. 9).
     """
     def log_target(u, x_prev, exists, birth, z, assignment):
-        x, e, _ = _predict(x_prev, exists, u, birth, motion, existence)
+        x, e, _ = _predict(x_prev, exists, u, birth, dynamics)
         if assignment is not None:  # one chain per slot, eq. 9
             return sensor.assigned_log_likelihood(x, z, assignment, e) - 0.5 * u.square().sum(-1)
         return sensor.log_likelihood(x, z, e) - 0.5 * u.square().sum((-2, -1)) + log_exclusion(exclusion, sensor, x, e)
     return log_target
 
 
-def _bind(motion: MotionModel, sensor: SensorModel, settings: ResampleMoveSettings,
-          existence: BirthDeath | None) -> Callable:
-    """One HMC transition with the models bound; gradients by ``torch.func.grad`` (which
-    traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``).
+def bind_move(dynamics: TargetDynamics, sensor: SensorModel, settings: ResampleMoveSettings) -> Callable:
+    """The HMC move, one transition with the models bound; gradients by ``torch.func.grad``
+    (which traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``).
     """
-    target = _target(motion, sensor, existence, active_prior(settings, sensor).exclusion)
+    target = _target(dynamics, sensor, active_prior(settings, sensor).exclusion)
 
-    def kernel(eps, value, grad, p, u, x_prev, exists, birth, z, assignment):
+    def move(eps, value, grad, p, u, x_prev, exists, birth, z, assignment):
         def log_target(q):
             return target(q, x_prev, exists, birth, z, assignment)
 
@@ -290,7 +288,7 @@ def _bind(motion: MotionModel, sensor: SensorModel, settings: ResampleMoveSettin
 
         return hmc_transition(eps, value, grad, p, u, log_target=log_target, step_size=settings.step_size,
                               num_leapfrog=settings.num_leapfrog, grad_fn=grad_fn)
-    return kernel
+    return move
 
 
 class ResampleMoveFilter(Filter):
@@ -304,8 +302,9 @@ class ResampleMoveFilter(Filter):
         :class:`~torchmcmcpf.models.sensors.association.AssociationPosition` or
         :class:`~torchmcmcpf.models.sensors.association.AssociationBearingRange`).
     num_particles : N >= 1.
-    step_size, num_leapfrog, num_hmc_steps, association, association_iters, resample_method, exclusion :
-        see :class:`ResampleMoveSettings`.
+    settings : :class:`ResampleMoveSettings`, optional; its fields ``step_size``,
+        ``num_leapfrog``, ``num_hmc_steps``, ``association``, ``association_iters``,
+        ``resample_method``, ``exclusion`` are also keywords of the constructor.
     existence : BirthDeath, optional: births and deaths, as for every other filter.
     compile_step : compile one HMC transition (leapfrog with ``torch.func.grad``).
 
@@ -330,34 +329,18 @@ class ResampleMoveFilter(Filter):
     """
 
     compile_seconds = 29.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    settings_class = ResampleMoveSettings
+    settings: ResampleMoveSettings
 
-    def __init__(
-        self,
-        motion: MotionModel,
-        sensor: SensorModel,
-        num_particles: int,
-        *,
-        step_size: float = 0.1,
-        num_leapfrog: int = 1,
-        num_hmc_steps: int = 100,
-        association: str = "exact",
-        association_iters: int = 30,
-        resample_method: str = "systematic",
-        exclusion: Exclusion | None = Exclusion(),
-        existence: BirthDeath | None = None,
-        compile_step: bool = False,
-    ):
-        settings = ResampleMoveSettings(step_size, num_leapfrog, num_hmc_steps, association, association_iters,
-                                        resample_method, exclusion)
-        if association == "metropolis" and not isinstance(sensor, AssociationSensor):
+    def _check_problem(self) -> None:
+        if self.settings.association == "metropolis" and not isinstance(self.sensor, AssociationSensor):
             raise ValueError(
-                f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}"
+                f"association='metropolis' needs an AssociationSensor, got {type(self.sensor).__name__}"
             )
-        super().__init__(motion, sensor, num_particles, settings, existence=existence, compile_step=compile_step)
 
-    def _kernel(self, compile: Callable) -> Callable:
-        return compile(_bind(self.motion, self.sensor, self.settings, self.existence))
+    def _build_compiled(self, compile: Callable) -> Callable:
+        return compile(bind_move(self.dynamics, self.sensor, self.settings))
 
     def _step(self, state, z, generator):
         return resample_move_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                                  generator=generator, existence=self.existence, kernel=self.kernel())
+                                  generator=generator, existence=self.existence, move=self.compiled())

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -22,7 +23,7 @@ from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_kernel"]
+__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_body", "bind_body"]
 
 
 @dataclass(frozen=True)
@@ -48,20 +49,24 @@ class SIRSettings:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
         if not 0.0 <= float(self.ess_threshold) <= 1.0:
             raise ValueError(f"ess_threshold must be in [0, 1], got {self.ess_threshold!r}")
+        object.__setattr__(self, "ess_threshold", float(self.ess_threshold))
 
 
-def sir_kernel(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, need: Tensor, u: Tensor,
-               eps: Tensor, birth: BirthNoise | None, *, motion: MotionModel, sensor: SensorModel,
-               settings: SIRSettings, existence: BirthDeath | None = None
-               ) -> tuple[Tensor, Tensor | None, Tensor]:
-    """The noise-free part of one SIR step (pure; what ``compile_step=True`` compiles).
+def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, need: Tensor, u: Tensor,
+             eps: Tensor, birth: BirthNoise | None, *, dynamics: TargetDynamics, sensor: SensorModel,
+             settings: SIRSettings) -> tuple[Tensor, Tensor | None, Tensor]:
+    """The body of one SIR step: all of it but its random draws (pure; the program
+    ``compile_step=True`` compiles).
 
     Parameters
     ----------
     x : (B, N, K, D); log_w : (B, N) normalised; exists : (B, N, K) bool or None.
     z : the frame ``(B, *G)``; need : (B,) bool, the runs to resample; u : the resampling
     uniforms (``(B, 1)`` systematic, ``(B, N)`` otherwise); eps : (B, N, K, noise_dim)
-    motion noise; birth : :class:`BirthNoise` for ``(B, N)`` (with ``existence``) or None.
+    motion noise; birth : :class:`BirthNoise` for ``(B, N)`` (with an existence model) or None.
+    dynamics : the slots' joint model (:class:`~torchmcmcpf.models.existence.TargetDynamics`:
+    the motion, with births and deaths or not); sensor : the SensorModel; settings :
+    :class:`SIRSettings`.
 
     Returns
     -------
@@ -84,11 +89,21 @@ def sir_kernel(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, 
         if exists is not None:
             exists = gather_particles(exists, idx)
     # (x, exists) propagated jointly: one code path whatever the number of targets
-    x, exists, log_ratio = TargetDynamics(motion, existence).propagate(x, exists, eps, birth)
+    x, exists, log_ratio = dynamics.propagate(x, exists, eps, birth)
     log_lik = sensor.log_likelihood(x, z, exists) + log_exclusion(settings.exclusion, sensor, x, exists)  # (B, N)
-    if existence is not None:
+    if dynamics.existence is not None:
         log_lik = log_lik + log_ratio.sum(-1)  # the birth correction p_0 / q_0
     return x, exists, (log_lik - math.log(n)) if every_step else log_w + log_lik
+
+
+def bind_body(dynamics: TargetDynamics, sensor: SensorModel, settings: SIRSettings) -> Callable:
+    """:func:`sir_body` with the models bound: ``body(x, log_w, exists, z, need, u, eps,
+    birth)`` (a function of its own, the program ``compile_step=True`` compiles; see
+    :class:`~torchmcmcpf.runtime.Program` on why not a ``functools.partial``).
+    """
+    def body(*args: Any) -> tuple[Tensor, Tensor | None, Tensor]:
+        return sir_body(*args, dynamics=dynamics, sensor=sensor, settings=settings)
+    return body
 
 
 def sir_step(
@@ -100,7 +115,7 @@ def sir_step(
     settings: SIRSettings = SIRSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    kernel: Callable | None = None,
+    body: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One SIR step: resample (when ESS < ``ess_threshold * N``), propagate, weight.
 
@@ -114,7 +129,7 @@ def sir_step(
         propagated jointly (:class:`~torchmcmcpf.models.existence.TargetDynamics`, births near
         the points of ``z`` when it draws them so, with the weight correction ``p_0 / q_0``);
         ``state.exists`` None means every slot starts inactive (paper 004 sec. 5).
-    kernel : :func:`sir_kernel` with the models bound (compiled by ``SIRFilter(compile_step=True)``);
+    body : :func:`sir_body` with the models bound (compiled by ``SIRFilter(compile_step=True)``);
         default eager.
 
     Returns
@@ -133,26 +148,20 @@ def sir_step(
     b, n, k, _ = x.shape
     draw, _ = RESAMPLERS[settings.resample_method]
     u = draw(b, n, generator=generator, device=x.device)
-    eps, birth, _ = TargetDynamics(motion, existence).draw_noise(x, z, generator=generator)
+    dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly: one path whatever the number of targets
+    eps, birth, _ = dynamics.draw_noise(x, z, generator=generator)
     # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
     if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
         need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)
     else:
         need = ess(log_w) < settings.ess_threshold * n  # (B,)
-    if kernel is None:
-        kernel = _bind(motion, sensor, settings, existence)
-    x, exists, log_w = kernel(x, log_w, exists, z, need, u, eps, birth)
+    if body is None:
+        body = bind_body(dynamics, sensor, settings)
+    x, exists, log_w = body(x, log_w, exists, z, need, u, eps, birth)
     log_w_new, log_mean, ess_new = normalize_ess(log_w)
     # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
     log_evidence = log_mean + math.log(n)
     return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess_new, log_evidence=log_evidence)
-
-
-def _bind(motion: MotionModel, sensor: SensorModel, settings: SIRSettings, existence: BirthDeath | None
-          ) -> Callable:
-    def kernel(*args):
-        return sir_kernel(*args, motion=motion, sensor=sensor, settings=settings, existence=existence)
-    return kernel
 
 
 class SIRFilter(Filter):
@@ -164,10 +173,11 @@ class SIRFilter(Filter):
     motion : MotionModel applied to every target slot.
     sensor : SensorModel (radar TBD, Swerling-I, pixels, LinearGaussian, ...).
     num_particles : N >= 1.
-    resample_method, ess_threshold, exclusion : see :class:`SIRSettings`.
+    settings : :class:`SIRSettings`, optional; its fields ``resample_method``,
+        ``ess_threshold``, ``exclusion`` are also keywords of the constructor.
     existence : BirthDeath, optional: births and deaths (see :func:`sir_step`); the
         estimate of a slot is then its mean given existence.
-    compile_step : compile :func:`sir_kernel` (the whole step but its random draws).
+    compile_step : compile :func:`sir_body` (the whole step but its random draws).
 
     Notes
     -----
@@ -187,26 +197,12 @@ class SIRFilter(Filter):
     """
 
     compile_seconds = 20.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    settings_class = SIRSettings
+    settings: SIRSettings
 
-    def __init__(
-        self,
-        motion: MotionModel,
-        sensor: SensorModel,
-        num_particles: int,
-        *,
-        resample_method: str = "systematic",
-        ess_threshold: float = 1.0,
-        exclusion: Exclusion | None = Exclusion(),
-        existence: BirthDeath | None = None,
-        compile_step: bool = False,
-    ):
-        super().__init__(motion, sensor, num_particles,
-                         SIRSettings(resample_method, float(ess_threshold), exclusion),
-                         existence=existence, compile_step=compile_step)
-
-    def _kernel(self, compile: Callable) -> Callable:
-        return compile(_bind(self.motion, self.sensor, self.settings, self.existence))
+    def _build_compiled(self, compile: Callable) -> Callable:
+        return compile(bind_body(self.dynamics, self.sensor, self.settings))
 
     def _step(self, state, z, generator):
         return sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                        generator=generator, existence=self.existence, kernel=self.kernel())
+                        generator=generator, existence=self.existence, body=self.compiled())

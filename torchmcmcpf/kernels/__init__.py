@@ -1,35 +1,23 @@
-"""Pure, batched MCMC kernels: Metropolis-Hastings accept/reject (:mod:`.mh`); the moves of
-the sequential MCMC particle filter, by concern: chain states and noise (:mod:`.chains`),
-joint draw and per-target refinement (:mod:`.moves`), random walk (:mod:`.random_walk`); the
-IP-MCMC exchange move (:mod:`.exchange`); Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC
-refinement move of the MCMC filters (:mod:`.hmc_refine`).
+"""Pure, batched Markov kernels, one move per kind: Metropolis-Hastings accept/reject
+(:mod:`.mh`); the moves of the sequential MCMC particle filter, by concern: chain states and
+noise (:mod:`.chains`), joint draw and per-target refinement (:mod:`.moves`), random walk
+(:mod:`.random_walk`); the IP-MCMC exchange move and its iteration (:mod:`.exchange`);
+Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC refinement move of the MCMC filters
+(:mod:`.hmc_refine`).
 
-Every kernel takes its noise pre-drawn (or an explicit ``generator``) and decides with
-``torch.where``, so chains, targets and runs are tensor dimensions.
+Every move takes its noise pre-drawn (or an explicit ``generator``) and decides with
+``torch.where``, so chains, targets and runs are tensor dimensions. (Vocabulary: a *move* is
+one MH transition of every chain, an *iteration* one MCMC iteration of the chains, a
+*program* what :mod:`torchmcmcpf.runtime` compiles.)
 """
 
-from .exchange import ExchangeNoise, draw_exchange_noise, exchange_iteration
+from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
+from .exchange import ExchangeChains, ExchangeNoise, draw_exchange_noise, exchange_iteration, with_accepted_amplitudes
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
-from .moves import (
-    MOVES,
-    ChainState,
-    JointNoise,
-    PreviousCloud,
-    RandomWalkNoise,
-    RefineNoise,
-    evaluate,
-    init_chains,
-    joint_move,
-    log_transition,
-    previous_cloud,
-    propose_joint,
-    propose_random_walk,
-    random_walk_move,
-    refine_move,
-    refine_slot,
-)
+from .moves import MOVES, init_chains, joint_move, propose_joint, refine_move, refine_slot
+from .random_walk import RandomWalkNoise, log_transition, propose_random_walk, random_walk_move
 
 __all__ = [
     "mh_accept",
@@ -50,7 +38,9 @@ __all__ = [
     "log_transition",
     "propose_random_walk",
     "random_walk_move",
+    "ExchangeChains",
     "ExchangeNoise",
+    "with_accepted_amplitudes",
     "draw_exchange_noise",
     "exchange_iteration",
     "HMCInfo",

@@ -10,13 +10,14 @@ from typing import NamedTuple
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise
+from ..models.existence import BirthNoise, TargetDynamics
 from ..models.motion import LinearGaussianMotion
-from ..models.multitarget import Recapture, RelocationNoise, draw_relocation
+from ..models.multitarget import RelocationNoise
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 
-__all__ = ["ChainState", "PreviousCloud", "previous_cloud", "JointNoise", "RefineNoise", "evaluate"]
+__all__ = ["ChainState", "PreviousCloud", "previous_cloud", "draw_ancestors", "uniforms", "normals", "JointNoise",
+           "RefineNoise", "evaluate", "whiten"]
 
 
 class ChainState(NamedTuple):
@@ -85,28 +86,19 @@ def previous_cloud(x: Tensor, log_w: Tensor, exists: Tensor | None = None, *,
     return PreviousCloud(x, log_w, cdf(log_w), exists, white)
 
 
-def _draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
+def draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
     """Ancestor indices ``(B, C)`` with ``P(a) = w^a``, by inversion of uniforms ``u (B, C)``."""
     return inverse_cdf(cloud.cdf, u)
 
 
-def _uniform(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+def uniforms(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+    """``U(0, 1)`` draws of ``shape`` with the dtype and device of ``x``."""
     return torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
 
 
-def _normal(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator) -> Tensor:
+    """Standard normal draws of ``shape`` with the dtype and device of ``x``."""
     return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
-
-
-def _births(x: Tensor, existence: BirthDeath | None, z: Measurement | None, generator: torch.Generator
-            ) -> BirthNoise | None:
-    return None if existence is None else BirthNoise.draw(x, existence, z, generator=generator)
-
-
-def _relocations(x: Tensor, recapture: Recapture | None, sensor: SensorModel | None, z: Measurement | None,
-                 generator: torch.Generator) -> RelocationNoise | None:
-    return draw_relocation(recapture, sensor, tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
-                           device=x.device)
 
 
 class JointNoise(NamedTuple):
@@ -123,17 +115,16 @@ class JointNoise(NamedTuple):
     relocation: RelocationNoise | None = None
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: BirthDeath | None = None, z: Measurement | None = None,
-             recapture: Recapture | None = None, sensor: SensorModel | None = None) -> JointNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``); the
-        birth noise only with ``existence``, the relocation noise only with ``recapture``
-        (both need the frame ``z``; the relocation the ``sensor``).
+    def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
+             z: Measurement | None = None) -> JointNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``) moved by
+        ``dynamics``: the birth noise only with its existence model, the relocation noise only
+        with its re-capture (both from the frame ``z``).
         """
         b, c, k, _ = x.shape
-        return cls(_uniform((b, c), x, generator), _normal((b, c, k, motion.noise_dim), x, generator),
-                   _uniform((b, c), x, generator), _births(x, existence, z, generator),
-                   _relocations(x, recapture, sensor, z, generator))
+        return cls(uniforms((b, c), x, generator), normals((b, c, k, dynamics.motion.noise_dim), x, generator),
+                   uniforms((b, c), x, generator), dynamics.draw_births(x, z, generator=generator),
+                   _relocations(x, dynamics, z, generator))
 
 
 class RefineNoise(NamedTuple):
@@ -148,15 +139,19 @@ class RefineNoise(NamedTuple):
     relocation: RelocationNoise | None = None
 
     @classmethod
-    def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator,
-             existence: BirthDeath | None = None, z: Measurement | None = None,
-             recapture: Recapture | None = None, sensor: SensorModel | None = None) -> RefineNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (``existence``, ``z``,
-        ``recapture``, ``sensor``: as :meth:`JointNoise.draw`).
+    def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
+             z: Measurement | None = None) -> RefineNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``: as
+        :meth:`JointNoise.draw`).
         """
         b, c, k, _ = x.shape
-        return cls(_normal((b, c, k, motion.noise_dim), x, generator), _uniform((b, c, k), x, generator),
-                   _births(x, existence, z, generator), _relocations(x, recapture, sensor, z, generator))
+        return cls(normals((b, c, k, dynamics.motion.noise_dim), x, generator), uniforms((b, c, k), x, generator),
+                   dynamics.draw_births(x, z, generator=generator), _relocations(x, dynamics, z, generator))
+
+
+def _relocations(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator
+                 ) -> RelocationNoise | None:
+    return dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype, device=x.device)
 
 
 # -- likelihood ------------------------------------------------------------------------------

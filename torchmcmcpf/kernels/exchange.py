@@ -1,8 +1,10 @@
-"""The exchange / mutation kernel of the IP-MCMC-PF (Bocquel et al. 2012, paper 000, Alg. 2,
+"""The exchange / mutation move of the IP-MCMC-PF (Bocquel et al. 2012, paper 000, Alg. 2,
 eq. 12), with births and deaths, exclusion and re-capture, and its two-slot variant; see
-:mod:`torchmcmcpf.filters.ipmcmc` for the target it leaves invariant. Pure and branch-free:
-the noise is pre-drawn (:func:`draw_exchange_noise`), so one iteration compiles with
-``fullgraph=True``.
+:mod:`torchmcmcpf.filters.ipmcmc` for the target it leaves invariant. One iteration of the
+chains is one exchange move (:func:`exchange_iteration`). Pure and branch-free: the noise is
+pre-drawn (:func:`draw_exchange_noise`), so one iteration compiles with ``fullgraph=True``.
+The chains' state, the amplitude cache included, is data: :class:`ExchangeChains`, taken and
+returned.
 
 One iteration moves ``M`` slots of every chain at once (``M`` is the trailing size of the
 noise, static): ``M = 1`` is the paper's exchange move, ``M = 2`` the joint move of two slots
@@ -25,21 +27,60 @@ from typing import NamedTuple
 
 import torch
 
-from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
-from ..models.multitarget import (
-    Exclusion,
-    Recapture,
-    RelocationNoise,
-    draw_relocation,
-    exclusion_change,
-    log_q_component,
-)
+from ..models.base import SensorModel
+from ..models.existence import BirthNoise, TargetDynamics
+from ..models.multitarget import Exclusion, RelocationNoise, exclusion_change, log_q_component
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
 
-__all__ = ["ExchangeNoise", "draw_exchange_noise", "exchange_iteration", "close_pairs"]
+__all__ = ["ExchangeChains", "ExchangeNoise", "draw_exchange_noise", "exchange_iteration", "close_pairs",
+           "with_accepted_amplitudes"]
+
+
+class ExchangeChains(NamedTuple):
+    """The state of C chains in each of B runs under the exchange move.
+
+    Attributes
+    ----------
+    y : (B, C, K, D) the chains' multitarget states.
+    log_lik : (B, C) ``log p(z | y, exists)``.
+    exists : (B, C, K) bool with an existence model, else ``None``.
+    log_r : (B, C, K) the cached ``log r_j`` (at ``recapture.p_propose``) with an existence
+        model or re-capture, else ``None``.
+    kind : (B, C, K) int8, the slots' proposal components with re-capture
+        (:func:`~torchmcmcpf.models.multitarget.relocate`), else ``None``.
+    amplitude : (B, C, G), optional: the chains' amplitude per cell
+        (:meth:`~torchmcmcpf.models.base.SensorModel.amplitude_cache`), so that a one-slot
+        move reads its two boxes instead of summing the other targets' spreads there
+        (:meth:`~torchmcmcpf.models.base.SensorModel.log_likelihood_delta_cached`). A speed
+        choice, not another algorithm: with it or without, the chains are the same to
+        round-off (tested in float64). Made once per step for the chains, advanced for the
+        accepted moves by :func:`with_accepted_amplitudes` only, never recorded in a trace.
+    """
+
+    y: Tensor
+    log_lik: Tensor
+    exists: Tensor | None = None
+    log_r: Tensor | None = None
+    kind: Tensor | None = None
+    amplitude: Tensor | None = None
+
+
+def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None, update: tuple[Tensor, Tensor] | None,
+                             accepted: Tensor, sensor: SensorModel) -> ExchangeChains:
+    """``chains`` (the output of :func:`exchange_iteration`) with the amplitude cache of the
+    chains before the iteration, ``amplitude``, advanced by the iteration's ``update`` for its
+    ``accepted (B, C)`` moves.
+
+    The one place a chain state changes in place: the cache is the chains' own buffer, so
+    :meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache` adds the accepted
+    changes into it instead of copying the grid at every iteration (one scatter-add, no host
+    sync); the chains before the iteration hand it over and do not use it again.
+    """
+    if amplitude is None or update is None:
+        return chains
+    return chains._replace(amplitude=sensor.update_amplitude_cache(amplitude, *update, accepted))
 
 
 class ExchangeNoise(NamedTuple):
@@ -90,16 +131,14 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
 
 
 def draw_exchange_noise(
-    log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, noise_dim: int,
-    *, generator: torch.Generator, dtype: torch.dtype, existence: BirthDeath | None = None,
-    z: Measurement | None = None, recapture: Recapture | None = None, sensor: SensorModel | None = None,
-    pairs: Tensor | None = None,
+    log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, *, dynamics: TargetDynamics,
+    generator: torch.Generator, dtype: torch.dtype, z: Measurement | None = None, pairs: Tensor | None = None,
 ) -> ExchangeNoise:
     """Draw the randomness of ``L = num_iterations`` iterations: one slot per iteration
     (uniform over the K slots) or, with ``pairs``, two slots (uniform over the close pairs of
-    the run); with ``existence`` the birth noise (births near the points of the frame ``z``
-    when ``existence`` draws them so), with ``recapture`` the relocation noise (from ``z``
-    by ``sensor``).
+    the run); the motion noise of ``dynamics``, with its existence model the birth noise
+    (births near the points of the frame ``z`` when the model draws them so), with its
+    re-capture the relocation noise (from ``z``).
 
     ``source`` indices are categorical draws from the previous weights ``log_w (B, N)`` by
     inversion of uniforms (float64 CDF + ``searchsorted``, no ``torch.multinomial``).
@@ -128,63 +167,56 @@ def draw_exchange_noise(
         at = inverse_cdf(cdf(log_p), u_pair).reshape(b, num_iterations, num_chains).transpose(0, 1)
         slot = torch.stack([at // num_targets, at % num_targets], -1)
         valid = valid_run.reshape(1, b, 1).expand(shape)
-    eps = torch.randn(shape + (m, noise_dim), generator=generator, device=dev, dtype=dtype)
+    eps = torch.randn(shape + (m, dynamics.motion.noise_dim), generator=generator, device=dev, dtype=dtype)
     u = torch.rand(shape, generator=generator, device=dev, dtype=dtype)
     birth = None
-    if existence is not None:
-        template = torch.empty((b, num_iterations, num_chains, m, existence.dim), device=dev, dtype=dtype)
-        drawn = BirthNoise.draw(template, existence, z, generator=generator)  # leading (B, L, C, M)
-        birth = BirthNoise(*(t.transpose(0, 1) for t in drawn))
-    relocation = draw_relocation(recapture, sensor, (b, num_iterations, num_chains, m), z, generator=generator,
-                                 dtype=dtype, device=dev)
+    if dynamics.existence is not None:
+        template = torch.empty((b, num_iterations, num_chains, m, dynamics.existence.dim), device=dev, dtype=dtype)
+        drawn = dynamics.draw_births(template, z, generator=generator)  # leading (B, L, C, M)
+        birth = None if drawn is None else BirthNoise(*(t.transpose(0, 1) for t in drawn))
+    relocation = dynamics.draw_relocations((b, num_iterations, num_chains, m), z, generator=generator, dtype=dtype,
+                                           device=dev)
     if relocation is not None:
         relocation = RelocationNoise(*(t.transpose(0, 1) for t in relocation))
     return ExchangeNoise(source, slot, eps, u, birth, relocation, valid)
 
 
 def exchange_iteration(
-    chain: tuple, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
-    cache: Tensor | None = None,
-    *, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
-    recapture: Recapture | None = None, exclusion: Exclusion | None = None,
-) -> tuple[tuple, Tensor, tuple[Tensor, Tensor] | None]:
+    chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
+    *, dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None,
+) -> tuple[ExchangeChains, Tensor, tuple[Tensor, Tensor] | None]:
     """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12) moving
     ``M`` slots (module docstring), with or without births and deaths, exclusion and
-    re-capture (one code path: the slots are propagated by
-    :class:`~torchmcmcpf.models.existence.TargetDynamics`).
+    re-capture (one code path: the slots are propagated by ``dynamics``).
 
     The proposal is scored by the declared hook :meth:`SensorModel.log_likelihood_slot`,
     slot after slot: a sensor that overrides ``log_likelihood_delta`` (e.g.
     :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives each ratio from the
     cells near the old and new position of the slot only, carried as ``log_lik + delta``; any
-    other sensor scores the whole proposal with ``log_likelihood``. With ``cache`` (the
-    chains' :meth:`SensorModel.amplitude_cache`) a one-slot move's ratio is
+    other sensor scores the whole proposal with ``log_likelihood``. With the chains'
+    ``amplitude`` cache a one-slot move's ratio is
     :meth:`SensorModel.log_likelihood_delta_cached` instead (the boxes' amplitudes read, not
-    summed from the neighbours' spreads); the cache's change (both slots' for a two-slot
-    move, :meth:`SensorModel.amplitude_change`) is returned for the caller to apply to the
-    accepted chains (:meth:`SensorModel.update_amplitude_cache`, eager and in place: the
-    kernel stays pure).
+    summed from the neighbours' spreads), and the cache's change (both slots' for a two-slot
+    move, :meth:`SensorModel.amplitude_change`) is returned: the iteration is pure, and
+    :func:`with_accepted_amplitudes` advances the cache for the accepted moves.
 
     Parameters
     ----------
-    chain : ``(y (B, C, K, D), log_lik (B, C), exists, log_r, kind)`` with
-        ``log_lik = log p(z | y, exists)``; ``exists (B, C, K)`` bool with ``existence``, else
-        ``None``; ``log_r (B, C, K)`` the cached ``log r_j`` (at ``recapture.p_propose``) with
-        ``existence`` or ``recapture``, else ``None``; ``kind (B, C, K)`` int8 the slots'
-        proposal components with ``recapture`` (:func:`~torchmcmcpf.models.multitarget.relocate`),
-        else ``None``.
+    chains : :class:`ExchangeChains` ``(B, C, ...)``.
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
     z : the frame; noise : :class:`ExchangeNoise` of one iteration (leading ``(B, C)``).
-    cache : (B, C, G), optional: the amplitudes of the chains ``y`` (see above).
-    motion, sensor, existence, recapture, exclusion : the models and the multitarget prior's
-        terms.
+    dynamics : :class:`~torchmcmcpf.models.existence.TargetDynamics`, the slots' joint model
+        (motion, optionally births and deaths and re-capture); sensor : the SensorModel;
+        exclusion : the exclusion term, optional.
 
     Returns
     -------
-    chain : the new chain tuple; accepted : (B, C) bool; update : ``(cells, change)`` with
-    ``cache``, else ``None``.
+    chains : the new :class:`ExchangeChains`, without their ``amplitude`` (None);
+    accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache, else
+    ``None``.
     """
-    y, log_lik, exists, log_r, kind = chain
+    y, log_lik, exists, log_r, kind, cache = chains
+    existence, recapture = dynamics.existence, dynamics.recapture
     b, n, k, d = x_prev.shape
     c, m = noise.slot.shape[1], noise.slot.shape[-1]
     if (existence is not None or recapture is not None) and log_r is None:
@@ -195,8 +227,7 @@ def exchange_iteration(
     parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), at.unsqueeze(-1), dim=1).reshape(b, c, m, d)
     parent_e = None if exists_prev is None else \
         torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1).reshape(b, c, m)
-    dynamics = TargetDynamics(motion, existence, recapture, sensor)
-    # this kernel's epsilon; the chains cache log r at recapture.p_propose, converted by the
+    # this move's epsilon; the chains cache log r at recapture.p_propose, converted by the
     # slots' kinds (models/multitarget.py, log_q_component) where the two differ
     base = None if recapture is None else recapture.p_propose
     eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
@@ -243,4 +274,5 @@ def exchange_iteration(
     if noise.valid is not None:
         accepted = accepted & noise.valid
     update = None if cache is None else (torch.cat(cells, 2), torch.cat(changes, 2))
-    return mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind), chain), accepted, update
+    new = mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind), (y, log_lik, exists, log_r, kind))
+    return ExchangeChains(*new), accepted, update

@@ -105,52 +105,17 @@ from collections.abc import Callable
 import torch
 
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture, exclusion_change, log_exclusion
+from ..models.existence import TargetDynamics
+from ..models.multitarget import Exclusion, exclusion_change, log_exclusion
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
-from .chains import (  # noqa: F401  (re-exported: the chain state of these moves)
-    ChainState,
-    JointNoise,
-    PreviousCloud,
-    RefineNoise,
-    _draw_ancestors,
-    _uniform,
-    evaluate,
-    previous_cloud,
-)
+from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, draw_ancestors, evaluate
 from .mh import mh_accept, mh_select
-from .random_walk import (  # noqa: F401  (re-exported)
-    RandomWalkNoise,
-    log_transition,
-    propose_random_walk,
-    random_walk_move,
-)
 
-__all__ = [
-    "MOVES",
-    "ChainState",
-    "PreviousCloud",
-    "JointNoise",
-    "RefineNoise",
-    "RandomWalkNoise",
-    "BirthNoise",
-    "previous_cloud",
-    "evaluate",
-    "init_chains",
-    "propose_joint",
-    "joint_move",
-    "refine_move",
-    "refine_slot",
-    "log_transition",
-    "propose_random_walk",
-    "random_walk_move",
-]
+__all__ = ["MOVES", "init_chains", "propose_joint", "joint_move", "refine_move", "refine_slot"]
 
-#: Names of the primitive moves.
+#: Names of the primitive moves (joint draw and refinement here, the random walk in :mod:`.random_walk`).
 MOVES = ("joint", "refine", "random_walk")
-
-#: Elements of one ``(B, C, n, K, D)`` chunk in :func:`log_transition` (bounds its memory).
 
 
 # -- joint draw ------------------------------------------------------------------------------
@@ -172,52 +137,53 @@ def propose_joint(cloud: PreviousCloud, noise: JointNoise, *, motion: MotionMode
     log_ratio : (B, C) zeros: ``q(x', a') = w^{a'} p(x' | x^{a'})`` equals the prior part of
         ``pi``, so prior and proposal cancel (paper 004 eq. 60 with ``P_a = 0``).
     """
-    x_prev = gather_particles(cloud.x, _draw_ancestors(cloud, noise.u_ancestor))
+    x_prev = gather_particles(cloud.x, draw_ancestors(cloud, noise.u_ancestor))
     x = motion.propagate(x_prev, noise.eps)
     return x, x_prev, torch.zeros_like(noise.u)
 
 
-def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, motion: MotionModel,
-                     sensor: SensorModel, existence: BirthDeath | None, recapture: Recapture | None = None,
-                     start: bool = False) -> ChainState:
+def _carries_ratio(dynamics: TargetDynamics) -> bool:
+    """Whether the chains carry ``log r_n`` per slot (births and deaths or re-capture)."""
+    return dynamics.existence is not None or dynamics.recapture is not None
+
+
+def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, dynamics: TargetDynamics,
+                     sensor: SensorModel, start: bool = False) -> ChainState:
     """The joint-draw proposal as a scored :class:`ChainState`: an ancestor by weight, then
-    ``(x, exists)`` propagated by :class:`TargetDynamics` (one path with or without births
-    and re-capture).
+    ``(x, exists)`` propagated by ``dynamics`` (one path with or without births and
+    re-capture).
     """
-    a = _draw_ancestors(cloud, noise.u_ancestor)
+    a = draw_ancestors(cloud, noise.u_ancestor)
     x_prev = gather_particles(cloud.x, a)
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
-    dynamics = TargetDynamics(motion, existence, recapture, sensor)
     x, exists, log_ratio, _ = dynamics.propagate_labelled(x_prev, exists_prev, noise.eps, noise.birth,
                                                           noise.relocation, start=start)
     return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev,
-                      None if existence is None and recapture is None else log_ratio)
+                      log_ratio if _carries_ratio(dynamics) else None)
 
 
-def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, motion: MotionModel,
-                sensor: SensorModel, existence: BirthDeath | None = None, recapture: Recapture | None = None
-                ) -> ChainState:
+def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, dynamics: TargetDynamics,
+                sensor: SensorModel) -> ChainState:
     """Start each chain from a previous particle drawn by weight and moved by the prior
     (paper 002, "MCMC-based PF-TBD steps" 1): one joint-draw proposal, always kept.
 
     Parameters
     ----------
     cloud : previous particles ``(B, N, K, D)``; noise : :class:`JointNoise` for ``(B, C)``
-    chains (its ``u`` is unused); z : frame ``(B, *G)``; motion, sensor : the models.
-    existence : BirthDeath, optional: births and deaths (``cloud.exists`` and
-    ``noise.birth`` needed; module docstring).
-    recapture : :class:`~torchmcmcpf.models.multitarget.Recapture`, optional (``noise.relocation``
-    needed).
+    chains (its ``u`` is unused); z : frame ``(B, *G)``.
+    dynamics : :class:`~torchmcmcpf.models.existence.TargetDynamics`, the motion with, optionally,
+    births and deaths (``cloud.exists`` and ``noise.birth`` needed; module docstring) and
+    re-capture (``noise.relocation`` needed). sensor : the SensorModel.
 
-    The existence flags come from the chain itself (not ``existence``'s proposal), so the
-    chains start where births are as rare as the model says; their ratios are still taken
+    The existence flags come from the chain itself (not the existence model's proposal), so
+    the chains start where births are as rare as the model says; their ratios are still taken
     against the proposal the moves use.
 
     Returns
     -------
     ChainState with ``x (B, C, K, D)`` (and, with existence, ``exists (B, C, K)``).
     """
-    return _joint_candidate(cloud, noise, z, motion, sensor, existence, recapture, start=True)
+    return _joint_candidate(cloud, noise, z, dynamics, sensor, start=True)
 
 
 def _log_ratio_sum(chain: ChainState) -> Tensor:
@@ -228,28 +194,29 @@ def _log_ratio_sum(chain: ChainState) -> Tensor:
 
 
 def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z: Measurement,
-               motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None,
-               recapture: Recapture | None = None, exclusion: Exclusion | None = None
+               dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None
                ) -> tuple[ChainState, Tensor]:
     """One joint-draw Metropolis-Hastings step (paper 004 Alg. 1, eq. 60; with existence
     paper 001 step (a), ``log alpha`` of the module docstring).
 
     Parameters
     ----------
-    chain : ChainState ``(B, C, K, D)``; noise : :class:`JointNoise`; cloud : previous
-    particles; z : frame ``(B, *G)``; motion, sensor : the models; existence : BirthDeath,
-    optional; recapture, exclusion : the multitarget prior's terms
-    (:mod:`torchmcmcpf.models.multitarget`), optional.
+    chain : ChainState ``(B, C, K, D)``.
+    noise : :class:`JointNoise`.
+    cloud : the previous particles; z : frame ``(B, *G)``.
+    dynamics : the slots' joint model (motion, optionally births and deaths and re-capture).
+    sensor : the SensorModel.
+    exclusion : the exclusion term (:mod:`torchmcmcpf.models.multitarget`), optional.
 
     Returns
     -------
     chain : the new ChainState.
     accepted : (B, C) bool.
     """
-    cand = _joint_candidate(cloud, noise, z, motion, sensor, existence, recapture)
-    if (existence is not None or recapture is not None) and chain.log_ratio is None:
-        raise ValueError("chain.log_ratio is None but existence or recapture is given: start the chains with "
-                         "init_chains(..., existence=existence, recapture=recapture)")
+    cand = _joint_candidate(cloud, noise, z, dynamics, sensor)
+    if _carries_ratio(dynamics) and chain.log_ratio is None:
+        raise ValueError("chain.log_ratio is None but the dynamics have births or re-capture: start the chains "
+                         "with init_chains(..., dynamics=dynamics)")
     log_alpha = cand.log_lik - chain.log_lik  # the prior parts cancel (eq. 60, P_a = 0)
     log_alpha = log_alpha + _log_ratio_sum(cand) - _log_ratio_sum(chain)
     log_alpha = log_alpha + log_exclusion(exclusion, sensor, cand.x, cand.exists) \
@@ -259,22 +226,24 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
 
 
 # -- per-target refinement -------------------------------------------------------------------
-def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion: MotionModel,
-                sensor: SensorModel, existence: BirthDeath | None = None, recapture: Recapture | None = None,
-                exclusion: Exclusion | None = None, slot_kernel: Callable | None = None
+def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, dynamics: TargetDynamics,
+                sensor: SensorModel, exclusion: Exclusion | None = None, slot_program: Callable | None = None
                 ) -> tuple[ChainState, Tensor]:
     """One MH-within-Gibbs sweep over the K targets (paper 004 Alg. 2; paper 001 Alg. 1).
 
-    Every slot proposes ``(x'_n, e'_n)`` from its ancestor by :class:`TargetDynamics` (the
-    motion alone without births and re-capture). Vectorised over K for a separable sensor
-    without flags and without exclusion; otherwise sequential over K through the declared
-    hook ``log_likelihood_slot`` (module docstring).
+    Every slot proposes ``(x'_n, e'_n)`` from its ancestor by ``dynamics`` (the motion alone
+    without births and re-capture). Vectorised over K for a separable sensor without flags
+    and without exclusion; otherwise sequential over K through the declared hook
+    ``log_likelihood_slot`` (module docstring).
 
     Parameters
     ----------
-    chain : ChainState ``(B, C, K, D)``; noise : :class:`RefineNoise`; z : frame ``(B, *G)``;
-    motion, sensor : the models; existence : BirthDeath, optional; recapture, exclusion :
-    the multitarget prior's terms, optional.
+    chain : ChainState ``(B, C, K, D)``.
+    noise : :class:`RefineNoise`; z : frame ``(B, *G)``.
+    dynamics : the slots' joint model; sensor : the SensorModel.
+    exclusion : the exclusion term, optional.
+    slot_program : :func:`refine_slot` compiled (:func:`~torchmcmcpf.runtime.compile_program`,
+        called with a tensor slot), optional.
 
     Returns
     -------
@@ -283,7 +252,6 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
     """
     # every slot's proposal (x'_n, e'_n) from its ancestor, by TargetDynamics; log_ratio is
     # slot n's log r'_n - log r_n (zeros without births and re-capture: the transition cancels, eq. 66)
-    dynamics = TargetDynamics(motion, existence, recapture, sensor)
     x_prop, e_prop, ratio_prop = dynamics.propagate(chain.x_prev, chain.exists_prev, noise.eps, noise.birth,
                                                     noise.relocation)
     log_ratio = ratio_prop if chain.log_ratio is None else ratio_prop - chain.log_ratio
@@ -296,26 +264,27 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, motion
         new_ratio = None if chain.log_ratio is None else torch.where(accepted, ratio_prop, chain.log_ratio)
         return ChainState(x, chain.x_prev, terms.sum(-1), terms, log_ratio=new_ratio), accepted
     return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, ratio_prop, exclusion,
-                             slot_kernel)
+                             slot_program)
 
 
 def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | None, x_prop: Tensor,
                 e_prop: Tensor | None, r_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
                 n: int | Tensor, z: Measurement, *, sensor: SensorModel, exclusion: Exclusion | None = None
                 ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
-    """The MH update of one slot ``n`` of the sequential sweep (pure; the unit the
+    """The MH update of one slot ``n`` of the sequential sweep (pure; the program the
     ``compile_step`` of the MCMC filter compiles, once for every slot).
 
     Parameters
     ----------
-    x : (B, C, K, D), log_lik : (B, C), e, log_r : (B, C, K) or None: the chains (``log_r``
-    the cached ``log r_n``, :attr:`ChainState.log_ratio`).
-    x_prop : (B, C, K, D), e_prop, r_prop : (B, C, K) or None, log_ratio, u : (B, C, K):
-    the proposals of every slot (``r_prop`` their ``log r'_n``, ``log_ratio`` the difference
-    ``log r'_n - log r_n`` taken against the sweep's start); n : Python int, or (B, C) int64
-    (the same slot everywhere, as a tensor so that one compiled graph serves every slot);
-    z : the frame; sensor : the SensorModel; exclusion : the exclusion term, optional (its
-    ``K - 1`` factors of slot ``n``).
+    x, log_lik, e, log_r : the chains, ``(B, C, K, D)``, ``(B, C)``, ``(B, C, K)`` or None
+        (``log_r`` the cached ``log r_n``, :attr:`ChainState.log_ratio`).
+    x_prop, e_prop, r_prop, log_ratio, u : the proposals of every slot, ``(B, C, K, D)``,
+        then ``(B, C, K)`` (``e_prop``, ``r_prop`` or None; ``r_prop`` their ``log r'_n``,
+        ``log_ratio`` the difference ``log r'_n - log r_n`` taken against the sweep's start).
+    n : Python int, or (B, C) int64 (the same slot everywhere, as a tensor so that one
+        compiled graph serves every slot).
+    z : the frame; sensor : the SensorModel.
+    exclusion : the exclusion term, optional (its ``K - 1`` factors of slot ``n``).
 
     Returns
     -------
@@ -349,12 +318,12 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
 
 def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: Tensor, z: Measurement,
                       sensor: SensorModel, e_prop: Tensor | None = None, r_prop: Tensor | None = None,
-                      exclusion: Exclusion | None = None, slot_kernel: Callable | None = None
+                      exclusion: Exclusion | None = None, slot_program: Callable | None = None
                       ) -> tuple[ChainState, Tensor]:
     """Sequential Gibbs sweep over the K slots with proposals ``x_prop (B, C, K, D)`` (and
     ``e_prop``, ``r_prop (B, C, K)`` with existence or re-capture), ``log_ratio (B, C, K)`` and
     uniforms ``u (B, C, K)``: slot n sees the accepted updates of slots ``< n``
-    (:func:`refine_slot`; ``slot_kernel`` a compiled one, called with a tensor slot).
+    (:func:`refine_slot`; ``slot_program`` a compiled one, called with a tensor slot).
     """
     x, log_lik, e, log_r = chain.x, chain.log_lik, chain.exists, chain.log_ratio
     if log_r is None:
@@ -362,10 +331,10 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
     flags = []
     for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)
         args = (x, log_lik, e, log_r, x_prop, e_prop, r_prop, log_ratio, u)
-        if slot_kernel is None:
+        if slot_program is None:
             x, log_lik, e, log_r, acc = refine_slot(*args, n, z, sensor=sensor, exclusion=exclusion)
         else:
-            x, log_lik, e, log_r, acc = slot_kernel(*args, torch.full(log_lik.shape, n, device=x.device), z)
+            x, log_lik, e, log_r, acc = slot_program(*args, torch.full(log_lik.shape, n, device=x.device), z)
         flags.append(acc)
     return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_ratio=log_r), \
         torch.stack(flags, dim=-1)

@@ -14,7 +14,7 @@ from ..models.motion import LinearGaussianMotion
 from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import cdf, gather_particles, inverse_cdf
 from ..typing import Measurement, Tensor
-from .chains import ChainState, PreviousCloud, _normal, _uniform, evaluate, whiten
+from .chains import ChainState, PreviousCloud, evaluate, normals, uniforms, whiten
 from .mh import mh_accept, mh_select
 
 __all__ = ["RandomWalkNoise", "log_transition", "propose_random_walk", "random_walk_move", "prior_covariance",
@@ -24,6 +24,7 @@ __all__ = ["RandomWalkNoise", "log_transition", "propose_random_walk", "random_w
 #: random walk in d dimensions on a roughly Gaussian target
 RW_OPTIMAL = 2.38**2
 
+#: Elements of one ``(B, C, n, K, D)`` chunk in :func:`log_transition` (bounds its memory).
 _CHUNK_ELEMENTS = 1 << 22
 
 
@@ -40,7 +41,7 @@ class RandomWalkNoise(NamedTuple):
     def draw(cls, x: Tensor, motion: MotionModel, *, generator: torch.Generator) -> RandomWalkNoise:
         """Draw for chains shaped like ``x (B, C, K, D)``."""
         b, c = x.shape[:2]
-        return cls(_normal(x.shape, x, generator), _uniform((b, c), x, generator), _uniform((b, c), x, generator))
+        return cls(normals(x.shape, x, generator), uniforms((b, c), x, generator), uniforms((b, c), x, generator))
 
     # no existence variant: ``random_walk`` is refused with existence (module docstring)
 

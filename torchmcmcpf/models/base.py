@@ -14,10 +14,11 @@ from typing import Generic, TypeVar
 import torch
 from torch import nn
 
+from .. import runtime
 from .._validation import check_batch, check_finite, check_shape
 from ..typing import Measurement, Tensor
 
-__all__ = ["MotionModel", "SensorModel", "linear_map", "squared_norm"]
+__all__ = ["MotionModel", "SensorModel", "linear_map", "squared_norm", "check_reference"]
 
 
 def linear_map(x: Tensor, M: Tensor) -> Tensor:
@@ -44,7 +45,7 @@ def linear_map(x: Tensor, M: Tensor) -> Tensor:
     rows = math.prod(x.shape[1:-1]) if x.dim() > 1 else 1
     while g > 1 and rows % g:
         g //= 2
-    if g == 1 or x.device.type != "cpu" or x.dim() < 2:
+    if g == 1 or not runtime.blocked_linear_map(x) or x.dim() < 2:
         return x @ M.mT
     return (x.reshape(-1, g * D) @ _block(M, g)).reshape(x.shape[:-1] + (d,))
 
@@ -73,7 +74,7 @@ def _block(M: Tensor, g: int) -> Tensor:
     buffer): building it took three of a point SIR step's 85 operations, 10 % of a step at
     B = 1. Rebuilt when ``M`` changes in place (version counter); traced under ``torch.compile``.
     """
-    if M.requires_grad or torch.compiler.is_compiling() or M.is_inference():
+    if M.requires_grad or runtime.compiling() or M.is_inference():
         return torch.block_diag(*([M.mT] * g))
     hit = _BLOCKS.get(id(M))
     if hit is not None and hit[0]() is M and hit[1] == M._version and hit[2] == g:
@@ -231,7 +232,7 @@ class SensorModel(nn.Module, Generic[Z]):
         ``log p(z | ref[b] with slot k set to x[b, *s, k]) - log p(z | ref[b])``.
 
         The weights of the independent-partition filter
-        (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_kernel`). The default is
+        (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_body`). The default is
         exact: the difference of per-target terms for a :attr:`separable` sensor, else
         :meth:`log_likelihood_delta` with the reference repeated for every sample and slot
         (``K`` one-slot changes per sample); grid sensors override it with one amplitude grid
@@ -247,7 +248,7 @@ class SensorModel(nn.Module, Generic[Z]):
         -------
         (B, *S, K), dtype of ``x``.
         """
-        B, K, D = _check_reference(ref, x)
+        B, K, D = check_reference(ref, x)
         S = tuple(x.shape[1:-2])
         if self.separable:
             at_ref = self.log_likelihood_per_target(ref[:, None], z)  # (B, 1, K)
@@ -339,7 +340,7 @@ class SensorModel(nn.Module, Generic[Z]):
         return z
 
 
-def _check_reference(ref: Tensor, x: Tensor) -> tuple[int, int, int]:
+def check_reference(ref: Tensor, x: Tensor) -> tuple[int, int, int]:
     """Shapes of :meth:`SensorModel.log_likelihood_slot_changes`: ``ref (B, K, D)`` against
     ``x (B, *S, K, D)`` -> ``(B, K, D)``.
     """

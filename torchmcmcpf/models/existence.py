@@ -48,10 +48,9 @@ from torch import nn
 
 from .._validation import check_positive
 from ..resampling import cdf, inverse_cdf
-from ..typing import VX, VY, Measurement, Tensor, X, Y
+from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
 from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
-from .sensors.association import PointMeasurement, _split
 from .sensors.points import AreaLike, as_area, log_near_points
 
 __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
@@ -263,7 +262,7 @@ class BirthDeath(nn.Module):
         vel_eps = torch.randn(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         if z is None or self.birth_std is None:
             return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
-        pts, mask = _split(z)
+        pts, mask = split_points(z)
         b, m = pts.shape[:2]
         if m == 0:
             return self._newborn(pos, vel_eps), torch.zeros(shape, dtype=dtype, device=device)
@@ -426,8 +425,22 @@ class TargetDynamics(NamedTuple):
             birth = None
         else:
             eps, birth = self.existence.draw_noise(x, self.motion, z, generator=generator)
-        return eps, birth, draw_relocation(self.recapture, self.sensor, tuple(x.shape[:-1]), z,
-                                           generator=generator, dtype=x.dtype, device=x.device)
+        return eps, birth, self.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
+                                                 device=x.device)
+
+    def draw_births(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator
+                    ) -> BirthNoise | None:
+        """:class:`BirthNoise` for slots shaped like ``x (B, *S, K, D)`` (births near the points
+        of ``z`` when the model draws them so); ``None`` without an existence model.
+        """
+        return None if self.existence is None else BirthNoise.draw(x, self.existence, z, generator=generator)
+
+    def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
+                         dtype: torch.dtype, device: torch.device | str) -> RelocationNoise | None:
+        """:class:`~torchmcmcpf.models.multitarget.RelocationNoise` for slots of leading
+        ``shape (B, *S, K)``, drawn from the frame ``z``; ``None`` without re-capture.
+        """
+        return draw_relocation(self.recapture, self.sensor, shape, z, generator=generator, dtype=dtype, device=device)
 
     def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
                   relocation: RelocationNoise | None = None) -> tuple[Tensor, Tensor | None, Tensor]:

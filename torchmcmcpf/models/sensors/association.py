@@ -40,8 +40,7 @@ from ..._validation import (
     check_positive_int,
     check_shape,
 )
-from ...typing import PointFrame, PointMeasurement, Tensor, X, Y
-from ...typing import split_points as _split
+from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
 
 __all__ = [
@@ -257,7 +256,7 @@ class AssociationSensor(SensorModel[PointMeasurement]):
         -------
         (B, *S); ``-inf`` where more slots exist than there are measurements.
         """
-        zz, mask = _split(z)
+        zz, mask = split_points(z)
         square, log_count = padded_pair_log_likelihood(self.pair_log_likelihood(x, zz), exists, mask)
         p = square.shape[-1]
         if p > MAX_EXACT_TARGETS:
@@ -284,7 +283,7 @@ class AssociationSensor(SensorModel[PointMeasurement]):
         -------
         (B, *S, K); 0 for a missing slot, ``-inf`` for an existing slot assigned padding.
         """
-        zz, mask = _split(z)
+        zz, mask = split_points(z)
         square, _ = padded_pair_log_likelihood(self.pair_log_likelihood(x, zz), exists, mask)
         k = x.shape[-2]
         return torch.take_along_dim(square[..., :k, :], assignment[..., :k].unsqueeze(-1), dim=-1).squeeze(-1)
@@ -315,7 +314,7 @@ class AssociationSensor(SensorModel[PointMeasurement]):
         """Check a frame: points ``(B, M, d)`` finite (padding included), ``mask (B, M)`` bool
         if given, and ``B == batch_size`` if given. Returns ``z``.
         """
-        zz, mask = _split(z)
+        zz, mask = split_points(z)
         check_shape(zz, name, (None, None, self.meas_dim))
         if batch_size is not None:
             check_batch(zz, name, batch_size)

@@ -31,11 +31,11 @@ from collections.abc import Sequence
 
 import torch
 
+from ... import runtime
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...resampling import cdf, inverse_cdf
-from ...typing import Tensor, X, Y
+from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel, squared_norm
-from .association import PointFrame, PointMeasurement, _split
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 
@@ -222,7 +222,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         -------
         (B, *S). Differentiable in ``x``; a frame with ``M = 0`` gives ``-(L_C + L_x n)``.
         """
-        pts, mask = _split(z)
+        pts, mask = split_points(z)
         terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
         if exists is not None:
             terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
@@ -233,7 +233,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
         # compiled: through the opaque op, so that a compiled kernel gives eager's bits; eager:
         # torch.logsumexp itself (the same kernel, and torch.func transforms see through it)
-        lse = _logsumexp if torch.compiler.is_compiling() else torch.logsumexp
+        lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
         per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
@@ -274,7 +274,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         -------
         coords : (B, *S, 2); log_ratio : (B, *S).
         """
-        pts, mask = _split(z)
+        pts, mask = split_points(z)
         b, m = pts.shape[:2]
         if not shape or shape[0] != b:
             raise ValueError(f"shape {tuple(shape)} must start with the batch size of z, {b}")
@@ -351,7 +351,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         if not torch.is_tensor(z) and not (isinstance(z, tuple) and len(z) == 2):
             raise ValueError(f"{name} must be a PointFrame (z, mask) or a tensor (B, M, 2), got "
                              f"{type(z).__name__}")
-        pts, mask = _split(z)
+        pts, mask = split_points(z)
         check_shape(pts, name if mask is None else f"{name}.z", (None, None, 2))
         if batch_size is not None:
             check_batch(pts, f"{name}.z", batch_size)

@@ -22,12 +22,14 @@ sum over cells (DESIGN.md "Likelihoods worth writing down").
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
-from ..._validation import check_generator, check_shape
+from ... import runtime
+from ..._validation import check_generator, check_positive, check_shape
 from ...typing import RHO, VX, VY, Tensor, X, Y
-from .grid import SeparableGridSensor, polar
+from .grid import SeparableGridSensor, lattice, polar
 
 __all__ = ["RangeDopplerBearingTBD", "log_i0", "log_i0_approx"]
 
@@ -91,7 +93,7 @@ def log_i0(u: Tensor) -> Tensor:
     log-likelihood summed over hundreds of cells, so which form a float32 call uses does
     not matter numerically.
     """
-    if u.dtype != torch.float64 and (torch.compiler.is_compiling() or u.numel() <= _APPROX_MAX_EAGER):
+    if u.dtype != torch.float64 and (runtime.fused_elementwise() or u.numel() <= _APPROX_MAX_EAGER):
         return log_i0_approx(u)
     a = u.abs()
     return torch.log(torch.special.i0e(a)) + a
@@ -154,8 +156,9 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         targets); ``window = 4`` brings it to 1e-4 at about twice the cost.
     method : {"window", "grid"}
         Which path :meth:`log_likelihood` uses.
-    memory_budget : int
-        Bytes of temporaries the whole-grid path may hold at once (default 1 GiB).
+    memory_budget : int, optional
+        Bytes of temporaries either path may hold at once (default: the process-wide
+        :func:`~torchmcmcpf.runtime.memory_budget`, 1 GiB unless set).
 
     Example
     -------
@@ -173,12 +176,28 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
     """
 
     dim = 5
-    axis_names = ("range", "doppler", "bearing")
-    noise_name = "noise_std"
-    #: ``sigma`` (set by the base constructor from the ``noise_std`` keyword)
+    #: ``sigma``
     noise_std: float
-    default_window = 3
-    default_cells = (10.0, 2.0, math.pi / 180)  # Table I: 10 m, 2 m/s, 1 deg
+
+    def __init__(self, range_bins: Tensor, doppler_bins: Tensor, bearing_bins: Tensor, *, noise_std: float = 1.0,
+                 range_width: float | None = None, doppler_width: float | None = None,
+                 bearing_width: float | None = None, window: int = 3, method: str = "window",
+                 memory_budget: int | None = None):
+        super().__init__({"range_bins": (range_bins, range_width), "doppler_bins": (doppler_bins, doppler_width),
+                          "bearing_bins": (bearing_bins, bearing_width)},
+                         window=window, method=method, memory_budget=memory_budget)
+        self.noise_std = check_positive(noise_std, "noise_std")
+
+    @classmethod
+    def uniform(cls, range_limits: tuple[float, float], doppler_limits: tuple[float, float],
+                bearing_limits: tuple[float, float], *, range_cell: float = 10.0, doppler_cell: float = 2.0,
+                bearing_cell: float = math.pi / 180, **kw: Any) -> RangeDopplerBearingTBD:
+        """Uniform grid: each ``(first, last)`` gives the first cell centre and an upper limit
+        of an axis (:func:`~torchmcmcpf.models.sensors.grid.lattice`), with cells of 10 m, 2 m/s
+        and 1 deg by default (Table I); other keywords go to the constructor.
+        """
+        return cls(lattice(range_limits, range_cell, "range"), lattice(doppler_limits, doppler_cell, "doppler"),
+                   lattice(bearing_limits, bearing_cell, "bearing"), **kw)
 
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:

@@ -20,12 +20,13 @@ and cells are independent (eq. 9). Per cell
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import torch
 
-from ..._validation import check_finite, check_generator, check_nonnegative, check_shape
+from ..._validation import check_finite, check_generator, check_nonnegative, check_positive, check_shape
 from ...typing import RHO, VX, VY, Tensor, X, Y
-from .grid import SeparableGridSensor, polar
+from .grid import SeparableGridSensor, lattice, polar
 
 __all__ = ["AzimuthRangeSwerlingTBD", "POWER"]
 
@@ -91,8 +92,9 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         ``max |d - mean(d)| <= 2e-3 * std(grid)`` over particles near the targets.
     method : {"window", "grid"}
         Which path :meth:`log_likelihood` uses.
-    memory_budget : int
-        Bytes of temporaries the whole-grid path may hold at once (default 1 GiB).
+    memory_budget : int, optional
+        Bytes of temporaries either path may hold at once (default: the process-wide
+        :func:`~torchmcmcpf.runtime.memory_budget`, 1 GiB unless set).
 
     Example
     -------
@@ -110,12 +112,24 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
     """
 
     dim = 5
-    axis_names = ("azimuth", "range")
-    noise_name = "noise_power"
-    #: ``sigma^2`` (set by the base constructor from the ``noise_power`` keyword)
+    #: ``sigma^2``
     noise_power: float
-    default_window = 4
-    default_cells = (math.pi / 180, 10.0)  # 1 deg, 10 m
+
+    def __init__(self, azimuth_bins: Tensor, range_bins: Tensor, *, noise_power: float = 1.0,
+                 azimuth_width: float | None = None, range_width: float | None = None, window: int = 4,
+                 method: str = "window", memory_budget: int | None = None):
+        super().__init__({"azimuth_bins": (azimuth_bins, azimuth_width), "range_bins": (range_bins, range_width)},
+                         window=window, method=method, memory_budget=memory_budget)
+        self.noise_power = check_positive(noise_power, "noise_power")
+
+    @classmethod
+    def uniform(cls, azimuth_limits: tuple[float, float], range_limits: tuple[float, float], *,
+                azimuth_cell: float = math.pi / 180, range_cell: float = 10.0, **kw: Any) -> AzimuthRangeSwerlingTBD:
+        """Uniform grid: each ``(first, last)`` gives the first cell centre and an upper limit
+        of an axis (:func:`~torchmcmcpf.models.sensors.grid.lattice`), with cells of 1 deg and
+        10 m by default; other keywords go to the constructor.
+        """
+        return cls(lattice(azimuth_limits, azimuth_cell, "azimuth"), lattice(range_limits, range_cell, "range"), **kw)
 
     # ------------------------------------------------------------------ model pieces
     def measurement_coords(self, x: Tensor) -> Tensor:

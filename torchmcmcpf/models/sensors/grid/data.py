@@ -1,0 +1,110 @@
+"""The data-driven proposal of the grid sensors (the hooks of
+:class:`~torchmcmcpf.models.multitarget.Recapture`): the frame's peaks as points, the density
+``g(u | z)`` around them and draws from it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import torch
+import torch.nn.functional as F
+
+from ....resampling import cdf, inverse_cdf
+from ....typing import Tensor
+
+if TYPE_CHECKING:
+    from .sensor import SeparableGridSensor
+
+__all__ = ["peaks", "detections", "log_data_density", "sample_from_data"]
+
+#: ``3^n`` max and average pooling with stride 1, by the number of grid axes n
+_MAX_POOL = {1: F.max_pool1d, 2: F.max_pool2d, 3: F.max_pool3d}
+_AVG_POOL = {1: F.avg_pool1d, 2: F.avg_pool2d, 3: F.avg_pool3d}
+
+
+def _pool(t: Tensor, pools: dict) -> Tensor:
+    """``3^n`` pooling of ``t (B, *G)`` with stride 1 (same shape), ``n = t.dim() - 1``."""
+    n = t.dim() - 1
+    if n not in pools:
+        raise ValueError(f"the data-driven proposal pools grids of 1 to 3 axes, got {n}")
+    return pools[n](t.unsqueeze(1), 3, stride=1, padding=1).squeeze(1)
+
+
+def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
+    """Local maxima of the detection statistic over their ``3^n`` neighbourhood above the
+    threshold: ``(B, *G)`` bool.
+    """
+    stat = sensor.detection_statistic(z)
+    return (stat >= _pool(stat, _MAX_POOL)) & (stat > sensor.detection_threshold)
+
+
+def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
+    """The frame's peaks as points: ``centres (B, P, n)`` (the strongest
+    ``P = min(max_peaks, G)``, padded) and ``mask (B, P)``.
+    """
+    geometry = sensor.geometry
+    stat = sensor.detection_statistic(z)
+    peak = (stat >= _pool(stat, _MAX_POOL)) & (stat > sensor.detection_threshold)
+    B, G = stat.shape[0], geometry.num_cells
+    weight = (stat - 1.0).clamp(min=0.0)  # above the noise mean (1)
+    norm = _pool(weight, _AVG_POOL).reshape(B, G)
+    P = min(sensor.max_peaks, G)
+    top, at = torch.topk(torch.where(peak, stat, float("-inf")).reshape(B, G), P, dim=-1)
+    mask = torch.isfinite(top)
+    centres = []
+    for a in range(geometry.n_axes):
+        shape = [1] * (geometry.n_axes + 1)
+        shape[1 + a] = geometry.frame_shape[a]
+        coord = (geometry.origins[a] + geometry.cell_sizes[a] * torch.arange(
+            geometry.frame_shape[a], device=z.device, dtype=stat.dtype)).reshape(shape)
+        moment = _pool(weight * coord, _AVG_POOL).reshape(B, G)
+        centres.append(torch.take_along_dim(moment / norm.clamp(min=1e-30), at, -1))
+    return torch.stack(centres, -1), mask
+
+
+def log_data_density(sensor: SeparableGridSensor, coords: Tensor, centres: Tensor, mask: Tensor) -> Tensor:
+    """``log g(u | z)`` at ``coords (B, *S, n)`` given the frame's detections: ``(B, *S)``."""
+    geometry = sensor.geometry
+    B, n = coords.shape[0], geometry.n_axes
+    used = int(mask.sum(-1).max()) if mask.numel() else 0  # the padding holds no peak: drop it (eager)
+    centres, mask = centres[:, :max(used, 1)], mask[:, :max(used, 1)]
+    lo, hi, log_volume = geometry.extent()
+    scale = torch.tensor([sensor.peak_spread * c for c in geometry.cell_sizes], dtype=coords.dtype,
+                         device=coords.device)
+    flat = coords.reshape(B, -1, 1, n)  # (B, Q, 1, n)
+    white = (flat - centres.to(coords.dtype).unsqueeze(1)) / scale  # (B, Q, P, n)
+    log_n = -0.5 * white.square().sum(-1) - torch.log(scale).sum() - 0.5 * n * math.log(2 * math.pi)
+    log_n = torch.where(mask.unsqueeze(1), log_n, float("-inf"))
+    count = mask.sum(-1, keepdim=True).to(coords.dtype)  # (B, 1)
+    log_near = torch.logsumexp(log_n, -1) - torch.log(count.clamp(min=1.0))  # (B, Q)
+    p_u = sensor.uniform_weight
+    log_q = torch.logaddexp(torch.full_like(log_near, math.log(p_u) - log_volume), math.log1p(-p_u) + log_near)
+    log_q = torch.where(count > 0, log_q, torch.full_like(log_q, -log_volume))
+    return log_q.reshape(coords.shape[:-1])
+
+
+def sample_from_data(sensor: SeparableGridSensor, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
+                     dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """Draws ``coords (*shape, n)`` from ``g(u | z)`` and ``log p_0 - log g`` there ``(*shape)``."""
+    geometry = sensor.geometry
+    B = z.shape[0]
+    if not shape or shape[0] != B:
+        raise ValueError(f"shape {tuple(shape)} must start with the batch size of z, {B}")
+    n, Q = geometry.n_axes, math.prod(shape[1:])
+    centres, mask = detections(sensor, z)
+    lo, hi, log_volume = geometry.extent()
+    u = torch.rand((B, Q, 2), generator=generator, device=z.device, dtype=torch.float64)
+    pick = inverse_cdf(cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, float("-inf"))), u[..., 0])
+    eps = torch.randn((B, Q, n), generator=generator, device=z.device, dtype=dtype)
+    box = torch.rand((B, Q, n), generator=generator, device=z.device, dtype=dtype)
+    low = torch.tensor(lo, dtype=dtype, device=z.device)
+    span = torch.tensor(hi, dtype=dtype, device=z.device) - low
+    scale = torch.tensor([sensor.peak_spread * c for c in geometry.cell_sizes], dtype=dtype, device=z.device)
+    near = torch.take_along_dim(centres.to(dtype), pick.unsqueeze(-1), 1) + scale * eps
+    use = (u[..., 1] >= sensor.uniform_weight) & mask.any(-1, keepdim=True)
+    coords = torch.where(use.unsqueeze(-1), near, low + span * box)  # (B, Q, n)
+    inside = ((coords >= low) & (coords <= low + span)).all(-1)
+    log_ratio = torch.where(inside, -log_volume - log_data_density(sensor, coords, centres, mask), float("-inf"))
+    return coords.reshape(tuple(shape) + (n,)), log_ratio.reshape(tuple(shape))

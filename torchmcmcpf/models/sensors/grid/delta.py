@@ -1,0 +1,117 @@
+"""The one-slot change of the windowed log-likelihood: when slot ``n`` moves, only the cells of
+its old and new box change, so the difference is summed over those two boxes, with the
+spreads of slot ``n`` before and after the move and those of the live targets whose boxes
+overlap them (:meth:`~.sensor.SeparableGridSensor.log_likelihood_delta` states the maths).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import torch
+
+from ....typing import Tensor
+from . import whole
+from .inputs import check_inputs, check_move, flat_inputs, slots
+from .spread import neighbour_index, neighbour_profiles, outer_sum, with_neighbours
+
+if TYPE_CHECKING:
+    from .sensor import SeparableGridSensor
+
+__all__ = ["log_likelihood_delta", "new_box_in_old"]
+
+
+def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
+                         exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
+    """``log p(z | x with slot n = x_n) - log p(z | x)`` ``(B, *S)`` on the windowed path,
+    or the difference of two whole-grid evaluations with ``method="grid"``.
+    """
+    check_inputs(sensor, x, z, exists)
+    check_move(x, x_n, exists_n)
+    B, K = x.shape[0], x.shape[-2]
+    S = tuple(x.shape[1:-2])
+    if not torch.is_tensor(n) and (isinstance(n, bool) or not isinstance(n, int) or not 0 <= n < K):
+        raise ValueError(f"n must be an int in [0, {K}) or an int64 tensor, got {n!r}")
+    if sensor.method == "grid":  # consistent with log_likelihood: two reference evaluations
+        here = torch.arange(K, device=x.device) == slots(n, x).reshape((B,) + S + (1,))
+        e_old = torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device) if exists is None else exists
+        e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
+        x_new = torch.where(here[..., None], x_n[..., None, :], x)
+        return whole.log_likelihood(sensor, x_new, z, e_new) - whole.log_likelihood(sensor, x, z, e_old)
+    names = [k for k, v in (("n", n if torch.is_tensor(n) else None), ("exists", exists), ("exists_n", exists_n))
+             if v is not None]
+
+    def prepare(x: Tensor, x_n: Tensor, z: Tensor, *optional: Tensor) -> tuple[Tensor, ...]:
+        kw = dict(zip(names, optional))
+        return _parts(sensor, x, x_n, kw.get("n", n), z, kw.get("exists"), kw.get("exists_n"))
+
+    inputs = (x, x_n, z) + tuple(v for v in (n, exists, exists_n) if torch.is_tensor(v))
+    return with_neighbours(sensor.max_neighbours, K - 1, lambda c, *a: _box_sums(sensor, c, *a), prepare,
+                           inputs).reshape((B,) + S)
+
+
+def _parts(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
+           exists: Tensor | None, exists_n: Tensor | None) -> tuple[Tensor, ...]:
+    """The arguments of :func:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old, s_new,
+    zc, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K slots, then
+    of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new (B, P, 1)`` the
+    signals (times existence); ``firsts[a] (B, P, K + 2)`` the box starts; ``others (B, P,
+    2, K)`` whether the old / new box of slot ``n`` overlaps the box of another live slot.
+    """
+    B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
+    slot = slots(n, x)
+    u, s, e = flat_inputs(sensor, x, exists)  # (B, P, K, n), (B, P, K), (B, P, K)
+    P = u.shape[1]
+    at = slot[..., None]  # (B, P, 1)
+    x_new = x_n.reshape(B, P, 1, D)
+    e_new = torch.take_along_dim(e, at, 2) if exists_n is None else exists_n.reshape(B, P, 1).to(x.dtype)
+    s_old = torch.take_along_dim(s, at, 2)  # (B, P, 1)
+    s_new = sensor.signal(x_new) * e_new
+    # targets: the K slots, then slot n before (index K) and after (index K + 1) the move
+    u_all = torch.cat([u, torch.take_along_dim(u, at[..., None], 2), sensor.measurement_coords(x_new)], 2)
+    geometry = sensor.geometry
+    firsts = geometry.box_firsts(u_all)  # (B, P, K + 2)
+    boxes = [f[..., K:] for f in firsts]  # (B, P, 2): old and new box of slot n
+    rest = (torch.arange(K, device=x.device) != at) & (e > 0)  # (B, P, K): the other live slots
+    others = geometry.overlaps(boxes, [f[..., :K] for f in firsts]) & rest[..., None, :]  # (B, P, 2, K)
+    return (u_all, s, s_old, s_new, sensor.prepare_frame(z.to(x.dtype)), *firsts, others)
+
+
+def _box_sums(sensor: SeparableGridSensor, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor,
+              zc: Tensor, *rest: Tensor) -> Tensor:
+    """:func:`log_likelihood_delta` ``(B, P)`` from :func:`_parts`, with ``count`` neighbour
+    slots per box.
+    """
+    *firsts, others = rest
+    B, P, K = s.shape
+    boxes = [f[..., K:] for f in firsts]
+    moved = torch.tensor([K, K + 1], device=s.device).expand(B, P, 2, 2)  # (B, P, 2q, 2)
+    zero = torch.zeros_like(s_old)
+    cur = torch.cat([s_old, zero], -1)[:, :, None].expand(B, P, 2, 2)
+    prop = torch.cat([zero, s_new], -1)[:, :, None].expand(B, P, 2, 2)
+    if count > 0:
+        nb, w = neighbour_index(others, count)  # (B, P, 2q, count)
+        s_nb = torch.take_along_dim(s[:, :, None].expand(B, P, 2, K), nb, -1) * w.to(s.dtype)
+        index = torch.cat([nb, moved], -1)  # (B, P, 2q, count + 2)
+        cur, prop = torch.cat([s_nb, cur], -1), torch.cat([s_nb, prop], -1)
+    else:
+        index = moved
+    geometry = sensor.geometry
+    factors, indicators = neighbour_profiles(geometry, boxes, u_all, firsts, index)  # (B, P, 2q, M, W)
+    signals = torch.stack([cur, prop], 2)  # (B, P, 2 (cur, prop), 2 (old box, new box), M)
+    A = outer_sum(signals, [f[:, :, None] for f in factors])  # (B, P, 2, 2, *W)
+    zw = geometry.gather_cells(zc, boxes, sensor.box_offsets)[:, :, None]  # (B, P, 1, 2, *W)
+    ratio = sensor.cell_log_ratio(A, zw)
+    diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
+    both = new_box_in_old(indicators, count, s_old)  # (B, P, *W)
+    return diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
+
+
+def new_box_in_old(indicators: Sequence[Tensor], old: int, like: Tensor) -> Tensor:
+    """Which cells of a move's new box the old box holds, ``(B, P, *box_cells)`` 0/1: from
+    the per-axis indicators ``(B, P, 2 boxes, M, W)`` of
+    :func:`~.spread.neighbour_profiles`, entry ``old`` being the moved slot's old spread;
+    ``like (B, P, 1)`` gives dtype and device.
+    """
+    return outer_sum(torch.ones_like(like), [f[:, :, 1, old][..., None, :] for f in indicators])
