@@ -119,6 +119,7 @@ per-target refinement loops over the ``K`` slots (a Gibbs sweep is sequential by
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -1036,10 +1037,10 @@ class GroupMCMCFilter(Filter):
     num_particles : N, a multiple of ``num_chains``.
     existence : GroupExistence (eq. 25, births eqs. 29-37); structure_prior :
         GroupStructurePrior (eq. 19).
-    num_chains : C; default :func:`default_chains` (the largest divisor of N up to 20).
-    burn_in : per chain and step (default 100; the paper's 1000 is for its one chain).
-    thinning, xi, p_a, p_i, marginalise, alpha, birth, lag, p_past, past_step, max_memory_gb :
-        :class:`GroupMCMCSettings`.
+    settings : :class:`GroupMCMCSettings`, optional; each of its fields is also a keyword
+        shortcut (``burn_in=50``), with its default written once, in the dataclass, except
+        ``num_chains``, whose default depends on N: :func:`default_chains` (the largest
+        divisor of N up to 20) unless ``settings`` is given.
     compile_step : compile each move (``torch.compile(fullgraph=True)``; noise drawn
         eagerly, so compiled == eager).
 
@@ -1064,15 +1065,13 @@ class GroupMCMCFilter(Filter):
     sensor: ThresholdedPixels
     existence: GroupExistence
     settings: GroupMCMCSettings
+    settings_class = GroupMCMCSettings
     motion_type = VirtualLeaderMotion
     relabels = False  # a slot's label is its place in the group structure
 
-    def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int, *,
-                 existence: GroupExistence, structure_prior: GroupStructurePrior, num_chains: int | None = None,
-                 burn_in: int = 100, thinning: int = 6, xi: float = 0.75, p_a: float = 0.5, p_i: float = 0.01,
-                 marginalise: bool = True, alpha: str = "mean", birth: str = "eq65", lag: int = 0,
-                 p_past: float = 0.0, past_step: tuple[float, float] = (10.0, 5.0), max_memory_gb: float = 8.0,
-                 compile_step: bool = False) -> None:
+    def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int,
+                 settings: GroupMCMCSettings | None = None, *, existence: GroupExistence,
+                 structure_prior: GroupStructurePrior, compile_step: bool = False, **shortcuts: Any) -> None:
         if not all(hasattr(sensor, a) for a in ("shape", "pixel_size", "position_index", "log_likelihood")):
             raise ValueError(f"sensor must be a pixel sensor (ThresholdedPixels), got {type(sensor).__name__}")
         if not isinstance(existence, GroupExistence):
@@ -1080,12 +1079,15 @@ class GroupMCMCFilter(Filter):
         if not isinstance(structure_prior, GroupStructurePrior):
             raise ValueError(f"structure_prior must be a GroupStructurePrior, got {type(structure_prior).__name__}")
         n = check_positive_int(num_particles, "num_particles")
-        chains = default_chains(n) if num_chains is None else num_chains
-        settings = GroupMCMCSettings(chains, burn_in, thinning, xi, p_a, p_i, marginalise, alpha, birth, lag, p_past,
-                                     tuple(past_step), max_memory_gb)  # type: ignore[arg-type]
+        if shortcuts.get("num_chains", 0) is None:
+            del shortcuts["num_chains"]
+        if settings is None and "num_chains" not in shortcuts:  # the one default that depends on N
+            shortcuts["num_chains"] = default_chains(n)
+        if "past_step" in shortcuts:
+            shortcuts["past_step"] = tuple(shortcuts["past_step"])
         super().__init__(motion, sensor, n, settings, existence=existence,  # type: ignore[arg-type]
-                         compile_step=compile_step)
-        settings.check(n)
+                         compile_step=compile_step, **shortcuts)
+        self.settings.check(n)
         self.structure_prior = structure_prior
 
     def models(self) -> Models:
@@ -1209,3 +1211,18 @@ class GroupMCMCFilter(Filter):
         return group_mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
                                generator=generator, existence=self.existence, structure_prior=self.structure_prior,
                                moves=self.compiled())
+
+
+def _group_signature() -> inspect.Signature:
+    """The constructor's signature (``help``, the documentation): the common one of
+    :class:`Filter` with its settings' fields, ``existence`` and ``structure_prior`` required.
+    """
+    sig = inspect.signature(GroupMCMCFilter)
+    params = [p.replace(default=inspect.Parameter.empty) if p.name == "existence" else p
+              for p in sig.parameters.values()]
+    at = [p.name for p in params].index("existence") + 1
+    params.insert(at, inspect.Parameter("structure_prior", inspect.Parameter.KEYWORD_ONLY))
+    return sig.replace(parameters=params)
+
+
+GroupMCMCFilter.__signature__ = _group_signature()  # type: ignore[attr-defined]
