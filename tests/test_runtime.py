@@ -42,3 +42,21 @@ def test_large_tensor_comes_from_the_heap():
     t = torch.empty(16 * 2**20)  # 64 MB
     assert _mmapped_bytes() - before < 2**20
     del t
+
+
+def test_programs_of_one_def_have_their_own_compile_cache():
+    # nine filters of one class bind their models in the same nested def: dynamo counts
+    # recompilations per code object (limit 8), so each Program copies the code object
+    import functools
+
+    from torchmcmcpf.runtime import compile_program
+
+    def bind(scale):
+        def body(x):
+            return x * scale
+        return body
+
+    x = torch.ones(3)
+    programs = [compile_program(bind(float(s))) for s in range(9)]
+    programs.append(compile_program(functools.partial(torch.mul, other=2.0)))  # any callable
+    assert [float(p(x)[0]) for p in programs] == [float(s) for s in range(9)] + [2.0]

@@ -49,6 +49,7 @@ import ctypes
 import ctypes.util
 import inspect
 import sys
+import types
 from collections.abc import Callable
 from typing import Any
 
@@ -164,6 +165,25 @@ def _first_on_cuda(args: tuple) -> bool:
     return False
 
 
+def _own_code(fn: Callable) -> Callable:
+    """``fn`` as a Python function with a code object of its own.
+
+    Dynamo keeps its compiled graphs, and counts recompilations against its limit (8), per
+    code object. Every filter of one class binds its models in the same nested ``def`` (and
+    ``torch.compile`` wraps a ``functools.partial`` or any other callable in one shared code
+    object), so without a copy the programs of a process's ninth filter would fail with
+    ``fullgraph=True``; with it, each program has its own cache.
+    """
+    if not inspect.isfunction(fn):
+        inner = fn
+
+        def fn(*args: Any) -> Any:
+            return inner(*args)
+    own = types.FunctionType(fn.__code__.replace(), fn.__globals__, fn.__name__, fn.__defaults__, fn.__closure__)
+    own.__kwdefaults__, own.__qualname__ = fn.__kwdefaults__, fn.__qualname__
+    return own
+
+
 class Program:
     """A pure function compiled with ``torch.compile(fn, fullgraph=True, dynamic=False)``,
     with CUDA graphs on a GPU (:func:`compile_program` builds it).
@@ -186,12 +206,7 @@ class Program:
     """
 
     def __init__(self, fn: Callable):
-        if not inspect.isfunction(fn):
-            # torch.compile wraps any other callable (a functools.partial, an object) in one
-            # shared code object (torch/_dynamo/external_utils.py, inner): every such program
-            # of the process would then count against that object's recompile limit (8)
-            raise TypeError(f"compile_program takes a Python function (a def or a lambda binding its models), "
-                            f"got {type(fn).__name__}")
+        fn = _own_code(fn)
         self._fn = fn
         self._plain = torch.compile(fn, fullgraph=True, dynamic=False)
         self._graphed: Callable | None = None

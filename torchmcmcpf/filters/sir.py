@@ -98,8 +98,7 @@ def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, ne
 
 def bind_body(dynamics: TargetDynamics, sensor: SensorModel, settings: SIRSettings) -> Callable:
     """:func:`sir_body` with the models bound: ``body(x, log_w, exists, z, need, u, eps,
-    birth)`` (a function of its own, the program ``compile_step=True`` compiles; see
-    :class:`~torchmcmcpf.runtime.Program` on why not a ``functools.partial``).
+    birth)``, the program ``compile_step=True`` compiles.
     """
     def body(*args: Any) -> tuple[Tensor, Tensor | None, Tensor]:
         return sir_body(*args, dynamics=dynamics, sensor=sensor, settings=settings)
