@@ -129,8 +129,8 @@ def test_group_iteration_eager(benchmark, move):
 @pytest.mark.compile
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_compiled(benchmark, move):
-    from torchmcmcpf.runtime import compile_program
     from torchmcmcpf.filters.group import _bind
+    from torchmcmcpf.runtime import compile_program
 
     models, args = _iteration_args(move)
     kernel = _bind(models, compile_program)
