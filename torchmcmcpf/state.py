@@ -166,8 +166,9 @@ class FilterResult(NamedTuple):
     history : ParticleState with a leading T dim, optional
         Every step's particle state, ``x (T, B, N, K, D)``, ``log_w (T, B, N)``, ``exists
         (T, B, N, K)``, kept when ``forward(..., history=True)`` (T times the memory of one
-        state): per-step clouds for :meth:`to_stonesoup` (``kind="particle"``) and the chain
-        samples of any step for :meth:`to_arviz`.
+        state), each particle's slots relabelled as ``mean``'s (so slot ``k`` of the cloud is
+        the target of ``mean[..., k, :]``): per-step clouds for :meth:`to_stonesoup`
+        (``kind="particle"``) and the chain samples of any step for :meth:`to_arviz`.
     meta : dict, optional
         What made the result: ``filter`` (class name), ``num_particles``, ``settings`` (the
         settings dataclass as plain values), ``motion``, ``sensor``, ``existence``, ``dt``

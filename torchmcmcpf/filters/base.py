@@ -551,7 +551,8 @@ class Filter(nn.Module):
         progress : show a tqdm progress bar over time (it says when the first step of a
             ``compile_step=True`` filter compiles).
         history : keep every step's particle state in ``result.history`` (T times the
-            memory of one state; for per-step clouds and chain samples).
+            memory of one state; for per-step clouds and chain samples), each particle's
+            slots relabelled as the estimate's (:meth:`estimate_targets`).
 
         Returns
         -------
@@ -579,8 +580,8 @@ class Filter(nn.Module):
             covs.append(weighted_cov(relabelled.x, relabelled.log_w, est.mean, relabelled.exists))
             if self.existence is not None and state.exists is not None:
                 exists_prob.append(est.exists_prob)
-            if history:
-                states.append(state)
+            if history:  # the cloud the estimate averaged: its slots labelled as the estimate's
+                states.append(relabelled._replace(extras=state.extras))
         info = stack_infos(infos)
         return FilterResult(
             mean=torch.stack(means),
