@@ -80,8 +80,8 @@ def crossing(
 
     Returns
     -------
-    Scenario with ``truth (T, B, K, 5)``, ``measurements (T, B, Nr, Nd, Nb)``, ``initial (B,
-    K, 5)``, ``snr_db (B, K)``, the radar ``sensor`` and the ``motion`` model.
+    Scenario with ``truth (T, B, K, 5)``, ``measurements (T, B, Nr, Nd, Nb)``,
+    ``initial (B, K, 5)``, ``snr_db (B, K)``, the radar ``sensor`` and the ``motion`` model.
     """
     from ..models.sensors.radar import RangeDopplerBearingTBD
 
