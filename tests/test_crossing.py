@@ -71,6 +71,54 @@ def _args(module, tmp_path, **kw):
                               gpus_per_shard=1.0, **kw)
 
 
+def _cloud(points, gen, n=400, noise=3.0):
+    """Particles ``(1, n, K, 4)`` whose live slots hold ``points[i]`` (positions ``(x, y)`` or
+    None for a dead slot) in a random slot order per particle, with ``noise`` m of spread."""
+    k = len(points[0])
+    x = torch.zeros(1, n, k, 4, dtype=torch.float64)
+    exists = torch.zeros(1, n, k, dtype=torch.bool)
+    for i in range(n):
+        row = points[i % len(points)]
+        perm = torch.randperm(k, generator=gen)
+        for j, p in enumerate(row):
+            if p is not None:
+                x[0, i, perm[j], X], x[0, i, perm[j], Y] = p
+                exists[0, i, perm[j]] = True
+    x[..., [X, Y]] += noise * torch.randn(x[..., [X, Y]].shape, generator=gen, dtype=torch.float64) * exists[..., None]
+    return ParticleState(x, torch.zeros(1, n, dtype=torch.float64), exists)
+
+
+def test_relabelled_estimate_keeps_stray_slots_out_of_a_target(gen):
+    # A at (0, 0), B at (1000, 0); one particle in ten holds two slots on A and none on B: B's
+    # estimate stays on B (not 100 m towards A), with existence 0.9
+    a, b = (0.0, 0.0), (1000.0, 0.0)
+    rows = [(a, b, None)] * 9 + [(a, (20.0, 10.0), None)]
+    state = _cloud(rows, gen)
+    ref = torch.zeros(1, 3, 4, dtype=torch.float64)
+    ref[0, 0, X], ref[0, 1, X] = 0.0, 1000.0
+    est, relabelled = relabelled_estimate(state, ref, reference_exists=torch.tensor([[True, True, False]]))
+    assert est.present.tolist() == [[True, True, False]]
+    assert abs(float(est.mean[0, 1, X]) - 1000.0) < 5.0 and abs(float(est.mean[0, 0, X])) < 5.0
+    assert float(est.exists_prob[0, 1]) == pytest.approx(0.9, abs=1e-9)
+    assert float(est.expected_count[0]) == pytest.approx(2.0, abs=1e-9)  # the live slots, all of them
+    assert relabelled.exists.sum() <= state.exists.sum()
+
+
+def test_relabelled_estimate_founds_one_label_for_a_new_target(gen):
+    # the reference knows A; most particles also hold a new target C (in any slot), a few a
+    # stray slot elsewhere: C gets one label, on C, and the stray slots found none
+    a, c = (0.0, 0.0), (3000.0, 2000.0)
+    rows = [(a, c, None)] * 8 + [(a, (-2500.0, 4000.0), None), (a, None, None)]
+    state = _cloud(rows, gen)
+    ref = torch.zeros(1, 3, 4, dtype=torch.float64)
+    est, _ = relabelled_estimate(state, ref, reference_exists=torch.tensor([[True, False, False]]))
+    present = est.present[0]
+    assert int(present.sum()) == 2 and bool(present[0])
+    new = est.mean[0, present][1]
+    assert abs(float(new[X]) - 3000.0) < 5.0 and abs(float(new[Y]) - 2000.0) < 5.0
+    assert float(est.exists_prob[0, present][1]) == pytest.approx(0.8, abs=1e-9)
+
+
 def test_crossing_study_quick(tmp_path):
     payload = crossing_study.run(_args(crossing_study, tmp_path))
     for name in ("metrics.json", "crossing.png", "coalescence.png", "tracks.png"):

@@ -457,6 +457,33 @@ def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Ten
     return label
 
 
+def _densest(pos: Tensor, live: Tensor, log_w: Tensor, cutoff: float, candidates: int = 32) -> tuple[Tensor, Tensor]:
+    """The densest place of the live slots of a cloud: among the live slots of ``candidates``
+    evenly spaced particles, the one with the most weight of live slots within ``cutoff``
+    (each counted once per particle).
+
+    Parameters
+    ----------
+    pos : (B, N, K, 2) positions; live : (B, N, K) bool; log_w : (B, N).
+
+    Returns
+    -------
+    at : (B, 2) that slot's position; support : (B,) the weight of the particles with a live
+    slot within ``cutoff`` of it (0 where no slot is live).
+    """
+    b, n, k, _ = pos.shape
+    pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
+    cand, cand_live = pos[:, pick].reshape(b, -1, 2), live[:, pick].reshape(b, -1)  # (B, C K, ...)
+    d2 = (cand[:, :, None, None, 0] - pos[:, None, ..., 0]).square() \
+        + (cand[:, :, None, None, 1] - pos[:, None, ..., 1]).square()  # (B, C K, N, K)
+    near = ((d2 <= cutoff**2) & live.unsqueeze(1)).any(-1)  # (B, C K, N)
+    w = torch.softmax(log_w, -1).to(pos.dtype)
+    support = (near.to(pos.dtype) * w.unsqueeze(1)).sum(-1).masked_fill(~cand_live, 0.0)  # (B, C K)
+    best = support.argmax(-1)  # (B,)
+    at = torch.take_along_dim(cand, best[:, None, None], 1).squeeze(1)
+    return at, torch.take_along_dim(support, best[:, None], 1).squeeze(1)
+
+
 def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *,
                         reference_exists: Tensor | None = None, x_death: Tensor | None = None,
                         iterations: int = 2, cutoff: float = 100.0) -> tuple[ExistenceEstimate, ParticleState]:
@@ -478,8 +505,13 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     Returns
     -------
     estimate : :class:`ExistenceEstimate` of the relabelled cloud (without existence flags:
-    ``exists_prob`` ones and ``mean`` the weighted mean);
-    relabelled : the relabelled cloud (a ParticleState, its slots in the estimate's labels).
+    ``exists_prob`` ones and ``mean`` the weighted mean). With existence flags, a label's
+    mean and existence probability count only the particles whose slot of that label lies
+    within ``cutoff`` of the label's reference (a particle holding two slots on one target and
+    none on another does not pull a mean half-way to the wrong target); ``expected_count`` is
+    the expected number of live slots.
+    relabelled : the relabelled cloud (a ParticleState, its slots in the estimate's labels;
+    with existence, its flags those the estimate counted).
     """
     x, log_w, exists = state.x, state.log_w, state.exists
     b, n, k, d = x.shape
@@ -491,16 +523,22 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     else:
         ref = reference
     if exists is not None and present is not None and k > 1:
-        # labels the reference has no target for take the targets of the particle with the
-        # most live slots (relabelled against the reference first): a target that appeared
-        # since the reference gets one label in every particle, not a share of each
-        seed = exists.sum(-1).argmax(-1)[:, None, None]  # (B, 1, 1)
-        seed_exists = torch.take_along_dim(exists, seed, 1)
-        xs, es = relabel(torch.take_along_dim(x, seed[..., None], 1), ref, exists=seed_exists,
-                         reference_exists=present, cutoff=cutoff)
-        fill = (seed_exists if es is None else es)[:, 0] & ~present  # (B, K)
-        ref = torch.where(fill.unsqueeze(-1), xs[:, 0], ref)
-        present = present | fill
+        # labels the reference has no target for: the densest place of the live slots the
+        # present labels leave over (relabelled against them first) founds one new label per
+        # round, so a target that appeared since the reference gets one label in every
+        # particle, not a share of each, and a stray slot of one particle founds none
+        ref, present = ref.clone(), present.clone()
+        for _ in range(max(1, int(iterations))):
+            xs, es = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
+            assert es is not None
+            spare = es & ~present.unsqueeze(1)  # (B, N, K)
+            at, support = _densest(torch.stack([xs[..., X], xs[..., Y]], -1), spare, log_w, cutoff)
+            new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
+            found = (support > 0.5) & (~present).any(-1)  # most of the weight has a slot there
+            onto = found.unsqueeze(-1) & (torch.arange(k, device=x.device) == new.unsqueeze(-1))  # (B, K)
+            ref[..., X] = torch.where(onto, at[:, None, 0].to(ref.dtype), ref[..., X])
+            ref[..., Y] = torch.where(onto, at[:, None, 1].to(ref.dtype), ref[..., Y])
+            present = present | onto
     out = None
     xr, er = x, exists
     for _ in range(max(1, int(iterations))):
@@ -511,10 +549,23 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
             out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
         else:
-            out = existence_estimate(ParticleState(xr, log_w, er), x_death=x_death)
+            eg = er
+            if iterations > 0 and k > 1 and present is not None:
+                # a live slot farther than the cutoff from its label's reference holds another
+                # target (a particle with two slots on one target and none on another): it
+                # counts neither in this label's mean nor in its existence; a label without a
+                # reference (no target founded for it) reports none
+                pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
+                near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2  # (B, N, K)
+                eg = er & near & present.unsqueeze(1)
+            out = existence_estimate(ParticleState(xr, log_w, eg), x_death=x_death)
+            # the expected number of targets stays the filter's: the expected number of live slots
+            count = (torch.softmax(log_w, -1).to(x.dtype).unsqueeze(-1) * er.to(x.dtype)).sum((1, 2))
+            out = out._replace(expected_count=count)
+            er_out = eg
         ref, present = out.mean, out.present if exists is not None else None
     assert out is not None
-    return out, state._replace(x=xr, exists=er)
+    return out, state._replace(x=xr, exists=er_out if exists is not None else er)
 
 
 torch.serialization.add_safe_globals([ParticleState, StepInfo, FilterResult, ExistenceEstimate])
