@@ -315,13 +315,8 @@ class IPMCMCSettings:
         two-slot move; None is the paper's exchange move. Set to None with ``hmc`` (whose
         target uses the prior without the relocation component).
 
-    existence_proposal : ``(q_birth, q_death)``: with an existence model, the proposals turn
-        an inactive slot on with probability ``q_birth`` and an active one off with
-        ``q_death`` (:meth:`~torchmcmcpf.models.existence.BirthDeath.with_proposal`; the
-        ratio ``p(e' | e) / q(e' | e)`` keeps the target). Default ``(0.5, 0.1)``: proposing
-        births from the chain's ``P_B = 0.02`` left a target that four points show beyond
-        doubt unbelieved for several frames (issue 27). ``None``: the chain's own
-        probabilities.
+    existence_proposal : ``(q_birth, q_death)`` or None, as
+        :class:`~torchmcmcpf.filters.mcmc.MCMCSettings` (default ``(0.5, 0.1)``).
 
     Both are turned off for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
