@@ -379,7 +379,10 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
     means means of *targets*. The cost of giving particle slot ``a`` the reference label
     ``r`` is the squared position distance, cut off at ``cutoff^2`` (OSPA-like); with
     existence flags a live slot against an absent reference slot, or a dead slot against a
-    present one, costs ``cutoff^2 / 2`` and two absent ones 0. Where every slot's cheapest
+    present one, costs ``cutoff^2 / 2`` and two absent ones 0. A particle keeps its own labels
+    unless the permutation found lowers its cost by more than ``(cutoff / 4)^2`` (625 m^2 at
+    the default cutoff): where targets are too close for positions to tell them apart, a
+    particle's own labels are the better guess of identity. Where every slot's cheapest
     label differs, that permutation is optimal and one pass finds it; the other particles go
     through a search that swaps the pair of labels lowering a particle's cost most, sweep
     after sweep (vectorised over them; one host check per sweep ends it when none improves),
@@ -429,6 +432,12 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
         sub = _swap_search(cost.reshape(b * n, k, k)[rows], label.reshape(b * n, k)[rows], cutoff,
                            k * (k - 1) // 2 if max_sweeps is None else max_sweeps)
         label = label.reshape(b * n, k).index_copy(0, rows, sub).reshape(b, n, k)
+    # a particle keeps its own labels unless relabelling lowers its cost by more than
+    # (cutoff / 4)^2: where two targets are close, the positions alone cannot tell which is
+    # which, and a particle's own labels carry their identity through the crossing
+    own = torch.arange(k, device=x.device).expand(b, n, k)
+    gain = (torch.take_along_dim(cost, own.unsqueeze(-1), -1) - torch.take_along_dim(cost, label.unsqueeze(-1), -1))
+    label = torch.where((gain.sum((-2, -1)) <= (cutoff / 4) ** 2).unsqueeze(-1), own, label)
     slot_of = torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
     x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
     return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
@@ -505,7 +514,8 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     Returns
     -------
     estimate : :class:`ExistenceEstimate` of the relabelled cloud (without existence flags:
-    ``exists_prob`` ones and ``mean`` the weighted mean). With existence flags, a label's
+    ``exists_prob`` ones and ``mean`` the weighted mean of the slots within ``cutoff`` of the
+    label's reference, of all where none is). With existence flags, a label's
     mean and existence probability count only the particles whose slot of that label lies
     within ``cutoff`` of the label's reference (a particle holding two slots on one target and
     none on another does not pull a mean half-way to the wrong target); ``expected_count`` is
@@ -546,6 +556,13 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             xr, er = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
         if exists is None:
             mean = weighted_mean(xr, log_w)
+            if iterations > 0 and k > 1:  # the particles whose slot lies within the cutoff of its label
+                pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
+                near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2  # (B, N, K)
+                wn = torch.softmax(log_w, -1).to(x.dtype).unsqueeze(-1) * near.to(x.dtype)  # (B, N, K)
+                den = wn.sum(1)  # (B, K)
+                gated = torch.einsum("bnk,bnkd->bkd", wn, xr) / den.clamp(min=torch.finfo(x.dtype).tiny).unsqueeze(-1)
+                mean = torch.where(den.unsqueeze(-1) > 0, gated, mean)
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
             out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
         else:
