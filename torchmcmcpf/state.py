@@ -535,10 +535,10 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     if exists is not None and present is not None and k > 1:
         # labels the reference has no target for: the densest place of the live slots the
         # present labels leave over (relabelled against them first) founds one new label per
-        # round, so a target that appeared since the reference gets one label in every
+        # round (one host read a round ends the search), so a target that appeared since the reference gets one label in every
         # particle, not a share of each, and a stray slot of one particle founds none
         ref, present = ref.clone(), present.clone()
-        for _ in range(max(1, int(iterations))):
+        for _ in range(k if iterations > 0 else 0):  # one new label a round, while one is found
             xs, es = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
             assert es is not None
             spare = es & ~present.unsqueeze(1)  # (B, N, K)
@@ -549,6 +549,8 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             ref[..., X] = torch.where(onto, at[:, None, 0].to(ref.dtype), ref[..., X])
             ref[..., Y] = torch.where(onto, at[:, None, 1].to(ref.dtype), ref[..., Y])
             present = present | onto
+            if not bool(found.any()):
+                break
     out = None
     xr, er = x, exists
     for _ in range(max(1, int(iterations))):

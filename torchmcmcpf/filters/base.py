@@ -566,6 +566,11 @@ class Filter(nn.Module):
         steps, note = self._progress(num_steps, state.x, progress)
         means, covs, infos, exists_prob, states = [], [], [], [], []
         est = _carried_estimate(state)
+        if est is None and self.relabels and self.sensor.resolved and state.num_targets > 1:
+            # a fresh start: the initial cloud's own slot means are the first reference (its
+            # labels are the caller's), not one particle of the first step's cloud
+            x_death = None if self.existence is None else self.existence.x_death
+            est = relabelled_estimate(state, x_death=x_death, iterations=0)[0]
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
