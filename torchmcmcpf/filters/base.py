@@ -570,7 +570,9 @@ class Filter(nn.Module):
             # a fresh start: the initial cloud's own slot means are the first reference (its
             # labels are the caller's), not one particle of the first step's cloud
             x_death = None if self.existence is None else self.existence.x_death
-            est = relabelled_estimate(state, x_death=x_death, iterations=0)[0]
+            first = relabelled_estimate(state, x_death=x_death, iterations=0)[0]
+            # an inactive start has no labels to keep: the first step founds them itself
+            est = first if state.exists is None or bool(first.present.any(-1).all()) else None
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
