@@ -535,8 +535,9 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     if exists is not None and present is not None and k > 1:
         # labels the reference has no target for: the densest place of the live slots the
         # present labels leave over (relabelled against them first) founds one new label per
-        # round (one host read a round ends the search), so a target that appeared since the reference gets one label in every
-        # particle, not a share of each, and a stray slot of one particle founds none
+        # round (one host read a round ends the search), so a target that appeared since the
+        # reference gets one label in every particle, not a share of each, and a stray slot
+        # of one particle founds none
         ref, present = ref.clone(), present.clone()
         for _ in range(k if iterations > 0 else 0):  # one new label a round, while one is found
             xs, es = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
