@@ -569,6 +569,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
             out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
         else:
+            assert er is not None  # the relabelled flags of a cloud with flags
             eg = er
             if iterations > 0 and k > 1 and present is not None:
                 # a live slot farther than the cutoff from its label's reference holds another
