@@ -572,7 +572,8 @@ class Filter(nn.Module):
             x_death = None if self.existence is None else self.existence.x_death
             first = relabelled_estimate(state, x_death=x_death, iterations=0)[0]
             # an inactive start has no labels to keep: the first step founds them itself
-            est = first if state.exists is None or bool(first.present.any(-1).all()) else None
+            est = first if self.existence is None or (
+                state.exists is not None and bool(first.present.any(-1).all())) else None
         for t in steps:
             z = tree_map(lambda a: a[t], measurements)
             state, info = self._step(state, z, generator)
