@@ -555,29 +555,26 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     out = None
     xr, er = x, exists
     for _ in range(max(1, int(iterations))):
+        near = None  # (B, N, K): the slots within the cutoff of their label's reference
         if iterations > 0 and k > 1:
             xr, er = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
+            pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
+            near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2
         if exists is None:
             mean = weighted_mean(xr, log_w)
-            if iterations > 0 and k > 1:  # the particles whose slot lies within the cutoff of its label
-                pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
-                near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2  # (B, N, K)
-                wn = torch.softmax(log_w, -1).to(x.dtype).unsqueeze(-1) * near.to(x.dtype)  # (B, N, K)
-                den = wn.sum(1)  # (B, K)
-                gated = torch.einsum("bnk,bnkd->bkd", wn, xr) / den.clamp(min=torch.finfo(x.dtype).tiny).unsqueeze(-1)
-                mean = torch.where(den.unsqueeze(-1) > 0, gated, mean)
+            if near is not None:  # the mean of the slots near their label, of all where none is
+                gated = existence_estimate(ParticleState(xr, log_w, near))
+                mean = torch.where(gated.exists_prob.unsqueeze(-1) > 0, gated.mean, mean)
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
             out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
         else:
             assert er is not None  # the relabelled flags of a cloud with flags
             eg = er
-            if iterations > 0 and k > 1 and present is not None:
+            if near is not None and present is not None:
                 # a live slot farther than the cutoff from its label's reference holds another
                 # target (a particle with two slots on one target and none on another): it
                 # counts neither in this label's mean nor in its existence; a label without a
                 # reference (no target founded for it) reports none
-                pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
-                near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2  # (B, N, K)
                 eg = er & near & present.unsqueeze(1)
             out = existence_estimate(ParticleState(xr, log_w, eg), x_death=x_death)
             # the expected number of targets stays the filter's: the expected number of live slots
