@@ -17,7 +17,8 @@ import torch
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
-           "stack_states", "weighted_mean", "weighted_cov", "summary", "relabel", "relabelled_estimate"]
+           "stack_states", "weighted_mean", "weighted_cov", "summary", "relabel", "relabel_order",
+           "relabelled_estimate"]
 
 
 def summary(value: Any) -> str:
@@ -406,6 +407,23 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
     b, n, k, _ = x.shape
     if k < 2:
         return x, exists
+    slot_of = relabel_order(x, reference, exists=exists, reference_exists=reference_exists, cutoff=cutoff,
+                            max_sweeps=max_sweeps)
+    x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
+    return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+
+
+def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
+                  reference_exists: Tensor | None = None, cutoff: float = 100.0,
+                  max_sweeps: int | None = None) -> Tensor:
+    """The permutation :func:`relabel` applies: ``slot_of (B, N, K)`` int64, the particle slot
+    that carries reference label ``r`` (``x.take_along_dim(slot_of[..., None], 2)`` is the
+    relabelled cloud). Same arguments as :func:`relabel`; for anything with slots in dim 2
+    that should follow the positions' labels (the chains of a convergence check, say).
+    """
+    b, n, k, _ = x.shape
+    if k < 2:
+        return torch.zeros((b, n, k), dtype=torch.int64, device=x.device)
     if tuple(reference.shape) != (b, k, x.shape[-1]):
         raise ValueError(f"reference has shape {tuple(reference.shape)}, expected {(b, k, x.shape[-1])}")
     if not cutoff > 0:
@@ -438,9 +456,7 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
     own = torch.arange(k, device=x.device).expand(b, n, k)
     gain = (torch.take_along_dim(cost, own.unsqueeze(-1), -1) - torch.take_along_dim(cost, label.unsqueeze(-1), -1))
     label = torch.where((gain.sum((-2, -1)) <= (cutoff / 4) ** 2).unsqueeze(-1), own, label)
-    slot_of = torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
-    x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
-    return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+    return torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
 
 
 def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Tensor:

@@ -40,11 +40,17 @@ iterations). Each extension lengthens the chains and so the window. This keeps t
 what the paper says it is, a test that the chains forgot their different starting points
 (``R = 1``: "the MCMC chains have converged within the burn-in period"), at no extra
 iteration. R-hat is taken per state component (positions, velocities, amplitude of every
-slot) and its largest value decides; ``extras["rhat_slot"]`` and ``extras["rhat_dim"]``
-say which target and which component drive it. ``thinning``
-(default 1, the paper) only changes which states become particles: with ``thinning = K``
-each particle follows one sweep over the slots on average, at ``K`` times the cost of the
-kept phase.
+slot) on *relabelled* chains: the K slots of a state are exchangeable labels, and two
+chains holding the same targets under different labels (they started from particles of a
+label-switched cloud, or a two-slot or re-capture move exchanged two targets) have
+converged to the same thing, as has a chain whose labels change within the window; each
+state's slots are therefore permuted to the labels of a reference common to the run
+(``_chains_relabelled``, Stephens 2000), and R-hat compares targets. Chains that agree
+are left as they are. The largest value decides; ``extras["rhat_slot"]`` and
+``extras["rhat_dim"]`` say which target and which component drive it (its label after
+relabelling). ``thinning`` (default 1, the paper) only changes which states become
+particles: with ``thinning = K`` each particle follows one sweep over the slots on
+average, at ``K`` times the cost of the kept phase.
 
 Which target density the move leaves invariant
 ----------------------------------------------
@@ -165,7 +171,7 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture
 from ..resampling import gather_particles, systematic
-from ..state import ParticleState, StepInfo, existence_estimate, weighted_mean
+from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
 from .base import Filter, active_prior, check_existence_proposal
 
@@ -273,12 +279,41 @@ def _window_start(total: int) -> int:
     return min(total // 2, total - 2)
 
 
-def _rhat_report(ys: list, offset: int, method: str) -> RhatReport:
+def _chains_relabelled(window: Tensor, rounds: int = 2) -> Tensor:
+    """The chains' states ``window (W, B, C, K, D)`` with each state's slots permuted to the
+    labels of a reference common to the run, so that R-hat compares targets, not slot labels
+    (module docstring, "Convergence check").
+
+    Stephens (2000): the reference is chain 0's last state, then the mean of the relabelled
+    states (``rounds`` times); :func:`~torchmcmcpf.state.relabel_order` gives each state's
+    permutation. It keeps a state's own labels unless the permutation lowers its
+    squared-distance cost by more than ``(cutoff / 4)^2``, so chains that agree (the usual
+    case with the factorised target) are left as they are, and every state is put in a
+    canonical labelling that does not depend on its chain: R-hat of a label-invariant
+    function of the state.
+    """
+    w, b, c, k, d = window.shape
+    if k < 2:
+        return window
+    states = window.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, d)
+    reference = window[-1, :, 0]
+    for _ in range(rounds):
+        order = relabel_order(states, reference)  # (B, W C, K)
+        relabelled = torch.take_along_dim(states, order.unsqueeze(-1), 2)
+        reference = relabelled.mean(1)
+    return relabelled.reshape(b, w, c, k, d).permute(1, 0, 2, 3, 4)
+
+
+def _rhat_report(ys: list, offset: int, method: str, exchangeable: bool) -> RhatReport:
     """R-hat over chains of the states ``ys`` (a list of ``(B, C, K, D)``, those after
     iterations ``offset, offset + 1, ...``) of the second half of the iterations run so far
-    (module docstring, "Convergence check").
+    (module docstring, "Convergence check"), on relabelled chains where the slots are
+    ``exchangeable`` (a resolved sensor: :attr:`~torchmcmcpf.models.base.SensorModel.resolved`;
+    labelled measurements say which slot is which target).
     """
     window = torch.stack(ys[_window_start(offset + len(ys)) - offset:])  # (W, B, C, K, D)
+    if exchangeable:
+        window = _chains_relabelled(window)
     r = rhat(window, chain_dim=2, sample_dim=0, method=method)  # (B, K, D)
     flat = r.flatten(1)
     # NaN-safe argmax: inf/NaN first (a NaN R-hat can only come from a NaN state)
@@ -502,7 +537,7 @@ def ipmcmc_step(
 
     # 3. R-hat on the second half of the iterations, and extensions (all runs iterate, only
     # those that need it update; a run that stops needing never needs again)
-    report = _rhat_report(ys, record_from, rhat_method)
+    report = _rhat_report(ys, record_from, rhat_method, sensor.resolved)
     extensions = torch.zeros(b, dtype=torch.int64, device=x_prev.device)
     for _ in range(max_extensions if rhat_threshold < math.inf else 0):
         need = report.max >= rhat_threshold  # (B,)
@@ -520,7 +555,7 @@ def ipmcmc_step(
         iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
         report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
-                              for new, old in zip(_rhat_report(ys, record_from, rhat_method), report)))
+                              for new, old in zip(_rhat_report(ys, record_from, rhat_method, sensor.resolved), report)))
 
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
