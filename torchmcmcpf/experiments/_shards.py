@@ -57,7 +57,8 @@ class Shards(NamedTuple):
 class ShardedStudy(Protocol):
     """What :func:`run_shards` needs of a study: its ``name`` and ``run_shard``."""
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def run_shard(self, settings: Any, runs: range, *, generator: torch.Generator, device: torch.device,
                   progress: bool = False) -> tuple[dict, dict]: ...
@@ -118,7 +119,9 @@ def compute_shard(study: ShardedStudy, settings: Any, seed: int, index: int, sta
 
 
 def _settings_dict(settings: Any) -> dict:
-    return dataclasses.asdict(settings) if dataclasses.is_dataclass(settings) else dict(settings)
+    if dataclasses.is_dataclass(settings) and not isinstance(settings, type):
+        return dataclasses.asdict(settings)
+    return dict(settings)
 
 
 def _shard_key(name: str, settings: Any, seed: int, shard_size: int, index: int, runs: range,

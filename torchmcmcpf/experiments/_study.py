@@ -21,7 +21,6 @@ A minimal study, in one file ``torchmcmcpf/experiments/<module>.py``::
     class Coin(Study[CoinSettings]):
         name = "coin"
         description = "the share of heads of a fair coin"
-        settings_type = CoinSettings
 
         def run_shard(self, settings, runs, *, generator, device, progress=False):
             heads = torch.rand(len(runs), settings.flips, generator=generator, device=device) < 0.5
@@ -44,7 +43,7 @@ import time
 from collections.abc import Mapping
 from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
-from typing import Any, ClassVar, Generic, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar, get_args, get_origin
 
 import torch
 
@@ -57,17 +56,20 @@ __all__ = ["Settings", "Study", "option", "generator", "StepTimer"]
 _SAME = object()
 
 
-def option(full: Any, quick: Any = _SAME, *, help: str = "", cli: bool = True, **argparse_kw: Any) -> Any:
+def option(full: Any, quick: Any = _SAME, *, help: str = "", cli: bool = True, record: bool = True,
+           **argparse_kw: Any) -> Any:
     """A settings field: ``full`` is its default, ``quick`` its value under ``--quick``
     (default: the same), ``help`` what it is (the help text adds the two values).
 
     ``cli=False`` keeps it off the study's command line (``shard_size``, a shared option,
-    and constants worth recording). The option is ``--<name-with-dashes>``; its argparse
+    and constants worth recording); ``record=False`` out of :meth:`Settings.record` (a
+    switch of how the study runs rather than of what it computes). The option is ``--<name-with-dashes>``; its argparse
     ``type`` and ``nargs`` follow the default (an int: an integer >= 1; a tuple: one or more
     of its element's type; ``False``: a flag) unless given in ``argparse_kw`` (``type``,
     ``choices``, ``metavar``, ``nargs``).
     """
-    return field(default=full, metadata={"quick": quick, "help": help, "cli": cli, "argparse": argparse_kw})
+    return field(default=full, metadata={"quick": quick, "help": help, "cli": cli, "record": record,
+                                         "argparse": argparse_kw})
 
 
 def _fmt(value: Any) -> str:
@@ -78,9 +80,20 @@ def _fmt(value: Any) -> str:
 
 @dataclass(frozen=True)
 class Settings:
-    """Base of every study's settings: ``quick`` records whether the quick values ran."""
+    """Base of every study's settings: ``quick`` records whether the quick values ran.
+    ``settings["runs"]`` reads a field as ``settings.runs`` does (notebooks index them).
+    """
 
     quick: bool = option(False, cli=False)
+
+    def __getitem__(self, name: str) -> Any:
+        return getattr(self, name)
+
+    def record(self) -> dict[str, Any]:
+        """The settings as a study's results record them (``"config"`` of ``metrics.json``):
+        every field but those declared with ``record=False``.
+        """
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.metadata.get("record", True)}
 
 
 S = TypeVar("S", bound=Settings)
@@ -88,15 +101,22 @@ S = TypeVar("S", bound=Settings)
 
 class Study(Generic[S]):
     """One Monte Carlo study (module docstring): ``name`` (the command-line name),
-    ``description`` (one line for ``reproduce --list``), ``settings_type`` (its frozen
-    :class:`Settings` dataclass), ``outputs`` (the files it writes, for the "replacing"
-    note), and ``run_shard`` + ``summarise`` or ``compute``.
+    ``description`` (one line for ``reproduce --list``), ``outputs`` (the files it writes,
+    for the "replacing" note), and ``run_shard`` + ``summarise`` or ``compute``. Its settings
+    dataclass is the parameter of the base, ``class Coin(Study[CoinSettings])``, and
+    ``settings_type`` is set from it.
     """
 
     name: ClassVar[str]
     description: ClassVar[str]
     settings_type: ClassVar[type]
     outputs: ClassVar[tuple[str, ...]] = ("metrics.json",)
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        for base in getattr(cls, "__orig_bases__", ()):
+            if get_origin(base) is Study and isinstance(get_args(base)[0], type):
+                cls.settings_type = get_args(base)[0]
 
     # ---------------------------------------------------------------- settings
 
@@ -192,7 +212,7 @@ class Study(Generic[S]):
         layout = None
         if self.sharded:
             shards = run_shards(self, settings, options)
-            settings = dataclasses.replace(settings, shard_size=shards.layout["shard_size"])
+            settings = dataclasses.replace(settings, **{"shard_size": shards.layout["shard_size"]})
             payload = self.summarise(settings, shards, options.out)
             layout = shards.layout
         else:

@@ -85,7 +85,6 @@ class Crossing(Study[CrossingSettings]):
     name = "crossing"
     description = ("targets crossing unresolved and re-capture after coalescence: uncovered and shared targets, "
                    "per-step assignment RMSE, identity switches, with and without exclusion and re-capture")
-    settings_type = CrossingSettings
     outputs = ("metrics.json", "crossing.png", "coalescence.png", "tracks.png", "shards")
 
     def run_shard(self, cfg: CrossingSettings, runs: range, *, generator: torch.Generator, device: torch.device,
@@ -160,7 +159,8 @@ class Crossing(Study[CrossingSettings]):
                  f"coalescence: runs re-captured within {cfg['coalesce_steps']} steps (median step) | s / step |",
                  "|---|---|---|---|---|---|---|"]
         for name, r in payload["results"].items():
-            lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} | {r['runs_shared_late']} / {r['runs']} | "
+            lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} | "
+                         f"{r['runs_shared_late']} / {r['runs']} | "
                          f"{float(r['matched_rmse']):.2f} | {float(r['identity_switches_per_run']):.2f} | "
                          f"{float(r['recaptured_share']):.0%} ({float(r['recapture_step_median']):.0f}) | "
                          f"{r['seconds_per_step']:.3f} |")
