@@ -28,7 +28,7 @@ A minimal study, in one file ``torchmcmcpf/experiments/<module>.py``::
 
         def summarise(self, settings, shards, out):
             ...  # figures into out
-            return {"config": settings, "share": shards.per_run["share"].mean()}
+            return {"config": settings.record(), "share": shards.per_run["share"].mean()}
 
     STUDY = Coin()
 
