@@ -80,8 +80,8 @@ class Table2Settings(Settings):
     chains: int = option(50, 10, cli=False)
     burn_in: int = option(100, 10, cli=False)
     targets: tuple[int, ...] = option((1, 10), cli=False)
-    pmmh_candidates: int = option(5, 2, help="PMMH candidates L (chain length; L SIR filters of Np particles)")
     max_extensions: int = option(2, 1, help="IP-MCMC-PF R-hat extensions", type=nonnegative_int)
+    pmmh_candidates: int = option(5, 2, help="PMMH candidates L (chain length; L SIR filters of Np particles)")
     shard_size: int = option(10, 1, cli=False)
     algorithms: tuple[str, ...] = option(
         ALGORITHMS, choices=ALGORITHMS, metavar="NAME",

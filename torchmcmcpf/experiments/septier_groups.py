@@ -92,8 +92,6 @@ class GroupsSettings(Settings):
     chains: int = option(20, 10, help="chains C sharing N_p")
     burn_in: int = option(1000, 10, help="burn-in per chain", type=nonnegative_int)
     thinning: int = option(6, 2, help="thinning")
-    reference_particles: int = option(100_000, 2000, type=nonnegative_int,
-                                      help="particles of the per-target reference filter, 0 to skip it")
     alpha: str = option(PROPOSALS["alpha"], choices=("mean", "predictive"),
                         help="ancestor proposal: eq. 62 ('mean') or the predictive likelihood")
     birth: str = option(PROPOSALS["birth"], choices=("eq65", "frame"),
@@ -102,13 +100,15 @@ class GroupsSettings(Settings):
                       help="past positions the past move changes (default 2; 0: off)")
     p_past: float = option(PROPOSALS["p_past"], help="probability of the past move")
     xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.6; the paper's 0.75)")
+    reference_particles: int = option(100_000, 2000, type=nonnegative_int,
+                                      help="particles of the per-target reference filter, 0 to skip it")
+    compile: bool = option(False, record=False, help="compile the three moves (GroupMCMCFilter(compile_step=True)): "
+                                                     "about 2x faster per iteration, a few minutes to compile")
+    beyond: bool = option(False, record=False, help="also run issue 11 item 4 (a) and (b)")
     beyond_runs: int = option(10, 2, help="--beyond: runs")
     beyond_steps: int = option(30, 4, help="--beyond: time steps")
     beyond_particles: int = option(400, 20, help="--beyond: kept samples")
     beyond_burn_in: int = option(100, 5, help="--beyond: burn-in per chain")
-    compile: bool = option(False, record=False, help="compile the three moves (GroupMCMCFilter(compile_step=True)): "
-                                                     "about 2x faster per iteration, a few minutes to compile")
-    beyond: bool = option(False, record=False, help="also run issue 11 item 4 (a) and (b)")
 
     def __post_init__(self) -> None:
         if self.particles % self.chains:
