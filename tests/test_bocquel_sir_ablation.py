@@ -1,7 +1,6 @@
 """The quick SIR ablation (bocquel-sir-ablation) runs end to end: every factor, both
 readings of eq. 20 and both SNR conventions, one row each."""
 
-import argparse
 import json
 import math
 
@@ -9,23 +8,23 @@ import pytest
 import torch
 
 from torchmcmcpf.experiments import bocquel_sir_ablation as exp
+from torchmcmcpf.experiments._options import RunOptions
 from torchmcmcpf.scenarios.ground_radar import ground_radar
 
 
 def test_quick_ablation_end_to_end(tmp_path):
-    args = argparse.Namespace(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
-                              progress=False)
-    payload = exp.run(args)
+    settings = exp.STUDY.settings(quick=True)
+    payload = exp.STUDY.run(settings, RunOptions(out=tmp_path))
     saved = json.loads((tmp_path / "metrics.json").read_text())
     rows = saved["results"]
-    assert len(rows) == len(exp.cells(payload["config"])) == 2 + 1 + 1 + 3  # K, Np, spread, reading x SNR
+    assert len(rows) == len(exp.cells(settings)) == 2 + 1 + 1 + 3  # K, Np, spread, reading x SNR
     assert {(r["point_spread"], r["snr"]) for r in rows.values()} == {
         ("std", "half"), ("std", "full"), ("variance", "half"), ("variance", "full")}
     for r in rows.values():
         assert 0 <= r["rmse"] < 100 and 0 <= r["tlr"] <= 1 and 1 <= r["ess"] <= r["particles"]
     assert "variance" in (tmp_path / "ablation.md").read_text()
     assert (tmp_path / "ablation.png").stat().st_size > 10_000  # RMSE and ESS against the number of targets
-    assert exp.summary(payload).count("|") > 20
+    assert exp.STUDY.summary(payload).count("|") > 20
 
 
 def test_point_spread_readings_and_snr_shift():

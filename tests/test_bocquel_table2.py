@@ -3,16 +3,15 @@
 import argparse
 import json
 
+import pytest
 import torch
 
 from torchmcmcpf.experiments import bocquel_table2 as exp
+from torchmcmcpf.experiments._options import RunOptions
 
 
 def test_quick_reproduction_end_to_end(tmp_path):
-    args = argparse.Namespace(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
-                              progress=False, runs=None, steps=3, particles=None, max_extensions=None,
-                              pmmh_candidates=2)
-    payload = exp.run(args)
+    payload = exp.STUDY.run(exp.STUDY.settings(quick=True, steps=3, pmmh_candidates=2), RunOptions(out=tmp_path))
     for f in ("table2.md", "metrics.json", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png"):
         assert (tmp_path / f).stat().st_size > 0, f
     saved = json.loads((tmp_path / "metrics.json").read_text())
@@ -30,14 +29,13 @@ def test_quick_reproduction_end_to_end(tmp_path):
 
 
 def test_settings_validate_particles():
+    with pytest.raises(ValueError, match="particles"):
+        exp.STUDY.settings(quick=True, particles=[45])
+    # the notebook's entry point reads an argparse namespace the same way
     args = argparse.Namespace(quick=True, particles=[45], runs=None, steps=None, max_extensions=None,
                               pmmh_candidates=None)
-    try:
+    with pytest.raises(ValueError, match="particles"):
         exp.settings(args)
-    except ValueError as err:
-        assert "particles" in str(err)
-    else:
-        raise AssertionError("expected ValueError")
 
 
 def test_algorithms_pick_the_rows(tmp_path):
@@ -46,7 +44,7 @@ def test_algorithms_pick_the_rows(tmp_path):
     args = argparse.Namespace(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
                               progress=False, runs=None, steps=2, particles=None, max_extensions=None,
                               pmmh_candidates=None, algorithms=["SIR PF"], compile=False)
-    payload = exp.run(args)
+    payload = exp.run(args)  # the notebook's entry point: a namespace in
     assert payload["config"]["algorithms"] == ("SIR PF",)
     for rows in payload["results"].values():
         assert {r["algorithm"] for r in rows.values()} == {"SIR PF"}
@@ -63,7 +61,8 @@ def test_compile_reaches_every_row(monkeypatch):
 
     scn = SimpleNamespace(motion=ConstantVelocity(1.0, 1.0), sensor=LinearGaussian.position(1.0))
     for compile_ in (True, False):
-        cfg = {"compile": compile_, "chains": 5, "burn_in": 2, "max_extensions": 0, "pmmh_candidates": 2}
+        cfg = exp.STUDY.settings(compile=compile_, chains=5, particles=(10,), burn_in=2, max_extensions=0,
+                                 pmmh_candidates=2)
         for name in ("SIR PF", "Partitioned PF", "IP-MCMC-PF"):
             assert exp._make_filter(name, scn, 10, cfg).compile_step is compile_, name
         seen = []
@@ -100,7 +99,7 @@ def test_pmmh_runs_in_batches_of_bounded_particles(monkeypatch):
             return super().forward(measurements, **kwargs)
 
     monkeypatch.setattr(exp, "PMMHFilter", Spy)
-    cfg = {"pmmh_candidates": 2, "compile": False}
+    cfg = exp.STUDY.settings(pmmh_candidates=2, compile=False)
     for budget, batches in ((1, [1, 1, 1]), (2 * 20 * 2, [2, 1]), (10**9, [3])):
         monkeypatch.setattr(exp, "PMMH_BATCH_PARTICLES", budget)
         calls.clear()

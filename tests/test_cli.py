@@ -11,8 +11,9 @@ import torch
 
 from torchmcmcpf import experiments
 from torchmcmcpf.__main__ import main
-from torchmcmcpf.experiments import _common
-from torchmcmcpf.experiments._common import ShardError, run_shards
+from torchmcmcpf.experiments import Study
+from torchmcmcpf.experiments._options import RunOptions
+from torchmcmcpf.experiments._shards import ShardError, run_shards, shard_generator
 
 TESTS = Path(__file__).resolve().parent
 
@@ -104,19 +105,27 @@ def fake_experiment(tmp_path, monkeypatch):
     pkg = tmp_path / "pkg"
     pkg.mkdir()
     (pkg / "fake_study.py").write_text(textwrap.dedent('''
-        from torchmcmcpf.experiments._common import write_metrics
+        """A new study is one file: its settings, what it computes, its instance."""
+        from dataclasses import dataclass
 
-        NAME = "fake-study"
-        DESCRIPTION = "a throwaway study used by tests/test_cli.py"
+        from torchmcmcpf.experiments._study import Settings, Study, option
 
-        def add_arguments(parser):
-            parser.add_argument("--level", type=int, default=1)
 
-        def run(args):
-            metrics = {"quick": args.quick, "level": args.level, "seed": args.seed,
-                       "device_type": args.device.type, "progress": args.progress}
-            write_metrics(args.out, metrics, args=args)
-            return metrics
+        @dataclass(frozen=True)
+        class FakeSettings(Settings):
+            level: int = option(1, 2, help="a level")
+
+
+        class Fake(Study[FakeSettings]):
+            name = "fake-study"
+            description = "a throwaway study used by tests/test_cli.py"
+
+            def compute(self, settings, options):
+                return {"quick": settings.quick, "level": settings.level, "seed": options.seed,
+                        "device_type": options.device.type, "progress": options.progress}
+
+
+        STUDY = Fake()
     '''))
     monkeypatch.setattr(experiments, "__path__", [*experiments.__path__, str(pkg)])
     yield "fake-study"
@@ -136,22 +145,45 @@ def test_reproduce_help_lists_the_common_options(capsys):
 @pytest.mark.parametrize("name", ["bocquel-table2", "bocquel-sir-ablation", "ling-rmse-vs-snr", "maroulas-hmc",
                                   "septier-birth-death"])
 def test_study_help_states_the_settings_that_run(name, capsys):
-    """Every ``(default X, quick Y)`` in a study's --help is read from its FULL and QUICK."""
-    module = experiments.discover()[name]
+    """Every ``(default X, quick Y)`` in a study's --help is read from its settings' fields."""
+    from dataclasses import fields
+
+    study = experiments.discover()[name]
     with pytest.raises(SystemExit) as exc:
         main(["reproduce", name, "--help"])
     assert exc.value.code == 0
     text = " ".join(capsys.readouterr().out.split())  # undo argparse's line wrapping
-    assert ("--shard-size" in text) == hasattr(module, "run_shard")
+    assert ("--shard-size" in text) == study.sharded
     checked = 0
-    for key in module.QUICK:
-        option = "--" + key.replace("_", "-")
-        if option in text:
-            expected = _common.defaults_help(module.FULL, module.QUICK, key, "")
-            assert expected.strip() in text, (option, expected)
+    for f in fields(study.settings_type):
+        option = "--" + f.name.replace("_", "-")
+        if f.metadata.get("cli", True) and "(default" not in f.metadata["help"] and not isinstance(f.default, bool):
+            assert option in text, option
+            expected = f"({study.defaults_text(f.name)})"
+            assert expected in text, (option, expected)
             checked += 1
     assert checked >= 3
     assert re.search(r"quick \d", text)
+    if study.sharded:
+        assert "--shard-size SHARD_SIZE Monte Carlo runs per shard" in text
+        assert f"({study.defaults_text('shard_size')})" in text
+
+
+def test_settings_declare_quick_and_full_values_once():
+    """Quick and full values come from one declaration; given values win; settings are frozen."""
+    import dataclasses
+
+    study = experiments.discover()["crossing"]
+    full, quick = study.settings(), study.settings(quick=True)
+    assert (full.runs, full.particles, full.quick) == (20, 500, False)
+    assert (quick.runs, quick.particles, quick.quick) == (2, 100, True)
+    assert study.settings(quick=True, runs=7, steps=None).runs == 7  # None: not given
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        quick.runs = 3
+    with pytest.raises(ValueError, match="--particles"):
+        study.settings(particles=105)
+    with pytest.raises(TypeError, match="no setting"):
+        study.settings(walkers=3)
 
 
 def test_reproduce_list_and_run(fake_experiment, tmp_path, capsys):
@@ -175,38 +207,38 @@ def test_reproduce_list_and_run(fake_experiment, tmp_path, capsys):
 
 
 def _toy_args(tmp_path, **kw):
-    base = dict(seed=3, out=tmp_path, device=torch.device("cpu"), progress=False, shard_size=None, workers=None,
-                ray_address=None, threads=None)
-    return argparse.Namespace(**{**base, **kw})
+    return RunOptions(**{"seed": 3, "out": tmp_path, **kw})
+
+
+def _toy(**given):
+    import _shard_study as toy
+
+    return toy.STUDY, toy.STUDY.settings(**given)
 
 
 def test_shard_streams_depend_on_shard_size_not_grouping(tmp_path):
-    import _shard_study as toy
-
-    a = run_shards(toy, {"runs": 5, "shard_size": 2}, _toy_args(tmp_path / "a"))
+    a = run_shards(*_toy(runs=5, shard_size=2), _toy_args(tmp_path / "a"))
     assert a.layout["num_shards"] == 3 and a.layout["shard_size"] == 2
     assert torch.equal(a.per_run["run"], torch.arange(5)) and a.per_run["draws"].shape == (5, 3)
     assert a.seconds == {"toy": 1.5}
     # shard i draws from the generator of (seed, i), whatever ran before it
-    first = torch.rand(2, 3, generator=_common.shard_generator("cpu", 3, 1))
+    first = torch.rand(2, 3, generator=shard_generator("cpu", 3, 1))
     assert torch.equal(a.per_run["draws"][2:4], first)
-    b = run_shards(toy, {"runs": 5, "shard_size": 1}, _toy_args(tmp_path / "b"))
+    b = run_shards(*_toy(runs=5, shard_size=1), _toy_args(tmp_path / "b"))
     assert not torch.equal(a.per_run["draws"], b.per_run["draws"])  # a different layout is a different study
     assert len(list((tmp_path / "a" / "shards").glob("shard-*.pt"))) == 3
 
 
 def test_interrupted_study_resumes_from_its_shards(tmp_path):
-    import _shard_study as toy
-
     with pytest.raises(ShardError, match=r"shard-toy: shard 2 \(runs 4\.\.4\) failed: FloatingPointError: run 4"):
-        run_shards(toy, {"runs": 5, "shard_size": 2, "fail_run": 4}, _toy_args(tmp_path))
+        run_shards(*_toy(runs=5, shard_size=2, fail_run=4), _toy_args(tmp_path))
     # the two shards written before the failure are stored, but under other settings: rerun
     args = _toy_args(tmp_path)
-    full = run_shards(toy, {"runs": 5, "shard_size": 2}, args)
+    full = run_shards(*_toy(runs=5, shard_size=2), args)
     assert full.layout["resumed"] == 0
-    again = run_shards(toy, {"runs": 5, "shard_size": 2}, args)
+    again = run_shards(*_toy(runs=5, shard_size=2), args)
     assert again.layout["resumed"] == 3 and torch.equal(again.per_run["draws"], full.per_run["draws"])
-    other_seed = run_shards(toy, {"runs": 5, "shard_size": 2}, _toy_args(tmp_path, seed=4))
+    other_seed = run_shards(*_toy(runs=5, shard_size=2), _toy_args(tmp_path, seed=4))
     assert other_seed.layout["resumed"] == 0
 
 
@@ -249,17 +281,15 @@ def test_ray_workers_write_the_same_metrics(ray_cluster, tmp_path, capsys):
 
 
 def test_ray_failing_shard_names_the_shard(ray_cluster, tmp_path):
-    import _shard_study as toy
-
     args = _toy_args(tmp_path, workers=2)
     with pytest.raises(ShardError, match=r"shard 1 \(runs 2\.\.3\) failed: FloatingPointError"):
-        run_shards(toy, {"runs": 6, "shard_size": 2, "fail_run": 3}, args)
+        run_shards(*_toy(runs=6, shard_size=2, fail_run=3), args)
     # shards that could never be placed (a GPU each, none in the cluster) fail at once, no hang
     with pytest.raises(ShardError, match="GPUs"):
-        run_shards(toy, {"runs": 2, "shard_size": 1}, _toy_args(tmp_path / "gpu", workers=2,
+        run_shards(*_toy(runs=2, shard_size=1), _toy_args(tmp_path / "gpu", workers=2,
                                                                 device=torch.device("cuda")))
-    here = run_shards(toy, {"runs": 6, "shard_size": 2}, _toy_args(tmp_path / "here"))
-    there = run_shards(toy, {"runs": 6, "shard_size": 2}, _toy_args(tmp_path / "there", workers=2))
+    here = run_shards(*_toy(runs=6, shard_size=2), _toy_args(tmp_path / "here"))
+    there = run_shards(*_toy(runs=6, shard_size=2), _toy_args(tmp_path / "there", workers=2))
     assert torch.equal(here.per_run["draws"], there.per_run["draws"])
 
 
@@ -291,18 +321,28 @@ def failing_experiment(tmp_path, monkeypatch):
     pkg = tmp_path / "pkg_fail"
     pkg.mkdir()
     (pkg / "failing_study.py").write_text(textwrap.dedent('''
-        from torchmcmcpf.experiments._common import ShardError
+        from dataclasses import dataclass
 
-        NAME = "failing-study"
-        DESCRIPTION = "a study that fails (tests/test_cli.py)"
+        from torchmcmcpf.experiments._shards import ShardError
+        from torchmcmcpf.experiments._study import Settings, Study, option
 
-        def add_arguments(parser):
-            parser.add_argument("--kind", default="value")
 
-        def run(args):
-            if args.kind == "value":
-                raise ValueError("num_chains=30 must divide num_particles=100")
-            raise ShardError("failing-study: shard 2 (runs 2..2) failed: RuntimeError: out of memory\\nsecond line")
+        @dataclass(frozen=True)
+        class FailingSettings(Settings):
+            kind: str = option("value", help="how to fail")
+
+
+        class Failing(Study[FailingSettings]):
+            name = "failing-study"
+            description = "a study that fails (tests/test_cli.py)"
+
+            def compute(self, settings, options):
+                if settings.kind == "value":
+                    raise ValueError("num_chains=30 must divide num_particles=100")
+                raise ShardError("failing-study: shard 2 (runs 2..2) failed: RuntimeError: out of memory\\nsecond line")
+
+
+        STUDY = Failing()
     '''))
     monkeypatch.setattr(experiments, "__path__", [*experiments.__path__, str(pkg)])
     yield "failing-study"
@@ -325,8 +365,8 @@ def test_run_errors_are_one_line_unless_asked_for_the_traceback(failing_experime
 
 
 def test_shard_options_only_where_the_study_runs_in_shards(capsys):
-    sharded = [n for n, m in experiments.discover().items() if hasattr(m, "run_shard")]
-    unsharded = [n for n, m in experiments.discover().items() if not hasattr(m, "run_shard")]
+    sharded = [n for n, s in experiments.discover().items() if s.sharded]
+    unsharded = [n for n, s in experiments.discover().items() if not s.sharded]
     assert {"maroulas-hmc", "septier-groups"} <= set(unsharded) and "bocquel-table2" in sharded
     assert main(["reproduce", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
@@ -350,8 +390,9 @@ def test_every_study_prints_a_headline_table(fake_experiment, tmp_path, capsys):
     assert main(["reproduce", "group-merge-scenario", "--quick", "--out", tmp_path / "gm", "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "| quantity | this run | paper |" in printed and "P_d,1: model / simulated" in printed
-    missing = [n for n, m in experiments.discover().items() if not hasattr(m, "summary") and n != fake_experiment]
-    assert missing in ([], ["septier-groups"]), missing  # septier-groups: its table comes with the group work
+    missing = [n for n, s in experiments.discover().items()
+               if type(s).summary is Study.summary and n != fake_experiment]
+    assert missing == [], missing
 
 
 def test_demo_quick_states_its_expected_duration(tmp_path, capsys):

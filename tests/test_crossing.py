@@ -1,6 +1,5 @@
 """The crossing scenario, the crossing and soak studies (issue 22), and the relabelled estimate."""
 
-import argparse
 import json
 import math
 
@@ -9,6 +8,7 @@ import torch
 
 from torchmcmcpf.experiments import crossing as crossing_study
 from torchmcmcpf.experiments import soak
+from torchmcmcpf.experiments._options import RunOptions
 from torchmcmcpf.scenarios import crossing
 from torchmcmcpf.state import ParticleState, relabel, relabelled_estimate
 from torchmcmcpf.typing import VX, VY, X, Y
@@ -65,10 +65,8 @@ def test_relabel_recovers_swapped_labels(gen):
     assert sorted(est.exists_prob[0].tolist()) == pytest.approx([0.0, 1.0])
 
 
-def _args(module, tmp_path, **kw):
-    return argparse.Namespace(name=module.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0,
-                              progress=False, threads=None, workers=None, ray_address=None, shard_size=None,
-                              gpus_per_shard=1.0, **kw)
+def _run_quick(module, tmp_path):
+    return module.STUDY.run(module.STUDY.settings(quick=True), RunOptions(out=tmp_path))
 
 
 def _cloud(points, gen, n=400, noise=3.0):
@@ -120,22 +118,22 @@ def test_relabelled_estimate_founds_one_label_for_a_new_target(gen):
 
 
 def test_crossing_study_quick(tmp_path):
-    payload = crossing_study.run(_args(crossing_study, tmp_path))
+    payload = _run_quick(crossing_study, tmp_path)
     for name in ("metrics.json", "crossing.png", "coalescence.png", "tracks.png"):
         assert (tmp_path / name).exists()
     stored = json.loads((tmp_path / "metrics.json").read_text())
     assert set(stored["results"]) == set(crossing_study.FILTERS)
     r = payload["results"]["IP-MCMC-PF"]
     assert 0 <= r["runs_uncovered_late"] <= r["runs"] and float(r["matched_rmse"]) >= 0
-    assert "| IP-MCMC-PF |" in crossing_study.summary(payload)
+    assert "| IP-MCMC-PF |" in crossing_study.STUDY.summary(payload)
 
 
 def test_soak_study_quick(tmp_path):
-    payload = soak.run(_args(soak, tmp_path))
+    payload = _run_quick(soak, tmp_path)
     assert (tmp_path / "soak.png").exists() and (tmp_path / "metrics.json").exists()
     fixed = payload["results"]["fixed"]["IP-MCMC-PF"]
     assert fixed["non_finite"] == 0 and len(fixed["matched_rmse_per_chunk"]) == 2
     bd = payload["results"]["birth-death"]["IP-MCMC-PF"]
     for total, loc, card in bd["ospa_per_chunk"]:  # per step OSPA^2 = loc^2 + card^2, so for the means:
         assert max(loc, card) - 1e-6 <= total <= loc + card + 1e-6
-    assert "birth-death" in soak.summary(payload)
+    assert "birth-death" in soak.STUDY.summary(payload)

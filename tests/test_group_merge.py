@@ -80,13 +80,13 @@ def test_same_seed_same_scenario_and_options():
 
 def test_study_quick_writes_figure_and_metrics(tmp_path):
     from torchmcmcpf.experiments import group_merge_scenario as study
+    from torchmcmcpf.experiments._options import RunOptions
 
     parser = argparse.ArgumentParser()
-    study.add_arguments(parser)
-    args = parser.parse_args([])
-    args.quick, args.out, args.device, args.seed, args.progress = True, tmp_path, torch.device("cpu"), 0, False
-    args.name = study.NAME
-    out = study.run(args)
+    study.STUDY.add_arguments(parser)  # the options derived from the settings: none given, quick values
+    settings = study.STUDY.settings_from({**vars(parser.parse_args([])), "quick": True})
+    assert (settings.runs, settings.slots) == (2, 4)
+    out = study.STUDY.run(settings, RunOptions(out=tmp_path))
     assert (tmp_path / "tracks.png").stat().st_size > 0
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["snr_db"] == pytest.approx(12.15, abs=0.01)

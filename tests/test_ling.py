@@ -80,15 +80,10 @@ def test_scenario_rejects_bad_arguments():
         ling(5.0, 1, generator=g, dt=0.0)
 
 
-def _args(tmp_path, **kw):
-    base = dict(name=exp.NAME, quick=True, out=tmp_path, device=torch.device("cpu"), seed=0, progress=False,
-                runs=None, snr=None, steps=None, burn_in=None, thinning=None, particles=None, moves=None)
-    base.update(kw)
-    return argparse.Namespace(**base)
-
-
 def test_quick_reproduction_end_to_end(tmp_path):
-    payload = exp.run(_args(tmp_path, steps=4))
+    from torchmcmcpf.experiments._options import RunOptions
+
+    payload = exp.STUDY.run(exp.STUDY.settings(quick=True, steps=4), RunOptions(out=tmp_path))
     for f in ("metrics.json", "rmse_vs_snr.png", "tracks.png"):
         assert (tmp_path / f).stat().st_size > 0, f
     saved = json.loads((tmp_path / "metrics.json").read_text())
@@ -106,15 +101,15 @@ def test_quick_reproduction_end_to_end(tmp_path):
 
 
 def test_quick_study_is_deterministic():
-    cfg = exp.settings(_args(None, steps=2, moves=["random_walk"]))
+    cfg = exp.STUDY.settings(quick=True, steps=2, moves=["random_walk"])
     a = exp.run_study(cfg, device=torch.device("cpu"), seed=5)
     b = exp.run_study(cfg, device=torch.device("cpu"), seed=5)
     assert torch.equal(a["estimates"]["random_walk"], b["estimates"]["random_walk"])
 
 
 def test_settings_map_the_paper_and_validate():
-    full = exp.settings(argparse.Namespace(quick=False))
+    full = exp.settings(argparse.Namespace(quick=False))  # the notebook's entry point
     sizes = (full["burn_in"], full["thinning"], full["particles"], full["runs"], full["steps"])
     assert sizes == (500, 10, 100, 100, 35)
     with pytest.raises(ValueError, match="--burn-in must be >= 0"):
-        exp.settings(_args(None, burn_in=-1))
+        exp.STUDY.settings(quick=True, burn_in=-1)

@@ -1,6 +1,5 @@
 """Paper-003 scenario (Maroulas and Stinis 2010) and the quick reproduction end to end."""
 
-import argparse
 import json
 import math
 
@@ -70,9 +69,9 @@ def test_rmse_is_eq_31():
 
 
 def test_quick_reproduction_end_to_end(tmp_path):
-    args = argparse.Namespace(name=maroulas_hmc.NAME, quick=True, out=tmp_path, device=torch.device("cpu"),
-                              seed=0, progress=False, runs=None, steps=None, hmc_steps=None)
-    metrics = maroulas_hmc.run(args)
+    from torchmcmcpf.experiments._options import RunOptions
+
+    metrics = maroulas_hmc.STUDY.run(maroulas_hmc.STUDY.settings(quick=True), RunOptions(out=tmp_path))
     written = json.loads((tmp_path / "metrics.json").read_text())
     for obs in M.OBSERVATIONS:
         for name in ("improved", "generic", "generic_equal_time"):

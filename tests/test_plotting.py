@@ -150,15 +150,17 @@ UNITLESS = ("number of targets",)  # counts
 
 @pytest.fixture(scope="module")
 def study_figures(tmp_path_factory):
-    import argparse
+    import sys
 
     from torchmcmcpf import experiments
+    from torchmcmcpf.experiments._options import RunOptions
 
     found = experiments.discover()
     figures = {}
     mp = pytest.MonkeyPatch()
     for name, extra in STUDIES.items():
-        module = found[name]
+        study = found[name]
+        module = sys.modules[type(study).__module__]
         original = module.save_figure
 
         def capture(fig, out, filename, *, quick=False, _name=name, _orig=original):
@@ -173,9 +175,8 @@ def study_figures(tmp_path_factory):
             return _orig(fig, out, filename, quick=quick)
 
         mp.setattr(module, "save_figure", capture)
-        args = argparse.Namespace(name=name, quick=True, out=tmp_path_factory.mktemp(name), device=torch.device("cpu"),
-                                  seed=0, progress=False, **extra)
-        figures[(name, "summary")] = module.summary(module.run(args))
+        payload = study.run(study.settings(quick=True, **extra), RunOptions(out=tmp_path_factory.mktemp(name)))
+        figures[(name, "summary")] = study.summary(payload)
     mp.undo()
     return figures
 
@@ -213,7 +214,7 @@ def test_every_filter_is_shown_and_titles_are_consistent(study_figures):
 
 
 def test_save_figure_stamps_quick_mode(tmp_path, monkeypatch):
-    from torchmcmcpf.experiments._common import save_figure
+    from torchmcmcpf.experiments._figures import save_figure
 
     seen = {}
     monkeypatch.setattr(plt, "close", lambda fig: seen.setdefault("texts", [t.get_text() for t in fig.texts]))

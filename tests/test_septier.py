@@ -1,7 +1,6 @@
 """The birth/death scenario of paper 001, its study, and the Stone Soup trackers it is
 compared with (issue 27)."""
 
-import argparse
 import json
 import math
 
@@ -147,9 +146,10 @@ def test_tuning_grid_points_are_valid_settings():
 
 
 def test_experiment_quick(tmp_path):
-    args = argparse.Namespace(name=septier_birth_death.NAME, quick=True, out=tmp_path, device=torch.device("cpu"),
-                              seed=0, progress=False, runs=2, steps=8, particles=100)
-    payload = septier_birth_death.run(args)
+    from torchmcmcpf.experiments._options import RunOptions
+
+    study = septier_birth_death.STUDY
+    payload = study.run(study.settings(quick=True, runs=2, steps=8, particles=100), RunOptions(out=tmp_path))
     for name in ("metrics.json", "tracks.png", "cardinality.png", "ospa.png"):
         assert (tmp_path / name).exists()
     stored = json.loads((tmp_path / "metrics.json").read_text())
@@ -169,15 +169,16 @@ def test_experiment_quick(tmp_path):
         assert len(res["ospa_thirds"]) == 3 and len(res["seconds_per_step_thirds"]) == 3
         # the thirds (3, 2 and 3 steps) average to the whole
         assert np.dot(res["ospa_thirds"], [3, 2, 3]) / 8 == pytest.approx(res["ospa"])
-    text = septier_birth_death.summary(payload)
+    text = study.summary(payload)
     assert all(f"| {name} |" in text for name in names) and "per third" in text
 
 
 def test_gospa_parts_hold_per_run_and_step(tmp_path):
     # the per-run scores of a shard satisfy the GOSPA decomposition exactly
-    cfg = dict(septier_birth_death.QUICK, runs=1, steps=5, particles=50, quick=True, stonesoup=None)
-    per_run, seconds = septier_birth_death.run_shard(cfg, range(2), generator=torch.Generator().manual_seed(0),
-                                                     device=torch.device("cpu"))
+    study = septier_birth_death.STUDY
+    cfg = study.settings(quick=True, runs=1, steps=5, particles=50, stonesoup=False)
+    per_run, seconds = study.run_shard(cfg, range(2), generator=torch.Generator().manual_seed(0),
+                                       device=torch.device("cpu"))
     for name in septier_birth_death.FILTERS:
         g, loc = per_run[f"{name}|gospa"], per_run[f"{name}|localisation"]
         wrong = per_run[f"{name}|missed"] + per_run[f"{name}|false"]

@@ -1,7 +1,6 @@
 """The septier-groups study (paper 004 Figs. 4-6) in quick mode, into a temporary folder; its
 reference filter and ceiling; its command-line errors (issue 25)."""
 
-import argparse
 import json
 
 import pytest
@@ -10,20 +9,12 @@ import torch
 from torchmcmcpf.__main__ import main
 from torchmcmcpf.experiments import discover
 from torchmcmcpf.experiments import septier_groups as study
-
-
-def _args(tmp_path, *argv):
-    parser = argparse.ArgumentParser()
-    study.add_arguments(parser)
-    args = parser.parse_args(list(argv))
-    args.quick, args.out, args.device, args.seed, args.progress = True, tmp_path, torch.device("cpu"), 0, False
-    args.name = study.NAME
-    return args
+from torchmcmcpf.experiments._options import RunOptions
 
 
 def test_study_quick_writes_figures_metrics_and_headline(tmp_path):
-    assert discover()[study.NAME] is study
-    out = study.run(_args(tmp_path, "--beyond"))
+    assert discover()["septier-groups"] is study.STUDY
+    out = study.STUDY.run(study.STUDY.settings(quick=True, beyond=True), RunOptions(out=tmp_path))
     for name in ("tracks.png", "structures.png", "existence.png", "ospa.png"):
         assert (tmp_path / name).stat().st_size > 0
     saved = json.loads((tmp_path / "metrics.json").read_text())
@@ -35,7 +26,7 @@ def test_study_quick_writes_figures_metrics_and_headline(tmp_path):
     assert len(saved["reference"]["expected_count_per_step"]) == steps
     ceiling = saved["ceiling"]
     assert abs(ceiling["stationary"] - 3.670) < 1e-3 and abs(ceiling["stationary_17db"] - 3.825) < 1e-3
-    text = study.summary(out)
+    text = study.STUDY.summary(out)
     assert "| group MCMC-PF (ours) |" in text and "| reference (bootstrap PF per target) |" in text
     assert "| ceiling (pixel known) | 3.31 |" in text  # step 5 from an inactive start, four targets
 

@@ -30,21 +30,20 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .experiments._common import (
+from .experiments._figures import np_label, save_figure
+from .experiments._options import (
     SHARD_OPTIONS,
-    ShardError,
-    StepTimer,
+    RunOptions,
     add_common_arguments,
     add_shard_arguments,
-    generator,
     nonnegative_int,
-    np_label,
     out_dir,
     positive_int,
     prepare_out,
-    save_figure,
-    write_metrics,
 )
+from .experiments._provenance import write_metrics
+from .experiments._shards import ShardError
+from .experiments._study import StepTimer, generator
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -220,7 +219,9 @@ def _demo(args: argparse.Namespace) -> dict:
         "lost_runs": lost,
         "seconds_per_step": timer.seconds_per_step,
     }
-    path = write_metrics(out, metrics, args=args)
+    hidden = ("started", "command_line")
+    path = write_metrics(out, metrics, settings={k: v for k, v in vars(args).items() if k not in hidden},
+                         options=RunOptions.from_namespace(args))
     save_figure(demo_figure(scenario, result, rmse, args), out, "tracks.png")
 
     chains = f" in {args.chains} chains" if args.filter == "ipmcmc" else ""
@@ -238,7 +239,7 @@ def _demo(args: argparse.Namespace) -> dict:
 def _reproduce_help_parser(found: dict) -> argparse.ArgumentParser:
     """``reproduce --help``: the name, --list and the options common to every study."""
     width = max((len(n) for n in found), default=0)
-    listing = "\n".join(f"  {n:<{width}}  {m.DESCRIPTION}" for n, m in found.items())
+    listing = "\n".join(f"  {n:<{width}}  {s.description}" for n, s in found.items())
     parser = argparse.ArgumentParser(
         prog="python -m torchmcmcpf reproduce",
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -249,7 +250,7 @@ def _reproduce_help_parser(found: dict) -> argparse.ArgumentParser:
     parser.add_argument("name", nargs="?", help="study NAME (see --list)")
     parser.add_argument("--list", action="store_true", help="list the studies and exit")
     add_common_arguments(parser, name="NAME", shards=False)
-    add_shard_arguments(parser, studies=[n for n, m in found.items() if hasattr(m, "run_shard")])
+    add_shard_arguments(parser, studies=[n for n, s in found.items() if s.sharded])
     return parser
 
 
@@ -264,8 +265,8 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
     found = experiments.discover()
     if known.list or (known.name is None and not known.help):
         width = max((len(n) for n in found), default=0)
-        for name, module in found.items():
-            print(f"{name:<{width}}  {module.DESCRIPTION}")
+        for name, each in found.items():
+            print(f"{name:<{width}}  {each.description}")
         if not found:
             print("no experiments found in torchmcmcpf/experiments/")
         if not known.list:
@@ -276,35 +277,31 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
         return {}
     if known.name not in found:
         pre.error(f"argument name: unknown experiment {known.name!r}; choose from {sorted(found)}")
-    module = found[known.name]
+    study = found[known.name]
     parser = argparse.ArgumentParser(prog=f"python -m torchmcmcpf reproduce {known.name}",
-                                     description=module.DESCRIPTION)
-    sharded = hasattr(module, "run_shard")
-    add_common_arguments(parser, name=known.name, shards=sharded, study=module)
+                                     description=study.description)
+    add_common_arguments(parser, name=known.name, shards=study.sharded,
+                         shard_size=study.defaults_text("shard_size") if study.sharded else None)
     given = [a.split("=", 1)[0] for a in rest if a.split("=", 1)[0] in SHARD_OPTIONS]
-    if given and not sharded:
+    if given and not study.sharded:
         parser.error(f"argument {given[0]}: {known.name} does not run in shards, so it has no {given[0]}; "
-                     f"the studies that do: {', '.join(n for n, m in found.items() if hasattr(m, 'run_shard'))}")
-    if hasattr(module, "add_arguments"):
-        module.add_arguments(parser.add_argument_group(f"options of {known.name}"))
+                     f"the studies that do: {', '.join(n for n, s in found.items() if s.sharded)}")
+    study.add_arguments(parser.add_argument_group(f"options of {known.name}"))
     args = parser.parse_args(rest + (["--help"] if known.help else []))
     if getattr(args, "ray_address", None) and not args.workers:
         parser.error("argument --ray-address: needs --workers N (how many shards run at once)")
-    if hasattr(module, "settings"):  # inconsistent settings: a one-line argument error, not a traceback
-        try:
-            module.settings(args)
-        except ValueError as err:
-            parser.error(str(err))
-    args.name = known.name
-    args.command_line = command_line
-    args.started = started
+    try:  # inconsistent settings: a one-line argument error, not a traceback
+        settings = study.settings_from(args)
+    except ValueError as err:
+        parser.error(str(err))
     try:
-        args.out = prepare_out(args.out, getattr(module, "OUTPUTS", ()))
+        out = prepare_out(args.out, study.outputs)
     except ValueError as err:
         parser.error(f"argument --{err}")
-    result = module.run(args)
-    print(f"\n{known.name}: wrote {args.out}")
-    print(module.summary(result) if hasattr(module, "summary") else headline_table(result))
+    options = RunOptions.from_namespace({**vars(args), "out": out, "command_line": command_line, "started": started})
+    result = study.run(settings, options)
+    print(f"\n{known.name}: wrote {out}")
+    print(study.summary(result) or headline_table(result))
     return result
 
 

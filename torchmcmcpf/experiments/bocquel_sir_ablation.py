@@ -26,28 +26,27 @@ an :class:`~torchmcmcpf.filters.sir.SIRFilter` resampling every step, and report
 of targets at the base Np, with the paper's 10-target SIR row).
 
 Shards: ``--shard-size`` runs per shard (default 5, quick 1), each with the generator of
-``(seed, shard index)`` (:func:`~torchmcmcpf.experiments._common.run_shards`).
+``(seed, shard index)`` (:func:`~torchmcmcpf.experiments._shards.run_shards`).
 """
 
 from __future__ import annotations
 
-import argparse
 import math
-from typing import TYPE_CHECKING, Any
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from .. import metrics
 from ..filters.sir import SIRFilter
 from ..scenarios.ground_radar import ground_radar
-from ._common import StepTimer, defaults_help, positive_int, run_shards, save_figure, write_metrics
+from ._figures import pyplot, save_figure
+from ._shards import Shards
+from ._study import Settings, StepTimer, Study, option
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
-
-NAME = "bocquel-sir-ablation"
-DESCRIPTION = ("Bocquel et al. 2012 Table II SIR row: SIR RMSE/TLR vs targets, Np, initial spread, "
-               "eq. 20 reading and SNR convention")
 
 #: the paper's SIR rows (10 targets): Np -> (RMSE [m], TLR)
 PAPER = {500: (6.74, 0.06), 5000: (6.23, 0.03)}
@@ -56,51 +55,34 @@ SPREAD = (5.0, 1.0, 0.1)
 #: SNR conventions -> dB added to the scenario's SNR range in our convention rho^2 / (2 sigma^2)
 SNR_SHIFT = {"half": 0.0, "full": -10.0 * math.log10(2.0)}
 
-QUICK = dict(runs=1, steps=3, targets=(1, 3), particles=(50, 100), spreads=(0.0, 1.0), base_targets=3,
-             base_particles=50, shard_size=1)
-FULL = dict(runs=20, steps=20, targets=(1, 2, 3, 5, 10), particles=(500, 5000, 50000), spreads=(0.0, 1.0, 2.0),
-            base_targets=10, base_particles=500, shard_size=5)
-OUTPUTS = ("metrics.json", "ablation.md", "ablation.png", "shards")
+
+@dataclass(frozen=True)
+class AblationSettings(Settings):
+    """The settings of :class:`SIRAblation` (full values; the second of each pair: ``--quick``)."""
+
+    runs: int = option(20, 1, help="Monte Carlo runs per setting")
+    steps: int = option(20, 3, help="time steps")
+    targets: tuple[int, ...] = option((1, 2, 3, 5, 10), (1, 3), help="numbers of targets")
+    particles: tuple[int, ...] = option((500, 5000, 50000), (50, 100), help="Np values (at the base K)")
+    spreads: tuple[float, ...] = option((0.0, 1.0, 2.0), (0.0, 1.0), help="initial-spread scale factors")
+    base_targets: int = option(10, 3, help="K of the base setting")
+    base_particles: int = option(500, 50, help="Np of the base setting")
+    shard_size: int = option(5, 1, cli=False)
+
+    def __post_init__(self) -> None:
+        if any(s < 0 or not math.isfinite(s) for s in self.spreads):
+            raise ValueError(f"--spreads must be finite and >= 0, got {self.spreads}")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
-
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
-
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs per setting"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
-    parser.add_argument("--targets", type=positive_int, nargs="+", help=h("targets", "numbers of targets"))
-    parser.add_argument("--particles", type=positive_int, nargs="+", help=h("particles", "Np values (at the base K)"))
-    parser.add_argument("--spreads", type=float, nargs="+", help=h("spreads", "initial-spread scale factors"))
-    parser.add_argument("--base-targets", type=positive_int, help=h("base_targets", "K of the base setting"))
-    parser.add_argument("--base-particles", type=positive_int, help=h("base_particles", "Np of the base setting"))
-
-
-def settings(args: argparse.Namespace) -> dict[str, Any]:
-    """Quick or full defaults, overridden by the command-line options given."""
-    quick = bool(getattr(args, "quick", False))
-    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
-    for key in ("runs", "steps", "targets", "particles", "spreads", "base_targets", "base_particles", "shard_size"):
-        value = getattr(args, key, None)
-        if value is not None:
-            cfg[key] = tuple(value) if isinstance(value, (list, tuple)) else value
-    if any(s < 0 or not math.isfinite(s) for s in cfg["spreads"]):
-        raise ValueError(f"--spreads must be finite and >= 0, got {cfg['spreads']}")
-    cfg["quick"] = quick
-    return cfg
-
-
-def cells(cfg: dict) -> list[dict]:
+def cells(cfg: AblationSettings) -> list[dict]:
     """Every setting the study runs (one factor at a time around the base), each a dict
     ``targets, particles, spread, point_spread, snr`` with its ``key``; duplicates dropped.
     """
-    base = dict(targets=cfg["base_targets"], particles=cfg["base_particles"], spread=1.0, point_spread="std",
+    base = dict(targets=cfg.base_targets, particles=cfg.base_particles, spread=1.0, point_spread="std",
                 snr="half")
-    out = [dict(base, targets=k) for k in cfg["targets"]]
-    out += [dict(base, particles=n) for n in cfg["particles"]]
-    out += [dict(base, spread=s) for s in cfg["spreads"]]
+    out = [dict(base, targets=k) for k in cfg.targets]
+    out += [dict(base, particles=n) for n in cfg.particles]
+    out += [dict(base, spread=s) for s in cfg.spreads]
     out += [dict(base, point_spread=p, snr=c) for p in ("std", "variance") for c in SNR_SHIFT]
     seen, unique = set(), []
     for c in out:
@@ -109,53 +91,6 @@ def cells(cfg: dict) -> list[dict]:
             seen.add(key)
             unique.append({**c, "key": key})
     return unique
-
-
-def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
-              progress: bool = False) -> tuple[dict, dict]:
-    """Every setting of :func:`cells` for the runs ``runs``.
-
-    Returns
-    -------
-    ``per_run`` with, per setting key: ``|se`` ``(B, T)`` squared position error averaged
-    over the targets, ``|lost`` ``(B,)`` track loss (20 m), ``|ess`` ``(B,)`` mean ESS;
-    ``seconds`` per key.
-    """
-    g = generator
-    per_run, seconds = {}, {}
-    scenarios = {}
-    for c in cells(cfg):
-        sk = (c["targets"], c["point_spread"], c["snr"])
-        if sk not in scenarios:  # one scenario per (K, reading, SNR convention), shared by the settings
-            lo, hi = 9.0 + SNR_SHIFT[c["snr"]], 20.0 + SNR_SHIFT[c["snr"]]
-            scenarios[sk] = ground_radar(c["targets"], cfg["steps"], len(runs), generator=g, device=device,
-                                         snr_db=(lo, hi), point_spread=c["point_spread"])
-        scn = scenarios[sk]
-        x0 = scn.initial_particles(c["particles"], generator=g, spread=tuple(c["spread"] * s for s in SPREAD))
-        with StepTimer(device, steps=cfg["steps"]) as timer:
-            res = SIRFilter(scn.motion, scn.sensor, c["particles"])(scn.measurements, init=x0, generator=g,
-                                                                    progress=progress)
-        key = c["key"]
-        seconds[key] = timer.seconds
-        per_run[f"{key}|se"] = metrics.position_error(res.mean, scn.truth).square().mean(-1).T
-        per_run[f"{key}|lost"] = metrics.track_loss(res.mean, scn.truth)
-        per_run[f"{key}|ess"] = res.info.ess.mean(0)
-    return per_run, seconds
-
-
-def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
-    """One row per setting: ``key -> {targets, particles, spread, point_spread, snr, rmse,
-    tlr, ess, seconds_per_step}``.
-    """
-    rows = {}
-    for c in cells(cfg):
-        key = c["key"]
-        rows[key] = {**{k: v for k, v in c.items() if k != "key"},
-                     "rmse": per_run[f"{key}|se"].mean().sqrt(),
-                     "tlr": per_run[f"{key}|lost"].float().mean(),
-                     "ess": per_run[f"{key}|ess"].mean(),
-                     "seconds_per_step": seconds[key] / cfg["steps"]}
-    return rows
 
 
 def table_markdown(rows: dict) -> str:
@@ -173,57 +108,101 @@ def table_markdown(rows: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def targets_figure(rows: dict, cfg: dict) -> Figure:
+def targets_figure(rows: dict, cfg: AblationSettings) -> Figure:
     """RMSE and mean ESS against the number of targets K (the base setting otherwise: Np =
     ``base_particles``, spread x1, std reading, ``rho^2 / (2 sigma^2)``), with the paper's SIR
     figure at K = 10 where the base Np is one of its rows.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    line = sorted((r for r in rows.values() if r["particles"] == cfg["base_particles"] and r["spread"] == 1.0
+    plt = pyplot()
+    line = sorted((r for r in rows.values() if r["particles"] == cfg.base_particles and r["spread"] == 1.0
                    and r["point_spread"] == "std" and r["snr"] == "half"), key=lambda r: r["targets"])
     k = [r["targets"] for r in line]
     fig, (ax_rmse, ax_ess) = plt.subplots(1, 2, figsize=(10, 4), layout="constrained")
-    ax_rmse.plot(k, [float(r["rmse"]) for r in line], "o-", label=f"SIR PF, Np = {cfg['base_particles']}")
+    ax_rmse.plot(k, [float(r["rmse"]) for r in line], "o-", label=f"SIR PF, Np = {cfg.base_particles}")
     ax_rmse.axhline(20.0, color="grey", ls=":", lw=1, label="track-loss threshold (20 m)")
-    if cfg["base_particles"] in PAPER:
-        ax_rmse.plot([10], [PAPER[cfg["base_particles"]][0]], "k*", ms=10, label="paper, SIR, 10 targets")
+    if cfg.base_particles in PAPER:
+        ax_rmse.plot([10], [PAPER[cfg.base_particles][0]], "k*", ms=10, label="paper, SIR, 10 targets")
     ax_rmse.set_xlabel("number of targets K")
     ax_rmse.set_ylabel("position RMSE [m]")
     ax_rmse.legend(fontsize="small")
     ax_ess.semilogy(k, [float(r["ess"]) for r in line], "o-")
     ax_ess.set_xlabel("number of targets K")
-    ax_ess.set_ylabel(f"mean ESS (of Np = {cfg['base_particles']})")
+    ax_ess.set_ylabel(f"mean ESS (of Np = {cfg.base_particles})")
     for ax in (ax_rmse, ax_ess):
         ax.set_xticks(k)
         ax.grid(alpha=0.3)
-    fig.suptitle(f"joint SIR on the ground radar: {cfg['runs']} run(s) per point, {cfg['steps']} steps")
+    fig.suptitle(f"joint SIR on the ground radar: {cfg.runs} run(s) per point, {cfg.steps} steps")
     return fig
 
 
-def summary(payload: dict) -> str:
-    """The headline table printed by ``reproduce``."""
-    return table_markdown(payload["results"])
+class SIRAblation(Study[AblationSettings]):
+    """The SIR row of Table II, one factor at a time (module docstring)."""
+
+    name = "bocquel-sir-ablation"
+    description = ("Bocquel et al. 2012 Table II SIR row: SIR RMSE/TLR vs targets, Np, initial spread, "
+                   "eq. 20 reading and SNR convention")
+    outputs = ("metrics.json", "ablation.md", "ablation.png", "shards")
+
+    def run_shard(self, cfg: AblationSettings, runs: range, *, generator: torch.Generator, device: torch.device,
+                  progress: bool = False) -> tuple[dict, dict]:
+        """Every setting of :func:`cells` for the runs ``runs``.
+
+        Returns
+        -------
+        ``per_run`` with, per setting key: ``|se`` ``(B, T)`` squared position error averaged
+        over the targets, ``|lost`` ``(B,)`` track loss (20 m), ``|ess`` ``(B,)`` mean ESS;
+        ``seconds`` per key.
+        """
+        g = generator
+        per_run, seconds = {}, {}
+        scenarios = {}
+        for c in cells(cfg):
+            sk = (c["targets"], c["point_spread"], c["snr"])
+            if sk not in scenarios:  # one scenario per (K, reading, SNR convention), shared by the settings
+                lo, hi = 9.0 + SNR_SHIFT[c["snr"]], 20.0 + SNR_SHIFT[c["snr"]]
+                scenarios[sk] = ground_radar(c["targets"], cfg.steps, len(runs), generator=g, device=device,
+                                             snr_db=(lo, hi), point_spread=c["point_spread"])
+            scn = scenarios[sk]
+            x0 = scn.initial_particles(c["particles"], generator=g, spread=tuple(c["spread"] * s for s in SPREAD))
+            with StepTimer(device, steps=cfg.steps) as timer:
+                res = SIRFilter(scn.motion, scn.sensor, c["particles"])(scn.measurements, init=x0, generator=g,
+                                                                        progress=progress)
+            key = c["key"]
+            seconds[key] = timer.seconds
+            per_run[f"{key}|se"] = metrics.position_error(res.mean, scn.truth).square().mean(-1).T
+            per_run[f"{key}|lost"] = metrics.track_loss(res.mean, scn.truth)
+            per_run[f"{key}|ess"] = res.info.ess.mean(0)
+        return per_run, seconds
+
+    @staticmethod
+    def aggregate(cfg: AblationSettings, per_run: dict, seconds: dict) -> dict:
+        """One row per setting: ``key -> {targets, particles, spread, point_spread, snr, rmse,
+        tlr, ess, seconds_per_step}``.
+        """
+        rows = {}
+        for c in cells(cfg):
+            key = c["key"]
+            rows[key] = {**{k: v for k, v in c.items() if k != "key"},
+                         "rmse": per_run[f"{key}|se"].mean().sqrt(),
+                         "tlr": per_run[f"{key}|lost"].float().mean(),
+                         "ess": per_run[f"{key}|ess"].mean(),
+                         "seconds_per_step": seconds[key] / cfg.steps}
+        return rows
+
+    def summary(self, payload: dict) -> str:
+        """The headline table printed by ``reproduce``."""
+        return table_markdown(payload["results"])
+
+    def summarise(self, cfg: AblationSettings, shards: Shards, out: Path) -> dict:
+        """The rows, ``ablation.md`` and ``ablation.png`` (RMSE and ESS against K)."""
+        rows = self.aggregate(cfg, shards.per_run, shards.seconds)
+        md = ["# SIR ablation on the ground radar of Bocquel et al. (2012)", "",
+              f"{cfg.runs} Monte Carlo runs per setting, {cfg.steps} steps, SIR resampling every step; "
+              "device: see metrics.json" + (" (QUICK mode: small settings)" if cfg.quick else ""), "",
+              table_markdown(rows)]
+        (out / "ablation.md").write_text("\n".join(md))
+        save_figure(targets_figure(rows, cfg), out, "ablation.png", quick=cfg.quick)
+        return {"config": asdict(cfg), "results": rows}
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Run the study (see the module docstring); writes into ``args.out``."""
-    import sys
-
-    cfg = settings(args)
-    device = getattr(args, "device", torch.device("cpu"))
-    shards = run_shards(sys.modules[__name__], cfg, args)
-    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
-    rows = aggregate(cfg, shards.per_run, shards.seconds)
-    md = ["# SIR ablation on the ground radar of Bocquel et al. (2012)", "",
-          f"{cfg['runs']} Monte Carlo runs per setting, {cfg['steps']} steps, SIR resampling every step; "
-          "device: see metrics.json" + (" (QUICK mode: small settings)" if cfg["quick"] else ""), "",
-          table_markdown(rows)]
-    (args.out / "ablation.md").write_text("\n".join(md))
-    save_figure(targets_figure(rows, cfg), args.out, "ablation.png", quick=cfg["quick"])
-    payload = {"config": cfg, "results": rows}
-    write_metrics(args.out, payload, args=args, device=device)
-    return payload
+STUDY = SIRAblation()

@@ -35,15 +35,15 @@ Shards
 ------
 The runs are cut into shards of ``--shard-size`` runs (10, quick 1); each shard simulates
 its own runs of both scenarios and filters them with every algorithm, from the generator of
-``(seed, shard index)`` (:func:`~torchmcmcpf.experiments._common.run_shards`), so
+``(seed, shard index)`` (:func:`~torchmcmcpf.experiments._shards.run_shards`), so
 ``--workers N`` on Ray gives the same numbers as the default in-process loop. Seconds per
 step are the filter times summed over the shards, over T.
 """
 
 from __future__ import annotations
 
-import argparse
-from typing import Any
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import torch
 
@@ -54,19 +54,10 @@ from ..filters.pmmh import PMMHFilter
 from ..filters.sir import SIRFilter
 from ..scenarios._common import Scenario
 from ..scenarios.ground_radar import ground_radar
-from ._common import (
-    StepTimer,
-    defaults_help,
-    nonnegative_int,
-    np_label,
-    positive_int,
-    run_shards,
-    save_figure,
-    write_metrics,
-)
-
-NAME = "bocquel-table2"
-DESCRIPTION = "Bocquel et al. 2012 Table II: SIR PF vs PMMH vs IP-MCMC-PF on the ground radar (RMSE, TLR, s/step)"
+from ._figures import np_label, pyplot, save_figure
+from ._options import nonnegative_int
+from ._shards import Shards
+from ._study import Settings, StepTimer, Study, option
 
 #: paper 000 Table II (10 targets): (algorithm, Np) -> (RMSE [m], TLR, CPU s per step)
 PAPER = {
@@ -74,67 +65,47 @@ PAPER = {
     ("PMMH", 500): (5.42, 0.01, 0.6), ("PMMH", 5000): (4.65, 0.00, 2.7),
     ("IP-MCMC-PF", 500): (4.84, 0.00, 0.4), ("IP-MCMC-PF", 5000): (4.61, 0.00, 0.69),
 }
-
-QUICK = dict(runs=2, steps=3, particles=(40, 80), chains=10, burn_in=10, targets=(1, 10),
-             pmmh_candidates=2, max_extensions=1, shard_size=1)
-FULL = dict(runs=100, steps=20, particles=(500, 5000), chains=50, burn_in=100, targets=(1, 10),
-            pmmh_candidates=5, max_extensions=2, shard_size=10)
 ALGORITHMS = ("SIR PF", "Partitioned PF", "PMMH", "IP-MCMC-PF")
 #: particles of one PMMH batch (runs x L x Np): the SIR row's at Np = 5000 for a shard of 10
 PMMH_BATCH_PARTICLES = 50_000
-OUTPUTS = ("metrics.json", "table2.md", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png", "shards")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+@dataclass(frozen=True)
+class Table2Settings(Settings):
+    """The settings of :class:`Table2` (full values; the second of each pair: ``--quick``)."""
 
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
+    runs: int = option(100, 2, help="Monte Carlo runs")
+    steps: int = option(20, 3, help="time steps")
+    particles: tuple[int, ...] = option((500, 5000), (40, 80), help="Np values")
+    chains: int = option(50, 10, cli=False)
+    burn_in: int = option(100, 10, cli=False)
+    targets: tuple[int, ...] = option((1, 10), cli=False)
+    max_extensions: int = option(2, 1, help="IP-MCMC-PF R-hat extensions", type=nonnegative_int)
+    pmmh_candidates: int = option(5, 2, help="PMMH candidates L (chain length; L SIR filters of Np particles)")
+    shard_size: int = option(10, 1, cli=False)
+    algorithms: tuple[str, ...] = option(
+        ALGORITHMS, choices=ALGORITHMS, metavar="NAME",
+        help=f"the rows to run, among {', '.join(repr(a) for a in ALGORITHMS)} (default all)")
+    compile: bool = option(False, help="compile each filter's step (compile_step=True; PMMH: its candidates' SIR "
+                                       "kernel)")
+    factorised: bool = option(False, help="the paper's factorised targets: no exclusion between slots, and the "
+                                          "IP-MCMC-PF's plain exchange move (exclusion=None, recapture=None; "
+                                          "default: the library's defaults)")
 
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
-    parser.add_argument("--particles", type=positive_int, nargs="+", help=h("particles", "Np values"))
-    parser.add_argument("--max-extensions", type=nonnegative_int,
-                        help=h("max_extensions", "IP-MCMC-PF R-hat extensions"))
-    parser.add_argument("--pmmh-candidates", type=positive_int,
-                        help=h("pmmh_candidates", "PMMH candidates L (chain length; L SIR filters of Np particles)"))
-    parser.add_argument("--algorithms", nargs="+", choices=ALGORITHMS, metavar="NAME",
-                        help=f"the rows to run, among {', '.join(repr(a) for a in ALGORITHMS)} (default all)")
-    parser.add_argument("--compile", action="store_true",
-                        help="compile each filter's step (compile_step=True; PMMH: its candidates' SIR kernel)")
-    parser.add_argument("--factorised", action="store_true",
-                        help="the paper's factorised targets: no exclusion between slots, and the IP-MCMC-PF's plain "
-                             "exchange move (exclusion=None, recapture=None; default: the library's defaults)")
-
-
-def settings(args: argparse.Namespace) -> dict[str, Any]:
-    """Quick or full defaults, overridden by the command-line options given."""
-    quick = bool(getattr(args, "quick", False))
-    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
-    for key in ("runs", "steps", "particles", "max_extensions", "pmmh_candidates", "algorithms"):
-        value = getattr(args, key, None)
-        if value is not None:
-            cfg[key] = tuple(value) if key in ("particles", "algorithms") else value
-    cfg["algorithms"] = tuple(a for a in ALGORITHMS if a in cfg.get("algorithms", ALGORITHMS))
-    cfg["compile"] = bool(getattr(args, "compile", False))
-    cfg["factorised"] = bool(getattr(args, "factorised", False))
-    for key in ("shard_size",):
-        if getattr(args, key, None) is not None:
-            cfg[key] = getattr(args, key)
-    if cfg["pmmh_candidates"] < 2:
-        raise ValueError(f"--pmmh-candidates must be >= 2, got {cfg['pmmh_candidates']}")
-    if any(n % cfg["chains"] for n in cfg["particles"]):
-        raise ValueError(f"--particles {cfg['particles']} must be multiples of {cfg['chains']} chains")
-    cfg["quick"] = quick
-    return cfg
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "algorithms", tuple(a for a in ALGORITHMS if a in self.algorithms))
+        if self.pmmh_candidates < 2:
+            raise ValueError(f"--pmmh-candidates must be >= 2, got {self.pmmh_candidates}")
+        if any(n % self.chains for n in self.particles):
+            raise ValueError(f"--particles {self.particles} must be multiples of {self.chains} chains")
 
 
-def _run_pmmh(scn, n, cfg, g, progress):
+def _run_pmmh(scn: Scenario, n: int, cfg: Table2Settings, g: torch.Generator, progress: bool) -> tuple:
     """The PMMH row: :class:`PMMHFilter` with L = ``pmmh_candidates`` candidates of Np
     particles each (module docstring).
     """
-    lc = cfg["pmmh_candidates"]
-    filt = PMMHFilter(scn.motion, scn.sensor, lc * n, num_candidates=lc, compile_step=bool(cfg.get("compile", False)))
+    lc = cfg.pmmh_candidates
+    filt = PMMHFilter(scn.motion, scn.sensor, lc * n, num_candidates=lc, compile_step=cfg.compile)
     init = scn.initial_particles(lc * n, generator=g)  # (B, L * Np, K, D)
     per = max(1, PMMH_BATCH_PARTICLES // (lc * n))
     out = []
@@ -145,89 +116,23 @@ def _run_pmmh(scn, n, cfg, g, progress):
     return mean, {"acceptance": acceptance, "theta_mean": theta}
 
 
-def _make_filter(name: str, scn: Scenario, n: int, cfg: dict) -> SIRFilter | PartitionedSIRFilter | IPMCMCFilter:
-    """The row ``name``'s filter with Np = ``n`` (``cfg["compile"]``: ``compile_step=True``)."""
-    c = bool(cfg.get("compile", False))
-    plain: dict = dict(exclusion=None) if cfg.get("factorised", False) else {}
+def _make_filter(name: str, scn: Scenario, n: int,
+                 cfg: Table2Settings) -> SIRFilter | PartitionedSIRFilter | IPMCMCFilter:
+    """The row ``name``'s filter with Np = ``n`` (``cfg.compile``: ``compile_step=True``)."""
+    c = cfg.compile
+    plain: dict = dict(exclusion=None) if cfg.factorised else {}
     if name == "SIR PF":
         return SIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
     if name == "Partitioned PF":
         return PartitionedSIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
     if plain:
         plain["recapture"] = None
-    return IPMCMCFilter(scn.motion, scn.sensor, num_particles=n, num_chains=cfg["chains"], burn_in=cfg["burn_in"],
-                        max_extensions=cfg["max_extensions"], compile_step=c, **plain)
+    return IPMCMCFilter(scn.motion, scn.sensor, num_particles=n, num_chains=cfg.chains, burn_in=cfg.burn_in,
+                        max_extensions=cfg.max_extensions, compile_step=c, **plain)
 
 
 def _key(num_targets: int, name: str, n: int) -> str:
     return f"{num_targets}|{name}|{n}"
-
-
-def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
-              progress: bool = False) -> tuple[dict, dict]:
-    """Both scenarios, every algorithm and Np, for the runs ``runs`` (one batch).
-
-    Returns
-    -------
-    ``per_run`` with, per ``"<K>|<algorithm>|<Np>"``: ``|se`` ``(B, T)`` squared position
-    error averaged over the targets, ``|lost`` ``(B,)`` track loss (20 m), the per-run
-    diagnostics (``|rhat_mean``, ``|extensions_mean``, ``|acceptance``, ``|theta_mean``),
-    and for the largest K ``"<K>|truth"`` and the IP-MCMC-PF estimates of the largest Np
-    ``(B, T, K, D)`` (the tracks figure); ``seconds`` per key.
-    """
-    g = generator
-    per_run, seconds = {}, {}
-    for k in cfg["targets"]:
-        scn = ground_radar(k, cfg["steps"], len(runs), generator=g, device=device)
-        for n in cfg["particles"]:
-            x0 = scn.initial_particles(n, generator=g)
-            for name in cfg.get("algorithms", ALGORITHMS):
-                key = _key(k, name, n)
-                with StepTimer(device, steps=cfg["steps"]) as timer:
-                    if name == "PMMH":
-                        est, extra = _run_pmmh(scn, n, cfg, g, progress)
-                    else:
-                        res = _make_filter(name, scn, n, cfg)(scn.measurements, init=x0, generator=g,
-                                                              progress=progress)
-                        est, extra = res.mean, {}
-                        if name == "IP-MCMC-PF":
-                            extra = {"rhat_mean": res.info.extras["rhat"].mean(0),
-                                     "extensions_mean": res.info.extras["extensions"].float().mean(0),
-                                     "extended_share": (res.info.extras["extensions"] > 0).float().mean(0),
-                                     "acceptance": res.info.acceptance.mean(0)}
-                seconds[key] = timer.seconds
-                per_run[f"{key}|se"] = metrics.position_error(est, scn.truth).square().mean(-1).T
-                per_run[f"{key}|lost"] = metrics.track_loss(est, scn.truth)
-                per_run.update({f"{key}|{e}": v for e, v in extra.items()})
-                if k == max(cfg["targets"]) and name == "IP-MCMC-PF" and n == max(cfg["particles"]):
-                    per_run[f"{key}|estimate"] = est.movedim(1, 0)
-        if k == max(cfg["targets"]):
-            per_run[f"{k}|truth"] = scn.truth.movedim(1, 0)
-    return per_run, seconds
-
-
-def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
-    """Table II from the per-run arrays of every shard: ``"<K> targets" -> "<algorithm> |
-    <Np>" -> {rmse, rmse_per_step, tlr, seconds_per_step, diagnostics}``.
-    """
-    results = {}
-    for k in cfg["targets"]:
-        rows = {}
-        for n in cfg["particles"]:
-            for name in cfg.get("algorithms", ALGORITHMS):
-                key = _key(k, name, n)
-                se = per_run[f"{key}|se"]  # (B, T)
-                extra = {e: per_run[f"{key}|{e}"].mean()
-                         for e in ("rhat_mean", "extensions_mean", "extended_share", "acceptance", "theta_mean")
-                         if f"{key}|{e}" in per_run}
-                rows[f"{name} | {n}"] = {
-                    "algorithm": name, "num_particles": n,
-                    "rmse": se.mean().sqrt(), "rmse_per_step": se.mean(0).sqrt(),
-                    "tlr": per_run[f"{key}|lost"].float().mean(),
-                    "seconds_per_step": seconds[key] / cfg["steps"], **extra,
-                }
-        results[f"{k} targets"] = rows
-    return results
 
 
 def table_markdown(results: dict, num_targets: int, with_paper: bool) -> str:
@@ -248,52 +153,116 @@ def table_markdown(results: dict, num_targets: int, with_paper: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
-def summary(payload: dict) -> str:
-    """The headline table printed by ``reproduce``: the 10-target rows next to the paper's."""
-    k = max(payload["config"]["targets"])
-    return table_markdown(payload["results"][f"{k} targets"], k, with_paper=(k == 10))
+class Table2(Study[Table2Settings]):
+    """Table II of paper 000 (module docstring)."""
+
+    name = "bocquel-table2"
+    description = "Bocquel et al. 2012 Table II: SIR PF vs PMMH vs IP-MCMC-PF on the ground radar (RMSE, TLR, s/step)"
+    outputs = ("metrics.json", "table2.md", "rmse_1_target.png", "rmse_10_targets.png", "tracks.png", "shards")
+
+    def run_shard(self, cfg: Table2Settings, runs: range, *, generator: torch.Generator, device: torch.device,
+                  progress: bool = False) -> tuple[dict, dict]:
+        """Both scenarios, every algorithm and Np, for the runs ``runs`` (one batch).
+
+        Returns
+        -------
+        ``per_run`` with, per ``"<K>|<algorithm>|<Np>"``: ``|se`` ``(B, T)`` squared position
+        error averaged over the targets, ``|lost`` ``(B,)`` track loss (20 m), the per-run
+        diagnostics (``|rhat_mean``, ``|extensions_mean``, ``|acceptance``, ``|theta_mean``),
+        and for the largest K ``"<K>|truth"`` and the IP-MCMC-PF estimates of the largest Np
+        ``(B, T, K, D)`` (the tracks figure); ``seconds`` per key.
+        """
+        g = generator
+        per_run, seconds = {}, {}
+        for k in cfg.targets:
+            scn = ground_radar(k, cfg.steps, len(runs), generator=g, device=device)
+            for n in cfg.particles:
+                x0 = scn.initial_particles(n, generator=g)
+                for name in cfg.algorithms:
+                    key = _key(k, name, n)
+                    with StepTimer(device, steps=cfg.steps) as timer:
+                        if name == "PMMH":
+                            est, extra = _run_pmmh(scn, n, cfg, g, progress)
+                        else:
+                            res = _make_filter(name, scn, n, cfg)(scn.measurements, init=x0, generator=g,
+                                                                  progress=progress)
+                            est, extra = res.mean, {}
+                            if name == "IP-MCMC-PF":
+                                extra = {"rhat_mean": res.info.extras["rhat"].mean(0),
+                                         "extensions_mean": res.info.extras["extensions"].float().mean(0),
+                                         "extended_share": (res.info.extras["extensions"] > 0).float().mean(0),
+                                         "acceptance": res.info.acceptance.mean(0)}
+                    seconds[key] = timer.seconds
+                    per_run[f"{key}|se"] = metrics.position_error(est, scn.truth).square().mean(-1).T
+                    per_run[f"{key}|lost"] = metrics.track_loss(est, scn.truth)
+                    per_run.update({f"{key}|{e}": v for e, v in extra.items()})
+                    if k == max(cfg.targets) and name == "IP-MCMC-PF" and n == max(cfg.particles):
+                        per_run[f"{key}|estimate"] = est.movedim(1, 0)
+            if k == max(cfg.targets):
+                per_run[f"{k}|truth"] = scn.truth.movedim(1, 0)
+        return per_run, seconds
+
+    @staticmethod
+    def aggregate(cfg: Table2Settings, per_run: dict, seconds: dict) -> dict:
+        """Table II from the per-run arrays of every shard: ``"<K> targets" -> "<algorithm> |
+        <Np>" -> {rmse, rmse_per_step, tlr, seconds_per_step, diagnostics}``.
+        """
+        results = {}
+        for k in cfg.targets:
+            rows = {}
+            for n in cfg.particles:
+                for name in cfg.algorithms:
+                    key = _key(k, name, n)
+                    se = per_run[f"{key}|se"]  # (B, T)
+                    extra = {e: per_run[f"{key}|{e}"].mean()
+                             for e in ("rhat_mean", "extensions_mean", "extended_share", "acceptance", "theta_mean")
+                             if f"{key}|{e}" in per_run}
+                    rows[f"{name} | {n}"] = {
+                        "algorithm": name, "num_particles": n,
+                        "rmse": se.mean().sqrt(), "rmse_per_step": se.mean(0).sqrt(),
+                        "tlr": per_run[f"{key}|lost"].float().mean(),
+                        "seconds_per_step": seconds[key] / cfg.steps, **extra,
+                    }
+            results[f"{k} targets"] = rows
+        return results
+
+    def summary(self, payload: dict) -> str:
+        """The headline table printed by ``reproduce``: the 10-target rows next to the paper's."""
+        k = max(payload["config"]["targets"])
+        return table_markdown(payload["results"][f"{k} targets"], k, with_paper=(k == 10))
+
+    def summarise(self, cfg: Table2Settings, shards: Shards, out: Path) -> dict:
+        """Table II, ``table2.md`` and the figures (module docstring)."""
+        from ..plotting import plot_rmse, plot_tracks
+
+        plt = pyplot()
+        all_results = self.aggregate(cfg, shards.per_run, shards.seconds)
+        quick = " (quick)" if cfg.quick else ""
+        md = ["# Table II of Bocquel et al. (2012), regenerated", "",
+              f"{cfg.runs} Monte Carlo runs, {cfg.steps} steps, device: see metrics.json"
+              + (" (QUICK mode: small settings, not comparable with the paper)" if cfg.quick else ""), ""]
+        for k in cfg.targets:
+            rows = all_results[f"{k} targets"]
+            md.append(table_markdown(rows, k, with_paper=(k == 10)))
+            fig, ax = plt.subplots(figsize=(6, 4))
+            plot_rmse(ax, {np_label(r["algorithm"], r["num_particles"]): r["rmse_per_step"] for r in rows.values()})
+            ax.set_title(f"Position RMSE, {k} target{'s' if k > 1 else ''}, {cfg.runs} runs{quick}")
+            save_figure(fig, out, f"rmse_{k}_target{'s' if k > 1 else ''}.png", quick=cfg.quick)
+        k, n = max(cfg.targets), max(cfg.particles)
+        estimate = shards.per_run.get(f"{_key(k, 'IP-MCMC-PF', n)}|estimate")
+        if estimate is not None:  # the IP-MCMC-PF row ran (--algorithms)
+            fig, ax = plt.subplots(figsize=(6, 5))
+            plot_tracks(ax, shards.per_run[f"{k}|truth"].movedim(0, 1), estimate.movedim(0, 1), run=0,
+                        estimate_label=f"IP-MCMC-PF, Np = {n}")
+            ax.set_title(f"IP-MCMC-PF tracks, {k} targets (run 0){quick}")
+            save_figure(fig, out, "tracks.png", quick=cfg.quick)
+        md += ["**Paper 000, Table II** (10 targets, 100 runs; MATLAB R2011b on an Intel Core i7 920)", "",
+               "| Algorithm | Np | RMSE [m] | TLR | CPU s / step |", "|---|---|---|---|---|"]
+        md += [f"| {a} | {n} | {p[0]:.2f} | {100 * p[1]:.0f}% | {p[2]} |" for (a, n), p in PAPER.items()]
+        (out / "table2.md").write_text("\n".join(md) + "\n")
+        return {"config": asdict(cfg), "results": all_results}
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Run the study (see the module docstring); writes into ``args.out``."""
-    import sys
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plotting import plot_rmse, plot_tracks
-
-    cfg = settings(args)
-    out = args.out
-    device = getattr(args, "device", torch.device("cpu"))
-    shards = run_shards(sys.modules[__name__], cfg, args)
-    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
-    all_results = aggregate(cfg, shards.per_run, shards.seconds)
-    quick = " (quick)" if cfg["quick"] else ""
-    md = ["# Table II of Bocquel et al. (2012), regenerated", "",
-          f"{cfg['runs']} Monte Carlo runs, {cfg['steps']} steps, device: see metrics.json"
-          + (" (QUICK mode: small settings, not comparable with the paper)" if cfg["quick"] else ""), ""]
-    for k in cfg["targets"]:
-        rows = all_results[f"{k} targets"]
-        md.append(table_markdown(rows, k, with_paper=(k == 10)))
-        fig, ax = plt.subplots(figsize=(6, 4))
-        plot_rmse(ax, {np_label(r["algorithm"], r["num_particles"]): r["rmse_per_step"] for r in rows.values()})
-        ax.set_title(f"Position RMSE, {k} target{'s' if k > 1 else ''}, {cfg['runs']} runs{quick}")
-        save_figure(fig, out, f"rmse_{k}_target{'s' if k > 1 else ''}.png", quick=cfg["quick"])
-    k, n = max(cfg["targets"]), max(cfg["particles"])
-    estimate = shards.per_run.get(f"{_key(k, 'IP-MCMC-PF', n)}|estimate")
-    if estimate is not None:  # the IP-MCMC-PF row ran (--algorithms)
-        fig, ax = plt.subplots(figsize=(6, 5))
-        plot_tracks(ax, shards.per_run[f"{k}|truth"].movedim(0, 1), estimate.movedim(0, 1), run=0,
-                    estimate_label=f"IP-MCMC-PF, Np = {n}")
-        ax.set_title(f"IP-MCMC-PF tracks, {k} targets (run 0){quick}")
-        save_figure(fig, out, "tracks.png", quick=cfg["quick"])
-    md += ["**Paper 000, Table II** (10 targets, 100 runs; MATLAB R2011b on an Intel Core i7 920)", "",
-           "| Algorithm | Np | RMSE [m] | TLR | CPU s / step |", "|---|---|---|---|---|"]
-    md += [f"| {a} | {n} | {p[0]:.2f} | {100 * p[1]:.0f}% | {p[2]} |" for (a, n), p in PAPER.items()]
-    (out / "table2.md").write_text("\n".join(md) + "\n")
-    payload = {"config": cfg, "results": all_results}
-    write_metrics(out, payload, args=args, device=device)
-    return payload
+STUDY = Table2()
+#: the notebook's entry points: an argparse-style namespace in, read once
+NAME, settings, run = STUDY.name, STUDY.settings_from, STUDY.run_namespace

@@ -30,8 +30,8 @@ runs (5, quick 1), each with the generator of ``(seed, shard index)``.
 
 from __future__ import annotations
 
-import argparse
-import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import torch
 
@@ -41,49 +41,34 @@ from ..filters.mcmc import MCMCFilter
 from ..filters.partitioned import PartitionedSIRFilter
 from ..models.base import MotionModel, SensorModel
 from ..scenarios.crossing import crossing
-from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
+from ._figures import np_label, pyplot, save_figure
+from ._shards import Shards
+from ._study import Settings, StepTimer, Study, option
 
-NAME = "crossing"
-DESCRIPTION = ("targets crossing unresolved and re-capture after coalescence: uncovered and shared targets, "
-               "per-step assignment RMSE, identity switches, with and without exclusion and re-capture")
-
-QUICK = dict(runs=2, steps=30, particles=100, burn_in=20, shard_size=1, coalesce_steps=8, from_step=20)
-FULL = dict(runs=20, steps=80, particles=500, burn_in=100, shard_size=5, coalesce_steps=20, from_step=50)
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
-OUTPUTS = ("metrics.json", "crossing.png", "coalescence.png", "tracks.png", "shards")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options; each help text shows the full and the ``--quick`` default."""
+@dataclass(frozen=True)
+class CrossingSettings(Settings):
+    """The settings of :class:`Crossing` (full values; the second of each pair: ``--quick``)."""
 
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
+    runs: int = option(20, 2, help="Monte Carlo runs of each scene")
+    steps: int = option(80, 30, help="time steps of the crossing")
+    particles: int = option(500, 100, help="particles Np (a multiple of 10)")
+    burn_in: int = option(100, 20, help="MCMC burn-in per step")
+    shard_size: int = option(5, 1, cli=False)
+    coalesce_steps: int = option(20, 8, help="time steps of the coalescence scene")
+    from_step: int = option(50, 20, help="first step at which uncovered and shared targets count")
 
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs of each scene"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps of the crossing"))
-    parser.add_argument("--particles", type=positive_int, help=h("particles", "particles Np (a multiple of 10)"))
-    parser.add_argument("--burn-in", dest="burn_in", type=positive_int, help=h("burn_in", "MCMC burn-in per step"))
-    parser.add_argument("--coalesce-steps", dest="coalesce_steps", type=positive_int,
-                        help=h("coalesce_steps", "time steps of the coalescence scene"))
-    parser.add_argument("--from-step", dest="from_step", type=positive_int,
-                        help=h("from_step", "first step at which uncovered and shared targets count"))
-
-
-def _config(args: argparse.Namespace) -> dict:
-    cfg = dict(QUICK if args.quick else FULL)
-    for key in cfg:
-        if getattr(args, key, None) is not None:
-            cfg[key] = getattr(args, key)
-    if cfg["particles"] % 10:
-        raise SystemExit(f"reproduce {NAME}: error: argument --particles: {cfg['particles']} is not a multiple "
-                         "of 10 (the IP-MCMC-PF's chains)")
-    cfg["quick"] = bool(args.quick)
-    return cfg
+    def __post_init__(self) -> None:
+        if self.particles % 10:
+            raise ValueError(f"argument --particles: {self.particles} is not a multiple of 10 (the IP-MCMC-PF's "
+                             "chains)")
 
 
-def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel) -> dict:
-    n, burn_in = cfg["particles"], cfg["burn_in"]
+def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) -> dict:
+    n, burn_in = cfg.particles, cfg.burn_in
     chains = n // 10
     return {
         "IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in),
@@ -94,127 +79,128 @@ def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel) -> dict:
     }
 
 
-def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
-              progress: bool = False) -> tuple[dict, dict]:
-    """Simulate both scenes for the runs ``runs`` and filter them with every filter.
+class Crossing(Study[CrossingSettings]):
+    """Two targets crossing unresolved, and re-capture after coalescence (module docstring)."""
 
-    Returns
-    -------
-    ``per_run`` with ``"truth"`` ``(R, T, 2, 5)`` and per filter ``f``: ``"f|coverage"``
-    ``(R, T, 2)`` (slots within 20 m of each target), ``"f|shared"`` ``(R, T, 2)`` (within
-    10 m), ``"f|matched_error"`` ``(R, T)`` (per-step assignment position RMSE over the two
-    targets), ``"f|switches"`` ``(R,)``, ``"f|estimate"`` ``(R, T, 2, 5)`` and
-    ``"f|recaptured"`` ``(R, T_c)`` (a slot within 10 m of the weak target in the
-    coalescence scene); ``seconds`` per filter (crossing scene).
-    """
-    b = len(runs)
-    scn = crossing(2, cfg["steps"], b, generator=generator, device=device)
-    init = scn.initial_particles(cfg["particles"], generator=generator)
-    far = crossing(2, cfg["coalesce_steps"], b, generator=generator, device=device, miss_distance=150.0,
-                   crossing_step=cfg["coalesce_steps"] // 2)
-    coalesced = far.initial_particles(cfg["particles"], generator=generator)
-    coalesced[:, :, 1] = coalesced[:, :, 0]  # both slots on the strong target, the weak one uncovered
-    per_run: dict = {"truth": scn.truth.movedim(1, 0)}
-    seconds = {}
-    on_far = _filters(cfg, far.motion, far.sensor)  # the coalescence scene has its own grid
-    for name, filt in _filters(cfg, scn.motion, scn.sensor).items():
-        with StepTimer(device, cfg["steps"]) as timer:
-            res = filt(scn.measurements, init=init, generator=generator, progress=progress)
-        seconds[name] = timer.seconds
-        per_run[f"{name}|coverage"] = metrics.slot_coverage(res.mean, scn.truth, radius=COVER).movedim(1, 0)
-        per_run[f"{name}|shared"] = metrics.slot_coverage(res.mean, scn.truth, radius=SHARE).movedim(1, 0)
-        matched, _ = metrics.match_tracks(res.mean, scn.truth, per_step=True)
-        per_run[f"{name}|matched_error"] = metrics.position_error(matched, scn.truth).square().mean(-1).sqrt().T
-        per_run[f"{name}|switches"] = metrics.identity_switches(res.mean, scn.truth)
-        per_run[f"{name}|estimate"] = res.mean.movedim(1, 0)
-        res = on_far[name](far.measurements, init=coalesced, generator=generator)
-        weak = far.truth[:, :, 1:]  # (T, B, 1, D)
-        per_run[f"{name}|recaptured"] = (metrics.slot_coverage(res.mean, weak, radius=RECAPTURE)[..., 0] > 0).T
-    return per_run, seconds
+    name = "crossing"
+    description = ("targets crossing unresolved and re-capture after coalescence: uncovered and shared targets, "
+                   "per-step assignment RMSE, identity switches, with and without exclusion and re-capture")
+    outputs = ("metrics.json", "crossing.png", "coalescence.png", "tracks.png", "shards")
+
+    def run_shard(self, cfg: CrossingSettings, runs: range, *, generator: torch.Generator, device: torch.device,
+                  progress: bool = False) -> tuple[dict, dict]:
+        """Simulate both scenes for the runs ``runs`` and filter them with every filter.
+
+        Returns
+        -------
+        ``per_run`` with ``"truth"`` ``(R, T, 2, 5)`` and per filter ``f``: ``"f|coverage"``
+        ``(R, T, 2)`` (slots within 20 m of each target), ``"f|shared"`` ``(R, T, 2)`` (within
+        10 m), ``"f|matched_error"`` ``(R, T)`` (per-step assignment position RMSE over the two
+        targets), ``"f|switches"`` ``(R,)``, ``"f|estimate"`` ``(R, T, 2, 5)`` and
+        ``"f|recaptured"`` ``(R, T_c)`` (a slot within 10 m of the weak target in the
+        coalescence scene); ``seconds`` per filter (crossing scene).
+        """
+        b = len(runs)
+        scn = crossing(2, cfg.steps, b, generator=generator, device=device)
+        init = scn.initial_particles(cfg.particles, generator=generator)
+        far = crossing(2, cfg.coalesce_steps, b, generator=generator, device=device, miss_distance=150.0,
+                       crossing_step=cfg.coalesce_steps // 2)
+        coalesced = far.initial_particles(cfg.particles, generator=generator)
+        coalesced[:, :, 1] = coalesced[:, :, 0]  # both slots on the strong target, the weak one uncovered
+        per_run: dict = {"truth": scn.truth.movedim(1, 0)}
+        seconds = {}
+        on_far = _filters(cfg, far.motion, far.sensor)  # the coalescence scene has its own grid
+        for name, filt in _filters(cfg, scn.motion, scn.sensor).items():
+            with StepTimer(device, cfg.steps) as timer:
+                res = filt(scn.measurements, init=init, generator=generator, progress=progress)
+            seconds[name] = timer.seconds
+            per_run[f"{name}|coverage"] = metrics.slot_coverage(res.mean, scn.truth, radius=COVER).movedim(1, 0)
+            per_run[f"{name}|shared"] = metrics.slot_coverage(res.mean, scn.truth, radius=SHARE).movedim(1, 0)
+            matched, _ = metrics.match_tracks(res.mean, scn.truth, per_step=True)
+            per_run[f"{name}|matched_error"] = metrics.position_error(matched, scn.truth).square().mean(-1).sqrt().T
+            per_run[f"{name}|switches"] = metrics.identity_switches(res.mean, scn.truth)
+            per_run[f"{name}|estimate"] = res.mean.movedim(1, 0)
+            res = on_far[name](far.measurements, init=coalesced, generator=generator)
+            weak = far.truth[:, :, 1:]  # (T, B, 1, D)
+            per_run[f"{name}|recaptured"] = (metrics.slot_coverage(res.mean, weak, radius=RECAPTURE)[..., 0] > 0).T
+        return per_run, seconds
+
+    @staticmethod
+    def aggregate(cfg: CrossingSettings, per_run: dict, seconds: dict) -> dict:
+        """Per filter: run counts, per-step curves and means (module docstring)."""
+        results = {}
+        late = slice(cfg.from_step, None)
+        for name in FILTERS:
+            cov, shared = per_run[f"{name}|coverage"], per_run[f"{name}|shared"]
+            err, rec = per_run[f"{name}|matched_error"], per_run[f"{name}|recaptured"]
+            uncovered = cov == 0  # (R, T, 2)
+            first = torch.where(rec.any(1), rec.to(torch.int64).argmax(1).double(), float("nan"))  # (R,)
+            results[name] = {
+                "runs": int(cov.shape[0]),
+                "runs_uncovered_late": int(uncovered[:, late].any(-1).any(-1).sum()),
+                "runs_shared_late": int((shared[:, late] >= 2).any(-1).any(-1).sum()),
+                "longest_uncovered": metrics.longest_run(uncovered.movedim(1, 0)).amax(-1),
+                "uncovered_per_step": uncovered.any(-1).double().mean(0),
+                "matched_rmse_per_step": err.square().mean(0).sqrt(),
+                "matched_rmse": err.square().mean().sqrt(),
+                "identity_switches_per_run": per_run[f"{name}|switches"].double().mean(),
+                "recaptured_per_step": rec.double().mean(0),
+                "recaptured_share": rec.any(1).double().mean(),
+                "recapture_step_median": first.nanmedian(),
+                "seconds_per_step": seconds[name] / cfg.steps,
+            }
+        return results
+
+    def summary(self, payload: dict) -> str:
+        """Headline table: the acceptance figures of issue 22 per filter."""
+        cfg = payload["config"]
+        lines = [f"| filter | runs with a target uncovered at t >= {cfg['from_step']} | runs with two slots on one "
+                 f"target at t >= {cfg['from_step']} | per-step assignment RMSE [m] | identity switches / run | "
+                 f"coalescence: runs re-captured within {cfg['coalesce_steps']} steps (median step) | s / step |",
+                 "|---|---|---|---|---|---|---|"]
+        for name, r in payload["results"].items():
+            lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} | "
+                         f"{r['runs_shared_late']} / {r['runs']} | "
+                         f"{float(r['matched_rmse']):.2f} | {float(r['identity_switches_per_run']):.2f} | "
+                         f"{float(r['recaptured_share']):.0%} ({float(r['recapture_step_median']):.0f}) | "
+                         f"{r['seconds_per_step']:.3f} |")
+        return "\n".join(lines) + "\n"
+
+    def summarise(self, cfg: CrossingSettings, shards: Shards, out: Path) -> dict:
+        """Per-filter results and the three figures (module docstring)."""
+        from ..plotting import plot_rmse, plot_tracks
+
+        plt = pyplot()
+        results = self.aggregate(cfg, shards.per_run, shards.seconds)
+        pr, n, quick = shards.per_run, cfg.particles, " (quick)" if cfg.quick else ""
+        runs = pr["truth"].shape[0]
+
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+        plot_rmse(axes[0], {np_label(k, n): r["uncovered_per_step"] for k, r in results.items()},
+                  ylabel=f"share of runs with a target uncovered ({COVER:g} m)")
+        plot_rmse(axes[1], {np_label(k, n): r["matched_rmse_per_step"] for k, r in results.items()},
+                  ylabel="per-step assignment RMSE [m]")
+        for ax in axes:
+            ax.axvline(20, color="0.6", lw=0.8, ls=":")
+        fig.suptitle(f"two targets crossing unresolved at step 20, {runs} runs{quick}")
+        save_figure(fig, out, "crossing.png", quick=cfg.quick)
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        plot_rmse(ax, {np_label(k, n): r["recaptured_per_step"] for k, r in results.items()},
+                  ylabel=f"share of runs with a slot within {RECAPTURE:g} m of the weak target")
+        ax.set_title(f"staged coalescence: both slots start on the strong target, {runs} runs{quick}")
+        save_figure(fig, out, "coalescence.png", quick=cfg.quick)
+
+        fig, axes = plt.subplots(1, len(FILTERS), figsize=(4.5 * len(FILTERS), 4.5), squeeze=False,
+                                 layout="constrained")
+        for ax, name in zip(axes[0], FILTERS):
+            plot_tracks(ax, pr["truth"][0], pr[f"{name}|estimate"][0], estimate_label=np_label(name, n))
+            ax.set_title(name)
+        fig.suptitle(f"crossing, run 0: true tracks (solid) and slot estimates (dashed){quick}")
+        save_figure(fig, out, "tracks.png", quick=cfg.quick)
+
+        return {"config": asdict(cfg), "radii_m": {"uncovered": COVER, "shared": SHARE, "recaptured": RECAPTURE},
+                "results": results}
 
 
-def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
-    """Per filter: run counts, per-step curves and means (module docstring)."""
-    results = {}
-    late = slice(cfg["from_step"], None)
-    for name in FILTERS:
-        cov, shared = per_run[f"{name}|coverage"], per_run[f"{name}|shared"]
-        err, rec = per_run[f"{name}|matched_error"], per_run[f"{name}|recaptured"]
-        uncovered = cov == 0  # (R, T, 2)
-        first = torch.where(rec.any(1), rec.to(torch.int64).argmax(1).double(), float("nan"))  # (R,)
-        results[name] = {
-            "runs": int(cov.shape[0]),
-            "runs_uncovered_late": int(uncovered[:, late].any(-1).any(-1).sum()),
-            "runs_shared_late": int((shared[:, late] >= 2).any(-1).any(-1).sum()),
-            "longest_uncovered": metrics.longest_run(uncovered.movedim(1, 0)).amax(-1),
-            "uncovered_per_step": uncovered.any(-1).double().mean(0),
-            "matched_rmse_per_step": err.square().mean(0).sqrt(),
-            "matched_rmse": err.square().mean().sqrt(),
-            "identity_switches_per_run": per_run[f"{name}|switches"].double().mean(),
-            "recaptured_per_step": rec.double().mean(0),
-            "recaptured_share": rec.any(1).double().mean(),
-            "recapture_step_median": first.nanmedian(),
-            "seconds_per_step": seconds[name] / cfg["steps"],
-        }
-    return results
-
-
-def summary(payload: dict) -> str:
-    """Headline table: the acceptance figures of issue 22 per filter."""
-    cfg = payload["config"]
-    lines = [f"| filter | runs with a target uncovered at t >= {cfg['from_step']} | runs with two slots on one "
-             f"target at t >= {cfg['from_step']} | per-step assignment RMSE [m] | identity switches / run | "
-             f"coalescence: runs re-captured within {cfg['coalesce_steps']} steps (median step) | s / step |",
-             "|---|---|---|---|---|---|---|"]
-    for name, r in payload["results"].items():
-        lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} | {r['runs_shared_late']} / {r['runs']} | "
-                     f"{float(r['matched_rmse']):.2f} | {float(r['identity_switches_per_run']):.2f} | "
-                     f"{float(r['recaptured_share']):.0%} ({float(r['recapture_step_median']):.0f}) | "
-                     f"{r['seconds_per_step']:.3f} |")
-    return "\n".join(lines) + "\n"
-
-
-def run(args: argparse.Namespace) -> dict:
-    """Run the study in shards (module docstring); writes into ``args.out``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plotting import plot_rmse, plot_tracks
-
-    cfg = _config(args)
-    shards = run_shards(sys.modules[__name__], cfg, args)
-    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
-    results = aggregate(cfg, shards.per_run, shards.seconds)
-    pr, n, quick = shards.per_run, cfg["particles"], " (quick)" if cfg["quick"] else ""
-    runs = pr["truth"].shape[0]
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
-    plot_rmse(axes[0], {np_label(k, n): r["uncovered_per_step"] for k, r in results.items()},
-              ylabel=f"share of runs with a target uncovered ({COVER:g} m)")
-    plot_rmse(axes[1], {np_label(k, n): r["matched_rmse_per_step"] for k, r in results.items()},
-              ylabel="per-step assignment RMSE [m]")
-    for ax in axes:
-        ax.axvline(20, color="0.6", lw=0.8, ls=":")
-    fig.suptitle(f"two targets crossing unresolved at step 20, {runs} runs{quick}")
-    save_figure(fig, args.out, "crossing.png", quick=cfg["quick"])
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    plot_rmse(ax, {np_label(k, n): r["recaptured_per_step"] for k, r in results.items()},
-              ylabel=f"share of runs with a slot within {RECAPTURE:g} m of the weak target")
-    ax.set_title(f"staged coalescence: both slots start on the strong target, {runs} runs{quick}")
-    save_figure(fig, args.out, "coalescence.png", quick=cfg["quick"])
-
-    fig, axes = plt.subplots(1, len(FILTERS), figsize=(4.5 * len(FILTERS), 4.5), squeeze=False,
-                             layout="constrained")
-    for ax, name in zip(axes[0], FILTERS):
-        plot_tracks(ax, pr["truth"][0], pr[f"{name}|estimate"][0], estimate_label=np_label(name, n))
-        ax.set_title(name)
-    fig.suptitle(f"crossing, run 0: true tracks (solid) and slot estimates (dashed){quick}")
-    save_figure(fig, args.out, "tracks.png", quick=cfg["quick"])
-
-    payload = {"config": cfg, "radii_m": {"uncovered": COVER, "shared": SHARE, "recaptured": RECAPTURE},
-               "results": results}
-    write_metrics(args.out, payload, args=args, device=args.device)
-    return payload
+STUDY = Crossing()

@@ -47,72 +47,43 @@ batch (the notebook's entry point).
 
 from __future__ import annotations
 
-import argparse
-from typing import Any
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import torch
 
 from .. import metrics
 from ..filters.mcmc import MCMCFilter
 from ..scenarios.ling import LingScenario, ling
-from ._common import (
-    StepTimer,
-    defaults_help,
-    generator,
-    nonnegative_int,
-    np_label,
-    positive_int,
-    run_shards,
-    save_figure,
-    write_metrics,
-)
-
-NAME = "ling-rmse-vs-snr"
-DESCRIPTION = "Ling 2016 Fig. 3: MCMC-based PF-TBD position RMSE vs SNR, 3 targets, 35 frames (B=500, M=10, N=100)"
+from ._figures import np_label, pyplot, save_figure
+from ._options import nonnegative_int
+from ._shards import Shards
+from ._study import Settings, StepTimer, Study, generator, option
 
 #: random-walk step per state component ``[x, vx, y, vy, P]`` (see the module docstring)
 RW_SCALE = (0.4, 0.4, 0.4, 0.4, 1e-3)
-
-QUICK = dict(runs=2, snr=(4.0, 10.0), steps=6, burn_in=20, thinning=2, particles=10,
-             moves=("random_walk", "mixture"), shard_size=1)
-FULL = dict(runs=100, snr=(0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0), steps=35, burn_in=500, thinning=10,
-            particles=100, moves=("random_walk", "adaptive_random_walk", "mixture"), shard_size=5)
-OUTPUTS = ("metrics.json", "rmse_vs_snr.png", "tracks.png", "shards")
+MOVES = ("random_walk", "adaptive_random_walk", "mixture")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+@dataclass(frozen=True)
+class LingSettings(Settings):
+    """The settings of :class:`RMSEvsSNR` (full values; the second of each pair: ``--quick``)."""
 
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
+    runs: int = option(100, 2, help="Monte Carlo runs per SNR")
+    snr: tuple[float, ...] = option((0.0, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0), (4.0, 10.0), help="SNR values [dB]")
+    steps: int = option(35, 6, help="frames")
+    burn_in: int = option(500, 20, help="burn-in, iterations discarded per frame", type=nonnegative_int)
+    thinning: int = option(10, 2, help="M, keep every M-th state")
+    particles: int = option(100, 10, help="Np, samples kept per frame")
+    moves: tuple[str, ...] = option(MOVES, ("random_walk", "mixture"), help="kernels to run", choices=MOVES)
+    shard_size: int = option(5, 1, cli=False)
 
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs per SNR"))
-    parser.add_argument("--snr", type=float, nargs="+", help=h("snr", "SNR values [dB]"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "frames"))
-    parser.add_argument("--burn-in", type=nonnegative_int, help=h("burn_in", "burn-in, iterations discarded per frame"))
-    parser.add_argument("--thinning", type=positive_int, help=h("thinning", "M, keep every M-th state"))
-    parser.add_argument("--particles", type=positive_int, help=h("particles", "Np, samples kept per frame"))
-    parser.add_argument("--moves", nargs="+", choices=("random_walk", "adaptive_random_walk", "mixture"),
-                        help=h("moves", "kernels to run"))
-
-
-def settings(args: argparse.Namespace) -> dict[str, Any]:
-    """Quick or full defaults, overridden by the
-    command-line options given.
-    """
-    quick = bool(getattr(args, "quick", False))
-    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
-    for key in ("runs", "snr", "steps", "burn_in", "thinning", "particles", "moves", "shard_size"):
-        value = getattr(args, key, None)
-        if value is not None:
-            cfg[key] = tuple(value) if key in ("snr", "moves") else value
-    if cfg["burn_in"] < 0:
-        raise ValueError(f"--burn-in must be >= 0, got {cfg['burn_in']}")
-    cfg["quick"] = quick
-    return cfg
+    def __post_init__(self) -> None:
+        if self.burn_in < 0:
+            raise ValueError(f"--burn-in must be >= 0, got {self.burn_in}")
 
 
-def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = False) -> dict:
+def run_study(cfg: LingSettings, *, device: torch.device, seed: int, progress: bool = False) -> dict:
     """Simulate the scenario for every SNR, filter it with each kernel, score eq. 16.
 
     Returns
@@ -122,18 +93,18 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
     ``(T, B, 3, 5)`` filter means).
     """
     g = generator(device, seed)
-    snr = torch.tensor(cfg["snr"], dtype=torch.float32)
-    runs = cfg["runs"]
-    scn = ling(snr.repeat_interleave(runs), runs * snr.numel(), generator=g, num_steps=cfg["steps"], device=device)
-    x0 = scn.initial_particles(cfg["particles"], generator=g)
+    snr = torch.tensor(cfg.snr, dtype=torch.float32)
+    runs = cfg.runs
+    scn = ling(snr.repeat_interleave(runs), runs * snr.numel(), generator=g, num_steps=cfg.steps, device=device)
+    x0 = scn.initial_particles(cfg.particles, generator=g)
     results, estimates = {}, {}
-    for moves in cfg["moves"]:
+    for moves in cfg.moves:
         filt = _filter(cfg, scn, moves, device)
-        with StepTimer(device, steps=cfg["steps"]) as timer:
+        with StepTimer(device, steps=cfg.steps) as timer:
             res = filt(scn.measurements, init=x0, generator=g, progress=progress)
         est = res.mean
         per_snr = []
-        for i, value in enumerate(cfg["snr"]):  # a handful of SNR values, not a loop over runs
+        for i, value in enumerate(cfg.snr):  # a handful of SNR values, not a loop over runs
             sl = slice(i * runs, (i + 1) * runs)
             rmse = metrics.position_rmse(est[:, sl], scn.truth[:, sl])
             matched = metrics.position_rmse(est[:, sl], scn.truth[:, sl], match=True)
@@ -153,130 +124,132 @@ def run_study(cfg: dict, *, device: torch.device, seed: int, progress: bool = Fa
     return {"results": results, "scenario": scn, "estimates": estimates}
 
 
-def _filter(cfg: dict, scn: LingScenario, moves: str, device: str | torch.device) -> MCMCFilter:
-    return MCMCFilter(scn.motion, scn.sensor, num_particles=cfg["particles"], num_chains=1, burn_in=cfg["burn_in"],
-                      thinning=cfg["thinning"], moves="random_walk" if moves == "adaptive_random_walk" else moves,
+def _filter(cfg: LingSettings, scn: LingScenario, moves: str, device: str | torch.device) -> MCMCFilter:
+    return MCMCFilter(scn.motion, scn.sensor, num_particles=cfg.particles, num_chains=1, burn_in=cfg.burn_in,
+                      thinning=cfg.thinning, moves="random_walk" if moves == "adaptive_random_walk" else moves,
                       rw_scale=torch.tensor(RW_SCALE) if moves == "random_walk" else
                       "adaptive" if moves == "adaptive_random_walk" else None).to(device)
 
 
-def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
-              progress: bool = False) -> tuple[dict, dict]:
-    """The runs ``runs`` at every SNR (one batch of ``len(runs) x S`` problems).
+class RMSEvsSNR(Study[LingSettings]):
+    """Fig. 3 of paper 002 (module docstring)."""
 
-    Returns
-    -------
-    ``per_run`` with ``"truth"`` ``(R, S, T, 3, 5)`` and, per kernel ``m``, ``"m|estimate"``
-    (same), ``"m|se"`` and ``"m|se_matched"`` ``(R, S, T, 3)`` squared position errors
-    (slot labels; labels matched per run), ``"m|acceptance|<move>"`` ``(R, S)`` (mean over
-    the frames); ``seconds`` per kernel.
-    """
-    r, s = len(runs), len(cfg["snr"])
-    snr = torch.tensor(cfg["snr"], dtype=torch.float32)
-    scn = ling(snr.repeat_interleave(r), r * s, generator=generator, num_steps=cfg["steps"], device=device)
-    x0 = scn.initial_particles(cfg["particles"], generator=generator)
+    name = "ling-rmse-vs-snr"
+    description = ("Ling 2016 Fig. 3: MCMC-based PF-TBD position RMSE vs SNR, 3 targets, 35 frames "
+                   "(B=500, M=10, N=100)")
+    outputs = ("metrics.json", "rmse_vs_snr.png", "tracks.png", "shards")
 
-    def per_run_first(x):  # (T, S * R, ...) -> (R, S, T, ...)
-        return x.unflatten(1, (s, r)).movedim(0, 2).movedim(1, 0)
+    def run_shard(self, cfg: LingSettings, runs: range, *, generator: torch.Generator, device: torch.device,
+                  progress: bool = False) -> tuple[dict, dict]:
+        """The runs ``runs`` at every SNR (one batch of ``len(runs) x S`` problems).
 
-    per_run, seconds = {"truth": per_run_first(scn.truth)}, {}
-    for moves in cfg["moves"]:
-        with StepTimer(device, steps=cfg["steps"]) as timer:
-            res = _filter(cfg, scn, moves, device)(scn.measurements, init=x0, generator=generator, progress=progress)
-        seconds[moves] = timer.seconds
-        matched, _ = metrics.match_tracks(res.mean, scn.truth)
-        per_run[f"{moves}|estimate"] = per_run_first(res.mean)
-        per_run[f"{moves}|se"] = per_run_first(metrics.position_error(res.mean, scn.truth).square())
-        per_run[f"{moves}|se_matched"] = per_run_first(metrics.position_error(matched, scn.truth).square())
-        for name, v in res.info.extras.items():  # v: (T, S * R)
-            if name.startswith("acceptance_"):
-                per_run[f"{moves}|acceptance|{name.removeprefix('acceptance_')}"] = v.nanmean(0).unflatten(0, (s, r)).T
-    return per_run, seconds
+        Returns
+        -------
+        ``per_run`` with ``"truth"`` ``(R, S, T, 3, 5)`` and, per kernel ``m``, ``"m|estimate"``
+        (same), ``"m|se"`` and ``"m|se_matched"`` ``(R, S, T, 3)`` squared position errors
+        (slot labels; labels matched per run), ``"m|acceptance|<move>"`` ``(R, S)`` (mean over
+        the frames); ``seconds`` per kernel.
+        """
+        r, s = len(runs), len(cfg.snr)
+        snr = torch.tensor(cfg.snr, dtype=torch.float32)
+        scn = ling(snr.repeat_interleave(r), r * s, generator=generator, num_steps=cfg.steps, device=device)
+        x0 = scn.initial_particles(cfg.particles, generator=generator)
+
+        def per_run_first(x):  # (T, S * R, ...) -> (R, S, T, ...)
+            return x.unflatten(1, (s, r)).movedim(0, 2).movedim(1, 0)
+
+        per_run, seconds = {"truth": per_run_first(scn.truth)}, {}
+        for moves in cfg.moves:
+            with StepTimer(device, steps=cfg.steps) as timer:
+                res = _filter(cfg, scn, moves, device)(scn.measurements, init=x0, generator=generator,
+                                                       progress=progress)
+            seconds[moves] = timer.seconds
+            matched, _ = metrics.match_tracks(res.mean, scn.truth)
+            per_run[f"{moves}|estimate"] = per_run_first(res.mean)
+            per_run[f"{moves}|se"] = per_run_first(metrics.position_error(res.mean, scn.truth).square())
+            per_run[f"{moves}|se_matched"] = per_run_first(metrics.position_error(matched, scn.truth).square())
+            for name, v in res.info.extras.items():  # v: (T, S * R)
+                if name.startswith("acceptance_"):
+                    move = name.removeprefix("acceptance_")
+                    per_run[f"{moves}|acceptance|{move}"] = v.nanmean(0).unflatten(0, (s, r)).T
+        return per_run, seconds
+
+    @staticmethod
+    def aggregate(cfg: LingSettings, per_run: dict, seconds: dict, range_resolution: float) -> dict:
+        """Eq. 16 per SNR and kernel from the per-run arrays of every shard (see
+        :func:`run_study` for the fields; acceptance: mean over runs of the per-run mean).
+        """
+        results = {}
+        for moves in cfg.moves:
+            se, sem = per_run[f"{moves}|se"], per_run[f"{moves}|se_matched"]  # (R, S, T, K)
+            per_snr = []
+            for i, value in enumerate(cfg.snr):  # a handful of SNR values, not a loop over runs
+                rmse = se[:, i].mean().sqrt()
+                per_snr.append({
+                    "snr_db": value,
+                    "rmse": rmse,
+                    "rmse_matched": sem[:, i].mean().sqrt(),
+                    "rmse_per_target": se[:, i].mean((0, 1)).sqrt(),
+                    "rmse_per_step": se[:, i].mean((0, 2)).sqrt(),
+                    "below_range_resolution": bool(rmse < range_resolution),
+                    "acceptance": {k.rsplit("|", 1)[1]: v[:, i].nanmean() for k, v in per_run.items()
+                                   if k.startswith(f"{moves}|acceptance|")},
+                })
+            results[moves] = {"per_snr": per_snr, "seconds_per_step": seconds[moves] / cfg.steps,
+                              "seconds_total": seconds[moves]}
+        return results
+
+    def summary(self, payload: dict) -> str:
+        """Headline table: RMSE [m] per SNR and kernel."""
+        snr = payload["config"]["snr"]
+        lines = ["| kernel | " + " | ".join(f"{v:g} dB" for v in snr) + " |", "|---" * (len(snr) + 1) + "|"]
+        for moves, r in payload["results"].items():
+            lines.append(f"| {moves} | " + " | ".join(f"{float(p['rmse']):.2f}" for p in r["per_snr"]) + " |")
+        return "position RMSE [m] (eq. 16) per SNR\n\n" + "\n".join(lines) + "\n"
+
+    def summarise(self, cfg: LingSettings, shards: Shards, out: Path) -> dict:
+        """Eq. 16 per SNR and kernel, ``rmse_vs_snr.png`` and ``tracks.png`` (module docstring)."""
+        from ..plotting import plot_tracks
+        from ..scenarios.ling import ling as _ling
+
+        plt = pyplot()
+        probe = _ling(10.0, 1, generator=generator("cpu", 0), num_steps=1)  # the geometry (no randomness used)
+        res_m = probe.range_resolution
+        results = self.aggregate(cfg, shards.per_run, shards.seconds, res_m)
+        quick = " (quick)" if cfg.quick else ""
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for moves, r in results.items():
+            ax.plot(cfg.snr, [float(p["rmse"]) for p in r["per_snr"]], "o-",
+                    label=np_label(f"MCMC-PF, {moves}", cfg.particles))
+        ax.axhline(res_m, color="k", ls=":", lw=1, label=f"range resolution ({res_m:g} m)")
+        ax.set_xlabel("SNR [dB]")
+        ax.set_ylabel("position RMSE [m] (eq. 16)")
+        ax.set_yscale("log")
+        ax.set_title(f"{cfg.runs} runs, {cfg.steps} frames, burn-in {cfg.burn_in}, thinning {cfg.thinning}, "
+                     f"Np = {cfg.particles}{quick}")
+        ax.legend(fontsize="small")
+        save_figure(fig, out, "rmse_vs_snr.png", quick=cfg.quick)
+
+        i = min(range(len(cfg.snr)), key=lambda j: abs(cfg.snr[j] - 10.0))
+        moves_all = list(results)
+        fig, axes = plt.subplots(1, len(moves_all), figsize=(5.5 * len(moves_all), 4.5), squeeze=False)
+        truth = shards.per_run["truth"][0, i]  # (T, K, D) run 0 at SNR i
+        for ax, moves in zip(axes[0], moves_all):
+            plot_tracks(ax, truth, shards.per_run[f"{moves}|estimate"][0, i],
+                        estimate_label=np_label(f"MCMC-PF, {moves}", cfg.particles))
+            ax.set_title(f"{moves}, SNR {cfg.snr[i]:g} dB (run 0){quick}")
+        save_figure(fig, out, "tracks.png", quick=cfg.quick)
+
+        payload = {
+            "config": {**asdict(cfg), "rw_scale": RW_SCALE, "num_chains": 1},
+            "grid": list(probe.sensor.frame_shape),
+            "range_resolution_m": res_m,
+            "results": results,
+        }
+        return payload
 
 
-def aggregate(cfg: dict, per_run: dict, seconds: dict, range_resolution: float) -> dict:
-    """Eq. 16 per SNR and kernel from the per-run arrays of every shard (see
-    :func:`run_study` for the fields; acceptance: mean over runs of the per-run mean).
-    """
-    results = {}
-    for moves in cfg["moves"]:
-        se, sem = per_run[f"{moves}|se"], per_run[f"{moves}|se_matched"]  # (R, S, T, K)
-        per_snr = []
-        for i, value in enumerate(cfg["snr"]):  # a handful of SNR values, not a loop over runs
-            rmse = se[:, i].mean().sqrt()
-            per_snr.append({
-                "snr_db": value,
-                "rmse": rmse,
-                "rmse_matched": sem[:, i].mean().sqrt(),
-                "rmse_per_target": se[:, i].mean((0, 1)).sqrt(),
-                "rmse_per_step": se[:, i].mean((0, 2)).sqrt(),
-                "below_range_resolution": bool(rmse < range_resolution),
-                "acceptance": {k.rsplit("|", 1)[1]: v[:, i].nanmean() for k, v in per_run.items()
-                               if k.startswith(f"{moves}|acceptance|")},
-            })
-        results[moves] = {"per_snr": per_snr, "seconds_per_step": seconds[moves] / cfg["steps"],
-                          "seconds_total": seconds[moves]}
-    return results
-
-
-def summary(payload: dict) -> str:
-    """Headline table: RMSE [m] per SNR and kernel."""
-    snr = payload["config"]["snr"]
-    lines = ["| kernel | " + " | ".join(f"{v:g} dB" for v in snr) + " |", "|---" * (len(snr) + 1) + "|"]
-    for moves, r in payload["results"].items():
-        lines.append(f"| {moves} | " + " | ".join(f"{float(p['rmse']):.2f}" for p in r["per_snr"]) + " |")
-    return "position RMSE [m] (eq. 16) per SNR\n\n" + "\n".join(lines) + "\n"
-
-
-def run(args: argparse.Namespace) -> dict:
-    """Run the study in shards (see the module docstring); writes into ``args.out``."""
-    import sys
-
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plotting import plot_tracks
-    from ..scenarios.ling import ling as _ling
-
-    cfg = settings(args)
-    device = getattr(args, "device", torch.device("cpu"))
-    shards = run_shards(sys.modules[__name__], cfg, args)
-    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
-    probe = _ling(10.0, 1, generator=generator("cpu", 0), num_steps=1)  # the geometry (no randomness used)
-    res_m = probe.range_resolution
-    results = aggregate(cfg, shards.per_run, shards.seconds, res_m)
-    quick = " (quick)" if cfg["quick"] else ""
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for moves, r in results.items():
-        ax.plot(cfg["snr"], [float(p["rmse"]) for p in r["per_snr"]], "o-",
-                label=np_label(f"MCMC-PF, {moves}", cfg["particles"]))
-    ax.axhline(res_m, color="k", ls=":", lw=1, label=f"range resolution ({res_m:g} m)")
-    ax.set_xlabel("SNR [dB]")
-    ax.set_ylabel("position RMSE [m] (eq. 16)")
-    ax.set_yscale("log")
-    ax.set_title(f"{cfg['runs']} runs, {cfg['steps']} frames, burn-in {cfg['burn_in']}, thinning {cfg['thinning']}, "
-                 f"Np = {cfg['particles']}{quick}")
-    ax.legend(fontsize="small")
-    save_figure(fig, args.out, "rmse_vs_snr.png", quick=cfg["quick"])
-
-    i = min(range(len(cfg["snr"])), key=lambda j: abs(cfg["snr"][j] - 10.0))
-    moves_all = list(results)
-    fig, axes = plt.subplots(1, len(moves_all), figsize=(5.5 * len(moves_all), 4.5), squeeze=False)
-    truth = shards.per_run["truth"][0, i]  # (T, K, D) run 0 at SNR i
-    for ax, moves in zip(axes[0], moves_all):
-        plot_tracks(ax, truth, shards.per_run[f"{moves}|estimate"][0, i],
-                    estimate_label=np_label(f"MCMC-PF, {moves}", cfg["particles"]))
-        ax.set_title(f"{moves}, SNR {cfg['snr'][i]:g} dB (run 0){quick}")
-    save_figure(fig, args.out, "tracks.png", quick=cfg["quick"])
-
-    payload = {
-        "config": {**cfg, "rw_scale": RW_SCALE, "num_chains": 1},
-        "grid": list(probe.sensor.frame_shape),
-        "range_resolution_m": res_m,
-        "results": results,
-    }
-    write_metrics(args.out, payload, args=args, device=device)
-    return payload
+STUDY = RMSEvsSNR()
+#: the notebook's entry point: an argparse-style namespace in, read once
+settings = STUDY.settings_from

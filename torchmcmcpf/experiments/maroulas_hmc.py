@@ -26,9 +26,9 @@ ratio, so it is not a function of the seed.
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 from collections.abc import Iterator
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, SupportsFloat
 
@@ -37,10 +37,9 @@ import torch
 from ..filters.resample_move import ResampleMoveFilter
 from ..models.sensors.association import AssociationSensor
 from ..scenarios import maroulas as scenario
-from ._common import StepTimer, defaults_help, generator, np_label, positive_int, save_figure, write_metrics
-
-NAME = "maroulas-hmc"
-DESCRIPTION = "Maroulas & Stinis 2010 Figs. 3, 4, 7, 8: PF with an HMC move vs the generic PF (RMSE, ESS)"
+from ._figures import np_label, save_figure
+from ._options import RunOptions
+from ._study import Settings, StepTimer, Study, generator, option
 
 #: paper 003 sec. 2.2-2.3: observation -> (N improved, N generic, RMSE improved (mean, std
 #: over time), RMSE generic (mean, std), ESS improved [% of N])
@@ -49,21 +48,16 @@ PAPER: dict[str, dict[str, Any]] = {
     "bearing_range": dict(particles=(200, 220), rmse_improved=(22.0, 21.0), rmse_generic=(760.0, 770.0),
                           ess_improved=25.0),
 }
-QUICK = dict(runs=2, steps=12, hmc_steps=50, max_equal_time_particles=2000)
-FULL = dict(runs=10, steps=200, hmc_steps=100, max_equal_time_particles=20000)
-OUTPUTS = tuple(f"{kind}_{obs}.png" for obs in scenario.OBSERVATIONS for kind in ("rmse", "ess", "tracks")) \
-    + ("metrics.json",)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options to ``parser``; each help text shows the full and the ``--quick`` default."""
+@dataclass(frozen=True)
+class MaroulasSettings(Settings):
+    """The settings of :class:`HMCvsGeneric` (full values; the second of each pair: ``--quick``)."""
 
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
-
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps after t=0"))
-    parser.add_argument("--hmc-steps", type=positive_int, help=h("hmc_steps", "HMC accept/reject rounds"))
+    runs: int = option(10, 2, help="Monte Carlo runs")
+    steps: int = option(200, 12, help="time steps after t=0")
+    hmc_steps: int = option(100, 50, help="HMC accept/reject rounds")
+    max_equal_time_particles: int = option(20000, 2000, cli=False)
 
 
 @contextlib.contextmanager
@@ -137,61 +131,66 @@ def _figures(out: str | Path, obs: str, results: dict, data: scenario.MaroulasDa
     save_figure(fig, out, f"tracks_{obs}.png", quick=quick)
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Run the study (module docstring); writes metrics.json and PNGs into ``args.out``."""
-    cfg = dict(QUICK if args.quick else FULL)
-    for key in ("runs", "steps", "hmc_steps"):
-        if getattr(args, key, None) is not None:
-            cfg[key] = getattr(args, key)
-    device = torch.device(getattr(args, "device", "cpu"))
-    g = generator(device, args.seed)
-    motion = scenario.WhiteAccelerationMotion().to(device)
-    metrics: dict[str, Any] = {"config": cfg, "paper": PAPER}
-    with _one_thread(device):
-        for obs in scenario.OBSERVATIONS:
-            sensor = scenario.paper_sensor(obs).to(device)
-            data = scenario.simulate(cfg["runs"], cfg["steps"], sensor=sensor, generator=g, motion=motion,
-                                     device=device)
-            n_rm, n_gen = PAPER[obs]["particles"]
-            filters = {
-                "improved": ResampleMoveFilter(motion, sensor, num_particles=n_rm, num_hmc_steps=cfg["hmc_steps"]),
-                "generic": ResampleMoveFilter(motion, sensor, num_particles=n_gen, num_hmc_steps=0),
-            }
-            results: dict[str, Any] = {}
-            times: dict[str, float] = {}
-            for name, filt in filters.items():
-                with StepTimer(device, cfg["steps"]) as timer:
-                    res = scenario.track(filt, data, generator=g, progress=args.progress)
-                times[name] = timer.seconds
-                results[name] = _summary(res, data, filt.num_particles, timer.seconds)
-                results[name]["track_mean"] = res.mean[:, 0]
-            ratio = times["improved"] / times["generic"]
-            n_eq = min(int(n_gen * ratio), cfg["max_equal_time_particles"])
-            filt = ResampleMoveFilter(motion, sensor, num_particles=n_eq, num_hmc_steps=0)
-            with StepTimer(device, cfg["steps"]) as timer:
-                res = scenario.track(filt, data, generator=g, progress=args.progress)
-            results["generic_equal_time"] = _summary(res, data, n_eq, timer.seconds)
-            _figures(args.out, obs, results, data, sensor, quick=bool(args.quick))
-            for v in results.values():
-                v.pop("track_mean", None)
-            results["time_ratio_improved_over_generic"] = ratio
-            metrics[obs] = results
-    write_metrics(args.out, metrics, args=args, device=device)
-    return metrics
-
-
-def summary(payload: dict) -> str:
-    """Headline table: time-averaged RMSE per target and ESS per observation model and filter."""
-    lines = ["| observation | filter | Np | RMSE per target [m] | ESS before move [% of Np] | ESS after move "
-             "[% of Np] | s / step |", "|---|---|---|---|---|---|---|"]
-    for obs in scenario.OBSERVATIONS:
-        for name, r in payload[obs].items():
-            if isinstance(r, dict):
-                lines.append(f"| {obs} | {name} | {r['particles']} | {float(r['rmse_time_average']):.2f} | "
-                             f"{float(r['ess_percent']):.1f} | {_pct(r.get('ess_after_move_percent'))} | "
-                             f"{r['seconds_per_step']:.3f} |")
-    return "\n".join(lines) + "\n"
-
-
 def _pct(value: SupportsFloat | None) -> str:
     return "-" if value is None else f"{float(value):.1f}"
+
+
+class HMCvsGeneric(Study[MaroulasSettings]):
+    """Figs. 3, 4, 7, 8 of paper 003 (module docstring); not sharded."""
+
+    name = "maroulas-hmc"
+    description = "Maroulas & Stinis 2010 Figs. 3, 4, 7, 8: PF with an HMC move vs the generic PF (RMSE, ESS)"
+    outputs = tuple(f"{kind}_{obs}.png" for obs in scenario.OBSERVATIONS for kind in ("rmse", "ess", "tracks")) \
+        + ("metrics.json",)
+
+    def compute(self, settings: MaroulasSettings, options: RunOptions) -> dict:
+        """Run the study (module docstring); writes the PNGs into ``options.out``."""
+        cfg, device = asdict(settings), options.device
+        g = generator(device, options.seed)
+        motion = scenario.WhiteAccelerationMotion().to(device)
+        metrics: dict[str, Any] = {"config": cfg, "paper": PAPER}
+        with _one_thread(device):
+            for obs in scenario.OBSERVATIONS:
+                sensor = scenario.paper_sensor(obs).to(device)
+                data = scenario.simulate(cfg["runs"], cfg["steps"], sensor=sensor, generator=g, motion=motion,
+                                         device=device)
+                n_rm, n_gen = PAPER[obs]["particles"]
+                filters = {
+                    "improved": ResampleMoveFilter(motion, sensor, num_particles=n_rm, num_hmc_steps=cfg["hmc_steps"]),
+                    "generic": ResampleMoveFilter(motion, sensor, num_particles=n_gen, num_hmc_steps=0),
+                }
+                results: dict[str, Any] = {}
+                times: dict[str, float] = {}
+                for name, filt in filters.items():
+                    with StepTimer(device, cfg["steps"]) as timer:
+                        res = scenario.track(filt, data, generator=g, progress=options.progress)
+                    times[name] = timer.seconds
+                    results[name] = _summary(res, data, filt.num_particles, timer.seconds)
+                    results[name]["track_mean"] = res.mean[:, 0]
+                ratio = times["improved"] / times["generic"]
+                n_eq = min(int(n_gen * ratio), cfg["max_equal_time_particles"])
+                filt = ResampleMoveFilter(motion, sensor, num_particles=n_eq, num_hmc_steps=0)
+                with StepTimer(device, cfg["steps"]) as timer:
+                    res = scenario.track(filt, data, generator=g, progress=options.progress)
+                results["generic_equal_time"] = _summary(res, data, n_eq, timer.seconds)
+                _figures(options.out, obs, results, data, sensor, quick=settings.quick)
+                for v in results.values():
+                    v.pop("track_mean", None)
+                results["time_ratio_improved_over_generic"] = ratio
+                metrics[obs] = results
+        return metrics
+
+    def summary(self, payload: dict) -> str:
+        """Headline table: time-averaged RMSE per target and ESS per observation model and filter."""
+        lines = ["| observation | filter | Np | RMSE per target [m] | ESS before move [% of Np] | ESS after move "
+                 "[% of Np] | s / step |", "|---|---|---|---|---|---|---|"]
+        for obs in scenario.OBSERVATIONS:
+            for name, r in payload[obs].items():
+                if isinstance(r, dict):
+                    lines.append(f"| {obs} | {name} | {r['particles']} | {float(r['rmse_time_average']):.2f} | "
+                                 f"{float(r['ess_percent']):.1f} | {_pct(r.get('ess_after_move_percent'))} | "
+                                 f"{r['seconds_per_step']:.3f} |")
+        return "\n".join(lines) + "\n"
+
+
+STUDY = HMCvsGeneric()

@@ -58,12 +58,12 @@ state (the same numbers as one call), so each third is timed.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import importlib.util
 import itertools
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -78,27 +78,13 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..scenarios.septier import septier
 from ..typing import X, Y
-from ._common import (
-    StepTimer,
-    defaults_help,
-    np_label,
-    positive_int,
-    run_shards,
-    save_figure,
-    shard_generator,
-    write_metrics,
-)
+from ._figures import np_label, pyplot, save_figure
+from ._options import RunOptions
+from ._shards import Shards, shard_generator
+from ._study import Settings, StepTimer, Study, option
 
-NAME = "septier-birth-death"
-DESCRIPTION = ("Septier et al. setting: up to 5 targets with births/deaths in Poisson clutter; ours against Stone "
-               "Soup's GM-PHD and JPDA (OSPA, GOSPA parts, cardinality, time per step)")
-
-QUICK = dict(runs=3, steps=25, particles=300, burn_in=10, shard_size=1)
-#: 10 runs x 60 steps, the runs filtered as one batch: the size of issue 27's measurement
-FULL = dict(runs=10, steps=60, particles=2000, burn_in=20, shard_size=10)
 CUTOFF, ORDER = 100.0, 2.0
 FILTERS = ("SIR PF", "MCMC-PF", "IP-MCMC-PF")
-OUTPUTS = ("metrics.json", "tracks.png", "cardinality.png", "ospa.png", "shards", "tuning.json")
 PARTS = ("ospa", "gospa", "localisation", "missed", "false", "reported", "cardinality_error")
 
 #: Stone Soup's trackers: name -> (kind, settings). Tuned by ``--tune`` (module docstring) on
@@ -125,35 +111,35 @@ TUNE_GRIDS: dict[str, dict[str, tuple]] = {
 }
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this experiment's options (``--runs``, ``--steps``, ...) to ``parser``; each help
-    text shows the full and the ``--quick`` default.
+@dataclass(frozen=True)
+class BirthDeathSettings(Settings):
+    """The settings of :class:`BirthsAndDeaths` (full values: 10 runs x 60 steps, the runs
+    filtered as one batch, the size of issue 27's measurement; the second of each pair:
+    ``--quick``).
     """
 
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
-
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
-    parser.add_argument("--particles", type=positive_int, help=h("particles", "particles Np"))
-    parser.add_argument("--burn-in", dest="burn_in", type=positive_int,
-                        help=h("burn_in", "MCMC-PF burn-in per step; IP-MCMC-PF uses twice it"))
-    parser.add_argument("--tune", action="store_true",
+    runs: int = option(10, 3, help="Monte Carlo runs")
+    steps: int = option(60, 25, help="time steps")
+    particles: int = option(2000, 300, help="particles Np")
+    burn_in: int = option(20, 10, help="MCMC-PF burn-in per step; IP-MCMC-PF uses twice it")
+    shard_size: int = option(10, 1, cli=False)
+    tune: bool = option(False, record=False,
                         help="instead of the study: tune Stone Soup's trackers on the scenes of seeds "
                              f"{TUNE_SEEDS[0]}-{TUNE_SEEDS[-1]} ({TUNE['runs']} runs x {TUNE['steps']} steps each; "
                              "--quick: 1 run x 10 steps, the first grid points) and write tuning.json")
+    #: run Stone Soup's trackers too (``None``: when Stone Soup is installed)
+    stonesoup: bool | None = option(None, cli=False)
 
+    def __post_init__(self) -> None:
+        if self.stonesoup is None:
+            object.__setattr__(self, "stonesoup", importlib.util.find_spec("stonesoup") is not None)
 
-def _config(args: argparse.Namespace) -> dict:
-    cfg: dict = dict(QUICK if args.quick else FULL)
-    for key in cfg:
-        if getattr(args, key, None) is not None:
-            cfg[key] = getattr(args, key)
-    cfg["quick"] = bool(args.quick)
-    have = importlib.util.find_spec("stonesoup") is not None
-    cfg["stonesoup"] = {name: {"kind": kind, **dataclasses.asdict(s)} for name, (kind, s) in STONESOUP.items()} \
-        if have else None
-    return cfg
+    def record(self) -> dict:
+        """The settings as ``metrics.json`` records them under ``"config"`` (Stone Soup's
+        trackers with their settings, or ``None``).
+        """
+        stonesoup = {name: {"kind": kind, **dataclasses.asdict(s)} for name, (kind, s) in STONESOUP.items()}
+        return {**super().record(), "stonesoup": stonesoup if self.stonesoup else None}
 
 
 def _divisor_at_most(n: int, c: int) -> int:
@@ -174,8 +160,8 @@ def thirds(steps: int) -> list[range]:
     return [range(a, b) for a, b in zip(cuts, cuts[1:])]
 
 
-def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel, existence: BirthDeath) -> dict:
-    n, burn_in = cfg["particles"], cfg["burn_in"]
+def _filters(cfg: BirthDeathSettings, motion: MotionModel, sensor: SensorModel, existence: BirthDeath) -> dict:
+    n, burn_in = cfg.particles, cfg.burn_in
     return {
         "SIR PF": SIRFilter(motion, sensor, num_particles=n, existence=existence),
         "MCMC-PF": MCMCFilter(motion, sensor, num_particles=n, num_chains=_divisor_at_most(n, n // 2),
@@ -209,125 +195,13 @@ def set_scores(est: torch.Tensor, present: torch.Tensor, truth: torch.Tensor, al
     }.items()}
 
 
-def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
-              progress: bool = False) -> tuple[dict, dict]:
-    """Simulate the runs ``runs`` and track them with every tracker (ours: one batch).
-
-    Returns
-    -------
-    ``per_run`` with ``"truth"`` ``(R, T, K, 4)`` (NaN where absent), ``"true_count"``
-    ``(R, T)`` and per tracker ``f``: ``"f|<score>"`` ``(R, T)`` for every score of
-    :func:`set_scores`; ours also ``"f|count"`` (expected number of targets) and
-    ``"f|estimate"`` ``(R, T, K, 4)`` (NaN where the existence probability is <= 0.5).
-    ``seconds``: per tracker and third ``i`` of the run, ``"f|i"``, the wall-clock time of
-    those steps for all the shard's runs.
-    """
-    scn = septier(len(runs), cfg["steps"], generator=generator)
-    scn = scn._replace(truth=scn.truth.to(device))
-    motion, sensor, existence = scn.motion.to(device), scn.sensor.to(device), scn.existence.to(device)
-    b, k = scn.alive.shape[1:]
-    init = torch.zeros((b, cfg["particles"], k, 4), dtype=torch.float64, device=device)
-    per_run = {"truth": _masked_positions(scn.truth, scn.alive).movedim(1, 0),
-               "true_count": scn.true_count.movedim(1, 0)}
-    seconds = {}
-    parts = [p for p in thirds(cfg["steps"]) if len(p)]
-    z = scn.measurements
-    for name, filt in _filters(cfg, motion, sensor, existence).items():
-        state, means, probs = init, [], []
-        for i, part in enumerate(parts):  # each third resumed from the last one's state: timed apart
-            zi = type(z)(*(a[part.start:part.stop] for a in z))
-            with StepTimer(device, len(part)) as timer:
-                res = filt(zi, init=state, generator=generator, progress=progress)
-            seconds[f"{name}|{i}"] = timer.seconds
-            state = res.state
-            means.append(res.mean)
-            probs.append(res.exists_prob)
-        mean, exists_prob = torch.cat(means), torch.cat(probs)
-        present = exists_prob > 0.5  # (T, B, K)
-        for key, value in set_scores(mean, present, scn.truth, scn.alive).items():
-            per_run[f"{name}|{key}"] = value
-        per_run[f"{name}|count"] = exists_prob.sum(-1).T
-        per_run[f"{name}|estimate"] = _masked_positions(mean, present).movedim(1, 0)
-    if cfg.get("stonesoup"):
-        scene = PointScene.from_models(scn.motion, scn.sensor, scn.existence, k)
-        for name, (kind, settings) in STONESOUP.items():
-            done = [track_run(kind, settings, scene, z, r) for r in range(b)]  # Stone Soup: one run at a time
-            est, present = pad_estimates([d.estimates for d in done])
-            for key, value in set_scores(est.to(device), present.to(device), scn.truth, scn.alive).items():
-                per_run[f"{name}|{key}"] = value
-            step_seconds = np.sum([d.step_seconds for d in done], axis=0)
-            for i, part in enumerate(parts):
-                seconds[f"{name}|{i}"] = float(step_seconds[part.start:part.stop].sum())
-    return per_run, seconds
-
-
 def _names(per_run: dict) -> list[str]:
     """The trackers present in ``per_run``: ours, then Stone Soup's."""
     return [n for n in (*FILTERS, *STONESOUP) if f"{n}|ospa" in per_run]
 
 
-def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
-    """Per tracker: per-step means over the runs, their time averages overall and per third,
-    and the seconds per step and run, overall and per third.
-    """
-    runs, steps = per_run["true_count"].shape
-    parts = [p for p in thirds(steps) if len(p)]
-    results = {}
-    for name in _names(per_run):
-        r: dict = {}
-        for key in PARTS:
-            v = per_run[f"{name}|{key}"].double()
-            r[f"{key}_per_step"] = v.mean(0)
-            r[key] = v.mean()
-            r[f"{key}_thirds"] = [v[:, p.start:p.stop].mean() for p in parts]
-        secs = [seconds[f"{name}|{i}"] for i in range(len(parts))]
-        r["seconds_per_step"] = sum(secs) / (steps * runs)
-        r["seconds_per_step_thirds"] = [s / (len(p) * runs) for s, p in zip(secs, parts)]
-        if f"{name}|count" in per_run:
-            r["expected_count_per_step"] = per_run[f"{name}|count"].double().mean(0)
-        results[name] = r
-    return results
-
-
 def _third_labels(steps: int) -> str:
     return " / ".join(f"{p.start + 1}-{p.stop}" for p in thirds(steps) if len(p))
-
-
-def summary(payload: dict) -> str:
-    """Headline tables: every tracker overall, then per third of the run (or, after
-    ``--tune``, the best grid points per Stone Soup tracker).
-    """
-    if "tuning" in payload:
-        return tuning_summary(payload["tuning"])
-    res, cfg = payload["results"], payload["config"]
-    true = float(torch.as_tensor(payload["true_count_per_step"]).double().mean())
-    batch = min(cfg["shard_size"], cfg["runs"])
-
-    def f(v, fmt=".1f"):
-        return format(float(v), fmt)
-
-    def thirds_of(r, key, fmt=".1f"):
-        return " / ".join(f(v, fmt) for v in r[f"{key}_thirds"])
-
-    def ms(name, v):
-        return f"{1e3 * v:.0f}" + (f" ({batch} runs batched)" if name in FILTERS and batch > 1 else "")
-
-    lines = [f"| tracker | OSPA [m] | GOSPA [m] | GOSPA localisation [m] | missed / false per step | targets reported "
-             f"(true {true:.2f}) | ms per step per run |", "|---|---|---|---|---|---|---|"]
-    for name, r in res.items():
-        lines.append(f"| {name} | {f(r['ospa'])} | {f(r['gospa'])} | {f(r['localisation'])} | "
-                     f"{f(r['missed'], '.2f')} / {f(r['false'], '.2f')} | {f(r['reported'], '.2f')} | "
-                     f"{ms(name, r['seconds_per_step'])} |")
-    lines += ["", f"per third of the run (steps {_third_labels(cfg['steps'])}):", "",
-              "| tracker | OSPA [m] | GOSPA [m] | missed per step | false per step | targets reported | "
-              "ms per step per run |", "|---|---|---|---|---|---|---|"]
-    for name, r in res.items():
-        secs = " / ".join(f"{1e3 * v:.0f}" for v in r["seconds_per_step_thirds"])
-        lines.append(f"| {name} | {thirds_of(r, 'ospa')} | {thirds_of(r, 'gospa')} | {thirds_of(r, 'missed', '.2f')} | "
-                     f"{thirds_of(r, 'false', '.2f')} | {thirds_of(r, 'reported', '.2f')} | {secs} |")
-    if cfg.get("stonesoup") is None:
-        lines += ["", "Stone Soup is not installed: its rows are missing (pip install 'torchmcmcpf[bench]')."]
-    return "\n".join(lines) + "\n"
 
 
 # -- tuning Stone Soup's knobs on other seeds -----------------------------------------------
@@ -402,68 +276,179 @@ def tuning_summary(tuning: dict, top: int = 5) -> str:
     return "\n".join(lines)
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Run the study in shards (see the module docstring), or with ``args.tune`` the tuning;
-    writes into ``args.out``.
-    """
-    import sys
+class BirthsAndDeaths(Study[BirthDeathSettings]):
+    """Births and deaths in clutter, ours against Stone Soup's (module docstring)."""
 
-    import matplotlib
+    name = "septier-birth-death"
+    description = ("Septier et al. setting: up to 5 targets with births/deaths in Poisson clutter; ours against Stone "
+                   "Soup's GM-PHD and JPDA (OSPA, GOSPA parts, cardinality, time per step)")
+    outputs = ("metrics.json", "tracks.png", "cardinality.png", "ospa.png", "shards", "tuning.json")
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    def run_shard(self, cfg: BirthDeathSettings, runs: range, *, generator: torch.Generator, device: torch.device,
+                  progress: bool = False) -> tuple[dict, dict]:
+        """Simulate the runs ``runs`` and track them with every tracker (ours: one batch).
 
-    from ..plotting import plot_cardinality, plot_rmse, plot_tracks
+        Returns
+        -------
+        ``per_run`` with ``"truth"`` ``(R, T, K, 4)`` (NaN where absent), ``"true_count"``
+        ``(R, T)`` and per tracker ``f``: ``"f|<score>"`` ``(R, T)`` for every score of
+        :func:`set_scores`; ours also ``"f|count"`` (expected number of targets) and
+        ``"f|estimate"`` ``(R, T, K, 4)`` (NaN where the existence probability is <= 0.5).
+        ``seconds``: per tracker and third ``i`` of the run, ``"f|i"``, the wall-clock time of
+        those steps for all the shard's runs.
+        """
+        scn = septier(len(runs), cfg.steps, generator=generator)
+        scn = scn._replace(truth=scn.truth.to(device))
+        motion, sensor, existence = scn.motion.to(device), scn.sensor.to(device), scn.existence.to(device)
+        b, k = scn.alive.shape[1:]
+        init = torch.zeros((b, cfg.particles, k, 4), dtype=torch.float64, device=device)
+        per_run = {"truth": _masked_positions(scn.truth, scn.alive).movedim(1, 0),
+                   "true_count": scn.true_count.movedim(1, 0)}
+        seconds = {}
+        parts = [p for p in thirds(cfg.steps) if len(p)]
+        z = scn.measurements
+        for name, filt in _filters(cfg, motion, sensor, existence).items():
+            state, means, probs = init, [], []
+            for i, part in enumerate(parts):  # each third resumed from the last one's state: timed apart
+                zi = type(z)(*(a[part.start:part.stop] for a in z))
+                with StepTimer(device, len(part)) as timer:
+                    res = filt(zi, init=state, generator=generator, progress=progress)
+                seconds[f"{name}|{i}"] = timer.seconds
+                state = res.state
+                means.append(res.mean)
+                probs.append(res.exists_prob)
+            mean, exists_prob = torch.cat(means), torch.cat(probs)
+            present = exists_prob > 0.5  # (T, B, K)
+            for key, value in set_scores(mean, present, scn.truth, scn.alive).items():
+                per_run[f"{name}|{key}"] = value
+            per_run[f"{name}|count"] = exists_prob.sum(-1).T
+            per_run[f"{name}|estimate"] = _masked_positions(mean, present).movedim(1, 0)
+        if cfg.stonesoup:
+            scene = PointScene.from_models(scn.motion, scn.sensor, scn.existence, k)
+            for name, (kind, settings) in STONESOUP.items():
+                done = [track_run(kind, settings, scene, z, r) for r in range(b)]  # Stone Soup: one run at a time
+                est, present = pad_estimates([d.estimates for d in done])
+                for key, value in set_scores(est.to(device), present.to(device), scn.truth, scn.alive).items():
+                    per_run[f"{name}|{key}"] = value
+                step_seconds = np.sum([d.step_seconds for d in done], axis=0)
+                for i, part in enumerate(parts):
+                    seconds[f"{name}|{i}"] = float(step_seconds[part.start:part.stop].sum())
+        return per_run, seconds
 
-    if getattr(args, "tune", False):
+    @staticmethod
+    def aggregate(cfg: BirthDeathSettings, per_run: dict, seconds: dict) -> dict:
+        """Per tracker: per-step means over the runs, their time averages overall and per third,
+        and the seconds per step and run, overall and per third.
+        """
+        runs, steps = per_run["true_count"].shape
+        parts = [p for p in thirds(steps) if len(p)]
+        results = {}
+        for name in _names(per_run):
+            r: dict = {}
+            for key in PARTS:
+                v = per_run[f"{name}|{key}"].double()
+                r[f"{key}_per_step"] = v.mean(0)
+                r[key] = v.mean()
+                r[f"{key}_thirds"] = [v[:, p.start:p.stop].mean() for p in parts]
+            secs = [seconds[f"{name}|{i}"] for i in range(len(parts))]
+            r["seconds_per_step"] = sum(secs) / (steps * runs)
+            r["seconds_per_step_thirds"] = [s / (len(p) * runs) for s, p in zip(secs, parts)]
+            if f"{name}|count" in per_run:
+                r["expected_count_per_step"] = per_run[f"{name}|count"].double().mean(0)
+            results[name] = r
+        return results
+
+    def summary(self, payload: dict) -> str:
+        """Headline tables: every tracker overall, then per third of the run (or, after
+        ``--tune``, the best grid points per Stone Soup tracker).
+        """
+        if "tuning" in payload:
+            return tuning_summary(payload["tuning"])
+        res, cfg = payload["results"], payload["config"]
+        true = float(torch.as_tensor(payload["true_count_per_step"]).double().mean())
+        batch = min(cfg["shard_size"], cfg["runs"])
+
+        def f(v, fmt=".1f"):
+            return format(float(v), fmt)
+
+        def thirds_of(r, key, fmt=".1f"):
+            return " / ".join(f(v, fmt) for v in r[f"{key}_thirds"])
+
+        def ms(name, v):
+            return f"{1e3 * v:.0f}" + (f" ({batch} runs batched)" if name in FILTERS and batch > 1 else "")
+
+        lines = [f"| tracker | OSPA [m] | GOSPA [m] | GOSPA localisation [m] | missed / false per step | "
+                 f"targets reported (true {true:.2f}) | ms per step per run |", "|---|---|---|---|---|---|---|"]
+        for name, r in res.items():
+            lines.append(f"| {name} | {f(r['ospa'])} | {f(r['gospa'])} | {f(r['localisation'])} | "
+                         f"{f(r['missed'], '.2f')} / {f(r['false'], '.2f')} | {f(r['reported'], '.2f')} | "
+                         f"{ms(name, r['seconds_per_step'])} |")
+        lines += ["", f"per third of the run (steps {_third_labels(cfg['steps'])}):", "",
+                  "| tracker | OSPA [m] | GOSPA [m] | missed per step | false per step | targets reported | "
+                  "ms per step per run |", "|---|---|---|---|---|---|---|"]
+        for name, r in res.items():
+            secs = " / ".join(f"{1e3 * v:.0f}" for v in r["seconds_per_step_thirds"])
+            lines.append(f"| {name} | {thirds_of(r, 'ospa')} | {thirds_of(r, 'gospa')} | "
+                         f"{thirds_of(r, 'missed', '.2f')} | "
+                         f"{thirds_of(r, 'false', '.2f')} | {thirds_of(r, 'reported', '.2f')} | {secs} |")
+        if cfg.get("stonesoup") is None:
+            lines += ["", "Stone Soup is not installed: its rows are missing (pip install 'torchmcmcpf[bench]')."]
+        return "\n".join(lines) + "\n"
+
+    def run(self, settings: BirthDeathSettings, options: RunOptions) -> dict:
+        """The study in shards, or with ``settings.tune`` the tuning (``tuning.json`` only)."""
+        if not settings.tune:
+            return super().run(settings, options)
         if importlib.util.find_spec("stonesoup") is None:
             raise ValueError("--tune needs Stone Soup: pip install 'torchmcmcpf[bench]'")
         start = time.perf_counter()
-        tuning = tune(quick=bool(args.quick), progress=bool(getattr(args, "progress", False)))
+        tuning = tune(quick=settings.quick, progress=options.progress)
         payload = {"tuning": tuning, "seeds": TUNE_SEEDS, "tune": TUNE, "grids": TUNE_GRIDS,
                    "wall_seconds": time.perf_counter() - start}
-        Path(args.out, "tuning.json").write_text(json.dumps(payload, indent=1, default=str))
+        Path(options.out, "tuning.json").write_text(json.dumps(payload, indent=1, default=str))
         return payload
 
-    cfg = _config(args)
-    device = args.device
-    shards = run_shards(sys.modules[__name__], cfg, args)
-    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
-    results = aggregate(cfg, shards.per_run, shards.seconds)
-    pr, n, quick = shards.per_run, cfg["particles"], " (quick)" if cfg["quick"] else ""
-    runs = pr["true_count"].shape[0]
-    true_count = pr["true_count"].double().mean(0)
+    def summarise(self, cfg: BirthDeathSettings, shards: Shards, out: Path) -> dict:
+        """Per tracker results and the three figures (module docstring)."""
+        from ..plotting import plot_cardinality, plot_rmse, plot_tracks
 
-    def label(name):
-        return np_label(name, n) if name in FILTERS else name
+        plt = pyplot()
+        results = self.aggregate(cfg, shards.per_run, shards.seconds)
+        pr, n, quick = shards.per_run, cfg.particles, " (quick)" if cfg.quick else ""
+        runs = pr["true_count"].shape[0]
+        true_count = pr["true_count"].double().mean(0)
 
-    fig, axes = plt.subplots(1, len(FILTERS), figsize=(5.5 * len(FILTERS), 5.5), squeeze=False,
-                             layout="constrained")
-    for ax, name in zip(axes[0], FILTERS):
-        plot_tracks(ax, pr["truth"][0], pr[f"{name}|estimate"][0], estimate_label=np_label(name, n))
-        ax.set_title(f"{name} (existence > 0.5)")
-    fig.suptitle(f"run 0: true tracks (solid) and estimates (dashed){quick}")
-    save_figure(fig, args.out, "tracks.png", quick=cfg["quick"])
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    curves = {f"{label(name)}: expected number": r["expected_count_per_step"] for name, r in results.items()
-              if "expected_count_per_step" in r}
-    curves.update({f"{label(name)}: reported": r["reported_per_step"] for name, r in results.items()})
-    plot_cardinality(ax, true_count, curves)
-    ax.legend(fontsize="x-small")
-    ax.set_title(f"mean number of targets over {runs} runs{quick}")
-    save_figure(fig, args.out, "cardinality.png", quick=cfg["quick"])
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), layout="constrained")
-    for i, name in enumerate(results):
-        color, ls = f"C{i}", "-" if name in FILTERS else "--"
-        plot_rmse(axes[0], {label(name): results[name]["ospa_per_step"]}, color=color, ls=ls,
-                  ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
-        plot_rmse(axes[1], {label(name): results[name]["gospa_per_step"]}, color=color, ls=ls,
-                  ylabel=f"GOSPA (c = {CUTOFF:g} m, p = {ORDER:g}, alpha = 2) [m]")
-    axes[0].legend(fontsize="x-small")
-    fig.suptitle(f"mean over {runs} runs{quick}: ours (solid), Stone Soup (dashed)")
-    save_figure(fig, args.out, "ospa.png", quick=cfg["quick"])
+        def label(name):
+            return np_label(name, n) if name in FILTERS else name
 
-    payload = {"config": cfg, "cutoff": CUTOFF, "order": ORDER, "true_count_per_step": true_count,
-               "results": results}
-    write_metrics(args.out, payload, args=args, device=device)
-    return payload
+        fig, axes = plt.subplots(1, len(FILTERS), figsize=(5.5 * len(FILTERS), 5.5), squeeze=False,
+                                 layout="constrained")
+        for ax, name in zip(axes[0], FILTERS):
+            plot_tracks(ax, pr["truth"][0], pr[f"{name}|estimate"][0], estimate_label=np_label(name, n))
+            ax.set_title(f"{name} (existence > 0.5)")
+        fig.suptitle(f"run 0: true tracks (solid) and estimates (dashed){quick}")
+        save_figure(fig, out, "tracks.png", quick=cfg.quick)
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        curves = {f"{label(name)}: expected number": r["expected_count_per_step"] for name, r in results.items()
+                  if "expected_count_per_step" in r}
+        curves.update({f"{label(name)}: reported": r["reported_per_step"] for name, r in results.items()})
+        plot_cardinality(ax, true_count, curves)
+        ax.legend(fontsize="x-small")
+        ax.set_title(f"mean number of targets over {runs} runs{quick}")
+        save_figure(fig, out, "cardinality.png", quick=cfg.quick)
+        fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), layout="constrained")
+        for i, name in enumerate(results):
+            color, ls = f"C{i}", "-" if name in FILTERS else "--"
+            plot_rmse(axes[0], {label(name): results[name]["ospa_per_step"]}, color=color, ls=ls,
+                      ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
+            plot_rmse(axes[1], {label(name): results[name]["gospa_per_step"]}, color=color, ls=ls,
+                      ylabel=f"GOSPA (c = {CUTOFF:g} m, p = {ORDER:g}, alpha = 2) [m]")
+        axes[0].legend(fontsize="x-small")
+        fig.suptitle(f"mean over {runs} runs{quick}: ours (solid), Stone Soup (dashed)")
+        save_figure(fig, out, "ospa.png", quick=cfg.quick)
+
+        return {"config": cfg.record(), "cutoff": CUTOFF, "order": ORDER, "true_count_per_step": true_count,
+                "results": results}
+
+
+STUDY = BirthsAndDeaths()

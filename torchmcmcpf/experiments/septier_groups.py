@@ -46,9 +46,9 @@ spread over the runs; (b) the same sample budget on ``C`` chains vs one long cha
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -60,21 +60,16 @@ from ..resampling import cdf, inverse_cdf, systematic
 from ..scenarios.group_merge import GroupMergeScenario, group_merge
 from ..state import FilterResult
 from ..typing import Tensor
-from ._common import generator, nonnegative_int, positive_int, save_figure, write_metrics
+from ._figures import pyplot, save_figure
+from ._options import RunOptions, nonnegative_int
+from ._provenance import write_metrics
+from ._study import Settings, Study, generator, option
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
-NAME = "septier-groups"
-DESCRIPTION = ("Septier et al. 2009 Figs. 4-6: marginalised MCMC-PF detects 4 targets and infers two groups "
-               "merging, next to the Bayes limit and a large-particle reference")
-
+#: the proposals' defaults (the notebook reads them)
 PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.6)
-FULL = dict(runs=40, steps=110, particles=4000, chains=20, burn_in=1000, thinning=6, reference_particles=100_000,
-            **PROPOSALS)
-QUICK = dict(runs=2, steps=8, particles=40, chains=10, burn_in=10, thinning=2, reference_particles=2000, **PROPOSALS)
-BEYOND_FULL = dict(beyond_runs=10, beyond_steps=30, beyond_particles=400, beyond_burn_in=100)
-BEYOND_QUICK = dict(beyond_runs=2, beyond_steps=4, beyond_particles=20, beyond_burn_in=5)
 CUTOFF, ORDER = 100.0, 2.0
 MERGED = 0  # row of [0, 0, 0, 0] in group_structures(4): the paper's [1 1 1 1]
 #: rows of the two-groups-of-two structures [1 1 2 2], [1 2 1 2], [1 2 2 1]: slots are
@@ -84,73 +79,62 @@ PAIRS = (3, 6, 8)
 HEADLINE_STEPS = (5, 10, 20, 60, 110)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options (runs, steps, particles, chains, burn-in, thinning, the
-    proposals, the reference's particles, ``--beyond`` and its sizes) to ``parser``; each help
-    text shows the full and the ``--quick`` default.
+@dataclass(frozen=True)
+class GroupsSettings(Settings):
+    """The settings of :class:`Groups` (full values; the second of each pair: ``--quick``);
+    ``ValueError`` (a one-line argument error on the command line) for a particle count that
+    does not split into the chains or proposal settings the filter refuses.
     """
-    parser.add_argument("--runs", type=positive_int, help="Monte Carlo runs (default 40, quick 2)")
-    parser.add_argument("--steps", type=positive_int, help="time steps (default 110, quick 8)")
-    parser.add_argument("--particles", type=positive_int,
-                        help="kept samples N_p, a multiple of --chains (default 4000, quick 40)")
-    parser.add_argument("--chains", type=positive_int, help="chains C sharing N_p (default 20, quick 10)")
-    parser.add_argument("--burn-in", dest="burn_in", type=nonnegative_int,
-                        help="burn-in per chain (default 1000, quick 10)")
-    parser.add_argument("--thinning", type=positive_int, help="thinning (default 6, quick 2)")
-    parser.add_argument("--alpha", choices=("mean", "predictive"),
-                        help="ancestor proposal: eq. 62 ('mean') or the predictive likelihood (default predictive)")
-    parser.add_argument("--birth", choices=("eq65", "frame"),
-                        help="birth proposal: eq. 65 or every detection (default frame)")
-    parser.add_argument("--lag", type=nonnegative_int, help="past positions the past move changes (default 2; 0: off)")
-    parser.add_argument("--p-past", dest="p_past", type=float, help="probability of the past move (default 0.2)")
-    parser.add_argument("--xi", type=float, help="probability of the joint draw (default 0.6; the paper's 0.75)")
-    parser.add_argument("--reference-particles", dest="reference_particles", type=nonnegative_int,
-                        help="particles of the per-target reference filter, 0 to skip it (default 100000, "
-                             "quick 2000)")
-    parser.add_argument("--compile", action="store_true",
-                        help="compile the three moves (GroupMCMCFilter(compile_step=True)): about 2x faster "
-                             "per iteration, a few minutes to compile")
-    parser.add_argument("--beyond", action="store_true", help="also run issue 11 item 4 (a) and (b)")
-    for key in BEYOND_FULL:
-        parser.add_argument("--" + key.replace("_", "-"), dest=key, type=positive_int)
+
+    runs: int = option(40, 2, help="Monte Carlo runs")
+    steps: int = option(110, 8, help="time steps")
+    particles: int = option(4000, 40, help="kept samples N_p, a multiple of --chains")
+    chains: int = option(20, 10, help="chains C sharing N_p")
+    burn_in: int = option(1000, 10, help="burn-in per chain", type=nonnegative_int)
+    thinning: int = option(6, 2, help="thinning")
+    alpha: str = option(PROPOSALS["alpha"], choices=("mean", "predictive"),
+                        help="ancestor proposal: eq. 62 ('mean') or the predictive likelihood")
+    birth: str = option(PROPOSALS["birth"], choices=("eq65", "frame"),
+                        help="birth proposal: eq. 65 or every detection")
+    lag: int = option(PROPOSALS["lag"], type=nonnegative_int,
+                      help="past positions the past move changes (default 2; 0: off)")
+    p_past: float = option(PROPOSALS["p_past"], help="probability of the past move")
+    xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.6; the paper's 0.75)")
+    reference_particles: int = option(100_000, 2000, type=nonnegative_int,
+                                      help="particles of the per-target reference filter, 0 to skip it")
+    compile: bool = option(False, record=False, help="compile the three moves (GroupMCMCFilter(compile_step=True)): "
+                                                     "about 2x faster per iteration, a few minutes to compile")
+    beyond: bool = option(False, record=False, help="also run issue 11 item 4 (a) and (b)")
+    beyond_runs: int = option(10, 2, help="--beyond: runs")
+    beyond_steps: int = option(30, 4, help="--beyond: time steps")
+    beyond_particles: int = option(400, 20, help="--beyond: kept samples")
+    beyond_burn_in: int = option(100, 5, help="--beyond: burn-in per chain")
+
+    def __post_init__(self) -> None:
+        if self.particles % self.chains:
+            raise ValueError(f"argument --particles: {self.particles} kept samples do not split into --chains "
+                             f"{self.chains} chains (each keeps particles / chains); use a multiple of {self.chains}")
+        if self.lag == 0:
+            object.__setattr__(self, "p_past", 0.0)
+        for key in ("p_past", "xi"):
+            value = getattr(self, key)
+            if not 0.0 <= value <= 1.0 or not math.isfinite(value):
+                raise ValueError(f"argument --{key.replace('_', '-')}: must be a probability, got {value}")
+        if self.xi + self.p_past > 1.0:
+            raise ValueError(f"argument --xi: xi + p_past must be <= 1, got {self.xi} + {self.p_past}")
+        if self.lag > 0 and self.p_past == 0.0:
+            raise ValueError("argument --p-past: the past move (--lag >= 1) needs --p-past > 0")
 
 
-def settings(args: argparse.Namespace) -> dict[str, Any]:
-    """Quick or full defaults, overridden by the options given; ``ValueError`` (a one-line
-    argument error on the command line) for a particle count that does not split into the
-    chains or proposal settings the filter refuses.
-    """
-    quick = bool(getattr(args, "quick", False))
-    cfg: dict[str, Any] = dict(QUICK if quick else FULL)
-    cfg.update(BEYOND_QUICK if quick else BEYOND_FULL)
-    for key in cfg:
-        if getattr(args, key, None) is not None:
-            cfg[key] = getattr(args, key)
-    if cfg["particles"] % cfg["chains"]:
-        raise ValueError(f"argument --particles: {cfg['particles']} kept samples do not split into --chains "
-                         f"{cfg['chains']} chains (each keeps particles / chains); use a multiple of {cfg['chains']}")
-    if cfg["lag"] == 0:
-        cfg["p_past"] = 0.0
-    for key in ("p_past", "xi"):
-        if not 0.0 <= cfg[key] <= 1.0 or not math.isfinite(cfg[key]):
-            raise ValueError(f"argument --{key.replace('_', '-')}: must be a probability, got {cfg[key]}")
-    if cfg["xi"] + cfg["p_past"] > 1.0:
-        raise ValueError(f"argument --xi: xi + p_past must be <= 1, got {cfg['xi']} + {cfg['p_past']}")
-    if cfg["lag"] > 0 and cfg["p_past"] == 0.0:
-        raise ValueError("argument --p-past: the past move (--lag >= 1) needs --p-past > 0")
-    cfg["quick"] = quick
-    return cfg
-
-
-def _filter(scn: GroupMergeScenario, cfg: dict[str, Any], *, particles: int | None = None,
+def _filter(scn: GroupMergeScenario, cfg: GroupsSettings, *, particles: int | None = None,
             chains: int | None = None, burn_in: int | None = None, marginalise: bool = True,
             compile_step: bool = False) -> GroupMCMCFilter:
-    lag = cfg["lag"] if marginalise else 0
-    return GroupMCMCFilter(scn.motion, scn.sensor, particles or cfg["particles"], existence=scn.existence,
-                           structure_prior=scn.structure_prior, num_chains=chains or cfg["chains"],
-                           burn_in=cfg["burn_in"] if burn_in is None else burn_in, thinning=cfg["thinning"],
-                           xi=cfg["xi"], p_a=0.5, p_i=0.01, marginalise=marginalise, alpha=cfg["alpha"],
-                           birth=cfg["birth"], lag=lag, p_past=cfg["p_past"] if lag else 0.0,
+    lag = cfg.lag if marginalise else 0
+    return GroupMCMCFilter(scn.motion, scn.sensor, particles or cfg.particles, existence=scn.existence,
+                           structure_prior=scn.structure_prior, num_chains=chains or cfg.chains,
+                           burn_in=cfg.burn_in if burn_in is None else burn_in, thinning=cfg.thinning,
+                           xi=cfg.xi, p_a=0.5, p_i=0.01, marginalise=marginalise, alpha=cfg.alpha,
+                           birth=cfg.birth, lag=lag, p_past=cfg.p_past if lag else 0.0,
                            compile_step=compile_step)
 
 
@@ -361,195 +345,14 @@ def _at(curve: Tensor, step: int) -> float | None:
     return float(curve[step - 1]) if step <= curve.shape[0] else None
 
 
-def run(args: argparse.Namespace) -> dict:
-    """Run the study (module docstring); writes into ``args.out``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    cfg = settings(args)
-    device = args.device
-    gen = generator(device, args.seed)
-    steps = cfg["steps"]
-    # the paper's 40 observation sets are drawn whatever --runs (a reduced run filters the first ones)
-    runs = cfg["runs"]
-    scn = group_merge(runs if cfg["quick"] else max(runs, FULL["runs"]), generator=gen, num_steps=max(steps, 2),
-                      merge_step=min(46, max(steps, 2)))
-    scn = scn._replace(truth=scn.truth[:, :runs], leaders=scn.leaders[:, :runs], exists=scn.exists[:, :runs],
-                       labels=scn.labels[:, :runs], structure=scn.structure[:, :runs], frames=scn.frames[:, :runs])
-    scn = scn._replace(motion=scn.motion.to(device), sensor=scn.sensor.to(device),
-                       existence=scn.existence.to(device), structure_prior=scn.structure_prior.to(device))
-    filt = _filter(scn, cfg, compile_step=bool(getattr(args, "compile", False)))
-    res, seconds = _run(filt, scn, steps, gen, args.progress)
-    if res.exists_prob is None:
-        raise ValueError("the filter result carries no exists_prob (expected a GroupMCMCFilter result)")
-    ex = res.info.extras
-    sp = ex["structure_prob"]  # (T, B, 15)
-    sp_all = ex["structure_prob_all_exist"]  # (T, B, 15), NaN where no particle has all four
-    count = ex["expected_count"]  # (T, B)
-    o, g = _errors(res, scn, steps)
-    merge = scn.merge_step
-    merged_at = first_step_above(sp[..., MERGED], 0.5, start=merge)
-    detected_at = first_step_above(count, 3.5)
-    table = group_structures(4)
-    limit = bayes_limit(scn, steps)
-    ref = (reference_filter(scn, steps, cfg["reference_particles"], generator=gen)
-           if cfg["reference_particles"] else None)
-    if ref is not None:
-        ref_o, ref_g = _ospa(ref["exists_prob"] > 0.5, ref["mean"], scn, steps)
-    quick = cfg["quick"]
-
-    # -- figures
-    fig, ax = plt.subplots(figsize=(7, 7))
-    modal = table[sp[:, 0].argmax(-1)]
-    plot_groups(ax, scn.positions[:steps, 0, :4].cpu(), res.mean[:, 0, :, 0::2].cpu(),
-                (res.exists_prob[:, 0] > 0.5).cpu(), modal)
-    ax.legend(fontsize=8, loc="upper left")
-    ax.set_title("run 0: tracks and the modal group structure (Fig. 4)")
-    save_figure(fig, args.out, "tracks.png", quick=quick)
-
-    fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), sharey=True)
-    steps_axis = torch.arange(1, steps + 1)
-    cmap = plt.get_cmap("tab20")
-    for ax, probs, title in ((axes[0], sp[:, 0], "run 0"), (axes[1], sp.mean(1), f"mean over {cfg['runs']} runs")):
-        for s in range(table.shape[0]):
-            lab = "[" + " ".join(str(int(v) + 1) for v in table[s]) + "]"
-            ax.plot(steps_axis, probs[:, s].cpu(), color=cmap(s), lw=2.5 if s in (MERGED,) + PAIRS else 1, label=lab)
-        ax.plot(steps_axis, probs[:, list(PAIRS)].sum(-1).cpu(), "k--", lw=1.5, label="two groups of two (sum)")
-        ax.axvline(merge + 1, color="k", ls=":", lw=1)
-        ax.set_xlabel("time step")
-        ax.set_title(f"group structure probability, {title} (Fig. 5)")
-    axes[1].plot(steps_axis, sp_all[..., MERGED].nanmean(1).cpu(), color=cmap(MERGED), ls=":", lw=2,
-                 label="[1 1 1 1] given all four alive")
-    axes[0].set_ylabel("probability")
-    axes[1].legend(fontsize=7, ncol=3, loc="center right")
-    save_figure(fig, args.out, "structures.png", quick=quick)
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    ep = res.exists_prob.mean(1).cpu()  # (T, K)
-    for i in range(ep.shape[1]):
-        ax.plot(steps_axis, ep[:, i], lw=0.8, alpha=0.7, label=f"slot {i}")
-    ax.plot(steps_axis, count.mean(1).cpu(), "k", lw=2, label="expected number of targets")
-    if ref is not None:
-        ax.plot(steps_axis, ref["expected_count"].mean(1).cpu(), color="C3", lw=1.8, ls="-.",
-                label=f"reference: a bootstrap PF per target, {cfg['reference_particles']:,} particles")
-    ax.plot(steps_axis, limit["per_step"], color="C2", lw=1.2, ls="--",
-            label="ceiling from an inactive start (target's pixel known)")
-    ax.axhline(limit["stationary"], color="C2", lw=1.5,
-               label=f"ceiling {limit['stationary']:.2f} (P_d,1 = {limit['p_d1']:.2f}; "
-                     f"{limit['stationary_17db']:.2f} at the paper's 17 dB)")
-    ax.axhline(4, color="0.5", ls=":")
-    ax.set_xlabel("time step")
-    ax.set_title(f"mean existence over {cfg['runs']} runs (Fig. 6)")
-    ax.legend(fontsize=7, loc="lower right")
-    save_figure(fig, args.out, "existence.png", quick=quick)
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    axes[0].plot(steps_axis, o.mean(1).cpu(), label="group MCMC-PF")
-    axes[1].plot(steps_axis, g.mean(1).cpu(), label="group MCMC-PF")
-    if ref is not None:
-        axes[0].plot(steps_axis, ref_o.mean(1).cpu(), color="C3", ls="-.", label="reference")
-        axes[1].plot(steps_axis, ref_g.mean(1).cpu(), color="C3", ls="-.", label="reference")
-    axes[0].set_ylabel(f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
-    axes[1].set_ylabel(f"GOSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
-    for ax in axes:
-        ax.set_xlabel("time step")
-        ax.legend(fontsize=8)
-    save_figure(fig, args.out, "ospa.png", quick=quick)
-
-    n_merged = sum(m is not None for m in merged_at)
-    ours_count = count.mean(1)
-    p_merged = sp[..., MERGED].mean(1)
-    p_merged_all = sp_all[..., MERGED].nanmean(1)
-    after = slice(min(60, steps), steps)  # steps 61 .. T (the issue's "after step 60")
-    payload: dict[str, Any] = {
-        "config": cfg,
-        "iterations_per_step": cfg["burn_in"] + cfg["thinning"] * cfg["particles"] // cfg["chains"],
-        "seconds": seconds,
-        "seconds_per_step": seconds / steps,
-        "merge_step": merge + 1,
-        "ceiling": {k: v for k, v in limit.items() if not torch.is_tensor(v)},
-        "ceiling_per_step": limit["per_step"],
-        "headline": {
-            f"step_{t}": {"ceiling": _at(limit["per_step"], t), "ours": _at(ours_count, t),
-                          "reference": None if ref is None else _at(ref["expected_count"].mean(1), t),
-                          "p_merged": _at(p_merged, t), "p_merged_all_alive": _at(p_merged_all, t)}
-            for t in sorted({t for t in HEADLINE_STEPS if t <= steps} | {steps})},
-        "p_merged_mean_after_60": p_merged[after].mean() if steps > 60 else None,
-        "p_merged_all_alive_mean_after_60": p_merged_all[after].nanmean() if steps > 60 else None,
-        "p_merged_all_alive_min_after_60": p_merged_all[after].min() if steps > 60 else None,
-        "merged_structure_first_above_half": merged_at,
-        "runs_merged": n_merged,
-        "median_merge_detected_step": (sorted(m for m in merged_at if m is not None)[n_merged // 2]
-                                       if n_merged else None),
-        "first_step_expected_count_above_3_5": detected_at,
-        "runs_detected_within_10_steps": sum(d is not None and d <= 10 for d in detected_at),
-        "expected_count_step_10_mean": count[min(9, steps - 1)].mean(),
-        "expected_count_per_step": ours_count,
-        "exists_prob_per_step": res.exists_prob.mean(1),
-        "structure_prob_per_step": sp.mean(1),
-        "p_merged_all_alive_per_step": p_merged_all,
-        "p_all_alive_per_step": ex["all_exist_prob"].mean(1),
-        "p_two_pairs_per_step": sp[..., list(PAIRS)].sum(-1).mean(1),
-        "p_two_pairs_mean_steps_11_to_45": (sp[10:merge, :, list(PAIRS)].sum(-1).mean()
-                                            if merge > 10 and steps > 10 else None),
-        "p_merged_mean_last_20": sp[-20:, :, MERGED].mean(),
-        "ospa_per_step": o.mean(1), "gospa_per_step": g.mean(1),
-        "ospa": o.mean(), "gospa": g.mean(),
-        "acceptance": {k: v.nanmean() for k, v in ex.items() if k.startswith("acceptance")},
-    }
-    if ref is not None:
-        payload["reference"] = {"particles": cfg["reference_particles"], "seconds": ref["seconds"],
-                                "expected_count_per_step": ref["expected_count"].mean(1),
-                                "ospa_per_step": ref_o.mean(1), "ospa": ref_o.mean(), "gospa": ref_g.mean()}
-    write_metrics(args.out, payload, args=args, device=device)  # kept if item 4 is interrupted
-    if getattr(args, "beyond", False):
-        payload["beyond"] = _beyond(scn, cfg, gen, args.progress)
-        write_metrics(args.out, payload, args=args, device=device)
-    return payload
-
-
-def summary(payload: dict[str, Any]) -> str:
-    """The headline table printed by ``reproduce``: the expected number of targets and the
-    merged structure's probability next to the ceiling, the reference and the paper.
-    """
-    def f(v: Any, digits: int = 2) -> str:
-        return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{float(v):.{digits}f}"
-
-    h = payload["headline"]
-    cfg = payload["config"]
-    cols = [k for k in h if h[k]["ours"] is not None]
-    sec = payload["seconds"] + payload.get("reference", {}).get("seconds", 0.0)
-    lines = [f"septier-groups: {cfg['runs']} runs x {cfg['steps']} steps, N_p = {cfg['particles']} "
-             f"({cfg['chains']} chains, burn-in {cfg['burn_in']}, thinning {cfg['thinning']}), "
-             + (f"{sec / 60:.1f} min" if sec >= 60 else f"{sec:.0f} s")
-             + (" (quick: small settings)" if cfg.get("quick") else ""),
-             "", "| expected number of targets, step | " + " | ".join(k.split("_")[1] for k in cols) + " |",
-             "| --- |" + " --- |" * len(cols)]
-    ceiling = payload["ceiling"]
-    rows = [("ceiling (pixel known)", "ceiling"), ("reference (bootstrap PF per target)", "reference"),
-            ("group MCMC-PF (ours)", "ours"), ("P(merged)", "p_merged"), ("P(merged | all four alive)",
-                                                                          "p_merged_all_alive")]
-    for label, key in rows:
-        lines.append(f"| {label} | " + " | ".join(f(h[k][key]) for k in cols) + " |")
-    lines += ["", f"ceiling in the long run {f(ceiling['stationary'])} (P_d,1 = {f(ceiling['p_d1'])}), "
-              f"{f(ceiling['stationary_17db'])} at the paper's 17 dB (P_d,1 = {f(ceiling['p_d1_17db'], 3)}); "
-              "paper: ~4 within ten steps (Fig. 6), [1 1 1 1] ~1 after the merge (Fig. 5)",
-              f"runs with P(merged) > 0.5 after step {payload['merge_step']}: {payload['runs_merged']} of {cfg['runs']}"
-              f"; OSPA {f(payload['ospa'], 1)} m" + (f" (reference {f(payload['reference']['ospa'], 1)} m)"
-                                                    if "reference" in payload else "")]
-    return "\n".join(lines)
-
-
-def _beyond(scn: GroupMergeScenario, cfg: dict[str, int], gen: torch.Generator, progress: bool | None
+def _beyond(scn: GroupMergeScenario, cfg: GroupsSettings, gen: torch.Generator, progress: bool | None
             ) -> dict[str, Any]:
     """Issue 11 item 4 on the first ``beyond_runs`` runs and ``beyond_steps`` steps."""
-    r, steps, n, burn = cfg["beyond_runs"], cfg["beyond_steps"], cfg["beyond_particles"], cfg["beyond_burn_in"]
+    r, steps, n, burn = cfg.beyond_runs, cfg.beyond_steps, cfg.beyond_particles, cfg.beyond_burn_in
     sub = scn._replace(truth=scn.truth[:, :r], exists=scn.exists[:, :r], frames=scn.frames[:, :r])
-    chains = max(d for d in range(1, min(cfg["chains"], n) + 1) if n % d == 0)
+    chains = max(d for d in range(1, min(cfg.chains, n) + 1) if n % d == 0)
     out: dict[str, Any] = {"runs": r, "steps": steps, "particles": n, "burn_in": burn, "chains": chains,
-                           "thinning": cfg["thinning"]}
+                           "thinning": cfg.thinning}
     start = min(10, steps - 1)  # after the detection phase
     for name, marg in (("marginalised", True), ("sampled_velocities_and_leaders", False)):
         res, sec = _run(_filter(sub, cfg, particles=n, chains=chains, burn_in=burn, marginalise=marg), sub, steps,
@@ -560,11 +363,198 @@ def _beyond(scn: GroupMergeScenario, cfg: dict[str, int], gen: torch.Generator, 
                      "ospa_std_over_runs": per_run.std(), "expected_count_final": res.info.extras["expected_count"][-1]}
     # (b) the same budget of kept samples: C chains (own burn-in each) vs one long chain with
     # the same number of iterations in total per run
-    total = chains * burn + cfg["thinning"] * n
-    for name, c, b in (("C_chains", chains, burn), ("one_chain", 1, total - cfg["thinning"] * n)):
+    total = chains * burn + cfg.thinning * n
+    for name, c, b in (("C_chains", chains, burn), ("one_chain", 1, total - cfg.thinning * n)):
         res, sec = _run(_filter(sub, cfg, particles=n, chains=c, burn_in=b), sub, steps, gen, progress)
         o, _ = _errors(res, sub, steps)
         per_run = o[start:].mean(0)
         out[name] = {"chains": c, "burn_in": b, "seconds": sec, "ospa_mean": per_run.mean(),
                      "ospa_std_over_runs": per_run.std(), "expected_count_final": res.info.extras["expected_count"][-1]}
     return out
+
+
+class Groups(Study[GroupsSettings]):
+    """Figs. 4-6 of paper 004 (module docstring); not sharded."""
+
+    name = "septier-groups"
+    description = ("Septier et al. 2009 Figs. 4-6: marginalised MCMC-PF detects 4 targets and infers two groups "
+                   "merging, next to the Bayes limit and a large-particle reference")
+    outputs = ("metrics.json", "tracks.png", "structures.png", "existence.png", "ospa.png")
+
+    def compute(self, cfg: GroupsSettings, options: RunOptions) -> dict:
+        """Run the study (module docstring); writes the figures into ``options.out``."""
+        plt = pyplot()
+        device, out = options.device, options.out
+        gen = generator(device, options.seed)
+        steps = cfg.steps
+        # the paper's 40 observation sets are drawn whatever --runs (a reduced run filters the first ones)
+        runs = cfg.runs
+        scn = group_merge(runs if cfg.quick else max(runs, GroupsSettings.runs), generator=gen, num_steps=max(steps, 2),
+                          merge_step=min(46, max(steps, 2)))
+        scn = scn._replace(truth=scn.truth[:, :runs], leaders=scn.leaders[:, :runs], exists=scn.exists[:, :runs],
+                           labels=scn.labels[:, :runs], structure=scn.structure[:, :runs], frames=scn.frames[:, :runs])
+        scn = scn._replace(motion=scn.motion.to(device), sensor=scn.sensor.to(device),
+                           existence=scn.existence.to(device), structure_prior=scn.structure_prior.to(device))
+        filt = _filter(scn, cfg, compile_step=cfg.compile)
+        res, seconds = _run(filt, scn, steps, gen, options.progress)
+        if res.exists_prob is None:
+            raise ValueError("the filter result carries no exists_prob (expected a GroupMCMCFilter result)")
+        ex = res.info.extras
+        sp = ex["structure_prob"]  # (T, B, 15)
+        sp_all = ex["structure_prob_all_exist"]  # (T, B, 15), NaN where no particle has all four
+        count = ex["expected_count"]  # (T, B)
+        o, g = _errors(res, scn, steps)
+        merge = scn.merge_step
+        merged_at = first_step_above(sp[..., MERGED], 0.5, start=merge)
+        detected_at = first_step_above(count, 3.5)
+        table = group_structures(4)
+        limit = bayes_limit(scn, steps)
+        ref = (reference_filter(scn, steps, cfg.reference_particles, generator=gen)
+               if cfg.reference_particles else None)
+        if ref is not None:
+            ref_o, ref_g = _ospa(ref["exists_prob"] > 0.5, ref["mean"], scn, steps)
+        quick = cfg.quick
+
+        # -- figures
+        fig, ax = plt.subplots(figsize=(7, 7))
+        modal = table[sp[:, 0].argmax(-1)]
+        plot_groups(ax, scn.positions[:steps, 0, :4].cpu(), res.mean[:, 0, :, 0::2].cpu(),
+                    (res.exists_prob[:, 0] > 0.5).cpu(), modal)
+        ax.legend(fontsize=8, loc="upper left")
+        ax.set_title("run 0: tracks and the modal group structure (Fig. 4)")
+        save_figure(fig, out, "tracks.png", quick=quick)
+
+        fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), sharey=True)
+        steps_axis = torch.arange(1, steps + 1)
+        cmap = plt.get_cmap("tab20")
+        for ax, probs, title in ((axes[0], sp[:, 0], "run 0"), (axes[1], sp.mean(1), f"mean over {cfg['runs']} runs")):
+            for s in range(table.shape[0]):
+                lab = "[" + " ".join(str(int(v) + 1) for v in table[s]) + "]"
+                ax.plot(steps_axis, probs[:, s].cpu(), color=cmap(s), lw=2.5 if s in (MERGED,) + PAIRS else 1,
+                        label=lab)
+            ax.plot(steps_axis, probs[:, list(PAIRS)].sum(-1).cpu(), "k--", lw=1.5, label="two groups of two (sum)")
+            ax.axvline(merge + 1, color="k", ls=":", lw=1)
+            ax.set_xlabel("time step")
+            ax.set_title(f"group structure probability, {title} (Fig. 5)")
+        axes[1].plot(steps_axis, sp_all[..., MERGED].nanmean(1).cpu(), color=cmap(MERGED), ls=":", lw=2,
+                     label="[1 1 1 1] given all four alive")
+        axes[0].set_ylabel("probability")
+        axes[1].legend(fontsize=7, ncol=3, loc="center right")
+        save_figure(fig, out, "structures.png", quick=quick)
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        ep = res.exists_prob.mean(1).cpu()  # (T, K)
+        for i in range(ep.shape[1]):
+            ax.plot(steps_axis, ep[:, i], lw=0.8, alpha=0.7, label=f"slot {i}")
+        ax.plot(steps_axis, count.mean(1).cpu(), "k", lw=2, label="expected number of targets")
+        if ref is not None:
+            ax.plot(steps_axis, ref["expected_count"].mean(1).cpu(), color="C3", lw=1.8, ls="-.",
+                    label=f"reference: a bootstrap PF per target, {cfg['reference_particles']:,} particles")
+        ax.plot(steps_axis, limit["per_step"], color="C2", lw=1.2, ls="--",
+                label="ceiling from an inactive start (target's pixel known)")
+        ax.axhline(limit["stationary"], color="C2", lw=1.5,
+                   label=f"ceiling {limit['stationary']:.2f} (P_d,1 = {limit['p_d1']:.2f}; "
+                         f"{limit['stationary_17db']:.2f} at the paper's 17 dB)")
+        ax.axhline(4, color="0.5", ls=":")
+        ax.set_xlabel("time step")
+        ax.set_title(f"mean existence over {cfg['runs']} runs (Fig. 6)")
+        ax.legend(fontsize=7, loc="lower right")
+        save_figure(fig, out, "existence.png", quick=quick)
+
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        axes[0].plot(steps_axis, o.mean(1).cpu(), label="group MCMC-PF")
+        axes[1].plot(steps_axis, g.mean(1).cpu(), label="group MCMC-PF")
+        if ref is not None:
+            axes[0].plot(steps_axis, ref_o.mean(1).cpu(), color="C3", ls="-.", label="reference")
+            axes[1].plot(steps_axis, ref_g.mean(1).cpu(), color="C3", ls="-.", label="reference")
+        axes[0].set_ylabel(f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
+        axes[1].set_ylabel(f"GOSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
+        for ax in axes:
+            ax.set_xlabel("time step")
+            ax.legend(fontsize=8)
+        save_figure(fig, out, "ospa.png", quick=quick)
+
+        n_merged = sum(m is not None for m in merged_at)
+        ours_count = count.mean(1)
+        p_merged = sp[..., MERGED].mean(1)
+        p_merged_all = sp_all[..., MERGED].nanmean(1)
+        after = slice(min(60, steps), steps)  # steps 61 .. T (the issue's "after step 60")
+        payload: dict[str, Any] = {
+            "config": cfg.record(),
+            "iterations_per_step": cfg.burn_in + cfg.thinning * cfg.particles // cfg.chains,
+            "seconds": seconds,
+            "seconds_per_step": seconds / steps,
+            "merge_step": merge + 1,
+            "ceiling": {k: v for k, v in limit.items() if not torch.is_tensor(v)},
+            "ceiling_per_step": limit["per_step"],
+            "headline": {
+                f"step_{t}": {"ceiling": _at(limit["per_step"], t), "ours": _at(ours_count, t),
+                              "reference": None if ref is None else _at(ref["expected_count"].mean(1), t),
+                              "p_merged": _at(p_merged, t), "p_merged_all_alive": _at(p_merged_all, t)}
+                for t in sorted({t for t in HEADLINE_STEPS if t <= steps} | {steps})},
+            "p_merged_mean_after_60": p_merged[after].mean() if steps > 60 else None,
+            "p_merged_all_alive_mean_after_60": p_merged_all[after].nanmean() if steps > 60 else None,
+            "p_merged_all_alive_min_after_60": p_merged_all[after].min() if steps > 60 else None,
+            "merged_structure_first_above_half": merged_at,
+            "runs_merged": n_merged,
+            "median_merge_detected_step": (sorted(m for m in merged_at if m is not None)[n_merged // 2]
+                                           if n_merged else None),
+            "first_step_expected_count_above_3_5": detected_at,
+            "runs_detected_within_10_steps": sum(d is not None and d <= 10 for d in detected_at),
+            "expected_count_step_10_mean": count[min(9, steps - 1)].mean(),
+            "expected_count_per_step": ours_count,
+            "exists_prob_per_step": res.exists_prob.mean(1),
+            "structure_prob_per_step": sp.mean(1),
+            "p_merged_all_alive_per_step": p_merged_all,
+            "p_all_alive_per_step": ex["all_exist_prob"].mean(1),
+            "p_two_pairs_per_step": sp[..., list(PAIRS)].sum(-1).mean(1),
+            "p_two_pairs_mean_steps_11_to_45": (sp[10:merge, :, list(PAIRS)].sum(-1).mean()
+                                                if merge > 10 and steps > 10 else None),
+            "p_merged_mean_last_20": sp[-20:, :, MERGED].mean(),
+            "ospa_per_step": o.mean(1), "gospa_per_step": g.mean(1),
+            "ospa": o.mean(), "gospa": g.mean(),
+            "acceptance": {k: v.nanmean() for k, v in ex.items() if k.startswith("acceptance")},
+        }
+        if ref is not None:
+            payload["reference"] = {"particles": cfg.reference_particles, "seconds": ref["seconds"],
+                                    "expected_count_per_step": ref["expected_count"].mean(1),
+                                    "ospa_per_step": ref_o.mean(1), "ospa": ref_o.mean(), "gospa": ref_g.mean()}
+        if cfg.beyond:
+            write_metrics(out, payload, options=options)  # kept if item 4 is interrupted
+            payload["beyond"] = _beyond(scn, cfg, gen, options.progress)
+        return payload
+
+    def summary(self, payload: dict[str, Any]) -> str:
+        """The headline table printed by ``reproduce``: the expected number of targets and the
+        merged structure's probability next to the ceiling, the reference and the paper.
+        """
+        def f(v: Any, digits: int = 2) -> str:
+            return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{float(v):.{digits}f}"
+
+        h = payload["headline"]
+        cfg = payload["config"]
+        cols = [k for k in h if h[k]["ours"] is not None]
+        sec = payload["seconds"] + payload.get("reference", {}).get("seconds", 0.0)
+        lines = [f"septier-groups: {cfg['runs']} runs x {cfg['steps']} steps, N_p = {cfg['particles']} "
+                 f"({cfg['chains']} chains, burn-in {cfg['burn_in']}, thinning {cfg['thinning']}), "
+                 + (f"{sec / 60:.1f} min" if sec >= 60 else f"{sec:.0f} s")
+                 + (" (quick: small settings)" if cfg.get("quick") else ""),
+                 "", "| expected number of targets, step | " + " | ".join(k.split("_")[1] for k in cols) + " |",
+                 "| --- |" + " --- |" * len(cols)]
+        ceiling = payload["ceiling"]
+        rows = [("ceiling (pixel known)", "ceiling"), ("reference (bootstrap PF per target)", "reference"),
+                ("group MCMC-PF (ours)", "ours"), ("P(merged)", "p_merged"), ("P(merged | all four alive)",
+                                                                              "p_merged_all_alive")]
+        for label, key in rows:
+            lines.append(f"| {label} | " + " | ".join(f(h[k][key]) for k in cols) + " |")
+        lines += ["", f"ceiling in the long run {f(ceiling['stationary'])} (P_d,1 = {f(ceiling['p_d1'])}), "
+                  f"{f(ceiling['stationary_17db'])} at the paper's 17 dB (P_d,1 = {f(ceiling['p_d1_17db'], 3)}); "
+                  "paper: ~4 within ten steps (Fig. 6), [1 1 1 1] ~1 after the merge (Fig. 5)",
+                  f"runs with P(merged) > 0.5 after step {payload['merge_step']}: {payload['runs_merged']} of "
+                  f"{cfg['runs']}"
+                  f"; OSPA {f(payload['ospa'], 1)} m" + (f" (reference {f(payload['reference']['ospa'], 1)} m)"
+                                                        if "reference" in payload else "")]
+        return "\n".join(lines)
+
+
+STUDY = Groups()

@@ -27,9 +27,10 @@ of ``--shard-size`` runs, each with the generator of ``(seed, shard index)``.
 
 from __future__ import annotations
 
-import argparse
 import math
-import sys
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -38,53 +39,39 @@ from ..filters.ipmcmc import IPMCMCFilter
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..typing import VX, VY, X, Y
-from ._common import StepTimer, defaults_help, np_label, positive_int, run_shards, save_figure, write_metrics
+from ._figures import np_label, pyplot, save_figure
+from ._shards import Shards
+from ._study import Settings, StepTimer, Study, option
 
-NAME = "soak"
-DESCRIPTION = ("long runs (issue 22): per-step assignment RMSE and uncovered targets over 200 steps of 10 slow "
-               "radar targets, OSPA over a births/deaths scene, with and without exclusion and re-capture")
-
-QUICK = dict(runs=1, steps=10, every=5, particles=100, burn_in=20, targets=3, max_speed=1.0, shard_size=1)
-FULL = dict(runs=5, steps=200, every=20, particles=500, burn_in=100, targets=10, max_speed=1.0, shard_size=5)
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
 SCENES = ("fixed", "birth-death")
 COVER, CUTOFF, ORDER = 20.0, 100.0, 2.0
-OUTPUTS = ("metrics.json", "soak.png", "shards")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add this study's options; each help text shows the full and the ``--quick`` default."""
+@dataclass(frozen=True)
+class SoakSettings(Settings):
+    """The settings of :class:`Soak` (full values; the second of each pair: ``--quick``)."""
 
-    def h(key: str, what: str) -> str:
-        return defaults_help(FULL, QUICK, key, what)
+    runs: int = option(5, 1, help="Monte Carlo runs of each scene")
+    steps: int = option(200, 10, help="time steps")
+    every: int = option(20, 5, help="steps per chunk (the reporting period)")
+    particles: int = option(500, 100, help="particles Np (a multiple of 10)")
+    burn_in: int = option(100, 20, help="IP-MCMC-PF burn-in")
+    targets: int = option(10, 3, help="targets (fixed) / slots (birth-death)")
+    max_speed: float = option(1.0, 1.0, help="fixed scene: largest target speed [m/s]")
+    shard_size: int = option(5, 1, cli=False)
 
-    parser.add_argument("--runs", type=positive_int, help=h("runs", "Monte Carlo runs of each scene"))
-    parser.add_argument("--steps", type=positive_int, help=h("steps", "time steps"))
-    parser.add_argument("--every", type=positive_int, help=h("every", "steps per chunk (the reporting period)"))
-    parser.add_argument("--particles", type=positive_int, help=h("particles", "particles Np (a multiple of 10)"))
-    parser.add_argument("--burn-in", dest="burn_in", type=positive_int, help=h("burn_in", "IP-MCMC-PF burn-in"))
-    parser.add_argument("--targets", type=positive_int, help=h("targets", "targets (fixed) / slots (birth-death)"))
-    parser.add_argument("--max-speed", dest="max_speed", type=float,
-                        help=h("max_speed", "fixed scene: largest target speed [m/s]"))
-
-
-def _config(args: argparse.Namespace) -> dict:
-    cfg = dict(QUICK if args.quick else FULL)
-    for key in cfg:
-        if getattr(args, key, None) is not None:
-            cfg[key] = getattr(args, key)
-    if cfg["particles"] % 10:
-        raise SystemExit(f"reproduce {NAME}: error: argument --particles: {cfg['particles']} is not a multiple "
-                         "of 10 (the IP-MCMC-PF's chains)")
-    if not (math.isfinite(cfg["max_speed"]) and cfg["max_speed"] > 0):
-        raise SystemExit(f"reproduce {NAME}: error: argument --max-speed: expected a speed > 0, got {cfg['max_speed']}")
-    cfg["quick"] = bool(args.quick)
-    return cfg
+    def __post_init__(self) -> None:
+        if self.particles % 10:
+            raise ValueError(f"argument --particles: {self.particles} is not a multiple of 10 (the IP-MCMC-PF's "
+                             "chains)")
+        if not (math.isfinite(self.max_speed) and self.max_speed > 0):
+            raise ValueError(f"argument --max-speed: expected a speed > 0, got {self.max_speed}")
 
 
-def _filters(cfg: dict, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None) -> dict:
-    n = cfg["particles"]
-    kw = dict(num_chains=n // 10, burn_in=cfg["burn_in"], existence=existence)
+def _filters(cfg: SoakSettings, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None) -> dict:
+    n = cfg.particles
+    kw: dict[str, Any] = dict(num_chains=n // 10, burn_in=cfg.burn_in, existence=existence)
     return {"IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, **kw),
             "IP-MCMC-PF (paper)": IPMCMCFilter(motion, sensor, n, exclusion=None, recapture=None, **kw)}
 
@@ -93,23 +80,24 @@ def _chunks(steps: int, every: int) -> list[slice]:
     return [slice(a, min(a + every, steps)) for a in range(0, steps, every)]
 
 
-def _fixed(cfg: dict, b: int, generator: torch.Generator, device: torch.device, progress: bool) -> tuple[dict, dict]:
+def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.device,
+           progress: bool) -> tuple[dict, dict]:
     from ..scenarios import ground_radar
 
     # the grid and models from one run over the whole length (so the grid covers every
     # target's travel), the B runs' initial states from the same Table I law
-    geometry = ground_radar(cfg["targets"], cfg["steps"], 1, generator=generator, device=device,
-                            speed_limits=(0.0, cfg["max_speed"]))
-    scn = ground_radar(cfg["targets"], 1, b, generator=generator, device=device,
-                       speed_limits=(0.0, cfg["max_speed"]))
+    geometry = ground_radar(cfg.targets, cfg.steps, 1, generator=generator, device=device,
+                            speed_limits=(0.0, cfg.max_speed))
+    scn = ground_radar(cfg.targets, 1, b, generator=generator, device=device,
+                       speed_limits=(0.0, cfg.max_speed))
     sensor, motion, x0 = geometry.sensor, geometry.motion, scn.initial
-    init = scn.initial_particles(cfg["particles"], generator=generator)
+    init = scn.initial_particles(cfg.particles, generator=generator)
     filters = _filters(cfg, motion, sensor)
     states: dict = {name: None for name in FILTERS}
     means: dict = {name: [] for name in FILTERS}
     seconds: dict = {}
     truths = []
-    for part in _chunks(cfg["steps"], cfg["every"]):
+    for part in _chunks(cfg.steps, cfg.every):
         t = torch.arange(part.start + 1, part.stop + 1, device=device, dtype=x0.dtype)
         truth = x0.expand(t.numel(), *x0.shape).clone()  # truth[t] = x0 moved t + 1 steps
         truth[..., X] = x0[..., X] + t[:, None, None] * x0[..., VX]
@@ -136,18 +124,18 @@ def _fixed(cfg: dict, b: int, generator: torch.Generator, device: torch.device, 
     return out, seconds
 
 
-def _birth_death(cfg: dict, b: int, generator: torch.Generator, device: torch.device,
+def _birth_death(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.device,
                  progress: bool) -> tuple[dict, dict]:
     from ..scenarios.septier import septier
 
-    scn = septier(b, cfg["steps"], generator=generator, num_slots=cfg["targets"])
+    scn = septier(b, cfg.steps, generator=generator, num_slots=cfg.targets)
     motion, sensor, existence = scn.motion.to(device), scn.sensor.to(device), scn.existence.to(device)
-    init = torch.zeros((b, cfg["particles"], cfg["targets"], 4), dtype=torch.float64, device=device)
+    init = torch.zeros((b, cfg.particles, cfg.targets, 4), dtype=torch.float64, device=device)
     out: dict = {}
     seconds: dict = {}
     for name, filt in _filters(cfg, motion, sensor, existence).items():
         state, parts, counts = None, [], []
-        for part in _chunks(cfg["steps"], cfg["every"]):
+        for part in _chunks(cfg.steps, cfg.every):
             z = type(scn.measurements)(*(f[part].to(device) for f in scn.measurements))
             with StepTimer(device, part.stop - part.start) as timer:
                 res = filt(z, init=init if state is None else state, generator=generator, progress=progress)
@@ -164,96 +152,97 @@ def _birth_death(cfg: dict, b: int, generator: torch.Generator, device: torch.de
     return out, {f"birth-death|{k}": v for k, v in seconds.items()}
 
 
-def run_shard(cfg: dict, runs: range, *, generator: torch.Generator, device: torch.device,
-              progress: bool = False) -> tuple[dict, dict]:
-    """Both scenes for the runs ``runs`` (module docstring).
+class Soak(Study[SoakSettings]):
+    """Long runs: do the tracks hold? (module docstring)."""
 
-    Returns
-    -------
-    ``per_run``: ``"fixed|f|matched_error"`` ``(R, T)``, ``"fixed|f|longest_uncovered"``,
-    ``"fixed|f|switches"``, ``"fixed|f|non_finite"`` ``(R,)``, ``"birth-death|f|ospa"``
-    ``(R, T, 3)`` (total, localisation, cardinality), ``"birth-death|f|cardinality_error"``
-    ``(R, T)``; ``seconds`` per scene and filter.
-    """
-    fixed, s1 = _fixed(cfg, len(runs), generator, device, progress)
-    bd, s2 = _birth_death(cfg, len(runs), generator, device, progress)
-    return {**fixed, **bd}, {**s1, **s2}
+    name = "soak"
+    description = ("long runs (issue 22): per-step assignment RMSE and uncovered targets over 200 steps of 10 slow "
+                   "radar targets, OSPA over a births/deaths scene, with and without exclusion and re-capture")
+    outputs = ("metrics.json", "soak.png", "shards")
+
+    def run_shard(self, cfg: SoakSettings, runs: range, *, generator: torch.Generator, device: torch.device,
+                  progress: bool = False) -> tuple[dict, dict]:
+        """Both scenes for the runs ``runs`` (module docstring).
+
+        Returns
+        -------
+        ``per_run``: ``"fixed|f|matched_error"`` ``(R, T)``, ``"fixed|f|longest_uncovered"``,
+        ``"fixed|f|switches"``, ``"fixed|f|non_finite"`` ``(R,)``, ``"birth-death|f|ospa"``
+        ``(R, T, 3)`` (total, localisation, cardinality), ``"birth-death|f|cardinality_error"``
+        ``(R, T)``; ``seconds`` per scene and filter.
+        """
+        fixed, s1 = _fixed(cfg, len(runs), generator, device, progress)
+        bd, s2 = _birth_death(cfg, len(runs), generator, device, progress)
+        return {**fixed, **bd}, {**s1, **s2}
+
+    @staticmethod
+    def aggregate(cfg: SoakSettings, per_run: dict, seconds: dict) -> dict:
+        """Per scene and filter: chunk rows and the acceptance figures of issue 22."""
+        chunks = _chunks(cfg.steps, cfg.every)
+        results: dict = {"fixed": {}, "birth-death": {}}
+        for name in FILTERS:
+            err = per_run[f"fixed|{name}|matched_error"]  # (R, T)
+            rows = [float(err[:, c].square().mean().sqrt()) for c in chunks]
+            results["fixed"][name] = {
+                "chunks": [f"{c.start + 1}-{c.stop}" for c in chunks],
+                "matched_rmse_per_chunk": rows,
+                "matched_rmse_per_step": err.square().mean(0).sqrt(),
+                "longest_uncovered_per_run": per_run[f"fixed|{name}|longest_uncovered"],
+                "identity_switches_per_run": per_run[f"fixed|{name}|switches"],
+                "non_finite": int(per_run[f"fixed|{name}|non_finite"].sum()),
+                "last_over_second_chunk": rows[-1] / rows[1] if len(rows) > 1 and rows[1] > 0 else None,
+                "seconds_per_step": seconds[f"fixed|{name}"] / cfg.steps,
+            }
+            o = per_run[f"birth-death|{name}|ospa"]  # (R, T, 3)
+            results["birth-death"][name] = {
+                "chunks": [f"{c.start + 1}-{c.stop}" for c in chunks],
+                "ospa_per_chunk": [[float(v) for v in o[:, c].mean((0, 1))] for c in chunks],
+                "ospa_per_step": o[..., 0].mean(0),
+                "cardinality_error": per_run[f"birth-death|{name}|cardinality_error"].mean(),
+                "seconds_per_step": seconds[f"birth-death|{name}"] / cfg.steps,
+            }
+        return results
+
+    def summary(self, payload: dict) -> str:
+        """Headline tables: per-step assignment RMSE per chunk (fixed), OSPA parts per chunk
+        (birth-death).
+        """
+        fixed, bd = payload["results"]["fixed"], payload["results"]["birth-death"]
+        chunks = next(iter(fixed.values()))["chunks"]
+        lines = ["fixed: per-step assignment RMSE [m] per chunk; longest uncovered stretch (steps, worst run); "
+                 "identity switches per run",
+                 "| filter | " + " | ".join(chunks) + " | longest uncovered | switches / run | s / step |",
+                 "|---" * (len(chunks) + 4) + "|"]
+        for name, r in fixed.items():
+            lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in r["matched_rmse_per_chunk"])
+                         + f" | {int(r['longest_uncovered_per_run'].max())} | "
+                         f"{float(r['identity_switches_per_run'].double().mean()):.1f} | {r['seconds_per_step']:.2f} |")
+        lines += ["", "birth-death: OSPA [m] per chunk, total (localisation / cardinality)",
+                  "| filter | " + " | ".join(chunks) + " | s / step |", "|---" * (len(chunks) + 2) + "|"]
+        for name, r in bd.items():
+            parts = " | ".join(f"{t:.1f} ({lo:.1f} / {c:.1f})" for t, lo, c in r["ospa_per_chunk"])
+            lines.append(f"| {name} | " + parts
+                         + f" | {r['seconds_per_step']:.2f} |")
+        return "\n".join(lines) + "\n"
+
+    def summarise(self, cfg: SoakSettings, shards: Shards, out: Path) -> dict:
+        """Per scene and filter results, and ``soak.png`` (module docstring)."""
+        from ..plotting import plot_rmse
+
+        plt = pyplot()
+        results = self.aggregate(cfg, shards.per_run, shards.seconds)
+        n, quick = cfg.particles, " (quick)" if cfg.quick else ""
+        runs = next(iter(shards.per_run.values())).shape[0]
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+        plot_rmse(axes[0], {np_label(k, n): r["matched_rmse_per_step"] for k, r in results["fixed"].items()},
+                  ylabel="per-step assignment RMSE [m]")
+        axes[0].set_title(f"fixed: {cfg.targets} radar targets, {runs} runs")
+        plot_rmse(axes[1], {np_label(k, n): r["ospa_per_step"] for k, r in results["birth-death"].items()},
+                  ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
+        axes[1].set_title(f"birth-death: {cfg.targets} slots, {runs} runs")
+        fig.suptitle(f"soak: {cfg.steps} steps{quick}")
+        save_figure(fig, out, "soak.png", quick=cfg.quick)
+        return {"config": asdict(cfg), "results": results}
 
 
-def aggregate(cfg: dict, per_run: dict, seconds: dict) -> dict:
-    """Per scene and filter: chunk rows and the acceptance figures of issue 22."""
-    chunks = _chunks(cfg["steps"], cfg["every"])
-    results: dict = {"fixed": {}, "birth-death": {}}
-    for name in FILTERS:
-        err = per_run[f"fixed|{name}|matched_error"]  # (R, T)
-        rows = [float(err[:, c].square().mean().sqrt()) for c in chunks]
-        results["fixed"][name] = {
-            "chunks": [f"{c.start + 1}-{c.stop}" for c in chunks],
-            "matched_rmse_per_chunk": rows,
-            "matched_rmse_per_step": err.square().mean(0).sqrt(),
-            "longest_uncovered_per_run": per_run[f"fixed|{name}|longest_uncovered"],
-            "identity_switches_per_run": per_run[f"fixed|{name}|switches"],
-            "non_finite": int(per_run[f"fixed|{name}|non_finite"].sum()),
-            "last_over_second_chunk": rows[-1] / rows[1] if len(rows) > 1 and rows[1] > 0 else None,
-            "seconds_per_step": seconds[f"fixed|{name}"] / cfg["steps"],
-        }
-        o = per_run[f"birth-death|{name}|ospa"]  # (R, T, 3)
-        results["birth-death"][name] = {
-            "chunks": [f"{c.start + 1}-{c.stop}" for c in chunks],
-            "ospa_per_chunk": [[float(v) for v in o[:, c].mean((0, 1))] for c in chunks],
-            "ospa_per_step": o[..., 0].mean(0),
-            "cardinality_error": per_run[f"birth-death|{name}|cardinality_error"].mean(),
-            "seconds_per_step": seconds[f"birth-death|{name}"] / cfg["steps"],
-        }
-    return results
-
-
-def summary(payload: dict) -> str:
-    """Headline tables: per-step assignment RMSE per chunk (fixed), OSPA parts per chunk
-    (birth-death).
-    """
-    fixed, bd = payload["results"]["fixed"], payload["results"]["birth-death"]
-    chunks = next(iter(fixed.values()))["chunks"]
-    lines = ["fixed: per-step assignment RMSE [m] per chunk; longest uncovered stretch (steps, worst run); "
-             "identity switches per run",
-             "| filter | " + " | ".join(chunks) + " | longest uncovered | switches / run | s / step |",
-             "|---" * (len(chunks) + 4) + "|"]
-    for name, r in fixed.items():
-        lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in r["matched_rmse_per_chunk"])
-                     + f" | {int(r['longest_uncovered_per_run'].max())} | "
-                     f"{float(r['identity_switches_per_run'].double().mean()):.1f} | {r['seconds_per_step']:.2f} |")
-    lines += ["", "birth-death: OSPA [m] per chunk, total (localisation / cardinality)",
-              "| filter | " + " | ".join(chunks) + " | s / step |", "|---" * (len(chunks) + 2) + "|"]
-    for name, r in bd.items():
-        lines.append(f"| {name} | " + " | ".join(f"{t:.1f} ({lo:.1f} / {c:.1f})" for t, lo, c in r["ospa_per_chunk"])
-                     + f" | {r['seconds_per_step']:.2f} |")
-    return "\n".join(lines) + "\n"
-
-
-def run(args: argparse.Namespace) -> dict:
-    """Run the study in shards (module docstring); writes into ``args.out``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from ..plotting import plot_rmse
-
-    cfg = _config(args)
-    shards = run_shards(sys.modules[__name__], cfg, args)
-    cfg = {**cfg, "shard_size": shards.layout["shard_size"]}
-    results = aggregate(cfg, shards.per_run, shards.seconds)
-    n, quick = cfg["particles"], " (quick)" if cfg["quick"] else ""
-    runs = next(iter(shards.per_run.values())).shape[0]
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
-    plot_rmse(axes[0], {np_label(k, n): r["matched_rmse_per_step"] for k, r in results["fixed"].items()},
-              ylabel="per-step assignment RMSE [m]")
-    axes[0].set_title(f"fixed: {cfg['targets']} radar targets, {runs} runs")
-    plot_rmse(axes[1], {np_label(k, n): r["ospa_per_step"] for k, r in results["birth-death"].items()},
-              ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
-    axes[1].set_title(f"birth-death: {cfg['targets']} slots, {runs} runs")
-    fig.suptitle(f"soak: {cfg['steps']} steps{quick}")
-    save_figure(fig, args.out, "soak.png", quick=cfg["quick"])
-    payload = {"config": cfg, "results": results}
-    write_metrics(args.out, payload, args=args, device=args.device)
-    return payload
+STUDY = Soak()
