@@ -185,11 +185,8 @@ class FilterResult(NamedTuple):
     -------
     >>> import torch
     >>> import torchmcmcpf as tp
-    >>> g = torch.Generator().manual_seed(0)
-    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
-    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
-    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
-    >>> result = tp.SIRFilter(motion, sensor, 100)(z, init=x0, generator=g)
+    >>> filt = tp.SIRFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 100)
+    >>> result = filt(torch.zeros(5, 2, 3, 2), init=torch.zeros(2, 100, 3, 4), generator=torch.Generator())
     >>> result                                        # shapes, never values
     FilterResult(mean=float32(5, 2, 3, 4), state=ParticleState(...), ...)
     >>> result.cov.shape                              # (T, B, K, D, D): each slot's posterior covariance

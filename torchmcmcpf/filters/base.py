@@ -232,19 +232,23 @@ class Filter(nn.Module):
 
     Example
     -------
+    Every filter takes the same arguments and returns the same result, so one loop runs
+    three algorithms:
+
     >>> import torch
     >>> import torchmcmcpf as tp
-    >>> g = torch.Generator().manual_seed(0)
     >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
-    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
-    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
-    >>> filt = tp.SIRFilter(motion, sensor, 100)       # any filter: same constructor, same result
-    >>> result = filt(z, init=x0, generator=g)         # a whole sequence
-    >>> result.mean.shape                              # (T, B, K, D)
-    torch.Size([5, 2, 3, 4])
-    >>> state, info = filt.step(result.state, z[0], generator=g)   # or one step at a time
+    >>> z = torch.zeros(4, 1, 2, 2)                   # (T, B, K, 2): 4 frames, 1 run, 2 targets at rest
+    >>> for cls in (tp.SIRFilter, tp.PartitionedSIRFilter, tp.PMMHFilter):
+    ...     filt = cls(motion, sensor, 50)
+    ...     result = filt(z, init=torch.zeros(1, 50, 2, 4), generator=torch.Generator().manual_seed(0))
+    ...     print(cls.__name__, tuple(result.mean.shape), tuple(result.info.ess.shape))   # (T, B, K, D), (T, B)
+    SIRFilter (4, 1, 2, 4) (4, 1)
+    PartitionedSIRFilter (4, 1, 2, 4) (4, 1)
+    PMMHFilter (4, 1, 2, 4) (4, 1)
+    >>> state, info = filt.step(result.state, z[0], generator=torch.Generator())   # or one step at a time
     >>> state.x.shape, info.ess.shape
-    (torch.Size([2, 100, 3, 4]), torch.Size([2]))
+    (torch.Size([1, 50, 2, 4]), torch.Size([1]))
     """
 
     motion: MotionModel

@@ -494,16 +494,17 @@ class MCMCFilter(Filter):
 
     Example
     -------
+    Three chains of 20 kept samples, mixing the joint draw with a random walk:
+
     >>> import torch
     >>> import torchmcmcpf as tp
-    >>> g = torch.Generator().manual_seed(0)
-    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
-    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
-    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
-    >>> filt = tp.MCMCFilter(motion, sensor, 100, num_chains=10, burn_in=20, thinning=2)
-    >>> result = filt(z, init=x0, generator=g)
-    >>> result.info.extras["acceptance_joint"].shape   # (T, B)
-    torch.Size([5, 2])
+    >>> filt = tp.MCMCFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 60,
+    ...                      num_chains=3, burn_in=10, moves=(("joint", 0.5), ("random_walk", 0.5)), rw_scale=0.5)
+    >>> result = filt(torch.zeros(3, 1, 2, 2), init=torch.zeros(1, 60, 2, 4), generator=torch.Generator())
+    >>> sorted(result.info.extras)                    # one acceptance rate per kind of move, each (T, B)
+    ['acceptance_joint', 'acceptance_random_walk']
+    >>> result.state.log_w.unique()                   # equal weights -log N
+    tensor([-4.0943])
     """
 
     compile_seconds = 27.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores

@@ -377,13 +377,12 @@ class PMMHFilter(Filter):
     -------
     >>> import torch
     >>> import torchmcmcpf as tp
-    >>> g = torch.Generator().manual_seed(0)
-    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
-    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
-    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
-    >>> filt = tp.PMMHFilter(motion, sensor, 100, num_candidates=4)   # 4 candidates of 25 particles
-    >>> result = filt(z, init=x0, generator=g)
-    >>> result.info.extras["theta_mean"].shape         # (T, B): posterior mean of log q
+    >>> filt = tp.PMMHFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 100,
+    ...                      num_candidates=4, prior_std=0.5)   # 4 candidates of 25 particles, theta ~ N(0, 0.5^2)
+    >>> result = filt(torch.zeros(5, 2, 1, 2), init=torch.zeros(2, 100, 1, 4), generator=torch.Generator())
+    >>> result.state.extras["theta"].shape            # (B, L): each run's candidates, carried in the state
+    torch.Size([2, 4])
+    >>> result.info.extras["theta_mean"].shape        # (T, B): posterior mean of log q
     torch.Size([5, 2])
     """
 

@@ -184,15 +184,20 @@ class SIRFilter(Filter):
 
     Example
     -------
+    One target moving at ``(1, 0.5)`` m/s, resampled when the ESS falls below N / 2:
+
     >>> import torch
     >>> import torchmcmcpf as tp
     >>> g = torch.Generator().manual_seed(0)
-    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
-    >>> x0 = torch.randn(2, 100, 3, 4, generator=g)   # (B, N, K, D): 2 runs, 100 particles, 3 targets
-    >>> z = torch.randn(5, 2, 3, 2, generator=g)      # (T, B, K, 2): 5 frames of positions
-    >>> result = tp.SIRFilter(motion, sensor, 100)(z, init=x0, generator=g)
-    >>> result.mean.shape, result.info.ess.shape       # (T, B, K, D), (T, B)
-    (torch.Size([5, 2, 3, 4]), torch.Size([5, 2]))
+    >>> z = torch.tensor([[1.0, 0.5], [2.0, 1.0], [3.0, 1.5]])[:, None, None]   # (T, B, K, 2) positions
+    >>> init = torch.tensor([0.0, 1.0, 0.0, 0.5]) + 0.3 * torch.randn(1, 500, 1, 4, generator=g)  # (B, N, K, D)
+    >>> filt = tp.SIRFilter(tp.ConstantVelocity(dt=1.0, q=0.1), tp.LinearGaussian.position(noise_std=0.5), 500,
+    ...                     ess_threshold=0.5)
+    >>> result = filt(z, init=init, generator=g)
+    >>> bool((result.mean[-1, 0, 0, ::2] - torch.tensor([3.0, 1.5])).abs().max() < 0.5)   # [x, vx, y, vy]
+    True
+    >>> result.log_evidence.shape                     # (B,): log p(z_1:T), the SIR filter's estimate
+    torch.Size([1])
     """
 
     compile_seconds = 20.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
