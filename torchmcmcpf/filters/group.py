@@ -270,11 +270,26 @@ class GroupMCMCSettings:
 # ----------------------------------------------------------------------------------------
 # the noise of one move (drawn eagerly, passed into the pure moves)
 # ----------------------------------------------------------------------------------------
-def _uniforms(generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None
-              ) -> Callable[..., Tensor]:
-    def u(*shape: int) -> Tensor:
-        return torch.rand(shape, generator=generator, dtype=dtype, device=device)
-    return u
+#: the dims of each noise field after the chains' ``(B, C)`` ("K": the slots); every field is
+#: ``U(0, 1)`` but the standard normals ``eps`` and ``step``
+_FIELD_DIMS: dict[str, tuple[int | str, ...]] = {
+    "mix": (), "j": (), "g": (), "u": (), "u_g": (), "slot": (), "e": ("K",), "u_x": ("K",), "b_sel": ("K",),
+    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2)}
+_NORMALS = ("eps", "step")
+
+
+def _draw_fields(cls: Any, shape: tuple[int, int, int], generator: torch.Generator, dtype: torch.dtype,
+                 device: torch.device | str | None) -> Any:
+    """One noise tuple of class ``cls`` for ``shape = (B, C, K)``, its fields drawn in
+    declaration order with the dims of :data:`_FIELD_DIMS`.
+    """
+    b, c, k = shape
+    fields = []
+    for name in cls._fields:
+        size = (b, c, *(k if d == "K" else int(d) for d in _FIELD_DIMS[name]))
+        draw = torch.randn if name in _NORMALS else torch.rand
+        fields.append(draw(size, generator=generator, dtype=dtype, device=device))
+    return cls(*fields)
 
 
 class JointNoise(NamedTuple):
@@ -297,11 +312,7 @@ class JointNoise(NamedTuple):
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
              device: torch.device | str | None = None) -> JointNoise:
         """Draw for ``shape = (B, C, K)``."""
-        b, c, k = shape
-        u = _uniforms(generator, dtype, device)
-        mix, j, g, e = u(b, c), u(b, c), u(b, c), u(b, c, k)
-        eps = torch.randn((b, c, k, 2), generator=generator, dtype=dtype, device=device)
-        return cls(mix, j, g, e, eps, u(b, c), u(b, c, k), u(b, c, k), u(b, c, k, 2))
+        return _draw_fields(cls, shape, generator, dtype, device)
 
 
 class RefineNoise(NamedTuple):
@@ -322,11 +333,7 @@ class RefineNoise(NamedTuple):
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
              device: torch.device | str | None = None) -> RefineNoise:
         """Draw for ``shape = (B, C, K)``."""
-        b, c, k = shape
-        u = _uniforms(generator, dtype, device)
-        g, u_g, e = u(b, c), u(b, c), u(b, c, k)
-        eps = torch.randn((b, c, k, 2), generator=generator, dtype=dtype, device=device)
-        return cls(g, u_g, e, eps, u(b, c, k), u(b, c, k), u(b, c, k), u(b, c, k, 2))
+        return _draw_fields(cls, shape, generator, dtype, device)
 
 
 class PastNoise(NamedTuple):
@@ -342,10 +349,7 @@ class PastNoise(NamedTuple):
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
              device: torch.device | str | None = None) -> PastNoise:
         """Draw for ``shape = (B, C, K)``."""
-        b, c, _ = shape
-        u = _uniforms(generator, dtype, device)
-        slot = u(b, c)
-        return cls(slot, torch.randn((b, c, 2, 2), generator=generator, dtype=dtype, device=device), u(b, c))
+        return _draw_fields(cls, shape, generator, dtype, device)
 
 
 NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise}
