@@ -123,8 +123,7 @@ class JointNoise(NamedTuple):
         """
         b, c, k, _ = x.shape
         return cls(uniforms((b, c), x, generator), normals((b, c, k, dynamics.motion.noise_dim), x, generator),
-                   uniforms((b, c), x, generator), dynamics.draw_births(x, z, generator=generator),
-                   _relocations(x, dynamics, z, generator))
+                   uniforms((b, c), x, generator), *_slot_changes(x, dynamics, z, generator))
 
 
 class RefineNoise(NamedTuple):
@@ -144,14 +143,18 @@ class RefineNoise(NamedTuple):
         """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``: as
         :meth:`JointNoise.draw`).
         """
-        b, c, k, _ = x.shape
-        return cls(normals((b, c, k, dynamics.motion.noise_dim), x, generator), uniforms((b, c, k), x, generator),
-                   dynamics.draw_births(x, z, generator=generator), _relocations(x, dynamics, z, generator))
+        slots = x.shape[:-1]  # (B, C, K)
+        return cls(normals((*slots, dynamics.motion.noise_dim), x, generator), uniforms(slots, x, generator),
+                   *_slot_changes(x, dynamics, z, generator))
 
 
-def _relocations(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator
-                 ) -> RelocationNoise | None:
-    return dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype, device=x.device)
+def _slot_changes(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator
+                  ) -> tuple[BirthNoise | None, RelocationNoise | None]:
+    """The noise every move draws after its own, for chains ``x (B, C, K, D)``: the births
+    (with an existence model), then the relocations (with re-capture).
+    """
+    return (dynamics.draw_births(x, z, generator=generator),
+            dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype, device=x.device))
 
 
 # -- likelihood ------------------------------------------------------------------------------
