@@ -154,11 +154,7 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         (tests/models/test_radar.py): ``max |d - mean(d)| <= 5e-3 * std(grid)`` over
         particles near the targets (3.5e-3 measured there, two overlapping 20 and 15 dB
         targets); ``window = 4`` brings it to 1e-4 at about twice the cost.
-    method : {"window", "grid"}
-        Which path :meth:`log_likelihood` uses.
-    memory_budget : int, optional
-        Bytes of temporaries either path may hold at once (default: the process-wide
-        :func:`~torchmcmcpf.runtime.memory_budget`, 1 GiB unless set).
+    method, memory_budget : evaluation path, memory; see :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`.
 
     Example
     -------

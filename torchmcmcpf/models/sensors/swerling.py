@@ -90,18 +90,13 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
 
         Stated tolerance for the default (tests/models/test_swerling.py):
         ``max |d - mean(d)| <= 2e-3 * std(grid)`` over particles near the targets.
-    method : {"window", "grid"}
-        Which path :meth:`log_likelihood` uses.
-    memory_budget : int, optional
-        Bytes of temporaries either path may hold at once (default: the process-wide
-        :func:`~torchmcmcpf.runtime.memory_budget`, 1 GiB unless set).
+    method, memory_budget : evaluation path, memory; see :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`.
 
     Example
     -------
-    >>> import math
     >>> import torch
     >>> import torchmcmcpf as tp
-    >>> sensor = tp.AzimuthRangeSwerlingTBD.uniform((-0.1, 0.1), (900.0, 1100.0), azimuth_cell=math.pi / 180,
+    >>> sensor = tp.AzimuthRangeSwerlingTBD.uniform((-0.1, 0.1), (900.0, 1100.0), azimuth_cell=torch.pi / 180,
     ...                                             noise_power=1.0)
     >>> sensor.frame_shape                             # (Na, Nr) cells of 1 deg, 10 m
     (12, 21)
