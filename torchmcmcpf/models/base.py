@@ -314,9 +314,14 @@ class SensorModel(nn.Module, Generic[Z]):
     @property
     def data_driven(self) -> bool:
         """Whether this sensor overrides :meth:`sample_from_data` and :meth:`place`."""
-        cls = type(self)
-        return (cls.sample_from_data is not SensorModel.sample_from_data
-                and cls.place is not SensorModel.place)
+        return self._overrides(SensorModel, "sample_from_data", "place")
+
+    @classmethod
+    def _overrides(cls, base: type, *names: str) -> bool:
+        """Whether this class replaces each of the methods ``names`` of ``base`` (a data-driven
+        sensor is one whose class fills the hooks its base declares).
+        """
+        return all(getattr(cls, name) is not getattr(base, name) for name in names)
 
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
         """Check a state ``(B, *S, K, D)`` for values this sensor cannot score (eager, at the

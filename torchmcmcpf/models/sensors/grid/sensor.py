@@ -422,9 +422,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
     @property
     def data_driven(self) -> bool:
         """Whether the subclass gives :meth:`detection_statistic` and :meth:`place`."""
-        cls = type(self)
-        return (cls.detection_statistic is not SeparableGridSensor.detection_statistic
-                and cls.place is not SensorModel.place)
+        return self._overrides(SeparableGridSensor, "detection_statistic", "place")
 
     def peaks(self, z: Tensor) -> Tensor:
         """Cells that are local maxima of :meth:`detection_statistic` over their ``3^n``
