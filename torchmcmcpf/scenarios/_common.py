@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, ClassVar
 
 import torch
 
@@ -45,6 +45,8 @@ class Scenario:
     motion: MotionModel
     snr_db: Tensor
     dt: float
+    #: the default ``spread`` of :meth:`initial_particles` (a scenario class may change it)
+    initial_spread: ClassVar[tuple[float, float, float]] = (5.0, 1.0, 0.1)
 
     @property
     def num_steps(self) -> int:
@@ -63,21 +65,22 @@ class Scenario:
         num_particles: int,
         *,
         generator: torch.Generator,
-        spread: Sequence[float] = (5.0, 1.0, 0.1),
+        spread: Sequence[float] | None = None,
     ) -> Tensor:
         """A Gaussian cloud around the true state one step before frame 0.
 
         Each particle is ``initial + noise`` with independent normal noise of standard
         deviation ``spread[0]`` [m] on positions, ``spread[1]`` [m/s] on velocities and, for
         states with an amplitude, ``spread[2]`` times the true amplitude on ``rho``
-        (defaults: 5 m, 1 m/s, 10 %). Targets keep their true labels, as in the
-        comparisons of paper 000 (the filters there are initialised on the tracks).
+        (defaults: :attr:`initial_spread`, 5 m, 1 m/s, 10 %). Targets keep their true labels,
+        as in the comparisons of paper 000 (the filters there are initialised on the tracks).
 
         Parameters
         ----------
         num_particles : N >= 1.
         generator : the only source of randomness (on the scenario's device).
-        spread : (position std, velocity std, relative amplitude std).
+        spread : (position std, velocity std, relative amplitude std); ``None``:
+            :attr:`initial_spread`.
 
         Returns
         -------
@@ -85,6 +88,7 @@ class Scenario:
         """
         num_particles = check_positive_int(num_particles, "num_particles")
         check_generator(generator)
+        spread = self.initial_spread if spread is None else spread
         if len(spread) != 3:
             raise ValueError(f"spread must be (position std, velocity std, relative amplitude std), got {spread!r}")
         s_pos, s_vel, s_amp = (check_positive(s, "spread", allow_zero=True) for s in spread)

@@ -73,26 +73,17 @@ INITIAL_SPREAD = (5.0, 1.0, 0.0)
 @dataclass(frozen=True, eq=False)
 class LingScenario(Scenario):
     """:class:`~torchmcmcpf.scenarios.ground_radar.Scenario` of paper 002; the state is
-    ``[x, vx, y, vy, P]``, the frames ``(T, B, Na, Nr)``, ``snr_db (B, K)``.
+    ``[x, vx, y, vy, P]``, the frames ``(T, B, Na, Nr)``, ``snr_db (B, K)``. Its
+    :meth:`~Scenario.initial_particles` know the power by default (``spread = (5 m, 1 m/s, 0)``,
+    :data:`INITIAL_SPREAD`).
     """
+
+    initial_spread = INITIAL_SPREAD
 
     @property
     def range_resolution(self) -> float:
         """Range cell size [m] (10 m): the yardstick of paper 002's Fig. 3."""
         return self.sensor.cell_sizes[1]
-
-    def initial_particles(
-        self,
-        num_particles: int,
-        *,
-        generator: torch.Generator,
-        spread: Sequence[float] = INITIAL_SPREAD,
-    ) -> Tensor:
-        """Gaussian cloud around the truth one step before frame 0, ``(B, N, K, 5)``; the
-        power is known by default (``spread = (5 m, 1 m/s, 0)``, :data:`INITIAL_SPREAD`).
-        See :meth:`Scenario.initial_particles`.
-        """
-        return super().initial_particles(num_particles, generator=generator, spread=spread)
 
 
 def ling(
