@@ -136,4 +136,6 @@ def test_soak_study_quick(tmp_path):
     bd = payload["results"]["birth-death"]["IP-MCMC-PF"]
     for total, loc, card in bd["ospa_per_chunk"]:  # per step OSPA^2 = loc^2 + card^2, so for the means:
         assert max(loc, card) - 1e-6 <= total <= loc + card + 1e-6
-    assert "birth-death" in soak.STUDY.summary(payload)
+    floor = payload["results"]["fixed_floor"]
+    assert floor["per_run"].shape == (1,) and 0 < floor["all"] < 20  # metres, 3 targets, quick
+    assert "birth-death" in soak.STUDY.summary(payload) and "floor" in soak.STUDY.summary(payload)

@@ -19,12 +19,15 @@ relabels every frame independently (the label-free error of an OSPA-like metric)
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, cast
 
 import torch
 
 from ._validation import check_finite, check_positive, check_shape, check_tensor
 from .typing import Tensor, X, Y
+
+if TYPE_CHECKING:  # the models import nothing from here; annotations only
+    from .models.base import MotionModel, SensorModel
 
 __all__ = [
     "RMSE",
@@ -44,6 +47,7 @@ __all__ = [
     "longest_run",
     "identity_switches",
     "cardinality_error",
+    "pcrb_position_rmse",
 ]
 
 
@@ -635,3 +639,63 @@ def cardinality_error(estimated_count: Tensor, true_count: Tensor) -> Tensor:
                          f"{tuple(true_count.shape)} (the shape of true_count)")
     est = estimated_count if estimated_count.is_floating_point() else estimated_count.to(torch.get_default_dtype())
     return (est - true_count.to(est.dtype)).abs()
+
+
+def pcrb_position_rmse(sensor: SensorModel, motion: MotionModel, x: Tensor, *, generator: torch.Generator,
+                       num_frames: int = 200, iterations: int = 200) -> Tensor:
+    """Floor of a filter's per-step position RMSE for each target alone: the steady-state
+    posterior Cramer-Rao bound (Tichavsky, Muravchik and Nehorai 1998, eq. 21 for a linear
+    Gaussian motion model) of the kinematic state ``[x, vx, y, vy]``.
+
+    The one-frame Fisher information ``J_z = E[s s^T]`` of the sensor's exact likelihood at
+    ``x`` is estimated by Monte Carlo: ``num_frames`` frames simulated from each target alone,
+    ``s`` the autograd score of ``sensor.log_likelihood`` with respect to the kinematic
+    components (the other components, such as a radar amplitude, are taken as known). The
+    recursion ``J_k = (Q + F J_{k-1}^{-1} F^T)^{-1} + J_z`` with the motion model's ``F`` and
+    ``Q`` (kinematic block) is run ``iterations`` times from ``J_z`` to its fixed point. The
+    floor of target ``j``'s position RMSE is ``sqrt(P_xx + P_yy)`` with ``P = J^{-1}``: no
+    filter of this model does better on average, with every other target away and the known
+    components known, so a scene's interactions and unknowns only add to it. On a
+    linear-Gaussian position sensor it is the Kalman filter's steady-state error.
+
+    Parameters
+    ----------
+    sensor : a sensor model whose ``log_likelihood`` is differentiable in the state.
+    motion : a motion model with ``F`` and ``Q`` ``(D, D)`` (linear Gaussian, such as
+        :class:`~torchmcmcpf.models.ConstantVelocity`).
+    x : (B, J, D) target states at which the information is taken (a mid-run truth, say).
+    generator : draws the frames.
+    num_frames : M >= 2 frames per target (relative Monte Carlo error of ``J_z`` about
+        ``sqrt(2 / M)``).
+    iterations : >= 1 steps of the recursion.
+
+    Returns
+    -------
+    (B, J) float64, the floor [m] of each target's per-step position RMSE.
+    """
+    check_tensor(x, "x")
+    if x.dim() != 3 or x.shape[-1] < 4:
+        raise ValueError(f"x has shape {tuple(x.shape)}, expected (B, J, D) with D >= 4")
+    if not isinstance(num_frames, int) or num_frames < 2:
+        raise ValueError(f"num_frames must be an int >= 2, got {num_frames!r}")
+    if not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations must be an int >= 1, got {iterations!r}")
+    if not (hasattr(motion, "F") and hasattr(motion, "Q")):
+        raise ValueError(f"motion must be linear Gaussian with F and Q, got {type(motion).__name__}")
+    kin = [X, 1, Y, 3]  # x, vx, y, vy
+    b, j, d = x.shape
+    targets = x.detach().reshape(b * j, 1, d)
+    frames = targets.repeat(num_frames, 1, 1)  # (M P, 1, D): frame m of target p at row m P + p
+    z = sensor.simulate(frames, generator=generator)
+    at = frames.unsqueeze(1).clone().requires_grad_(True)  # (M P, N = 1, K = 1, D)
+    with torch.enable_grad():
+        (score,) = torch.autograd.grad(sensor.log_likelihood(at, z).sum(), at)
+    s = score[:, 0, 0, kin].to(torch.float64).reshape(num_frames, b * j, 4)
+    info = torch.einsum("mpa,mpb->pab", s, s) / num_frames  # (P, 4, 4)
+    F = cast(Tensor, motion.F).to(torch.float64)[kin][:, kin]
+    Q = cast(Tensor, motion.Q).to(torch.float64)[kin][:, kin]
+    bound = info + 1e-9 * torch.eye(4, dtype=info.dtype)  # a flat prior: J_z alone may be singular
+    for _ in range(iterations):  # the recursion's steps, batched over the targets
+        bound = torch.linalg.inv(Q + F @ torch.linalg.inv(bound) @ F.T) + info
+    cov = torch.linalg.inv(bound)
+    return (cov[:, 0, 0] + cov[:, 2, 2]).clamp(min=0).sqrt().reshape(b, j)

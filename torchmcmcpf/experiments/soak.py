@@ -12,7 +12,9 @@ chunk, so memory does not grow with the length):
   a truth with that much noise would leave the grid within tens of steps).
   Scored per chunk by the per-step assignment RMSE (labels matched at every step: a label
   swap costs nothing, a lost target does), and over the run by the longest stretch a
-  target has no slot estimate within 20 m and the identity switches.
+  target has no slot estimate within 20 m and the identity switches; next to them the
+  floor no filter of this model beats, each target alone with its amplitude known
+  (:func:`~torchmcmcpf.metrics.pcrb_position_rmse` at the mid-run truth).
 - ``birth-death``: the Septier et al. scene (:func:`~torchmcmcpf.scenarios.septier`) with
   ``--targets`` slots, births and deaths in clutter; scored per chunk by OSPA (c = 100 m,
   p = 2) split into its localisation and cardinality parts.
@@ -46,6 +48,7 @@ from ._study import Settings, StepTimer, Study, option
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
 SCENES = ("fixed", "birth-death")
 COVER, CUTOFF, ORDER = 20.0, 100.0, 2.0
+FLOOR_FRAMES, FLOOR_SEED = 200, 0  # frames per target of the floor's Fisher information, their seed
 
 
 @dataclass(frozen=True)
@@ -81,7 +84,7 @@ def _chunks(steps: int, every: int) -> list[slice]:
 
 
 def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.device,
-           progress: bool) -> tuple[dict, dict]:
+           progress: bool) -> tuple[dict, dict, tuple]:
     from ..scenarios import ground_radar
 
     # the grid and models from one run over the whole length (so the grid covers every
@@ -121,7 +124,8 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
         out[f"fixed|{name}|longest_uncovered"] = metrics.longest_run(cover == 0).amax(-1)  # (B,)
         out[f"fixed|{name}|switches"] = metrics.identity_switches(mean, truth)
         out[f"fixed|{name}|non_finite"] = (~torch.isfinite(mean)).sum((0, 2, 3))
-    return out, seconds
+    # the floor's inputs: the models and the truth at mid-run
+    return out, seconds, (sensor, motion, truth[truth.shape[0] // 2])
 
 
 def _birth_death(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.device,
@@ -169,17 +173,25 @@ class Soak(Study[SoakSettings]):
         ``per_run``: ``"fixed|f|matched_error"`` ``(R, T)``, ``"fixed|f|longest_uncovered"``,
         ``"fixed|f|switches"``, ``"fixed|f|non_finite"`` ``(R,)``, ``"birth-death|f|ospa"``
         ``(R, T, 3)`` (total, localisation, cardinality), ``"birth-death|f|cardinality_error"``
-        ``(R, T)``; ``seconds`` per scene and filter.
+        ``(R, T)``, ``"fixed|floor"`` ``(R, J)`` each target's floor
+        (:func:`~torchmcmcpf.metrics.pcrb_position_rmse` at mid-run); ``seconds`` per scene
+        and filter.
         """
-        fixed, s1 = _fixed(cfg, len(runs), generator, device, progress)
+        fixed, s1, (sensor, motion, mid) = _fixed(cfg, len(runs), generator, device, progress)
         bd, s2 = _birth_death(cfg, len(runs), generator, device, progress)
-        return {**fixed, **bd}, {**s1, **s2}
+        # a property of the scene, not of a run: its frames from a generator of their own
+        floor = metrics.pcrb_position_rmse(sensor, motion, mid, num_frames=FLOOR_FRAMES,
+                                           generator=torch.Generator(device).manual_seed(FLOOR_SEED))
+        return {**fixed, **bd, "fixed|floor": floor}, {**s1, **s2}
 
     @staticmethod
     def aggregate(cfg: SoakSettings, per_run: dict, seconds: dict) -> dict:
         """Per scene and filter: chunk rows and the acceptance figures of issue 22."""
         chunks = _chunks(cfg.steps, cfg.every)
         results: dict = {"fixed": {}, "birth-death": {}}
+        floor = per_run["fixed|floor"]  # (R, J)
+        results["fixed_floor"] = {"per_run": floor.square().mean(-1).sqrt(),
+                                  "all": float(floor.square().mean().sqrt())}
         for name in FILTERS:
             err = per_run[f"fixed|{name}|matched_error"]  # (R, T)
             rows = [float(err[:, c].square().mean().sqrt()) for c in chunks]
@@ -208,6 +220,7 @@ class Soak(Study[SoakSettings]):
         (birth-death).
         """
         fixed, bd = payload["results"]["fixed"], payload["results"]["birth-death"]
+        floor = payload["results"]["fixed_floor"]["all"]
         chunks = next(iter(fixed.values()))["chunks"]
         lines = ["fixed: per-step assignment RMSE [m] per chunk; longest uncovered stretch (steps, worst run); "
                  "identity switches per run",
@@ -217,6 +230,7 @@ class Soak(Study[SoakSettings]):
             lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in r["matched_rmse_per_chunk"])
                          + f" | {int(r['longest_uncovered_per_run'].max())} | "
                          f"{float(r['identity_switches_per_run'].double().mean()):.1f} | {r['seconds_per_step']:.2f} |")
+        lines.append(f"floor (steady-state PCRB, each target alone, metrics.pcrb_position_rmse): {floor:.2f} m")
         lines += ["", "birth-death: OSPA [m] per chunk, total (localisation / cardinality)",
                   "| filter | " + " | ".join(chunks) + " | s / step |", "|---" * (len(chunks) + 2) + "|"]
         for name, r in bd.items():
@@ -236,6 +250,8 @@ class Soak(Study[SoakSettings]):
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
         plot_rmse(axes[0], {np_label(k, n): r["matched_rmse_per_step"] for k, r in results["fixed"].items()},
                   ylabel="per-step assignment RMSE [m]")
+        axes[0].axhline(results["fixed_floor"]["all"], color="0.4", linestyle="--", label="floor (PCRB)")
+        axes[0].legend()
         axes[0].set_title(f"fixed: {cfg.targets} radar targets, {runs} runs")
         plot_rmse(axes[1], {np_label(k, n): r["ospa_per_step"] for k, r in results["birth-death"].items()},
                   ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
