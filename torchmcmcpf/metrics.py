@@ -653,10 +653,12 @@ def pcrb_position_rmse(sensor: SensorModel, motion: MotionModel, x: Tensor, *, g
     components (the other components, such as a radar amplitude, are taken as known). The
     recursion ``J_k = (Q + F J_{k-1}^{-1} F^T)^{-1} + J_z`` with the motion model's ``F`` and
     ``Q`` (kinematic block) is run ``iterations`` times from ``J_z`` to its fixed point. The
-    floor of target ``j``'s position RMSE is ``sqrt(P_xx + P_yy)`` with ``P = J^{-1}``: no
-    filter of this model does better on average, with every other target away and the known
-    components known, so a scene's interactions and unknowns only add to it. On a
-    linear-Gaussian position sensor it is the Kalman filter's steady-state error.
+    floor of target ``j``'s position RMSE is ``sqrt(P_xx + P_yy)`` with ``P = J^{-1}``: on
+    trajectories drawn from the motion model, no filter does better on average in steady
+    state, with every other target away and the known components known, so a scene's
+    interactions and unknowns only add to it. (A truth that moves with less noise than the
+    model's ``Q``, or the first steps after a sharp start, can be tracked below it for a
+    while.) On a linear-Gaussian position sensor it is the Kalman filter's steady-state error.
 
     Parameters
     ----------
