@@ -139,3 +139,22 @@ def test_soak_study_quick(tmp_path):
     floor = payload["results"]["fixed_floor"]
     assert floor["per_run"].shape == (1,) and 0 < floor["all"] < 20  # metres, 3 targets, quick
     assert "birth-death" in soak.STUDY.summary(payload) and "floor" in soak.STUDY.summary(payload)
+
+
+@pytest.mark.parametrize("moved_share", [0.3, 0.7])
+def test_relabelled_estimate_follows_a_recaptured_slot(gen, moved_share):
+    # Without existence: the reference has both labels on target A (two slots had coalesced
+    # there) and a share of the particles has re-captured target B, 150 m away, with slot 1.
+    # A minority beyond the cutoff stays out of label 1's mean (it remains on A); a majority
+    # takes the label with it (its mean on B, from those particles only).
+    n = 1000
+    a, b = torch.tensor([0.0, 0.0, 0.0, 0.0]), torch.tensor([150.0, 0.0, 0.0, 0.0])
+    x = a.expand(1, n, 2, 4) + 1.0 * torch.randn(1, n, 2, 4, generator=gen)
+    moved = torch.arange(n) < int(moved_share * n)
+    x[0, moved, 1] += b
+    state = ParticleState(x, torch.full((1, n), -math.log(n)))
+    ref = a.expand(1, 2, 4).clone()
+    est = relabelled_estimate(state, ref)[0].mean[0]
+    assert float(est[0, X].abs()) < 1.0  # label 0 stays on A
+    expected = 150.0 if moved_share > 0.5 else 0.0
+    assert abs(float(est[1, X]) - expected) < 1.0
