@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, NamedTuple, cast
 import torch
 
 from ._validation import check_finite, check_positive, check_shape, check_tensor
-from .typing import Tensor, X, Y
+from .typing import VX, VY, Tensor, X, Y
 
 if TYPE_CHECKING:  # the models import nothing from here; annotations only
     from .models.base import MotionModel, SensorModel
@@ -684,7 +684,7 @@ def pcrb_position_rmse(sensor: SensorModel, motion: MotionModel, x: Tensor, *, g
         raise ValueError(f"iterations must be an int >= 1, got {iterations!r}")
     if not (hasattr(motion, "F") and hasattr(motion, "Q")):
         raise ValueError(f"motion must be linear Gaussian with F and Q, got {type(motion).__name__}")
-    kin = [X, 1, Y, 3]  # x, vx, y, vy
+    kin = [X, VX, Y, VY]
     b, j, d = x.shape
     targets = x.detach().reshape(b * j, 1, d)
     frames = targets.repeat(num_frames, 1, 1)  # (M P, 1, D): frame m of target p at row m P + p

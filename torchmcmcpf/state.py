@@ -528,12 +528,11 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     -------
     estimate : :class:`ExistenceEstimate` of the relabelled cloud (without existence flags:
     ``exists_prob`` ones and ``mean`` the weighted mean of the slots within ``cutoff`` of the
-    label's reference where they hold at least half of the weight, of those beyond it where
-    they hold more, of all where one side is empty). With existence flags, a label's
-    mean and existence probability count only the particles whose slot of that label lies
-    within ``cutoff`` of the label's reference (a particle holding two slots on one target and
-    none on another does not pull a mean half-way to the wrong target); ``expected_count`` is
-    the expected number of live slots.
+    label's reference where they hold at least half of the weight, else of those beyond it).
+    With existence flags, a label's mean and existence probability count only the particles
+    whose slot of that label lies within ``cutoff`` of the label's reference (a particle
+    holding two slots on one target and none on another does not pull a mean half-way to the
+    wrong target); ``expected_count`` is the expected number of live slots.
     relabelled : the relabelled cloud (a ParticleState, its slots in the estimate's labels;
     with existence, its flags those the estimate counted).
     """
@@ -575,17 +574,16 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
             near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2
         if exists is None:
-            mean = weighted_mean(xr, log_w)
-            if near is not None:
+            if near is None:
+                mean = weighted_mean(xr, log_w)
+            else:
                 # the mean of the slots on the side of the cutoff that holds most of the label's
-                # weight: near its reference, unless most particles moved the slot away (a
-                # re-capture after two slots had coalesced on one target), where the label
-                # follows them; of all where neither side has weight
+                # weight (the two sides' weights sum to one): near its reference, unless most
+                # particles moved the slot away (a re-capture after two slots had coalesced on
+                # one target), where the label follows them
                 gated = existence_estimate(ParticleState(xr, log_w, near))
                 moved = existence_estimate(ParticleState(xr, log_w, ~near))
-                side = torch.where((gated.exists_prob >= 0.5).unsqueeze(-1), gated.mean, moved.mean)
-                mean = torch.where((gated.exists_prob > 0).unsqueeze(-1) & (moved.exists_prob > 0).unsqueeze(-1), side,
-                                   torch.where((gated.exists_prob > 0).unsqueeze(-1), gated.mean, mean))
+                mean = torch.where((gated.exists_prob >= 0.5).unsqueeze(-1), gated.mean, moved.mean)
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
             out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
         else:

@@ -296,10 +296,9 @@ def _chains_relabelled(window: Tensor, rounds: int = 2) -> Tensor:
     if k < 2:
         return window
     states = window.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, d)
-    reference = window[-1, :, 0]
+    relabelled, reference = states, window[-1, :, 0]
     for _ in range(rounds):
-        order = relabel_order(states, reference)  # (B, W C, K)
-        relabelled = torch.take_along_dim(states, order.unsqueeze(-1), 2)
+        relabelled = torch.take_along_dim(states, relabel_order(states, reference).unsqueeze(-1), 2)
         reference = relabelled.mean(1)
     return relabelled.reshape(b, w, c, k, d).permute(1, 0, 2, 3, 4)
 
