@@ -131,8 +131,10 @@ def test_crossing_study_quick(tmp_path):
 def test_soak_study_quick(tmp_path):
     payload = _run_quick(soak, tmp_path)
     assert (tmp_path / "soak.png").exists() and (tmp_path / "metrics.json").exists()
-    fixed = payload["results"]["fixed"]["IP-MCMC-PF"]
-    assert fixed["non_finite"] == 0 and len(fixed["matched_rmse_per_chunk"]) == 2
+    assert set(payload["results"]["fixed"]) == set(soak.FIXED_FILTERS)  # the partitioned PF's reference row
+    assert set(payload["results"]["birth-death"]) == set(soak.FILTERS)
+    for fixed in payload["results"]["fixed"].values():
+        assert fixed["non_finite"] == 0 and len(fixed["matched_rmse_per_chunk"]) == 2
     bd = payload["results"]["birth-death"]["IP-MCMC-PF"]
     for total, loc, card in bd["ospa_per_chunk"]:  # per step OSPA^2 = loc^2 + card^2, so for the means:
         assert max(loc, card) - 1e-6 <= total <= loc + card + 1e-6

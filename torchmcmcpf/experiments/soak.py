@@ -21,7 +21,10 @@ chunk, so memory does not grow with the length):
 
 Filters: the IP-MCMC-PF with the library's defaults (exclusion and re-capture) and as in
 paper 000 (``exclusion=None, recapture=None``), Np particles in ``Np / 10`` chains, burn-in
-``--burn-in``. Also: seconds per step and the non-finite values in the estimates (must be 0).
+``--burn-in``; on the fixed scene also the partitioned PF (Orton and Fitzgerald 2002, with
+exclusion; :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`) with the same Np,
+a reference of another kind on the same frames (it has no births and deaths). Also: seconds
+per step and the non-finite values in the estimates (must be 0).
 
 Writes ``metrics.json`` and ``soak.png`` (error per chunk for each filter and scene). Shards
 of ``--shard-size`` runs, each with the generator of ``(seed, shard index)``.
@@ -38,6 +41,7 @@ import torch
 
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
+from ..filters.partitioned import PartitionedSIRFilter
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..typing import VX, VY, X, Y
@@ -46,6 +50,7 @@ from ._shards import Shards
 from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
+FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
 SCENES = ("fixed", "birth-death")
 COVER, CUTOFF, ORDER = 20.0, 100.0, 2.0
 FLOOR_FRAMES, FLOOR_SEED = 200, 0  # frames per target of the floor's Fisher information, their seed
@@ -75,8 +80,12 @@ class SoakSettings(Settings):
 def _filters(cfg: SoakSettings, motion: MotionModel, sensor: SensorModel, existence: BirthDeath | None = None) -> dict:
     n = cfg.particles
     kw: dict[str, Any] = dict(num_chains=n // 10, burn_in=cfg.burn_in, existence=existence)
-    return {"IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, **kw),
-            "IP-MCMC-PF (paper)": IPMCMCFilter(motion, sensor, n, exclusion=None, recapture=None, **kw)}
+    filters: dict[str, Any] = {"IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, **kw),
+                               "IP-MCMC-PF (paper)": IPMCMCFilter(motion, sensor, n, exclusion=None, recapture=None,
+                                                                  **kw)}
+    if existence is None:
+        filters["partitioned PF"] = PartitionedSIRFilter(motion, sensor, n)
+    return filters
 
 
 def _chunks(steps: int, every: int) -> list[slice]:
@@ -96,8 +105,8 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
     sensor, motion, x0 = geometry.sensor, geometry.motion, scn.initial
     init = scn.initial_particles(cfg.particles, generator=generator)
     filters = _filters(cfg, motion, sensor)
-    states: dict = {name: None for name in FILTERS}
-    means: dict = {name: [] for name in FILTERS}
+    states: dict = {name: None for name in FIXED_FILTERS}
+    means: dict = {name: [] for name in FIXED_FILTERS}
     seconds: dict = {}
     truths = []
     for part in _chunks(cfg.steps, cfg.every):
@@ -116,7 +125,7 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
             means[name].append(res.mean)
     truth = torch.cat(truths)
     out: dict = {}
-    for name in FILTERS:
+    for name in FIXED_FILTERS:
         mean = torch.cat(means[name])  # (T, B, K, D)
         matched, _ = metrics.match_tracks(mean, truth, per_step=True)
         out[f"fixed|{name}|matched_error"] = metrics.position_error(matched, truth).square().mean(-1).sqrt().T
@@ -192,7 +201,7 @@ class Soak(Study[SoakSettings]):
         floor = per_run["fixed|floor"]  # (R, J)
         results["fixed_floor"] = {"per_run": floor.square().mean(-1).sqrt(),
                                   "all": float(floor.square().mean().sqrt())}
-        for name in FILTERS:
+        for name in FIXED_FILTERS:
             err = per_run[f"fixed|{name}|matched_error"]  # (R, T)
             rows = [float(err[:, c].square().mean().sqrt()) for c in chunks]
             results["fixed"][name] = {
@@ -205,6 +214,7 @@ class Soak(Study[SoakSettings]):
                 "last_over_second_chunk": rows[-1] / rows[1] if len(rows) > 1 and rows[1] > 0 else None,
                 "seconds_per_step": seconds[f"fixed|{name}"] / cfg.steps,
             }
+        for name in FILTERS:
             o = per_run[f"birth-death|{name}|ospa"]  # (R, T, 3)
             results["birth-death"][name] = {
                 "chunks": [f"{c.start + 1}-{c.stop}" for c in chunks],
