@@ -150,7 +150,7 @@ from .base import Filter
 from .mcmc import pick_moves
 
 __all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "JointNoise", "RefineNoise", "PastNoise",
-           "default_chains", "estimate_step_bytes"]
+           "BirthNoise", "default_chains", "estimate_step_bytes"]
 
 LOG_2PI = math.log(2 * math.pi)
 ALPHAS = ("mean", "predictive")
@@ -208,6 +208,8 @@ class GroupMCMCSettings:
     lag : L >= 0, positions of each target's past the past move changes (0: no past move).
     p_past : probability of the past move per iteration (needs ``lag >= 1``).
     past_step : ``(s_a [m], s_b [m per step])``, the shift and velocity steps of the past move.
+    p_window_birth : probability of the window birth/death move per iteration (needs
+        ``lag >= 1``; 0: off, the paper's sampler).
     max_memory_gb : refuse a problem whose step needs more (:func:`estimate_step_bytes`).
     """
 
@@ -223,6 +225,7 @@ class GroupMCMCSettings:
     lag: int = 0
     p_past: float = 0.0
     past_step: tuple[float, float] = (10.0, 5.0)
+    p_window_birth: float = 0.0
     max_memory_gb: float = 8.0
 
     def __post_init__(self) -> None:
@@ -230,7 +233,8 @@ class GroupMCMCSettings:
         check_positive_int(self.burn_in, "burn_in", minimum=0)
         check_positive_int(self.thinning, "thinning")
         check_positive_int(self.lag, "lag", minimum=0)
-        for name, lo_open in (("xi", False), ("p_a", False), ("p_i", True), ("p_past", False)):
+        for name, lo_open in (("xi", False), ("p_a", False), ("p_i", True), ("p_past", False),
+                              ("p_window_birth", False)):
             v = float(getattr(self, name))
             if not (0.0 <= v <= 1.0) or (lo_open and v == 0.0):
                 raise ValueError(f"{name} must be a probability in {'(0, 1]' if lo_open else '[0, 1]'}, got {v!r}")
@@ -243,8 +247,12 @@ class GroupMCMCSettings:
         if (self.lag > 0) != (self.p_past > 0):
             raise ValueError(f"lag >= 1 and p_past > 0 go together (the past move needs a past), got lag={self.lag}, "
                              f"p_past={self.p_past}")
-        if self.xi + self.p_past > 1.0 + 1e-12:
-            raise ValueError(f"xi + p_past must be <= 1 (the rest is the refinement's), got {self.xi} + {self.p_past}")
+        if self.xi + self.p_past + self.p_window_birth > 1.0 + 1e-12:
+            raise ValueError(f"xi + p_past + p_window_birth must be <= 1 (the rest is the refinement's), got "
+                             f"{self.xi} + {self.p_past} + {self.p_window_birth}")
+        if self.p_window_birth > 0 and self.lag == 0:
+            raise ValueError(f"p_window_birth > 0 needs lag >= 1 (the move births a target at t - 1, in the window), "
+                             f"got p_window_birth={self.p_window_birth}, lag=0")
         if self.xi == 0.0:
             raise ValueError("xi must be > 0: only the joint draw changes a chain's ancestor")
         if self.lag > 0 and not self.marginalise:
@@ -263,7 +271,8 @@ class GroupMCMCSettings:
 
     def moves(self) -> tuple[tuple[str, float], ...]:
         """The mixture's ``(move, probability)`` pairs with probability > 0."""
-        pairs = (("joint", self.xi), ("refine", 1.0 - self.xi - self.p_past), ("past", self.p_past))
+        pairs = (("joint", self.xi), ("refine", 1.0 - self.xi - self.p_past - self.p_window_birth),
+                 ("past", self.p_past), ("birth", self.p_window_birth))
         return tuple((name, p) for name, p in pairs if p > 1e-12)
 
 
@@ -274,8 +283,8 @@ class GroupMCMCSettings:
 #: ``U(0, 1)`` but the standard normals ``eps`` and ``step``
 _FIELD_DIMS: dict[str, tuple[int | str, ...]] = {
     "mix": (), "j": (), "g": (), "u": (), "u_g": (), "slot": (), "e": ("K",), "u_x": ("K",), "b_sel": ("K",),
-    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2)}
-_NORMALS = ("eps", "step")
+    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2), "y_pix": (), "y_xy": (2,), "x_eps": (2,)}
+_NORMALS = ("eps", "step", "x_eps")
 
 
 def _draw_fields(cls: Any, shape: tuple[int, int, int], generator: torch.Generator, dtype: torch.dtype,
@@ -352,7 +361,26 @@ class PastNoise(NamedTuple):
         return _draw_fields(cls, shape, generator, dtype, device)
 
 
-NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise}
+class BirthNoise(NamedTuple):
+    """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` uniforms (the
+    slot), ``y_pix (B, C)`` and ``y_xy (B, C, 2)`` uniforms (the pixel of ``Z_{t-1}`` and the
+    place in it), ``x_eps (B, C, 2)`` standard normals (the position at ``t``), ``u (B, C)``.
+    """
+
+    slot: Tensor
+    y_pix: Tensor
+    y_xy: Tensor
+    x_eps: Tensor
+    u: Tensor
+
+    @classmethod
+    def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
+             device: torch.device | str | None = None) -> BirthNoise:
+        """Draw for ``shape = (B, C, K)``."""
+        return _draw_fields(cls, shape, generator, dtype, device)
+
+
+NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise, "birth": BirthNoise}
 
 
 # ----------------------------------------------------------------------------------------
@@ -394,7 +422,9 @@ class Cloud(NamedTuple):
     ``log_win (B, N)`` the window's terms; ``cdf_alpha``, ``cdf_w (B, N)`` float64 cumulative
     weights of ``alpha`` and ``w``; ``log_wq (B, N)`` ``log w_j - log q(j)`` (eq. 61);
     ``beta (B, HW)`` bool, the pixels of the birth proposal, ``cdf_beta (B, HW)``,
-    ``n_obs (B,)``; ``table (G, K)`` the structures.
+    ``n_obs (B,)``; ``table (G, K)`` the structures; the window birth's pixels of ``Z_{t-1}``
+    (those with a detection of ``Z_t`` within two pixels) ``pair (B, HW)`` bool,
+    ``cdf_pair (B, HW)``, ``n_pair (B,)``.
     """
 
     view: GroupView
@@ -407,13 +437,16 @@ class Cloud(NamedTuple):
     cdf_beta: Tensor
     n_obs: Tensor
     table: Tensor
+    pair: Tensor
+    cdf_pair: Tensor
+    n_pair: Tensor
 
 
 class Prev(NamedTuple):
     """A chain's past ``(B, C, ...)``: the positions, structure (``g`` row, ``labels``),
     existence and Kalman statistics at ``t - 1``; ``log_pg (B, C, G)``, ``p(g_t | .)`` of
     every structure; the window positions ``win_pos (B, C, W, K, 2)`` at ``t - W .. t - 1``
-    and their terms ``log_win (B, C)``.
+    and their terms ``log_win (B, C)``; the window's existence ``win_exists (B, C, W, K)``.
     """
 
     pos: Tensor
@@ -425,6 +458,7 @@ class Prev(NamedTuple):
     log_pg: Tensor
     win_pos: Tensor
     log_win: Tensor
+    win_exists: Tensor
 
 
 class Chain(NamedTuple):
@@ -581,14 +615,16 @@ def _path_step(stats: KalmanStats, pos_p: Tensor, g_p: Tensor, lab_p: Tensor, ex
     return log_pred + log_p0 + log_g + _log_lik(pos, ex, z, models.sensor), stats
 
 
-def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models) -> Prev:
-    """The past of chains with ancestors ``j (B, C)`` and window positions ``win_pos (B, C, W,
-    K, 2)``: the Kalman filter re-run from the anchor through the window (:class:`Prev`).
+def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models, win_exists: Tensor | None = None) -> Prev:
+    """The past of chains with ancestors ``j (B, C)``, window positions ``win_pos (B, C, W,
+    K, 2)`` and existence ``win_exists (B, C, W, K)`` (default the ancestor's): the Kalman
+    filter re-run from the anchor through the window (:class:`Prev`).
     """
     v = cloud.view
     stats = KalmanStats(_gather(v.anchor_w_mean, j), _gather(v.anchor_w_cov, j))
     pos, g, lab, ex = (_gather(t, j) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels, v.anchor_exists))
-    win_g, win_lab, win_ex = (_gather(t, j) for t in (v.win_g, v.win_labels, v.win_exists))
+    win_g, win_lab = (_gather(t, j) for t in (v.win_g, v.win_labels))
+    win_ex = _gather(v.win_exists, j) if win_exists is None else win_exists
     log_win = torch.zeros_like(pos[..., 0, 0])
     off = v.frames.shape[1] - win_pos.shape[2]  # the window's frames are the last W
     for s in range(win_pos.shape[2]):  # the window's steps (time, not particles)
@@ -597,26 +633,28 @@ def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models) -> Prev:
         log_win = log_win + term
         pos, g, lab, ex = win_pos[:, :, s], win_g[:, :, s], win_lab[:, :, s], win_ex[:, :, s]
     log_pg = models.structure_prior.log_probs(g, pos, ex)
-    return Prev(pos, g, lab, ex, stats.mean, stats.cov, log_pg, win_pos, log_win)
+    return Prev(pos, g, lab, ex, stats.mean, stats.cov, log_pg, win_pos, log_win, win_ex)
 
 
 def _prev_of(cloud: Cloud, j: Tensor) -> Prev:
     """The past of chains whose ancestors are ``j (B, C)``, as the cloud holds it."""
     v = cloud.view
     return Prev(*(_gather(t, j) for t in (v.pos, v.g, v.labels, v.exists, v.w_mean, v.w_cov, cloud.log_pg,
-                                          v.win_pos, cloud.log_win)))
+                                          v.win_pos, cloud.log_win, v.win_exists)))
 
 
 # ----------------------------------------------------------------------------------------
 # the moves (pure: noise in, no generator; compile-friendly)
 # ----------------------------------------------------------------------------------------
 def make_chain(j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, z: Tensor, models: Models,
-               win_pos: Tensor | None = None) -> Chain:
+               win_pos: Tensor | None = None, win_exists: Tensor | None = None) -> Chain:
     """A chain state ``(B, C, ...)`` with its caches from ``(j, g, e, x_p)`` and, optionally,
-    its window ``win_pos (B, C, W, K, 2)`` (default the ancestor's); dead slots' positions
-    are set to ``x_death``.
+    its window ``win_pos (B, C, W, K, 2)`` and ``win_exists (B, C, W, K)`` (default the
+    ancestor's); dead slots' positions are set to ``x_death``.
     """
-    prev = _prev_of(cloud, j) if win_pos is None else _past(j, win_pos, cloud, models)
+    if win_pos is None and win_exists is not None:
+        win_pos = _gather(cloud.view.win_pos, j)
+    prev = _prev_of(cloud, j) if win_pos is None else _past(j, win_pos, cloud, models, win_exists)
     labels = cloud.table[g]
     pm, S, obs, free = _predict(prev, labels, exists, models)
     pos = torch.where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
@@ -713,11 +751,11 @@ def past_move(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor, models: M
     a = noise.step[..., 0, :] * models.past_step[0]  # (B, C, 2)
     b = noise.step[..., 1, :] * models.past_step[1]
     tau = torch.arange(-w, 0, device=a.device, dtype=a.dtype)  # (W,) time relative to t
-    win_live = _gather(cloud.view.win_exists, chain.j) & onehot.unsqueeze(-2)  # (B, C, W, K)
+    win_live = prev.win_exists & onehot.unsqueeze(-2)  # (B, C, W, K)
     shift = a[:, :, None, None, :] + b[:, :, None, None, :] * tau[:, None, None]  # (B, C, W, 1, 2)
     win_pos = prev.win_pos + shift * win_live.unsqueeze(-1).to(a.dtype)
     pos = chain.pos + a.unsqueeze(-2) * (chain.exists & onehot).unsqueeze(-1).to(a.dtype)
-    new_prev = _past(chain.j, win_pos, cloud, models)
+    new_prev = _past(chain.j, win_pos, cloud, models, prev.win_exists)
     pm, S, obs, free = _predict(new_prev, chain.labels, chain.exists, models)
     prop = chain._replace(pos=pos, log_lik=_log_lik(pos, chain.exists, z, models.sensor),
                           log_px=_log_px(pos, pm, S, obs, free, models.existence),
@@ -734,6 +772,99 @@ def _past_log_target(chain: Chain) -> Tensor:
     """
     log_g = torch.gather(chain.prev.log_pg, -1, chain.g.unsqueeze(-1)).squeeze(-1)
     return chain.prev.log_win + log_g + chain.log_px + chain.log_lik
+
+
+def _pixel_log_q(pos: Tensor, mask: Tensor, n: Tensor, sensor: ThresholdedPixels) -> Tensor:
+    """``log`` of the density uniform over the pixels of ``mask (B, HW)`` (``n (B,)`` of them)
+    at positions ``pos (B, C, 2)``: ``-log(n s^2)`` in a pixel of the mask, ``-inf`` elsewhere
+    (and where ``n = 0``): ``-> (B, C)``.
+    """
+    h, w = sensor.shape
+    s = sensor.pixel_size
+    col, row = torch.floor(pos[..., 0] / s), torch.floor(pos[..., 1] / s)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long()
+    hit = torch.gather(mask, 1, flat) & inside & (n > 0).unsqueeze(-1)
+    log_q = -torch.log(n.to(pos.dtype).clamp(min=1) * s * s).unsqueeze(-1).expand(hit.shape)
+    return torch.where(hit, log_q, torch.full_like(log_q, -math.inf))
+
+
+def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, models: Models
+                      ) -> tuple[Chain, Tensor]:
+    """One slot ``i`` born at ``t - 1``, in the window, and alive at ``t``, or the reverse
+    (module docstring, "A target born in the window"); accepted by ``rho_5``. Returns the new
+    chain and ``accepted (B, C)`` bool (False where the slot's existence pattern allows
+    neither direction).
+    """
+    existence, sensor = models.existence, models.sensor
+    k = chain.pos.shape[-2]
+    prev = chain.prev
+    onehot = F.one_hot((noise.slot * k).long().clamp(max=k - 1), k).to(torch.bool)  # (B, C, K)
+    before = prev.win_exists[:, :, -2] if prev.win_exists.shape[2] >= 2 else _gather(cloud.view.anchor_exists,
+                                                                                     chain.j)
+    last = prev.win_exists[:, :, -1]
+
+    def slot(t: Tensor) -> Tensor:
+        return (t & onehot).any(-1)
+
+    a, b, c = slot(before), slot(last), slot(chain.exists)
+    birth = ~a & ~b & ~c & (cloud.n_pair > 0).unsqueeze(-1)
+    death = ~a & b & c
+    # y ~ uniform over the paired detections of Z_{t-1} (a pixel by the shared inverse CDF, then a place in it)
+    bsz = noise.y_pix.shape[0]
+    idx = inverse_cdf(cloud.cdf_pair, noise.y_pix.reshape(bsz, -1)).reshape(noise.y_pix.shape)
+    w = sensor.shape[1]
+    pix = torch.stack([(idx % w).to(noise.y_xy.dtype), (idx // w).to(noise.y_xy.dtype)], -1)
+    y = (pix + noise.y_xy) * sensor.pixel_size  # (B, C, 2)
+    dead = _death_pos(existence, y).expand(y.shape)
+    sel = onehot.unsqueeze(-1)
+    y_old = (prev.win_pos[:, :, -1] * sel.to(y.dtype)).sum(-2)
+    new_last = torch.where(onehot, birth.unsqueeze(-1), last)
+    win_exists = torch.cat([prev.win_exists[:, :, :-1], new_last.unsqueeze(2)], 2)
+    y_new = torch.where(birth.unsqueeze(-1), y, dead)
+    last_pos = torch.where(sel, y_new.unsqueeze(-2), prev.win_pos[:, :, -1])
+    win_pos = torch.cat([prev.win_pos[:, :, :-1], last_pos.unsqueeze(2)], 2)
+    exists = torch.where(onehot, birth.unsqueeze(-1), chain.exists)
+    new_prev = _past(chain.j, win_pos, cloud, models, win_exists)
+    pm, S, obs, free = _predict(new_prev, chain.labels, exists, models)
+    # x_t ~ the conditional of the Kalman predictive given the other observed slots (a birth)
+    cm, cv = _conditional_slot(chain.pos, pm, S, obs, onehot)
+    x_t = cm + cv.clamp(min=0).sqrt().unsqueeze(-1) * noise.x_eps
+    pos = torch.where(sel, torch.where(birth.unsqueeze(-1), x_t, dead).unsqueeze(-2), chain.pos)
+    log_fwd = _pixel_log_q(y, cloud.pair, cloud.n_pair, sensor) + _log_normal2(x_t, cm, cv)
+    # the reverse of a death: the birth that would propose the chain's present y and x_t
+    cm0, cv0 = _conditional_slot(chain.pos, chain.pm, chain.S, chain.observed, onehot)
+    x_old = (chain.pos * sel.to(y.dtype)).sum(-2)
+    log_rev = _pixel_log_q(y_old, cloud.pair, cloud.n_pair, sensor) + _log_normal2(x_old, cm0, cv0)
+    prop = chain._replace(exists=exists, pos=pos, log_lik=_log_lik(pos, exists, z, sensor),
+                          log_px=_log_px(pos, pm, S, obs, free, existence),
+                          log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free,
+                          prev=new_prev)
+    log_e = (existence.log_prob_exists(win_exists[:, :, -1], before) + existence.log_prob_exists(exists, new_last)
+             - existence.log_prob_exists(last, before) - existence.log_prob_exists(chain.exists, last)).sum(-1)
+    log_rho = _past_log_target(prop) - _past_log_target(chain) + log_e.to(y.dtype)
+    log_rho = log_rho + torch.where(birth, -log_fwd, log_rev)
+    acc = (birth | death) & (torch.log(noise.u) < log_rho)
+    return _select(acc, prop, chain), acc
+
+
+def _log_normal2(x: Tensor, mean: Tensor, var: Tensor) -> Tensor:
+    """``log N(x; mean, var I_2)``: ``(B, C, 2), (B, C, 2), (B, C) -> (B, C)``."""
+    return -0.5 * (x - mean).square().sum(-1) / var - torch.log(var) - LOG_2PI
+
+
+def _conditional_slot(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, onehot: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_conditional` for a slot chosen per chain by ``onehot (B, C, K)`` (it must be
+    observed): mean ``(B, C, 2)``, variance ``(B, C)``; independent of the slot's own position.
+    """
+    o = obs.to(pos.dtype)
+    Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
+    P = torch.cholesky_inverse(torch.linalg.cholesky(Sm))
+    sel = onehot.to(pos.dtype)
+    p_i = (P * sel.unsqueeze(-1)).sum(-2)  # (B, C, K): row i
+    pii = (p_i * sel).sum(-1)
+    d = (pos - pm) * (o * (1.0 - sel)).unsqueeze(-1)  # the other observed slots
+    return (pm * sel.unsqueeze(-1)).sum(-2) - (p_i.unsqueeze(-2) @ d).squeeze(-2) / pii.unsqueeze(-1), 1.0 / pii
 
 
 def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tuple[Tensor, Tensor]:
@@ -864,12 +995,20 @@ def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: Gro
         beta = zb.reshape(b, -1)
     any_obs = beta.any(-1, keepdim=True)
     log_beta = torch.where(beta | ~any_obs, 0.0, -math.inf).to(torch.float64)  # no detection: unused, kept finite
+    # the window birth: the detections of Z_{t-1} with a detection of Z_t within two pixels (a step of <= 100 m)
+    if v.frames.shape[1] > 0 and settings.lag > 0:
+        near_now = F.max_pool2d(zb.to(torch.float64).unsqueeze(1), 5, stride=1, padding=2).squeeze(1) > 0
+        pair = (v.frames[:, -1].to(torch.bool) & near_now).reshape(b, -1)
+    else:
+        pair = torch.zeros_like(beta)
+    any_pair = pair.any(-1, keepdim=True)
+    log_pair = torch.where(pair | ~any_pair, 0.0, -math.inf).to(torch.float64)
     return Cloud(v, log_pg, v.win_log.sum(-1), cdf(log_alpha), cdf(log_w), (log_w - log_q).to(v.pos.dtype),
-                 beta, cdf(log_beta), beta.sum(-1), table)
+                 beta, cdf(log_beta), beta.sum(-1), table, pair, cdf(log_pair), pair.sum(-1))
 
 
-def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, z: Tensor,
-          models: Models, settings: GroupMCMCSettings, generator: torch.Generator, chunk: int = 512
+def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, win_exists: Tensor,
+          z: Tensor, models: Models, settings: GroupMCMCSettings, generator: torch.Generator, chunk: int = 512
           ) -> dict[str, Tensor]:
     """The extras of the kept states ``(B, N, ...)`` at ``t``: the Kalman statistics (eqs.
     53-57; from the anchor through the window with a lag, sampled with zero covariance when
@@ -903,7 +1042,8 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
         stats = KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
         a_pos, a_g, a_lab, a_ex = (_gather(t, jj) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels,
                                                              v.anchor_exists))
-        wg, wl, we = (_gather(t, jj) for t in (v.win_g, v.win_labels, v.win_exists))
+        wg, wl = (_gather(t, jj) for t in (v.win_g, v.win_labels))
+        we = win_exists[:, sl]
         off = v.frames.shape[1] - w  # the window's frames are the last W
         steps = [(win_pos[:, sl, i], wg[:, :, i], wl[:, :, i], we[:, :, i], v.frames[:, off + i]) for i in range(w)]
         steps.append((pos[:, sl], g[:, sl], labels[:, sl], exists[:, sl], z))
@@ -970,7 +1110,8 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     cloud = make_cloud(state, z, models=models, settings=settings)
     chain = joint_proposal(JointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
     per_chain = n // c
-    names = ["joint", "structure", "target"] + (["past"] if settings.lag else [])
+    names = (["joint", "structure", "target"] + (["past"] if settings.lag else [])
+             + (["birth"] if settings.p_window_birth else []))
     acc = {name: state.x.new_zeros(b) for name in names}
     cnt = {name: state.x.new_zeros(b) for name in names}
     kept = []
@@ -988,9 +1129,9 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
             acc[move] += out[1].to(dtype).sum(1)
             cnt[move] += c
         if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
-            kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos))
-    j, g, exists, pos, win_pos = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
-    extras = _keep(cloud, j, g, exists, pos, win_pos, z, models, settings, generator)
+            kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos, chain.prev.win_exists))
+    j, g, exists, pos, win_pos, win_ex = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
+    extras = _keep(cloud, j, g, exists, pos, win_pos, win_ex, z, models, settings, generator)
     vel = extras["w_mean"][..., :k].transpose(-1, -2)  # (B, N, K, 2)
     x = torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
     new = ParticleState(x, x.new_full((b, n), -math.log(n)), exists, extras)
@@ -1018,7 +1159,10 @@ def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None)
     def past(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor) -> Any:
         return past_move(chain, noise, cloud, z, models)
 
-    programs: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past}
+    def birth(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor) -> Any:
+        return window_birth_move(chain, noise, cloud, z, models)
+
+    programs: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past, "birth": birth}
     if compile is not None:
         programs = {name: compile(fn) for name, fn in programs.items()}
 
