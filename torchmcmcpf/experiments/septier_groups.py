@@ -69,7 +69,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
 #: the proposals' defaults (the notebook reads them)
-PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.6)
+PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.6, p_window_birth=0.0)
 CUTOFF, ORDER = 100.0, 2.0
 MERGED = 0  # row of [0, 0, 0, 0] in group_structures(4): the paper's [1 1 1 1]
 #: rows of the two-groups-of-two structures [1 1 2 2], [1 2 1 2], [1 2 2 1]: slots are
@@ -99,6 +99,8 @@ class GroupsSettings(Settings):
     lag: int = option(PROPOSALS["lag"], type=nonnegative_int,
                       help="past positions the past move changes (default 2; 0: off)")
     p_past: float = option(PROPOSALS["p_past"], help="probability of the past move")
+    p_window_birth: float = option(PROPOSALS["p_window_birth"],
+                                   help="probability of the window birth/death move (needs --lag >= 1; 0: off)")
     xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.6; the paper's 0.75)")
     reference_particles: int = option(100_000, 2000, type=nonnegative_int,
                                       help="particles of the per-target reference filter, 0 to skip it")
@@ -116,12 +118,14 @@ class GroupsSettings(Settings):
                              f"{self.chains} chains (each keeps particles / chains); use a multiple of {self.chains}")
         if self.lag == 0:
             object.__setattr__(self, "p_past", 0.0)
-        for key in ("p_past", "xi"):
+            object.__setattr__(self, "p_window_birth", 0.0)
+        for key in ("p_past", "xi", "p_window_birth"):
             value = getattr(self, key)
             if not 0.0 <= value <= 1.0 or not math.isfinite(value):
                 raise ValueError(f"argument --{key.replace('_', '-')}: must be a probability, got {value}")
-        if self.xi + self.p_past > 1.0:
-            raise ValueError(f"argument --xi: xi + p_past must be <= 1, got {self.xi} + {self.p_past}")
+        if self.xi + self.p_past + self.p_window_birth > 1.0:
+            raise ValueError(f"argument --xi: xi + p_past + p_window_birth must be <= 1, got {self.xi} + "
+                             f"{self.p_past} + {self.p_window_birth}")
         if self.lag > 0 and self.p_past == 0.0:
             raise ValueError("argument --p-past: the past move (--lag >= 1) needs --p-past > 0")
 
@@ -135,6 +139,7 @@ def _filter(scn: GroupMergeScenario, cfg: GroupsSettings, *, particles: int | No
                            burn_in=cfg.burn_in if burn_in is None else burn_in, thinning=cfg.thinning,
                            xi=cfg.xi, p_a=0.5, p_i=0.01, marginalise=marginalise, alpha=cfg.alpha,
                            birth=cfg.birth, lag=lag, p_past=cfg.p_past if lag else 0.0,
+                           p_window_birth=cfg.p_window_birth if lag else 0.0,
                            compile_step=compile_step)
 
 

@@ -77,9 +77,29 @@ re-born. The joint draw copies ``j*``'s window as it is, i.e. treats the previou
 windows as draws from their conditional (the sequential MCMC approximation, eq. 59, one
 level down); each move is invariant for its target (tests/filters/test_group_filter.py).
 
+**A target born in the window** (``p_window_birth > 0``, ``lag >= 1``; issue 23). The cloud
+is joint over the ``K`` slots: a target first detected at ``t - 1`` is carried by the few
+particles (about 3% at the paper's ``P_B``, ``P_fa``) that put a newborn on that detection,
+and four such targets together by almost none, so the joint draw, which can only pick
+ancestors, acquires them one step late or later (a per-target filter does not have this
+problem). The window's existence is therefore a chain variable too (the target above with
+``p(e_s | e_{s-1})`` of eq. 25 in each window step): the move picks a slot ``i`` and, if it
+is dead at ``t - 2``, ``t - 1`` and ``t``, proposes it born at ``t - 1`` at ``y``, uniform
+over the pixels of ``Z_{t-1}`` that have a detection of ``Z_t`` within two pixels
+(``q_y(y) = 1 / (n_pair s^2)``), and alive at ``t`` at ``x_i ~ q_x``, the conditional of the
+Kalman predictive given the new window and the other observed slots; if it is dead at
+``t - 2`` and alive at ``t - 1`` and ``t``, the reverse (both positions to ``x_death``). With
+the slot picked uniformly either way,
+
+    rho_5 = min(1, pi(j, x_w*, e_w*, g, e*, x*) / pi(j, x_w, e_w, g, e, x)
+                   x [1 / (q_y(y) q_x(x_i))  for a birth  |  q_y(y) q_x(x_i)  for a death]),
+
+``pi`` as for ``rho_4`` times the existence prior of slot ``i`` at ``t - 1`` and ``t``
+(a proposal outside that pattern is rejected).
+
 Each MH iteration runs one move for every chain of every run: the joint draw with
-probability ``xi`` (paper: 0.75), the past move with ``p_past`` (``lag >= 1``), else one
-refinement sweep. The picks of a whole step are drawn at once
+probability ``xi`` (paper: 0.75), the past move with ``p_past`` (``lag >= 1``), the window
+birth with ``p_window_birth``, else one refinement sweep. The picks of a whole step are drawn at once
 (:func:`~torchmcmcpf.filters.mcmc.pick_moves`, one host transfer per step); they do not
 depend on the state, so each chain's kernel is the mixture.
 
@@ -283,19 +303,21 @@ class GroupMCMCSettings:
 #: ``U(0, 1)`` but the standard normals ``eps`` and ``step``
 _FIELD_DIMS: dict[str, tuple[int | str, ...]] = {
     "mix": (), "j": (), "g": (), "u": (), "u_g": (), "slot": (), "e": ("K",), "u_x": ("K",), "b_sel": ("K",),
-    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2), "y_pix": (), "y_xy": (2,), "x_eps": (2,)}
+    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2), "s": (), "y_pix": (), "y_xy": (2,),
+    "x_eps": ("L", 2)}
 _NORMALS = ("eps", "step", "x_eps")
 
 
 def _draw_fields(cls: Any, shape: tuple[int, int, int], generator: torch.Generator, dtype: torch.dtype,
-                 device: torch.device | str | None) -> Any:
+                 device: torch.device | str | None, window: int = 1) -> Any:
     """One noise tuple of class ``cls`` for ``shape = (B, C, K)``, its fields drawn in
-    declaration order with the dims of :data:`_FIELD_DIMS`.
+    declaration order with the dims of :data:`_FIELD_DIMS` (``"L"``: ``window``).
     """
     b, c, k = shape
     fields = []
+    sizes = {"K": k, "L": window}
     for name in cls._fields:
-        size = (b, c, *(k if d == "K" else int(d) for d in _FIELD_DIMS[name]))
+        size = (b, c, *(sizes[d] if isinstance(d, str) else d for d in _FIELD_DIMS[name]))
         draw = torch.randn if name in _NORMALS else torch.rand
         fields.append(draw(size, generator=generator, dtype=dtype, device=device))
     return cls(*fields)
@@ -362,12 +384,14 @@ class PastNoise(NamedTuple):
 
 
 class BirthNoise(NamedTuple):
-    """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` uniforms (the
-    slot), ``y_pix (B, C)`` and ``y_xy (B, C, 2)`` uniforms (the pixel of ``Z_{t-1}`` and the
-    place in it), ``x_eps (B, C, 2)`` standard normals (the position at ``t``), ``u (B, C)``.
+    """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` and ``s`` uniforms
+    (the slot and the window step of the birth), ``y_pix (B, C)`` and ``y_xy (B, C, 2)``
+    uniforms (the pixel of ``Z_s`` and the place in it), ``x_eps (B, C, L, 2)`` standard
+    normals (the positions after ``s``; ``L = window``, the lag), ``u (B, C)``.
     """
 
     slot: Tensor
+    s: Tensor
     y_pix: Tensor
     y_xy: Tensor
     x_eps: Tensor
@@ -375,9 +399,9 @@ class BirthNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-             device: torch.device | str | None = None) -> BirthNoise:
-        """Draw for ``shape = (B, C, K)``."""
-        return _draw_fields(cls, shape, generator, dtype, device)
+             device: torch.device | str | None = None, window: int = 1) -> BirthNoise:
+        """Draw for ``shape = (B, C, K)`` and a window of ``window`` steps."""
+        return _draw_fields(cls, shape, generator, dtype, device, check_positive_int(window, "window"))
 
 
 NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise, "birth": BirthNoise}
@@ -422,9 +446,9 @@ class Cloud(NamedTuple):
     ``log_win (B, N)`` the window's terms; ``cdf_alpha``, ``cdf_w (B, N)`` float64 cumulative
     weights of ``alpha`` and ``w``; ``log_wq (B, N)`` ``log w_j - log q(j)`` (eq. 61);
     ``beta (B, HW)`` bool, the pixels of the birth proposal, ``cdf_beta (B, HW)``,
-    ``n_obs (B,)``; ``table (G, K)`` the structures; the window birth's pixels of ``Z_{t-1}``
-    (those with a detection of ``Z_t`` within two pixels) ``pair (B, HW)`` bool,
-    ``cdf_pair (B, HW)``, ``n_pair (B,)``.
+    ``n_obs (B,)``; ``table (G, K)`` the structures; the window birth's pixels, per window
+    step ``s``, of ``Z_s`` with a detection of ``Z_{s+1}`` within two pixels, ``pair (B, W,
+    HW)`` bool, ``cdf_pair (B, W, HW)``, ``n_pair (B, W)``.
     """
 
     view: GroupView
@@ -775,23 +799,62 @@ def _past_log_target(chain: Chain) -> Tensor:
 
 
 def _pixel_log_q(pos: Tensor, mask: Tensor, n: Tensor, sensor: ThresholdedPixels) -> Tensor:
-    """``log`` of the density uniform over the pixels of ``mask (B, HW)`` (``n (B,)`` of them)
-    at positions ``pos (B, C, 2)``: ``-log(n s^2)`` in a pixel of the mask, ``-inf`` elsewhere
-    (and where ``n = 0``): ``-> (B, C)``.
+    """``log`` of the density uniform over the pixels of ``mask (B, C, HW)`` (``n (B, C)`` of
+    them) at positions ``pos (B, C, 2)``: ``-log(n s^2)`` in a pixel of the mask, ``-inf``
+    elsewhere (and where ``n = 0``): ``-> (B, C)``.
     """
     h, w = sensor.shape
     s = sensor.pixel_size
     col, row = torch.floor(pos[..., 0] / s), torch.floor(pos[..., 1] / s)
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long()
-    hit = torch.gather(mask, 1, flat) & inside & (n > 0).unsqueeze(-1)
-    log_q = -torch.log(n.to(pos.dtype).clamp(min=1) * s * s).unsqueeze(-1).expand(hit.shape)
+    hit = torch.gather(mask, -1, flat.unsqueeze(-1)).squeeze(-1) & inside & (n > 0)
+    log_q = -torch.log(n.to(pos.dtype).clamp(min=1) * s * s)
     return torch.where(hit, log_q, torch.full_like(log_q, -math.inf))
+
+
+def _alive_path(chain: Chain, cloud: Cloud, models: Models, onehot: Tensor, s: Tensor, sample: Tensor, y: Tensor,
+                eps: Tensor, win_exists: Tensor, exists: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The positions of slot ``i`` (``onehot (B, C, K)``) alive from window step ``s (B, C)``
+    through ``t``, and their proposal density: at ``s`` the position ``y (B, C, 2)``, at each
+    later step the conditional of the Kalman predictive (re-run from the anchor with
+    ``win_exists (B, C, W, K)``, ``exists (B, C, K)``) given the other observed slots, drawn
+    from ``eps (B, C, L, 2)`` where ``sample`` else the chain's own. Returns the window
+    positions ``(B, C, W, K, 2)``, the positions at ``t`` ``(B, C, K, 2)`` and ``log q
+    (B, C)`` of the steps after ``s`` (the pixel density of ``y`` is the caller's).
+    """
+    v = cloud.view
+    j, prev = chain.j, chain.prev
+    stats = KalmanStats(_gather(v.anchor_w_mean, j), _gather(v.anchor_w_cov, j))
+    pos_p, lab_p, ex_p = (_gather(t, j) for t in (v.anchor_pos, v.anchor_labels, v.anchor_exists))
+    win_lab = _gather(v.win_labels, j)
+    w = prev.win_pos.shape[2]
+    sel = onehot.unsqueeze(-1)
+    log_q = torch.zeros_like(y[..., 0])
+    out = []
+    for r in range(w + 1):  # the window's steps and t (time, not particles)
+        pos_r, lab_r, ex_r = ((prev.win_pos[:, :, r], win_lab[:, :, r], win_exists[:, :, r]) if r < w
+                              else (chain.pos, chain.labels, exists))
+        tr = models.motion.transition(pos_p, lab_p, lab_r, ex_p, ex_r, existence=models.existence)
+        pred = pairwise_kalman_predict(stats, pos_p, tr)
+        cm, cv = _conditional_slot(pos_r, pred.position_mean.contiguous(), pred.position_cov.contiguous(),
+                                   tr.observed, onehot)
+        own = (pos_r * sel.to(y.dtype)).sum(-2)
+        x = torch.where(sample.unsqueeze(-1), cm + cv.clamp(min=0).sqrt().unsqueeze(-1) * eps[:, :, max(r - 1, 0)],
+                        own)
+        after = s < r
+        log_q = log_q + torch.where(after, _log_normal2(x, cm, cv), torch.zeros_like(cv))
+        x = torch.where(after.unsqueeze(-1), x, torch.where((s == r).unsqueeze(-1), y, own))
+        pos_r = torch.where(sel & (s <= r)[..., None, None], x.unsqueeze(-2), pos_r)
+        _, stats = pairwise_kalman_update(pred, pos_r)
+        out.append(pos_r)
+        pos_p, lab_p, ex_p = pos_r, lab_r, ex_r
+    return torch.stack(out[:w], 2), out[w], log_q
 
 
 def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, models: Models
                       ) -> tuple[Chain, Tensor]:
-    """One slot ``i`` born at ``t - 1``, in the window, and alive at ``t``, or the reverse
+    """One slot ``i`` born at a window step ``s`` and alive through ``t``, or the reverse
     (module docstring, "A target born in the window"); accepted by ``rho_5``. Returns the new
     chain and ``accepted (B, C)`` bool (False where the slot's existence pattern allows
     neither direction).
@@ -799,51 +862,60 @@ def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, 
     existence, sensor = models.existence, models.sensor
     k = chain.pos.shape[-2]
     prev = chain.prev
+    w = prev.win_pos.shape[2]
+    if w == 0:  # no window (a state without a path): nothing to do
+        return chain, torch.zeros_like(noise.u, dtype=torch.bool)
     onehot = F.one_hot((noise.slot * k).long().clamp(max=k - 1), k).to(torch.bool)  # (B, C, K)
-    before = prev.win_exists[:, :, -2] if prev.win_exists.shape[2] >= 2 else _gather(cloud.view.anchor_exists,
-                                                                                     chain.j)
-    last = prev.win_exists[:, :, -1]
-
-    def slot(t: Tensor) -> Tensor:
-        return (t & onehot).any(-1)
-
-    a, b, c = slot(before), slot(last), slot(chain.exists)
-    birth = ~a & ~b & ~c & (cloud.n_pair > 0).unsqueeze(-1)
-    death = ~a & b & c
-    # y ~ uniform over the paired detections of Z_{t-1} (a pixel by the shared inverse CDF, then a place in it)
-    bsz = noise.y_pix.shape[0]
-    idx = inverse_cdf(cloud.cdf_pair, noise.y_pix.reshape(bsz, -1)).reshape(noise.y_pix.shape)
-    w = sensor.shape[1]
-    pix = torch.stack([(idx % w).to(noise.y_xy.dtype), (idx // w).to(noise.y_xy.dtype)], -1)
-    y = (pix + noise.y_xy) * sensor.pixel_size  # (B, C, 2)
-    dead = _death_pos(existence, y).expand(y.shape)
+    s = (noise.s * w).long().clamp(max=w - 1)  # (B, C) the birth step in the window
+    steps = torch.arange(w, device=s.device)
+    anchor_ex = _gather(cloud.view.anchor_exists, chain.j)
+    seq = torch.cat([anchor_ex.unsqueeze(2), prev.win_exists, chain.exists.unsqueeze(2)], 2)  # (B, C, W + 2, K)
+    flag = (seq & onehot.unsqueeze(2)).any(-1)  # (B, C, W + 2): slot i's existence at t - W - 1 .. t
+    before = torch.gather(flag, 2, s.unsqueeze(-1)).squeeze(-1)  # at s - 1
+    from_s = torch.arange(w + 2, device=s.device) > s.unsqueeze(-1)  # (B, C, W + 2): steps s .. t
+    n_s = torch.gather(cloud.n_pair, 1, s)  # (B, C)
+    birth = ~before & ~(flag & from_s).any(-1) & (n_s > 0)
+    death = ~before & (flag | ~from_s).all(-1)
+    # y ~ uniform over the paired detections of Z_s (a pixel by the shared inverse CDF, then a place in it)
+    b, c = s.shape
+    cdf_s = torch.gather(cloud.cdf_pair, 1, s.unsqueeze(-1).expand(b, c, cloud.cdf_pair.shape[-1]))
+    mask_s = torch.gather(cloud.pair, 1, s.unsqueeze(-1).expand(b, c, cloud.pair.shape[-1]))
+    idx = inverse_cdf(cdf_s, noise.y_pix.unsqueeze(-1)).squeeze(-1)
+    width = sensor.shape[1]
+    pix = torch.stack([(idx % width).to(noise.y_xy.dtype), (idx // width).to(noise.y_xy.dtype)], -1)
+    y_new = (pix + noise.y_xy) * sensor.pixel_size  # (B, C, 2)
     sel = onehot.unsqueeze(-1)
-    y_old = (prev.win_pos[:, :, -1] * sel.to(y.dtype)).sum(-2)
-    new_last = torch.where(onehot, birth.unsqueeze(-1), last)
-    win_exists = torch.cat([prev.win_exists[:, :, :-1], new_last.unsqueeze(2)], 2)
-    y_new = torch.where(birth.unsqueeze(-1), y, dead)
-    last_pos = torch.where(sel, y_new.unsqueeze(-2), prev.win_pos[:, :, -1])
-    win_pos = torch.cat([prev.win_pos[:, :, :-1], last_pos.unsqueeze(2)], 2)
-    exists = torch.where(onehot, birth.unsqueeze(-1), chain.exists)
+    y_own = (torch.gather(prev.win_pos, 2, s[:, :, None, None, None].expand(b, c, 1, k, 2)).squeeze(2)
+             * sel.to(y_new.dtype)).sum(-2)
+    y = torch.where(birth.unsqueeze(-1), y_new, y_own)
+    # the configuration with slot i alive from s on: proposed (a birth) or the chain's own (a death)
+    in_window = (steps.reshape(1, 1, w) >= s.unsqueeze(-1)).unsqueeze(-1) & onehot.unsqueeze(2)  # (B, C, W, K)
+    alive_win_ex = prev.win_exists | in_window
+    alive_ex = chain.exists | onehot
+    win_alive, pos_alive, log_qx = _alive_path(chain, cloud, models, onehot, s, birth, y, noise.x_eps,
+                                               alive_win_ex, alive_ex)
+    log_q = _pixel_log_q(y, mask_s, n_s, sensor) + log_qx
+    # the proposed state: alive from s (a birth) or dead from s (a death; positions to x_death)
+    dead = _death_pos(existence, y_new)
+    win_exists = torch.where(birth[..., None, None], alive_win_ex, prev.win_exists & ~in_window)
+    exists = torch.where(birth.unsqueeze(-1), alive_ex, chain.exists & ~onehot)
+    win_pos = torch.where(birth[..., None, None, None], win_alive,
+                          torch.where(in_window.unsqueeze(-1), dead, prev.win_pos))
+    pos = torch.where(birth[..., None, None], pos_alive, torch.where(sel, dead, chain.pos))
     new_prev = _past(chain.j, win_pos, cloud, models, win_exists)
     pm, S, obs, free = _predict(new_prev, chain.labels, exists, models)
-    # x_t ~ the conditional of the Kalman predictive given the other observed slots (a birth)
-    cm, cv = _conditional_slot(chain.pos, pm, S, obs, onehot)
-    x_t = cm + cv.clamp(min=0).sqrt().unsqueeze(-1) * noise.x_eps
-    pos = torch.where(sel, torch.where(birth.unsqueeze(-1), x_t, dead).unsqueeze(-2), chain.pos)
-    log_fwd = _pixel_log_q(y, cloud.pair, cloud.n_pair, sensor) + _log_normal2(x_t, cm, cv)
-    # the reverse of a death: the birth that would propose the chain's present y and x_t
-    cm0, cv0 = _conditional_slot(chain.pos, chain.pm, chain.S, chain.observed, onehot)
-    x_old = (chain.pos * sel.to(y.dtype)).sum(-2)
-    log_rev = _pixel_log_q(y_old, cloud.pair, cloud.n_pair, sensor) + _log_normal2(x_old, cm0, cv0)
     prop = chain._replace(exists=exists, pos=pos, log_lik=_log_lik(pos, exists, z, sensor),
                           log_px=_log_px(pos, pm, S, obs, free, existence),
                           log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free,
                           prev=new_prev)
-    log_e = (existence.log_prob_exists(win_exists[:, :, -1], before) + existence.log_prob_exists(exists, new_last)
-             - existence.log_prob_exists(last, before) - existence.log_prob_exists(chain.exists, last)).sum(-1)
-    log_rho = _past_log_target(prop) - _past_log_target(chain) + log_e.to(y.dtype)
-    log_rho = log_rho + torch.where(birth, -log_fwd, log_rev)
+
+    def log_e(win_ex: Tensor, ex: Tensor) -> Tensor:  # eq. 25 over the window and t
+        full = torch.cat([anchor_ex.unsqueeze(2), win_ex, ex.unsqueeze(2)], 2)
+        return existence.log_prob_exists(full[:, :, 1:], full[:, :, :-1]).sum((-1, -2))
+
+    log_rho = (_past_log_target(prop) - _past_log_target(chain)
+               + (log_e(win_exists, exists) - log_e(prev.win_exists, chain.exists)).to(y.dtype))
+    log_rho = log_rho + torch.where(birth, -log_q, log_q)
     acc = (birth | death) & (torch.log(noise.u) < log_rho)
     return _select(acc, prop, chain), acc
 
@@ -995,12 +1067,12 @@ def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: Gro
         beta = zb.reshape(b, -1)
     any_obs = beta.any(-1, keepdim=True)
     log_beta = torch.where(beta | ~any_obs, 0.0, -math.inf).to(torch.float64)  # no detection: unused, kept finite
-    # the window birth: the detections of Z_{t-1} with a detection of Z_t within two pixels (a step of <= 100 m)
-    if v.frames.shape[1] > 0 and settings.lag > 0:
-        near_now = F.max_pool2d(zb.to(torch.float64).unsqueeze(1), 5, stride=1, padding=2).squeeze(1) > 0
-        pair = (v.frames[:, -1].to(torch.bool) & near_now).reshape(b, -1)
-    else:
-        pair = torch.zeros_like(beta)
+    # the window birth: per window step s, the detections of Z_s with a detection of Z_{s+1} within two
+    # pixels (a step of <= 100 m; Z_{W} = Z_t)
+    w = v.win_pos.shape[2]
+    seq = torch.cat([v.frames[:, v.frames.shape[1] - w:].to(torch.bool), zb.unsqueeze(1)], 1)  # (B, W + 1, H, W)
+    near_next = F.max_pool2d(seq[:, 1:].to(torch.float64), 5, stride=1, padding=2) > 0
+    pair = (seq[:, :-1] & near_next).flatten(2)  # (B, W, HW)
     any_pair = pair.any(-1, keepdim=True)
     log_pair = torch.where(pair | ~any_pair, 0.0, -math.inf).to(torch.float64)
     return Cloud(v, log_pg, v.win_log.sum(-1), cdf(log_alpha), cdf(log_w), (log_w - log_q).to(v.pos.dtype),
@@ -1087,7 +1159,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     motion, sensor, existence, structure_prior : the models (eqs. 13, 41, 25/33, 19).
     settings : GroupMCMCSettings; generator : the only source of randomness (eager draws).
     moves : ``moves(move, chain, noise, cloud, z)`` running the move ``"joint"``,
-        ``"refine"`` or ``"past"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
+        ``"refine"``, ``"past"`` or ``"birth"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
         default eager.
 
     Returns
@@ -1095,7 +1167,8 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     state : ParticleState at ``t`` (chain-major particles, equal weights).
     info : ``acceptance (B,)`` over all MH decisions; ``extras``: ``acceptance_joint``,
         ``acceptance_structure``, ``acceptance_target`` and, with a lag, ``acceptance_past``
-        (B,) (NaN where the move never ran), ``structure_prob (B, Bell(K))``,
+        and, with ``p_window_birth``, ``acceptance_birth`` (B,) (NaN where the move never
+        ran; the window birth counts its no-op proposals as rejections), ``structure_prob (B, Bell(K))``,
         ``exists_prob (B, K)``, ``expected_count (B,)``, ``all_exist_prob (B,)`` (every slot
         alive) and ``structure_prob_all_exist (B, Bell(K))``, the structure given that every
         slot is alive (NaN where no particle has them all).
@@ -1117,7 +1190,8 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     kept = []
     count = settings.burn_in + settings.thinning * per_chain
     for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
-        noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev)
+        extra = {"window": settings.lag} if move == "birth" else {}
+        noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev, **extra)
         out = moves(move, chain, noise, cloud, z)
         chain = out[0]
         if move == "refine":
