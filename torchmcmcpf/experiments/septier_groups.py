@@ -9,10 +9,12 @@ Paper settings (defaults): ``P_NC = 0.6``, ``P_Q = 0.05``, ``P_B = 0.2``, ``P_D 
 110 steps. The paper runs one chain; here the ``N_p`` kept samples are shared by ``C``
 chains (``--chains``), each with its own burn-in, so a step costs
 ``burn_in + thinning N_p / C`` iterations of ``B C`` chains. The proposals are ours by
-default (issue 23): ``alpha`` from the predictive likelihood, births on every detection and
-the move on each target's last ``--lag`` positions (``p_past`` of the iterations, taken from
-the joint draw's ``xi``); ``--alpha mean --birth eq65 --lag 0 --xi 0.75`` is the paper's
-Algorithm 1-2 exactly. Every choice keeps the sampler exact (tests/filters/test_group_filter.py).
+default (issue 23): ``alpha`` from the predictive likelihood, births on every detection, the
+move on each target's last ``--lag`` positions (``p_past`` of the iterations) and the window
+birth/death move (``p_window_birth``: a target detected in two consecutive frames enters any
+particle, not only the few that carried its first detection), both taken from the joint
+draw's ``xi``; ``--alpha mean --birth eq65 --lag 0 --xi 0.75`` is the paper's Algorithm 1-2
+exactly (``--lag 0`` turns both of ours off). Every choice keeps the sampler exact (tests/filters/test_group_filter.py).
 
 Next to the filter:
 
@@ -69,7 +71,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
 #: the proposals' defaults (the notebook reads them)
-PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.6, p_window_birth=0.0)
+PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.45, p_window_birth=0.25)
 CUTOFF, ORDER = 100.0, 2.0
 MERGED = 0  # row of [0, 0, 0, 0] in group_structures(4): the paper's [1 1 1 1]
 #: rows of the two-groups-of-two structures [1 1 2 2], [1 2 1 2], [1 2 2 1]: slots are
@@ -100,8 +102,9 @@ class GroupsSettings(Settings):
                       help="past positions the past move changes (default 2; 0: off)")
     p_past: float = option(PROPOSALS["p_past"], help="probability of the past move")
     p_window_birth: float = option(PROPOSALS["p_window_birth"],
-                                   help="probability of the window birth/death move (needs --lag >= 1; 0: off)")
-    xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.6; the paper's 0.75)")
+                                   help="probability of the window birth/death move (default 0.25; needs --lag >= 1; "
+                                        "0: off)")
+    xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.45; the paper's 0.75)")
     reference_particles: int = option(100_000, 2000, type=nonnegative_int,
                                       help="particles of the per-target reference filter, 0 to skip it")
     compile: bool = option(False, record=False, help="compile the three moves (GroupMCMCFilter(compile_step=True)): "

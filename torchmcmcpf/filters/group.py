@@ -80,22 +80,21 @@ level down); each move is invariant for its target (tests/filters/test_group_fil
 **A target born in the window** (``p_window_birth > 0``, ``lag >= 1``; issue 23). The cloud
 is joint over the ``K`` slots: a target first detected at ``t - 1`` is carried by the few
 particles (about 3% at the paper's ``P_B``, ``P_fa``) that put a newborn on that detection,
-and four such targets together by almost none, so the joint draw, which can only pick
-ancestors, acquires them one step late or later (a per-target filter does not have this
-problem). The window's existence is therefore a chain variable too (the target above with
-``p(e_s | e_{s-1})`` of eq. 25 in each window step): the move picks a slot ``i`` and, if it
-is dead at ``t - 2``, ``t - 1`` and ``t``, proposes it born at ``t - 1`` at ``y``, uniform
-over the pixels of ``Z_{t-1}`` that have a detection of ``Z_t`` within two pixels
-(``q_y(y) = 1 / (n_pair s^2)``), and alive at ``t`` at ``x_i ~ q_x``, the conditional of the
-Kalman predictive given the new window and the other observed slots; if it is dead at
-``t - 2`` and alive at ``t - 1`` and ``t``, the reverse (both positions to ``x_death``). With
-the slot picked uniformly either way,
+and two or more such targets together by almost none, so the joint draw, which can only pick
+ancestors, acquires them late (a per-target filter does not have this problem). The window's
+existence is therefore a chain variable too (the target above with ``p(e_s | e_{s-1})`` of
+eq. 25 in each window step, and ``p(e | e_{t-1})`` at ``t``): the move picks a slot ``i``
+and a window step ``s`` uniformly among the ``n(x)`` pairs where one of the two directions
+below is possible in the chain's state and, if the slot is dead from ``s - 1`` through
+``t``, proposes it born at ``s`` at ``y``, uniform over the pixels of ``Z_s`` that have a
+detection of ``Z_{s+1}`` within two pixels (``q_y(y) = 1 / (n_pair s^2)``), and alive at
+each later step ``r <= t`` at ``x_r ~ q_x``, the conditional of the Kalman predictive (run
+from the anchor through the new window) given the other observed slots; if the slot is dead
+at ``s - 1`` and alive from ``s`` through ``t``, the reverse (its positions to ``x_death``):
 
     rho_5 = min(1, pi(j, x_w*, e_w*, g, e*, x*) / pi(j, x_w, e_w, g, e, x)
-                   x [1 / (q_y(y) q_x(x_i))  for a birth  |  q_y(y) q_x(x_i)  for a death]),
-
-``pi`` as for ``rho_4`` times the existence prior of slot ``i`` at ``t - 1`` and ``t``
-(a proposal outside that pattern is rejected).
+                   x n(x) / n(x*)
+                   x [1 / (q_y(y) prod_r q_x(x_r))  for a birth  |  q_y(y) prod_r q_x(x_r)  for a death]).
 
 Each MH iteration runs one move for every chain of every run: the joint draw with
 probability ``xi`` (paper: 0.75), the past move with ``p_past`` (``lag >= 1``), the window
@@ -303,7 +302,7 @@ class GroupMCMCSettings:
 #: ``U(0, 1)`` but the standard normals ``eps`` and ``step``
 _FIELD_DIMS: dict[str, tuple[int | str, ...]] = {
     "mix": (), "j": (), "g": (), "u": (), "u_g": (), "slot": (), "e": ("K",), "u_x": ("K",), "b_sel": ("K",),
-    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2), "s": (), "y_pix": (), "y_xy": (2,),
+    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2), "y_pix": (), "y_xy": (2,),
     "x_eps": ("L", 2)}
 _NORMALS = ("eps", "step", "x_eps")
 
@@ -384,14 +383,13 @@ class PastNoise(NamedTuple):
 
 
 class BirthNoise(NamedTuple):
-    """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` and ``s`` uniforms
-    (the slot and the window step of the birth), ``y_pix (B, C)`` and ``y_xy (B, C, 2)``
+    """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` uniforms (the slot
+    and the window step of the birth or death), ``y_pix (B, C)`` and ``y_xy (B, C, 2)``
     uniforms (the pixel of ``Z_s`` and the place in it), ``x_eps (B, C, L, 2)`` standard
     normals (the positions after ``s``; ``L = window``, the lag), ``u (B, C)``.
     """
 
     slot: Tensor
-    s: Tensor
     y_pix: Tensor
     y_xy: Tensor
     x_eps: Tensor
@@ -865,17 +863,19 @@ def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, 
     w = prev.win_pos.shape[2]
     if w == 0:  # no window (a state without a path): nothing to do
         return chain, torch.zeros_like(noise.u, dtype=torch.bool)
-    onehot = F.one_hot((noise.slot * k).long().clamp(max=k - 1), k).to(torch.bool)  # (B, C, K)
-    s = (noise.s * w).long().clamp(max=w - 1)  # (B, C) the birth step in the window
-    steps = torch.arange(w, device=s.device)
     anchor_ex = _gather(cloud.view.anchor_exists, chain.j)
-    seq = torch.cat([anchor_ex.unsqueeze(2), prev.win_exists, chain.exists.unsqueeze(2)], 2)  # (B, C, W + 2, K)
-    flag = (seq & onehot.unsqueeze(2)).any(-1)  # (B, C, W + 2): slot i's existence at t - W - 1 .. t
-    before = torch.gather(flag, 2, s.unsqueeze(-1)).squeeze(-1)  # at s - 1
-    from_s = torch.arange(w + 2, device=s.device) > s.unsqueeze(-1)  # (B, C, W + 2): steps s .. t
+    # (slot, s) uniform over the eligible pairs of the chain's state (a birth or a death is possible)
+    births, deaths = _eligible(anchor_ex, prev.win_exists, chain.exists, cloud.n_pair)  # (B, C, K, W)
+    elig = (births | deaths).flatten(-2)
+    n_elig = elig.sum(-1)  # (B, C)
+    rank = (noise.slot * n_elig).long().clamp(max=(n_elig - 1).clamp(min=0)).unsqueeze(-1)
+    pick = (elig.cumsum(-1) > rank).to(torch.int64).argmax(-1)  # (B, C): the first with rank + 1 eligible
+    onehot = F.one_hot(pick // w, k).to(torch.bool)  # (B, C, K)
+    s = pick % w  # (B, C) the birth step in the window
+    steps = torch.arange(w, device=s.device)
+    birth = torch.gather(births.flatten(-2), -1, pick.unsqueeze(-1)).squeeze(-1) & (n_elig > 0)
+    death = torch.gather(deaths.flatten(-2), -1, pick.unsqueeze(-1)).squeeze(-1) & (n_elig > 0)
     n_s = torch.gather(cloud.n_pair, 1, s)  # (B, C)
-    birth = ~before & ~(flag & from_s).any(-1) & (n_s > 0)
-    death = ~before & (flag | ~from_s).all(-1)
     # y ~ uniform over the paired detections of Z_s (a pixel by the shared inverse CDF, then a place in it)
     b, c = s.shape
     cdf_s = torch.gather(cloud.cdf_pair, 1, s.unsqueeze(-1).expand(b, c, cloud.cdf_pair.shape[-1]))
@@ -916,8 +916,25 @@ def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, 
     log_rho = (_past_log_target(prop) - _past_log_target(chain)
                + (log_e(win_exists, exists) - log_e(prev.win_exists, chain.exists)).to(y.dtype))
     log_rho = log_rho + torch.where(birth, -log_q, log_q)
+    n_new = torch.stack(_eligible(anchor_ex, win_exists, exists, cloud.n_pair)).any(0).flatten(-2).sum(-1)
+    log_rho = log_rho + torch.log(n_elig.to(y.dtype)) - torch.log(n_new.to(y.dtype))  # the pick's 1 / n ratio
     acc = (birth | death) & (torch.log(noise.u) < log_rho)
     return _select(acc, prop, chain), acc
+
+
+def _eligible(anchor_ex: Tensor, win_ex: Tensor, ex: Tensor, n_pair: Tensor) -> tuple[Tensor, Tensor]:
+    """The window birth's possible ``(slot, s)`` pairs: ``births (B, C, K, W)``, the slot dead
+    from ``s - 1`` through ``t`` (and a paired detection at ``s``), and ``deaths``, dead at
+    ``s - 1`` and alive from ``s`` through ``t``; from the existence at the anchor ``(B, C,
+    K)``, in the window ``(B, C, W, K)`` and at ``t`` ``(B, C, K)``; ``n_pair (B, W)``.
+    """
+    w = win_ex.shape[2]
+    f = torch.cat([anchor_ex.unsqueeze(2), win_ex, ex.unsqueeze(2)], 2).transpose(-1, -2)  # (B, C, K, W + 2)
+    dead_on = torch.flip(torch.cumprod(torch.flip(~f, [-1]).to(torch.int64), -1), [-1]).to(torch.bool)  # dead from
+    alive_on = torch.flip(torch.cumprod(torch.flip(f, [-1]).to(torch.int64), -1), [-1]).to(torch.bool)
+    before = ~f[..., :w]
+    births = before & dead_on[..., 1:w + 1] & (n_pair > 0)[:, None, None, :]
+    return births, before & alive_on[..., 1:w + 1]
 
 
 def _log_normal2(x: Tensor, mean: Tensor, var: Tensor) -> Tensor:
@@ -1071,7 +1088,8 @@ def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: Gro
     # pixels (a step of <= 100 m; Z_{W} = Z_t)
     w = v.win_pos.shape[2]
     seq = torch.cat([v.frames[:, v.frames.shape[1] - w:].to(torch.bool), zb.unsqueeze(1)], 1)  # (B, W + 1, H, W)
-    near_next = F.max_pool2d(seq[:, 1:].to(torch.float64), 5, stride=1, padding=2) > 0
+    nxt = seq[:, 1:].to(torch.float64)
+    near_next = F.max_pool2d(nxt.reshape((-1, 1) + nxt.shape[2:]), 5, stride=1, padding=2).reshape(nxt.shape) > 0
     pair = (seq[:, :-1] & near_next).flatten(2)  # (B, W, HW)
     any_pair = pair.any(-1, keepdim=True)
     log_pair = torch.where(pair | ~any_pair, 0.0, -math.inf).to(torch.float64)
