@@ -59,6 +59,8 @@ def test_first_step_above():
     (["--particles", "101"], ("--particles", "101", "--chains 10")),  # issue 25: silently dropped to 1 chain
     (["--burn-in", "-5"], ("--burn-in", "-5")),  # issue 25: a traceback
     (["--lag", "2", "--p-past", "0.6", "--xi", "0.6"], ("--xi", "p_past")),
+    (["--p-window-birth", "1.5"], ("--p-window-birth", "probability")),
+    (["--p-past", "0.2", "--xi", "0.6", "--p-window-birth", "0.3"], ("--xi", "p_window_birth")),
 ])
 def test_bad_arguments_are_one_line_errors(capsys, tmp_path, argv, words):
     with pytest.raises(SystemExit) as exc:

@@ -22,6 +22,7 @@ import torch
 
 from torchmcmcpf.filters import group as G
 from torchmcmcpf.filters.group import (
+    BirthNoise,
     GroupMCMCFilter,
     GroupMCMCSettings,
     JointNoise,
@@ -33,6 +34,7 @@ from torchmcmcpf.filters.group import (
     make_cloud,
     past_move,
     refine_move,
+    window_birth_move,
 )
 from torchmcmcpf.models.group import (
     GroupExistence,
@@ -345,6 +347,118 @@ def test_past_move_target_is_the_model_density():
         assert d.numel() > 10 and float(d.max() - d.min()) < 1e-8
 
 
+# ----------------------------------------------------------------------------- the window birth move
+def window_reference(filt, state, z, generator):
+    """Importance sample of the window birth move's target: :func:`past_reference`'s, with the
+    window's existence drawn from its prior as well (eq. 25 from the anchor's flags, the
+    labels the ancestor's), so the window holds births and deaths that no ancestor has. Weight
+    ``w_j / c_j prod_s p(x_s | .) p(g_s | .) p(Z_s | x_s, e_s) p(g | .) p(e | e_{t-1}) p(Z | x)``
+    with positions from their prior, ``c_j`` the mean of the window's factor over ``j``'s
+    samples. Returns ``(j, g, e, pos, win_pos, win_exists, log weight)``."""
+    motion, sensor, existence, prior = filt.motion, filt.sensor, filt.existence, filt.structure_prior
+    table = group_structures(K)
+    n = state.x.shape[1]
+    j, g, e = _strata(n, POOL // 24)
+    ex = state.extras
+
+    def take(t):
+        return t[0, j[0]].unsqueeze(0)
+
+    pp, pl, pe = take(ex["path_pos"]), take(ex["path_labels"]), take(ex["path_exists"])
+    w = pp.shape[2] - 1
+    stats = KalmanStats(take(ex["anchor_w_mean"]), take(ex["anchor_w_cov"]))
+    pos_p, lab_p, e_p = pp[:, :, 0], pl[:, :, 0], pe[:, :, 0]
+    log_win = torch.zeros_like(pos_p[..., 0, 0])
+    window, window_e = [], []
+    for s in range(1, w + 1):
+        lab = pl[:, :, s]
+        e_s = existence.draw_exists(e_p, torch.rand(e_p.shape, generator=generator, dtype=DT))
+        tr = motion.transition(pos_p, lab_p, lab, e_p, e_s, existence=existence)
+        pred = pairwise_kalman_predict(stats, pos_p, tr)
+        pos = _draw_positions(pred, tr, existence, generator)
+        _, stats = pairwise_kalman_update(pred, pos)
+        log_win = log_win + prior.log_prob(structure_index(lab), structure_index(lab_p), pos_p, e_p)
+        log_win = log_win + _lik(sensor, pos, e_s, ex["frames"][:, -w - 1 + s])
+        window.append(pos)
+        window_e.append(e_s)
+        pos_p, lab_p, e_p = pos, lab, e_s
+    lab = table[g]
+    tr = motion.transition(pos_p, lab_p, lab, e_p, e, existence=existence)
+    pos = _draw_positions(pairwise_kalman_predict(stats, pos_p, tr), tr, existence, generator)
+    log_c = torch.stack([torch.logsumexp(log_win[0, j[0] == i], 0) - math.log(int((j[0] == i).sum()))
+                         for i in range(n)])
+    log_t = take(state.log_w.unsqueeze(-1)).squeeze(-1) - log_c[j[0]].unsqueeze(0) + log_win
+    log_t = log_t + prior.log_prob(g, structure_index(lab_p), pos_p, e_p)
+    log_t = log_t + existence.log_prob_exists(e, e_p).sum(-1)
+    return (j, g, e, pos, torch.stack(window, 2), torch.stack(window_e, 2), log_t + _lik(sensor, pos, e, z))
+
+
+def _window_e_stats(win, win_e, e):
+    """The window's existence flags, the slots born at t - 1 and alive at t (the move's
+    states) and the window's live positions, (1, M, S)."""
+    born = ~win_e[:, :, -2] & win_e[:, :, -1] & e
+    return [win_e.flatten(-2).to(DT), born.to(DT), (win * win_e.unsqueeze(-1)).flatten(-3) / 100.0]
+
+
+def test_window_birth_move_leaves_its_target_invariant():
+    """The window birth/death move (a slot born at window step s on a detection of Z_s paired
+    with one of Z_{s+1}, its later positions from the Kalman conditionals, or the reverse)
+    keeps the extended target whose window existence is free (:func:`window_reference`)."""
+    filt, state, z = path_problem()
+    g = torch.Generator().manual_seed(21)
+    j, s, e, pos, win, win_e, log_w = window_reference(filt, state, z, g)
+    stats = summaries(j, s, e, pos, _window_e_stats(win, win_e, e))
+    w, ref_mean, ref_var, ref_se2 = _weighted(log_w, stats)
+    assert float((ref_se2 / ref_var.clamp(min=1e-12)).max().sqrt()) < 0.08  # a precise reference (SE / sd)
+    pick = torch.multinomial(w, C, replacement=True, generator=g).unsqueeze(0)
+    models = filt.models()
+    cloud = make_cloud(state, z, models=models, settings=filt.settings)
+    assert cloud.n_pair.tolist() == [[2, 3]]  # each detection of Z_{t-2} (Z_{t-1}) has one of Z_{t-1} (Z_t) near
+    chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
+                       win_pos=win[:, pick[0]], win_exists=win_e[:, pick[0]])
+    births = chain.prev.win_exists[:, :, -1].sum()
+    accepted = []
+    for _ in range(12):
+        chain, acc = window_birth_move(chain, BirthNoise.draw((1, C, K), generator=g, window=2), cloud, z, models)
+        accepted.append(acc.to(DT).mean())
+    assert 0.01 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
+    assert int(chain.prev.win_exists[:, :, -1].sum()) != int(births)
+    moved = _window_e_stats(chain.prev.win_pos, chain.prev.win_exists, chain.exists)
+    est = summaries(chain.j, chain.g, chain.exists, chain.pos, moved).mean(0)
+    tol = 5 * (ref_var / C + ref_se2).sqrt() + 1e-12
+    assert bool(((est - ref_mean).abs() <= tol).all()), ((est - ref_mean) / tol)
+
+
+def test_window_birth_move_detects_a_dropped_density():
+    """The invariance test has power: the same move without the density of its pixel
+    proposal (``1 / (n_pair s^2)``) drifts off the target."""
+    filt, state, z = path_problem()
+    g = torch.Generator().manual_seed(21)
+    j, s, e, pos, win, win_e, log_w = window_reference(filt, state, z, g)
+    w, ref_mean, ref_var, ref_se2 = _weighted(log_w, summaries(j, s, e, pos, _window_e_stats(win, win_e, e)))
+    pick = torch.multinomial(w, C, replacement=True, generator=g).unsqueeze(0)
+    models = filt.models()
+    cloud = make_cloud(state, z, models=models, settings=filt.settings)
+    chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
+                       win_pos=win[:, pick[0]], win_exists=win_e[:, pick[0]])
+    orig = G._pixel_log_q
+
+    def dropped(*args):
+        log_q = orig(*args)
+        return torch.where(torch.isfinite(log_q), torch.zeros_like(log_q), log_q)
+
+    try:
+        G._pixel_log_q = dropped
+        for _ in range(12):
+            chain, _ = window_birth_move(chain, BirthNoise.draw((1, C, K), generator=g, window=2), cloud, z, models)
+    finally:
+        G._pixel_log_q = orig
+    moved = _window_e_stats(chain.prev.win_pos, chain.prev.win_exists, chain.exists)
+    est = summaries(chain.j, chain.g, chain.exists, chain.pos, moved).mean(0)
+    tol = 5 * (ref_var / C + ref_se2).sqrt() + 1e-12
+    assert not bool(((est - ref_mean).abs() <= tol).all())
+
+
 def test_stored_path_reproduces_the_kalman_statistics():
     """Re-running each particle's Kalman filter from its stored anchor through its stored
     path gives the statistics and terms the filter stored (issue 23: stored per particle)."""
@@ -447,8 +561,14 @@ def test_bad_input_names_the_argument():
         GroupMCMCSettings(alpha="best")
     with pytest.raises(ValueError, match="lag >= 1 and p_past > 0 go together"):
         GroupMCMCSettings(lag=2)
-    with pytest.raises(ValueError, match="xi \\+ p_past must be <= 1"):
+    with pytest.raises(ValueError, match="xi \\+ p_past \\+ p_window_birth must be <= 1"):
         GroupMCMCSettings(lag=2, p_past=0.5)
+    with pytest.raises(ValueError, match="xi \\+ p_past \\+ p_window_birth must be <= 1"):
+        GroupMCMCSettings(lag=2, xi=0.6, p_past=0.2, p_window_birth=0.3)
+    with pytest.raises(ValueError, match="p_window_birth > 0 needs lag >= 1"):
+        GroupMCMCSettings(xi=0.5, p_window_birth=0.1)
+    with pytest.raises(ValueError, match="p_window_birth must be a probability"):
+        GroupMCMCSettings(lag=2, p_past=0.1, p_window_birth=-0.1)
     with pytest.raises(ValueError, match=r"state.extras\['w_cov'\] is missing"):
         filt(frames, init=init._replace(extras={k: v for k, v in init.extras.items() if k != "w_cov"}), generator=g)
     with pytest.raises(ValueError, match=r"state.extras\['labels'\] has shape"):

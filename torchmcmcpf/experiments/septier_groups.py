@@ -9,10 +9,12 @@ Paper settings (defaults): ``P_NC = 0.6``, ``P_Q = 0.05``, ``P_B = 0.2``, ``P_D 
 110 steps. The paper runs one chain; here the ``N_p`` kept samples are shared by ``C``
 chains (``--chains``), each with its own burn-in, so a step costs
 ``burn_in + thinning N_p / C`` iterations of ``B C`` chains. The proposals are ours by
-default (issue 23): ``alpha`` from the predictive likelihood, births on every detection and
-the move on each target's last ``--lag`` positions (``p_past`` of the iterations, taken from
-the joint draw's ``xi``); ``--alpha mean --birth eq65 --lag 0 --xi 0.75`` is the paper's
-Algorithm 1-2 exactly. Every choice keeps the sampler exact (tests/filters/test_group_filter.py).
+default (issue 23): ``alpha`` from the predictive likelihood, births on every detection, the
+move on each target's last ``--lag`` positions (``p_past`` of the iterations) and the window
+birth/death move (``p_window_birth``: a target detected in two consecutive frames enters any
+particle, not only the few that carried its first detection), both taken from the joint
+draw's ``xi``; ``--alpha mean --birth eq65 --lag 0 --xi 0.75`` is the paper's Algorithm 1-2
+exactly (``--lag 0`` turns both of ours off). Every choice keeps the sampler exact (tests/filters/test_group_filter.py).
 
 Next to the filter:
 
@@ -69,7 +71,7 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
 
 #: the proposals' defaults (the notebook reads them)
-PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.6)
+PROPOSALS = dict(alpha="predictive", birth="frame", lag=2, p_past=0.2, xi=0.45, p_window_birth=0.25)
 CUTOFF, ORDER = 100.0, 2.0
 MERGED = 0  # row of [0, 0, 0, 0] in group_structures(4): the paper's [1 1 1 1]
 #: rows of the two-groups-of-two structures [1 1 2 2], [1 2 1 2], [1 2 2 1]: slots are
@@ -99,7 +101,10 @@ class GroupsSettings(Settings):
     lag: int = option(PROPOSALS["lag"], type=nonnegative_int,
                       help="past positions the past move changes (default 2; 0: off)")
     p_past: float = option(PROPOSALS["p_past"], help="probability of the past move")
-    xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.6; the paper's 0.75)")
+    p_window_birth: float = option(PROPOSALS["p_window_birth"],
+                                   help="probability of the window birth/death move (default 0.25; needs --lag >= 1; "
+                                        "0: off)")
+    xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.45; the paper's 0.75)")
     reference_particles: int = option(100_000, 2000, type=nonnegative_int,
                                       help="particles of the per-target reference filter, 0 to skip it")
     compile: bool = option(False, record=False, help="compile the three moves (GroupMCMCFilter(compile_step=True)): "
@@ -116,12 +121,14 @@ class GroupsSettings(Settings):
                              f"{self.chains} chains (each keeps particles / chains); use a multiple of {self.chains}")
         if self.lag == 0:
             object.__setattr__(self, "p_past", 0.0)
-        for key in ("p_past", "xi"):
+            object.__setattr__(self, "p_window_birth", 0.0)
+        for key in ("p_past", "xi", "p_window_birth"):
             value = getattr(self, key)
             if not 0.0 <= value <= 1.0 or not math.isfinite(value):
                 raise ValueError(f"argument --{key.replace('_', '-')}: must be a probability, got {value}")
-        if self.xi + self.p_past > 1.0:
-            raise ValueError(f"argument --xi: xi + p_past must be <= 1, got {self.xi} + {self.p_past}")
+        if self.xi + self.p_past + self.p_window_birth > 1.0:
+            raise ValueError(f"argument --xi: xi + p_past + p_window_birth must be <= 1, got {self.xi} + "
+                             f"{self.p_past} + {self.p_window_birth}")
         if self.lag > 0 and self.p_past == 0.0:
             raise ValueError("argument --p-past: the past move (--lag >= 1) needs --p-past > 0")
 
@@ -135,6 +142,7 @@ def _filter(scn: GroupMergeScenario, cfg: GroupsSettings, *, particles: int | No
                            burn_in=cfg.burn_in if burn_in is None else burn_in, thinning=cfg.thinning,
                            xi=cfg.xi, p_a=0.5, p_i=0.01, marginalise=marginalise, alpha=cfg.alpha,
                            birth=cfg.birth, lag=lag, p_past=cfg.p_past if lag else 0.0,
+                           p_window_birth=cfg.p_window_birth if lag else 0.0,
                            compile_step=compile_step)
 
 

@@ -77,9 +77,28 @@ re-born. The joint draw copies ``j*``'s window as it is, i.e. treats the previou
 windows as draws from their conditional (the sequential MCMC approximation, eq. 59, one
 level down); each move is invariant for its target (tests/filters/test_group_filter.py).
 
+**A target born in the window** (``p_window_birth > 0``, ``lag >= 1``; issue 23). The cloud
+is joint over the ``K`` slots: a target first detected at ``t - 1`` is carried by the few
+particles (about 3% at the paper's ``P_B``, ``P_fa``) that put a newborn on that detection,
+and two or more such targets together by almost none, so the joint draw, which can only pick
+ancestors, acquires them late (a per-target filter does not have this problem). The window's
+existence is therefore a chain variable too (the target above with ``p(e_s | e_{s-1})`` of
+eq. 25 in each window step, and ``p(e | e_{t-1})`` at ``t``): the move picks a slot ``i``
+and a window step ``s`` uniformly among the ``n(x)`` pairs where one of the two directions
+below is possible in the chain's state and, if the slot is dead from ``s - 1`` through
+``t``, proposes it born at ``s`` at ``y``, uniform over the pixels of ``Z_s`` that have a
+detection of ``Z_{s+1}`` within two pixels (``q_y(y) = 1 / (n_pair s^2)``), and alive at
+each later step ``r <= t`` at ``x_r ~ q_x``, the conditional of the Kalman predictive (run
+from the anchor through the new window) given the other observed slots; if the slot is dead
+at ``s - 1`` and alive from ``s`` through ``t``, the reverse (its positions to ``x_death``):
+
+    rho_5 = min(1, pi(j, x_w*, e_w*, g, e*, x*) / pi(j, x_w, e_w, g, e, x)
+                   x n(x) / n(x*)
+                   x [1 / (q_y(y) prod_r q_x(x_r))  for a birth  |  q_y(y) prod_r q_x(x_r)  for a death]).
+
 Each MH iteration runs one move for every chain of every run: the joint draw with
-probability ``xi`` (paper: 0.75), the past move with ``p_past`` (``lag >= 1``), else one
-refinement sweep. The picks of a whole step are drawn at once
+probability ``xi`` (paper: 0.75), the past move with ``p_past`` (``lag >= 1``), the window
+birth with ``p_window_birth``, else one refinement sweep. The picks of a whole step are drawn at once
 (:func:`~torchmcmcpf.filters.mcmc.pick_moves`, one host transfer per step); they do not
 depend on the state, so each chain's kernel is the mixture.
 
@@ -150,7 +169,7 @@ from .base import Filter
 from .mcmc import pick_moves
 
 __all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "JointNoise", "RefineNoise", "PastNoise",
-           "default_chains", "estimate_step_bytes"]
+           "BirthNoise", "default_chains", "estimate_step_bytes"]
 
 LOG_2PI = math.log(2 * math.pi)
 ALPHAS = ("mean", "predictive")
@@ -208,6 +227,8 @@ class GroupMCMCSettings:
     lag : L >= 0, positions of each target's past the past move changes (0: no past move).
     p_past : probability of the past move per iteration (needs ``lag >= 1``).
     past_step : ``(s_a [m], s_b [m per step])``, the shift and velocity steps of the past move.
+    p_window_birth : probability of the window birth/death move per iteration (needs
+        ``lag >= 1``; 0: off, the paper's sampler).
     max_memory_gb : refuse a problem whose step needs more (:func:`estimate_step_bytes`).
     """
 
@@ -223,6 +244,7 @@ class GroupMCMCSettings:
     lag: int = 0
     p_past: float = 0.0
     past_step: tuple[float, float] = (10.0, 5.0)
+    p_window_birth: float = 0.0
     max_memory_gb: float = 8.0
 
     def __post_init__(self) -> None:
@@ -230,7 +252,8 @@ class GroupMCMCSettings:
         check_positive_int(self.burn_in, "burn_in", minimum=0)
         check_positive_int(self.thinning, "thinning")
         check_positive_int(self.lag, "lag", minimum=0)
-        for name, lo_open in (("xi", False), ("p_a", False), ("p_i", True), ("p_past", False)):
+        for name, lo_open in (("xi", False), ("p_a", False), ("p_i", True), ("p_past", False),
+                              ("p_window_birth", False)):
             v = float(getattr(self, name))
             if not (0.0 <= v <= 1.0) or (lo_open and v == 0.0):
                 raise ValueError(f"{name} must be a probability in {'(0, 1]' if lo_open else '[0, 1]'}, got {v!r}")
@@ -243,8 +266,12 @@ class GroupMCMCSettings:
         if (self.lag > 0) != (self.p_past > 0):
             raise ValueError(f"lag >= 1 and p_past > 0 go together (the past move needs a past), got lag={self.lag}, "
                              f"p_past={self.p_past}")
-        if self.xi + self.p_past > 1.0 + 1e-12:
-            raise ValueError(f"xi + p_past must be <= 1 (the rest is the refinement's), got {self.xi} + {self.p_past}")
+        if self.xi + self.p_past + self.p_window_birth > 1.0 + 1e-12:
+            raise ValueError(f"xi + p_past + p_window_birth must be <= 1 (the rest is the refinement's), got "
+                             f"{self.xi} + {self.p_past} + {self.p_window_birth}")
+        if self.p_window_birth > 0 and self.lag == 0:
+            raise ValueError(f"p_window_birth > 0 needs lag >= 1 (the move births a target at t - 1, in the window), "
+                             f"got p_window_birth={self.p_window_birth}, lag=0")
         if self.xi == 0.0:
             raise ValueError("xi must be > 0: only the joint draw changes a chain's ancestor")
         if self.lag > 0 and not self.marginalise:
@@ -263,7 +290,8 @@ class GroupMCMCSettings:
 
     def moves(self) -> tuple[tuple[str, float], ...]:
         """The mixture's ``(move, probability)`` pairs with probability > 0."""
-        pairs = (("joint", self.xi), ("refine", 1.0 - self.xi - self.p_past), ("past", self.p_past))
+        pairs = (("joint", self.xi), ("refine", 1.0 - self.xi - self.p_past - self.p_window_birth),
+                 ("past", self.p_past), ("birth", self.p_window_birth))
         return tuple((name, p) for name, p in pairs if p > 1e-12)
 
 
@@ -274,19 +302,21 @@ class GroupMCMCSettings:
 #: ``U(0, 1)`` but the standard normals ``eps`` and ``step``
 _FIELD_DIMS: dict[str, tuple[int | str, ...]] = {
     "mix": (), "j": (), "g": (), "u": (), "u_g": (), "slot": (), "e": ("K",), "u_x": ("K",), "b_sel": ("K",),
-    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2)}
-_NORMALS = ("eps", "step")
+    "b_pix": ("K",), "eps": ("K", 2), "b_xy": ("K", 2), "step": (2, 2), "y_pix": (), "y_xy": (2,),
+    "x_eps": ("L", 2)}
+_NORMALS = ("eps", "step", "x_eps")
 
 
 def _draw_fields(cls: Any, shape: tuple[int, int, int], generator: torch.Generator, dtype: torch.dtype,
-                 device: torch.device | str | None) -> Any:
+                 device: torch.device | str | None, window: int = 1) -> Any:
     """One noise tuple of class ``cls`` for ``shape = (B, C, K)``, its fields drawn in
-    declaration order with the dims of :data:`_FIELD_DIMS`.
+    declaration order with the dims of :data:`_FIELD_DIMS` (``"L"``: ``window``).
     """
     b, c, k = shape
     fields = []
+    sizes = {"K": k, "L": window}
     for name in cls._fields:
-        size = (b, c, *(k if d == "K" else int(d) for d in _FIELD_DIMS[name]))
+        size = (b, c, *(sizes[d] if isinstance(d, str) else d for d in _FIELD_DIMS[name]))
         draw = torch.randn if name in _NORMALS else torch.rand
         fields.append(draw(size, generator=generator, dtype=dtype, device=device))
     return cls(*fields)
@@ -352,7 +382,27 @@ class PastNoise(NamedTuple):
         return _draw_fields(cls, shape, generator, dtype, device)
 
 
-NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise}
+class BirthNoise(NamedTuple):
+    """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` uniforms (the slot
+    and the window step of the birth or death), ``y_pix (B, C)`` and ``y_xy (B, C, 2)``
+    uniforms (the pixel of ``Z_s`` and the place in it), ``x_eps (B, C, L, 2)`` standard
+    normals (the positions after ``s``; ``L = window``, the lag), ``u (B, C)``.
+    """
+
+    slot: Tensor
+    y_pix: Tensor
+    y_xy: Tensor
+    x_eps: Tensor
+    u: Tensor
+
+    @classmethod
+    def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
+             device: torch.device | str | None = None, window: int = 1) -> BirthNoise:
+        """Draw for ``shape = (B, C, K)`` and a window of ``window`` steps."""
+        return _draw_fields(cls, shape, generator, dtype, device, check_positive_int(window, "window"))
+
+
+NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise, "birth": BirthNoise}
 
 
 # ----------------------------------------------------------------------------------------
@@ -394,7 +444,9 @@ class Cloud(NamedTuple):
     ``log_win (B, N)`` the window's terms; ``cdf_alpha``, ``cdf_w (B, N)`` float64 cumulative
     weights of ``alpha`` and ``w``; ``log_wq (B, N)`` ``log w_j - log q(j)`` (eq. 61);
     ``beta (B, HW)`` bool, the pixels of the birth proposal, ``cdf_beta (B, HW)``,
-    ``n_obs (B,)``; ``table (G, K)`` the structures.
+    ``n_obs (B,)``; ``table (G, K)`` the structures; the window birth's pixels, per window
+    step ``s``, of ``Z_s`` with a detection of ``Z_{s+1}`` within two pixels, ``pair (B, W,
+    HW)`` bool, ``cdf_pair (B, W, HW)``, ``n_pair (B, W)``.
     """
 
     view: GroupView
@@ -407,13 +459,16 @@ class Cloud(NamedTuple):
     cdf_beta: Tensor
     n_obs: Tensor
     table: Tensor
+    pair: Tensor
+    cdf_pair: Tensor
+    n_pair: Tensor
 
 
 class Prev(NamedTuple):
     """A chain's past ``(B, C, ...)``: the positions, structure (``g`` row, ``labels``),
     existence and Kalman statistics at ``t - 1``; ``log_pg (B, C, G)``, ``p(g_t | .)`` of
     every structure; the window positions ``win_pos (B, C, W, K, 2)`` at ``t - W .. t - 1``
-    and their terms ``log_win (B, C)``.
+    and their terms ``log_win (B, C)``; the window's existence ``win_exists (B, C, W, K)``.
     """
 
     pos: Tensor
@@ -425,6 +480,7 @@ class Prev(NamedTuple):
     log_pg: Tensor
     win_pos: Tensor
     log_win: Tensor
+    win_exists: Tensor
 
 
 class Chain(NamedTuple):
@@ -581,14 +637,16 @@ def _path_step(stats: KalmanStats, pos_p: Tensor, g_p: Tensor, lab_p: Tensor, ex
     return log_pred + log_p0 + log_g + _log_lik(pos, ex, z, models.sensor), stats
 
 
-def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models) -> Prev:
-    """The past of chains with ancestors ``j (B, C)`` and window positions ``win_pos (B, C, W,
-    K, 2)``: the Kalman filter re-run from the anchor through the window (:class:`Prev`).
+def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models, win_exists: Tensor | None = None) -> Prev:
+    """The past of chains with ancestors ``j (B, C)``, window positions ``win_pos (B, C, W,
+    K, 2)`` and existence ``win_exists (B, C, W, K)`` (default the ancestor's): the Kalman
+    filter re-run from the anchor through the window (:class:`Prev`).
     """
     v = cloud.view
     stats = KalmanStats(_gather(v.anchor_w_mean, j), _gather(v.anchor_w_cov, j))
     pos, g, lab, ex = (_gather(t, j) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels, v.anchor_exists))
-    win_g, win_lab, win_ex = (_gather(t, j) for t in (v.win_g, v.win_labels, v.win_exists))
+    win_g, win_lab = (_gather(t, j) for t in (v.win_g, v.win_labels))
+    win_ex = _gather(v.win_exists, j) if win_exists is None else win_exists
     log_win = torch.zeros_like(pos[..., 0, 0])
     off = v.frames.shape[1] - win_pos.shape[2]  # the window's frames are the last W
     for s in range(win_pos.shape[2]):  # the window's steps (time, not particles)
@@ -597,26 +655,28 @@ def _past(j: Tensor, win_pos: Tensor, cloud: Cloud, models: Models) -> Prev:
         log_win = log_win + term
         pos, g, lab, ex = win_pos[:, :, s], win_g[:, :, s], win_lab[:, :, s], win_ex[:, :, s]
     log_pg = models.structure_prior.log_probs(g, pos, ex)
-    return Prev(pos, g, lab, ex, stats.mean, stats.cov, log_pg, win_pos, log_win)
+    return Prev(pos, g, lab, ex, stats.mean, stats.cov, log_pg, win_pos, log_win, win_ex)
 
 
 def _prev_of(cloud: Cloud, j: Tensor) -> Prev:
     """The past of chains whose ancestors are ``j (B, C)``, as the cloud holds it."""
     v = cloud.view
     return Prev(*(_gather(t, j) for t in (v.pos, v.g, v.labels, v.exists, v.w_mean, v.w_cov, cloud.log_pg,
-                                          v.win_pos, cloud.log_win)))
+                                          v.win_pos, cloud.log_win, v.win_exists)))
 
 
 # ----------------------------------------------------------------------------------------
 # the moves (pure: noise in, no generator; compile-friendly)
 # ----------------------------------------------------------------------------------------
 def make_chain(j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, z: Tensor, models: Models,
-               win_pos: Tensor | None = None) -> Chain:
+               win_pos: Tensor | None = None, win_exists: Tensor | None = None) -> Chain:
     """A chain state ``(B, C, ...)`` with its caches from ``(j, g, e, x_p)`` and, optionally,
-    its window ``win_pos (B, C, W, K, 2)`` (default the ancestor's); dead slots' positions
-    are set to ``x_death``.
+    its window ``win_pos (B, C, W, K, 2)`` and ``win_exists (B, C, W, K)`` (default the
+    ancestor's); dead slots' positions are set to ``x_death``.
     """
-    prev = _prev_of(cloud, j) if win_pos is None else _past(j, win_pos, cloud, models)
+    if win_pos is None and win_exists is not None:
+        win_pos = _gather(cloud.view.win_pos, j)
+    prev = _prev_of(cloud, j) if win_pos is None else _past(j, win_pos, cloud, models, win_exists)
     labels = cloud.table[g]
     pm, S, obs, free = _predict(prev, labels, exists, models)
     pos = torch.where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
@@ -713,11 +773,11 @@ def past_move(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor, models: M
     a = noise.step[..., 0, :] * models.past_step[0]  # (B, C, 2)
     b = noise.step[..., 1, :] * models.past_step[1]
     tau = torch.arange(-w, 0, device=a.device, dtype=a.dtype)  # (W,) time relative to t
-    win_live = _gather(cloud.view.win_exists, chain.j) & onehot.unsqueeze(-2)  # (B, C, W, K)
+    win_live = prev.win_exists & onehot.unsqueeze(-2)  # (B, C, W, K)
     shift = a[:, :, None, None, :] + b[:, :, None, None, :] * tau[:, None, None]  # (B, C, W, 1, 2)
     win_pos = prev.win_pos + shift * win_live.unsqueeze(-1).to(a.dtype)
     pos = chain.pos + a.unsqueeze(-2) * (chain.exists & onehot).unsqueeze(-1).to(a.dtype)
-    new_prev = _past(chain.j, win_pos, cloud, models)
+    new_prev = _past(chain.j, win_pos, cloud, models, prev.win_exists)
     pm, S, obs, free = _predict(new_prev, chain.labels, chain.exists, models)
     prop = chain._replace(pos=pos, log_lik=_log_lik(pos, chain.exists, z, models.sensor),
                           log_px=_log_px(pos, pm, S, obs, free, models.existence),
@@ -734,6 +794,166 @@ def _past_log_target(chain: Chain) -> Tensor:
     """
     log_g = torch.gather(chain.prev.log_pg, -1, chain.g.unsqueeze(-1)).squeeze(-1)
     return chain.prev.log_win + log_g + chain.log_px + chain.log_lik
+
+
+def _pixel_log_q(pos: Tensor, mask: Tensor, n: Tensor, sensor: ThresholdedPixels) -> Tensor:
+    """``log`` of the density uniform over the pixels of ``mask (B, C, HW)`` (``n (B, C)`` of
+    them) at positions ``pos (B, C, 2)``: ``-log(n s^2)`` in a pixel of the mask, ``-inf``
+    elsewhere (and where ``n = 0``): ``-> (B, C)``.
+    """
+    h, w = sensor.shape
+    s = sensor.pixel_size
+    col, row = torch.floor(pos[..., 0] / s), torch.floor(pos[..., 1] / s)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long()
+    hit = torch.gather(mask, -1, flat.unsqueeze(-1)).squeeze(-1) & inside & (n > 0)
+    log_q = -torch.log(n.to(pos.dtype).clamp(min=1) * s * s)
+    return torch.where(hit, log_q, torch.full_like(log_q, -math.inf))
+
+
+def _alive_path(chain: Chain, cloud: Cloud, models: Models, onehot: Tensor, s: Tensor, sample: Tensor, y: Tensor,
+                eps: Tensor, win_exists: Tensor, exists: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The positions of slot ``i`` (``onehot (B, C, K)``) alive from window step ``s (B, C)``
+    through ``t``, and their proposal density: at ``s`` the position ``y (B, C, 2)``, at each
+    later step the conditional of the Kalman predictive (re-run from the anchor with
+    ``win_exists (B, C, W, K)``, ``exists (B, C, K)``) given the other observed slots, drawn
+    from ``eps (B, C, L, 2)`` where ``sample`` else the chain's own. Returns the window
+    positions ``(B, C, W, K, 2)``, the positions at ``t`` ``(B, C, K, 2)`` and ``log q
+    (B, C)`` of the steps after ``s`` (the pixel density of ``y`` is the caller's).
+    """
+    v = cloud.view
+    j, prev = chain.j, chain.prev
+    stats = KalmanStats(_gather(v.anchor_w_mean, j), _gather(v.anchor_w_cov, j))
+    pos_p, lab_p, ex_p = (_gather(t, j) for t in (v.anchor_pos, v.anchor_labels, v.anchor_exists))
+    win_lab = _gather(v.win_labels, j)
+    w = prev.win_pos.shape[2]
+    sel = onehot.unsqueeze(-1)
+    log_q = torch.zeros_like(y[..., 0])
+    out = []
+    for r in range(w + 1):  # the window's steps and t (time, not particles)
+        pos_r, lab_r, ex_r = ((prev.win_pos[:, :, r], win_lab[:, :, r], win_exists[:, :, r]) if r < w
+                              else (chain.pos, chain.labels, exists))
+        tr = models.motion.transition(pos_p, lab_p, lab_r, ex_p, ex_r, existence=models.existence)
+        pred = pairwise_kalman_predict(stats, pos_p, tr)
+        cm, cv = _conditional_slot(pos_r, pred.position_mean.contiguous(), pred.position_cov.contiguous(),
+                                   tr.observed, onehot)
+        own = (pos_r * sel.to(y.dtype)).sum(-2)
+        x = torch.where(sample.unsqueeze(-1), cm + cv.clamp(min=0).sqrt().unsqueeze(-1) * eps[:, :, max(r - 1, 0)],
+                        own)
+        after = s < r
+        log_q = log_q + torch.where(after, _log_normal2(x, cm, cv), torch.zeros_like(cv))
+        x = torch.where(after.unsqueeze(-1), x, torch.where((s == r).unsqueeze(-1), y, own))
+        pos_r = torch.where(sel & (s <= r)[..., None, None], x.unsqueeze(-2), pos_r)
+        _, stats = pairwise_kalman_update(pred, pos_r)
+        out.append(pos_r)
+        pos_p, lab_p, ex_p = pos_r, lab_r, ex_r
+    return torch.stack(out[:w], 2), out[w], log_q
+
+
+def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, models: Models
+                      ) -> tuple[Chain, Tensor]:
+    """One slot ``i`` born at a window step ``s`` and alive through ``t``, or the reverse
+    (module docstring, "A target born in the window"); accepted by ``rho_5``. Returns the new
+    chain and ``accepted (B, C)`` bool (False where the slot's existence pattern allows
+    neither direction).
+    """
+    existence, sensor = models.existence, models.sensor
+    k = chain.pos.shape[-2]
+    prev = chain.prev
+    w = prev.win_pos.shape[2]
+    if w == 0:  # no window (a state without a path): nothing to do
+        return chain, torch.zeros_like(noise.u, dtype=torch.bool)
+    anchor_ex = _gather(cloud.view.anchor_exists, chain.j)
+    # (slot, s) uniform over the eligible pairs of the chain's state (a birth or a death is possible)
+    births, deaths = _eligible(anchor_ex, prev.win_exists, chain.exists, cloud.n_pair)  # (B, C, K, W)
+    elig = (births | deaths).flatten(-2)
+    n_elig = elig.sum(-1)  # (B, C)
+    rank = (noise.slot * n_elig).long().clamp(max=(n_elig - 1).clamp(min=0)).unsqueeze(-1)
+    pick = (elig.cumsum(-1) > rank).to(torch.int64).argmax(-1)  # (B, C): the first with rank + 1 eligible
+    onehot = F.one_hot(pick // w, k).to(torch.bool)  # (B, C, K)
+    s = pick % w  # (B, C) the birth step in the window
+    steps = torch.arange(w, device=s.device)
+    birth = torch.gather(births.flatten(-2), -1, pick.unsqueeze(-1)).squeeze(-1) & (n_elig > 0)
+    death = torch.gather(deaths.flatten(-2), -1, pick.unsqueeze(-1)).squeeze(-1) & (n_elig > 0)
+    n_s = torch.gather(cloud.n_pair, 1, s)  # (B, C)
+    # y ~ uniform over the paired detections of Z_s (a pixel by the shared inverse CDF, then a place in it)
+    b, c = s.shape
+    cdf_s = torch.gather(cloud.cdf_pair, 1, s.unsqueeze(-1).expand(b, c, cloud.cdf_pair.shape[-1]))
+    mask_s = torch.gather(cloud.pair, 1, s.unsqueeze(-1).expand(b, c, cloud.pair.shape[-1]))
+    idx = inverse_cdf(cdf_s, noise.y_pix.unsqueeze(-1)).squeeze(-1)
+    width = sensor.shape[1]
+    pix = torch.stack([(idx % width).to(noise.y_xy.dtype), (idx // width).to(noise.y_xy.dtype)], -1)
+    y_new = (pix + noise.y_xy) * sensor.pixel_size  # (B, C, 2)
+    sel = onehot.unsqueeze(-1)
+    y_own = (torch.gather(prev.win_pos, 2, s[:, :, None, None, None].expand(b, c, 1, k, 2)).squeeze(2)
+             * sel.to(y_new.dtype)).sum(-2)
+    y = torch.where(birth.unsqueeze(-1), y_new, y_own)
+    # the configuration with slot i alive from s on: proposed (a birth) or the chain's own (a death)
+    in_window = (steps.reshape(1, 1, w) >= s.unsqueeze(-1)).unsqueeze(-1) & onehot.unsqueeze(2)  # (B, C, W, K)
+    alive_win_ex = prev.win_exists | in_window
+    alive_ex = chain.exists | onehot
+    win_alive, pos_alive, log_qx = _alive_path(chain, cloud, models, onehot, s, birth, y, noise.x_eps,
+                                               alive_win_ex, alive_ex)
+    log_q = _pixel_log_q(y, mask_s, n_s, sensor) + log_qx
+    # the proposed state: alive from s (a birth) or dead from s (a death; positions to x_death)
+    dead = _death_pos(existence, y_new)
+    win_exists = torch.where(birth[..., None, None], alive_win_ex, prev.win_exists & ~in_window)
+    exists = torch.where(birth.unsqueeze(-1), alive_ex, chain.exists & ~onehot)
+    win_pos = torch.where(birth[..., None, None, None], win_alive,
+                          torch.where(in_window.unsqueeze(-1), dead, prev.win_pos))
+    pos = torch.where(birth[..., None, None], pos_alive, torch.where(sel, dead, chain.pos))
+    new_prev = _past(chain.j, win_pos, cloud, models, win_exists)
+    pm, S, obs, free = _predict(new_prev, chain.labels, exists, models)
+    prop = chain._replace(exists=exists, pos=pos, log_lik=_log_lik(pos, exists, z, sensor),
+                          log_px=_log_px(pos, pm, S, obs, free, existence),
+                          log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free,
+                          prev=new_prev)
+
+    def log_e(win_ex: Tensor, ex: Tensor) -> Tensor:  # eq. 25 over the window and t
+        full = torch.cat([anchor_ex.unsqueeze(2), win_ex, ex.unsqueeze(2)], 2)
+        return existence.log_prob_exists(full[:, :, 1:], full[:, :, :-1]).sum((-1, -2))
+
+    log_rho = (_past_log_target(prop) - _past_log_target(chain)
+               + (log_e(win_exists, exists) - log_e(prev.win_exists, chain.exists)).to(y.dtype))
+    log_rho = log_rho + torch.where(birth, -log_q, log_q)
+    n_new = torch.stack(_eligible(anchor_ex, win_exists, exists, cloud.n_pair)).any(0).flatten(-2).sum(-1)
+    log_rho = log_rho + torch.log(n_elig.to(y.dtype)) - torch.log(n_new.to(y.dtype))  # the pick's 1 / n ratio
+    acc = (birth | death) & (torch.log(noise.u) < log_rho)
+    return _select(acc, prop, chain), acc
+
+
+def _eligible(anchor_ex: Tensor, win_ex: Tensor, ex: Tensor, n_pair: Tensor) -> tuple[Tensor, Tensor]:
+    """The window birth's possible ``(slot, s)`` pairs: ``births (B, C, K, W)``, the slot dead
+    from ``s - 1`` through ``t`` (and a paired detection at ``s``), and ``deaths``, dead at
+    ``s - 1`` and alive from ``s`` through ``t``; from the existence at the anchor ``(B, C,
+    K)``, in the window ``(B, C, W, K)`` and at ``t`` ``(B, C, K)``; ``n_pair (B, W)``.
+    """
+    w = win_ex.shape[2]
+    f = torch.cat([anchor_ex.unsqueeze(2), win_ex, ex.unsqueeze(2)], 2).transpose(-1, -2)  # (B, C, K, W + 2)
+    dead_on = torch.flip(torch.cumprod(torch.flip(~f, [-1]).to(torch.int64), -1), [-1]).to(torch.bool)  # dead from
+    alive_on = torch.flip(torch.cumprod(torch.flip(f, [-1]).to(torch.int64), -1), [-1]).to(torch.bool)
+    before = ~f[..., :w]
+    births = before & dead_on[..., 1:w + 1] & (n_pair > 0)[:, None, None, :]
+    return births, before & alive_on[..., 1:w + 1]
+
+
+def _log_normal2(x: Tensor, mean: Tensor, var: Tensor) -> Tensor:
+    """``log N(x; mean, var I_2)``: ``(B, C, 2), (B, C, 2), (B, C) -> (B, C)``."""
+    return -0.5 * (x - mean).square().sum(-1) / var - torch.log(var) - LOG_2PI
+
+
+def _conditional_slot(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, onehot: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_conditional` for a slot chosen per chain by ``onehot (B, C, K)`` (it must be
+    observed): mean ``(B, C, 2)``, variance ``(B, C)``; independent of the slot's own position.
+    """
+    o = obs.to(pos.dtype)
+    Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
+    P = torch.cholesky_inverse(torch.linalg.cholesky(Sm))
+    sel = onehot.to(pos.dtype)
+    p_i = (P * sel.unsqueeze(-1)).sum(-2)  # (B, C, K): row i
+    pii = (p_i * sel).sum(-1)
+    d = (pos - pm) * (o * (1.0 - sel)).unsqueeze(-1)  # the other observed slots
+    return (pm * sel.unsqueeze(-1)).sum(-2) - (p_i.unsqueeze(-2) @ d).squeeze(-2) / pii.unsqueeze(-1), 1.0 / pii
 
 
 def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tuple[Tensor, Tensor]:
@@ -864,12 +1084,21 @@ def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: Gro
         beta = zb.reshape(b, -1)
     any_obs = beta.any(-1, keepdim=True)
     log_beta = torch.where(beta | ~any_obs, 0.0, -math.inf).to(torch.float64)  # no detection: unused, kept finite
+    # the window birth: per window step s, the detections of Z_s with a detection of Z_{s+1} within two
+    # pixels (a step of <= 100 m; Z_{W} = Z_t)
+    w = v.win_pos.shape[2]
+    seq = torch.cat([v.frames[:, v.frames.shape[1] - w:].to(torch.bool), zb.unsqueeze(1)], 1)  # (B, W + 1, H, W)
+    nxt = seq[:, 1:].to(torch.float64)
+    near_next = F.max_pool2d(nxt.reshape((-1, 1) + nxt.shape[2:]), 5, stride=1, padding=2).reshape(nxt.shape) > 0
+    pair = (seq[:, :-1] & near_next).flatten(2)  # (B, W, HW)
+    any_pair = pair.any(-1, keepdim=True)
+    log_pair = torch.where(pair | ~any_pair, 0.0, -math.inf).to(torch.float64)
     return Cloud(v, log_pg, v.win_log.sum(-1), cdf(log_alpha), cdf(log_w), (log_w - log_q).to(v.pos.dtype),
-                 beta, cdf(log_beta), beta.sum(-1), table)
+                 beta, cdf(log_beta), beta.sum(-1), table, pair, cdf(log_pair), pair.sum(-1))
 
 
-def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, z: Tensor,
-          models: Models, settings: GroupMCMCSettings, generator: torch.Generator, chunk: int = 512
+def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, win_exists: Tensor,
+          z: Tensor, models: Models, settings: GroupMCMCSettings, generator: torch.Generator, chunk: int = 512
           ) -> dict[str, Tensor]:
     """The extras of the kept states ``(B, N, ...)`` at ``t``: the Kalman statistics (eqs.
     53-57; from the anchor through the window with a lag, sampled with zero covariance when
@@ -903,7 +1132,8 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
         stats = KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
         a_pos, a_g, a_lab, a_ex = (_gather(t, jj) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels,
                                                              v.anchor_exists))
-        wg, wl, we = (_gather(t, jj) for t in (v.win_g, v.win_labels, v.win_exists))
+        wg, wl = (_gather(t, jj) for t in (v.win_g, v.win_labels))
+        we = win_exists[:, sl]
         off = v.frames.shape[1] - w  # the window's frames are the last W
         steps = [(win_pos[:, sl, i], wg[:, :, i], wl[:, :, i], we[:, :, i], v.frames[:, off + i]) for i in range(w)]
         steps.append((pos[:, sl], g[:, sl], labels[:, sl], exists[:, sl], z))
@@ -947,7 +1177,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     motion, sensor, existence, structure_prior : the models (eqs. 13, 41, 25/33, 19).
     settings : GroupMCMCSettings; generator : the only source of randomness (eager draws).
     moves : ``moves(move, chain, noise, cloud, z)`` running the move ``"joint"``,
-        ``"refine"`` or ``"past"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
+        ``"refine"``, ``"past"`` or ``"birth"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
         default eager.
 
     Returns
@@ -955,7 +1185,8 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     state : ParticleState at ``t`` (chain-major particles, equal weights).
     info : ``acceptance (B,)`` over all MH decisions; ``extras``: ``acceptance_joint``,
         ``acceptance_structure``, ``acceptance_target`` and, with a lag, ``acceptance_past``
-        (B,) (NaN where the move never ran), ``structure_prob (B, Bell(K))``,
+        and, with ``p_window_birth``, ``acceptance_birth`` (B,) (NaN where the move never
+        ran; the window birth counts its no-op proposals as rejections), ``structure_prob (B, Bell(K))``,
         ``exists_prob (B, K)``, ``expected_count (B,)``, ``all_exist_prob (B,)`` (every slot
         alive) and ``structure_prob_all_exist (B, Bell(K))``, the structure given that every
         slot is alive (NaN where no particle has them all).
@@ -970,13 +1201,15 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     cloud = make_cloud(state, z, models=models, settings=settings)
     chain = joint_proposal(JointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
     per_chain = n // c
-    names = ["joint", "structure", "target"] + (["past"] if settings.lag else [])
+    names = (["joint", "structure", "target"] + (["past"] if settings.lag else [])
+             + (["birth"] if settings.p_window_birth else []))
     acc = {name: state.x.new_zeros(b) for name in names}
     cnt = {name: state.x.new_zeros(b) for name in names}
     kept = []
     count = settings.burn_in + settings.thinning * per_chain
     for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
-        noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev)
+        extra = {"window": settings.lag} if move == "birth" else {}
+        noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev, **extra)
         out = moves(move, chain, noise, cloud, z)
         chain = out[0]
         if move == "refine":
@@ -988,9 +1221,9 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
             acc[move] += out[1].to(dtype).sum(1)
             cnt[move] += c
         if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
-            kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos))
-    j, g, exists, pos, win_pos = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
-    extras = _keep(cloud, j, g, exists, pos, win_pos, z, models, settings, generator)
+            kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos, chain.prev.win_exists))
+    j, g, exists, pos, win_pos, win_ex = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
+    extras = _keep(cloud, j, g, exists, pos, win_pos, win_ex, z, models, settings, generator)
     vel = extras["w_mean"][..., :k].transpose(-1, -2)  # (B, N, K, 2)
     x = torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
     new = ParticleState(x, x.new_full((b, n), -math.log(n)), exists, extras)
@@ -1018,7 +1251,10 @@ def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None)
     def past(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor) -> Any:
         return past_move(chain, noise, cloud, z, models)
 
-    programs: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past}
+    def birth(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor) -> Any:
+        return window_birth_move(chain, noise, cloud, z, models)
+
+    programs: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past, "birth": birth}
     if compile is not None:
         programs = {name: compile(fn) for name, fn in programs.items()}
 
