@@ -236,41 +236,10 @@ def past_reference(filt, state, z, generator):
     ancestor's window (its last 2 positions) drawn from its prior given the anchor (the Kalman
     predictive step by step), the current positions from their prior given the window. Weight
     ``w_j / c_j prod_s p(g_s | .) p(Z_s | x_s) p(g | x_{t-1}) p(e | e_{t-1}) p(Z | x)``, with
-    ``c_j`` the mean of the window's factor over ``j``'s samples."""
-    motion, sensor, existence, prior = filt.motion, filt.sensor, filt.existence, filt.structure_prior
-    table = group_structures(K)
-    n = state.x.shape[1]
-    j, g, e = _strata(n, POOL // 24)
-    ex = state.extras
-
-    def take(t):
-        return t[0, j[0]].unsqueeze(0)
-
-    pp, pl, pe = take(ex["path_pos"]), take(ex["path_labels"]), take(ex["path_exists"])
-    w = pp.shape[2] - 1
-    stats = KalmanStats(take(ex["anchor_w_mean"]), take(ex["anchor_w_cov"]))
-    pos_p, lab_p, e_p = pp[:, :, 0], pl[:, :, 0], pe[:, :, 0]
-    log_win = torch.zeros_like(pos_p[..., 0, 0])
-    window = []
-    for s in range(1, w + 1):
-        lab, e_s = pl[:, :, s], pe[:, :, s]
-        tr = motion.transition(pos_p, lab_p, lab, e_p, e_s, existence=existence)
-        pred = pairwise_kalman_predict(stats, pos_p, tr)
-        pos = _draw_positions(pred, tr, existence, generator)
-        _, stats = pairwise_kalman_update(pred, pos)
-        log_win = log_win + prior.log_prob(structure_index(lab), structure_index(lab_p), pos_p, e_p)
-        log_win = log_win + _lik(sensor, pos, e_s, ex["frames"][:, -w - 1 + s])
-        window.append(pos)
-        pos_p, lab_p, e_p = pos, lab, e_s
-    lab = table[g]
-    tr = motion.transition(pos_p, lab_p, lab, e_p, e, existence=existence)
-    pos = _draw_positions(pairwise_kalman_predict(stats, pos_p, tr), tr, existence, generator)
-    log_c = torch.stack([torch.logsumexp(log_win[0, j[0] == i], 0) - math.log(int((j[0] == i).sum()))
-                         for i in range(n)])
-    log_t = take(state.log_w.unsqueeze(-1)).squeeze(-1) - log_c[j[0]].unsqueeze(0) + log_win
-    log_t = log_t + prior.log_prob(g, structure_index(lab_p), pos_p, e_p)
-    log_t = log_t + existence.log_prob_exists(e, e_p).sum(-1)
-    return j, g, e, pos, torch.stack(window, 2), log_t + _lik(sensor, pos, e, z)
+    ``c_j`` the mean of the window's factor over ``j``'s samples (:func:`window_reference`
+    with the ancestors' window existence)."""
+    j, g, e, pos, win, _, log_t = window_reference(filt, state, z, generator, free_existence=False)
+    return j, g, e, pos, win, log_t
 
 
 def _window_stats(win, j, state):
@@ -348,10 +317,11 @@ def test_past_move_target_is_the_model_density():
 
 
 # ----------------------------------------------------------------------------- the window birth move
-def window_reference(filt, state, z, generator):
+def window_reference(filt, state, z, generator, free_existence=True):
     """Importance sample of the window birth move's target: :func:`past_reference`'s, with the
     window's existence drawn from its prior as well (eq. 25 from the anchor's flags, the
-    labels the ancestor's), so the window holds births and deaths that no ancestor has. Weight
+    labels the ancestor's; ``free_existence=False``: the ancestor's, the past move's target),
+    so the window holds births and deaths that no ancestor has. Weight
     ``w_j / c_j prod_s p(x_s | .) p(g_s | .) p(Z_s | x_s, e_s) p(g | .) p(e | e_{t-1}) p(Z | x)``
     with positions from their prior, ``c_j`` the mean of the window's factor over ``j``'s
     samples. Returns ``(j, g, e, pos, win_pos, win_exists, log weight)``."""
@@ -372,7 +342,8 @@ def window_reference(filt, state, z, generator):
     window, window_e = [], []
     for s in range(1, w + 1):
         lab = pl[:, :, s]
-        e_s = existence.draw_exists(e_p, torch.rand(e_p.shape, generator=generator, dtype=DT))
+        e_s = existence.draw_exists(e_p, torch.rand(e_p.shape, generator=generator, dtype=DT)) if free_existence \
+            else pe[:, :, s]
         tr = motion.transition(pos_p, lab_p, lab, e_p, e_s, existence=existence)
         pred = pairwise_kalman_predict(stats, pos_p, tr)
         pos = _draw_positions(pred, tr, existence, generator)
