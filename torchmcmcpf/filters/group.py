@@ -947,13 +947,20 @@ def _conditional_slot(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, onehot: T
     observed): mean ``(B, C, 2)``, variance ``(B, C)``; independent of the slot's own position.
     """
     o = obs.to(pos.dtype)
-    Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
-    P = torch.cholesky_inverse(torch.linalg.cholesky(Sm))
+    P = _observed_precision(S, o)
     sel = onehot.to(pos.dtype)
     p_i = (P * sel.unsqueeze(-1)).sum(-2)  # (B, C, K): row i
     pii = (p_i * sel).sum(-1)
     d = (pos - pm) * (o * (1.0 - sel)).unsqueeze(-1)  # the other observed slots
     return (pm * sel.unsqueeze(-1)).sum(-2) - (p_i.unsqueeze(-2) @ d).squeeze(-2) / pii.unsqueeze(-1), 1.0 / pii
+
+
+def _observed_precision(S: Tensor, o: Tensor) -> Tensor:
+    """The precision of the observed block of ``S (B, C, K, K)`` (``o (B, C, K)`` 1 where
+    observed; the unobserved rows and columns replaced by the identity): ``(B, C, K, K)``.
+    """
+    Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
+    return torch.cholesky_inverse(torch.linalg.cholesky(Sm))
 
 
 def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tuple[Tensor, Tensor]:
@@ -963,8 +970,7 @@ def _conditional(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, i: int) -> tup
     ``mean = x_i - (P d)_i / P_ii`` with ``d = (x - pm)`` on the observed slots.
     """
     o = obs.to(pos.dtype)
-    Sm = S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o)
-    P = torch.cholesky_inverse(torch.linalg.cholesky(Sm))
+    P = _observed_precision(S, o)
     d = (pos - pm) * o.unsqueeze(-1)
     Pd = P[..., i, :].unsqueeze(-2) @ d  # (B, C, 1, 2)
     pii = P[..., i, i]
@@ -976,7 +982,7 @@ def _log_q_slot(x_i: Tensor, cm: Tensor, cv: Tensor, obs_i: Tensor, free_i: Tens
     """``log q_i(x_i)``: conditional Gaussian if observed, ``q_0`` if a free birth, 0 (point
     mass) if dead: ``-> (B, C)``.
     """
-    log_n = (-0.5 * (x_i - cm).square().sum(-1) / cv - torch.log(cv) - LOG_2PI)
+    log_n = _log_normal2(x_i, cm, cv)
     log_q0 = _log_q0(x_i.unsqueeze(-2), cloud, models.sensor, models.existence, models.p_i).squeeze(-1)
     return torch.where(obs_i, log_n, torch.where(free_i, log_q0, torch.zeros_like(log_n)))
 
