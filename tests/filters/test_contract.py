@@ -56,8 +56,8 @@ def group_problem():
 def _group(m, s, c):
     scn = _group_scenario()
     return GroupMCMCFilter(m, s, N, existence=scn.existence, structure_prior=scn.structure_prior, num_chains=4,
-                           burn_in=3, thinning=2, xi=0.5, lag=1, p_past=0.25, alpha="predictive", birth="frame",
-                           compile_step=c)
+                           burn_in=3, thinning=2, xi=0.5, lag=1, p_past=0.25, p_window_birth=0.25, alpha="predictive",
+                           birth="frame", compile_step=c)
 
 #: name -> (factory(motion, sensor, compile_step), what StepInfo computes: ess, log_evidence, acceptance, extras)
 FILTERS = {
@@ -78,10 +78,10 @@ FILTERS = {
     "pmmh": (lambda m, s, c: PMMHFilter(m, s, N, num_candidates=4, compile_step=c),
              (True, True, True, {"theta_mean", "candidate_ess"})),
     "partitioned": (lambda m, s, c: PartitionedSIRFilter(m, s, N, compile_step=c), (True, False, False, {"ess_min"})),
-    # paper 004's group filter with the past move (issue 23): extras of shape (B, ...)
+    # paper 004's group filter with the past and window birth moves (issue 23): extras of shape (B, ...)
     "group": (_group, (False, False, True, {"acceptance_joint", "acceptance_structure", "acceptance_target",
-                                            "acceptance_past", "structure_prob", "exists_prob", "expected_count",
-                                            "all_exist_prob", "structure_prob_all_exist"})),
+                                            "acceptance_past", "acceptance_birth", "structure_prob", "exists_prob",
+                                            "expected_count", "all_exist_prob", "structure_prob_all_exist"})),
 }
 #: filters that need a problem of their own (default :func:`problem`)
 PROBLEMS = {"group": group_problem}
