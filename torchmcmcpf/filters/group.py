@@ -1084,23 +1084,32 @@ def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: Gro
     if settings.birth == "eq65":  # without a previous frame (or an empty one: the start), the current one
         prev = zb if v.frames.shape[1] == 0 else v.frames[:, -1].to(torch.bool)
         prev = torch.where(prev.flatten(1).any(-1)[:, None, None], prev, zb)
-        near = F.max_pool2d(prev.to(torch.float64).unsqueeze(1), 3, stride=1, padding=1).squeeze(1) > 0
-        beta = (zb & near).reshape(b, -1)
+        beta = (zb & _near(prev, 1)).reshape(b, -1)
     else:
         beta = zb.reshape(b, -1)
-    any_obs = beta.any(-1, keepdim=True)
-    log_beta = torch.where(beta | ~any_obs, 0.0, -math.inf).to(torch.float64)  # no detection: unused, kept finite
     # the window birth: per window step s, the detections of Z_s with a detection of Z_{s+1} within two
     # pixels (a step of <= 100 m; Z_{W} = Z_t)
     w = v.win_pos.shape[2]
     seq = torch.cat([v.frames[:, v.frames.shape[1] - w:].to(torch.bool), zb.unsqueeze(1)], 1)  # (B, W + 1, H, W)
-    nxt = seq[:, 1:].to(torch.float64)
-    near_next = F.max_pool2d(nxt.reshape((-1, 1) + nxt.shape[2:]), 5, stride=1, padding=2).reshape(nxt.shape) > 0
-    pair = (seq[:, :-1] & near_next).flatten(2)  # (B, W, HW)
-    any_pair = pair.any(-1, keepdim=True)
-    log_pair = torch.where(pair | ~any_pair, 0.0, -math.inf).to(torch.float64)
+    pair = (seq[:, :-1] & _near(seq[:, 1:], 2)).flatten(2)  # (B, W, HW)
     return Cloud(v, log_pg, v.win_log.sum(-1), cdf(log_alpha), cdf(log_w), (log_w - log_q).to(v.pos.dtype),
-                 beta, cdf(log_beta), beta.sum(-1), table, pair, cdf(log_pair), pair.sum(-1))
+                 beta, _uniform_cdf(beta), beta.sum(-1), table, pair, _uniform_cdf(pair), pair.sum(-1))
+
+
+def _near(frames: Tensor, radius: int) -> Tensor:
+    """Pixels within ``radius`` pixels (a square) of a detection of the binary ``frames (*S, H,
+    W)``: ``-> (*S, H, W)`` bool.
+    """
+    x = frames.to(torch.float64).reshape((-1, 1) + frames.shape[-2:])
+    return F.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius).reshape(frames.shape) > 0
+
+
+def _uniform_cdf(mask: Tensor) -> Tensor:
+    """The CDF (:func:`~torchmcmcpf.resampling.cdf`) of the distribution uniform over the True
+    entries of each row of ``mask (*S, M)``; uniform over all ``M`` where a row has none (the
+    draw is then unused but finite).
+    """
+    return cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf).to(torch.float64))
 
 
 def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, win_exists: Tensor,
@@ -1214,8 +1223,7 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     kept = []
     count = settings.burn_in + settings.thinning * per_chain
     for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
-        extra = {"window": settings.lag} if move == "birth" else {}
-        noise = NOISES[move].draw((b, c, k), generator=generator, dtype=dtype, device=dev, **extra)
+        noise = _draw_fields(NOISES[move], (b, c, k), generator, dtype, dev, window=max(settings.lag, 1))
         out = moves(move, chain, noise, cloud, z)
         chain = out[0]
         if move == "refine":
