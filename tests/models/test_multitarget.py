@@ -128,6 +128,29 @@ def test_radar_data_driven_density_is_what_it_draws(gen):
     torch.testing.assert_close(sensor.place(x, sensor.measurement_coords(x)), x)
 
 
+@pytest.mark.parametrize("shape", [(2, 7), (2, 5, 1), (3, 9, 4, 6), (1, 2, 1, 4)])
+def test_peak_pooling_is_atens_pooling_one_axis_at_a_time(gen, shape):
+    """The data-driven proposal's 3^n neighbourhoods (``grid.data._pool``): the max equals
+    ATen's max pooling exactly, the mean its average pooling (zero padding counted) to
+    round-off, on grids with axes of 1 to 9 cells (ATen refuses axes shorter than 3).
+    """
+    import torch.nn.functional as F
+
+    from torchmcmcpf.models.sensors.grid.data import _pool
+
+    t = torch.rand(shape, generator=gen, dtype=DT)
+    n = len(shape) - 1
+    pad = [(0, 0)] + [(1, 1)] * n  # so that ATen accepts the short axes: the padding is what _pool assumes
+    padded = {r: torch.nn.functional.pad(t, [p for lo_hi in reversed(pad[1:]) for p in lo_hi], value=v)
+              for r, v in (("max", float("-inf")), ("mean", 0.0))}
+    pools = {1: (F.max_pool1d, F.avg_pool1d), 2: (F.max_pool2d, F.avg_pool2d), 3: (F.max_pool3d, F.avg_pool3d)}[n]
+    assert torch.equal(_pool(t, "max"), pools[0](padded["max"].unsqueeze(1), 3, stride=1).squeeze(1))
+    torch.testing.assert_close(_pool(t, "mean"), pools[1](padded["mean"].unsqueeze(1), 3, stride=1).squeeze(1),
+                               rtol=1e-12, atol=1e-14)
+    with pytest.raises(ValueError, match="grid axis"):
+        _pool(t[0, 0, 0] if n == 3 else t.flatten()[0], "max")
+
+
 def test_point_data_driven_density_is_what_it_draws(gen):
     scn = septier(2, 3, generator=gen)
     sensor = scn.sensor

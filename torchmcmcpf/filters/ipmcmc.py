@@ -147,7 +147,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
-from torch.utils._pytree import tree_map
+from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 
 from .._validation import check_positive_int
 from ..diagnostics import RHAT_METHODS, rhat
@@ -188,17 +188,22 @@ class SegmentNoise(NamedTuple):
     pair: ExchangeNoise | None = None
     at_pairs: tuple[int, ...] = ()
 
-    def at(self, t: int) -> ExchangeNoise:
-        """The noise of iteration ``t`` (leading ``(B, C)``)."""
-        if self.pair is not None and t in self.at_pairs:
-            i = self.at_pairs.index(t)
-            return tree_map(lambda a: None if a is None else a[i], self.pair)
-        return tree_map(lambda a: None if a is None else a[t], self.single)
+    def iterations(self) -> list[ExchangeNoise]:
+        """The noise of every iteration in order (each with leading ``(B, C)``): every field
+        unbound once, not indexed per iteration (a select per field and iteration cost 7 % of
+        an eager radar step, 10 targets, Np = 5000).
+        """
+        def unbind(noise: ExchangeNoise) -> list[ExchangeNoise]:
+            leaves, spec = tree_flatten(noise)
+            length = next(leaf for leaf in leaves if leaf is not None).shape[0]
+            rows = zip(*(leaf.unbind(0) if leaf is not None else (None,) * length for leaf in leaves))
+            return [tree_unflatten(list(row), spec) for row in rows]
 
-    @property
-    def length(self) -> int:
-        """``L``."""
-        return self.single.u.shape[0]
+        out = unbind(self.single)
+        if self.pair is not None:
+            for t, noise in zip(self.at_pairs, unbind(self.pair)):
+                out[t] = noise
+        return out
 
 
 def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable, sensor: SensorModel,
@@ -216,8 +221,8 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
     log_lik = chains.log_lik
     accepted_count = torch.zeros(log_lik.shape, device=log_lik.device, dtype=log_lik.dtype)
     refined_count = torch.zeros_like(accepted_count)
-    for t in range(noise.length):
-        new, acc, update = iteration(chains, noise.at(t))
+    for t, noise_t in enumerate(noise.iterations()):
+        new, acc, update = iteration(chains, noise_t)
         chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
         accepted_count = accepted_count + acc.to(accepted_count.dtype)
         if refine is not None and (t + 1) % every == 0:
