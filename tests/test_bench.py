@@ -41,6 +41,10 @@ def test_bench_quick_writes_table_json_and_plot(tmp_path, capsys, restore_thread
         err = by_name[name]["check"]["log_evidence_error"]
         assert abs(err["median"]) < 2.0 and err["iqr"] >= 0, (name, err)
     assert any(n.startswith("ipmcmc-") and n.endswith("-B3") for n in names)
+    # every radar figure stands next to its arithmetic floor: N K (2w + 1)^3 cell terms for the SIR step
+    sir, floor = by_name["radar-sir"], by_name["radar-sir-floor"]
+    assert floor["params"]["terms"] == sir["params"]["N"] * sir["params"]["K"] * 7**3 and "x the floor" in sir["note"]
+    assert all(f"{n}-floor" in by_name for n in names if n.startswith("ipmcmc-") and not n.endswith("floor"))
     for f in result["figures"]:
         assert f["seconds"] > 0 and math.isclose(f["per_run_s"], f["seconds"] / f["params"].get("B", 1))
         assert f["target_s"] is None  # the targets are for the full sizes only

@@ -50,7 +50,7 @@ if TYPE_CHECKING:
     from .typing import Measurement
 
 __all__ = ["Figure", "run", "time_step", "time_interleaved", "radar_problem", "stonesoup_step", "point_filter",
-           "point_sir_forward", "point_sir_step", "point_floor", "particles_runs", "kalman_log_evidence",
+           "point_sir_forward", "point_sir_step", "point_floor", "radar_floor", "particles_runs", "kalman_log_evidence",
            "evidence_errors", "TARGETS_S"]
 
 #: issue 12's targets on a 2-core CPU [s per step] (per run for the batched IP-MCMC-PF)
@@ -275,6 +275,39 @@ def point_floor(n: int, b: int, device: torch.device, dtype: torch.dtype = torch
     return step
 
 
+def radar_floor(terms: int, sensor: Any, device: torch.device, dtype: torch.dtype = torch.float32,
+                compiled: bool = True) -> Callable[[], object]:
+    """The arithmetic floor of a windowed radar step that evaluates ``terms`` cell terms: what
+    no implementation of the windowed likelihood can avoid, one amplitude per (sample, target,
+    box cell), the product of the target's amplitude and its three per-axis profile values,
+    and the sensor's Rician log ratio there (:meth:`RangeDopplerBearingTBD.cell_log_ratio`),
+    summed; compiled (``compiled=True``) into one loop over the terms, built from inputs of a few KB (no memory
+    traffic but the loop's own). Lower than any real step: no neighbours' amplitudes summed
+    into a cell, no ownership of cells shared by two boxes, no gathers of the frame.
+
+    ``terms``: ``N K (2w + 1)^3`` for the SIR step (every particle's K boxes of ``(2w+1)^3``
+    cells, ``w = sensor.window``); ``B (burn_in + N / C) C x 2 boxes x 2`` for the
+    IP-MCMC-PF's one-slot moves (the old and the new box, the cells' log ratio before and
+    after the move).
+    """
+    side = 2 * sensor.window + 1
+    box = side ** sensor.n_axes
+    g = torch.Generator(device).manual_seed(0)
+    amp = 1.0 + torch.rand((max(terms // box, 1),) + (1,) * sensor.n_axes, generator=g, device=device, dtype=dtype)
+    profiles = [torch.rand(tuple(side if i == a else 1 for i in range(sensor.n_axes + 1)), generator=g, device=device,
+                           dtype=dtype) for a in range(1, sensor.n_axes + 1)]
+    zc = 3.0 * torch.rand((1,) + (side,) * sensor.n_axes, generator=g, device=device, dtype=dtype)
+
+    def kernel(amp: torch.Tensor, zc: torch.Tensor, *profiles: torch.Tensor) -> torch.Tensor:
+        a = amp
+        for p in profiles:
+            a = a * p
+        return sensor.cell_log_ratio(a, zc).sum()
+
+    fn = torch.compile(kernel, fullgraph=True) if compiled else kernel
+    return lambda: fn(amp, zc, *profiles)
+
+
 def stonesoup_step(n: int, b: int, steps: int, weights: str = "weight") -> Callable[[], object]:
     """Stone Soup's particle filter on the same problem: ``ParticlePredictor`` +
     ``ParticleUpdater`` with a ``SystematicResampler`` (resampling at every update), a
@@ -476,25 +509,37 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
     log(f"torchmcmcpf bench on {device_name(dev)}, torch {torch.__version__}, {torch.get_num_threads()} threads"
         f"{', CPU allocator tuned' if allocator_tuned else ''}"
         f"{', quick sizes' if quick else ''}")
-    add(Figure("radar-sir", time_step(radar_sir(n, k, 1, compiled, dev), repeats=cfg["repeats"], device=dev),
-               dict(N=n, K=k, B=1, compiled=compiled), target("radar-sir")))
+    sensor = radar_problem(1, k, 1, dev)[0].sensor
+    box = (2 * sensor.window + 1) ** sensor.n_axes
+
+    def radar(name: str, step: Callable[[], object], params: dict, repeats: int, terms: int,
+              target_s: float | None = None, note: str = "") -> None:
+        """Time a radar step and its arithmetic floor (:func:`radar_floor` of ``terms``)."""
+        secs = time_step(step, repeats=repeats, device=dev)
+        floor = time_step(radar_floor(terms, sensor, dev, compiled=compiled), repeats=cfg["repeats"], device=dev)
+        add(Figure(name, secs, params, target_s, note=(f"{note}; " if note else "") + f"{secs / floor:.1f}x the floor"))
+        add(Figure(f"{name}-floor", floor, dict(params, terms=terms), note="arithmetic floor (bench.radar_floor)"))
+
+    def moves(n_: int, b_: int) -> int:  # the IP-MCMC-PF's one-slot moves: 2 boxes, 2 log ratios per cell
+        return b_ * (cfg["burn_in"] + n_ // c) * c * 4 * box
+
+    radar("radar-sir", radar_sir(n, k, 1, compiled, dev), dict(N=n, K=k, B=1, compiled=compiled), cfg["repeats"],
+          n * k * box, target("radar-sir"))
     ip = dict(chains=c, burn_in=cfg["burn_in"])
-    add(Figure(f"ipmcmc-{n}", time_step(radar_ipmcmc(n, k, 1, compiled, dev, **ip), repeats=cfg["slow_repeats"],
-                                        device=dev),
-               dict(N=n, C=c, burn_in=cfg["burn_in"], K=k, B=1, compiled=compiled), target("ipmcmc-5000")))
+    radar(f"ipmcmc-{n}", radar_ipmcmc(n, k, 1, compiled, dev, **ip),
+          dict(N=n, C=c, burn_in=cfg["burn_in"], K=k, B=1, compiled=compiled), cfg["slow_repeats"], moves(n, 1),
+          target("ipmcmc-5000"))
     ns, bs = cfg["n_small"], cfg["b_small"]
     for b in (1, bs):
-        add(Figure(f"ipmcmc-{ns}-B{b}",
-                   time_step(radar_ipmcmc(ns, k, b, compiled, dev, **ip), repeats=cfg["slow_repeats"], device=dev),
-                   dict(N=ns, C=c, burn_in=cfg["burn_in"], K=k, B=b, compiled=compiled),
-                   target("ipmcmc-500-B10") if b > 1 else None, note="target per run" if b > 1 and not quick else ""))
+        radar(f"ipmcmc-{ns}-B{b}", radar_ipmcmc(ns, k, b, compiled, dev, **ip),
+              dict(N=ns, C=c, burn_in=cfg["burn_in"], K=k, B=b, compiled=compiled), cfg["slow_repeats"], moves(ns, b),
+              target("ipmcmc-500-B10") if b > 1 else None, "target per run" if b > 1 and not quick else "")
     if dev.type == "cuda":  # the GPU aim: every run of the Table II study in one batch
         bg = cfg["b_gpu"]
-        add(Figure(f"ipmcmc-{n}-B{bg}",
-                   time_step(radar_ipmcmc(n, k, bg, compiled, dev, **ip), repeats=cfg["slow_repeats"], device=dev),
-                   dict(N=n, C=c, burn_in=cfg["burn_in"], K=k, B=bg, compiled=compiled),
-                   None if quick else GPU_TARGETS_S["ipmcmc-5000-B100"],
-                   note="" if quick else "GPU aim: all 100 runs in <= 10 ms (target per run)"))
+        radar(f"ipmcmc-{n}-B{bg}", radar_ipmcmc(n, k, bg, compiled, dev, **ip),
+              dict(N=n, C=c, burn_in=cfg["burn_in"], K=k, B=bg, compiled=compiled), cfg["slow_repeats"],
+              moves(n, bg), None if quick else GPU_TARGETS_S["ipmcmc-5000-B100"],
+              "" if quick else "GPU aim: all 100 runs in <= 10 ms (target per run)")
     add(Figure("mcmc-pf", time_step(radar_mcmc(n, k, 1, compiled, dev, chains=c), repeats=cfg["slow_repeats"],
                                     device=dev),
                dict(N=n, C=c, K=k, B=1, compiled=compiled), target("mcmc-pf")))
