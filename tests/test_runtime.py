@@ -60,3 +60,22 @@ def test_programs_of_one_def_have_their_own_compile_cache():
     programs = [compile_program(bind(float(s))) for s in range(9)]
     programs.append(compile_program(functools.partial(torch.mul, other=2.0)))  # any callable
     assert [float(p(x)[0]) for p in programs] == [float(s) for s in range(9)] + [2.0]
+
+
+@pytest.mark.compile
+def test_repeating_program_skips_guards_only_for_signatures_it_has_run():
+    # inside Program.repeating a repeated signature skips Dynamo's guards; a new one (another
+    # shape, another tuple layout) still runs them and compiles, so every result is right
+    from torchmcmcpf.runtime import compile_program
+
+    def body(x, pair):
+        return x * pair[0] + pair[1].sum()
+
+    prog = compile_program(body)
+    inputs = [(torch.full((3,), float(i)), (torch.tensor(2.0), torch.arange(float(i + 2)))) for i in range(3)]
+    inputs.append((torch.ones(5), (torch.tensor(3.0), torch.ones(4))))  # another shape
+    with prog.repeating():
+        inside = [prog(x, pair) for x, pair in inputs + inputs]
+    assert prog._seen is None  # left the loop
+    for (x, pair), got in zip(inputs + inputs, inside):
+        torch.testing.assert_close(got, body(x, pair), rtol=0, atol=0)
