@@ -64,8 +64,9 @@ def test_programs_of_one_def_have_their_own_compile_cache():
 
 @pytest.mark.compile
 def test_repeating_program_skips_guards_only_for_signatures_it_has_run():
-    # inside Program.repeating a repeated signature skips Dynamo's guards; a new one (another
+    # inside runtime.repeating a repeated signature skips Dynamo's guards; a new one (another
     # shape, another tuple layout) still runs them and compiles, so every result is right
+    from torchmcmcpf import runtime
     from torchmcmcpf.runtime import compile_program
 
     def body(x, pair):
@@ -74,8 +75,12 @@ def test_repeating_program_skips_guards_only_for_signatures_it_has_run():
     prog = compile_program(body)
     inputs = [(torch.full((3,), float(i)), (torch.tensor(2.0), torch.arange(float(i + 2)))) for i in range(3)]
     inputs.append((torch.ones(5), (torch.tensor(3.0), torch.ones(4))))  # another shape
-    with prog.repeating():
+    with runtime.repeating():
         inside = [prog(x, pair) for x, pair in inputs + inputs]
-    assert prog._seen is None  # left the loop
-    for (x, pair), got in zip(inputs + inputs, inside):
+        with runtime.repeating():  # a nested loop starts afresh
+            inside += [prog(x, pair) for x, pair in reversed(inputs)]
+            assert len(prog._seen[1]) == len(inputs)
+        inside += [prog(*inputs[0])]
+    assert runtime._repeating[0] == 0  # left the loops
+    for (x, pair), got in zip(inputs + inputs + inputs[::-1] + inputs[:1], inside):
         torch.testing.assert_close(got, body(x, pair), rtol=0, atol=0)

@@ -227,41 +227,28 @@ class Program:
         self._graphed: Callable | None = None
         self._inside = False  # warming up or capturing a loop: the plain program, no nested graphs
         self._loops: dict = {}
-        self._seen: set | None = None  # inside repeating(): the signatures called so far
+        self._seen: tuple[int, set] = (0, set())  # (loop of repeating(), the signatures called in it)
 
     def __call__(self, *args: Any) -> Any:
-        """``fn(*args)``, compiled; on CUDA tensors one CUDA graph replay (class docstring)."""
+        """``fn(*args)``, compiled; on CUDA tensors one CUDA graph replay (class docstring).
+        Inside :func:`repeating` a CPU call of a signature called before in the same loop
+        skips Dynamo's guard evaluation.
+        """
         if self._inside or not _first_on_cuda(args):
-            if self._seen is not None:
+            loop = _repeating[0]
+            if loop:
+                if self._seen[0] != loop:
+                    self._seen = (loop, set())
                 key = _signature(args)
-                if key in self._seen:  # a repeat inside repeating(): Dynamo's guards already passed
+                if key in self._seen[1]:  # Dynamo's guards passed for it in this loop
                     with torch.compiler.set_stance("default", skip_guard_eval_unsafe=True):
                         return self._plain(*args)
-                self._seen.add(key)
+                self._seen[1].add(key)
             return self._plain(*args)
         if self._graphed is None:
             self._graphed = torch.compile(self._fn, fullgraph=True, dynamic=False, mode="reduce-overhead")
         torch.compiler.cudagraph_mark_step_begin()
         return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, self._graphed(*args))
-
-    @contextlib.contextmanager
-    def repeating(self) -> Iterator[None]:
-        """A loop that calls this program many times with arguments of a few fixed signatures
-        (an MH iteration fed its own outputs): inside it, a call whose signature (the shapes,
-        dtypes and devices of its tensors and of those in its tuples, one level down; the
-        types of deeper tuples) was already called runs without Dynamo's guard evaluation
-        (``torch.compiler.set_stance(skip_guard_eval_unsafe=True)``: only the guards that
-        tell the cached graphs apart). Dynamo's guards had cost 0.25 ms per call, 11 % of a
-        compiled IP-MCMC-PF step (radar, Np = 5000, one CPU thread: 389 -> 347 ms, the same
-        bits). Safe because every first call of a signature runs the full guards (and
-        compiles if it must), a repeat has the same tensor properties, and Inductor's
-        generated code still asserts each input's sizes and strides. Not reentrant.
-        """
-        self._seen = set()
-        try:
-            yield
-        finally:
-            self._seen = None
 
     def capture(self, loop: Callable, *args: Any) -> Any:
         """``loop(self, *args)``; on CUDA tensors as one CUDA graph.
@@ -274,13 +261,13 @@ class Program:
         copies the arguments in, replays the graph and returns clones of its outputs (so an
         earlier result survives the next replay). Same kernels, same results as the loop
         called eagerly with this program, which is what it is on the CPU (inside
-        :meth:`repeating`). Each signature's graph and its memory pool are kept for the
+        :func:`repeating`). Each signature's graph and its memory pool are kept for the
         program's life (the filter's).
         """
         leaves, spec = tree_flatten(args)
         tensors = [a for a in leaves if torch.is_tensor(a)]
         if not tensors or not on_cuda(tensors[0]):
-            with self.repeating():
+            with repeating():
                 return loop(self, *args)
         key = (loop, spec, tuple((a.shape, a.dtype, a.device) if torch.is_tensor(a) else a for a in leaves))
         entry = self._loops.get(key)
@@ -306,6 +293,34 @@ class Program:
                 dst.copy_(src)
         graph.replay()
         return tree_map(lambda a: a.clone() if torch.is_tensor(a) else a, outputs)
+
+
+#: ``[loop]``: the current :func:`repeating` loop's number (0: none), ``[count]``: loops so far
+_repeating = [0]
+_loops_started = [0]
+
+
+@contextlib.contextmanager
+def repeating() -> Iterator[None]:
+    """A loop that calls compiled programs (:class:`Program`) many times with arguments of a
+    few fixed signatures (MH iterations fed their own outputs): inside it, a CPU call of a
+    program with a signature (shapes, dtypes and devices of its tensors and of those in its
+    tuples, one level down; :func:`_signature`) that the program already ran in this loop
+    skips Dynamo's guard evaluation (``torch.compiler.set_stance(skip_guard_eval_unsafe=
+    True)``: only the guards that tell the program's cached graphs apart run). The guards
+    had cost about 0.25 ms per call, 5-12 % of a compiled IP-MCMC-PF step (radar, Np =
+    5000, one CPU thread; the same bits). Safe because the first call of each signature in
+    the loop runs the full guards (and compiles if it must), a repeat's tensors have the
+    same properties, and Inductor's code still asserts every input's sizes and strides.
+    Loops nest (the inner one starts afresh). Eager code is unaffected.
+    """
+    previous = _repeating[0]
+    _loops_started[0] += 1
+    _repeating[0] = _loops_started[0]
+    try:
+        yield
+    finally:
+        _repeating[0] = previous
 
 
 def compile_program(fn: Callable) -> Program:

@@ -163,6 +163,7 @@ from ..models.group import (
 )
 from ..models.sensors.pixels import ThresholdedPixels
 from ..resampling import cdf, inverse_cdf
+from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Tensor
 from .base import Filter
@@ -1222,20 +1223,21 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     cnt = {name: state.x.new_zeros(b) for name in names}
     kept = []
     count = settings.burn_in + settings.thinning * per_chain
-    for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
-        noise = _draw_fields(NOISES[move], (b, c, k), generator, dtype, dev, window=max(settings.lag, 1))
-        out = moves(move, chain, noise, cloud, z)
-        chain = out[0]
-        if move == "refine":
-            acc["structure"] += out[1].to(dtype).sum(1)
-            cnt["structure"] += c
-            acc["target"] += out[2].to(dtype).sum((1, 2))
-            cnt["target"] += c * k
-        else:
-            acc[move] += out[1].to(dtype).sum(1)
-            cnt[move] += c
-        if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
-            kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos, chain.prev.win_exists))
+    with repeating():  # compiled moves: repeats skip Dynamo's guards (runtime.repeating)
+        for m, move in enumerate(pick_moves(settings.moves(), count, generator=generator), start=1):
+            noise = _draw_fields(NOISES[move], (b, c, k), generator, dtype, dev, window=max(settings.lag, 1))
+            out = moves(move, chain, noise, cloud, z)
+            chain = out[0]
+            if move == "refine":
+                acc["structure"] += out[1].to(dtype).sum(1)
+                cnt["structure"] += c
+                acc["target"] += out[2].to(dtype).sum((1, 2))
+                cnt["target"] += c * k
+            else:
+                acc[move] += out[1].to(dtype).sum(1)
+                cnt[move] += c
+            if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
+                kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos, chain.prev.win_exists))
     j, g, exists, pos, win_pos, win_ex = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
     extras = _keep(cloud, j, g, exists, pos, win_pos, win_ex, z, models, settings, generator)
     vel = extras["w_mean"][..., :k].transpose(-1, -2)  # (B, N, K, 2)

@@ -44,6 +44,7 @@ from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step,
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture
+from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from .base import Filter, active_prior, check_existence_proposal
@@ -390,26 +391,27 @@ def mcmc_step(
     acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
-    for m, move in enumerate(pick_moves(pairs, burn_in + thinning * per_chain, generator=generator), start=1):
-        noise = draw_iteration_noise(move, chain.x, dynamics, generator=generator, z=z)
-        chain, accepted = iteration(chain, noise, move, cloud, z, scale)
-        acc_sum[move] = acc_sum[move] + accepted.sum(1)
-        sel_sum[move] = sel_sum[move] + num_chains
-        if hmc is not None and hmc_motion is not None and m % hmc.every == 0:  # eager, also under compile_step
-            x_new, _, acc = hmc_refine(chain.x, chain.log_lik, HMCRefineNoise.draw(chain.x, generator=generator), z,
-                                       log_prior=with_exclusion(ancestor_log_prior(chain.x_prev, hmc_motion),
-                                                                settings.exclusion, sensor),
-                                       sensor=sensor, motion=hmc_motion, settings=hmc)
-            log_lik, terms = evaluate(x_new, z, sensor)
-            chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
-            hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
-        if adaptive and m <= burn_in:  # adapt during the burn-in only: frozen for the kept samples
-            moments = moments.update(chain.x)
-            if m % adapt_every == 0:
-                scale = adapted_step(moments.covariance(prior_cov, d + 1.0), x_prev.dtype)
-        if m > burn_in and (m - burn_in) % thinning == 0:
-            kept.append(chain.x)
-            kept_exists.append(chain.exists)
+    with repeating():  # compiled moves: repeats skip Dynamo's guards (runtime.repeating)
+        for m, move in enumerate(pick_moves(pairs, burn_in + thinning * per_chain, generator=generator), start=1):
+            noise = draw_iteration_noise(move, chain.x, dynamics, generator=generator, z=z)
+            chain, accepted = iteration(chain, noise, move, cloud, z, scale)
+            acc_sum[move] = acc_sum[move] + accepted.sum(1)
+            sel_sum[move] = sel_sum[move] + num_chains
+            if hmc is not None and hmc_motion is not None and m % hmc.every == 0:  # eager, also under compile_step
+                x_new, _, acc = hmc_refine(chain.x, chain.log_lik, HMCRefineNoise.draw(chain.x, generator=generator), z,
+                                           log_prior=with_exclusion(ancestor_log_prior(chain.x_prev, hmc_motion),
+                                                                    settings.exclusion, sensor),
+                                           sensor=sensor, motion=hmc_motion, settings=hmc)
+                log_lik, terms = evaluate(x_new, z, sensor)
+                chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
+                hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
+            if adaptive and m <= burn_in:  # adapt during the burn-in only: frozen for the kept samples
+                moments = moments.update(chain.x)
+                if m % adapt_every == 0:
+                    scale = adapted_step(moments.covariance(prior_cov, d + 1.0), x_prev.dtype)
+            if m > burn_in and (m - burn_in) % thinning == 0:
+                kept.append(chain.x)
+                kept_exists.append(chain.exists)
     x = torch.stack(kept, dim=2).reshape(b, n, k, d)  # (B, C, N/C, K, D) -> chain-major (B, N, K, D)
     exists = None if existence is None else torch.stack(kept_exists, dim=2).reshape(b, n, k)
     log_w = x.new_full((b, n), -math.log(n))
