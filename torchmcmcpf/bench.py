@@ -279,11 +279,12 @@ def radar_floor(terms: int, sensor: Any, device: torch.device, dtype: torch.dtyp
                 compiled: bool = True) -> Callable[[], object]:
     """The arithmetic floor of a windowed radar step that evaluates ``terms`` cell terms: what
     no implementation of the windowed likelihood can avoid, one amplitude per (sample, target,
-    box cell), the product of the target's amplitude and its three per-axis profile values,
-    and the sensor's Rician log ratio there (:meth:`RangeDopplerBearingTBD.cell_log_ratio`),
-    summed; compiled (``compiled=True``) into one loop over the terms, built from inputs of a few KB (no memory
-    traffic but the loop's own). Lower than any real step: no neighbours' amplitudes summed
-    into a cell, no ownership of cells shared by two boxes, no gathers of the frame.
+    box cell), the product of the target's amplitude and its profile values (per axis, the
+    last two merged as the library lays a box out), and the sensor's Rician log ratio there
+    (:meth:`RangeDopplerBearingTBD.cell_log_ratio`), summed; compiled (``compiled=True``)
+    into one loop over the terms, built from inputs of a few KB (no memory traffic but the
+    loop's own). Lower than any real step: no neighbours' amplitudes summed into a cell, no
+    ownership of cells shared by two boxes, no gathers of the frame.
 
     ``terms``: ``N K (2w + 1)^3`` for the SIR step (every particle's K boxes of ``(2w+1)^3``
     cells, ``w = sensor.window``); ``B (burn_in + N / C) C x 2 boxes x 2`` for the
@@ -293,10 +294,13 @@ def radar_floor(terms: int, sensor: Any, device: torch.device, dtype: torch.dtyp
     side = 2 * sensor.window + 1
     box = side ** sensor.n_axes
     g = torch.Generator(device).manual_seed(0)
-    amp = 1.0 + torch.rand((max(terms // box, 1),) + (1,) * sensor.n_axes, generator=g, device=device, dtype=dtype)
-    profiles = [torch.rand(tuple(side if i == a else 1 for i in range(sensor.n_axes + 1)), generator=g, device=device,
-                           dtype=dtype) for a in range(1, sensor.n_axes + 1)]
-    zc = 3.0 * torch.rand((1,) + (side,) * sensor.n_axes, generator=g, device=device, dtype=dtype)
+    # the boxes' cells in the library's layout: the last two axes merged (an innermost loop of
+    # 49, which vectorises; one of 7 does not), so each term is amp * p_first * p_merged
+    layout = (side,) * (sensor.n_axes - 2) + (side * side,) if sensor.n_axes >= 2 else (side,)
+    amp = 1.0 + torch.rand((max(terms // box, 1),) + (1,) * len(layout), generator=g, device=device, dtype=dtype)
+    profiles = [torch.rand((1,) + tuple(w if i == a else 1 for i in range(len(layout))), generator=g, device=device,
+                           dtype=dtype) for a, w in enumerate(layout)]
+    zc = 3.0 * torch.rand((1,) + layout, generator=g, device=device, dtype=dtype)
 
     def kernel(amp: torch.Tensor, zc: torch.Tensor, *profiles: torch.Tensor) -> torch.Tensor:
         a = amp
