@@ -286,17 +286,17 @@ def radar_floor(terms: int, sensor: Any, device: torch.device, dtype: torch.dtyp
     loop's own). Lower than any real step: no neighbours' amplitudes summed into a cell, no
     ownership of cells shared by two boxes, no gathers of the frame.
 
-    ``terms``: ``N K (2w + 1)^3`` for the SIR step (every particle's K boxes of ``(2w+1)^3``
-    cells, ``w = sensor.window``); ``B (burn_in + N / C) C x 2 boxes x 2`` for the
+    ``terms``: ``N K V`` for the SIR step (every particle's K boxes of ``V =
+    prod(geometry.window_sizes)`` cells, 7^3 for the radar); ``B (burn_in + N / C) C x 2 boxes x 2 x V`` for the
     IP-MCMC-PF's one-slot moves (the old and the new box, the cells' log ratio before and
     after the move).
     """
-    side = 2 * sensor.window + 1
-    box = side ** sensor.n_axes
+    geometry = sensor.geometry
+    box = math.prod(geometry.window_sizes)
     g = torch.Generator(device).manual_seed(0)
-    # the boxes' cells in the library's layout: the last two axes merged (an innermost loop of
-    # 49, which vectorises; one of 7 does not), so each term is amp * p_first * p_merged
-    layout = (side,) * (sensor.n_axes - 2) + (side * side,) if sensor.n_axes >= 2 else (side,)
+    # the boxes' cells in the library's layout (GridGeometry.box_cells: the last two axes merged,
+    # an innermost loop of 49, which vectorises; one of 7 does not): amp * p_first * p_merged
+    layout = tuple(geometry.box_cells)
     amp = 1.0 + torch.rand((max(terms // box, 1),) + (1,) * len(layout), generator=g, device=device, dtype=dtype)
     profiles = [torch.rand((1,) + tuple(w if i == a else 1 for i in range(len(layout))), generator=g, device=device,
                            dtype=dtype) for a, w in enumerate(layout)]
@@ -514,7 +514,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
         f"{', CPU allocator tuned' if allocator_tuned else ''}"
         f"{', quick sizes' if quick else ''}")
     sensor = radar_problem(1, k, 1, dev)[0].sensor
-    box = (2 * sensor.window + 1) ** sensor.n_axes
+    box = math.prod(sensor.geometry.window_sizes)  # cells per box
 
     def radar(name: str, step: Callable[[], object], params: dict, repeats: int, terms: int,
               target_s: float | None = None, note: str = "") -> None:

@@ -168,7 +168,7 @@ def _first_on_cuda(args: tuple) -> bool:
 
 def _signature(args: tuple) -> tuple:
     """The properties of ``args`` that a compiled program's graph depends on, as far as
-    :meth:`Program.repeating` checks them: shape, dtype and device of each tensor argument
+    :func:`repeating` checks them: shape, dtype and device of each tensor argument
     and of the tensors in tuple arguments, one level down; scalars by value, anything else
     (deeper tuples) by its type.
     """
