@@ -445,8 +445,9 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
     """The amplitude cache: equal to the amplitude of the window path (the grid's truncated
     spreads: summing it with the cell log-ratios gives log_likelihood_window); the cached
     delta equals log_likelihood_delta with existence flags (births, deaths, moves of
-    absent slots); after 30 accepted / rejected moves applied in place the cache equals the
-    chains' amplitudes afresh; method="grid" keeps no cache; a cache of the wrong shape is
+    absent slots), and that of two slots moved at once the difference of two window-path
+    evaluations; after 30 accepted / rejected moves of each kind applied in place the cache
+    equals the chains' amplitudes afresh; method="grid" keeps no cache; a cache of the wrong shape is
     refused by name."""
     sens = small_sensor()
     g = torch.Generator().manual_seed(16)
@@ -471,6 +472,31 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
         here = (torch.arange(3) == slot[..., None]) & accepted[..., None]
         y = torch.where(here[..., None], x_n[..., None, :], y)
         exists = torch.where(here, e_n[..., None], exists)
+    torch.testing.assert_close(cache, sens.amplitude_cache(y, exists), rtol=0, atol=1e-12)
+    # two slots at once (the IP-MCMC-PF's two-slot move): boxes that overlap each other and the
+    # other slot's, each cell counted once, against two evaluations of the window path
+    overlaps = 0
+    for _ in range(30):
+        first = torch.randint(3, (1, 3, 4), generator=g)
+        pair = torch.stack([first, (first + torch.randint(1, 3, (1, 3, 4), generator=g)) % 3], -1)
+        x_n = particles_near(xt, 12, g, pos=10.0)[:, :, :2].reshape(1, 3, 4, 2, 5)
+        e_n = torch.rand(1, 3, 4, 2, generator=g) < 0.6
+        delta, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, pair, z, exists, e_n)
+        assert cells.shape == change.shape == (1, 3, 4, 4) + sens.box_cells()
+        here = torch.arange(3) == pair[..., None]  # (1, 3, 4, 2, 3)
+        y_new = torch.where(here[..., 0, :, None], x_n[..., 0, None, :], y)
+        y_new = torch.where(here[..., 1, :, None], x_n[..., 1, None, :], y_new)
+        e_new = torch.where(here[..., 0, :], e_n[..., :1], exists)
+        e_new = torch.where(here[..., 1, :], e_n[..., 1:], e_new)
+        torch.testing.assert_close(delta, sens.log_likelihood_window(y_new, z, e_new)
+                                   - sens.log_likelihood_window(y, z, exists), rtol=1e-10, atol=1e-9)
+        flat = cells.reshape(12, 2, -1)  # per sample: the cells of slot 1's boxes, of slot 2's
+        overlaps += sum(bool(torch.isin(flat[i, 0], flat[i, 1]).any()) for i in range(12))
+        accepted = torch.rand(1, 3, 4, generator=g) < 0.5
+        sens.update_amplitude_cache(cache, cells, change, accepted)
+        y = torch.where(accepted[..., None, None], y_new, y)
+        exists = torch.where(accepted[..., None], e_new, exists)
+    assert overlaps > 10  # the case that needs the boxes' cells counted once is exercised
     torch.testing.assert_close(cache, sens.amplitude_cache(y, exists), rtol=0, atol=1e-12)
     assert small_sensor(method="grid").amplitude_cache(y) is None
     with pytest.raises(ValueError, match=r"cache has shape \(1, 3, 4, 10\)"):

@@ -189,16 +189,15 @@ def exchange_iteration(
     ``M`` slots (module docstring), with or without births and deaths, exclusion and
     re-capture (one code path: the slots are propagated by ``dynamics``).
 
-    The proposal is scored by the declared hook :meth:`SensorModel.log_likelihood_slot`,
-    slot after slot: a sensor that overrides ``log_likelihood_delta`` (e.g.
-    :class:`~torchmcmcpf.models.sensors.grid.SeparableGridSensor`) gives each ratio from the
+    With the chains' ``amplitude`` cache the proposal's ratio is
+    :meth:`SensorModel.log_likelihood_delta_cached` of all ``M`` moved slots at once (the
+    amplitudes at their old and new boxes read, not summed from the neighbours' spreads; a
+    cell the boxes share counted once), and the cache's change is returned: the iteration is
+    pure, and :func:`with_accepted_amplitudes` advances the cache for the accepted moves.
+    Without a cache it is scored by the declared hook :meth:`SensorModel.log_likelihood_slot`,
+    slot after slot: a sensor that overrides ``log_likelihood_delta`` gives each ratio from the
     cells near the old and new position of the slot only, carried as ``log_lik + delta``; any
-    other sensor scores the whole proposal with ``log_likelihood``. With the chains'
-    ``amplitude`` cache a one-slot move's ratio is
-    :meth:`SensorModel.log_likelihood_delta_cached` instead (the boxes' amplitudes read, not
-    summed from the neighbours' spreads), and the cache's change (both slots' for a two-slot
-    move, :meth:`SensorModel.amplitude_change`) is returned: the iteration is pure, and
-    :func:`with_accepted_amplitudes` advances the cache for the accepted moves.
+    other sensor scores the whole proposal with ``log_likelihood``.
 
     Parameters
     ----------
@@ -241,22 +240,17 @@ def exchange_iteration(
 
     cur_y, cur_e, cur_r, cur_kind, cur_ll = y, exists, log_r, kind, log_lik
     log_prior = torch.zeros_like(log_lik)
-    cells, changes = [], []
+    update = None
+    if cache is not None:  # every moved slot at once, each cell of their boxes counted once
+        delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
+                                                                  exists_n=e_new)
+        cur_ll, update = log_lik + delta, (cells, change)
     for j in range(m):  # M = 1 or 2, static: the moved slots one after the other
         slot = noise.slot[..., j]  # (B, C)
         here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
         x_n, e_n = moved[:, :, j], None if e_new is None else e_new[:, :, j]
-        if cache is not None and m == 1:
-            delta, cell, change = sensor.log_likelihood_delta_cached(cache, cur_y, x_n, slot, z, exists=cur_e,
-                                                                     exists_n=e_n)
-            ll = cur_ll + delta
-        else:
-            ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
-            if cache is not None:
-                cell, change = sensor.amplitude_change(cur_y, x_n, slot, cur_e, e_n)
-        if cache is not None:
-            cells.append(cell)
-            changes.append(change)
+        if cache is None:
+            cur_ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
         log_prior = log_prior + exclusion_change(exclusion, sensor, cur_y, x_n, slot, cur_e, e_n)
         if cur_r is not None:
             k_old = None if cur_kind is None else torch.where(here, cur_kind, 0).sum(-1).to(torch.int8)
@@ -269,10 +263,8 @@ def exchange_iteration(
         cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
         if cur_e is not None and e_n is not None:
             cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
-        cur_ll = ll
     accepted = mh_accept(cur_ll - log_lik + log_prior, noise.u)
     if noise.valid is not None:
         accepted = accepted & noise.valid
-    update = None if cache is None else (torch.cat(cells, 2), torch.cat(changes, 2))
     new = mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind), (y, log_lik, exists, log_r, kind))
     return ExchangeChains(*new), accepted, update

@@ -206,17 +206,10 @@ class SensorModel(nn.Module, Generic[Z]):
                                     exists: Tensor | None = None, exists_n: Tensor | None = None
                                     ) -> tuple[Tensor, Tensor, Tensor]:
         """:meth:`log_likelihood_delta` read from :meth:`amplitude_cache`, with the cache's
-        change: ``(delta (B, *S), cells, change)`` for :meth:`update_amplitude_cache`. Only
+        change: ``(delta (B, *S), cells, change)`` for :meth:`update_amplitude_cache`; one
+        slot (``x_n (B, *S, D)``, ``n`` broadcastable to ``(B, *S)``) or ``M`` distinct slots
+        moved at once (``x_n (B, *S, M, D)``, ``n`` and ``exists_n`` ``(B, *S, M)``). Only
         sensors whose :meth:`amplitude_cache` is not ``None`` implement it.
-        """
-        raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
-
-    def amplitude_change(self, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None = None,
-                         exists_n: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Where and by how much a one-slot move changes :meth:`amplitude_cache`: ``(cells,
-        change)`` for :meth:`update_amplitude_cache` (arguments as
-        :meth:`log_likelihood_delta`). Only sensors whose :meth:`amplitude_cache` is not
-        ``None`` implement it.
         """
         raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
 

@@ -1,9 +1,9 @@
 """The chain cache of the grid sensors: each chain's amplitude per cell (truncated spreads, as
-the windowed path), so that a one-slot move reads the amplitudes at its two boxes instead of
-summing the neighbours' spreads there, and the change a move makes to them.
+the windowed path), so that a move of one slot (or of M slots) reads the amplitudes at its two
+(2M) boxes instead of summing the neighbours' spreads there, and the change a move makes to them.
 
 The cache is a field of the chains' state (:class:`~torchmcmcpf.kernels.exchange.ExchangeChains`,
-``amplitude``): made once at the start of a step (:func:`amplitude_cache`), read by the move
+``amplitude``): made once at the start of a step (:func:`amplitude_cache`), read by a move
 (:func:`log_likelihood_delta_cached`, which also returns the move's change) and advanced for
 the accepted moves by :func:`add_accepted_changes`, the one place where it changes.
 """
@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING
 import torch
 
 from ....typing import Tensor
-from .delta import new_box_in_old
 from .inputs import check_inputs, check_move, check_state, flat_inputs
 from .slots import truncated_amplitude
 from .spread import neighbour_profiles, outer_sum
@@ -24,7 +23,7 @@ from .spread import neighbour_profiles, outer_sum
 if TYPE_CHECKING:
     from .sensor import SeparableGridSensor
 
-__all__ = ["amplitude_cache", "log_likelihood_delta_cached", "amplitude_change", "add_accepted_changes"]
+__all__ = ["amplitude_cache", "log_likelihood_delta_cached", "add_accepted_changes"]
 
 
 def amplitude_cache(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None = None) -> Tensor:
@@ -39,7 +38,9 @@ def amplitude_cache(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | Non
 def log_likelihood_delta_cached(sensor: SeparableGridSensor, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor,
                                 z: Tensor, exists: Tensor | None = None, exists_n: Tensor | None = None
                                 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The one-slot change read from the cache: ``(delta (B, *S), cells, change)``."""
+    """The change of a move of one slot or of ``M`` slots read from the cache: ``(delta (B,
+    *S), cells, change)`` (:meth:`~.sensor.SeparableGridSensor.log_likelihood_delta_cached`).
+    """
     B = x.shape[0]
     check_inputs(sensor, x, z, exists)
     S = tuple(x.shape[1:-2])
@@ -47,7 +48,7 @@ def log_likelihood_delta_cached(sensor: SeparableGridSensor, cache: Tensor, x: T
     if tuple(cache.shape) != (B,) + S + (G,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
     cells, change, firsts = _change(sensor, x, x_n, n, exists, exists_n)
-    A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2, *V)
+    A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
     zw = sensor.geometry.gather_cells(sensor.prepare_frame(z.to(x.dtype)), firsts, sensor.box_offsets)
     # round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0
     diff = sensor.cell_log_ratio((A + change).clamp_min(0.0), zw) - sensor.cell_log_ratio(A.clamp_min(0.0), zw)
@@ -56,42 +57,43 @@ def log_likelihood_delta_cached(sensor: SeparableGridSensor, cache: Tensor, x: T
         change.reshape((B,) + S + change.shape[2:])
 
 
-def amplitude_change(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None = None,
-                     exists_n: Tensor | None = None) -> tuple[Tensor, Tensor]:
-    """Where and by how much slot ``n``'s move changes the cache: ``(cells, change)``."""
-    check_state(sensor, x, exists)
-    cells, change, _ = _change(sensor, x, x_n, n, exists, exists_n)
-    lead = tuple(x.shape[:-2])
-    return cells.reshape(lead + cells.shape[2:]), change.reshape(lead + change.shape[2:])
-
-
 def _change(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
             exists_n: Tensor | None) -> tuple[Tensor, Tensor, list[Tensor]]:
-    """:func:`amplitude_change` flat over the samples ``(B, P, 2, *V)``, and the boxes' first
-    cells ``firsts[a] (B, P, 2)``.
+    """Where and by how much the move changes the cache, flat over the samples: ``cells,
+    change (B, P, 2M, *V)`` over the boxes old, new of the first moved slot, then of the next
+    (``change`` 0 at the cells an earlier box holds, so that each cell changes once), and the
+    boxes' first cells ``firsts[a] (B, P, 2M)``.
     """
     B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
-    check_move(x, x_n, exists_n)
     S = tuple(x.shape[1:-2])
     P = math.prod(S)
+    check_move(x, x_n, exists_n)
+    many = x_n.dim() == x.dim()  # (B, *S, M, D): M slots, else one (B, *S, D)
+    M = x_n.shape[-2] if many else 1
     geometry = sensor.geometry
-    slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S).reshape(B, P, 1)
+    slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S + ((M,) if many else ())).reshape(B, P, M)
     xf = x.reshape(B, P, K, D)
     e = torch.ones_like(xf[..., 0]) if exists is None else exists.reshape(B, P, K).to(x.dtype)
-    e_old = torch.take_along_dim(e, slot, 2)  # (B, P, 1)
-    e_new = e_old if exists_n is None else exists_n.reshape(B, P, 1).to(x.dtype)
-    moved = torch.cat([torch.take_along_dim(xf, slot[..., None], 2), x_n.reshape(B, P, 1, D)], 2)  # (B, P, 2, D)
-    u = sensor.measurement_coords(moved)  # (B, P, 2, n): slot n before and after
-    s = sensor.signal(moved) * torch.cat([e_old, e_new], -1)  # (B, P, 2)
-    firsts = geometry.box_firsts(u)  # (B, P, 2): old, new box
-    index = torch.arange(2, device=x.device).expand(B, P, 2, 2)
-    factors, indicators = neighbour_profiles(geometry, firsts, u, firsts, index)  # (B, P, 2 box, 2 spread, W)
-    change = outer_sum(torch.stack([-s[..., 0], s[..., 1]], -1)[:, :, None], factors)  # (B, P, 2, *V)
-    V = geometry.box_cells
-    both = new_box_in_old(indicators, 0, s[..., :1])  # (B, P, *V)
-    once = torch.stack([torch.ones_like(both), 1.0 - both], 2)  # (B, P, 2, *V)
-    rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(V))) * geometry.num_cells
-    return geometry.flat_cells(firsts, sensor.box_offsets) + rows, change * once, firsts
+    e_old = torch.take_along_dim(e, slot, 2)  # (B, P, M)
+    e_new = e_old if exists_n is None else exists_n.reshape(B, P, M).to(x.dtype)
+    # the 2M spreads (and boxes): slot 0 before, after, slot 1 before, after, ...
+    moved = torch.stack([torch.take_along_dim(xf, slot[..., None], 2), x_n.reshape(B, P, M, D)], 3)
+    moved = moved.reshape(B, P, 2 * M, D)
+    u = sensor.measurement_coords(moved)  # (B, P, 2M, n)
+    s = sensor.signal(moved) * torch.stack([-e_old, e_new], -1).reshape(B, P, 2 * M)  # signed: - old, + new
+    firsts = geometry.box_firsts(u)  # (B, P, 2M)
+    index = torch.arange(2 * M, device=x.device).expand(B, P, 2 * M, 2 * M)
+    factors, indicators = neighbour_profiles(geometry, firsts, u, firsts, index)  # (B, P, 2M box, 2M spread, W)
+    change = outer_sum(s[:, :, None], factors)  # (B, P, 2M, *V)
+    # cell t of box q repeats a cell of box j < q iff it lies in box j on every axis
+    once = [torch.ones_like(change[:, :, 0])]
+    for q in range(1, 2 * M):  # 2M boxes, static (2 or 4)
+        seen = [outer_sum(torch.ones_like(s[..., :1]), [f[:, :, q, j][..., None, :] for f in indicators])
+                for j in range(q)]
+        once.append((torch.stack(seen).sum(0) == 0).to(change.dtype))
+    rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(geometry.box_cells))) \
+        * geometry.num_cells
+    return geometry.flat_cells(firsts, sensor.box_offsets) + rows, change * torch.stack(once, 2), firsts
 
 
 def add_accepted_changes(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:

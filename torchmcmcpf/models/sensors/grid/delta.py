@@ -28,6 +28,9 @@ def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n:
     or the difference of two whole-grid evaluations with ``method="grid"``.
     """
     check_inputs(sensor, x, z, exists)
+    if x_n.dim() != x.dim() - 1:
+        raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {tuple(x.shape[:-2]) + (x.shape[-1],)}: one "
+                         "slot (log_likelihood_delta_cached moves several)")
     check_move(x, x_n, exists_n)
     B, K = x.shape[0], x.shape[-2]
     S = tuple(x.shape[1:-2])

@@ -37,15 +37,17 @@ def check_inputs(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tens
 
 
 def check_move(x: Tensor, x_n: Tensor, exists_n: Tensor | None) -> None:
-    """Shapes of a one-slot move: ``x_n (B, *S, D)`` and ``exists_n (B, *S)`` against
-    ``x (B, *S, K, D)``.
+    """Shapes of a move against ``x (B, *S, K, D)``: of one slot, ``x_n (B, *S, D)`` and
+    ``exists_n (B, *S)``; of ``M <= K`` slots, ``x_n (B, *S, M, D)`` and ``exists_n (B, *S, M)``.
     """
-    lead = tuple(x.shape[:-2])
-    if tuple(x_n.shape) != lead + (x.shape[-1],):
-        raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {lead + (x.shape[-1],)} to match x "
-                         f"{tuple(x.shape)}")
-    if exists_n is not None and tuple(exists_n.shape) != lead:
-        raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {lead}")
+    lead, D = tuple(x.shape[:-2]), x.shape[-1]
+    many = x_n.dim() == x.dim() and 1 <= x_n.shape[-2] <= x.shape[-2]
+    moved = lead + ((x_n.shape[-2],) if many else ())
+    if tuple(x_n.shape) != moved + (D,):
+        raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {lead + (D,)} (one slot) or "
+                         f"{lead + ('M', D)} (M <= {x.shape[-2]} slots) to match x {tuple(x.shape)}")
+    if exists_n is not None and tuple(exists_n.shape) != moved:
+        raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {moved}")
 
 
 def flat_inputs(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:

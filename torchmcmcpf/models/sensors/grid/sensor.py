@@ -350,41 +350,34 @@ class SeparableGridSensor(SensorModel[Tensor]):
         exists: Tensor | None = None, exists_n: Tensor | None = None,
     ) -> tuple[Tensor, Tensor, Tensor]:
         """:meth:`log_likelihood_delta` read from the samples' amplitudes
-        (:meth:`amplitude_cache`) instead of summing the neighbours' spreads: the cells of
-        slot ``n``'s old and new box hold ``A`` (gathered) and ``A'`` = ``A`` minus the old
-        spread plus the new one, so a move costs ``2 * prod(W_a)`` cells with two cell
-        log-ratios each, whatever the number of targets nearby. Equal to
-        :meth:`log_likelihood_delta` to round-off (tested).
+        (:meth:`amplitude_cache`) instead of summing the neighbours' spreads, for a move of
+        one slot or of ``M`` distinct slots at once: the cells of each moved slot's old and
+        new box hold ``A`` (gathered) and ``A'`` = ``A`` minus the moved slots' old spreads
+        plus their new ones, each cell of the union of the ``2M`` boxes counted once. A
+        one-slot move costs ``2 * prod(W_a)`` cells with two cell log-ratios each, whatever
+        the number of targets nearby. Equal to :meth:`log_likelihood_delta` (one slot) and to
+        the difference of two :meth:`log_likelihood_window` calls (``M`` slots) to round-off
+        (tested).
 
         Parameters
         ----------
         cache : (B, *S, G) the amplitudes of ``x`` (kept current by
             :meth:`update_amplitude_cache`).
-        x, x_n, n, z, exists, exists_n : as :meth:`log_likelihood_delta`; ``n`` an int64
-            tensor broadcastable to ``(B, *S)``.
+        x, z, exists : as :meth:`log_likelihood_delta`.
+        x_n : (B, *S, D) the new state of slot ``n``, or (B, *S, M, D) those of ``M`` slots.
+        n : int64 tensor broadcastable to (B, *S), or to (B, *S, M) with ``M`` slots
+            (distinct within a sample; values not checked: no device sync).
+        exists_n : (B, *S), or (B, *S, M), optional: the moved slots' new flags.
 
         Returns
         -------
-        delta : (B, *S); cells, change : as :meth:`amplitude_change`.
+        delta : (B, *S) ``log p(z | x with the slots moved) - log p(z | x)``.
+        cells : (B, *S, 2M, *box_cells()) int64, flat indices into the ``(B, *S, G)`` cache of
+            the cells of each moved slot's old and new box; change : the same shape, ``A' - A``
+            there (0 at the cells an earlier box holds, so that each cell changes once), for
+            :meth:`update_amplitude_cache`.
         """
         return amplitudes.log_likelihood_delta_cached(self, cache, x, x_n, n, z, exists, exists_n)
-
-    def amplitude_change(self, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None = None,
-                         exists_n: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Where and by how much slot ``n``'s move changes the samples' amplitudes
-        (:meth:`amplitude_cache`), for :meth:`update_amplitude_cache`.
-
-        Parameters
-        ----------
-        x, x_n, n, exists, exists_n : as :meth:`log_likelihood_delta_cached`.
-
-        Returns
-        -------
-        cells : (B, *S, 2, *box_cells()) int64, flat indices into a ``(B, *S, G)`` cache of
-        the cells of the old and the new box; change : the same shape, ``A' - A`` there (0 at
-        the cells of the new box that the old box holds, so that each cell changes once).
-        """
-        return amplitudes.amplitude_change(self, x, x_n, n, exists, exists_n)
 
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
