@@ -9,7 +9,7 @@ import torch
 from torchmcmcpf.experiments import crossing as crossing_study
 from torchmcmcpf.experiments import soak
 from torchmcmcpf.experiments._options import RunOptions
-from torchmcmcpf.scenarios import crossing
+from torchmcmcpf.scenarios import crossing, ground_radar
 from torchmcmcpf.state import ParticleState, relabel, relabelled_estimate
 from torchmcmcpf.typing import VX, VY, X, Y
 
@@ -141,6 +141,19 @@ def test_soak_study_quick(tmp_path):
     floor = payload["results"]["fixed_floor"]
     assert floor["per_run"].shape == (1,) and 0 < floor["all"] < 20  # metres, 3 targets, quick
     assert "birth-death" in soak.STUDY.summary(payload) and "floor" in soak.STUDY.summary(payload)
+    assert "filters' q = 1," in soak.STUDY.summary(payload)
+
+
+def test_soak_q_sets_the_filters_motion_and_refuses_a_bad_value(gen):
+    """--q is the filters' acceleration noise on the fixed scene (the truth stays noise-free)."""
+    scn = ground_radar(2, 3, 1, generator=gen, q=0.01)
+    assert scn.motion.q == 0.01
+    same = ground_radar(2, 3, 1, generator=torch.Generator().manual_seed(0))
+    again = ground_radar(2, 3, 1, generator=torch.Generator().manual_seed(0), q=0.01)
+    torch.testing.assert_close(same.truth, again.truth, rtol=0, atol=0)  # the truth does not depend on q
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="argument --q"):
+            soak.STUDY.settings(q=bad)
 
 
 @pytest.mark.parametrize("moved_share", [0.3, 0.7])

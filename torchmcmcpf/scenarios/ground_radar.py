@@ -79,6 +79,7 @@ def ground_radar(
     bearing_limits_deg: tuple[float, float] = (-6.0, 6.0),
     speed_limits: tuple[float, float] = (0.0, 15.0),
     noise_std: float = 1.0,
+    q: float = 1.0,
     amplitude_q: float = 0.01,
     point_spread: str = "std",
     device: str | torch.device | None = None,
@@ -101,6 +102,8 @@ def ground_radar(
     range_limits, bearing_limits_deg, speed_limits : the uniform laws of ``r0`` [m],
         ``b0`` [deg] and ``|v0|`` [m/s] (Table I by default).
     noise_std : sigma, per real and imaginary component of the complex noise.
+    q : acceleration noise level of the filters' motion model (eqs. 15-17; the truth has
+        none).
     amplitude_q : amplitude random-walk level of the filters' motion model.
     point_spread : the reading of ``R, D, B`` in eq. 20 (the data are simulated, and the
         filters score, with the same one). ``"std"`` (default): standard deviations equal to
@@ -159,7 +162,7 @@ def ground_radar(
         noise_std=noise_std,
         **spread,
     ).to(device)
-    motion = ConstantVelocity(dt, q=1.0, amplitude_q=amplitude_q).to(device=device, dtype=dtype)
+    motion = ConstantVelocity(dt, q=q, amplitude_q=amplitude_q).to(device=device, dtype=dtype)
 
     # Initial conditions (Table I), one draw per target and run.
     u = torch.rand((5, b, k), generator=generator, device=device, dtype=dtype)
