@@ -129,26 +129,39 @@ def test_radar_data_driven_density_is_what_it_draws(gen):
 
 
 @pytest.mark.parametrize("shape", [(2, 7), (2, 5, 1), (3, 9, 4, 6), (1, 2, 1, 4)])
-def test_peak_pooling_is_atens_pooling_one_axis_at_a_time(gen, shape):
-    """The data-driven proposal's 3^n neighbourhoods (``grid.data._pool``): the max equals
-    ATen's max pooling exactly, the mean its average pooling (zero padding counted) to
-    round-off, on grids with axes of 1 to 9 cells (ATen refuses axes shorter than 3).
+@pytest.mark.parametrize("radius", [1, 2])
+def test_neighbourhood_is_atens_pooling_one_axis_at_a_time(gen, shape, radius):
+    """``models.base.neighbourhood`` (the grid sensors' peaks and centroids, the group
+    filter's pixels near a detection): the max equals ATen's max pooling exactly, the mean its
+    average pooling (zero padding counted) to round-off, on grids with axes of 1 to 9 cells
+    (padded first: ATen refuses axes shorter than the window) and over the last axes only;
+    bad arguments are refused by name.
     """
     import torch.nn.functional as F
 
-    from torchmcmcpf.models.sensors.grid.data import _pool
+    from torchmcmcpf.models.base import neighbourhood
 
     t = torch.rand(shape, generator=gen, dtype=DT)
     n = len(shape) - 1
-    pad = [(0, 0)] + [(1, 1)] * n  # so that ATen accepts the short axes: the padding is what _pool assumes
-    padded = {r: torch.nn.functional.pad(t, [p for lo_hi in reversed(pad[1:]) for p in lo_hi], value=v)
-              for r, v in (("max", float("-inf")), ("mean", 0.0))}
+    width = [radius] * (2 * n)  # the padding neighbourhood assumes, for every pooled axis
+    padded = {r: F.pad(t, width, value=v) for r, v in (("max", float("-inf")), ("mean", 0.0))}
     pools = {1: (F.max_pool1d, F.avg_pool1d), 2: (F.max_pool2d, F.avg_pool2d), 3: (F.max_pool3d, F.avg_pool3d)}[n]
-    assert torch.equal(_pool(t, "max"), pools[0](padded["max"].unsqueeze(1), 3, stride=1).squeeze(1))
-    torch.testing.assert_close(_pool(t, "mean"), pools[1](padded["mean"].unsqueeze(1), 3, stride=1).squeeze(1),
+    size = 2 * radius + 1
+    assert torch.equal(neighbourhood(t, "max", n, radius),
+                       pools[0](padded["max"].unsqueeze(1), size, stride=1).squeeze(1))
+    torch.testing.assert_close(neighbourhood(t, "mean", n, radius),
+                               pools[1](padded["mean"].unsqueeze(1), size, stride=1).squeeze(1),
                                rtol=1e-12, atol=1e-14)
-    with pytest.raises(ValueError, match="grid axis"):
-        _pool(t[0, 0, 0] if n == 3 else t.flatten()[0], "max")
+    if n >= 2:  # the leading axes are not pooled
+        last = neighbourhood(t, "max", 1, radius)
+        assert torch.equal(last, F.max_pool1d(F.pad(t, [radius, radius], value=float("-inf")).flatten(0, -2)
+                                              .unsqueeze(1), size, stride=1).reshape(t.shape))
+    with pytest.raises(ValueError, match="reduce must be"):
+        neighbourhood(t, "sum", n)
+    with pytest.raises(ValueError, match="axes="):
+        neighbourhood(t, "max", t.dim() + 1)
+    with pytest.raises(ValueError, match="radius=0"):
+        neighbourhood(t, "max", n, 0)
 
 
 def test_point_data_driven_density_is_what_it_draws(gen):

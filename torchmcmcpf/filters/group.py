@@ -149,6 +149,7 @@ import torch.nn.functional as F
 from torch.utils._pytree import tree_map
 
 from .._validation import check_positive, check_positive_int, check_shape
+from ..models.base import neighbourhood
 from ..models.group import (
     GroupExistence,
     GroupStructurePrior,
@@ -1101,8 +1102,7 @@ def _near(frames: Tensor, radius: int) -> Tensor:
     """Pixels within ``radius`` pixels (a square) of a detection of the binary ``frames (*S, H,
     W)``: ``-> (*S, H, W)`` bool.
     """
-    x = frames.to(torch.float64).reshape((-1, 1) + frames.shape[-2:])
-    return F.max_pool2d(x, 2 * radius + 1, stride=1, padding=radius).reshape(frames.shape) > 0
+    return neighbourhood(frames.to(torch.float32), "max", 2, radius) > 0
 
 
 def _uniform_cdf(mask: Tensor) -> Tensor:

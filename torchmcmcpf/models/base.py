@@ -64,6 +64,44 @@ def squared_norm(v: Tensor) -> Tensor:
     return out
 
 
+def neighbourhood(t: Tensor, reduce: str, axes: int, radius: int = 1) -> Tensor:
+    """Every cell of the last ``axes`` axes of ``t (*L, *G)`` reduced over its neighbourhood
+    of ``2 radius + 1`` cells along each (stride 1, same shape): ``"max"`` (cells beyond the
+    grid count as ``-inf``) or ``"mean"`` (as 0, divided by ``(2 radius + 1)^axes``: average
+    pooling with ``count_include_pad``). One axis at a time (both reductions separate), so
+    ``axes`` passes over ``2 radius + 1`` shifted copies replace the ``(2 radius + 1)^axes``
+    reads of ATen's pooling (whose CPU ``max_pool3d`` took 4 ms of a 61,248-cell radar frame,
+    the separable form 0.5). The grid sensors' peaks and centroids and the group filter's
+    pixels near a detection.
+    """
+    if reduce not in ("max", "mean"):
+        raise ValueError(f"reduce must be 'max' or 'mean', got {reduce!r}")
+    if not 1 <= axes <= t.dim() or radius < 1:
+        raise ValueError(f"expected 1 <= axes <= t.dim() = {t.dim()} and radius >= 1, got axes={axes}, "
+                         f"radius={radius}")
+    fill = float("-inf") if reduce == "max" else 0.0
+    for axis in range(t.dim() - axes, t.dim()):
+        size = t.shape[axis]
+        edge = torch.full_like(t.narrow(axis, 0, 1), fill).expand(
+            t.shape[:axis] + (min(radius, size),) + t.shape[axis + 1:])
+
+        def shifted(by: int, t: Tensor = t, axis: int = axis, size: int = size, edge: Tensor = edge) -> Tensor:
+            """``t`` moved by ``by`` cells along ``axis`` (entry i holds cell i + by), filled."""
+            if by == 0:
+                return t
+            keep = max(size - abs(by), 0)
+            pad = edge.narrow(axis, 0, min(abs(by), size))
+            if by < 0:
+                return torch.cat([pad, t.narrow(axis, 0, keep)], axis)
+            return torch.cat([t.narrow(axis, size - keep, keep), pad], axis)
+
+        out = shifted(-radius)
+        for by in range(-radius + 1, radius + 1):  # the 2 radius + 1 cells of one axis, in order
+            out = torch.maximum(out, shifted(by)) if reduce == "max" else out + shifted(by)
+        t = out if reduce == "max" else out / float(2 * radius + 1)
+    return t
+
+
 #: id(M) -> (weak reference to M, its version, g, I_g (x) M^T): the block matrices of
 #: :func:`linear_map`, built once per model matrix in eager code
 _BLOCKS: dict[int, tuple] = {}

@@ -12,37 +12,19 @@ import torch
 
 from ....resampling import cdf, inverse_cdf
 from ....typing import Tensor
+from ...base import neighbourhood
 
 if TYPE_CHECKING:
     from .sensor import SeparableGridSensor
 
 __all__ = ["peaks", "detections", "log_data_density", "sample_from_data"]
 
-def _pool(t: Tensor, reduce: str) -> Tensor:
-    """The ``3^n`` neighbourhood of every cell of ``t (B, *G)`` (stride 1, same shape) reduced
-    by ``"max"`` (cells beyond the grid count as ``-inf``) or ``"mean"`` (as 0, divided by
-    ``3^n``: average pooling with ``count_include_pad``), one axis at a time: both separate,
-    so n passes over three neighbours replace the ``3^n`` reads of ATen's pooling (whose CPU
-    ``max_pool3d`` took 4 ms of a 61,248-cell radar frame).
-    """
-    if t.dim() < 2:
-        raise ValueError(f"t must be (B, *G) with at least one grid axis, got shape {tuple(t.shape)}")
-    fill = float("-inf") if reduce == "max" else 0.0
-    for axis in range(1, t.dim()):
-        size = t.shape[axis]
-        edge = torch.full_like(t.narrow(axis, 0, 1), fill)
-        before = torch.cat([edge, t.narrow(axis, 0, size - 1)], axis)  # the neighbour at index - 1
-        after = torch.cat([t.narrow(axis, 1, size - 1), edge], axis)  # at index + 1
-        t = torch.maximum(torch.maximum(before, t), after) if reduce == "max" else (before + t + after) / 3.0
-    return t
-
-
 def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
     """Local maxima of the detection statistic over their ``3^n`` neighbourhood above the
     threshold: ``(B, *G)`` bool.
     """
     stat = sensor.detection_statistic(z)
-    return (stat >= _pool(stat, "max")) & (stat > sensor.detection_threshold)
+    return (stat >= neighbourhood(stat, "max", sensor.n_axes)) & (stat > sensor.detection_threshold)
 
 
 def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
@@ -51,10 +33,10 @@ def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
     """
     geometry = sensor.geometry
     stat = sensor.detection_statistic(z)
-    peak = (stat >= _pool(stat, "max")) & (stat > sensor.detection_threshold)
+    peak = (stat >= neighbourhood(stat, "max", sensor.n_axes)) & (stat > sensor.detection_threshold)
     B, G = stat.shape[0], geometry.num_cells
     weight = (stat - 1.0).clamp(min=0.0)  # above the noise mean (1)
-    norm = _pool(weight, "mean").reshape(B, G)
+    norm = neighbourhood(weight, "mean", sensor.n_axes).reshape(B, G)
     P = min(sensor.max_peaks, G)
     top, at = torch.topk(torch.where(peak, stat, float("-inf")).reshape(B, G), P, dim=-1)
     mask = torch.isfinite(top)
@@ -64,7 +46,7 @@ def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
         shape[1 + a] = geometry.frame_shape[a]
         coord = (geometry.origins[a] + geometry.cell_sizes[a] * torch.arange(
             geometry.frame_shape[a], device=z.device, dtype=stat.dtype)).reshape(shape)
-        moment = _pool(weight * coord, "mean").reshape(B, G)
+        moment = neighbourhood(weight * coord, "mean", sensor.n_axes).reshape(B, G)
         centres.append(torch.take_along_dim(moment / norm.clamp(min=1e-30), at, -1))
     return torch.stack(centres, -1), mask
 
