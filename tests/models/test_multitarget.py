@@ -1,5 +1,6 @@
 """The multitarget prior's terms (models/multitarget.py) and the sensor hooks they use."""
 
+import itertools
 import math
 
 import pytest
@@ -126,6 +127,32 @@ def test_radar_data_driven_density_is_what_it_draws(gen):
     # place is eq. 21 inverted: a state placed at its own coordinates is unchanged
     x = scn.truth[0]
     torch.testing.assert_close(sensor.place(x, sensor.measurement_coords(x)), x)
+
+
+def test_detections_are_the_centroids_of_each_peaks_neighbourhood(gen):
+    """A peak's centre is the centroid of the statistic above the noise mean over its 3^n
+    neighbourhood (cells beyond the grid weigh nothing), checked cell by cell against a
+    Python loop, with peaks in a corner and on an edge of the grid; padding is masked."""
+    sensor = ground_radar(2, 2, 1, generator=gen, dtype=DT).sensor
+    shape = sensor.frame_shape
+    stat = torch.rand((2,) + shape, generator=gen, dtype=DT) * 2.0  # noise: below the threshold
+    planted = [(0, (0, 0, 0)), (0, (5, shape[1] - 1, 7)), (1, (shape[0] - 1, 3, shape[2] - 1)), (1, (9, 9, 9))]
+    for b, cell in planted:
+        stat[(b,) + cell] = 30.0 + 10 * torch.rand((), generator=gen, dtype=DT)
+    z = stat * sensor.detection_statistic(torch.ones((1,) + shape, dtype=DT)).reciprocal()  # the frame giving stat
+    torch.testing.assert_close(sensor.detection_statistic(z), stat)
+    centres, mask = sensor.detections(z)
+    assert mask.sum(-1).tolist() == [2, 2]
+    for b, cell in planted:
+        num, den = torch.zeros(3, dtype=DT), torch.zeros((), dtype=DT)
+        for off in itertools.product((-1, 0, 1), repeat=3):
+            c = [i + o for i, o in zip(cell, off)]
+            if all(0 <= i < n for i, n in zip(c, shape)):
+                w = (stat[(b,) + tuple(c)] - 1.0).clamp(min=0.0)
+                num += w * torch.tensor([o + d * i for o, d, i in zip(sensor.origins, sensor.cell_sizes, c)], dtype=DT)
+                den += w
+        got = centres[b][mask[b]]
+        assert bool(((got - num / den).abs().amax(-1) < 1e-9).any()), (cell, got, num / den)
 
 
 @pytest.mark.parametrize("shape", [(2, 7), (2, 5, 1), (3, 9, 4, 6), (1, 2, 1, 4)])

@@ -29,25 +29,35 @@ def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
 
 def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
     """The frame's peaks as points: ``centres (B, P, n)`` (the strongest
-    ``P = min(max_peaks, G)``, padded) and ``mask (B, P)``.
+    ``P = min(max_peaks, G)``, padded) and ``mask (B, P)``; a centre is the centroid of the
+    statistic above the noise mean over the peak's ``3^n`` neighbourhood (cells beyond the
+    grid weigh 0), read at the P peaks only (the frame is pooled once, for the peaks).
     """
     geometry = sensor.geometry
+    n, shape = geometry.n_axes, geometry.frame_shape
     stat = sensor.detection_statistic(z)
-    peak = (stat >= neighbourhood(stat, "max", sensor.n_axes)) & (stat > sensor.detection_threshold)
+    peak = (stat >= neighbourhood(stat, "max", n)) & (stat > sensor.detection_threshold)
     B, G = stat.shape[0], geometry.num_cells
-    weight = (stat - 1.0).clamp(min=0.0)  # above the noise mean (1)
-    norm = neighbourhood(weight, "mean", sensor.n_axes).reshape(B, G)
     P = min(sensor.max_peaks, G)
     top, at = torch.topk(torch.where(peak, stat, float("-inf")).reshape(B, G), P, dim=-1)
     mask = torch.isfinite(top)
-    centres = []
-    for a in range(geometry.n_axes):
-        shape = [1] * (geometry.n_axes + 1)
-        shape[1 + a] = geometry.frame_shape[a]
-        coord = (geometry.origins[a] + geometry.cell_sizes[a] * torch.arange(
-            geometry.frame_shape[a], device=z.device, dtype=stat.dtype)).reshape(shape)
-        moment = neighbourhood(weight * coord, "mean", sensor.n_axes).reshape(B, G)
-        centres.append(torch.take_along_dim(moment / norm.clamp(min=1e-30), at, -1))
+    weight = (stat - 1.0).clamp(min=0.0).reshape(B, G)  # above the noise mean (1)
+    # each peak's 3^n neighbours: per axis the cell index - 1, + 0, + 1, broadcast over the others
+    step = torch.arange(-1, 2, device=z.device)
+    index = torch.zeros((), dtype=torch.int64, device=z.device)
+    inside = torch.ones((), dtype=torch.bool, device=z.device)
+    coords: list[Tensor] = []
+    rest = at
+    for a in reversed(range(n)):  # the flat index unravelled, last axis first
+        near = (rest % shape[a]).unsqueeze(-1) + step  # (B, P, 3)
+        rest = rest // shape[a]
+        view = (B, P) + (1,) * a + (3,) + (1,) * (n - 1 - a)
+        inside = inside & ((near >= 0) & (near < shape[a])).reshape(view)
+        index = index + (near.clamp(0, shape[a] - 1) * math.prod(shape[a + 1:])).reshape(view)
+        coords.insert(0, (geometry.origins[a] + geometry.cell_sizes[a] * near.to(stat.dtype)).reshape(view))
+    w = torch.where(inside, torch.take_along_dim(weight, index.reshape(B, P * 3**n), -1).reshape(index.shape), 0.0)
+    norm = w.flatten(2).sum(-1).clamp(min=1e-30)  # (B, P); > 0 at a real peak (its own cell is above 10)
+    centres = [(w * c).flatten(2).sum(-1) / norm for c in coords]
     return torch.stack(centres, -1), mask
 
 
