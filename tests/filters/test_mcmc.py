@@ -208,3 +208,37 @@ def test_mcmc_iteration_refuses_a_move_with_another_moves_noise(gen):
         mcmc_iteration(chain, noise, move="refine", cloud=cloud, z=zs[0], dynamics=dynamics, sensor=sensor)
     with pytest.raises(ValueError, match="move must be one of"):
         draw_iteration_noise("hop", chain.x, dynamics, generator=gen)
+
+
+def test_relocations_are_drawn_in_blocks_and_a_step_uses_them(gen, monkeypatch):
+    """The MCMC-PF draws its step's relocation noise in blocks of iterations (the frame's
+    peaks found once per block): one per iteration, each for the chains' slots (B, C, K),
+    inside the data density's support; None without re-capture. A step with a block of one
+    iteration equals, in law, one with a single block: both keep the tracks (same seed,
+    different draws)."""
+    from torchmcmcpf.models.existence import TargetDynamics
+    from torchmcmcpf.models.multitarget import Recapture
+    from torchmcmcpf.scenarios import ground_radar
+
+    scn = ground_radar(3, 2, 2, generator=gen, snr_db=18.0)
+    z = scn.measurements[0]
+    dyn = TargetDynamics(scn.motion, None, Recapture(), scn.sensor)
+    monkeypatch.setattr(mcmc_module, "RELOCATION_BLOCK", 2 * 4 * 3 * 2)  # two iterations a block
+    drawn = list(mcmc_module.relocations(dyn, (2, 4, 3), 5, z, generator=gen, dtype=torch.float32,
+                                         device=torch.device("cpu")))
+    assert len(drawn) == 5
+    for noise in drawn:
+        assert noise.u.shape == noise.log_ratio.shape == (2, 4, 3) and noise.coords.shape == (2, 4, 3, 3)
+        assert bool(torch.isfinite(noise.log_ratio).all())
+    assert not torch.equal(drawn[0].coords, drawn[1].coords)  # each iteration its own draw
+    plain = TargetDynamics(scn.motion, None, None, scn.sensor)
+    assert list(mcmc_module.relocations(plain, (2, 4, 3), 3, z, generator=gen, dtype=torch.float32,
+                                        device=torch.device("cpu"))) == [None] * 3
+    errors = []
+    for block in (2 * 10 * 3, 2**17):  # one iteration a block, every iteration in one
+        monkeypatch.setattr(mcmc_module, "RELOCATION_BLOCK", block)
+        filt = MCMCFilter(scn.motion, scn.sensor, 200, num_chains=10, burn_in=10)
+        res = filt(scn.measurements, init=scn.initial_particles(200, generator=gen),
+                   generator=torch.Generator().manual_seed(1))
+        errors.append(float((res.mean[..., [0, 2]] - scn.truth[..., [0, 2]]).norm(dim=-1).max()))
+    assert max(errors) < 15.0, errors  # metres: both keep every target (a cell is 10 m)

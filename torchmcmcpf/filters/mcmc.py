@@ -22,7 +22,7 @@ the existence and motion priors; acceptance ratios in :mod:`torchmcmcpf.kernels.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any
@@ -43,7 +43,7 @@ from ..kernels.moves import MOVES, init_chains, joint_move, refine_move, refine_
 from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step, prior_covariance, random_walk_move
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture
+from ..models.multitarget import Exclusion, Recapture, RelocationNoise
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -232,7 +232,7 @@ def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: t
 
 
 def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
-                         z: Measurement | None = None) -> MoveNoise:
+                         z: Measurement | None = None, relocation: RelocationNoise | None = None) -> MoveNoise:
     """The noise of one MCMC iteration of the move ``move``, drawn in eager code from ``generator``.
 
     Parameters
@@ -241,7 +241,8 @@ def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, gene
     x : (B, C, K, D) chain states (for shape, dtype, device).
     dynamics : the slots' joint model (:class:`~torchmcmcpf.models.existence.TargetDynamics`):
         the motion's noise size; with births and deaths, the birth noise (births may be drawn
-        near the points of the frame ``z``); with re-capture, the relocation noise (from ``z``).
+        near the points of the frame ``z``); with re-capture, the relocation noise (from ``z``,
+        or ``relocation``, leading ``(B, C, K)``, when drawn beforehand: :func:`relocations`).
 
     Returns
     -------
@@ -251,7 +252,30 @@ def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, gene
         return RandomWalkNoise.draw(x, dynamics.motion, generator=generator)
     if move not in ("joint", "refine"):
         raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
-    return (JointNoise if move == "joint" else RefineNoise).draw(x, dynamics, generator=generator, z=z)
+    return (JointNoise if move == "joint" else RefineNoise).draw(x, dynamics, generator=generator, z=z,
+                                                                 relocation=relocation)
+
+
+#: At most this many slots' relocations are drawn at once by :func:`relocations` (their data
+#: density is evaluated against every peak of the frame: about 2 kB per slot on the radar).
+RELOCATION_BLOCK = 2**17
+
+
+def relocations(dynamics: TargetDynamics, shape: tuple[int, int, int], count: int, z: Measurement | None, *,
+                generator: torch.Generator, dtype: torch.dtype, device: torch.device
+                ) -> Iterator[RelocationNoise | None]:
+    """The relocation noise of ``count`` iterations for chains' slots ``shape = (B, C, K)``,
+    one iteration's after the other, drawn in blocks of iterations (the frame's peaks found
+    once per block instead of once per iteration; at most :data:`RELOCATION_BLOCK` slots a
+    block); ``None`` each without re-capture.
+    """
+    per = max(1, RELOCATION_BLOCK // math.prod(shape))
+    b, c, k = shape
+    for first in range(0, count, per):
+        block = dynamics.draw_relocations((b, min(per, count - first), c, k), z, generator=generator, dtype=dtype,
+                                          device=device)
+        for i in range(min(per, count - first)):  # iterations of the block, not particles
+            yield None if block is None else RelocationNoise(*(t[:, i] for t in block))
 
 
 def mcmc_iteration(
@@ -391,9 +415,13 @@ def mcmc_step(
     acc_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     sel_sum = {name: x_prev.new_zeros(b) for name, _ in pairs}
     kept, kept_exists = [], []
+    moves = pick_moves(pairs, burn_in + thinning * per_chain, generator=generator)
+    drawn = relocations(dynamics, (b, num_chains, k), sum(move != "random_walk" for move in moves), z,
+                        generator=generator, dtype=x_prev.dtype, device=x_prev.device)
     with repeating():  # compiled moves: repeats skip Dynamo's guards (runtime.repeating)
-        for m, move in enumerate(pick_moves(pairs, burn_in + thinning * per_chain, generator=generator), start=1):
-            noise = draw_iteration_noise(move, chain.x, dynamics, generator=generator, z=z)
+        for m, move in enumerate(moves, start=1):
+            noise = draw_iteration_noise(move, chain.x, dynamics, generator=generator, z=z,
+                                         relocation=None if move == "random_walk" else next(drawn))
             chain, accepted = iteration(chain, noise, move, cloud, z, scale)
             acc_sum[move] = acc_sum[move] + accepted.sum(1)
             sel_sum[move] = sel_sum[move] + num_chains

@@ -116,14 +116,15 @@ class JointNoise(NamedTuple):
 
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
-             z: Measurement | None = None) -> JointNoise:
+             z: Measurement | None = None, relocation: RelocationNoise | None = None) -> JointNoise:
         """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``) moved by
         ``dynamics``: the birth noise only with its existence model, the relocation noise only
-        with its re-capture (both from the frame ``z``).
+        with its re-capture (both from the frame ``z``; ``relocation``, leading ``(B, C, K)``,
+        when it was drawn beforehand).
         """
         b, c, k, _ = x.shape
         return cls(uniforms((b, c), x, generator), normals((b, c, k, dynamics.motion.noise_dim), x, generator),
-                   uniforms((b, c), x, generator), *_slot_changes(x, dynamics, z, generator))
+                   uniforms((b, c), x, generator), *_slot_changes(x, dynamics, z, generator, relocation))
 
 
 class RefineNoise(NamedTuple):
@@ -139,22 +140,26 @@ class RefineNoise(NamedTuple):
 
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
-             z: Measurement | None = None) -> RefineNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``: as
-        :meth:`JointNoise.draw`).
+             z: Measurement | None = None, relocation: RelocationNoise | None = None) -> RefineNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``, ``relocation``:
+        as :meth:`JointNoise.draw`).
         """
         slots = x.shape[:-1]  # (B, C, K)
         return cls(normals((*slots, dynamics.motion.noise_dim), x, generator), uniforms(slots, x, generator),
-                   *_slot_changes(x, dynamics, z, generator))
+                   *_slot_changes(x, dynamics, z, generator, relocation))
 
 
-def _slot_changes(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator
-                  ) -> tuple[BirthNoise | None, RelocationNoise | None]:
+def _slot_changes(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator,
+                  relocation: RelocationNoise | None = None) -> tuple[BirthNoise | None, RelocationNoise | None]:
     """The noise every move draws after its own, for chains ``x (B, C, K, D)``: the births
-    (with an existence model), then the relocations (with re-capture).
+    (with an existence model), then the relocations (with re-capture; ``relocation`` when
+    drawn beforehand).
     """
-    return (dynamics.draw_births(x, z, generator=generator),
-            dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype, device=x.device))
+    births = dynamics.draw_births(x, z, generator=generator)
+    if relocation is None:
+        relocation = dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
+                                               device=x.device)
+    return births, relocation
 
 
 # -- likelihood ------------------------------------------------------------------------------
