@@ -17,7 +17,9 @@ with the whole-grid reference (each delta two whole-grid evaluations): it runs o
 C values with few iterations (C >= 50), one round.
 
 ``mcmc-step-radar-target``: the issue-3 setting, C = 50 chains and N = 5000 (100 iterations
-per step), windowed likelihood, eager.
+per step), windowed likelihood, eager. ``mcmc-terms-*``: the same setting through the public
+``MCMCFilter.step``, eager and compiled, with the paper's factorised target and with the
+default exclusion and re-capture (issue 22's cost).
 """
 
 from __future__ import annotations
@@ -106,3 +108,30 @@ def _bench_step(benchmark, group, motion, sensor, state, z, num_chains, rounds):
 def test_mcmc_step_radar_target(benchmark):
     motion, sensor, state, z = radar(torch.Generator().manual_seed(0), n=5000)
     _bench_step(benchmark, "mcmc-step-radar-target", motion, sensor, state, z, 50, rounds=3)
+
+
+#: The multitarget prior's terms (issue 22), as the IP-MCMC-PF's benchmark names them.
+TERMS = {"paper": dict(exclusion=None, recapture=None), "both": {}}
+
+
+@pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
+@pytest.mark.parametrize("terms", list(TERMS))
+def test_mcmc_step_multitarget_terms(benchmark, terms, compiled):
+    """The cost of exclusion and re-capture in the MCMC-PF: the public ``filt.step`` (C = 50,
+    N = 5000, burn-in 0, thinning 1: 100 iterations of paper 004's mixture), with the paper's
+    factorised target and with both terms (the default: relocations drawn from the frame's
+    peaks, in blocks of iterations). Compare within one run: ``--benchmark-group-by=group``.
+    """
+    from torchmcmcpf.filters.mcmc import MCMCFilter
+
+    motion, sensor, state, z = radar(torch.Generator().manual_seed(0), n=5000)
+    filt = MCMCFilter(motion, sensor, 5000, num_chains=50, burn_in=0, thinning=1, moves="mixture",
+                      compile_step=compiled, **TERMS[terms])
+    start = filt.init(state.x)
+    with torch.no_grad():
+        filt.step(start, z, generator=torch.Generator().manual_seed(1))  # warm-up, compilation
+        benchmark.group = f"mcmc-terms-{'compiled' if compiled else 'eager'}"
+        benchmark.extra_info.update(terms=terms, threads=torch.get_num_threads())
+        out, _ = benchmark.pedantic(lambda: filt.step(start, z, generator=torch.Generator().manual_seed(2)),
+                                    rounds=3, iterations=1)
+    assert out.x.shape == state.x.shape
