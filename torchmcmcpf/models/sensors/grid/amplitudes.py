@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from ....typing import Tensor
+from .delta import box_in_box
 from .inputs import check_inputs, check_move, check_state, flat_inputs
 from .slots import truncated_amplitude
 from .spread import neighbour_profiles, outer_sum
@@ -67,8 +68,7 @@ def _change(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: Tensor, exis
     B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
     S = tuple(x.shape[1:-2])
     P = math.prod(S)
-    check_move(x, x_n, exists_n)
-    many = x_n.dim() == x.dim()  # (B, *S, M, D): M slots, else one (B, *S, D)
+    many = check_move(x, x_n, exists_n)  # (B, *S, M, D): M slots, else one (B, *S, D)
     M = x_n.shape[-2] if many else 1
     geometry = sensor.geometry
     slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S + ((M,) if many else ())).reshape(B, P, M)
@@ -85,12 +85,11 @@ def _change(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: Tensor, exis
     index = torch.arange(2 * M, device=x.device).expand(B, P, 2 * M, 2 * M)
     factors, indicators = neighbour_profiles(geometry, firsts, u, firsts, index)  # (B, P, 2M box, 2M spread, W)
     change = outer_sum(s[:, :, None], factors)  # (B, P, 2M, *V)
-    # cell t of box q repeats a cell of box j < q iff it lies in box j on every axis
+    # cell t of box q repeats a cell of an earlier box j < q where it lies in box j
     once = [torch.ones_like(change[:, :, 0])]
     for q in range(1, 2 * M):  # 2M boxes, static (2 or 4)
-        seen = [outer_sum(torch.ones_like(s[..., :1]), [f[:, :, q, j][..., None, :] for f in indicators])
-                for j in range(q)]
-        once.append((torch.stack(seen).sum(0) == 0).to(change.dtype))
+        seen = torch.stack([box_in_box(indicators, q, j, s[..., :1]) for j in range(q)]).sum(0)
+        once.append((seen == 0).to(change.dtype))
     rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(geometry.box_cells))) \
         * geometry.num_cells
     return geometry.flat_cells(firsts, sensor.box_offsets) + rows, change * torch.stack(once, 2), firsts

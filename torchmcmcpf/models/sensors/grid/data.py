@@ -23,7 +23,11 @@ def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
     """Local maxima of the detection statistic over their ``3^n`` neighbourhood above the
     threshold: ``(B, *G)`` bool.
     """
-    stat = sensor.detection_statistic(z)
+    return _peaks_of(sensor, sensor.detection_statistic(z))
+
+
+def _peaks_of(sensor: SeparableGridSensor, stat: Tensor) -> Tensor:
+    """:func:`peaks` from the detection statistic ``stat (B, *G)``."""
     return (stat >= neighbourhood(stat, "max", sensor.n_axes)) & (stat > sensor.detection_threshold)
 
 
@@ -36,7 +40,7 @@ def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
     geometry = sensor.geometry
     n, shape = geometry.n_axes, geometry.frame_shape
     stat = sensor.detection_statistic(z)
-    peak = (stat >= neighbourhood(stat, "max", n)) & (stat > sensor.detection_threshold)
+    peak = _peaks_of(sensor, stat)
     B, G = stat.shape[0], geometry.num_cells
     P = min(sensor.max_peaks, G)
     top, at = torch.topk(torch.where(peak, stat, float("-inf")).reshape(B, G), P, dim=-1)

@@ -19,7 +19,7 @@ from .spread import neighbour_index, neighbour_profiles, outer_sum, with_neighbo
 if TYPE_CHECKING:
     from .sensor import SeparableGridSensor
 
-__all__ = ["log_likelihood_delta", "new_box_in_old"]
+__all__ = ["log_likelihood_delta", "box_in_box"]
 
 
 def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
@@ -28,10 +28,9 @@ def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n:
     or the difference of two whole-grid evaluations with ``method="grid"``.
     """
     check_inputs(sensor, x, z, exists)
-    if x_n.dim() != x.dim() - 1:
+    if check_move(x, x_n, exists_n):
         raise ValueError(f"x_n has shape {tuple(x_n.shape)}, expected {tuple(x.shape[:-2]) + (x.shape[-1],)}: one "
                          "slot (log_likelihood_delta_cached moves several)")
-    check_move(x, x_n, exists_n)
     B, K = x.shape[0], x.shape[-2]
     S = tuple(x.shape[1:-2])
     if not torch.is_tensor(n) and (isinstance(n, bool) or not isinstance(n, int) or not 0 <= n < K):
@@ -107,14 +106,15 @@ def _box_sums(sensor: SeparableGridSensor, count: int, u_all: Tensor, s: Tensor,
     zw = geometry.gather_cells(zc, boxes, sensor.box_offsets)[:, :, None]  # (B, P, 1, 2, *W)
     ratio = sensor.cell_log_ratio(A, zw)
     diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
-    both = new_box_in_old(indicators, count, s_old)  # (B, P, *W)
+    both = box_in_box(indicators, 1, count, s_old)  # (B, P, *W): cells of the new box in the old one
     return diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
 
 
-def new_box_in_old(indicators: Sequence[Tensor], old: int, like: Tensor) -> Tensor:
-    """Which cells of a move's new box the old box holds, ``(B, P, *box_cells)`` 0/1: from
-    the per-axis indicators ``(B, P, 2 boxes, M, W)`` of
-    :func:`~.spread.neighbour_profiles`, entry ``old`` being the moved slot's old spread;
-    ``like (B, P, 1)`` gives dtype and device.
+def box_in_box(indicators: Sequence[Tensor], box: int, spread: int, like: Tensor) -> Tensor:
+    """Which cells of box ``box`` lie in the box of spread ``spread``, ``(B, P, *box_cells)``
+    0/1, from the per-axis indicators ``(B, P, Q boxes, M spreads, W)`` of
+    :func:`~.spread.neighbour_profiles` (a cell lies in a box iff it does on every axis);
+    ``like (B, P, 1)`` gives dtype and device. A move's new box against its old one, or, for
+    a move of several slots, each box against the earlier ones, so that a cell counts once.
     """
-    return outer_sum(torch.ones_like(like), [f[:, :, 1, old][..., None, :] for f in indicators])
+    return outer_sum(torch.ones_like(like), [f[:, :, box, spread][..., None, :] for f in indicators])

@@ -36,9 +36,10 @@ def check_inputs(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tens
         )
 
 
-def check_move(x: Tensor, x_n: Tensor, exists_n: Tensor | None) -> None:
+def check_move(x: Tensor, x_n: Tensor, exists_n: Tensor | None) -> bool:
     """Shapes of a move against ``x (B, *S, K, D)``: of one slot, ``x_n (B, *S, D)`` and
     ``exists_n (B, *S)``; of ``M <= K`` slots, ``x_n (B, *S, M, D)`` and ``exists_n (B, *S, M)``.
+    Returns whether it is a move of ``M`` slots (the second form).
     """
     lead, D = tuple(x.shape[:-2]), x.shape[-1]
     many = x_n.dim() == x.dim() and 1 <= x_n.shape[-2] <= x.shape[-2]
@@ -48,6 +49,7 @@ def check_move(x: Tensor, x_n: Tensor, exists_n: Tensor | None) -> None:
                          f"{lead + ('M', D)} (M <= {x.shape[-2]} slots) to match x {tuple(x.shape)}")
     if exists_n is not None and tuple(exists_n.shape) != moved:
         raise ValueError(f"exists_n has shape {tuple(exists_n.shape)}, expected {moved}")
+    return many
 
 
 def flat_inputs(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
