@@ -16,7 +16,7 @@ import torch
 from torch.utils._pytree import tree_map
 
 from torchmcmcpf.kernels.chains import JointNoise, RefineNoise, previous_cloud
-from torchmcmcpf.kernels.exchange import ExchangeChains, draw_exchange_noise, exchange_iteration
+from torchmcmcpf.kernels.exchange import ExchangeChains, draw_exchange_noise, exchange_iteration, propose_slots
 from torchmcmcpf.kernels.moves import init_chains, joint_move, refine_move
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.existence import TargetDynamics
@@ -170,6 +170,46 @@ def test_exchange_moves_leave_the_extended_target_invariant(terms):
     assert ((mean - exact).abs() <= 4.5 * se).all(), (mean, exact, se)
     if recapture is not None:  # the relocation component holds a real share of the mass
         assert 0.1 < float((chain[4] == 2).double().mean()) < 0.9
+
+
+def test_a_segments_proposals_made_at_once_are_each_iterations_own():
+    """The exchange move is an independence proposal: the slots a segment of L iterations
+    proposes, made in one call (``propose_slots`` on leading ``(L, B, C)``, what the filter
+    does), are those each iteration makes from its own noise, one- and two-slot, with
+    relocation; and an iteration given them takes the same decisions."""
+    motion, sensor, x_prev, z = _problem()
+    recapture = Recapture(p_jump=0.2, p_propose=0.3, pair_every=3, p_propose_pair=0.6)
+    g = torch.Generator().manual_seed(5)
+    b, c, n, k, steps = 2, 40, x_prev.shape[0], 2, 6
+    xp = (x_prev.unsqueeze(0) + torch.randn(b, n, k, 1, generator=g, dtype=DT))
+    zb = z.unsqueeze(0).expand(b, k, 1)
+    log_w = torch.randn(b, n, generator=g, dtype=DT).log_softmax(-1)
+    dyn = TargetDynamics(motion, None, recapture, sensor)
+    x0 = torch.take_along_dim(xp, torch.randint(n, (b, c), generator=g)[..., None, None], 1)
+    y, _, log_r, kind = dyn.propagate_labelled(x0, None, *dyn.draw_noise(x0, zb, generator=g))
+    pairs = torch.tensor([[False, True], [False, False]]).expand(b, k, k)
+    for close in (None, pairs):
+        noise = draw_exchange_noise(log_w, steps, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, pairs=close)
+        made = propose_slots(noise, xp, None, dynamics=dyn)
+        assert made.moved.shape == (steps, b, c, 1 if close is None else 2, 1)
+        assert bool((made.kind == 2).any()) and bool((made.kind == 1).any())  # both components drawn
+        # a slot from the motion component is its source particle's slot, propagated
+        parent = xp[torch.arange(b).reshape(1, b, 1, 1), noise.source, noise.slot]  # (L, B, C, M, 1)
+        motion_kind = (made.kind == 1).unsqueeze(-1)
+        assert torch.equal(torch.where(motion_kind, made.moved, 0.0),
+                           torch.where(motion_kind, motion.propagate(parent, noise.eps), 0.0))
+        chains = ExchangeChains(y, sensor.log_likelihood(y, zb), None, log_r, kind)
+        for t in range(steps):
+            nz = tree_map(lambda a: None if a is None else a[t], noise)
+            own = propose_slots(nz, xp, None, dynamics=dyn)
+            for a, b_ in zip(tree_map(lambda a: None if a is None else a[t], made), own):
+                assert (a is None) == (b_ is None) and (a is None or torch.equal(a, b_))
+            ahead, acc_a, _ = exchange_iteration(chains, xp, None, zb, nz._replace(proposal=own), dynamics=dyn,
+                                                 sensor=sensor, exclusion=Exclusion())
+            alone, acc_o, _ = exchange_iteration(chains, xp, None, zb, nz, dynamics=dyn, sensor=sensor,
+                                                 exclusion=Exclusion())
+            assert torch.equal(acc_a, acc_o) and all(torch.equal(u, v) for u, v in zip(ahead, alone) if u is not None)
+            chains = ahead
 
 
 @pytest.mark.parametrize("terms", ["exclusion", "both"])

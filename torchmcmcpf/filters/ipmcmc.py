@@ -124,7 +124,10 @@ would change the batch shape from round to round (a recompile per shape under
 Speed
 -----
 All random numbers of a segment (the ``burn_in + S`` iterations, then ``S`` per extension)
-are drawn in a few eager calls and fed to :func:`exchange_iteration`, a pure tensor
+are drawn in a few eager calls and, the move being an independence proposal, the slots
+they propose are made from them in one batched call
+(:func:`~torchmcmcpf.kernels.exchange.propose_slots`: parents, motion, births, relocation,
+for every iteration at once); both are fed to :func:`exchange_iteration`, a pure tensor
 function that traces under ``torch.compile(fullgraph=True)``; ``IPMCMCFilter(compile_step=True)``
 compiles it once per filter. Each iteration evaluates the sensor on the ``(B, C)``
 proposals only: for grid sensors the change of the log-likelihood caused by the one slot
@@ -157,6 +160,7 @@ from ..kernels.exchange import (
     close_pairs,
     draw_exchange_noise,
     exchange_iteration,
+    propose_slots,
     with_accepted_amplitudes,
 )
 from ..kernels.hmc_refine import (
@@ -495,8 +499,10 @@ def ipmcmc_step(
     # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
     def draw(steps: int, offset: int) -> SegmentNoise:
         def one(count: int, close: Tensor | None) -> ExchangeNoise:
-            return draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
-                                       dtype=x_prev.dtype, z=z, pairs=close)
+            noise = draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
+                                        dtype=x_prev.dtype, z=z, pairs=close)
+            # the segment's proposals in one batched call (an independence proposal)
+            return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics))
         at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)
         return SegmentNoise(one(steps, None), one(len(at_pairs), pairs) if at_pairs else None, at_pairs)
 

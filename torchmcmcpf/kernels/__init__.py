@@ -12,7 +12,15 @@ one MH transition of every chain, an *iteration* one MCMC iteration of the chain
 """
 
 from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
-from .exchange import ExchangeChains, ExchangeNoise, draw_exchange_noise, exchange_iteration, with_accepted_amplitudes
+from .exchange import (
+    ExchangeChains,
+    ExchangeNoise,
+    ExchangeProposal,
+    draw_exchange_noise,
+    exchange_iteration,
+    propose_slots,
+    with_accepted_amplitudes,
+)
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
@@ -40,8 +48,10 @@ __all__ = [
     "random_walk_move",
     "ExchangeChains",
     "ExchangeNoise",
+    "ExchangeProposal",
     "with_accepted_amplitudes",
     "draw_exchange_noise",
+    "propose_slots",
     "exchange_iteration",
     "HMCInfo",
     "hmc",

@@ -29,13 +29,13 @@ import torch
 
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
-from ..models.multitarget import Exclusion, RelocationNoise, exclusion_change, log_q_component
+from ..models.multitarget import Exclusion, RelocationNoise, log_q_component
 from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
 
-__all__ = ["ExchangeChains", "ExchangeNoise", "draw_exchange_noise", "exchange_iteration", "close_pairs",
-           "with_accepted_amplitudes"]
+__all__ = ["ExchangeChains", "ExchangeNoise", "ExchangeProposal", "draw_exchange_noise", "propose_slots",
+           "exchange_iteration", "close_pairs", "with_accepted_amplitudes"]
 
 
 class ExchangeChains(NamedTuple):
@@ -83,6 +83,27 @@ def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None, u
     return chains._replace(amplitude=sensor.update_amplitude_cache(amplitude, *update, accepted))
 
 
+class ExchangeProposal(NamedTuple):
+    """The slots that ``L`` iterations (or one) propose, from their :class:`ExchangeNoise`
+    (:func:`propose_slots`). The exchange move is an independence proposal: what it
+    proposes does not depend on the chains' state, so a segment's proposals are made in one
+    batched call before its iterations run instead of one small call per iteration.
+
+    Attributes
+    ----------
+    moved : (*L, B, C, M, D) the proposed states of the moved slots.
+    exists : (*L, B, C, M) bool, their proposed flags with an existence model, else ``None``.
+    log_r : (*L, B, C, M) their ``log r`` at this move's ``epsilon`` (zeros without an
+        existence model or re-capture).
+    kind : (*L, B, C, M) int8, their proposal components with re-capture, else ``None``.
+    """
+
+    moved: Tensor
+    exists: Tensor | None
+    log_r: Tensor
+    kind: Tensor | None
+
+
 class ExchangeNoise(NamedTuple):
     """Pre-drawn randomness of ``L`` iterations moving ``M`` slots each (leading dim ``L``).
 
@@ -98,6 +119,9 @@ class ExchangeNoise(NamedTuple):
         ``(L, B, C, M)`` (only with re-capture).
     valid : (L, B, C) bool, optional: False where a run has no pair of close slots (the
         two-slot move is then rejected).
+    proposal : :class:`ExchangeProposal` with leading ``(L, B, C)``, optional: the slots
+        this noise proposes, made in advance (:func:`propose_slots`); without it each
+        iteration makes its own (the same values).
     """
 
     source: Tensor
@@ -107,6 +131,7 @@ class ExchangeNoise(NamedTuple):
     birth: BirthNoise | None = None
     relocation: RelocationNoise | None = None
     valid: Tensor | None = None
+    proposal: ExchangeProposal | None = None
 
 
 def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) -> Tensor:
@@ -181,6 +206,37 @@ def draw_exchange_noise(
     return ExchangeNoise(source, slot, eps, u, birth, relocation, valid)
 
 
+def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | None, *,
+                  dynamics: TargetDynamics) -> ExchangeProposal:
+    """The slots that ``noise`` proposes (module docstring): slot ``noise.slot`` of previous
+    particle ``noise.source``, propagated by ``dynamics`` with the noise's motion, birth and
+    relocation draws, scored at the move's ``epsilon`` (``recapture.p_propose`` for one slot,
+    ``p_propose_pair`` for two).
+
+    Parameters
+    ----------
+    noise : :class:`ExchangeNoise` with leading ``(*L, B, C)`` (one iteration or several).
+    x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
+
+    Returns
+    -------
+    :class:`ExchangeProposal` with leading ``(*L, B, C)``.
+    """
+    b, n, k, d = x_prev.shape
+    m = noise.slot.shape[-1]
+    # runs first, so that one gather per run reads every iteration's and chain's parent
+    at = (noise.source * k + noise.slot).movedim(-3, 0)  # (B, *L, C, M)
+    flat = at.reshape(b, -1)
+    parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), flat.unsqueeze(-1), dim=1).reshape(at.shape + (d,))
+    parent = parent.movedim(0, -4)
+    parent_e = None if exists_prev is None else \
+        torch.take_along_dim(exists_prev.reshape(b, n * k), flat, dim=1).reshape(at.shape).movedim(0, -3)
+    recapture = dynamics.recapture
+    eps_k = None if recapture is None else (recapture.p_propose if m == 1 else recapture.p_propose_pair)
+    return ExchangeProposal(*dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth, noise.relocation,
+                                                         eps_k))
+
+
 def exchange_iteration(
     chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
     *, dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None,
@@ -216,22 +272,18 @@ def exchange_iteration(
     """
     y, log_lik, exists, log_r, kind, cache = chains
     existence, recapture = dynamics.existence, dynamics.recapture
-    b, n, k, d = x_prev.shape
-    c, m = noise.slot.shape[1], noise.slot.shape[-1]
+    k, m = x_prev.shape[-2], noise.slot.shape[-1]
     if (existence is not None or recapture is not None) and log_r is None:
         raise ValueError("with an existence model or re-capture the chains need log_r (got None)")
     if existence is not None and exists is None:
         raise ValueError("with an existence model the chains need exists (got None)")
-    at = (noise.source * k + noise.slot).reshape(b, c * m)  # (B, C M)
-    parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), at.unsqueeze(-1), dim=1).reshape(b, c, m, d)
-    parent_e = None if exists_prev is None else \
-        torch.take_along_dim(exists_prev.reshape(b, n * k), at, dim=1).reshape(b, c, m)
     # this move's epsilon; the chains cache log r at recapture.p_propose, converted by the
     # slots' kinds (models/multitarget.py, log_q_component) where the two differ
     base = None if recapture is None else recapture.p_propose
     eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
-    moved, e_new, r_new, kind_new = dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth,
-                                                                noise.relocation, eps_k)
+    proposal = noise.proposal if noise.proposal is not None else \
+        propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
+    moved, e_new, r_new, kind_new = proposal
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
@@ -240,6 +292,10 @@ def exchange_iteration(
 
     cur_y, cur_e, cur_r, cur_kind, cur_ll = y, exists, log_r, kind, log_lik
     log_prior = torch.zeros_like(log_lik)
+    cur_u = u_moved = None
+    if exclusion is not None and sensor.resolved:  # the chains' and the moved slots' coordinates, one call
+        u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
+        cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
     update = None
     if cache is not None:  # every moved slot at once, each cell of their boxes counted once
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
@@ -251,10 +307,13 @@ def exchange_iteration(
         x_n, e_n = moved[:, :, j], None if e_new is None else e_new[:, :, j]
         if cache is None:
             cur_ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
-        log_prior = log_prior + exclusion_change(exclusion, sensor, cur_y, x_n, slot, cur_e, e_n)
+        if exclusion is not None and cur_u is not None and u_moved is not None:  # the K - 1 factors of the slot
+            log_prior = log_prior + exclusion.log_change(cur_u, u_moved[:, :, j], slot, cur_e, e_n)
+            cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
         if cur_r is not None:
-            k_old = None if cur_kind is None else torch.where(here, cur_kind, 0).sum(-1).to(torch.int8)
-            r_old = convert(torch.where(here, cur_r, 0.0).sum(-1), k_old, base, eps_k)
+            r_old = torch.where(here, cur_r, 0.0).sum(-1)
+            if cur_kind is not None and base != eps_k:
+                r_old = convert(r_old, torch.where(here, cur_kind, 0).sum(-1).to(torch.int8), base, eps_k)
             k_j = None if kind_new is None else kind_new[:, :, j]
             log_prior = log_prior + r_new[:, :, j] - r_old
             cur_r = torch.where(here, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), cur_r)

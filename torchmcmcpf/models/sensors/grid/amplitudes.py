@@ -50,7 +50,8 @@ def log_likelihood_delta_cached(sensor: SeparableGridSensor, cache: Tensor, x: T
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
     cells, change, firsts = _change(sensor, x, x_n, n, exists, exists_n)
     A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
-    zw = sensor.geometry.gather_cells(sensor.prepare_frame(z.to(x.dtype)), firsts, sensor.box_offsets)
+    # the frame's cells gathered, then prepared (per cell): 2M boxes a move, not the whole grid
+    zw = sensor.prepare_frame(sensor.geometry.gather_cells(z.to(x.dtype), firsts, sensor.box_offsets))
     # round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0
     diff = sensor.cell_log_ratio((A + change).clamp_min(0.0), zw) - sensor.cell_log_ratio(A.clamp_min(0.0), zw)
     delta = diff.flatten(2).sum(-1)  # each cell counted once: ``change`` is 0 on the repeats

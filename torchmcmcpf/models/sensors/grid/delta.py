@@ -56,8 +56,9 @@ def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n:
 def _parts(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
            exists: Tensor | None, exists_n: Tensor | None) -> tuple[Tensor, ...]:
     """The arguments of :func:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old, s_new,
-    zc, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K slots, then
-    of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new (B, P, 1)`` the
+    z, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K slots, then
+    of slot ``n`` before and after the move; ``z`` the frame in the dtype of ``x``, not yet
+    prepared; ``s (B, P, K)``, ``s_old, s_new (B, P, 1)`` the
     signals (times existence); ``firsts[a] (B, P, K + 2)`` the box starts; ``others (B, P,
     2, K)`` whether the old / new box of slot ``n`` overlaps the box of another live slot.
     """
@@ -77,11 +78,11 @@ def _parts(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor,
     boxes = [f[..., K:] for f in firsts]  # (B, P, 2): old and new box of slot n
     rest = (torch.arange(K, device=x.device) != at) & (e > 0)  # (B, P, K): the other live slots
     others = geometry.overlaps(boxes, [f[..., :K] for f in firsts]) & rest[..., None, :]  # (B, P, 2, K)
-    return (u_all, s, s_old, s_new, sensor.prepare_frame(z.to(x.dtype)), *firsts, others)
+    return (u_all, s, s_old, s_new, z.to(x.dtype), *firsts, others)
 
 
 def _box_sums(sensor: SeparableGridSensor, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor,
-              zc: Tensor, *rest: Tensor) -> Tensor:
+              z: Tensor, *rest: Tensor) -> Tensor:
     """:func:`log_likelihood_delta` ``(B, P)`` from :func:`_parts`, with ``count`` neighbour
     slots per box.
     """
@@ -103,7 +104,8 @@ def _box_sums(sensor: SeparableGridSensor, count: int, u_all: Tensor, s: Tensor,
     factors, indicators = neighbour_profiles(geometry, boxes, u_all, firsts, index)  # (B, P, 2q, M, W)
     signals = torch.stack([cur, prop], 2)  # (B, P, 2 (cur, prop), 2 (old box, new box), M)
     A = outer_sum(signals, [f[:, :, None] for f in factors])  # (B, P, 2, 2, *W)
-    zw = geometry.gather_cells(zc, boxes, sensor.box_offsets)[:, :, None]  # (B, P, 1, 2, *W)
+    # the two boxes' cells of the frame, then prepared (per cell; not the whole grid per move)
+    zw = sensor.prepare_frame(geometry.gather_cells(z, boxes, sensor.box_offsets))[:, :, None]  # (B, P, 1, 2, *W)
     ratio = sensor.cell_log_ratio(A, zw)
     diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
     both = box_in_box(indicators, 1, count, s_old)  # (B, P, *W): cells of the new box in the old one

@@ -100,9 +100,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
         raise NotImplementedError
 
     def prepare_frame(self, z: Tensor) -> Tensor:
-        """Per-cell transform of the frame done once per call, before cells are gathered
-        (e.g. ``sqrt(z)``); :meth:`cell_log_ratio` receives its output. Identity by default.
-        ``(B, *G) -> (B, *G)``.
+        """Per-cell (elementwise) transform of the frame (e.g. ``sqrt(z)``);
+        :meth:`cell_log_ratio` receives its output. Identity by default. ``(B, *G) -> (B, *G)``,
+        or any shape: the moves' likelihood changes apply it to the cells they gather (two
+        boxes a move) rather than to the whole frame, so it must act on each cell alone.
         """
         return z
 
