@@ -166,21 +166,18 @@ class Exclusion:
         (*S,).
         """
         k = u.shape[-2]
-        here = torch.arange(k, device=u.device) == n.unsqueeze(-1)  # (*S, K)
+        others = torch.arange(k, device=u.device) != n.unsqueeze(-1)  # (*S, K)
         u_old = torch.take_along_dim(u, n.reshape(n.shape + (1, 1)), -2)  # (*S, 1, r)
-        d2_old = (u - u_old).square().sum(-1)  # (*S, K)
-        d2_new = (u - u_n.unsqueeze(-2)).square().sum(-1)
-        others = ~here
+        # slot n before (row 0) and after (row 1) the move against every slot: one log_phi
+        d2 = (u.unsqueeze(-3) - torch.stack([u_old, u_n.unsqueeze(-2)], -3)).square().sum(-1)  # (*S, 2, K)
         if alive is None:
-            old_on, new_on = others, others
+            on = others.unsqueeze(-2)
         else:
             a_old = torch.take_along_dim(alive, n.unsqueeze(-1), -1)  # (*S, 1)
             a_new = a_old if alive_n is None else alive_n.unsqueeze(-1)
-            old_on, new_on = others & alive & a_old, others & alive & a_new
-        one = torch.ones_like(d2_old)
-        old = torch.where(old_on, self.log_phi(torch.where(old_on, d2_old, one)), 0.0)
-        new = torch.where(new_on, self.log_phi(torch.where(new_on, d2_new, one)), 0.0)
-        return (new - old).sum(-1)
+            on = (others & alive).unsqueeze(-2) & torch.stack([a_old, a_new], -2)  # (*S, 2, K)
+        terms = torch.where(on, self.log_phi(torch.where(on, d2, 1.0)), 0.0)
+        return (terms[..., 1, :] - terms[..., 0, :]).sum(-1)
 
 
 def log_exclusion(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, exists: Tensor | None = None
