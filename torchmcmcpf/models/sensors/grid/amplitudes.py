@@ -83,8 +83,7 @@ def _change(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: Tensor, exis
     u = sensor.measurement_coords(moved)  # (B, P, 2M, n)
     s = sensor.signal(moved) * torch.stack([-e_old, e_new], -1).reshape(B, P, 2 * M)  # signed: - old, + new
     firsts = geometry.box_firsts(u)  # (B, P, 2M)
-    index = torch.arange(2 * M, device=x.device).expand(B, P, 2 * M, 2 * M)
-    factors, indicators = neighbour_profiles(geometry, firsts, u, firsts, index)  # (B, P, 2M box, 2M spread, W)
+    factors, indicators = neighbour_profiles(geometry, firsts, u, firsts, None)  # (B, P, 2M box, 2M spread, W)
     change = outer_sum(s[:, :, None], factors)  # (B, P, 2M, *V)
     # cell t of box q repeats a cell of an earlier box j < q where it lies in box j
     once = [torch.ones_like(change[:, :, 0])]

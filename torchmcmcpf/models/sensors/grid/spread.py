@@ -98,21 +98,23 @@ def outer_sum(s: Tensor, factors: Sequence[Tensor]) -> Tensor:
 
 
 def neighbour_profiles(geometry: GridGeometry, box_firsts: Sequence[Tensor], u: Tensor, firsts: Sequence[Tensor],
-                       index: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+                       index: Tensor | None) -> tuple[list[Tensor], list[Tensor]]:
     """Truncated per-axis profiles of selected targets at the cells of boxes ``q``.
 
     ``box_firsts[a] (..., Q)`` first cells of the boxes evaluated; ``u (..., T, n)`` and
     ``firsts[a] (..., T)`` the targets' coordinates and box starts; ``index (..., Q, M)``
-    int64 the targets evaluated in each box. Returns, per axis, ``profile (..., Q, M, W)``:
+    int64 the targets evaluated in each box, or ``None`` for every target in every box
+    (``M = T``, no gather). Returns, per axis, ``profile (..., Q, M, W)``:
     the Gaussian of target ``index[q, m]`` at cell ``t`` of box ``q`` times the indicator
     that the cell lies in the target's box, and that indicator ``(..., Q, M, W)`` (0/1,
     dtype of ``u``); both lists in the :attr:`GridGeometry.box_cells` layout (the last two
     axes as one factor ``(..., Q, M, W_{n-1} W_n)``).
     """
-    Q = index.shape[-2]
+    Q = box_firsts[0].shape[-1]
 
     def pick(v: Tensor) -> Tensor:  # (..., T) -> (..., Q, M): the selected targets' values per box
-        return torch.take_along_dim(v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1]), index, -1)
+        every = v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1])
+        return every if index is None else torch.take_along_dim(every, index, -1)
 
     per_axis, indicators = [], []
     for a, (bq, fk, W) in enumerate(zip(box_firsts, firsts, geometry.window_sizes)):
