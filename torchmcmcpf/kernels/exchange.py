@@ -309,7 +309,8 @@ def exchange_iteration(
             cur_ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
         if exclusion is not None and cur_u is not None and u_moved is not None:  # the K - 1 factors of the slot
             log_prior = log_prior + exclusion.log_change(cur_u, u_moved[:, :, j], slot, cur_e, e_n)
-            cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
+            if j + 1 < m:  # the next slot's factors see this one moved
+                cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
         if cur_r is not None:
             r_old = torch.where(here, cur_r, 0.0).sum(-1)
             if cur_kind is not None and base != eps_k:

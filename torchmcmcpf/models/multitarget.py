@@ -344,7 +344,7 @@ def relocate(x: Tensor, survive: Tensor | None, noise: RelocationNoise, recaptur
     jump = jump & alive
     x = torch.where(jump.unsqueeze(-1), sensor.place(x, noise.coords), x)
     kind = torch.where(jump, RELOCATED, torch.where(alive, MOTION, FIXED)).to(torch.int8)
-    # the epsilon-free part minus log_q_component(kind, eps), its two live cases written out
-    log_r = torch.where(jump, math.log(recapture.p_jump) + noise.log_ratio - math.log(eps),
-                        torch.full_like(noise.log_ratio, math.log1p(-recapture.p_jump)) - math.log1p(-eps))
+    log_free = torch.where(jump, math.log(recapture.p_jump) + noise.log_ratio,
+                           torch.full_like(noise.log_ratio, math.log1p(-recapture.p_jump)))
+    log_r = log_free - log_q_component(kind, eps).to(log_free.dtype)
     return x, torch.where(alive, log_r, 0.0), kind

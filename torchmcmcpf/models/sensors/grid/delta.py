@@ -57,10 +57,10 @@ def _parts(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor,
            exists: Tensor | None, exists_n: Tensor | None) -> tuple[Tensor, ...]:
     """The arguments of :func:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old, s_new,
     z, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K slots, then
-    of slot ``n`` before and after the move; ``z`` the frame in the dtype of ``x``, not yet
-    prepared; ``s (B, P, K)``, ``s_old, s_new (B, P, 1)`` the
-    signals (times existence); ``firsts[a] (B, P, K + 2)`` the box starts; ``others (B, P,
-    2, K)`` whether the old / new box of slot ``n`` overlaps the box of another live slot.
+    of slot ``n`` before and after the move; ``s (B, P, K)``, ``s_old, s_new (B, P, 1)`` the
+    signals (times existence); ``z`` the frame in the dtype of ``x``, not yet prepared;
+    ``firsts[a] (B, P, K + 2)`` the box starts; ``others (B, P, 2, K)`` whether the old / new
+    box of slot ``n`` overlaps the box of another live slot.
     """
     B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
     slot = slots(n, x)
