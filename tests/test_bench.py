@@ -45,6 +45,10 @@ def test_bench_quick_writes_table_json_and_plot(tmp_path, capsys, restore_thread
     sir, floor = by_name["radar-sir"], by_name["radar-sir-floor"]
     assert floor["params"]["terms"] == sir["params"]["N"] * sir["params"]["K"] * 7**3 and "x the floor" in sir["note"]
     assert all(f"{n}-floor" in by_name for n in names if n.startswith("ipmcmc-") and not n.endswith("floor"))
+    # the MCMC-PF's: N / C iterations per chain of the mixture kernel, in expectation 0.75 K boxes
+    # (a joint draw) + 0.25 x 4 K (a refinement sweep: 2 boxes, 2 log ratios per slot)
+    mc = by_name["mcmc-pf"]["params"]
+    assert by_name["mcmc-pf-floor"]["params"]["terms"] == round(mc["N"] * mc["K"] * 7**3 * 1.75)
     for f in result["figures"]:
         assert f["seconds"] > 0 and math.isclose(f["per_run_s"], f["seconds"] / f["params"].get("B", 1))
         assert f["target_s"] is None  # the targets are for the full sizes only

@@ -544,9 +544,14 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
               dict(N=n, C=c, burn_in=cfg["burn_in"], K=k, B=bg, compiled=compiled), cfg["slow_repeats"],
               moves(n, bg), None if quick else GPU_TARGETS_S["ipmcmc-5000-B100"],
               "" if quick else "GPU aim: all 100 runs in <= 10 ms (target per run)")
-    add(Figure("mcmc-pf", time_step(radar_mcmc(n, k, 1, compiled, dev, chains=c), repeats=cfg["slow_repeats"],
-                                    device=dev),
-               dict(N=n, C=c, K=k, B=1, compiled=compiled), target("mcmc-pf")))
+    # the MCMC-PF's mixture kernel (burn-in 0, N / C iterations per chain): a joint draw
+    # (probability 0.75) evaluates one full likelihood, K boxes of one log ratio per cell; a
+    # refinement sweep (0.25) K one-slot changes of 2 boxes x 2 log ratios: expected terms
+    from .filters.mcmc import MOVE_PRESETS
+
+    mix = dict(MOVE_PRESETS["mixture"])
+    radar("mcmc-pf", radar_mcmc(n, k, 1, compiled, dev, chains=c), dict(N=n, C=c, K=k, B=1, compiled=compiled),
+          cfg["slow_repeats"], round((n // c) * c * k * box * (mix["joint"] + 4 * mix["refine"])), target("mcmc-pf"))
     stonesoup = _point_figures(cfg, dev, add, quick, stonesoup, log)
     _particles_figures(cfg, dev, add, quick, log)
     sweeps = {}
