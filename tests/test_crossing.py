@@ -173,3 +173,37 @@ def test_relabelled_estimate_follows_a_recaptured_slot(gen, moved_share):
     assert float(est[0, X].abs()) < 1.0  # label 0 stays on A
     expected = 150.0 if moved_share > 0.5 else 0.0
     assert abs(float(est[1, X]) - expected) < 1.0
+
+
+def test_streams_are_independent_of_each_other_and_of_the_names_asked_for():
+    from torchmcmcpf.experiments._shards import streams
+
+    def draws(names, name, before=None):
+        s = streams(torch.Generator().manual_seed(3), names)
+        if before is not None:  # another consumer draws first
+            torch.randn(100, generator=s[before])
+        return torch.randn(5, generator=s[name])
+
+    ref = draws(("frames", "a", "b"), "a")
+    torch.testing.assert_close(draws(("a",), "a"), ref, rtol=0, atol=0)  # the set of names does not matter
+    torch.testing.assert_close(draws(("frames", "a", "b"), "a", before="b"), ref, rtol=0, atol=0)
+    assert not torch.equal(draws(("frames", "a", "b"), "b"), ref)  # distinct names, distinct streams
+    assert not torch.equal(draws(("a",), "a"), torch.randn(5, generator=torch.Generator().manual_seed(3)))
+
+
+def test_soak_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
+    # the fixed scene without the partitioned PF gives the IP-MCMC-PF the same frames and
+    # stream, so its figures are the same bits
+    cfg = soak.STUDY.settings(quick=True)
+    full, _, _ = soak._fixed(cfg, 1, torch.Generator().manual_seed(5), torch.device("cpu"), False)
+    monkeypatch.setattr(soak, "FIXED_FILTERS", soak.FILTERS)
+    monkeypatch.setattr(soak, "_filters", lambda *a, **k: {n: f for n, f in _FILTERS(*a, **k).items()
+                                                         if n in soak.FILTERS})
+    fewer, _, _ = soak._fixed(cfg, 1, torch.Generator().manual_seed(5), torch.device("cpu"), False)
+    assert "fixed|partitioned PF|matched_error" not in fewer
+    for name in soak.FILTERS:
+        key = f"fixed|{name}|matched_error"
+        torch.testing.assert_close(fewer[key], full[key], rtol=0, atol=0)
+
+
+_FILTERS = soak._filters

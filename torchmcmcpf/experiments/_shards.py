@@ -25,6 +25,7 @@ import dataclasses
 import json
 import platform
 import time
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
@@ -71,6 +72,21 @@ def shard_generator(device: str | torch.device, seed: int, index: int) -> torch.
     """
     state = np.random.SeedSequence([int(seed) & (2**63 - 1), int(index), 0x5EED]).generate_state(1, np.uint64)[0]
     return torch.Generator(device=torch.device(device)).manual_seed(int(state) >> 1)
+
+
+def streams(generator: torch.Generator, names: tuple[str, ...]) -> dict[str, torch.Generator]:
+    """One generator per name, on ``generator``'s device: one draw from ``generator``, then
+    each name's stream seeded from ``(that draw, the name)`` through numpy's ``SeedSequence``.
+    A name's stream does not depend on which other names are asked for, and what one consumer
+    (a filter, the frames of a scene) draws does not move what another sees, so a study's
+    figures for one filter do not depend on which filters ran before it.
+    """
+    base = int(torch.randint(2**62, (1,), generator=generator, device=generator.device))
+    out = {}
+    for name in names:
+        state = np.random.SeedSequence([base, zlib.crc32(name.encode())]).generate_state(1, np.uint64)[0]
+        out[name] = torch.Generator(device=generator.device).manual_seed(int(state) >> 1)
+    return out
 
 
 def shard_layout(num_runs: int, shard_size: int) -> list[range]:

@@ -28,7 +28,10 @@ a reference of another kind on the same frames (it has no births and deaths). Al
 per step and the non-finite values in the estimates (must be 0).
 
 Writes ``metrics.json`` and ``soak.png`` (error per chunk for each filter and scene). Shards
-of ``--shard-size`` runs, each with the generator of ``(seed, shard index)``.
+of ``--shard-size`` runs, each with the generator of ``(seed, shard index)``; within a shard
+the scenes are drawn from it, then the frames and each filter get a stream of their own
+(:func:`~torchmcmcpf.experiments._shards.streams`), so that every filter sees the same frames
+and no filter's figures depend on which filters ran before it.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..typing import VX, VY, X, Y
 from ._figures import np_label, pyplot, save_figure
-from ._shards import Shards
+from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
@@ -110,6 +113,7 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
     sensor, motion, x0 = geometry.sensor, geometry.motion, scn.initial
     init = scn.initial_particles(cfg.particles, generator=generator)
     filters = _filters(cfg, motion, sensor)
+    gens = streams(generator, ("frames",) + FIXED_FILTERS)  # every filter sees the same frames
     states: dict = {name: None for name in FIXED_FILTERS}
     means: dict = {name: [] for name in FIXED_FILTERS}
     seconds: dict = {}
@@ -120,10 +124,10 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
         truth[..., X] = x0[..., X] + t[:, None, None] * x0[..., VX]
         truth[..., Y] = x0[..., Y] + t[:, None, None] * x0[..., VY]
         truths.append(truth)
-        frames = torch.stack([sensor.simulate(truth[i], generator=generator) for i in range(t.numel())])
+        frames = torch.stack([sensor.simulate(truth[i], generator=gens["frames"]) for i in range(t.numel())])
         for name, filt in filters.items():
             with StepTimer(device, t.numel()) as timer:
-                res = filt(frames, init=init if states[name] is None else states[name], generator=generator,
+                res = filt(frames, init=init if states[name] is None else states[name], generator=gens[name],
                            progress=progress)
             seconds[f"fixed|{name}"] = seconds.get(f"fixed|{name}", 0.0) + timer.seconds
             states[name] = res.state
@@ -151,12 +155,13 @@ def _birth_death(cfg: SoakSettings, b: int, generator: torch.Generator, device: 
     init = torch.zeros((b, cfg.particles, cfg.targets, 4), dtype=torch.float64, device=device)
     out: dict = {}
     seconds: dict = {}
+    gens = streams(generator, FILTERS)
     for name, filt in _filters(cfg, motion, sensor, existence).items():
         state, parts, counts = None, [], []
         for part in _chunks(cfg.steps, cfg.every):
             z = type(scn.measurements)(*(f[part].to(device) for f in scn.measurements))
             with StepTimer(device, part.stop - part.start) as timer:
-                res = filt(z, init=init if state is None else state, generator=generator, progress=progress)
+                res = filt(z, init=init if state is None else state, generator=gens[name], progress=progress)
             seconds[name] = seconds.get(name, 0.0) + timer.seconds
             state = res.state
             present = res.exists_prob > 0.5
