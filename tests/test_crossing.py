@@ -196,8 +196,9 @@ def test_soak_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
     # stream, so its figures are the same bits
     cfg = soak.STUDY.settings(quick=True)
     full, _, _ = soak._fixed(cfg, 1, torch.Generator().manual_seed(5), torch.device("cpu"), False)
+    every = soak._filters
     monkeypatch.setattr(soak, "FIXED_FILTERS", soak.FILTERS)
-    monkeypatch.setattr(soak, "_filters", lambda *a, **k: {n: f for n, f in _FILTERS(*a, **k).items()
+    monkeypatch.setattr(soak, "_filters", lambda *a, **k: {n: f for n, f in every(*a, **k).items()
                                                          if n in soak.FILTERS})
     fewer, _, _ = soak._fixed(cfg, 1, torch.Generator().manual_seed(5), torch.device("cpu"), False)
     assert "fixed|partitioned PF|matched_error" not in fewer
@@ -205,5 +206,3 @@ def test_soak_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
         key = f"fixed|{name}|matched_error"
         torch.testing.assert_close(fewer[key], full[key], rtol=0, atol=0)
 
-
-_FILTERS = soak._filters
