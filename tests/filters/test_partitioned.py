@@ -115,3 +115,57 @@ def test_existence_is_refused():
     with pytest.raises(ValueError, match="existence must be None"):
         PartitionedSIRFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 10,
                              existence=BirthDeath(0.1, 0.1, area, velocity_std=1.0))
+
+
+class SumLinearGaussian(LinearGaussian):
+    """Two targets seen only through the sum of their positions, ``z = H (x_0 + x_1) + v``
+    (row 0 of the frame; row 1 unused): the targets interact in every frame."""
+
+    log_likelihood_per_target = SensorModel.log_likelihood_per_target
+
+    def log_likelihood(self, x, z, exists=None):
+        pair = x[..., :1, :] + x[..., 1:2, :]  # (B, *S, 1, D)
+        return LinearGaussian.log_likelihood_per_target(self, pair, z[:, :1])[..., 0]
+
+
+def test_reference_at_the_truth_is_each_targets_exact_filter():
+    # The clairvoyant reference of the soak study: with the other target fixed at its true
+    # state, partition k is the exact filter of target k given z - H x_other, here a Kalman
+    # filter (the targets interact through the summed measurement, so the default reference,
+    # the predicted mean, is only an approximation). Same tolerances as the first test.
+    from _kalman import kalman_filter
+
+    from torchmcmcpf.filters.partitioned import PartitionedSIRSettings, partitioned_sir_step
+    from torchmcmcpf.state import ParticleState
+
+    gen = torch.Generator().manual_seed(6)
+    motion = ConstantVelocity(1.0, 0.5).to(DT)
+    base = LinearGaussian.position(2.0)
+    sensor = SumLinearGaussian(base.H, base.R).to(DT)
+    assert not sensor.separable
+    t_len, b, n = 10, 50, 2000
+    m0 = torch.tensor([[0.0, 1.0, 0.0, -0.5], [8.0, -1.0, 2.0, 0.5]], dtype=DT)  # (K, D)
+    P0 = torch.diag(torch.tensor([25.0, 1.0, 25.0, 1.0], dtype=DT))
+    x = m0 + torch.randn(2, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    truth, zs = [], []
+    for _ in range(t_len):
+        x = motion.sample(x[None], generator=gen)[0]
+        truth.append(x)
+        zs.append(sensor.simulate(x.sum(0, keepdim=True).expand(2, 4)[None], generator=gen)[0])
+    truth, z = torch.stack(truth), torch.stack(zs)  # (T, K, D), (T, K, 2)
+    other = truth.flip(1) @ sensor.H.mT  # (T, K, 2): H x of the other target
+    km, kP = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0, P0, z[:, :1] - other)  # per target
+    state = ParticleState(m0 + torch.randn(b, n, 2, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT,
+                          torch.full((b, n), -torch.log(torch.tensor(float(n))).item(), dtype=DT))
+    settings, means = PartitionedSIRSettings(exclusion=None), []
+    for t in range(t_len):
+        state, _ = partitioned_sir_step(state, z[t].expand(b, 2, 2), motion=motion, sensor=sensor,
+                                        settings=settings, generator=gen, reference=truth[t].expand(b, 2, 4))
+        means.append(state.x.mean(1))
+    err = torch.stack(means) - km.unsqueeze(1)  # (T, B, K, D)
+    assert torch.all(err.mean(1).abs() <= 5 * err.std(1) / b**0.5)
+    var = ((state.x - means[-1].unsqueeze(1)) ** 2).mean(1)
+    torch.testing.assert_close(var.mean(0), torch.diagonal(kP[-1], dim1=-2, dim2=-1), rtol=0.05, atol=0.0)
+    with pytest.raises(ValueError, match=r"reference has shape \(50, 1, 4\), expected"):
+        partitioned_sir_step(state, z[0].expand(b, 2, 2), motion=motion, sensor=sensor, generator=gen,
+                             reference=truth[0, :1].expand(b, 1, 4))

@@ -70,9 +70,9 @@ class PartitionedSIRSettings:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
 
 
-def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, eps: Tensor, *,
-                         motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings
-                         ) -> tuple[Tensor, Tensor]:
+def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, eps: Tensor,
+                         reference: Tensor | None = None, *, motion: MotionModel, sensor: SensorModel,
+                         settings: PartitionedSIRSettings) -> tuple[Tensor, Tensor]:
     """The body of one independent-partition step, all of it but its random draws (pure; the
     program ``compile_step=True`` compiles): propose, weight each partition, resample each
     partition.
@@ -82,6 +82,10 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     x : (B, N, K, D) previous particles; log_w : (B, N) their normalised log-weights.
     z : the frame ``(B, *G)``; u : the resampling uniforms of the B * K partitions
     (``(B * K, 1)`` systematic, ``(B * K, N)`` otherwise); eps : (B, N, K, noise_dim) motion noise.
+    reference : (B, K, D) the state the other targets are fixed at; default (None) the
+    noise-free prediction of the previous posterior mean. Given the true states, the filter
+    is the clairvoyant reference of the soak study: each target tracked alone, exactly (as
+    N grows), with every other target's contribution to the frame known.
 
     Returns
     -------
@@ -90,8 +94,9 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     compiled and eager steps agree bit for bit).
     """
     b, n, k, _ = x.shape
-    # reference: the noise-free prediction of the previous posterior mean (B, K, D)
-    ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
+    ref = reference  # (B, K, D)
+    if ref is None:  # the noise-free prediction of the previous posterior mean
+        ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
     x_prop = motion.propagate(x, eps)  # every partition from the motion prior
     # p(z | x_k, x_-k = ref) / p(z | ref) (B, N, K); target k's own term for a separable sensor
     log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z)  # (B, N, K)
@@ -121,6 +126,7 @@ def partitioned_sir_step(
     generator: torch.Generator,
     existence: BirthDeath | None = None,
     body: Callable | None = None,
+    reference: Tensor | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """One independent-partition step (module docstring: weighting and approximation).
 
@@ -133,6 +139,8 @@ def partitioned_sir_step(
     existence : must be None (known number of targets).
     body : :func:`partitioned_sir_body` with the models bound (compiled by
         ``PartitionedSIRFilter(compile_step=True)``); default eager.
+    reference : (B, K, D), optional: the states the other targets are fixed at (default: the
+        noise-free prediction of the previous posterior mean; :func:`partitioned_sir_body`).
 
     Returns
     -------
@@ -150,7 +158,9 @@ def partitioned_sir_step(
     eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
     if body is None:
         body = bind_body(motion, sensor, settings)
-    x_new, log_lik = body(x, log_w, z, u, eps)
+    if reference is not None and reference.shape != (b, k, x.shape[-1]):
+        raise ValueError(f"reference has shape {tuple(reference.shape)}, expected (B, K, D) = {(b, k, x.shape[-1])}")
+    x_new, log_lik = body(x, log_w, z, u, eps, reference)
     ess_k = ess(normalize(log_lik)[0])  # (B, K); a partition with all weights -inf: uniform, not NaN
     log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
     return ParticleState(x_new, log_w_new), StepInfo.make(ess_k[:, 0], ess=ess_k.mean(-1),
