@@ -131,7 +131,8 @@ def test_crossing_study_quick(tmp_path):
 def test_soak_study_quick(tmp_path):
     payload = _run_quick(soak, tmp_path)
     assert (tmp_path / "soak.png").exists() and (tmp_path / "metrics.json").exists()
-    assert set(payload["results"]["fixed"]) == set(soak.FIXED_FILTERS)  # the partitioned PF's reference row
+    # the partitioned PF's row and the clairvoyant reference's
+    assert set(payload["results"]["fixed"]) == set(soak.FIXED_FILTERS) | {soak.CLAIRVOYANT}
     assert set(payload["results"]["birth-death"]) == set(soak.FILTERS)
     for fixed in payload["results"]["fixed"].values():
         assert fixed["non_finite"] == 0 and len(fixed["matched_rmse_per_chunk"]) == 2
@@ -206,3 +207,29 @@ def test_soak_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
         key = f"fixed|{name}|matched_error"
         torch.testing.assert_close(fewer[key], full[key], rtol=0, atol=0)
 
+
+
+def test_crossing_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
+    # without the MCMC-PF and the partitioned PF (and in the other order), the IP-MCMC-PFs see
+    # the same scenes and draw from the same streams, so their figures are the same bits (on
+    # one shared stream the filters before them would move their draws)
+    cfg = crossing_study.STUDY.settings(quick=True)
+
+    def run():
+        return crossing_study.STUDY.run_shard(cfg, range(1), generator=torch.Generator().manual_seed(4),
+                                              device=torch.device("cpu"))[0]
+
+    full = run()
+    every = crossing_study._filters
+    keep = ("IP-MCMC-PF (paper)", "IP-MCMC-PF")
+
+    def fewer_filters(*args, **kwargs):
+        filters = every(*args, **kwargs)
+        return {name: filters[name] for name in keep}
+
+    monkeypatch.setattr(crossing_study, "_filters", fewer_filters)
+    fewer = run()
+    assert "MCMC-PF|matched_error" not in fewer
+    for name in keep:
+        for what in ("matched_error", "recaptured", "estimate"):
+            torch.testing.assert_close(fewer[f"{name}|{what}"], full[f"{name}|{what}"], rtol=0, atol=0)

@@ -25,7 +25,10 @@ independent-partition PF (with exclusion).
 Writes ``metrics.json``, ``crossing.png`` (uncovered runs and per-step assignment RMSE over
 time per filter), ``coalescence.png`` (share of runs that have re-captured the weak target
 against the step) and ``tracks.png`` (run 0 of the crossing). Shards of ``--shard-size``
-runs (5, quick 1), each with the generator of ``(seed, shard index)``.
+runs (5, quick 1), each with the generator of ``(seed, shard index)``; the scenes are drawn
+from it, then each filter gets a stream of its own for both scenes
+(:func:`~torchmcmcpf.experiments._shards.streams`), so that no filter's figures depend on
+which filters ran before it.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ from ..filters.partitioned import PartitionedSIRFilter
 from ..models.base import MotionModel, SensorModel
 from ..scenarios.crossing import crossing
 from ._figures import np_label, pyplot, save_figure
-from ._shards import Shards
+from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
@@ -110,9 +113,11 @@ class Crossing(Study[CrossingSettings]):
         per_run: dict = {"truth": scn.truth.movedim(1, 0)}
         seconds = {}
         on_far = _filters(cfg, far.motion, far.sensor)  # the coalescence scene has its own grid
-        for name, filt in _filters(cfg, scn.motion, scn.sensor).items():
+        filters = _filters(cfg, scn.motion, scn.sensor)
+        gens = streams(generator, tuple(filters))  # no filter's figures depend on the filters before it
+        for name, filt in filters.items():
             with StepTimer(device, cfg.steps) as timer:
-                res = filt(scn.measurements, init=init, generator=generator, progress=progress)
+                res = filt(scn.measurements, init=init, generator=gens[name], progress=progress)
             seconds[name] = timer.seconds
             per_run[f"{name}|coverage"] = metrics.slot_coverage(res.mean, scn.truth, radius=COVER).movedim(1, 0)
             per_run[f"{name}|shared"] = metrics.slot_coverage(res.mean, scn.truth, radius=SHARE).movedim(1, 0)
@@ -120,7 +125,7 @@ class Crossing(Study[CrossingSettings]):
             per_run[f"{name}|matched_error"] = metrics.position_error(matched, scn.truth).square().mean(-1).sqrt().T
             per_run[f"{name}|switches"] = metrics.identity_switches(res.mean, scn.truth)
             per_run[f"{name}|estimate"] = res.mean.movedim(1, 0)
-            res = on_far[name](far.measurements, init=coalesced, generator=generator)
+            res = on_far[name](far.measurements, init=coalesced, generator=gens[name])
             weak = far.truth[:, :, 1:]  # (T, B, 1, D)
             per_run[f"{name}|recaptured"] = (metrics.slot_coverage(res.mean, weak, radius=RECAPTURE)[..., 0] > 0).T
         return per_run, seconds
