@@ -656,9 +656,11 @@ def pcrb_position_rmse(sensor: SensorModel, motion: MotionModel, x: Tensor, *, g
     floor of target ``j``'s position RMSE is ``sqrt(P_xx + P_yy)`` with ``P = J^{-1}``: on
     trajectories drawn from the motion model, no filter does better on average in steady
     state, with every other target away and the known components known, so a scene's
-    interactions and unknowns only add to it. (A truth that moves with less noise than the
-    model's ``Q``, or the first steps after a sharp start, can be tracked below it for a
-    while.) On a linear-Gaussian position sensor it is the Kalman filter's steady-state error.
+    interactions and unknowns only add to it. It bounds the error averaged over such
+    trajectories, not on one truth: a truth that moves with less noise than the model's ``Q``
+    (a noise-free one, say) is tracked below it for as long as it keeps so (the soak study's
+    clairvoyant reference, 10-20 % below), as are the first steps after a sharp start. On a
+    linear-Gaussian position sensor it is the Kalman filter's steady-state error.
 
     Parameters
     ----------

@@ -13,9 +13,14 @@ chunk, so memory does not grow with the length):
   filter matched to the truth (as near to its ``q = 0`` as a particle cloud can keep).
   Scored per chunk by the per-step assignment RMSE (labels matched at every step: a label
   swap costs nothing, a lost target does), and over the run by the longest stretch a
-  target has no slot estimate within 20 m and the identity switches; next to them the
-  floor no filter of this model beats, each target alone with its amplitude known
-  (:func:`~torchmcmcpf.metrics.pcrb_position_rmse` at the mid-run truth).
+  target has no slot estimate within 20 m and the identity switches. Next to them two
+  references: the posterior Cramer-Rao bound of each target alone with its amplitude known
+  (:func:`~torchmcmcpf.metrics.pcrb_position_rmse` at the mid-run truth; a bound for
+  trajectories that move as the filters' model says, which the noise-free truth does not, so
+  a filter may go below it), and the *clairvoyant reference* on the same frames: each
+  target's own particle filter (``4 Np`` particles) weighted with every other target at its
+  true state, what the data allow a tracker that never confuses the targets. A target this
+  reference holds and a filter loses is lost to the association, not to the SNR or ``q``.
 - ``birth-death``: the Septier et al. scene (:func:`~torchmcmcpf.scenarios.septier`) with
   ``--targets`` slots, births and deaths in clutter; scored per chunk by OSPA (c = 100 m,
   p = 2) split into its localisation and cardinality parts.
@@ -45,16 +50,18 @@ import torch
 
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
-from ..filters.partitioned import PartitionedSIRFilter
+from ..filters.partitioned import PartitionedSIRFilter, PartitionedSIRSettings, partitioned_sir_step
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..typing import VX, VY, X, Y
+from ..state import ParticleState
+from ..typing import VX, VY, Tensor, X, Y
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
 FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
+CLAIRVOYANT, CLAIRVOYANT_FACTOR = "clairvoyant reference", 4  # each target with the others known; 4 Np particles
 SCENES = ("fixed", "birth-death")
 COVER, CUTOFF, ORDER = 20.0, 100.0, 2.0
 FLOOR_FRAMES, FLOOR_SEED = 200, 0  # frames per target of the floor's Fisher information, their seed
@@ -96,6 +103,32 @@ def _filters(cfg: SoakSettings, motion: MotionModel, sensor: SensorModel, existe
     return filters
 
 
+def _clairvoyant(frames: Tensor, truth: Tensor, x: Tensor, motion: MotionModel, sensor: SensorModel,
+                 generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """The clairvoyant reference over one chunk: each target's partition weighted with every
+    other target at its true state (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_step`
+    with ``reference`` the truth), so each target is filtered alone, exactly as the particles
+    grow, with the others' contribution to the frame known. What the data allow a tracker
+    that never confuses the targets: a loss here is the model's (this SNR and ``q``), a loss
+    only in the filters is the association's.
+
+    Parameters
+    ----------
+    frames : (T, B, *G); truth : (T, B, K, D); x : (B, N, K, D) the particles before the chunk.
+
+    Returns
+    -------
+    x : (B, N, K, D) after the chunk; mean : (T, B, K, D) the estimate at each step.
+    """
+    state, means = ParticleState(x, torch.zeros(x.shape[:2], dtype=x.dtype, device=x.device) - math.log(x.shape[1])), []
+    settings = PartitionedSIRSettings(exclusion=None)  # the others are where they are
+    for z, ref in zip(frames, truth):  # a loop over time only
+        state, _ = partitioned_sir_step(state, z, motion=motion, sensor=sensor, settings=settings,
+                                        generator=generator, reference=ref)
+        means.append(state.x.mean(1))
+    return state.x, torch.stack(means)
+
+
 def _chunks(steps: int, every: int) -> list[slice]:
     return [slice(a, min(a + every, steps)) for a in range(0, steps, every)]
 
@@ -113,9 +146,11 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
     sensor, motion, x0 = geometry.sensor, geometry.motion, scn.initial
     init = scn.initial_particles(cfg.particles, generator=generator)
     filters = _filters(cfg, motion, sensor)
-    gens = streams(generator, ("frames",) + FIXED_FILTERS)  # every filter sees the same frames
+    names = FIXED_FILTERS + (CLAIRVOYANT,)
+    gens = streams(generator, ("frames",) + names)  # every filter sees the same frames
     states: dict = {name: None for name in FIXED_FILTERS}
-    means: dict = {name: [] for name in FIXED_FILTERS}
+    states[CLAIRVOYANT] = init.repeat_interleave(CLAIRVOYANT_FACTOR, 1)
+    means: dict = {name: [] for name in names}
     seconds: dict = {}
     truths = []
     for part in _chunks(cfg.steps, cfg.every):
@@ -132,9 +167,14 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
             seconds[f"fixed|{name}"] = seconds.get(f"fixed|{name}", 0.0) + timer.seconds
             states[name] = res.state
             means[name].append(res.mean)
+        with StepTimer(device, t.numel()) as timer:
+            states[CLAIRVOYANT], mean = _clairvoyant(frames, truth, states[CLAIRVOYANT], motion, sensor,
+                                                      gens[CLAIRVOYANT])
+        seconds[f"fixed|{CLAIRVOYANT}"] = seconds.get(f"fixed|{CLAIRVOYANT}", 0.0) + timer.seconds
+        means[CLAIRVOYANT].append(mean)
     truth = torch.cat(truths)
     out: dict = {}
-    for name in FIXED_FILTERS:
+    for name in names:
         mean = torch.cat(means[name])  # (T, B, K, D)
         matched, _ = metrics.match_tracks(mean, truth, per_step=True)
         out[f"fixed|{name}|matched_error"] = metrics.position_error(matched, truth).square().mean(-1).sqrt().T
@@ -211,7 +251,7 @@ class Soak(Study[SoakSettings]):
         floor = per_run["fixed|floor"]  # (R, J)
         results["fixed_floor"] = {"per_run": floor.square().mean(-1).sqrt(),
                                   "all": float(floor.square().mean().sqrt())}
-        for name in FIXED_FILTERS:
+        for name in FIXED_FILTERS + (CLAIRVOYANT,):
             err = per_run[f"fixed|{name}|matched_error"]  # (R, T)
             rows = [float(err[:, c].square().mean().sqrt()) for c in chunks]
             results["fixed"][name] = {
