@@ -18,8 +18,9 @@ chunk, so memory does not grow with the length):
   (:func:`~torchmcmcpf.metrics.pcrb_position_rmse` at the mid-run truth; a bound for
   trajectories that move as the filters' model says, which the noise-free truth does not, so
   a filter may go below it), and the *clairvoyant reference* on the same frames: each
-  target's own particle filter (``4 Np`` particles) weighted with every other target at its
-  true state, what the data allow a tracker that never confuses the targets. A target this
+  target's own particle filter (``Np`` particles, the filters' count) weighted with every
+  other target at its true state, what the data allow a tracker that never confuses the
+  targets. A target this
   reference holds and a filter loses is lost to the association, not to the SNR or ``q``.
 - ``birth-death``: the Septier et al. scene (:func:`~torchmcmcpf.scenarios.septier`) with
   ``--targets`` slots, births and deaths in clutter; scored per chunk by OSPA (c = 100 m,
@@ -61,7 +62,7 @@ from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
 FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
-CLAIRVOYANT, CLAIRVOYANT_FACTOR = "clairvoyant reference", 4  # each target with the others known; 4 Np particles
+CLAIRVOYANT = "clairvoyant reference"  # each target's own PF (Np particles) with the others known
 SCENES = ("fixed", "birth-death")
 COVER, CUTOFF, ORDER = 20.0, 100.0, 2.0
 FLOOR_FRAMES, FLOOR_SEED = 200, 0  # frames per target of the floor's Fisher information, their seed
@@ -149,7 +150,7 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
     names = FIXED_FILTERS + (CLAIRVOYANT,)
     gens = streams(generator, ("frames",) + names)  # every filter sees the same frames
     states: dict = {name: None for name in FIXED_FILTERS}
-    states[CLAIRVOYANT] = init.repeat_interleave(CLAIRVOYANT_FACTOR, 1)
+    states[CLAIRVOYANT] = init
     means: dict = {name: [] for name in names}
     seconds: dict = {}
     truths = []
