@@ -141,7 +141,7 @@ def test_soak_study_quick(tmp_path):
         assert max(loc, card) - 1e-6 <= total <= loc + card + 1e-6
     floor = payload["results"]["fixed_floor"]
     assert floor["per_run"].shape == (1,) and 0 < floor["all"] < 20  # metres, 3 targets, quick
-    assert "birth-death" in soak.STUDY.summary(payload) and "floor" in soak.STUDY.summary(payload)
+    assert "birth-death" in soak.STUDY.summary(payload) and "PCRB" in soak.STUDY.summary(payload)
     assert "filters' q = 1," in soak.STUDY.summary(payload)
 
 
