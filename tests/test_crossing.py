@@ -122,7 +122,10 @@ def test_crossing_study_quick(tmp_path):
     for name in ("metrics.json", "crossing.png", "coalescence.png", "tracks.png"):
         assert (tmp_path / name).exists()
     stored = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(stored["results"]) == set(crossing_study.FILTERS)
+    assert set(stored["results"]) == set(crossing_study.FILTERS) | {crossing_study.CLAIRVOYANT}
+    reference = payload["results"][crossing_study.CLAIRVOYANT]
+    assert reference["recaptured_share"] is None
+    assert "| clairvoyant reference |" in crossing_study.STUDY.summary(payload)
     r = payload["results"]["IP-MCMC-PF"]
     assert 0 <= r["runs_uncovered_late"] <= r["runs"] and float(r["matched_rmse"]) >= 0
     assert "| IP-MCMC-PF |" in crossing_study.STUDY.summary(payload)

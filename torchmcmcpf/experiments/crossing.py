@@ -20,13 +20,17 @@ Two scenes of the range-doppler-bearing radar of paper 000 (:func:`~torchmcmcpf.
 Filters (every one with ``Np`` particles): the IP-MCMC-PF with the library's defaults
 (exclusion and re-capture), the IP-MCMC-PF of paper 000 (``exclusion=None, recapture=None``:
 the factorised target and the plain exchange move), the MCMC-PF with its defaults, and the
-independent-partition PF (with exclusion).
+independent-partition PF (with exclusion). Next to them, on the crossing scene, the
+*clairvoyant reference* (:func:`~torchmcmcpf.filters.partitioned.clairvoyant_partitions`):
+each target's own PF weighted with the other at its true state, what the data allow a
+tracker that knows the association (it has no coalescence column: it reads the truth and
+has no data-driven move).
 
 Writes ``metrics.json``, ``crossing.png`` (uncovered runs and per-step assignment RMSE over
 time per filter), ``coalescence.png`` (share of runs that have re-captured the weak target
 against the step) and ``tracks.png`` (run 0 of the crossing). Shards of ``--shard-size``
 runs (5, quick 1), each with the generator of ``(seed, shard index)``; the scenes are drawn
-from it, then each filter gets a stream of its own for both scenes
+from it, then each filter (and the reference) gets a stream of its own for both scenes
 (:func:`~torchmcmcpf.experiments._shards.streams`), so that no filter's figures depend on
 which filters ran before it.
 """
@@ -41,14 +45,16 @@ import torch
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.mcmc import MCMCFilter
-from ..filters.partitioned import PartitionedSIRFilter
+from ..filters.partitioned import PartitionedSIRFilter, clairvoyant_partitions
 from ..models.base import MotionModel, SensorModel
 from ..scenarios.crossing import crossing
+from ..typing import Tensor
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
+CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
 
 
@@ -80,6 +86,18 @@ def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) ->
         "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=n // 2, burn_in=burn_in // 2),
         "partitioned PF": PartitionedSIRFilter(motion, sensor, n),
     }
+
+
+def _scores(name: str, mean: Tensor, truth: Tensor) -> dict:
+    """The crossing scene's per-run figures of one estimate ``mean (T, B, K, D)`` against
+    ``truth (T, B, K, D)`` (keys ``"name|coverage"`` ... of :meth:`Crossing.run_shard`).
+    """
+    matched, _ = metrics.match_tracks(mean, truth, per_step=True)
+    return {f"{name}|coverage": metrics.slot_coverage(mean, truth, radius=COVER).movedim(1, 0),
+            f"{name}|shared": metrics.slot_coverage(mean, truth, radius=SHARE).movedim(1, 0),
+            f"{name}|matched_error": metrics.position_error(matched, truth).square().mean(-1).sqrt().T,
+            f"{name}|switches": metrics.identity_switches(mean, truth),
+            f"{name}|estimate": mean.movedim(1, 0)}
 
 
 class Crossing(Study[CrossingSettings]):
@@ -114,20 +132,20 @@ class Crossing(Study[CrossingSettings]):
         seconds = {}
         on_far = _filters(cfg, far.motion, far.sensor)  # the coalescence scene has its own grid
         filters = _filters(cfg, scn.motion, scn.sensor)
-        gens = streams(generator, tuple(filters))  # no filter's figures depend on the filters before it
+        gens = streams(generator, tuple(filters) + (CLAIRVOYANT,))  # no filter's figures depend on the others
         for name, filt in filters.items():
             with StepTimer(device, cfg.steps) as timer:
                 res = filt(scn.measurements, init=init, generator=gens[name], progress=progress)
             seconds[name] = timer.seconds
-            per_run[f"{name}|coverage"] = metrics.slot_coverage(res.mean, scn.truth, radius=COVER).movedim(1, 0)
-            per_run[f"{name}|shared"] = metrics.slot_coverage(res.mean, scn.truth, radius=SHARE).movedim(1, 0)
-            matched, _ = metrics.match_tracks(res.mean, scn.truth, per_step=True)
-            per_run[f"{name}|matched_error"] = metrics.position_error(matched, scn.truth).square().mean(-1).sqrt().T
-            per_run[f"{name}|switches"] = metrics.identity_switches(res.mean, scn.truth)
-            per_run[f"{name}|estimate"] = res.mean.movedim(1, 0)
+            per_run.update(_scores(name, res.mean, scn.truth))
             res = on_far[name](far.measurements, init=coalesced, generator=gens[name])
             weak = far.truth[:, :, 1:]  # (T, B, 1, D)
             per_run[f"{name}|recaptured"] = (metrics.slot_coverage(res.mean, weak, radius=RECAPTURE)[..., 0] > 0).T
+        with StepTimer(device, cfg.steps) as timer:  # what the data allow with the association known
+            _, mean = clairvoyant_partitions(scn.measurements, scn.truth, init, motion=scn.motion, sensor=scn.sensor,
+                                             generator=gens[CLAIRVOYANT])
+        seconds[CLAIRVOYANT] = timer.seconds
+        per_run.update(_scores(CLAIRVOYANT, mean, scn.truth))
         return per_run, seconds
 
     @staticmethod
@@ -135,11 +153,10 @@ class Crossing(Study[CrossingSettings]):
         """Per filter: run counts, per-step curves and means (module docstring)."""
         results = {}
         late = slice(cfg.from_step, None)
-        for name in FILTERS:
+        for name in FILTERS + (CLAIRVOYANT,):
             cov, shared = per_run[f"{name}|coverage"], per_run[f"{name}|shared"]
-            err, rec = per_run[f"{name}|matched_error"], per_run[f"{name}|recaptured"]
+            err = per_run[f"{name}|matched_error"]
             uncovered = cov == 0  # (R, T, 2)
-            first = torch.where(rec.any(1), rec.to(torch.int64).argmax(1).double(), float("nan"))  # (R,)
             results[name] = {
                 "runs": int(cov.shape[0]),
                 "runs_uncovered_late": int(uncovered[:, late].any(-1).any(-1).sum()),
@@ -149,11 +166,17 @@ class Crossing(Study[CrossingSettings]):
                 "matched_rmse_per_step": err.square().mean(0).sqrt(),
                 "matched_rmse": err.square().mean().sqrt(),
                 "identity_switches_per_run": per_run[f"{name}|switches"].double().mean(),
-                "recaptured_per_step": rec.double().mean(0),
-                "recaptured_share": rec.any(1).double().mean(),
-                "recapture_step_median": first.nanmedian(),
                 "seconds_per_step": seconds[name] / cfg.steps,
             }
+            # the reference has no coalescence column (it reads the truth and has no data-driven move)
+            rec = per_run.get(f"{name}|recaptured")  # (R, T_c)
+            first = None if rec is None else torch.where(rec.any(1), rec.to(torch.int64).argmax(1).double(),
+                                                         float("nan"))  # (R,)
+            results[name].update({
+                "recaptured_per_step": None if rec is None else rec.double().mean(0),
+                "recaptured_share": None if rec is None else rec.any(1).double().mean(),
+                "recapture_step_median": None if first is None else first.nanmedian(),
+            })
         return results
 
     def summary(self, payload: dict) -> str:
@@ -164,11 +187,12 @@ class Crossing(Study[CrossingSettings]):
                  f"coalescence: runs re-captured within {cfg['coalesce_steps']} steps (median step) | s / step |",
                  "|---|---|---|---|---|---|---|"]
         for name, r in payload["results"].items():
+            recaptured = ("-" if r["recaptured_share"] is None  # the clairvoyant reference
+                          else f"{float(r['recaptured_share']):.0%} ({float(r['recapture_step_median']):.0f})")
             lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} | "
                          f"{r['runs_shared_late']} / {r['runs']} | "
                          f"{float(r['matched_rmse']):.2f} | {float(r['identity_switches_per_run']):.2f} | "
-                         f"{float(r['recaptured_share']):.0%} ({float(r['recapture_step_median']):.0f}) | "
-                         f"{r['seconds_per_step']:.3f} |")
+                         f"{recaptured} | {r['seconds_per_step']:.3f} |")
         return "\n".join(lines) + "\n"
 
     def summarise(self, cfg: CrossingSettings, shards: Shards, out: Path) -> dict:
@@ -191,7 +215,8 @@ class Crossing(Study[CrossingSettings]):
         save_figure(fig, out, "crossing.png", quick=cfg.quick)
 
         fig, ax = plt.subplots(figsize=(7, 4))
-        plot_rmse(ax, {np_label(k, n): r["recaptured_per_step"] for k, r in results.items()},
+        plot_rmse(ax, {np_label(k, n): r["recaptured_per_step"] for k, r in results.items()
+                       if r["recaptured_per_step"] is not None},
                   ylabel=f"share of runs with a slot within {RECAPTURE:g} m of the weak target")
         ax.set_title(f"staged coalescence: both slots start on the strong target, {runs} runs{quick}")
         save_figure(fig, out, "coalescence.png", quick=cfg.quick)

@@ -51,11 +51,10 @@ import torch
 
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
-from ..filters.partitioned import PartitionedSIRFilter, PartitionedSIRSettings, partitioned_sir_step
+from ..filters.partitioned import PartitionedSIRFilter, clairvoyant_partitions
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..state import ParticleState
-from ..typing import VX, VY, Tensor, X, Y
+from ..typing import VX, VY, X, Y
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, option
@@ -104,33 +103,6 @@ def _filters(cfg: SoakSettings, motion: MotionModel, sensor: SensorModel, existe
     return filters
 
 
-def _clairvoyant(frames: Tensor, truth: Tensor, x: Tensor, motion: MotionModel, sensor: SensorModel,
-                 generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """The clairvoyant reference over one chunk: each target's partition weighted with every
-    other target at its true state (:func:`~torchmcmcpf.filters.partitioned.partitioned_sir_step`
-    with ``reference`` the truth), so each target is filtered alone, exactly as the particles
-    grow, with the others' contribution to the frame known. What the data allow a tracker
-    that never confuses the targets: a loss here is the model's (this SNR and ``q``), a loss
-    only in the filters is the association's.
-
-    Parameters
-    ----------
-    frames : (T, B, *G); truth : (T, B, K, D); x : (B, N, K, D) the particles before the chunk.
-
-    Returns
-    -------
-    x : (B, N, K, D) after the chunk; mean : (T, B, K, D) the estimate at each step.
-    """
-    log_w = torch.full(x.shape[:2], -math.log(x.shape[1]), dtype=x.dtype, device=x.device)
-    state, means = ParticleState(x, log_w), []
-    settings = PartitionedSIRSettings(exclusion=None)  # the others are where they are
-    for z, ref in zip(frames, truth):  # a loop over time only
-        state, _ = partitioned_sir_step(state, z, motion=motion, sensor=sensor, settings=settings,
-                                        generator=generator, reference=ref)
-        means.append(state.x.mean(1))
-    return state.x, torch.stack(means)
-
-
 def _chunks(steps: int, every: int) -> list[slice]:
     return [slice(a, min(a + every, steps)) for a in range(0, steps, every)]
 
@@ -170,8 +142,8 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
             states[name] = res.state
             means[name].append(res.mean)
         with StepTimer(device, t.numel()) as timer:
-            states[CLAIRVOYANT], mean = _clairvoyant(frames, truth, states[CLAIRVOYANT], motion, sensor,
-                                                      gens[CLAIRVOYANT])
+            states[CLAIRVOYANT], mean = clairvoyant_partitions(frames, truth, states[CLAIRVOYANT], motion=motion,
+                                                               sensor=sensor, generator=gens[CLAIRVOYANT])
         seconds[f"fixed|{CLAIRVOYANT}"] = seconds.get(f"fixed|{CLAIRVOYANT}", 0.0) + timer.seconds
         means[CLAIRVOYANT].append(mean)
     truth = torch.cat(truths)

@@ -46,7 +46,8 @@ from ..state import ParticleState, StepInfo, weighted_mean
 from ..typing import Measurement, Tensor
 from .base import Filter
 
-__all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "partitioned_sir_body"]
+__all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "partitioned_sir_body",
+           "clairvoyant_partitions"]
 
 
 @dataclass(frozen=True)
@@ -165,6 +166,39 @@ def partitioned_sir_step(
     log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
     return ParticleState(x_new, log_w_new), StepInfo.make(ess_k[:, 0], ess=ess_k.mean(-1),
                                                           extras={"ess_min": ess_k.amin(-1)})
+
+
+def clairvoyant_partitions(frames: Tensor, truth: Tensor, x: Tensor, *, motion: MotionModel, sensor: SensorModel,
+                           generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """The clairvoyant reference of the crossing and soak studies: each target's partition
+    weighted with every other target at its true state (:func:`partitioned_sir_step` with
+    ``reference`` the truth, no exclusion), so each target is filtered alone, exactly as N
+    grows, with the others' contribution to the frame known. What the data allow a tracker
+    that never confuses the targets: a loss here is the model's (this SNR and ``q``), a loss
+    only in a filter is the association's. An evaluation tool (it reads the truth), not a
+    tracker.
+
+    Parameters
+    ----------
+    frames : (T, B, *G) one frame per step and run; truth : (T, B, K, D) the true states.
+    x : (B, N, K, D) the particles before the first frame (equal weights).
+    motion, sensor : the models; generator : source of randomness.
+
+    Returns
+    -------
+    x : (B, N, K, D) after the last frame; mean : (T, B, K, D) the estimate at each step.
+    """
+    if truth.shape[:2] != (len(frames), x.shape[0]) or truth.shape[2:] != x.shape[2:]:
+        raise ValueError(f"truth has shape {tuple(truth.shape)}, expected (T, B, K, D) = "
+                         f"{(len(frames), x.shape[0]) + tuple(x.shape[2:])}")
+    log_w = torch.full(x.shape[:2], -math.log(x.shape[1]), dtype=x.dtype, device=x.device)
+    state, means = ParticleState(x, log_w), []
+    settings = PartitionedSIRSettings(exclusion=None)  # the others are where they are
+    for t, ref in enumerate(truth):  # a loop over time only
+        state, _ = partitioned_sir_step(state, frames[t], motion=motion, sensor=sensor, settings=settings,
+                                        generator=generator, reference=ref)
+        means.append(state.x.mean(1))
+    return state.x, torch.stack(means)
 
 
 class PartitionedSIRFilter(Filter):
