@@ -211,7 +211,6 @@ def test_soak_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
         torch.testing.assert_close(fewer[key], full[key], rtol=0, atol=0)
 
 
-
 def test_crossing_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
     # without the MCMC-PF and the partitioned PF (and in the other order), the IP-MCMC-PFs see
     # the same scenes and draw from the same streams, so their figures are the same bits (on

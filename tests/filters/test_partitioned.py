@@ -3,6 +3,8 @@ per-target Kalman filters when the likelihood factorises over targets, through b
 weighting paths (a separable sensor's per-target terms, and the one-slot likelihood change
 at the reference that grid sensors use)."""
 
+import math
+
 import pytest
 import torch
 
@@ -129,13 +131,13 @@ class SumLinearGaussian(LinearGaussian):
 
 
 def test_reference_at_the_truth_is_each_targets_exact_filter():
-    # The clairvoyant reference of the soak study: with the other target fixed at its true
+    # The clairvoyant reference of the studies (clairvoyant_partitions): with the other target fixed at its true
     # state, partition k is the exact filter of target k given z - H x_other, here a Kalman
     # filter (the targets interact through the summed measurement, so the default reference,
     # the predicted mean, is only an approximation). Same tolerances as the first test.
     from _kalman import kalman_filter
 
-    from torchmcmcpf.filters.partitioned import PartitionedSIRSettings, partitioned_sir_step
+    from torchmcmcpf.filters.partitioned import clairvoyant_partitions, partitioned_sir_step
     from torchmcmcpf.state import ParticleState
 
     gen = torch.Generator().manual_seed(6)
@@ -155,17 +157,14 @@ def test_reference_at_the_truth_is_each_targets_exact_filter():
     truth, z = torch.stack(truth), torch.stack(zs)  # (T, K, D), (T, K, 2)
     other = truth.flip(1) @ sensor.H.mT  # (T, K, 2): H x of the other target
     km, kP = kalman_filter(motion.F, motion.Q, sensor.H, sensor.R, m0, P0, z[:, :1] - other)  # per target
-    state = ParticleState(m0 + torch.randn(b, n, 2, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT,
-                          torch.full((b, n), -torch.log(torch.tensor(float(n))).item(), dtype=DT))
-    settings, means = PartitionedSIRSettings(exclusion=None), []
-    for t in range(t_len):
-        state, _ = partitioned_sir_step(state, z[t].expand(b, 2, 2), motion=motion, sensor=sensor,
-                                        settings=settings, generator=gen, reference=truth[t].expand(b, 2, 4))
-        means.append(state.x.mean(1))
-    err = torch.stack(means) - km.unsqueeze(1)  # (T, B, K, D)
+    init = m0 + torch.randn(b, n, 2, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    x_last, means = clairvoyant_partitions(z[:, None].expand(t_len, b, 2, 2), truth[:, None].expand(t_len, b, 2, 4),
+                                           init, motion=motion, sensor=sensor, generator=gen)
+    err = means - km.unsqueeze(1)  # (T, B, K, D)
     assert torch.all(err.mean(1).abs() <= 5 * err.std(1) / b**0.5)
-    var = ((state.x - means[-1].unsqueeze(1)) ** 2).mean(1)
+    var = ((x_last - means[-1].unsqueeze(1)) ** 2).mean(1)
     torch.testing.assert_close(var.mean(0), torch.diagonal(kP[-1], dim1=-2, dim2=-1), rtol=0.05, atol=0.0)
+    state = ParticleState(x_last, torch.full((b, n), -math.log(n), dtype=DT))
     with pytest.raises(ValueError, match=r"reference has shape \(50, 1, 4\), expected"):
         partitioned_sir_step(state, z[0].expand(b, 2, 2), motion=motion, sensor=sensor, generator=gen,
                              reference=truth[0, :1].expand(b, 1, 4))

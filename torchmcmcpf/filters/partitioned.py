@@ -85,8 +85,7 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     (``(B * K, 1)`` systematic, ``(B * K, N)`` otherwise); eps : (B, N, K, noise_dim) motion noise.
     reference : (B, K, D) the state the other targets are fixed at; default (None) the
     noise-free prediction of the previous posterior mean. Given the true states, the filter
-    is the clairvoyant reference of the soak study: each target tracked alone, exactly (as
-    N grows), with every other target's contribution to the frame known.
+    is the studies' clairvoyant reference (:func:`clairvoyant_partitions`).
 
     Returns
     -------
