@@ -228,6 +228,16 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
         """
         return z / (2.0 * self.noise_std**2)
 
+    def detection_signal(self, stat: Tensor) -> Tensor:
+        """``sqrt(stat)``: the envelope over ``sqrt(2) sigma``, where the amplitudes of a
+        cell's targets add (eq. 19); inverse :meth:`detection_stat`.
+        """
+        return torch.sqrt(stat)
+
+    def detection_stat(self, signal: Tensor) -> Tensor:
+        """``signal^2`` (inverse of :meth:`detection_signal`)."""
+        return signal * signal
+
     def place(self, x: Tensor, coords: Tensor) -> Tensor:
         """``x (*S, 5)`` moved to the measured coordinates ``coords (*S, 3) = [r, d, b]``
         (eq. 21 inverted): position ``r (cos b, sin b)``, radial velocity ``d`` along the new

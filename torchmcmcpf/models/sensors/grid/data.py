@@ -20,49 +20,86 @@ if TYPE_CHECKING:
 __all__ = ["peaks", "detections", "log_data_density", "sample_from_data"]
 
 def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
-    """Local maxima of the detection statistic over their ``3^n`` neighbourhood above the
-    threshold: ``(B, *G)`` bool.
-    """
-    return _peaks_of(sensor, sensor.detection_statistic(z))
-
-
-def _peaks_of(sensor: SeparableGridSensor, stat: Tensor) -> Tensor:
-    """:func:`peaks` from the detection statistic ``stat (B, *G)``."""
-    return (stat >= neighbourhood(stat, "max", sensor.n_axes)) & (stat > sensor.detection_threshold)
+    """The cells at which :func:`detections` finds its peaks: ``(B, *G)`` bool."""
+    B, G = z.shape[0], sensor.geometry.num_cells
+    _, mask, at = _clean(sensor, sensor.detection_statistic(z))
+    out = torch.zeros((B, G + 1), dtype=torch.bool, device=z.device)
+    out.scatter_(1, torch.where(mask, at, G), True)  # a padded peak writes the spare column
+    return out[:, :G].reshape(z.shape)
 
 
 def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
-    """The frame's peaks as points: ``centres (B, P, n)`` (the strongest
-    ``P = min(max_peaks, G)``, padded) and ``mask (B, P)``; a centre is the centroid of the
-    statistic above the noise mean over the peak's ``3^n`` neighbourhood (cells beyond the
-    grid weigh 0), read at the P peaks only (the frame is pooled once, for the peaks).
+    """The frame's peaks as points, found by CLEAN (Hogbom 1974): ``centres (B, P, n)``
+    (``P = min(max_peaks, G)``, strongest first, padded) and ``mask (B, P)``.
+
+    Repeatedly: the cell of largest residual statistic, if above the threshold, is a peak;
+    its centre is the centroid of the residual above the noise mean over the cell's ``3^n``
+    neighbourhood (cells beyond the grid weigh 0); its point spread, fitted at that centre
+    (the sensor's widths, cut at ``window`` cells per axis like the likelihood's), is taken
+    off the residual in the domain where targets add
+    (:meth:`~.sensor.SeparableGridSensor.detection_signal`). A weak target next to a strong
+    one is a shoulder of the strong one's spread, not a local maximum: this finds it once
+    the strong one is taken off. An isolated peak's centre is the centroid of the frame
+    itself (tested against a loop).
+    """
+    centres, mask, _ = _clean(sensor, sensor.detection_statistic(z))
+    geometry = sensor.geometry
+    origin = torch.tensor(geometry.origins, dtype=centres.dtype, device=z.device)
+    cell = torch.tensor(geometry.cell_sizes, dtype=centres.dtype, device=z.device)
+    return origin + cell * centres, mask
+
+
+def _clean(sensor: SeparableGridSensor, stat: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """CLEAN over the statistic ``stat (B, *G)`` (:func:`detections`): centres in cell
+    units ``(B, P, n)``, ``mask (B, P)`` and the peaks' flat cells ``(B, P)``.
+
+    Only the cells within one cell of a cell above the threshold can hold a peak or weigh in
+    a centroid, so the loop runs over those (``C`` per run, the most in any run; one host
+    synchronisation) and stops once no run has a residual above the threshold (one per peak).
     """
     geometry = sensor.geometry
     n, shape = geometry.n_axes, geometry.frame_shape
-    stat = sensor.detection_statistic(z)
-    peak = _peaks_of(sensor, stat)
     B, G = stat.shape[0], geometry.num_cells
     P = min(sensor.max_peaks, G)
-    top, at = torch.topk(torch.where(peak, stat, float("-inf")).reshape(B, G), P, dim=-1)
-    mask = torch.isfinite(top)
-    weight = (stat - 1.0).clamp(min=0.0).reshape(B, G)  # above the noise mean (1)
-    # each peak's 3^n neighbours: per axis the cell index - 1, + 0, + 1, broadcast over the others
-    step = torch.arange(-1, 2, device=z.device)
-    index = torch.zeros((), dtype=torch.int64, device=z.device)
-    inside = torch.ones((), dtype=torch.bool, device=z.device)
-    coords: list[Tensor] = []
-    rest = at
+    dev, dtype = stat.device, stat.dtype
+    live = neighbourhood(stat, "max", n) > sensor.detection_threshold  # (B, *G)
+    C = max(int(live.reshape(B, G).sum(-1).max()), 1)
+    value, at = torch.topk(torch.where(live, stat, float("-inf")).reshape(B, G), C, dim=-1)  # (B, C)
+    cand = torch.isfinite(value)
+    index, rest = [], at
     for a in reversed(range(n)):  # the flat index unravelled, last axis first
-        near = (rest % shape[a]).unsqueeze(-1) + step  # (B, P, 3)
+        index.insert(0, rest % shape[a])
         rest = rest // shape[a]
-        view = (B, P) + (1,) * a + (3,) + (1,) * (n - 1 - a)
-        inside = inside & ((near >= 0) & (near < shape[a])).reshape(view)
-        index = index + (near.clamp(0, shape[a] - 1) * math.prod(shape[a + 1:])).reshape(view)
-        coords.insert(0, (geometry.origins[a] + geometry.cell_sizes[a] * near.to(stat.dtype)).reshape(view))
-    w = torch.where(inside, torch.take_along_dim(weight, index.reshape(B, P * 3**n), -1).reshape(index.shape), 0.0)
-    norm = w.flatten(2).sum(-1).clamp(min=1e-30)  # (B, P); > 0 at a real peak (its own cell is above 10)
-    centres = [(w * c).flatten(2).sum(-1) / norm for c in coords]
-    return torch.stack(centres, -1), mask
+    pos = torch.stack(index, -1).to(dtype)  # (B, C, n) cell coordinates
+    width = torch.tensor([w / c for w, c in zip(geometry.widths, geometry.cell_sizes)], dtype=dtype, device=dev)
+    reach = float(geometry.window)
+    signal = torch.where(cand, sensor.detection_signal(value.clamp(min=0.0)), 0.0)  # the residual (B, C)
+    threshold = float(sensor.detection_signal(torch.tensor(sensor.detection_threshold, dtype=dtype)))
+    centres = torch.zeros((B, P, n), dtype=dtype, device=dev)
+    cells = torch.zeros((B, P), dtype=torch.int64, device=dev)
+    mask = torch.zeros((B, P), dtype=torch.bool, device=dev)
+    for p in range(P):
+        top, i = signal.max(-1)  # (B,)
+        found = top > threshold
+        if not bool(found.any()):  # the residual only shrinks: no later peak either
+            break
+        here = torch.take_along_dim(pos, i.reshape(B, 1, 1), 1)  # (B, 1, n)
+        offset = pos - here
+        near = (offset.abs() <= 1).all(-1) & cand  # the peak's 3^n neighbourhood
+        weight = torch.where(near, (sensor.detection_stat(signal) - 1.0).clamp(min=0.0), 0.0)
+        centre = (weight.unsqueeze(-1) * pos).sum(1) / weight.sum(-1, keepdim=True).clamp(min=1e-30)  # (B, n)
+        # the spread fitted at the centre through the peak cell's residual, cut like the likelihood's
+        def spread(at: Tensor) -> Tensor:
+            return torch.exp(-0.5 * ((at - centre.unsqueeze(1)) / width).square().sum(-1))
+
+        scale = top / spread(here).squeeze(1)
+        box = (offset.abs() <= reach).all(-1)
+        taken = torch.where(box & found.unsqueeze(-1), scale.unsqueeze(-1) * spread(pos), 0.0)
+        signal = (signal - taken).clamp(min=0.0)
+        centres[:, p] = centre
+        cells[:, p] = torch.take_along_dim(at, i.unsqueeze(-1), -1).squeeze(-1)
+        mask[:, p] = found
+    return centres, mask, cells
 
 
 def log_data_density(sensor: SeparableGridSensor, coords: Tensor, centres: Tensor, mask: Tensor) -> Tensor:

@@ -413,22 +413,37 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         raise NotImplementedError(f"{type(self).__name__} declares no detection statistic")
 
+    def detection_signal(self, stat: Tensor) -> Tensor:
+        """The :meth:`detection_statistic` in the domain where the targets of a cell add, for
+        the CLEAN of :meth:`detections`: here power, ``stat - 1`` (the noise mean off; a sensor
+        whose frame is power over noise, such as Swerling's). Elementwise; inverse
+        :meth:`detection_stat`.
+        """
+        return stat - 1.0
+
+    def detection_stat(self, signal: Tensor) -> Tensor:
+        """Inverse of :meth:`detection_signal`: ``signal + 1`` here."""
+        return signal + 1.0
+
     @property
     def data_driven(self) -> bool:
         """Whether the subclass gives :meth:`detection_statistic` and :meth:`place`."""
         return self._overrides(SeparableGridSensor, "detection_statistic", "place")
 
     def peaks(self, z: Tensor) -> Tensor:
-        """Cells that are local maxima of :meth:`detection_statistic` over their ``3^n``
-        neighbourhood and exceed :attr:`detection_threshold`: ``(B, *G)`` bool. A target
-        gives about one peak, whatever its SNR (a strong target lights many cells above the
-        threshold, but one local maximum).
+        """The cells at which :meth:`detections` finds its peaks (above
+        :attr:`detection_threshold` after the stronger peaks' spreads are taken off):
+        ``(B, *G)`` bool. A target gives about one peak, whatever its SNR (a strong target
+        lights many cells above the threshold, but its spread is taken off as a whole).
         """
         return data.peaks(self, z)
 
     def detections(self, z: Tensor) -> tuple[Tensor, Tensor]:
-        """The frame's :meth:`peaks` as points: the centroid of the statistic over each peak's
-        ``3^n`` neighbourhood, in the units of :meth:`measurement_coords`.
+        """The frame's :meth:`peaks` as points, by CLEAN (Hogbom 1974; :func:`.data.detections`):
+        the strongest residual cell above the threshold, the centroid of the residual over its
+        ``3^n`` neighbourhood, its fitted spread taken off, again; in the units of
+        :meth:`measurement_coords`. A weak target beside a strong one (a shoulder of its
+        spread, not a local maximum) is found once the strong one is taken off.
 
         Parameters
         ----------
