@@ -49,6 +49,13 @@ def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
     return origin + cell * centres, mask
 
 
+def _spread(cells: Tensor, centre: Tensor, width: Tensor) -> Tensor:
+    """The separable Gaussian spread of a target at ``centre (B, n)`` at ``cells (B, C, n)``
+    (all in cell units; ``width (n,)`` its standard deviations): ``(B, C)``, 1 at the centre.
+    """
+    return torch.exp(-0.5 * ((cells - centre.unsqueeze(1)) / width).square().sum(-1))
+
+
 def _clean(sensor: SeparableGridSensor, stat: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """CLEAN over the statistic ``stat (B, *G)`` (:func:`detections`): centres in cell
     units ``(B, P, n)``, ``mask (B, P)`` and the peaks' flat cells ``(B, P)``.
@@ -66,7 +73,8 @@ def _clean(sensor: SeparableGridSensor, stat: Tensor) -> tuple[Tensor, Tensor, T
     C = max(int(live.reshape(B, G).sum(-1).max()), 1)
     value, at = torch.topk(torch.where(live, stat, float("-inf")).reshape(B, G), C, dim=-1)  # (B, C)
     cand = torch.isfinite(value)
-    index, rest = [], at
+    index: list[Tensor] = []
+    rest = at
     for a in reversed(range(n)):  # the flat index unravelled, last axis first
         index.insert(0, rest % shape[a])
         rest = rest // shape[a]
@@ -89,12 +97,9 @@ def _clean(sensor: SeparableGridSensor, stat: Tensor) -> tuple[Tensor, Tensor, T
         weight = torch.where(near, (sensor.detection_stat(signal) - 1.0).clamp(min=0.0), 0.0)
         centre = (weight.unsqueeze(-1) * pos).sum(1) / weight.sum(-1, keepdim=True).clamp(min=1e-30)  # (B, n)
         # the spread fitted at the centre through the peak cell's residual, cut like the likelihood's
-        def spread(at: Tensor) -> Tensor:
-            return torch.exp(-0.5 * ((at - centre.unsqueeze(1)) / width).square().sum(-1))
-
-        scale = top / spread(here).squeeze(1)
+        scale = top / _spread(here, centre, width).squeeze(1)
         box = (offset.abs() <= reach).all(-1)
-        taken = torch.where(box & found.unsqueeze(-1), scale.unsqueeze(-1) * spread(pos), 0.0)
+        taken = torch.where(box & found.unsqueeze(-1), scale.unsqueeze(-1) * _spread(pos, centre, width), 0.0)
         signal = (signal - taken).clamp(min=0.0)
         centres[:, p] = centre
         cells[:, p] = torch.take_along_dim(at, i.unsqueeze(-1), -1).squeeze(-1)
