@@ -191,6 +191,7 @@ def test_detections_find_a_weak_target_on_a_strong_ones_shoulder(gen, make):
     for targets in ([(4 * one, strong), (one, weak)], [(4 * one, strong)]):
         centres, mask = sensor.detections(frame(targets) / ones)
         got = (centres[0][mask[0]] - origin) / size  # in cells
+        assert int(sensor.peaks(frame(targets) / ones).sum()) == int(mask.sum())  # one cell per detection
         for _, c in targets:
             assert float((got - c).abs().amax(-1).min()) < 0.5, (got, c)
         near = torch.stack([(got - c).abs().amax(-1) for _, c in targets]).amin(0)
