@@ -195,20 +195,26 @@ def test_streams_are_independent_of_each_other_and_of_the_names_asked_for():
     assert not torch.equal(draws(("a",), "a"), torch.randn(5, generator=torch.Generator().manual_seed(3)))
 
 
-def test_soak_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
-    # the fixed scene without the partitioned PF gives the IP-MCMC-PF the same frames and
-    # stream, so its figures are the same bits
-    cfg = soak.STUDY.settings(quick=True)
-    full, _, _ = soak._fixed(cfg, 1, torch.Generator().manual_seed(5), torch.device("cpu"), False)
-    every = soak._filters
-    monkeypatch.setattr(soak, "FIXED_FILTERS", soak.FILTERS)
-    monkeypatch.setattr(soak, "_filters", lambda *a, **k: {n: f for n, f in every(*a, **k).items()
-                                                         if n in soak.FILTERS})
-    fewer, _, _ = soak._fixed(cfg, 1, torch.Generator().manual_seed(5), torch.device("cpu"), False)
-    assert "fixed|partitioned PF|matched_error" not in fewer
-    for name in soak.FILTERS:
-        key = f"fixed|{name}|matched_error"
-        torch.testing.assert_close(fewer[key], full[key], rtol=0, atol=0)
+def test_soak_rows_are_the_same_bits_whichever_rows_and_scenes_run():
+    """``--filters`` / ``--scenes``: one filter on one scene gives that row's bits of the full
+    study (the scenes are drawn either way, every row has a stream of its own), and the
+    summary shows only what ran; asking for nothing is refused by name.
+    """
+    dev, runs = torch.device("cpu"), range(1)
+    full, _ = soak.STUDY.run_shard(soak.STUDY.settings(quick=True), runs, generator=torch.Generator().manual_seed(5),
+                                   device=dev)
+    for scene, key in (("fixed", "fixed|IP-MCMC-PF|matched_error"), ("birth-death", "birth-death|IP-MCMC-PF|ospa")):
+        cfg = soak.STUDY.settings(quick=True, filters=("IP-MCMC-PF",), scenes=(scene,))
+        one, seconds = soak.STUDY.run_shard(cfg, runs, generator=torch.Generator().manual_seed(5), device=dev)
+        assert {k.split("|")[1] for k in one if k != "fixed|floor"} == {"IP-MCMC-PF"}
+        assert all(k.startswith(scene) for k in one)
+        torch.testing.assert_close(one[key], full[key], rtol=0, atol=0)
+        payload = {"config": {"q": cfg.q}, "results": soak.STUDY.aggregate(cfg, one, seconds)}
+        text = soak.STUDY.summary(payload)
+        assert "| IP-MCMC-PF |" in text and "partitioned" not in text and ("PCRB" in text) == (scene == "fixed")
+    for bad in ({"filters": ()}, {"scenes": ()}):
+        with pytest.raises(ValueError, match="--filters and --scenes"):
+            soak.STUDY.settings(**bad)
 
 
 def test_crossing_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):

@@ -63,6 +63,7 @@ FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
 FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
 CLAIRVOYANT = "clairvoyant reference"  # each target's own PF (Np particles) with the others known
 SCENES = ("fixed", "birth-death")
+ROWS = FIXED_FILTERS + (CLAIRVOYANT,)  # every row (the fixed scene's; the births/deaths scene has FILTERS)
 COVER, CUTOFF, ORDER = 20.0, 100.0, 2.0
 FLOOR_FRAMES, FLOOR_SEED = 200, 0  # frames per target of the floor's Fisher information, their seed
 
@@ -81,8 +82,19 @@ class SoakSettings(Settings):
     q: float = option(1.0, 1.0, help="fixed scene: the filters' acceleration noise q [m^2 s^-3] (1: paper 000's; the "
                                      "truth has none, so a small q is the filter matched to it)")
     shard_size: int = option(5, 1, cli=False)
+    filters: tuple[str, ...] = option(
+        ROWS, choices=ROWS, metavar="NAME",
+        help=f"the rows to run, among {', '.join(repr(r) for r in ROWS)} (default all; each row draws from a "
+             "stream of its own, so a row is the same whichever others run)")
+    scenes: tuple[str, ...] = option(SCENES, choices=SCENES, metavar="SCENE",
+                                     help="the scenes to run, among 'fixed', 'birth-death' (default both)")
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "filters", tuple(r for r in ROWS if r in self.filters))
+        object.__setattr__(self, "scenes", tuple(c for c in SCENES if c in self.scenes))
+        if not self.filters or not self.scenes:
+            raise ValueError(f"arguments --filters and --scenes: expected at least one of each, got "
+                             f"{list(self.filters)} and {list(self.scenes)}")
         if self.particles % 10:
             raise ValueError(f"argument --particles: {self.particles} is not a multiple of 10 (the IP-MCMC-PF's "
                              "chains)")
@@ -108,7 +120,7 @@ def _chunks(steps: int, every: int) -> list[slice]:
 
 
 def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.device,
-           progress: bool) -> tuple[dict, dict, tuple]:
+           progress: bool) -> tuple[dict, dict, tuple | None]:
     from ..scenarios import ground_radar
 
     # the grid and models from one run over the whole length (so the grid covers every
@@ -119,15 +131,15 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
                        speed_limits=(0.0, cfg.max_speed))
     sensor, motion, x0 = geometry.sensor, geometry.motion, scn.initial
     init = scn.initial_particles(cfg.particles, generator=generator)
-    filters = _filters(cfg, motion, sensor)
-    names = FIXED_FILTERS + (CLAIRVOYANT,)
+    names = tuple(r for r in ROWS if r in cfg.filters and "fixed" in cfg.scenes)
+    filters = {k: f for k, f in _filters(cfg, motion, sensor).items() if k in names}
     gens = streams(generator, ("frames",) + names)  # every filter sees the same frames
-    states: dict = {name: None for name in FIXED_FILTERS}
+    states: dict = {name: None for name in filters}
     states[CLAIRVOYANT] = init
     means: dict = {name: [] for name in names}
     seconds: dict = {}
     truths = []
-    for part in _chunks(cfg.steps, cfg.every):
+    for part in _chunks(cfg.steps, cfg.every) if names else ():  # the scene is drawn either way
         t = torch.arange(part.start + 1, part.stop + 1, device=device, dtype=x0.dtype)
         truth = x0.expand(t.numel(), *x0.shape).clone()  # truth[t] = x0 moved t + 1 steps
         truth[..., X] = x0[..., X] + t[:, None, None] * x0[..., VX]
@@ -141,11 +153,14 @@ def _fixed(cfg: SoakSettings, b: int, generator: torch.Generator, device: torch.
             seconds[f"fixed|{name}"] = seconds.get(f"fixed|{name}", 0.0) + timer.seconds
             states[name] = res.state
             means[name].append(res.mean)
-        with StepTimer(device, t.numel()) as timer:
-            states[CLAIRVOYANT], mean = clairvoyant_partitions(frames, truth, states[CLAIRVOYANT], motion=motion,
-                                                               sensor=sensor, generator=gens[CLAIRVOYANT])
-        seconds[f"fixed|{CLAIRVOYANT}"] = seconds.get(f"fixed|{CLAIRVOYANT}", 0.0) + timer.seconds
-        means[CLAIRVOYANT].append(mean)
+        if CLAIRVOYANT in names:
+            with StepTimer(device, t.numel()) as timer:
+                states[CLAIRVOYANT], mean = clairvoyant_partitions(frames, truth, states[CLAIRVOYANT], motion=motion,
+                                                                   sensor=sensor, generator=gens[CLAIRVOYANT])
+            seconds[f"fixed|{CLAIRVOYANT}"] = seconds.get(f"fixed|{CLAIRVOYANT}", 0.0) + timer.seconds
+            means[CLAIRVOYANT].append(mean)
+    if not names:
+        return {}, {}, None
     truth = torch.cat(truths)
     out: dict = {}
     for name in names:
@@ -164,6 +179,8 @@ def _birth_death(cfg: SoakSettings, b: int, generator: torch.Generator, device: 
                  progress: bool) -> tuple[dict, dict]:
     from ..scenarios.septier import septier
 
+    if "birth-death" not in cfg.scenes or not set(FILTERS) & set(cfg.filters):
+        return {}, {}
     scn = septier(b, cfg.steps, generator=generator, num_slots=cfg.targets)
     motion, sensor, existence = scn.motion.to(device), scn.sensor.to(device), scn.existence.to(device)
     init = torch.zeros((b, cfg.particles, cfg.targets, 4), dtype=torch.float64, device=device)
@@ -171,6 +188,8 @@ def _birth_death(cfg: SoakSettings, b: int, generator: torch.Generator, device: 
     seconds: dict = {}
     gens = streams(generator, FILTERS)
     for name, filt in _filters(cfg, motion, sensor, existence).items():
+        if name not in cfg.filters or "birth-death" not in cfg.scenes:
+            continue
         state, parts, counts = None, [], []
         for part in _chunks(cfg.steps, cfg.every):
             z = type(scn.measurements)(*(f[part].to(device) for f in scn.measurements))
@@ -210,22 +229,24 @@ class Soak(Study[SoakSettings]):
         (:func:`~torchmcmcpf.metrics.pcrb_position_rmse` at mid-run); ``seconds`` per scene
         and filter.
         """
-        fixed, s1, (sensor, motion, mid) = _fixed(cfg, len(runs), generator, device, progress)
+        fixed, s1, models = _fixed(cfg, len(runs), generator, device, progress)
         bd, s2 = _birth_death(cfg, len(runs), generator, device, progress)
-        # a property of the scene, not of a run: its frames from a generator of their own
-        floor = metrics.pcrb_position_rmse(sensor, motion, mid, num_frames=FLOOR_FRAMES,
-                                           generator=torch.Generator(device).manual_seed(FLOOR_SEED))
-        return {**fixed, **bd, "fixed|floor": floor}, {**s1, **s2}
+        if models is not None:  # a property of the scene, not of a run: its frames from a generator of their own
+            sensor, motion, mid = models
+            fixed["fixed|floor"] = metrics.pcrb_position_rmse(sensor, motion, mid, num_frames=FLOOR_FRAMES,
+                                                              generator=torch.Generator(device).manual_seed(FLOOR_SEED))
+        return {**fixed, **bd}, {**s1, **s2}
 
     @staticmethod
     def aggregate(cfg: SoakSettings, per_run: dict, seconds: dict) -> dict:
         """Per scene and filter: chunk rows and the acceptance figures of issue 22."""
         chunks = _chunks(cfg.steps, cfg.every)
         results: dict = {"fixed": {}, "birth-death": {}}
-        floor = per_run["fixed|floor"]  # (R, J)
-        results["fixed_floor"] = {"per_run": floor.square().mean(-1).sqrt(),
-                                  "all": float(floor.square().mean().sqrt())}
-        for name in FIXED_FILTERS + (CLAIRVOYANT,):
+        if "fixed|floor" in per_run:
+            floor = per_run["fixed|floor"]  # (R, J)
+            results["fixed_floor"] = {"per_run": floor.square().mean(-1).sqrt(),
+                                      "all": float(floor.square().mean().sqrt())}
+        for name in (r for r in ROWS if f"fixed|{r}|matched_error" in per_run):  # the rows that ran
             err = per_run[f"fixed|{name}|matched_error"]  # (R, T)
             rows = [float(err[:, c].square().mean().sqrt()) for c in chunks]
             results["fixed"][name] = {
@@ -238,7 +259,7 @@ class Soak(Study[SoakSettings]):
                 "last_over_second_chunk": rows[-1] / rows[1] if len(rows) > 1 and rows[1] > 0 else None,
                 "seconds_per_step": seconds[f"fixed|{name}"] / cfg.steps,
             }
-        for name in FILTERS:
+        for name in (r for r in FILTERS if f"birth-death|{r}|ospa" in per_run):
             o = per_run[f"birth-death|{name}|ospa"]  # (R, T, 3)
             results["birth-death"][name] = {
                 "chunks": [f"{c.start + 1}-{c.stop}" for c in chunks],
@@ -254,25 +275,29 @@ class Soak(Study[SoakSettings]):
         (birth-death).
         """
         fixed, bd = payload["results"]["fixed"], payload["results"]["birth-death"]
-        floor = payload["results"]["fixed_floor"]["all"]
-        chunks = next(iter(fixed.values()))["chunks"]
         q = payload["config"]["q"]
-        lines = [f"fixed (filters' q = {q:g}, noise-free truth): per-step assignment RMSE [m] per chunk; longest "
-                 "uncovered stretch (steps, worst run); identity switches per run",
-                 "| filter | " + " | ".join(chunks) + " | longest uncovered | switches / run | s / step |",
-                 "|---" * (len(chunks) + 4) + "|"]
-        for name, r in fixed.items():
-            lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in r["matched_rmse_per_chunk"])
-                         + f" | {int(r['longest_uncovered_per_run'].max())} | "
-                         f"{float(r['identity_switches_per_run'].double().mean()):.1f} | {r['seconds_per_step']:.2f} |")
-        lines.append(f"PCRB (each target alone, on trajectories with the filters' q; metrics.pcrb_position_rmse): "
-                     f"{floor:.2f} m; the noise-free truth can be tracked below it (the clairvoyant reference)")
-        lines += ["", "birth-death: OSPA [m] per chunk, total (localisation / cardinality)",
-                  "| filter | " + " | ".join(chunks) + " | s / step |", "|---" * (len(chunks) + 2) + "|"]
-        for name, r in bd.items():
-            parts = " | ".join(f"{t:.1f} ({lo:.1f} / {c:.1f})" for t, lo, c in r["ospa_per_chunk"])
-            lines.append(f"| {name} | " + parts
-                         + f" | {r['seconds_per_step']:.2f} |")
+        lines: list[str] = []
+        if fixed:
+            chunks = next(iter(fixed.values()))["chunks"]
+            lines += [f"fixed (filters' q = {q:g}, noise-free truth): per-step assignment RMSE [m] per chunk; longest "
+                      "uncovered stretch (steps, worst run); identity switches per run",
+                      "| filter | " + " | ".join(chunks) + " | longest uncovered | switches / run | s / step |",
+                      "|---" * (len(chunks) + 4) + "|"]
+            for name, r in fixed.items():
+                lines.append(f"| {name} | " + " | ".join(f"{v:.2f}" for v in r["matched_rmse_per_chunk"])
+                             + f" | {int(r['longest_uncovered_per_run'].max())} | "
+                             f"{float(r['identity_switches_per_run'].double().mean()):.1f} | "
+                             f"{r['seconds_per_step']:.2f} |")
+            floor = payload["results"]["fixed_floor"]["all"]
+            lines.append(f"PCRB (each target alone, on trajectories with the filters' q; metrics.pcrb_position_rmse): "
+                         f"{floor:.2f} m; the noise-free truth can be tracked below it (the clairvoyant reference)")
+        if bd:
+            chunks = next(iter(bd.values()))["chunks"]
+            lines += ["", "birth-death: OSPA [m] per chunk, total (localisation / cardinality)",
+                      "| filter | " + " | ".join(chunks) + " | s / step |", "|---" * (len(chunks) + 2) + "|"]
+            for name, r in bd.items():
+                parts = " | ".join(f"{t:.1f} ({lo:.1f} / {c:.1f})" for t, lo, c in r["ospa_per_chunk"])
+                lines.append(f"| {name} | " + parts + f" | {r['seconds_per_step']:.2f} |")
         return "\n".join(lines) + "\n"
 
     def summarise(self, cfg: SoakSettings, shards: Shards, out: Path) -> dict:
@@ -283,16 +308,20 @@ class Soak(Study[SoakSettings]):
         results = self.aggregate(cfg, shards.per_run, shards.seconds)
         n, quick = cfg.particles, " (quick)" if cfg.quick else ""
         runs = next(iter(shards.per_run.values())).shape[0]
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
-        plot_rmse(axes[0], {np_label(k, n): r["matched_rmse_per_step"] for k, r in results["fixed"].items()},
-                  ylabel="per-step assignment RMSE [m]")
-        axes[0].axhline(results["fixed_floor"]["all"], color="0.4", linestyle="--",
-                        label="PCRB (trajectories with the filters' q)")
-        axes[0].legend()
-        axes[0].set_title(f"fixed: {cfg.targets} radar targets, filters' q = {cfg.q:g}, {runs} runs")
-        plot_rmse(axes[1], {np_label(k, n): r["ospa_per_step"] for k, r in results["birth-death"].items()},
-                  ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
-        axes[1].set_title(f"birth-death: {cfg.targets} slots, {runs} runs")
+        panels = [scene for scene in SCENES if results[scene]]  # one panel per scene that ran
+        fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 4.5), layout="constrained", squeeze=False)
+        for ax, scene in zip(axes[0], panels):
+            if scene == "fixed":
+                plot_rmse(ax, {np_label(k, n): r["matched_rmse_per_step"] for k, r in results["fixed"].items()},
+                          ylabel="per-step assignment RMSE [m]")
+                ax.axhline(results["fixed_floor"]["all"], color="0.4", linestyle="--",
+                           label="PCRB (trajectories with the filters' q)")
+                ax.legend()
+                ax.set_title(f"fixed: {cfg.targets} radar targets, filters' q = {cfg.q:g}, {runs} runs")
+            else:
+                plot_rmse(ax, {np_label(k, n): r["ospa_per_step"] for k, r in results["birth-death"].items()},
+                          ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
+                ax.set_title(f"birth-death: {cfg.targets} slots, {runs} runs")
         fig.suptitle(f"soak: {cfg.steps} steps{quick}")
         save_figure(fig, out, "soak.png", quick=cfg.quick)
         return {"config": asdict(cfg), "results": results}
