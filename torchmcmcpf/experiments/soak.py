@@ -187,9 +187,7 @@ def _birth_death(cfg: SoakSettings, b: int, generator: torch.Generator, device: 
     out: dict = {}
     seconds: dict = {}
     gens = streams(generator, FILTERS)
-    for name, filt in _filters(cfg, motion, sensor, existence).items():
-        if name not in cfg.filters or "birth-death" not in cfg.scenes:
-            continue
+    for name, filt in ((k, f) for k, f in _filters(cfg, motion, sensor, existence).items() if k in cfg.filters):
         state, parts, counts = None, [], []
         for part in _chunks(cfg.steps, cfg.every):
             z = type(scn.measurements)(*(f[part].to(device) for f in scn.measurements))
