@@ -217,27 +217,26 @@ def test_soak_rows_are_the_same_bits_whichever_rows_and_scenes_run():
             soak.STUDY.settings(**bad)
 
 
-def test_crossing_filters_figures_do_not_depend_on_the_other_filters(monkeypatch):
-    # without the MCMC-PF and the partitioned PF (and in the other order), the IP-MCMC-PFs see
-    # the same scenes and draw from the same streams, so their figures are the same bits (on
-    # one shared stream the filters before them would move their draws)
-    cfg = crossing_study.STUDY.settings(quick=True)
-
-    def run():
+def test_crossing_rows_are_the_same_bits_whichever_rows_run():
+    """``--filters``: the IP-MCMC-PFs alone (without the MCMC-PF, the partitioned PF and the
+    reference) see the same scenes and draw from the same streams, so their figures are the
+    same bits as in the whole study (on one shared stream the filters before them would move
+    their draws); the summary shows only what ran, and asking for nothing is refused."""
+    def run(cfg):
         return crossing_study.STUDY.run_shard(cfg, range(1), generator=torch.Generator().manual_seed(4),
-                                              device=torch.device("cpu"))[0]
+                                              device=torch.device("cpu"))
 
-    full = run()
-    every = crossing_study._filters
+    full, _ = run(crossing_study.STUDY.settings(quick=True))
     keep = ("IP-MCMC-PF (paper)", "IP-MCMC-PF")
-
-    def fewer_filters(*args, **kwargs):
-        filters = every(*args, **kwargs)
-        return {name: filters[name] for name in keep}
-
-    monkeypatch.setattr(crossing_study, "_filters", fewer_filters)
-    fewer = run()
-    assert "MCMC-PF|matched_error" not in fewer
+    cfg = crossing_study.STUDY.settings(quick=True, filters=keep)
+    fewer, seconds = run(cfg)
+    assert {k.split("|")[0] for k in fewer if k != "truth"} == set(keep)
     for name in keep:
         for what in ("matched_error", "recaptured", "estimate"):
             torch.testing.assert_close(fewer[f"{name}|{what}"], full[f"{name}|{what}"], rtol=0, atol=0)
+    text = crossing_study.STUDY.summary({"config": {"from_step": cfg.from_step, "coalesce_steps": cfg.coalesce_steps},
+                                         "results": crossing_study.STUDY.aggregate(cfg, fewer, seconds)})
+    assert "| IP-MCMC-PF |" in text and "MCMC-PF |" not in text.replace("IP-MCMC-PF |", "")
+    assert "clairvoyant" not in text
+    with pytest.raises(ValueError, match="--filters"):
+        crossing_study.STUDY.settings(filters=())

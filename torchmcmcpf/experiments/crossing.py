@@ -32,7 +32,8 @@ against the step) and ``tracks.png`` (run 0 of the crossing). Shards of ``--shar
 runs (5, quick 1), each with the generator of ``(seed, shard index)``; the scenes are drawn
 from it, then each filter (and the reference) gets a stream of its own for both scenes
 (:func:`~torchmcmcpf.experiments._shards.streams`), so that no filter's figures depend on
-which filters ran before it.
+which filters ran before it, and ``--filters`` runs some rows only, each the same bits as in
+the whole study.
 """
 
 from __future__ import annotations
@@ -55,6 +56,7 @@ from ._study import Settings, StepTimer, Study, option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
 CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
+ROWS = FILTERS + (CLAIRVOYANT,)
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
 
 
@@ -69,8 +71,15 @@ class CrossingSettings(Settings):
     shard_size: int = option(5, 1, cli=False)
     coalesce_steps: int = option(20, 8, help="time steps of the coalescence scene")
     from_step: int = option(50, 20, help="first step at which uncovered and shared targets count")
+    filters: tuple[str, ...] = option(
+        ROWS, choices=ROWS, metavar="NAME",
+        help=f"the rows to run, among {', '.join(repr(r) for r in ROWS)} (default all; each row draws from a "
+             "stream of its own, so a row is the same whichever others run)")
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "filters", tuple(r for r in ROWS if r in self.filters))
+        if not self.filters:
+            raise ValueError("argument --filters: expected at least one row, got none")
         if self.particles % 10:
             raise ValueError(f"argument --particles: {self.particles} is not a multiple of 10 (the IP-MCMC-PF's "
                              "chains)")
@@ -131,8 +140,8 @@ class Crossing(Study[CrossingSettings]):
         per_run: dict = {"truth": scn.truth.movedim(1, 0)}
         seconds = {}
         on_far = _filters(cfg, far.motion, far.sensor)  # the coalescence scene has its own grid
-        filters = _filters(cfg, scn.motion, scn.sensor)
-        gens = streams(generator, tuple(filters) + (CLAIRVOYANT,))  # no filter's figures depend on the others
+        filters = {k: f for k, f in _filters(cfg, scn.motion, scn.sensor).items() if k in cfg.filters}
+        gens = streams(generator, ROWS)  # no filter's figures depend on the others
         for name, filt in filters.items():
             with StepTimer(device, cfg.steps) as timer:
                 res = filt(scn.measurements, init=init, generator=gens[name], progress=progress)
@@ -141,6 +150,8 @@ class Crossing(Study[CrossingSettings]):
             res = on_far[name](far.measurements, init=coalesced, generator=gens[name])
             weak = far.truth[:, :, 1:]  # (T, B, 1, D)
             per_run[f"{name}|recaptured"] = (metrics.slot_coverage(res.mean, weak, radius=RECAPTURE)[..., 0] > 0).T
+        if CLAIRVOYANT not in cfg.filters:
+            return per_run, seconds
         with StepTimer(device, cfg.steps) as timer:  # what the data allow with the association known
             _, mean = clairvoyant_partitions(scn.measurements, scn.truth, init, motion=scn.motion, sensor=scn.sensor,
                                              generator=gens[CLAIRVOYANT])
@@ -153,7 +164,7 @@ class Crossing(Study[CrossingSettings]):
         """Per filter: run counts, per-step curves and means (module docstring)."""
         results = {}
         late = slice(cfg.from_step, None)
-        for name in FILTERS + (CLAIRVOYANT,):
+        for name in (r for r in ROWS if f"{r}|coverage" in per_run):  # the rows that ran
             cov, shared = per_run[f"{name}|coverage"], per_run[f"{name}|shared"]
             err = per_run[f"{name}|matched_error"]
             uncovered = cov == 0  # (R, T, 2)
@@ -221,9 +232,10 @@ class Crossing(Study[CrossingSettings]):
         ax.set_title(f"staged coalescence: both slots start on the strong target, {runs} runs{quick}")
         save_figure(fig, out, "coalescence.png", quick=cfg.quick)
 
-        fig, axes = plt.subplots(1, len(FILTERS), figsize=(4.5 * len(FILTERS), 4.5), squeeze=False,
+        shown = [name for name in FILTERS if name in results]
+        fig, axes = plt.subplots(1, max(len(shown), 1), figsize=(4.5 * max(len(shown), 1), 4.5), squeeze=False,
                                  layout="constrained")
-        for ax, name in zip(axes[0], FILTERS):
+        for ax, name in zip(axes[0], shown):
             plot_tracks(ax, pr["truth"][0], pr[f"{name}|estimate"][0], estimate_label=np_label(name, n))
             ax.set_title(name)
         fig.suptitle(f"crossing, run 0: true tracks (solid) and slot estimates (dashed){quick}")
