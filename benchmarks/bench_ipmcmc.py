@@ -26,6 +26,7 @@ import torch
 
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
 from torchmcmcpf.kernels.hmc_refine import HMCRefine
+from torchmcmcpf.models.multitarget import Recapture
 from torchmcmcpf.scenarios.ground_radar import ground_radar
 
 CHAINS, TARGETS = 50, 10
@@ -98,7 +99,8 @@ def test_ipmcmc_step_cuda(benchmark, variant, b):
 
 
 TERMS = {"paper": dict(exclusion=None, recapture=None), "exclusion": dict(recapture=None),
-         "recapture": dict(exclusion=None), "default": {}}
+         "recapture": dict(exclusion=None), "default": {},
+         "default-independent-sources": dict(recapture=Recapture(p_same_source=0.0))}
 
 
 @pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
@@ -108,7 +110,9 @@ def test_ipmcmc_step_multitarget_terms(benchmark, scenario, terms, compiled, n):
     """The cost of the multitarget prior's terms (issue 22): the public ``filt.step`` with the
     paper's factorised target and exchange move, with exclusion only, with re-capture only
     (relocation noise drawn from the frame's peaks, every 10th iteration a two-slot move) and
-    with both (the default), Np = 500 and 5000, 50 chains, 10 targets, no R-hat extensions.
+    with both (the default), and the default with the two-slot move's slots from independent
+    particles (``p_same_source = 0``: no sources kept in the chains), Np = 500 and 5000, 50
+    chains, 10 targets, no R-hat extensions.
     Compare within one run: ``--benchmark-group-by=group``.
     """
     x0 = scenario.initial_particles(n, generator=torch.Generator().manual_seed(1))

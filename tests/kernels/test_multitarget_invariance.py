@@ -16,7 +16,7 @@ import torch
 from torch.utils._pytree import tree_map
 
 from torchmcmcpf.kernels.chains import JointNoise, RefineNoise, previous_cloud
-from torchmcmcpf.kernels.exchange import ExchangeChains, draw_exchange_noise, exchange_iteration, propose_slots
+from torchmcmcpf.kernels.exchange import ExchangeChains, draw_exchange_noise, exchange_iteration
 from torchmcmcpf.kernels.moves import init_chains, joint_move, refine_move
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.existence import TargetDynamics
@@ -106,10 +106,12 @@ def _common(x_prev, z, exclusion, delta):
     return log_lik + log_phi, pieces
 
 
-def _ipmcmc_target(x_prev, z, exclusion, delta):
-    """pi(u) ∝ p(z | u) Phi(u) prod_j (1/N) sum_i [(1 - delta) N(u_j; x_ij, Q) + delta U(u_j)]."""
+def _ipmcmc_target(x_prev, z, exclusion, delta, log_w=None):
+    """pi(u) ∝ p(z | u) Phi(u) prod_j sum_i w^i [(1 - delta) N(u_j; x_ij, Q) + delta U(u_j)]
+    (uniform weights by default)."""
     base, pieces = _common(x_prev, z, exclusion, delta)
-    m = [torch.logsumexp(p, 0) for p in pieces]
+    lw = torch.zeros(x_prev.shape[0], dtype=DT) if log_w is None else log_w
+    m = [torch.logsumexp(p + lw[:, None], 0) for p in pieces]
     return base + m[0][:, None] + m[1][None, :]
 
 
@@ -132,84 +134,87 @@ def _problem():
     return motion, LineSensor(), x_prev, z
 
 
-@pytest.mark.parametrize("terms", ["exclusion", "recapture", "both"])
-def test_exchange_moves_leave_the_extended_target_invariant(terms):
-    """The one-slot exchange move and the two-slot move (each with its own proposal
-    probability epsilon), with exclusion and/or relocation, target
-    ``p(z | u) Phi(u) prod_j [(1 - delta) m_j(u_j) + delta p_0(u_j)]``."""
-    motion, sensor, x_prev, z = _problem()
-    exclusion = Exclusion(1.5) if terms in ("exclusion", "both") else None
-    recapture = Recapture(p_jump=0.2, p_propose=0.3, pair_every=3, p_propose_pair=0.6) \
-        if terms in ("recapture", "both") else None
-    delta = 0.2 if recapture is not None else 1e-300
-    g = torch.Generator().manual_seed(11)
-    b, c, n, k = 1, 6000, x_prev.shape[0], 2
+#: Unequal weights of the 3 previous particles (the source draws and the pair's ratio use them).
+LOG_W = torch.tensor([0.6, 0.3, 0.1], dtype=DT).log()
+
+
+def _exchange_chains(exclusion, recapture, *, pair_every, seed, iterations=150, c=6000, x_prev=None):
+    """Run C chains of the one-slot exchange move with, every ``pair_every``-th iteration, the
+    two-slot move (``pair_every = 1``: the two-slot move alone) on the problem (its previous
+    particles, or ``x_prev (N, 2, 1)``); the chains start from the proposal. Returns the chains
+    and the acceptance rates of the two kernels."""
+    motion, sensor, x_problem, z = _problem()
+    x_prev = x_problem if x_prev is None else x_prev
+    g = torch.Generator().manual_seed(seed)
+    b, n, k = 1, x_prev.shape[0], 2
     xp = x_prev.unsqueeze(0).expand(b, n, k, 1)
     zb = z.unsqueeze(0).expand(b, k, 1)
-    log_w = torch.full((b, n), -math.log(n), dtype=DT)
+    log_w = LOG_W.unsqueeze(0)
     dyn = TargetDynamics(motion, None, recapture, sensor)
     src = torch.randint(n, (b, c), generator=g)
     x0 = torch.take_along_dim(xp, src[..., None, None], 1)
     y, _, log_r, kind = dyn.propagate_labelled(x0, None, *dyn.draw_noise(x0, zb, generator=g))
-    chain = ExchangeChains(y, sensor.log_likelihood(y, zb), None, None if recapture is None else log_r, kind)
-    iterations, accepted, pair_acc = 150, 0.0, 0.0
+    sources = (src.unsqueeze(-1).expand(b, c, k), LOG_W[src].unsqueeze(-1).expand(b, c, k)) \
+        if recapture is not None and recapture.p_same_source > 0 else (None, None)
+    chain = ExchangeChains(y, sensor.log_likelihood(y, zb), None, None if recapture is None else log_r, kind,
+                           *sources)
+    accepted, pair_acc = 0.0, 0.0
     pairs = torch.tensor([[[False, True], [False, False]]])
     single = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb)
     double = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, pairs=pairs)
     for t in range(iterations):
-        noise = single if (t + 1) % 3 else double
-        nz = tree_map(lambda a: None if a is None else a[t], noise)
+        two = (t + 1) % pair_every == 0
+        nz = tree_map(lambda a: None if a is None else a[t], double if two else single)
         chain, acc, _ = exchange_iteration(chain, xp, None, zb, nz, dynamics=dyn, sensor=sensor, exclusion=exclusion)
         accepted += float(acc.double().mean()) / iterations
-        if not (t + 1) % 3:
-            pair_acc += float(acc.double().mean()) / (iterations // 3)
+        if two:
+            pair_acc += float(acc.double().mean()) / (iterations // pair_every)
+    torch.testing.assert_close(chain.log_lik, sensor.log_likelihood(chain.y, zb))
+    return chain, accepted, pair_acc
+
+
+@pytest.mark.parametrize("terms", ["exclusion", "recapture", "both", "independent sources"])
+def test_exchange_moves_leave_the_extended_target_invariant(terms):
+    """The one-slot exchange move and the two-slot move (each with its own proposal
+    probability epsilon; both slots from one particle with probability ``p_same_source``),
+    with exclusion and/or relocation, target
+    ``p(z | u) Phi(u) prod_j [(1 - delta) m_j(u_j) + delta p_0(u_j)]``, unequal weights."""
+    _, _, x_prev, z = _problem()
+    exclusion = Exclusion(1.5) if terms in ("exclusion", "both") else None
+    recapture = Recapture(p_jump=0.2, p_propose=0.3, pair_every=3, p_propose_pair=0.6,
+                          p_same_source=0.0 if terms == "independent sources" else 0.7) \
+        if terms != "exclusion" else None
+    delta = 0.2 if recapture is not None else 1e-300
+    chain, accepted, pair_acc = _exchange_chains(exclusion, recapture, pair_every=3, seed=11)
     assert 0.1 < accepted < 0.95 and pair_acc > 0.03  # both kernels move the chains
-    torch.testing.assert_close(chain[1], sensor.log_likelihood(chain[0], zb))
-    exact = _moments(_ipmcmc_target(x_prev[..., 0], z[:, 0], exclusion, delta))
-    mean, se = _sample_moments(chain[0][0, :, :, 0])
+    exact = _moments(_ipmcmc_target(x_prev[..., 0], z[:, 0], exclusion, delta, LOG_W))
+    mean, se = _sample_moments(chain.y[0, :, :, 0])
     assert ((mean - exact).abs() <= 4.5 * se).all(), (mean, exact, se)
     if recapture is not None:  # the relocation component holds a real share of the mass
-        assert 0.1 < float((chain[4] == 2).double().mean()) < 0.9
+        assert 0.1 < float((chain.kind == 2).double().mean()) < 0.9
 
 
-def test_a_segments_proposals_made_at_once_are_each_iterations_own():
-    """The exchange move is an independence proposal: the slots a segment of L iterations
-    proposes, made in one call (``propose_slots`` on leading ``(L, B, C)``, what the filter
-    does), are those each iteration makes from its own noise, one- and two-slot, with
-    relocation; and an iteration given them takes the same decisions."""
-    motion, sensor, x_prev, z = _problem()
-    recapture = Recapture(p_jump=0.2, p_propose=0.3, pair_every=3, p_propose_pair=0.6)
-    g = torch.Generator().manual_seed(5)
-    b, c, n, k, steps = 2, 40, x_prev.shape[0], 2, 6
-    xp = (x_prev.unsqueeze(0) + torch.randn(b, n, k, 1, generator=g, dtype=DT))
-    zb = z.unsqueeze(0).expand(b, k, 1)
-    log_w = torch.randn(b, n, generator=g, dtype=DT).log_softmax(-1)
-    dyn = TargetDynamics(motion, None, recapture, sensor)
-    x0 = torch.take_along_dim(xp, torch.randint(n, (b, c), generator=g)[..., None, None], 1)
-    y, _, log_r, kind = dyn.propagate_labelled(x0, None, *dyn.draw_noise(x0, zb, generator=g))
-    pairs = torch.tensor([[False, True], [False, False]]).expand(b, k, k)
-    for close in (None, pairs):
-        noise = draw_exchange_noise(log_w, steps, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, pairs=close)
-        made = propose_slots(noise, xp, None, dynamics=dyn)
-        assert made.moved.shape == (steps, b, c, 1 if close is None else 2, 1)
-        assert bool((made.kind == 2).any()) and bool((made.kind == 1).any())  # both components drawn
-        # a slot from the motion component is its source particle's slot, propagated
-        parent = xp[torch.arange(b).reshape(1, b, 1, 1), noise.source, noise.slot]  # (L, B, C, M, 1)
-        motion_kind = (made.kind == 1).unsqueeze(-1)
-        assert torch.equal(torch.where(motion_kind, made.moved, 0.0),
-                           torch.where(motion_kind, motion.propagate(parent, noise.eps), 0.0))
-        chains = ExchangeChains(y, sensor.log_likelihood(y, zb), None, log_r, kind)
-        for t in range(steps):
-            nz = tree_map(lambda a: None if a is None else a[t], noise)
-            own = propose_slots(nz, xp, None, dynamics=dyn)
-            for a, b_ in zip(tree_map(lambda a: None if a is None else a[t], made), own):
-                assert (a is None) == (b_ is None) and (a is None or torch.equal(a, b_))
-            ahead, acc_a, _ = exchange_iteration(chains, xp, None, zb, nz._replace(proposal=own), dynamics=dyn,
-                                                 sensor=sensor, exclusion=Exclusion())
-            alone, acc_o, _ = exchange_iteration(chains, xp, None, zb, nz, dynamics=dyn, sensor=sensor,
-                                                 exclusion=Exclusion())
-            assert torch.equal(acc_a, acc_o) and all(torch.equal(u, v) for u, v in zip(ahead, alone) if u is not None)
-            chains = ahead
+def test_one_sourced_pairs_need_their_ratio(monkeypatch):
+    """The two-slot move alone, both slots from one particle with probability 0.9, previous
+    particles whose slots are anti-correlated (the joint prediction and the product of the
+    slots' marginals differ): the chains hold the factorised target with the pair's source
+    ratio (module docstring of :mod:`torchmcmcpf.kernels.exchange`); without the ratio they
+    drift towards the joint prediction, tens of standard errors away (the check can fail)."""
+    _, _, _, z = _problem()
+    x_prev = torch.tensor([[0.0, 3.0], [3.0, 0.0], [1.5, 1.5]], dtype=DT).unsqueeze(-1)
+    recapture = Recapture(p_jump=0.2, p_propose=0.3, p_propose_pair=0.3, p_same_source=0.9)
+    exact = _moments(_ipmcmc_target(x_prev[..., 0], z[:, 0], None, 0.2, LOG_W))
+    chain, _, pair_acc = _exchange_chains(None, recapture, pair_every=1, seed=13, x_prev=x_prev)
+    assert pair_acc > 0.1
+    same = float((chain.source[..., 0] == chain.source[..., 1]).double().mean())
+    assert 0.05 < same < 0.9  # both kinds of pair are held
+    mean, se = _sample_moments(chain.y[0, :, :, 0])
+    assert ((mean - exact).abs() <= 4.5 * se).all(), (mean, exact, se)
+    import torchmcmcpf.kernels.exchange as exchange
+    monkeypatch.setattr(exchange, "pair_source_log_ratio", lambda s, lw, rho: torch.zeros_like(lw[..., 0]))
+    chain, _, _ = _exchange_chains(None, recapture, pair_every=1, seed=13, x_prev=x_prev)
+    mean, se = _sample_moments(chain.y[0, :, :, 0])
+    assert ((mean - exact).abs() > 10 * se).any(), (mean, exact, se)
 
 
 @pytest.mark.parametrize("terms", ["exclusion", "both"])

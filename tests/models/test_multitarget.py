@@ -75,7 +75,8 @@ def test_exclusion_against_a_reference(gen):
 def test_recapture_settings_and_ratios():
     r = Recapture(p_jump=0.01, p_propose=0.2)
     for bad in (dict(p_jump=0.0), dict(p_jump=1.0), dict(p_propose=0.0), dict(pair_every=-1),
-                dict(pair_distance=0.0), dict(p_propose_pair=1.5)):
+                dict(pair_distance=0.0), dict(p_propose_pair=1.5), dict(p_same_source=1.0),
+                dict(p_same_source=-0.1)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             Recapture(**bad)
     kind = torch.tensor([FIXED, MOTION, RELOCATED], dtype=torch.int8)

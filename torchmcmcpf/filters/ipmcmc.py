@@ -91,6 +91,18 @@ of slot ``j`` differs from its factor only by ``r_j = p_0(y_j) / q_0(y_j)`` for 
 before (an inactive slot sits at ``x_death``, so a slot that is alive in some chains and
 dead in others shows up).
 
+Exclusion and re-capture (the defaults)
+---------------------------------------
+With :class:`~torchmcmcpf.models.multitarget.Exclusion` the target gains the pairwise factor
+``Phi(y)`` (a one-slot move pays its ``K - 1`` factors); with
+:class:`~torchmcmcpf.models.multitarget.Recapture` each slot's prior gains the relocation
+component and the exchange move draws a slot from the data with probability ``epsilon``
+(the chains cache ``log r_j`` per slot, as for births), and every ``pair_every``-th iteration
+moves two slots whose predictions are close, both slots from one previous particle with
+probability ``p_same_source`` (the chains then keep each slot's source ``i_j``, and the
+move's ratio carries the pair's source term: :mod:`torchmcmcpf.kernels.exchange`, "The
+two-slot move's sources"). ``exclusion=None, recapture=None`` is the paper's target and move.
+
 HMC refinement (optional)
 -------------------------
 With ``hmc=HMCRefine(...)`` (:mod:`torchmcmcpf.kernels.hmc_refine`) every chain also takes
@@ -218,7 +230,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
     chains' amplitude cache (:func:`with_accepted_amplitudes`) and, after every ``every``-th,
     by ``refine(chains, i) -> (chains, accepted)`` (the ``i``-th HMC refinement) when given;
     return the final chains, the list of the chains after iterations ``record_from .. L - 1``
-    (references, no copies, without their cache), the number of exchange acceptances per
+    (references, no copies, without their cache and sources), the number of exchange acceptances per
     chain ``(B, C)`` and that of refinements.
     """
     trace = []
@@ -233,7 +245,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
             chains, acc = refine(chains, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
-            trace.append(chains._replace(amplitude=None))
+            trace.append(chains._replace(source=None, log_w_source=None, amplitude=None))
     return chains, trace, accepted_count, refined_count
 
 
@@ -478,13 +490,17 @@ def ipmcmc_step(
                                                     start=True)
     # the chains' amplitudes per cell (grid sensors; ExchangeChains.amplitude): a move then
     # reads its two boxes instead of summing the other targets' spreads there
-    chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
-                            None if existence is None and recapture is None else log_r, kind,
-                            sensor.amplitude_cache(y, e))
-
     # two-slot moves: every pair_every-th iteration, over the pairs of slots whose predicted
     # estimates are close (fixed for the step: a fixed mixture of invariant kernels)
     pair_every = 0 if recapture is None or k < 2 else recapture.pair_every
+    source = log_w_source = None
+    if pair_every and recapture is not None and recapture.p_same_source > 0:  # every slot's source particle
+        source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
+        log_w_source = torch.take_along_dim(log_w - torch.logsumexp(log_w, -1, keepdim=True), start, 1
+                                            ).unsqueeze(-1).repeat(1, 1, k)
+    chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
+                            None if existence is None and recapture is None else log_r, kind, source, log_w_source,
+                            sensor.amplitude_cache(y, e))
     pairs = None
     if pair_every and recapture is not None:
         if exists is None:

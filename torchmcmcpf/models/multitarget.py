@@ -245,6 +245,12 @@ class Recapture:
         crossing, only a joint move of both onto the two peaks repairs it). Each kernel
         scores the chains with its own ``epsilon`` (:func:`log_q_component`), so the mixture
         of one- and two-slot moves stays exact.
+    p_same_source : ``rho`` in [0, 1), the probability that the two-slot move draws both
+        slots from one previous particle (the pair's joint prediction) instead of two
+        independent ones (:mod:`torchmcmcpf.kernels.exchange`, "The two-slot move's
+        sources"): a pair of slots that only a few previous particles hold together (a
+        repaired crossing) is then re-proposed together with probability ``rho w`` instead
+        of ``w^2``. 0 gives independent sources.
     """
 
     p_jump: float = 1e-3
@@ -252,6 +258,7 @@ class Recapture:
     pair_every: int = 10
     pair_distance: float = 3.0
     p_propose_pair: float = 0.5
+    p_same_source: float = 0.5
 
     def __post_init__(self):
         object.__setattr__(self, "p_jump", _probability(self.p_jump, "p_jump", open_low=True))
@@ -260,6 +267,7 @@ class Recapture:
         object.__setattr__(self, "pair_distance", check_positive(self.pair_distance, "pair_distance"))
         object.__setattr__(self, "p_propose_pair", _probability(self.p_propose_pair, "p_propose_pair",
                                                                 open_low=True))
+        object.__setattr__(self, "p_same_source", _probability(self.p_same_source, "p_same_source"))
 
 
 class RelocationNoise(NamedTuple):
