@@ -9,7 +9,8 @@ returned.
 One iteration moves ``M`` slots of every chain at once (``M`` is the trailing size of the
 noise, static): ``M = 1`` is the paper's exchange move, ``M = 2`` the joint move of two slots
 whose predictions are close (:class:`~torchmcmcpf.models.multitarget.Recapture`'s
-``pair_every``). Each moved slot ``j`` is drawn independently of the chain's state, from
+``pair_every``; its two slots from one particle with probability ``p_same_source``, below).
+Each moved slot ``j`` is drawn independently of the chain's state, from
 previous particle ``i ~ w`` propagated by
 :class:`~torchmcmcpf.models.existence.TargetDynamics` (motion, existence chain, birth or
 ``x_death``, relocation from the data), so the move is an independence proposal on those
@@ -18,7 +19,8 @@ slots and
     ``log alpha = log p(z | y') - log p(z | y) + log Phi(y') - log Phi(y)
                   + sum_{moved j} (log r'_j - log r_j)``
 
-with ``Phi`` the exclusion factor and ``r_j`` the slot's cached target-over-proposal ratio.
+with ``Phi`` the exclusion factor and ``r_j`` the slot's cached target-over-proposal ratio
+(plus, for a two-slot move with ``p_same_source > 0``, the pair's source term below).
 
 The two-slot move's sources
 ---------------------------
@@ -41,7 +43,8 @@ factor ``w^{i_j} w^{i_l}``, and the move's ``log alpha`` gains
     ``i_j = i_l``, else 0
 
 (the constant ``-log(1 - rho)`` cancels): 6.2 nats to make a pair one-sourced at ``rho =
-0.5``, ``N = 500``, which a repair's tens of nats of evidence pay. The chains keep every
+0.5``, ``N = 500``: a repair is taken where the frame favours it by more than that
+(docs/tracks.md has cases either side). The chains keep every
 slot's source and its log-weight (:class:`ExchangeChains`), taken from the move's noise.
 """
 
