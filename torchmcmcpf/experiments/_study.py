@@ -51,7 +51,7 @@ from ._options import RunOptions, positive_int
 from ._provenance import write_metrics
 from ._shards import Shards, run_shards
 
-__all__ = ["Settings", "Study", "option", "generator", "StepTimer"]
+__all__ = ["Settings", "Study", "option", "rows_option", "in_order", "generator", "StepTimer"]
 
 _SAME = object()
 
@@ -70,6 +70,21 @@ def option(full: Any, quick: Any = _SAME, *, help: str = "", cli: bool = True, r
     """
     return field(default=full, metadata={"quick": quick, "help": help, "cli": cli, "record": record,
                                          "argparse": argparse_kw})
+
+
+def rows_option(rows: tuple[str, ...]) -> Any:
+    """The ``--filters`` option of a study whose rows are ``rows`` (default all): each row
+    draws from a stream of its own (:func:`~torchmcmcpf.experiments._shards.streams`), so a
+    row is the same bits whichever others run.
+    """
+    return option(rows, choices=rows, metavar="NAME",
+                  help=f"the rows to run, among {', '.join(repr(r) for r in rows)} (default all; each row draws "
+                       "from a stream of its own, so a row is the same whichever others run)")
+
+
+def in_order(names: tuple[str, ...], chosen: tuple[str, ...]) -> tuple[str, ...]:
+    """The ``chosen`` among ``names``, in the order of ``names`` (the study's own)."""
+    return tuple(n for n in names if n in chosen)
 
 
 def _fmt(value: Any) -> str:

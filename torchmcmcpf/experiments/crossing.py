@@ -52,7 +52,7 @@ from ..scenarios.crossing import crossing
 from ..typing import Tensor
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
-from ._study import Settings, StepTimer, Study, option
+from ._study import Settings, StepTimer, Study, in_order, option, rows_option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
 CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
@@ -71,13 +71,10 @@ class CrossingSettings(Settings):
     shard_size: int = option(5, 1, cli=False)
     coalesce_steps: int = option(20, 8, help="time steps of the coalescence scene")
     from_step: int = option(50, 20, help="first step at which uncovered and shared targets count")
-    filters: tuple[str, ...] = option(
-        ROWS, choices=ROWS, metavar="NAME",
-        help=f"the rows to run, among {', '.join(repr(r) for r in ROWS)} (default all; each row draws from a "
-             "stream of its own, so a row is the same whichever others run)")
+    filters: tuple[str, ...] = rows_option(ROWS)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "filters", tuple(r for r in ROWS if r in self.filters))
+        object.__setattr__(self, "filters", in_order(ROWS, self.filters))
         if not self.filters:
             raise ValueError("argument --filters: expected at least one row, got none")
         if self.particles % 10:

@@ -57,7 +57,7 @@ from ..models.existence import BirthDeath
 from ..typing import VX, VY, X, Y
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
-from ._study import Settings, StepTimer, Study, option
+from ._study import Settings, StepTimer, Study, in_order, option, rows_option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
 FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
@@ -82,16 +82,13 @@ class SoakSettings(Settings):
     q: float = option(1.0, 1.0, help="fixed scene: the filters' acceleration noise q [m^2 s^-3] (1: paper 000's; the "
                                      "truth has none, so a small q is the filter matched to it)")
     shard_size: int = option(5, 1, cli=False)
-    filters: tuple[str, ...] = option(
-        ROWS, choices=ROWS, metavar="NAME",
-        help=f"the rows to run, among {', '.join(repr(r) for r in ROWS)} (default all; each row draws from a "
-             "stream of its own, so a row is the same whichever others run)")
+    filters: tuple[str, ...] = rows_option(ROWS)
     scenes: tuple[str, ...] = option(SCENES, choices=SCENES, metavar="SCENE",
                                      help="the scenes to run, among 'fixed', 'birth-death' (default both)")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "filters", tuple(r for r in ROWS if r in self.filters))
-        object.__setattr__(self, "scenes", tuple(c for c in SCENES if c in self.scenes))
+        object.__setattr__(self, "filters", in_order(ROWS, self.filters))
+        object.__setattr__(self, "scenes", in_order(SCENES, self.scenes))
         if not self.filters or not self.scenes:
             raise ValueError(f"arguments --filters and --scenes: expected at least one of each, got "
                              f"{list(self.filters)} and {list(self.scenes)}")

@@ -186,7 +186,7 @@ from ..kernels.hmc_refine import (
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture
-from ..resampling import gather_particles, systematic
+from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
 from .base import Filter, active_prior, check_existence_proposal
@@ -496,7 +496,7 @@ def ipmcmc_step(
     source = log_w_source = None
     if pair_every and recapture is not None and recapture.p_same_source > 0:  # every slot's source particle
         source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
-        log_w_source = torch.take_along_dim(log_w - torch.logsumexp(log_w, -1, keepdim=True), start, 1
+        log_w_source = torch.take_along_dim(normalize(log_w)[0], start, 1
                                             ).unsqueeze(-1).repeat(1, 1, k)
     chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
                             None if existence is None and recapture is None else log_r, kind, source, log_w_source,

@@ -58,7 +58,7 @@ import torch
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, log_q_component
-from ..resampling import cdf, inverse_cdf
+from ..resampling import cdf, inverse_cdf, normalize
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
 
@@ -246,8 +246,7 @@ def draw_exchange_noise(
     if rho > 0:  # both slots from one particle (drawn last: the other draws are those of rho = 0)
         same = torch.rand(shape, generator=generator, device=dev, dtype=torch.float64) < rho
         source = torch.stack([source[..., 0], torch.where(same, source[..., 0], source[..., 1])], -1)
-    log_w_n = log_w - torch.logsumexp(log_w, -1, keepdim=True)
-    log_w_source = torch.take_along_dim(log_w_n, source.movedim(0, 1).reshape(b, -1), 1).reshape(
+    log_w_source = torch.take_along_dim(normalize(log_w)[0], source.movedim(0, 1).reshape(b, -1), 1).reshape(
         (b, num_iterations, num_chains, m)).movedim(1, 0)
     return ExchangeNoise(source, log_w_source, slot, eps, u, birth, relocation, valid)
 
