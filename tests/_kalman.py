@@ -97,3 +97,25 @@ def mixture_posterior(prev, log_w, F, Q, H, R, z):
     prior_mean = torch.einsum("bn,bnj->bj", log_w.exp(), mu)
     log_lik_max = torch.distributions.MultivariateNormal(zero, R).log_prob(zero)
     return MixturePosterior(mean, cov, post_log_w, prior_mean, mu, means, P, log_evidence, log_lik_max)
+
+
+def rts_smoother(F, Q, means, covs):
+    """Rauch-Tung-Striebel smoother over the filtering moments of :func:`kalman_filter`.
+
+    Parameters
+    ----------
+    F, Q : (D, D); means : (T, *B, D); covs : (T, *B, D, D), the filtering moments.
+
+    Returns
+    -------
+    (T, *B, D) the smoothed means ``E[x_t | z_0:T-1]``.
+    """
+    m_s, P_s = means[-1], covs[-1]
+    out = [m_s]
+    for m, P in zip(means[:-1].flip(0), covs[:-1].flip(0)):
+        P_pred = F @ P @ F.mT + Q
+        G = torch.linalg.solve(P_pred, F @ P).mT  # P F' P_pred^-1 (P_pred symmetric)
+        m_s = m + ((m_s - m @ F.mT).unsqueeze(-2) @ G.mT).squeeze(-2)
+        P_s = P + G @ (P_s - P_pred) @ G.mT
+        out.append(m_s)
+    return torch.stack(out[::-1])

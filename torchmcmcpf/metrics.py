@@ -22,8 +22,9 @@ import math
 from typing import TYPE_CHECKING, NamedTuple, cast
 
 import torch
+from torch.utils._pytree import tree_flatten, tree_map
 
-from ._validation import check_finite, check_positive, check_shape, check_tensor
+from ._validation import check_finite, check_positive, check_positive_int, check_shape, check_tensor
 from .typing import VX, VY, Tensor, X, Y
 
 if TYPE_CHECKING:  # the models import nothing from here; annotations only
@@ -48,6 +49,8 @@ __all__ = [
     "identity_switches",
     "cardinality_error",
     "pcrb_position_rmse",
+    "MAPTrajectory",
+    "map_trajectory",
 ]
 
 
@@ -703,3 +706,119 @@ def pcrb_position_rmse(sensor: SensorModel, motion: MotionModel, x: Tensor, *, g
         bound = torch.linalg.inv(Q + F @ torch.linalg.inv(bound) @ F.T) + info
     cov = torch.linalg.inv(bound)
     return (cov[:, 0, 0] + cov[:, 2, 2]).clamp(min=0).sqrt().reshape(b, j)
+
+
+class MAPTrajectory(NamedTuple):
+    """A local maximum of the posterior over a window of frames (:func:`map_trajectory`).
+
+    Attributes
+    ----------
+    x : (T, B, K, D) the trajectory, every target's state at every frame.
+    log_posterior : (B,) its log posterior density (up to the data's normalising constant):
+        ``log_lik`` summed over the frames plus the motion and prior terms.
+    log_lik : (T, B) ``log p(z_t | x_t)`` per frame.
+    grad_norm : (B,) the largest absolute component of the gradient there (0 at an exact
+        stationary point; compare it with the scale of the states).
+    """
+
+    x: Tensor
+    log_posterior: Tensor
+    log_lik: Tensor
+    grad_norm: Tensor
+
+
+def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: Tensor, *,
+                   prior_mean: Tensor | None = None, prior_cov: Tensor | None = None,
+                   max_iter: int = 1000) -> MAPTrajectory:
+    """The trajectory that locally maximises the model's own posterior over a window of
+    frames, found from ``start`` by L-BFGS on autograd gradients: what the model and the data
+    say, without a particle approximation.
+
+    The objective of each run is the log density of the whole window,
+    ``sum_t log p(z_t | x_t) + sum_{t >= 1} sum_k log f(x_{t,k} | x_{t-1,k})`` plus, with a
+    prior, ``sum_k log N(x_{0,k}; prior_mean_k, prior_cov)`` (without one the first frame's
+    state is free: the window's start is not constrained by earlier frames). On a
+    linear-Gaussian model it is the Kalman (RTS) smoother's mean (tested). On a nonlinear
+    one it is the local maximum uphill from ``start``: started from a filter's estimate, a
+    trajectory that stays where the filter is says the data and the model support the
+    filter there (a mode of the posterior: a tracker may hold it); one that moves to the
+    truth says the filter's estimate is no mode of its own posterior, so the gap between the
+    estimate and the truth is the filter's (its particle approximation), not the model's
+    (docs/tracks.md: the crossing's late gaps).
+
+    Runs are independent; their objectives are summed and optimised together (the gradient
+    separates), ``max_iter`` L-BFGS iterations with a strong-Wolfe line search in all, in the
+    dtype of ``start`` (float64 advised). Time is looped over; runs, targets and components
+    are tensor dims.
+
+    Parameters
+    ----------
+    sensor : its ``log_likelihood`` must be differentiable in the state (every sensor of the
+        library with a density is; existence flags are not used: every slot is a target).
+    motion : a motion model with a density (``log_prob``).
+    z : the window's measurements, any :class:`~torchmcmcpf.typing.Measurement` with a
+        leading ``T`` dim (for grid sensors ``(T, B, *G)``).
+    start : (T, B, K, D) the trajectory to start from (a filter's estimate ``result.mean``,
+        or the truth).
+    prior_mean : (B, K, D), optional: a Gaussian prior on the first frame's state, with
+    prior_cov : (D, D) or (B, K, D, D), its covariance (both or neither).
+    max_iter : >= 1.
+
+    Returns
+    -------
+    :class:`MAPTrajectory`.
+    """
+    check_tensor(start, "start")
+    if start.dim() != 4:
+        raise ValueError(f"start has shape {tuple(start.shape)}, expected (T, B, K, D)")
+    check_finite(start, "start")
+    check_positive_int(max_iter, "max_iter")
+    t_len, b, k, d = start.shape
+    if (prior_mean is None) != (prior_cov is None):
+        raise ValueError("prior_mean and prior_cov must be given together, got only "
+                         f"{'prior_mean' if prior_cov is None else 'prior_cov'}")
+    leaves = [a for a in tree_flatten(z)[0] if torch.is_tensor(a)]
+    if not leaves or any(a.shape[:1] != (t_len,) for a in leaves):
+        raise ValueError(f"z must be measurements with a leading T = {t_len} dim (start's), got leading dims "
+                         f"{[tuple(a.shape[:1]) for a in leaves]}")
+    dtype = start.dtype
+    z = tree_map(lambda a: a.to(dtype) if torch.is_tensor(a) and a.is_floating_point() else a, z)
+    prior = None
+    if prior_mean is not None and prior_cov is not None:
+        check_shape(prior_mean, "prior_mean", (b, k, d))
+        if tuple(prior_cov.shape) not in ((d, d), (b, k, d, d)):
+            raise ValueError(f"prior_cov has shape {tuple(prior_cov.shape)}, expected {(d, d)} or {(b, k, d, d)}")
+        prior = torch.distributions.MultivariateNormal(prior_mean.to(dtype),
+                                                       covariance_matrix=prior_cov.to(dtype))
+
+    def terms(x: Tensor) -> tuple[Tensor, Tensor]:  # log_lik (T, B), log_posterior (B,)
+        log_lik = torch.stack([sensor.log_likelihood(x[t].unsqueeze(1), tree_map(lambda a: a[t], z))[:, 0]
+                               for t in range(t_len)])
+        total = log_lik.sum(0)
+        if t_len > 1:
+            total = total + motion.log_prob(x[1:], x[:-1]).sum((0, -1))
+        if prior is not None:
+            total = total + prior.log_prob(x[0]).sum(-1)
+        return log_lik, total
+
+    x = start.detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        _, first = terms(x)
+        if not bool(torch.isfinite(first).all()):
+            raise ValueError(f"start has log posterior {first.tolist()} (not finite) in some run: start every run "
+                             "where the likelihood and motion densities are finite (inside the sensor's grid)")
+        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, tolerance_grad=1e-12, tolerance_change=1e-15,
+                                history_size=50, line_search_fn="strong_wolfe")
+
+        def closure() -> Tensor:
+            opt.zero_grad()
+            loss = -terms(x)[1].sum()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        x_opt = x.detach()
+        at = x_opt.clone().requires_grad_(True)
+        log_lik, total = terms(at)
+        (grad,) = torch.autograd.grad(total.sum(), at)
+    return MAPTrajectory(x_opt, total.detach(), log_lik.detach(), grad.abs().amax((0, 2, 3)))
