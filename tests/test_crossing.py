@@ -240,3 +240,40 @@ def test_crossing_rows_are_the_same_bits_whichever_rows_run():
     assert "clairvoyant" not in text
     with pytest.raises(ValueError, match="--filters"):
         crossing_study.STUDY.settings(filters=())
+
+
+def _displaced(scn, moves):
+    """The truth ``(T, B, K, D)`` with slot ``k`` of run ``b`` moved ``metres`` across the line
+    of sight at every frame, for each ``(b, k, metres)`` of ``moves``."""
+    mean = scn.truth.clone()
+    for run, slot, metres in moves:
+        p = scn.truth[:, run, slot, [X, Y]]
+        across = torch.stack([-p[:, 1], p[:, 0]], -1) / p.norm(dim=-1, keepdim=True)
+        mean[:, run, slot, X] += metres * across[:, 0]
+        mean[:, run, slot, Y] += metres * across[:, 1]
+    return mean
+
+
+def test_late_check_tells_the_filters_gap_from_the_models(gen):
+    """Whose gap (the crossing study's ``_late_check``, quick: 100 L-BFGS iterations), on
+    hand-made estimates over 6 frames of two resolved targets 150 m apart. Both at 25 dB:
+    run 0's estimate is the truth (no gap: NaN, not covered); in run 1 a slot is 25 m off
+    across the line of sight, inside its target's point spread, where the posterior has no
+    mode: the maximum found from it returns to the target (the filter's gap). One at -20 dB:
+    its slot 100 m off stays off (its data say nothing), about as probable as the truth
+    (the model's gap)."""
+    cfg = crossing_study.STUDY.settings(quick=True, from_step=0)
+    name = "IP-MCMC-PF"
+    clear = crossing(2, 6, 2, generator=gen, miss_distance=150.0, crossing_step=3, snr_db=(25.0, 25.0))
+    out = crossing_study._late_check(cfg, name, _displaced(clear, [(1, 0, 25.0)]), clear)
+    odds, covers = out[f"{name}|gap_log_odds"], out[f"{name}|gap_map_covers"]
+    assert math.isnan(float(odds[0])) and not bool(covers[0])
+    assert bool(covers[1]) and abs(float(odds[1])) < 1.0  # back on the target: the same maximum
+    buried = crossing(2, 6, 1, generator=gen, miss_distance=150.0, crossing_step=3, snr_db=(25.0, -20.0))
+    mean = _displaced(buried, [(0, 1, 100.0)])
+    out = crossing_study._late_check(cfg, name, mean, buried)
+    assert not bool(out[f"{name}|gap_map_covers"][0])
+    assert float(out[f"{name}|gap_log_odds"][0]) <= crossing_study.GAP_ODDS
+    per_run = {**crossing_study._scores(name, mean, buried.truth), **out}
+    r = crossing_study.STUDY.aggregate(cfg, per_run, {name: 1.0})[name]
+    assert (r["runs_uncovered_late"], r["late_gaps_the_filters"], r["late_gaps_the_models"]) == (1, 0, 1)
