@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import SupportsFloat
 
 import torch
+from torch.utils._pytree import tree_flatten
 
 from .typing import Tensor
 
@@ -103,3 +104,13 @@ def check_batch(t: Tensor, name: str, batch_size: int) -> Tensor:
             f"expected {batch_size} to match the particle state"
         )
     return t
+
+
+def measurement_leaves(measurements: object, name: str) -> list[Tensor]:
+    """The tensors of a measurement (a tensor, or a tuple / pytree of tensors); a
+    ``ValueError`` naming ``name`` for anything else.
+    """
+    leaves = [measurements] if torch.is_tensor(measurements) else tree_flatten(measurements)[0]
+    if not leaves or not all(torch.is_tensor(t) for t in leaves):
+        raise ValueError(f"{name} must be a tensor or a tuple of tensors, got {type(measurements).__name__}")
+    return leaves

@@ -22,9 +22,16 @@ import math
 from typing import TYPE_CHECKING, NamedTuple, cast
 
 import torch
-from torch.utils._pytree import tree_flatten, tree_map
+from torch.utils._pytree import tree_map
 
-from ._validation import check_finite, check_positive, check_positive_int, check_shape, check_tensor
+from ._validation import (
+    check_finite,
+    check_positive,
+    check_positive_int,
+    check_shape,
+    check_tensor,
+    measurement_leaves,
+)
 from .typing import VX, VY, Tensor, X, Y
 
 if TYPE_CHECKING:  # the models import nothing from here; annotations only
@@ -777,8 +784,8 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
     if (prior_mean is None) != (prior_cov is None):
         raise ValueError("prior_mean and prior_cov must be given together, got only "
                          f"{'prior_mean' if prior_cov is None else 'prior_cov'}")
-    leaves = [a for a in tree_flatten(z)[0] if torch.is_tensor(a)]
-    if not leaves or any(a.shape[:1] != (t_len,) for a in leaves):
+    leaves = measurement_leaves(z, "z")
+    if any(a.shape[:1] != (t_len,) for a in leaves):
         raise ValueError(f"z must be measurements with a leading T = {t_len} dim (start's), got leading dims "
                          f"{[tuple(a.shape[:1]) for a in leaves]}")
     dtype = start.dtype

@@ -37,9 +37,9 @@ from typing import Any, ClassVar
 
 import torch
 from torch import nn
-from torch.utils._pytree import tree_flatten, tree_map
+from torch.utils._pytree import tree_map
 
-from .._validation import check_generator, check_positive_int, check_shape, check_tensor
+from .._validation import check_generator, check_positive_int, check_shape, check_tensor, measurement_leaves
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..runtime import compile_program
@@ -184,13 +184,6 @@ def check_existence(existence: object) -> BirthDeath | None:
     return existence
 
 
-def _leaves(measurements: Measurement, name: str) -> list[Tensor]:
-    leaves = [measurements] if torch.is_tensor(measurements) else tree_flatten(measurements)[0]
-    if not leaves or not all(torch.is_tensor(t) for t in leaves):
-        raise ValueError(f"{name} must be a tensor or a tuple of tensors, got {type(measurements).__name__}")
-    return leaves
-
-
 def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name: str, models: nn.Module) -> None:
     """Devices (none on ``meta``, all equal) and dtypes (floating measurements of the state's
     dtype) of a state and measurements: metadata only, no host synchronisation.
@@ -199,7 +192,7 @@ def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name:
     tensors = {"init": x, "init.log_w": state.log_w}
     if state.exists is not None:
         tensors["init.exists"] = state.exists
-    for i, leaf in enumerate(_leaves(measurements, name)):
+    for i, leaf in enumerate(measurement_leaves(measurements, name)):
         tensors[name if torch.is_tensor(measurements) else f"{name}[{i}]"] = leaf
     for key, t in tensors.items():
         if t.device.type == "meta":
@@ -483,7 +476,7 @@ class Filter(nn.Module):
         _check_devices_dtypes(state, measurements, name, self)
         b = state.batch_size
         if sequence:
-            leaves = _leaves(measurements, name)
+            leaves = measurement_leaves(measurements, name)
             if any(t.dim() < 2 for t in leaves):
                 raise ValueError(f"{name} has shapes {[tuple(t.shape) for t in leaves]}, expected (T, B, ...)")
             t0 = leaves[0].shape[0]
@@ -566,7 +559,7 @@ class Filter(nn.Module):
         check_generator(generator)
         state = self._as_state(init)
         self.validate(state, measurements, sequence=True)
-        num_steps = _leaves(measurements, "measurements")[0].shape[0]
+        num_steps = measurement_leaves(measurements, "measurements")[0].shape[0]
         steps, note = self._progress(num_steps, state.x, progress)
         means, covs, infos, exists_prob, states = [], [], [], [], []
         est = _carried_estimate(state)

@@ -334,9 +334,7 @@ def exchange_iteration(
     accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache, else
     ``None``.
     """
-    y, log_lik, exists, log_r, kind, cache = chains.y, chains.log_lik, chains.exists, chains.log_r, chains.kind, \
-        chains.amplitude
-    source, log_w_source = chains.source, chains.log_w_source
+    y, log_lik, exists, log_r, kind, source, log_w_source, cache = chains
     existence, recapture = dynamics.existence, dynamics.recapture
     k, m = x_prev.shape[-2], noise.slot.shape[-1]
     if (existence is not None or recapture is not None) and log_r is None:
