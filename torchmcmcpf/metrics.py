@@ -755,8 +755,8 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
 
     Runs are independent; their objectives are summed and optimised together (the gradient
     separates), ``max_iter`` L-BFGS iterations with a strong-Wolfe line search in all, in the
-    dtype of ``start`` (float64 advised). Time is looped over; runs, targets and components
-    are tensor dims.
+    dtype of ``start`` (float64 advised). Frames, runs, targets and components are tensor
+    dims (the ``T x B`` frames are scored as one batch of runs).
 
     Parameters
     ----------
@@ -798,9 +798,11 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
         prior = torch.distributions.MultivariateNormal(prior_mean.to(dtype),
                                                        covariance_matrix=prior_cov.to(dtype))
 
+    # the frames as runs of one batch: one likelihood call per evaluation, not one per frame
+    frames = tree_map(lambda a: a.reshape((t_len * b,) + tuple(a.shape[2:])) if torch.is_tensor(a) else a, z)
+
     def terms(x: Tensor) -> tuple[Tensor, Tensor]:  # log_lik (T, B), log_posterior (B,)
-        log_lik = torch.stack([sensor.log_likelihood(x[t].unsqueeze(1), tree_map(lambda a: a[t], z))[:, 0]
-                               for t in range(t_len)])
+        log_lik = sensor.log_likelihood(x.reshape(t_len * b, 1, k, d), frames)[:, 0].reshape(t_len, b)
         total = log_lik.sum(0)
         if t_len > 1:
             total = total + motion.log_prob(x[1:], x[:-1]).sum((0, -1))
@@ -808,12 +810,13 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
             total = total + prior.log_prob(x[0]).sum(-1)
         return log_lik, total
 
+    with torch.no_grad():
+        _, first = terms(start)
+    if not bool(torch.isfinite(first).all()):
+        raise ValueError(f"start has log posterior {first.tolist()} (not finite) in some run: start every run "
+                         "where the likelihood and motion densities are finite (inside the sensor's grid)")
     x = start.detach().clone().requires_grad_(True)
     with torch.enable_grad():
-        _, first = terms(x)
-        if not bool(torch.isfinite(first).all()):
-            raise ValueError(f"start has log posterior {first.tolist()} (not finite) in some run: start every run "
-                             "where the likelihood and motion densities are finite (inside the sensor's grid)")
         opt = torch.optim.LBFGS([x], lr=1.0, max_iter=max_iter, tolerance_grad=1e-12, tolerance_change=1e-15,
                                 history_size=50, line_search_fn="strong_wolfe")
 
