@@ -325,3 +325,38 @@ def test_map_trajectory_bad_input():
                                   prior_cov=torch.eye(3))
     with pytest.raises(ValueError, match="start"):
         tp.metrics.map_trajectory(sensor, motion, z, torch.full((3, 1, 1, 4), float("nan")))
+
+
+def test_map_trajectory_counts_the_exclusion_factor():
+    """With an exclusion factor the objective gains ``sum_t log Phi(x_t)``: at the returned
+    trajectory ``log_posterior`` is the frames' log-likelihoods, the transitions and that sum,
+    recomputed here from the models. On radar frames of one target, two slots started 0.3
+    cells apart on it stay unresolved without the factor (the returns add coherently) and are
+    pushed at least a cell apart with it."""
+    from torchmcmcpf.models.multitarget import Exclusion, log_exclusion
+    from torchmcmcpf.scenarios import crossing
+    from torchmcmcpf.typing import Y
+
+    g = torch.Generator().manual_seed(0)
+    # the targets 400 m apart: each frame's part near target 0 holds one return
+    scn = crossing(2, 6, 1, generator=g, miss_distance=400.0, dtype=torch.float64)
+    z = scn.measurements
+    start = scn.truth[:, :, :1].repeat(1, 1, 2, 1).clone()  # (T, 1, 2, D) both slots on target 0
+    start[..., 1, Y] += 0.3 * 2800.0 * math.radians(1.0)  # 0.3 bearing cells across the line of sight (bearing 0)
+    excl = Exclusion()
+    plain = tp.metrics.map_trajectory(scn.sensor, scn.motion, z, start, max_iter=200)
+    held = tp.metrics.map_trajectory(scn.sensor, scn.motion, z, start, exclusion=excl, max_iter=200)
+    x = held.x
+    expected = (scn.sensor.log_likelihood(x.reshape(-1, 1, 2, x.shape[-1]), z.reshape((-1,) + z.shape[2:]))[:, 0].sum()
+                + scn.motion.log_prob(x[1:], x[:-1]).sum() + log_exclusion(excl, scn.sensor, x).sum())
+    torch.testing.assert_close(held.log_posterior.sum(), expected, rtol=1e-10, atol=1e-8)
+
+    def cells_apart(traj):  # (T,) distance between the two slots in resolution cells
+        u = scn.sensor.resolution_coords(traj[:, 0])  # (T, K, r)
+        return (u[:, 0] - u[:, 1]).norm(dim=-1)
+
+    assert float(cells_apart(start[:, :1]).max()) < 0.35
+    assert float(cells_apart(plain.x).max()) < 1.0
+    assert float(cells_apart(held.x).min()) > 1.0
+    with pytest.raises(ValueError, match="exclusion must be an Exclusion"):
+        tp.metrics.map_trajectory(scn.sensor, scn.motion, z, start, exclusion=1.0)

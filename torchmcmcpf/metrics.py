@@ -36,6 +36,7 @@ from .typing import VX, VY, Tensor, X, Y
 
 if TYPE_CHECKING:  # the models import nothing from here; annotations only
     from .models.base import MotionModel, SensorModel
+    from .models.multitarget import Exclusion
 
 __all__ = [
     "RMSE",
@@ -722,7 +723,7 @@ class MAPTrajectory(NamedTuple):
     ----------
     x : (T, B, K, D) the trajectory, every target's state at every frame.
     log_posterior : (B,) its log posterior density (up to the data's normalising constant):
-        ``log_lik`` summed over the frames plus the motion and prior terms.
+        ``log_lik`` summed over the frames plus the motion, exclusion and prior terms.
     log_lik : (T, B) ``log p(z_t | x_t)`` per frame.
     grad_norm : (B,) the largest absolute component of the gradient there (0 at an exact
         stationary point; compare it with the scale of the states).
@@ -736,15 +737,18 @@ class MAPTrajectory(NamedTuple):
 
 def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: Tensor, *,
                    prior_mean: Tensor | None = None, prior_cov: Tensor | None = None,
-                   max_iter: int = 1000) -> MAPTrajectory:
+                   exclusion: Exclusion | None = None, max_iter: int = 1000) -> MAPTrajectory:
     """The trajectory that locally maximises the model's own posterior over a window of
     frames, found from ``start`` by L-BFGS on autograd gradients: what the model and the data
     say, without a particle approximation.
 
     The objective of each run is the log density of the whole window,
-    ``sum_t log p(z_t | x_t) + sum_{t >= 1} sum_k log f(x_{t,k} | x_{t-1,k})`` plus, with a
-    prior, ``sum_k log N(x_{0,k}; prior_mean_k, prior_cov)`` (without one the first frame's
-    state is free: the window's start is not constrained by earlier frames). On a
+    ``sum_t log p(z_t | x_t) + sum_{t >= 1} sum_k log f(x_{t,k} | x_{t-1,k})`` plus, with an
+    exclusion factor, ``sum_t log Phi(x_t)`` (the multitarget prior's interaction term of the
+    filters that have it, :mod:`~torchmcmcpf.models.multitarget`; pass the filter's own to
+    maximise its posterior) and, with a prior, ``sum_k log N(x_{0,k}; prior_mean_k,
+    prior_cov)`` (without one the first frame's state is free: the window's start is not
+    constrained by earlier frames). On a
     linear-Gaussian model it is the Kalman (RTS) smoother's mean (tested). On a nonlinear
     one it is the local maximum uphill from ``start``: started from a filter's estimate, a
     trajectory that stays where the filter is says the data and the model support the
@@ -769,6 +773,8 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
         or the truth).
     prior_mean : (B, K, D), optional: a Gaussian prior on the first frame's state, with
     prior_cov : (D, D) or (B, K, D, D), its covariance (both or neither).
+    exclusion : an :class:`~torchmcmcpf.models.multitarget.Exclusion`, optional (counted only
+        when the sensor declares its resolution, as in the filters).
     max_iter : >= 1.
 
     Returns
@@ -780,6 +786,10 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
         raise ValueError(f"start has shape {tuple(start.shape)}, expected (T, B, K, D)")
     check_finite(start, "start")
     check_positive_int(max_iter, "max_iter")
+    from .models.multitarget import Exclusion, log_exclusion
+
+    if exclusion is not None and not isinstance(exclusion, Exclusion):
+        raise ValueError(f"exclusion must be an Exclusion or None, got {type(exclusion).__name__}")
     t_len, b, k, d = start.shape
     if (prior_mean is None) != (prior_cov is None):
         raise ValueError("prior_mean and prior_cov must be given together, got only "
@@ -806,6 +816,8 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
         total = log_lik.sum(0)
         if t_len > 1:
             total = total + motion.log_prob(x[1:], x[:-1]).sum((0, -1))
+        if exclusion is not None:
+            total = total + log_exclusion(exclusion, sensor, x).sum(0)
         if prior is not None:
             total = total + prior.log_prob(x[0]).sum(-1)
         return log_lik, total

@@ -56,6 +56,7 @@ from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.mcmc import MCMCFilter
 from ..filters.partitioned import PartitionedSIRFilter, clairvoyant_partitions
 from ..models.base import MotionModel, SensorModel
+from ..models.multitarget import Exclusion
 from ..scenarios._common import Scenario
 from ..scenarios.crossing import crossing
 from ..typing import Tensor
@@ -105,14 +106,15 @@ def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) ->
     }
 
 
-def _late_check(cfg: CrossingSettings, name: str, mean: Tensor, scn: Scenario) -> dict:
+def _late_check(cfg: CrossingSettings, name: str, mean: Tensor, scn: Scenario, exclusion: Exclusion | None
+                ) -> dict:
     """Whose is a late gap: for each run with a target uncovered at a step ``>= from_step``,
     the maximum of the model's own posterior over frames ``from_step ..`` (
-    :func:`~torchmcmcpf.metrics.map_trajectory`) found from the filter's estimate and from the
-    truth. ``"f|gap_log_odds"`` ``(R,)``: the second's log posterior minus the first's (NaN
-    for a run without a late gap); ``"f|gap_map_covers"`` ``(R,)`` bool: the maximum found from
-    the estimate has a slot within 20 m of every target at every late step (the estimate lies
-    on no mode of the posterior: the gap is the filter's).
+    :func:`~torchmcmcpf.metrics.map_trajectory`, with the filter's ``exclusion`` factor) found
+    from the filter's estimate and from the truth. ``"f|gap_log_odds"`` ``(R,)``: the second's
+    log posterior minus the first's (NaN for a run without a late gap); ``"f|gap_map_covers"``
+    ``(R,)`` bool: the maximum found from the estimate has a slot within 20 m of every target at
+    every late step (the estimate lies on no mode of the posterior: the gap is the filter's).
     """
     late = slice(cfg.from_step, None)
     gap = (metrics.slot_coverage(mean[late], scn.truth[late], radius=COVER) == 0).any(-1).any(0)  # (R,)
@@ -122,7 +124,8 @@ def _late_check(cfg: CrossingSettings, name: str, mean: Tensor, scn: Scenario) -
     if runs.numel():  # both starts in one batch of 2 r runs
         start = torch.cat([mean[late][:, runs], scn.truth[late][:, runs]], 1).double()
         z = scn.measurements[late][:, torch.cat([runs, runs])]
-        found = metrics.map_trajectory(scn.sensor, scn.motion, z, start, max_iter=cfg.map_iterations)
+        found = metrics.map_trajectory(scn.sensor, scn.motion, z, start, exclusion=exclusion,
+                                       max_iter=cfg.map_iterations)
         r = runs.numel()
         odds[runs] = (found.log_posterior[r:] - found.log_posterior[:r]).cpu()
         cover = metrics.slot_coverage(found.x[:, :r], scn.truth[late][:, runs].double(), radius=COVER)
@@ -181,7 +184,7 @@ class Crossing(Study[CrossingSettings]):
                 res = filt(scn.measurements, init=init, generator=gens[name], progress=progress)
             seconds[name] = timer.seconds
             per_run.update(_scores(name, res.mean, scn.truth))
-            per_run.update(_late_check(cfg, name, res.mean, scn))
+            per_run.update(_late_check(cfg, name, res.mean, scn, filt.settings.exclusion))
             res = on_far[name](far.measurements, init=coalesced, generator=gens[name])
             weak = far.truth[:, :, 1:]  # (T, B, 1, D)
             per_run[f"{name}|recaptured"] = (metrics.slot_coverage(res.mean, weak, radius=RECAPTURE)[..., 0] > 0).T
@@ -192,7 +195,7 @@ class Crossing(Study[CrossingSettings]):
                                              generator=gens[CLAIRVOYANT])
         seconds[CLAIRVOYANT] = timer.seconds
         per_run.update(_scores(CLAIRVOYANT, mean, scn.truth))
-        per_run.update(_late_check(cfg, CLAIRVOYANT, mean, scn))
+        per_run.update(_late_check(cfg, CLAIRVOYANT, mean, scn, None))  # each target filtered alone
         return per_run, seconds
 
     @staticmethod
