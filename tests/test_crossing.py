@@ -9,6 +9,7 @@ import torch
 from torchmcmcpf.experiments import crossing as crossing_study
 from torchmcmcpf.experiments import soak
 from torchmcmcpf.experiments._options import RunOptions
+from torchmcmcpf.models.multitarget import Exclusion
 from torchmcmcpf.scenarios import crossing, ground_radar
 from torchmcmcpf.state import ParticleState, relabel, relabelled_estimate
 from torchmcmcpf.typing import VX, VY, X, Y
@@ -261,17 +262,18 @@ def test_late_check_tells_the_filters_gap_from_the_models(gen):
     across the line of sight, inside its target's point spread, where the posterior has no
     mode: the maximum found from it returns to the target (the filter's gap). One at -20 dB:
     its slot 100 m off stays off (its data say nothing), about as probable as the truth
-    (the model's gap)."""
+    (the model's gap). The check maximises the defaults' posterior, exclusion included."""
     cfg = crossing_study.STUDY.settings(quick=True, from_step=0)
+    excl = Exclusion()
     name = "IP-MCMC-PF"
     clear = crossing(2, 6, 2, generator=gen, miss_distance=150.0, crossing_step=3, snr_db=(25.0, 25.0))
-    out = crossing_study._late_check(cfg, name, _displaced(clear, [(1, 0, 25.0)]), clear)
+    out = crossing_study._late_check(cfg, name, _displaced(clear, [(1, 0, 25.0)]), clear, excl)
     odds, covers = out[f"{name}|gap_log_odds"], out[f"{name}|gap_map_covers"]
     assert math.isnan(float(odds[0])) and not bool(covers[0])
     assert bool(covers[1]) and abs(float(odds[1])) < 1.0  # back on the target: the same maximum
     buried = crossing(2, 6, 1, generator=gen, miss_distance=150.0, crossing_step=3, snr_db=(25.0, -20.0))
     mean = _displaced(buried, [(0, 1, 100.0)])
-    out = crossing_study._late_check(cfg, name, mean, buried)
+    out = crossing_study._late_check(cfg, name, mean, buried, excl)
     assert not bool(out[f"{name}|gap_map_covers"][0])
     assert float(out[f"{name}|gap_log_odds"][0]) <= crossing_study.GAP_ODDS
     per_run = {**crossing_study._scores(name, mean, buried.truth), **out}
