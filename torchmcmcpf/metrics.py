@@ -748,8 +748,8 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
     filters that have it, :mod:`~torchmcmcpf.models.multitarget`; pass the filter's own to
     maximise its posterior) and, with a prior, ``sum_k log N(x_{0,k}; prior_mean_k,
     prior_cov)`` (without one the first frame's state is free: the window's start is not
-    constrained by earlier frames). On a
-    linear-Gaussian model it is the Kalman (RTS) smoother's mean (tested). On a nonlinear
+    constrained by earlier frames). On a linear-Gaussian model it is the Kalman (RTS)
+    smoother's mean (tested). On a nonlinear
     one it is the local maximum uphill from ``start``: started from a filter's estimate, a
     trajectory that stays where the filter is says the data and the model support the
     filter there (a mode of the posterior: a tracker may hold it); one that moves to the
@@ -786,10 +786,9 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
         raise ValueError(f"start has shape {tuple(start.shape)}, expected (T, B, K, D)")
     check_finite(start, "start")
     check_positive_int(max_iter, "max_iter")
-    from .models.multitarget import Exclusion, log_exclusion
+    from .models.multitarget import check_exclusion, log_exclusion
 
-    if exclusion is not None and not isinstance(exclusion, Exclusion):
-        raise ValueError(f"exclusion must be an Exclusion or None, got {type(exclusion).__name__}")
+    check_exclusion(exclusion)
     t_len, b, k, d = start.shape
     if (prior_mean is None) != (prior_cov is None):
         raise ValueError("prior_mean and prior_cov must be given together, got only "
@@ -816,8 +815,7 @@ def map_trajectory(sensor: SensorModel, motion: MotionModel, z: object, start: T
         total = log_lik.sum(0)
         if t_len > 1:
             total = total + motion.log_prob(x[1:], x[:-1]).sum((0, -1))
-        if exclusion is not None:
-            total = total + log_exclusion(exclusion, sensor, x).sum(0)
+        total = total + log_exclusion(exclusion, sensor, x).sum(0)  # zeros without one
         if prior is not None:
             total = total + prior.log_prob(x[0]).sum(-1)
         return log_lik, total

@@ -185,7 +185,7 @@ from ..kernels.hmc_refine import (
 )
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture
+from ..models.multitarget import Exclusion, Recapture, check_exclusion
 from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
@@ -400,8 +400,7 @@ class IPMCMCSettings:
         object.__setattr__(self, "thinning", check_positive_int(self.thinning, "thinning"))
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
-        if self.exclusion is not None and not isinstance(self.exclusion, Exclusion):
-            raise ValueError(f"exclusion must be an Exclusion or None, got {type(self.exclusion).__name__}")
+        check_exclusion(self.exclusion)
         if self.recapture is not None and not isinstance(self.recapture, Recapture):
             raise ValueError(f"recapture must be a Recapture or None, got {type(self.recapture).__name__}")
         if self.hmc is not None:

@@ -87,7 +87,7 @@ from ..typing import Tensor
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
     from .base import SensorModel
 
-__all__ = ["Exclusion", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR", "relocate", "log_exclusion",
+__all__ = ["Exclusion", "check_exclusion", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR", "relocate", "log_exclusion",
            "exclusion_change", "exclusion_against", "draw_relocation", "log_q_component", "FIXED", "MOTION",
            "RELOCATED"]
 
@@ -178,6 +178,13 @@ class Exclusion:
             on = (others & alive).unsqueeze(-2) & torch.stack([a_old, a_new], -2)  # (*S, 2, K)
         terms = torch.where(on, self.log_phi(torch.where(on, d2, 1.0)), 0.0)
         return (terms[..., 1, :] - terms[..., 0, :]).sum(-1)
+
+
+def check_exclusion(exclusion: object, name: str = "exclusion") -> Exclusion | None:
+    """``exclusion`` if it is an :class:`Exclusion` or None, else a ValueError naming ``name``."""
+    if exclusion is not None and not isinstance(exclusion, Exclusion):
+        raise ValueError(f"{name} must be an Exclusion or None, got {type(exclusion).__name__}")
+    return exclusion
 
 
 def log_exclusion(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, exists: Tensor | None = None
