@@ -180,10 +180,10 @@ class Exclusion:
         return (terms[..., 1, :] - terms[..., 0, :]).sum(-1)
 
 
-def check_exclusion(exclusion: object, name: str = "exclusion") -> Exclusion | None:
-    """``exclusion`` if it is an :class:`Exclusion` or None, else a ValueError naming ``name``."""
+def check_exclusion(exclusion: object) -> Exclusion | None:
+    """``exclusion`` if it is an :class:`Exclusion` or None, else a ValueError naming it."""
     if exclusion is not None and not isinstance(exclusion, Exclusion):
-        raise ValueError(f"{name} must be an Exclusion or None, got {type(exclusion).__name__}")
+        raise ValueError(f"exclusion must be an Exclusion or None, got {type(exclusion).__name__}")
     return exclusion
 
 
