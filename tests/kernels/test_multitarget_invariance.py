@@ -13,55 +13,15 @@ import math
 
 import pytest
 import torch
+from _line import DT, FOV, LineSensor, Q, R, log_fov
 from torch.utils._pytree import tree_map
 
 from torchmcmcpf.kernels.chains import JointNoise, RefineNoise, previous_cloud
 from torchmcmcpf.kernels.exchange import ExchangeChains, draw_exchange_noise, exchange_iteration
 from torchmcmcpf.kernels.moves import init_chains, joint_move, refine_move
-from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.existence import TargetDynamics
 from torchmcmcpf.models.motion import LinearGaussianMotion
 from torchmcmcpf.models.multitarget import Exclusion, Recapture
-
-DT = torch.float64
-FOV = (-10.0, 10.0)
-R, Q, SPREAD, P_U = 2.0, 1.0, 1.0, 0.1
-
-
-class LineSensor(SensorModel):
-    """``z (B, K, 1)``: ``z_j = u_j + N(0, R)`` per slot; resolution 1; data-driven density
-    ``g(u) = P_U U(FOV) + (1 - P_U) (1/K) sum_j N(u; z_j, SPREAD^2)``; ``p_0 = U(FOV)``.
-    """
-
-    def log_likelihood(self, x, z, exists=None):
-        zz = z.reshape(z.shape[:1] + (1,) * (x.dim() - 3) + z.shape[1:])
-        return (-0.5 * (x - zz).square() / R).sum((-2, -1))
-
-    def resolution_coords(self, x):
-        return x[..., :1]
-
-    def place(self, x, coords):
-        return torch.cat([coords, x[..., 1:]], -1)
-
-    @staticmethod
-    def log_g(u, z):
-        """``log g(u)`` for ``u (B, *S)``, ``z (B, K, 1)``."""
-        zz = z[..., 0].reshape(z.shape[:1] + (1,) * (u.dim() - 1) + (z.shape[1],))
-        log_n = -0.5 * ((u.unsqueeze(-1) - zz) / SPREAD).square() - math.log(SPREAD * math.sqrt(2 * math.pi))
-        near = torch.logsumexp(log_n, -1) - math.log(z.shape[1])
-        log_u = -math.log(FOV[1] - FOV[0])
-        return torch.logaddexp(torch.full_like(near, math.log(P_U) + log_u), math.log1p(-P_U) + near)
-
-    def sample_from_data(self, z, shape, *, generator, dtype=torch.float32):
-        b, k = z.shape[:2]
-        q = math.prod(shape[1:])
-        pick = torch.randint(k, (b, q), generator=generator)
-        near = torch.take_along_dim(z[..., 0], pick, 1) + SPREAD * torch.randn(b, q, generator=generator, dtype=DT)
-        flat = FOV[0] + (FOV[1] - FOV[0]) * torch.rand(b, q, generator=generator, dtype=DT)
-        u = torch.where(torch.rand(b, q, generator=generator, dtype=DT) < P_U, flat, near)
-        inside = (u >= FOV[0]) & (u <= FOV[1])
-        log_ratio = torch.where(inside, -math.log(FOV[1] - FOV[0]) - self.log_g(u, z), -math.inf)
-        return u.reshape(tuple(shape) + (1,)).to(dtype), log_ratio.reshape(tuple(shape)).to(dtype)
 
 
 def _grid(h=0.02):
@@ -87,11 +47,6 @@ def _sample_moments(y):
     return f.mean(0), f.std(0) / math.sqrt(y.shape[0])
 
 
-def _log_fov(u):
-    inside = (u >= FOV[0]) & (u <= FOV[1])
-    return torch.where(inside, -math.log(FOV[1] - FOV[0]), -math.inf)
-
-
 def _common(x_prev, z, exclusion, delta):
     """Likelihood and exclusion on the grid, and the per-slot, per-particle prior pieces."""
     g, _ = _grid()
@@ -102,7 +57,7 @@ def _common(x_prev, z, exclusion, delta):
     pieces = []
     for j in range(2):
         mo = _log_normal(g[None, :], x_prev[:, j, None], Q) + math.log1p(-delta)
-        pieces.append(torch.logaddexp(mo, _log_fov(g)[None, :] + math.log(delta)))
+        pieces.append(torch.logaddexp(mo, log_fov(g)[None, :] + math.log(delta)))
     return log_lik + log_phi, pieces
 
 
