@@ -25,6 +25,7 @@ import pytest
 import torch
 
 from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
+from torchmcmcpf.filters.partitioned import PartitionedSIRFilter
 from torchmcmcpf.kernels.hmc_refine import HMCRefine
 from torchmcmcpf.models.multitarget import Recapture
 from torchmcmcpf.scenarios.ground_radar import ground_radar
@@ -125,4 +126,25 @@ def test_ipmcmc_step_multitarget_terms(benchmark, scenario, terms, compiled, n):
         benchmark.group = f"ipmcmc-terms-N{n}-{'compiled' if compiled else 'eager'}"
         benchmark.extra_info.update(terms=terms, threads=torch.get_num_threads())
         benchmark.pedantic(lambda: filt.step(state, z, generator=torch.Generator().manual_seed(2)), rounds=3,
+                           iterations=1)
+
+
+@pytest.mark.parametrize("terms", ["plain", "exclusion", "default"])
+@pytest.mark.parametrize("n", [500, 5000])
+def test_partitioned_step_terms(benchmark, scenario, terms, n):
+    """The partitioned PF's public ``filt.step`` on the same 10-target radar, eager: without
+    the multitarget prior's terms, with exclusion only, and with the default exclusion and
+    re-capture (one partition a step draws a share of its particles from the frame's peaks;
+    :mod:`torchmcmcpf.filters.partitioned`). Compare within one run:
+    ``--benchmark-group-by=group``; the floor is the slot changes of ``B N K`` boxes.
+    """
+    kw = {"plain": dict(exclusion=None, recapture=None), "exclusion": dict(recapture=None), "default": {}}[terms]
+    filt = PartitionedSIRFilter(scenario.motion, scenario.sensor, n, **kw)
+    state = filt.init(scenario.initial_particles(n, generator=torch.Generator().manual_seed(1)))
+    z = scenario.measurements[0]
+    with torch.no_grad():
+        filt.step(state, z, generator=torch.Generator().manual_seed(1))  # warm-up
+        benchmark.group = f"partitioned-terms-N{n}"
+        benchmark.extra_info.update(terms=terms, threads=torch.get_num_threads())
+        benchmark.pedantic(lambda: filt.step(state, z, generator=torch.Generator().manual_seed(2)), rounds=5,
                            iterations=1)

@@ -168,3 +168,98 @@ def test_reference_at_the_truth_is_each_targets_exact_filter():
     with pytest.raises(ValueError, match=r"reference has shape \(50, 1, 4\), expected"):
         partitioned_sir_step(state, z[0].expand(b, 2, 2), motion=motion, sensor=sensor, generator=gen,
                              reference=truth[0, :1].expand(b, 1, 4))
+
+
+def test_recapture_draws_the_least_explained_partition_from_the_data():
+    # One step from a known state on the line sensor of tests/_line.py (each slot measured
+    # on its own, a data-driven density near the measurements): partition 0 is predicted at
+    # 0 and measured at 5 (it explains least of the frame: the one partition that may
+    # relocate), partition 1 predicted at 1.5 and measured at 1.3. Partition k's resampled
+    # particles follow p(z_k | u) Phi(u - ref_l) pi_k(u), with pi_0 the heavy-tailed slot prior
+    # (1 - delta) N(u; 0, Q) + delta p_0(u) and pi_1 its motion part (module docstring):
+    # quadrature moments against the runs' means, 5 standard errors over the runs.
+    from _line import DT as LDT
+    from _line import LineSensor, Q, R, log_fov
+
+    from torchmcmcpf.filters.partitioned import PartitionedSIRSettings, least_explained, partitioned_sir_step
+    from torchmcmcpf.models.motion import LinearGaussianMotion
+    from torchmcmcpf.models.multitarget import Exclusion, Recapture
+    from torchmcmcpf.state import ParticleState
+
+    gen = torch.Generator().manual_seed(3)
+    motion, sensor = LinearGaussianMotion(torch.eye(1, dtype=LDT), Q * torch.eye(1, dtype=LDT)), LineSensor()
+    b, n, delta = 40, 4000, 0.2
+    ref = torch.tensor([[0.0], [1.5]], dtype=LDT)  # (K, D)
+    z = torch.tensor([[5.0], [1.3]], dtype=LDT).expand(b, 2, 1)
+    assert least_explained(sensor, ref.expand(b, 2, 1), z).tolist() == [[True, False]] * b
+    exclusion, recapture = Exclusion(1.5), Recapture(p_jump=delta, p_propose=0.3)
+    settings = PartitionedSIRSettings(exclusion=exclusion, recapture=recapture)
+    state = ParticleState(ref.expand(b, n, 2, 1), torch.full((b, n), -math.log(n), dtype=LDT))
+    new, _ = partitioned_sir_step(state, z, motion=motion, sensor=sensor, settings=settings, generator=gen)
+    u = new.x[..., 0]  # (B, N, K)
+    runs = torch.stack([u.mean(1), u.square().mean(1)], -1)  # (B, K, 2)
+    mean, se = runs.mean(0), runs.std(0) / b**0.5
+
+    grid = torch.arange(-14.0, 14.0, 0.005, dtype=LDT)
+
+    def moments(log_density):
+        w = torch.softmax(log_density, 0)
+        return torch.stack([(w * grid).sum(), (w * grid.square()).sum()])
+
+    def log_normal(x, m, v):
+        return -0.5 * (x - m).square() / v
+
+    base = [log_normal(grid, 5.0, R) + exclusion.log_phi((grid - 1.5).square()),
+            log_normal(grid, 1.3, R) + exclusion.log_phi(grid.square())]
+    motion_part = [math.log1p(-delta) + log_normal(grid, 0.0, Q) - 0.5 * math.log(2 * math.pi * Q),
+                   math.log1p(-delta) + log_normal(grid, 1.5, Q) - 0.5 * math.log(2 * math.pi * Q)]
+    heavy = torch.logaddexp(motion_part[0], math.log(delta) + log_fov(grid))
+    exact = torch.stack([moments(base[0] + heavy), moments(base[1] + motion_part[1])])  # (K, 2)
+    assert ((mean - exact).abs() <= 5 * se).all(), (mean, exact, se)
+    # the check can fail: without the relocation component partition 0's moments are far off
+    plain = moments(base[0] + motion_part[0])
+    assert ((plain - exact[0]).abs() > 20 * se[0]).all()
+    assert float((u[..., 0] > 3.5).double().mean()) > 0.2  # a real share relocated near its measurement
+    # and partition 1 holds its motion part only: with the relocation component it would be off
+    relocated_1 = moments(base[1] + torch.logaddexp(motion_part[1], math.log(delta) + log_fov(grid)))
+    assert ((relocated_1 - exact[1]).abs() > 10 * se[1]).any()
+
+
+def test_recapture_brings_a_coalesced_partition_back():
+    # The crossing study's staged coalescence (docs/tracks.md): both partitions start on the
+    # strong target, the weak one 150 m away uncovered. With re-capture a partition reaches it
+    # within 20 steps in every run and the strong target keeps a slot within 20 m at the last
+    # steps; without, no run reaches it (its motion proposal never gets there).
+    from torchmcmcpf import metrics
+    from torchmcmcpf.scenarios import crossing
+
+    gen = torch.Generator().manual_seed(1)
+    far = crossing(2, 20, 8, generator=gen, miss_distance=150.0, crossing_step=10)
+    init = far.initial_particles(200, generator=gen)
+    init[:, :, 1] = init[:, :, 0]
+    weak = far.truth[:, :, 1:]
+    found = {}
+    for recapture in ("on", None):
+        filt = PartitionedSIRFilter(far.motion, far.sensor, 200, **({} if recapture else {"recapture": None}))
+        res = filt(far.measurements, init=init, generator=torch.Generator().manual_seed(2))
+        cover = metrics.slot_coverage(res.mean, weak, radius=10.0)[..., 0] > 0  # (T, B)
+        found[recapture] = int(cover.any(0).sum())
+        if recapture:
+            strong = metrics.slot_coverage(res.mean[-5:], far.truth[-5:, :, :1], radius=20.0)[..., 0] > 0
+            assert bool(strong.all())
+    assert found == {"on": 8, None: 0}
+
+
+def test_compiled_recapture_step_equals_eager_on_the_radar():
+    # compile_step=True compiles the body with the re-capture (its draws made eagerly and
+    # passed in): the same bits as the eager step on a radar with a data-driven proposal
+    from torchmcmcpf.scenarios import ground_radar
+
+    scn = ground_radar(3, 3, 2, generator=torch.Generator().manual_seed(4))
+    init = scn.initial_particles(64, generator=torch.Generator().manual_seed(5))
+    out = []
+    for compiled in (False, True):
+        filt = PartitionedSIRFilter(scn.motion, scn.sensor, 64, compile_step=compiled)
+        assert filt.settings.recapture is not None
+        out.append(filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(6)).mean)
+    torch.testing.assert_close(out[1], out[0], rtol=0, atol=0)

@@ -26,7 +26,8 @@ What runs
 - Partitioned PF (extra row, not in the paper's table):
   :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`, Np particles, each
   target's partition weighted with the others at their predicted estimates and resampled
-  on its own (Orton and Fitzgerald; Kreucher et al.).
+  on its own (Orton and Fitzgerald; Kreucher et al.), with exclusion and re-capture
+  (``--factorised``: without either).
 
 Every filter starts from ``Scenario.initial_particles`` (5 m / 1 m/s / 10 % around the
 truth one step before frame 0, labels kept); RMSE and TLR (20 m) use the slot labels.
@@ -123,10 +124,10 @@ def _make_filter(name: str, scn: Scenario, n: int,
     plain: dict = dict(exclusion=None) if cfg.factorised else {}
     if name == "SIR PF":
         return SIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
-    if name == "Partitioned PF":
-        return PartitionedSIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
     if plain:
         plain["recapture"] = None
+    if name == "Partitioned PF":
+        return PartitionedSIRFilter(scn.motion, scn.sensor, num_particles=n, compile_step=c, **plain)
     return IPMCMCFilter(scn.motion, scn.sensor, num_particles=n, num_chains=cfg.chains, burn_in=cfg.burn_in,
                         max_extensions=cfg.max_extensions, compile_step=c, **plain)
 

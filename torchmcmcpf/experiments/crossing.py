@@ -28,7 +28,7 @@ Two scenes of the range-doppler-bearing radar of paper 000 (:func:`~torchmcmcpf.
 Filters (every one with ``Np`` particles): the IP-MCMC-PF with the library's defaults
 (exclusion and re-capture), the IP-MCMC-PF of paper 000 (``exclusion=None, recapture=None``:
 the factorised target and the plain exchange move), the MCMC-PF with its defaults, and the
-independent-partition PF (with exclusion). Next to them, on the crossing scene, the
+independent-partition PF (with exclusion and re-capture). Next to them, on the crossing scene, the
 *clairvoyant reference* (:func:`~torchmcmcpf.filters.partitioned.clairvoyant_partitions`):
 each target's own PF weighted with the other at its true state, what the data allow a
 tracker that knows the association (it has no coalescence column: it reads the truth and

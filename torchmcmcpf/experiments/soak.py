@@ -29,7 +29,7 @@ chunk, so memory does not grow with the length):
 Filters: the IP-MCMC-PF with the library's defaults (exclusion and re-capture) and as in
 paper 000 (``exclusion=None, recapture=None``), Np particles in ``Np / 10`` chains, burn-in
 ``--burn-in``; on the fixed scene also the partitioned PF (Orton and Fitzgerald 2002, with
-exclusion; :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`) with the same Np,
+exclusion and re-capture; :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`) with the same Np,
 a reference of another kind on the same frames (it has no births and deaths). Also: seconds
 per step and the non-finite values in the estimates (must be 0).
 

@@ -20,6 +20,21 @@ exponentially in K. Here every particle still holds all K targets, but each targ
    k's own term, exactly;
 3. resample each partition with its own weights, independently of the other partitions.
 
+Re-capture (``settings.recapture``, on by default for a data-driven sensor). A partition
+whose target has left its prediction (two slots on one target, or a target lost) cannot come
+back by its motion proposal alone. Each step, the one partition that explains least of the
+frame, ``argmin_k [log p(z | hat x) - log p(z | hat x without slot k)]`` (a function of the
+reference and the frame only), draws its particles from a mixture: the prediction with
+probability ``1 - epsilon``, the frame's data-driven density ``g`` with probability
+``epsilon`` (``Recapture.p_propose``); its weights gain the heavy-tailed slot prior over
+that proposal, ``r = (1 - delta) / (1 - epsilon)`` or ``delta p_0 / (epsilon g)``
+(:func:`~torchmcmcpf.models.multitarget.relocate`: importance sampling on the particle and its
+component label). Only one partition a step: every partition is weighed against the others'
+*previous* references, so a power that no slot explains would draw every partition that can
+gain by it, each abandoning its own target (measured: nine of ten partitions at once,
+docs/tracks.md). The other partitions keep the motion proposal (their weights gain the
+constant ``1 - delta``).
+
 Approximation. The filter represents the posterior as the product of per-target marginals,
 ``p(x_1..x_K | z_{1:t}) ~ prod_k p(x_k | z_{1:t})``, and each marginal's weight conditions on
 the other targets at their predicted estimates instead of integrating over them. Both are
@@ -40,11 +55,19 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
-from ..models.multitarget import Exclusion, exclusion_against
+from ..models.multitarget import (
+    Exclusion,
+    Recapture,
+    RelocationNoise,
+    check_exclusion,
+    draw_relocation,
+    exclusion_against,
+    relocate,
+)
 from ..resampling import RESAMPLERS, ess, normalize
 from ..state import ParticleState, StepInfo, weighted_mean
 from ..typing import Measurement, Tensor
-from .base import Filter
+from .base import Filter, active_prior
 
 __all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "partitioned_sir_body",
            "clairvoyant_partitions"]
@@ -61,18 +84,42 @@ class PartitionedSIRSettings:
     exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
         weight of partition ``k`` includes ``prod_{l != k} phi(x_k, hat x_l)``, the exclusion
         factors against the other targets at the reference (Khan et al. 2005).
+    recapture : :class:`~torchmcmcpf.models.multitarget.Recapture` (default) or None: the
+        partition that explains least of the frame draws a share ``p_propose`` of its
+        particles from the frame's data (module docstring; ``p_jump`` and ``p_propose`` are
+        used, the IP-MCMC two-slot fields are not). Turned off for a sensor without a
+        data-driven proposal (:func:`~torchmcmcpf.filters.base.active_prior`).
     """
 
     resample_method: str = "systematic"
     exclusion: Exclusion | None = Exclusion()
+    recapture: Recapture | None = Recapture()
 
     def __post_init__(self):
         if self.resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
+        check_exclusion(self.exclusion)
+        if self.recapture is not None and not isinstance(self.recapture, Recapture):
+            raise ValueError(f"recapture must be a Recapture or None, got {type(self.recapture).__name__}")
+
+
+def least_explained(sensor: SensorModel, ref: Tensor, z: Measurement) -> Tensor:
+    """The partition that explains least of the frame: ``(B, K)`` bool, one True per run, at
+    ``argmin_k [log p(z | ref) - log p(z | ref without slot k)]`` (K one-slot removals of
+    the reference ``ref (B, K, D)``; a slot on no target, or sharing one, explains least).
+    """
+    b, k, d = ref.shape
+    refs = ref.unsqueeze(1).expand(b, k, k, d)  # (B, K, K, D): the reference once per removed slot
+    slots = torch.arange(k, device=ref.device).expand(b, k)
+    present = torch.ones(b, k, k, dtype=torch.bool, device=ref.device)
+    removed = torch.zeros(b, k, dtype=torch.bool, device=ref.device)
+    loss = sensor.log_likelihood_delta(refs, ref, slots, z, exists=present, exists_n=removed)  # (B, K) <= 0 mostly
+    return torch.nn.functional.one_hot(loss.argmax(-1), k).bool()
 
 
 def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, eps: Tensor,
-                         reference: Tensor | None = None, *, motion: MotionModel, sensor: SensorModel,
+                         reference: Tensor | None = None, relocation: RelocationNoise | None = None, *,
+                         motion: MotionModel, sensor: SensorModel,
                          settings: PartitionedSIRSettings) -> tuple[Tensor, Tensor]:
     """The body of one independent-partition step, all of it but its random draws (pure; the
     program ``compile_step=True`` compiles): propose, weight each partition, resample each
@@ -86,6 +133,8 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     reference : (B, K, D) the state the other targets are fixed at; default (None) the
     noise-free prediction of the previous posterior mean. Given the true states, the filter
     is the studies' clairvoyant reference (:func:`clairvoyant_partitions`).
+    relocation : :class:`~torchmcmcpf.models.multitarget.RelocationNoise` with leading
+    ``(B, N, K)``, the re-capture's draws (needed when ``settings.recapture`` is set).
 
     Returns
     -------
@@ -98,8 +147,14 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     if ref is None:  # the noise-free prediction of the previous posterior mean
         ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
     x_prop = motion.propagate(x, eps)  # every partition from the motion prior
+    log_r = torch.zeros((), dtype=x.dtype, device=x.device)
+    if settings.recapture is not None:  # one partition's particles partly drawn from the data
+        if relocation is None:
+            raise ValueError("relocation must be given when settings.recapture is set")
+        free = least_explained(sensor, ref, z).unsqueeze(1).expand(b, n, k)  # (B, N, K)
+        x_prop, log_r, _ = relocate(x_prop, free, relocation, settings.recapture, sensor)
     # p(z | x_k, x_-k = ref) / p(z | ref) (B, N, K); target k's own term for a separable sensor
-    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z)  # (B, N, K)
+    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z) + log_r.to(x.dtype)  # (B, N, K)
     log_lik = (log_lik + exclusion_against(settings.exclusion, sensor, x_prop, ref)).transpose(1, 2)  # (B, K, N)
     log_w_part, _ = normalize(log_lik.reshape(b * k, n))  # (B * K, N)
     idx = RESAMPLERS[settings.resample_method][1](log_w_part, u, n).reshape(b, k, n)
@@ -135,7 +190,8 @@ def partitioned_sir_step(
     state : ParticleState with ``x (B, N, K, D)`` and normalised ``log_w (B, N)``.
     z : one measurement per run, ``(B, *G)``.
     motion, sensor : the models; settings : :class:`PartitionedSIRSettings`.
-    generator : source of randomness (motion noise, resampling uniforms; drawn here, eagerly).
+    generator : source of randomness (motion noise, resampling uniforms, the re-capture's
+        draws; drawn here, eagerly).
     existence : must be None (known number of targets).
     body : :func:`partitioned_sir_body` with the models bound (compiled by
         ``PartitionedSIRFilter(compile_step=True)``); default eager.
@@ -156,11 +212,14 @@ def partitioned_sir_step(
     draw, _ = RESAMPLERS[settings.resample_method]
     u = draw(b * k, n, generator=generator, device=x.device)
     eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
+    settings = active_prior(settings, sensor)
+    relocation = draw_relocation(settings.recapture, sensor, (b, n, k), z, generator=generator, dtype=x.dtype,
+                                 device=x.device)
     if body is None:
         body = bind_body(motion, sensor, settings)
     if reference is not None and reference.shape != (b, k, x.shape[-1]):
         raise ValueError(f"reference has shape {tuple(reference.shape)}, expected (B, K, D) = {(b, k, x.shape[-1])}")
-    x_new, log_lik = body(x, log_w, z, u, eps, reference)
+    x_new, log_lik = body(x, log_w, z, u, eps, reference, relocation)
     ess_k = ess(normalize(log_lik)[0])  # (B, K); a partition with all weights -inf: uniform, not NaN
     log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
     return ParticleState(x_new, log_w_new), StepInfo.make(ess_k[:, 0], ess=ess_k.mean(-1),
@@ -192,7 +251,7 @@ def clairvoyant_partitions(frames: Tensor, truth: Tensor, x: Tensor, *, motion: 
                          f"{(len(frames), x.shape[0]) + tuple(x.shape[2:])}")
     log_w = torch.full(x.shape[:2], -math.log(x.shape[1]), dtype=x.dtype, device=x.device)
     state, means = ParticleState(x, log_w), []
-    settings = PartitionedSIRSettings(exclusion=None)  # the others are where they are
+    settings = PartitionedSIRSettings(exclusion=None, recapture=None)  # the others are where they are
     for t, ref in enumerate(truth):  # a loop over time only
         state, _ = partitioned_sir_step(state, frames[t], motion=motion, sensor=sensor, settings=settings,
                                         generator=generator, reference=ref)
@@ -212,7 +271,7 @@ class PartitionedSIRFilter(Filter):
         sensors their per-target terms).
     num_particles : N >= 1 per partition.
     settings : :class:`PartitionedSIRSettings`, optional; its fields ``resample_method``,
-        ``exclusion`` are also keywords of the constructor.
+        ``exclusion``, ``recapture`` are also keywords of the constructor.
     existence : must be None (known number of targets).
     compile_step : compile :func:`partitioned_sir_body` (the whole step but its draws).
 
