@@ -157,6 +157,8 @@ def test_same_seed_same_result(gen):
         (dict(moves="random_walk", rw_scale=-1.0), "rw_scale"),
         (dict(moves="random_walk", rw_scale=torch.ones(3)), "rw_scale"),
         (dict(moves="random_walk", rw_scale="adapt"), "rw_scale"),
+        (dict(exclusion=1.0), "exclusion must be an Exclusion or None, got float"),
+        (dict(recapture=0.1), "recapture must be a Recapture or None, got float"),
     ],
 )
 def test_bad_settings_raise(kwargs, name):

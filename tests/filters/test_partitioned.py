@@ -263,3 +263,19 @@ def test_compiled_recapture_step_equals_eager_on_the_radar():
         assert filt.settings.recapture is not None
         out.append(filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(6)).mean)
     torch.testing.assert_close(out[1], out[0], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(exclusion=1.0), "exclusion must be an Exclusion or None, got float"),
+    (dict(recapture=0.1), "recapture must be a Recapture or None, got float"),
+    (dict(resample_method="residual"), "resample_method must be one of"),
+])
+def test_bad_settings_raise(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        PartitionedSIRFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 10, **kwargs)
+
+
+def test_recapture_is_off_for_a_sensor_without_a_data_driven_proposal():
+    # labelled point measurements have no data-driven density: the settings say so
+    filt = PartitionedSIRFilter(ConstantVelocity(1.0, 1.0), LinearGaussian.position(1.0), 10)
+    assert filt.settings.recapture is None and filt.settings.exclusion is None

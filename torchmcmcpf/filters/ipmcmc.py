@@ -185,7 +185,7 @@ from ..kernels.hmc_refine import (
 )
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture, check_exclusion
+from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture
 from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
@@ -401,8 +401,7 @@ class IPMCMCSettings:
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
         check_exclusion(self.exclusion)
-        if self.recapture is not None and not isinstance(self.recapture, Recapture):
-            raise ValueError(f"recapture must be a Recapture or None, got {type(self.recapture).__name__}")
+        check_recapture(self.recapture)
         if self.hmc is not None:
             object.__setattr__(self, "recapture", None)  # HMC's target: the prior without relocation
         object.__setattr__(self, "existence_proposal", check_existence_proposal(self.existence_proposal))

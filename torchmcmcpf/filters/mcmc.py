@@ -43,7 +43,7 @@ from ..kernels.moves import MOVES, init_chains, joint_move, refine_move, refine_
 from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step, prior_covariance, random_walk_move
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture, RelocationNoise
+from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_exclusion, check_recapture
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -165,6 +165,8 @@ class MCMCSettings:
     def __post_init__(self):
         object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains"))
         object.__setattr__(self, "burn_in", check_positive_int(self.burn_in, "burn_in", minimum=0))
+        check_exclusion(self.exclusion)
+        check_recapture(self.recapture)
         object.__setattr__(self, "thinning", check_positive_int(self.thinning, "thinning"))
         pairs = parse_moves(self.moves)
         object.__setattr__(self, "moves", pairs)

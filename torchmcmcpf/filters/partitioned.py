@@ -60,6 +60,7 @@ from ..models.multitarget import (
     Recapture,
     RelocationNoise,
     check_exclusion,
+    check_recapture,
     draw_relocation,
     exclusion_against,
     relocate,
@@ -99,8 +100,7 @@ class PartitionedSIRSettings:
         if self.resample_method not in RESAMPLERS:
             raise ValueError(f"resample_method must be one of {sorted(RESAMPLERS)}, got {self.resample_method!r}")
         check_exclusion(self.exclusion)
-        if self.recapture is not None and not isinstance(self.recapture, Recapture):
-            raise ValueError(f"recapture must be a Recapture or None, got {type(self.recapture).__name__}")
+        check_recapture(self.recapture)
 
 
 def least_explained(sensor: SensorModel, ref: Tensor, z: Measurement) -> Tensor:

@@ -87,9 +87,9 @@ from ..typing import Tensor
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
     from .base import SensorModel
 
-__all__ = ["Exclusion", "check_exclusion", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR", "relocate", "log_exclusion",
-           "exclusion_change", "exclusion_against", "draw_relocation", "log_q_component", "FIXED", "MOTION",
-           "RELOCATED"]
+__all__ = ["Exclusion", "check_exclusion", "check_recapture", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR",
+           "relocate", "log_exclusion", "exclusion_change", "exclusion_against", "draw_relocation",
+           "log_q_component", "FIXED", "MOTION", "RELOCATED"]
 
 #: Lower bound of ``log phi(d)`` (``phi = e^-50``): two coincident slots get a finite, very low
 #: exclusion factor, so moves away from them have finite acceptance ratios (never NaN).
@@ -185,6 +185,13 @@ def check_exclusion(exclusion: object) -> Exclusion | None:
     if exclusion is not None and not isinstance(exclusion, Exclusion):
         raise ValueError(f"exclusion must be an Exclusion or None, got {type(exclusion).__name__}")
     return exclusion
+
+
+def check_recapture(recapture: object) -> Recapture | None:
+    """``recapture`` if it is a :class:`Recapture` or None, else a ValueError naming it."""
+    if recapture is not None and not isinstance(recapture, Recapture):
+        raise ValueError(f"recapture must be a Recapture or None, got {type(recapture).__name__}")
+    return recapture
 
 
 def log_exclusion(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, exists: Tensor | None = None
