@@ -147,14 +147,14 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     if ref is None:  # the noise-free prediction of the previous posterior mean
         ref = motion.propagate(weighted_mean(x, log_w), torch.zeros_like(eps[:, 0]))
     x_prop = motion.propagate(x, eps)  # every partition from the motion prior
-    log_r = torch.zeros((), dtype=x.dtype, device=x.device)
+    log_r: Tensor | float = 0.0  # (B, N, K) with re-capture: the slot prior over the proposal
     if settings.recapture is not None:  # one partition's particles partly drawn from the data
         if relocation is None:
             raise ValueError("relocation must be given when settings.recapture is set")
         free = least_explained(sensor, ref, z).unsqueeze(1).expand(b, n, k)  # (B, N, K)
         x_prop, log_r, _ = relocate(x_prop, free, relocation, settings.recapture, sensor)
     # p(z | x_k, x_-k = ref) / p(z | ref) (B, N, K); target k's own term for a separable sensor
-    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z) + log_r.to(x.dtype)  # (B, N, K)
+    log_lik = sensor.log_likelihood_slot_changes(ref, x_prop, z) + log_r  # (B, N, K)
     log_lik = (log_lik + exclusion_against(settings.exclusion, sensor, x_prop, ref)).transpose(1, 2)  # (B, K, N)
     log_w_part, _ = normalize(log_lik.reshape(b * k, n))  # (B * K, N)
     idx = RESAMPLERS[settings.resample_method][1](log_w_part, u, n).reshape(b, k, n)
