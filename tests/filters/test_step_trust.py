@@ -144,3 +144,20 @@ def test_filters_still_copy_and_pickle_and_a_copy_trusts_nothing(full_checks):
         n_before = len(full_checks)
         clone.step(state, z[0], generator=torch.Generator().manual_seed(0))
         assert len(full_checks) == n_before + 1
+
+
+def test_moving_the_filter_forgets_its_devices_and_its_states(full_checks):
+    """The models' devices are remembered between calls (walking the module tree at every
+    ``step`` was about a tenth of a step at B = 1) and forgotten when the filter moves: a state
+    stepped before the move is checked in full, and models on another device are refused.
+    """
+    filt, x0, z = build()
+    g = torch.Generator().manual_seed(1)
+    state, _ = filt.step(filt.init(x0), z[0], generator=g)
+    assert len(full_checks) == 1
+    filt.to(torch.float64)  # a conversion (no-op here): the trusted states are forgotten
+    state, _ = filt.step(state, z[1], generator=g)
+    assert len(full_checks) == 2
+    filt.to("meta")
+    with pytest.raises(ValueError, match="the models' parameters are on meta, expected cpu"):
+        filt.step(state, z[2], generator=g)

@@ -30,9 +30,10 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import itertools
 import weakref
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, ClassVar
 
 import torch
@@ -184,9 +185,11 @@ def check_existence(existence: object) -> BirthDeath | None:
     return existence
 
 
-def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name: str, models: nn.Module) -> None:
-    """Devices (none on ``meta``, all equal) and dtypes (floating measurements of the state's
-    dtype) of a state and measurements: metadata only, no host synchronisation.
+def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name: str,
+                          model_devices: Iterable[torch.device]) -> None:
+    """Devices (none on ``meta``, all equal, the models' ``model_devices`` too) and dtypes
+    (floating measurements of the state's dtype) of a state and measurements: metadata only,
+    no host synchronisation.
     """
     x = state.x
     tensors = {"init": x, "init.log_w": state.log_w}
@@ -199,9 +202,9 @@ def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name:
             raise ValueError(f"{key} is on the meta device (no data), expected a tensor on {x.device}")
         if t.device != x.device:
             raise ValueError(f"{key} is on {t.device}, expected {x.device} (the device of init)")
-    for p in list(models.parameters()) + list(models.buffers()):
-        if p.device.type == "meta" or p.device != x.device:
-            raise ValueError(f"the models' parameters are on {p.device}, expected {x.device} (the device of "
+    for device in model_devices:
+        if device.type == "meta" or device != x.device:
+            raise ValueError(f"the models' parameters are on {device}, expected {x.device} (the device of "
                              "init); move them with filt.to(device)")
     if not x.is_floating_point():
         raise ValueError(f"init has dtype {x.dtype}, expected a floating dtype")
@@ -297,6 +300,7 @@ class Filter(nn.Module):
         self._compiled: Callable | None = None
         self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
         self._trusted: deque = deque(maxlen=_TRUSTED_STATES)
+        self._devices: frozenset | None = None  # _model_devices, until the filter is moved
         self._check_problem()
 
     def _check_problem(self) -> None:
@@ -328,6 +332,23 @@ class Filter(nn.Module):
             self._trusted.append(record)
         return state
 
+    def _model_devices(self) -> frozenset:
+        """The devices of the models' parameters and buffers, remembered until the filter is
+        moved or converted (:meth:`_apply`, which ``.to``, ``.cuda`` and ``.double`` call):
+        walking the module tree at every call was about a tenth of a public step at B = 1.
+        """
+        if self._devices is None:
+            self._devices = frozenset(t.device for t in itertools.chain(self.parameters(), self.buffers()))
+        return self._devices
+
+    def _apply(self, fn: Callable, recurse: bool = True) -> Filter:
+        """``nn.Module._apply`` (``.to``, ``.cuda``, ``.double``, ...), forgetting the models'
+        devices and the trusted states: a state made before the move gets the full check.
+        """
+        self._devices = None
+        self._trusted.clear()
+        return super()._apply(fn, recurse)
+
     def _is_trusted(self, state: ParticleState) -> bool:
         """Whether ``state`` is one that :meth:`_trust` recorded, unchanged since."""
         record = _record(state)
@@ -341,14 +362,18 @@ class Filter(nn.Module):
         return False
 
     def __getstate__(self) -> dict:
-        """Pickle without the weak references of :meth:`_trust` (a copy trusts nothing)."""
+        """Pickle without the weak references of :meth:`_trust` (a copy trusts nothing) and
+        without the models' devices (a copy may be loaded elsewhere, ``map_location``).
+        """
         d = super().__getstate__()
         d["_trusted"] = None
+        d["_devices"] = None
         return d
 
     def __setstate__(self, d: dict) -> None:
         super().__setstate__(d)
         self._trusted = deque(maxlen=_TRUSTED_STATES)
+        self._devices = None
 
     # -- the compiled programs ------------------------------------------------------------
     def _build_compiled(self, compile: Callable[[Callable], Callable]) -> Callable:
@@ -473,7 +498,7 @@ class Filter(nn.Module):
         """
         if not isinstance(state, ParticleState):
             raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
-        _check_devices_dtypes(state, measurements, name, self)
+        _check_devices_dtypes(state, measurements, name, self._model_devices())
         b = state.batch_size
         if sequence:
             leaves = measurement_leaves(measurements, name)
