@@ -7,6 +7,7 @@ means agree with the exact Kalman filter)."""
 import argparse
 import json
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -152,3 +153,23 @@ def test_log_evidence_against_kalman(library):
     err = log_z - exact
     se = 1.2533 * err.std() / math.sqrt(B)  # standard error of a median
     assert abs(float(err.median())) < 4 * float(se) + 0.1, (err.median(), se)
+
+
+def test_time_interleaved_times_fast_calls_in_blocks_and_slow_ones_alone():
+    """A call much shorter than ``block_s`` is timed over a block of consecutive calls (a lone
+    call after the garbage collection runs cold); one longer than ``block_s`` alone.
+    """
+    calls = {"fast": 0, "slow": 0}
+
+    def fast():
+        calls["fast"] += 1
+
+    def slow():
+        calls["slow"] += 1
+        time.sleep(0.03)
+
+    times = bench.time_interleaved({"fast": fast, "slow": slow}, repeats=3, device=torch.device("cpu"),
+                                   block_s=0.02, per_call=2)
+    assert calls["slow"] == 1 + 1 + 3  # warm-up, the sizing call, one call a round
+    assert calls["fast"] > 1 + 1 + 3 and (calls["fast"] - 2) % 3 == 0  # blocks of equal size, each round
+    assert times["slow"] >= 0.03 / 2 and times["fast"] < times["slow"]

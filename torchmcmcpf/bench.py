@@ -93,29 +93,42 @@ def time_step(step: Callable[[], object], *, repeats: int, device: torch.device,
 
 
 def time_interleaved(steps: dict[str, Callable[[], object]], *, repeats: int, device: torch.device,
-                     warmup: int = 1, per_call: int = 1) -> dict[str, float]:
+                     warmup: int = 1, per_call: int = 1, block_s: float = 0.05) -> dict[str, float]:
     """Minimum wall time [s] of each of ``steps`` over ``repeats`` rounds, the variants called
     in turn within each round (so that a burst of load on a shared machine hits them alike),
     divided by ``per_call`` (the steps one call makes). Warm-up calls first (compilation).
-    As ``timeit``, Python's garbage collector is run before each timed call and kept off
-    during it: otherwise the call after Stone Soup's paid for its objects (a public step at
-    B = 1 measured 10-30 ms instead of 0.4).
+
+    As ``timeit``, Python's garbage collector is run before each timed block and kept off
+    during it (otherwise the call after Stone Soup's paid for its objects: a public step at
+    B = 1 measured 10-30 ms instead of 0.4), and a block is as many consecutive calls as take
+    about ``block_s`` (from a call timed after the warm-up; one call when ``warmup = 0``), as
+    ``timeit``'s ``autorange`` loops: a lone call right after the collection runs cold, 1-3 ms
+    slower on the 2-core CPU (the public point SIR step at B = 1: 1.57 ms alone against 0.59
+    in a block of 20, Stone Soup's step 2.8 against 2.0; at B = 100 the floor 9.1 against 6.4).
     """
     best = dict.fromkeys(steps, math.inf)
+    block = dict.fromkeys(steps, 1)
     with torch.no_grad():
-        for fn in steps.values():
+        for name, fn in steps.items():
             for _ in range(warmup):
                 fn()
+            if warmup:  # one more call, warm, sizes the block
+                _sync(device)
+                start = time.perf_counter()
+                fn()
+                _sync(device)
+                block[name] = max(1, min(100, math.ceil(block_s / max(time.perf_counter() - start, 1e-9))))
         _sync(device)
         for _ in range(repeats):
             for name, fn in steps.items():
-                gc.collect()  # the garbage of the previous call (Stone Soup makes much) is not this one's
-                gc.disable()  # as timeit: no collection inside a timed call
+                gc.collect()  # the garbage of the previous block (Stone Soup makes much) is not this one's
+                gc.disable()  # as timeit: no collection inside a timed block
                 try:
                     start = time.perf_counter()
-                    fn()
+                    for _ in range(block[name]):
+                        fn()
                     _sync(device)
-                    best[name] = min(best[name], time.perf_counter() - start)
+                    best[name] = min(best[name], (time.perf_counter() - start) / block[name])
                 finally:
                     gc.enable()
     return {name: t / per_call for name, t in best.items()}
