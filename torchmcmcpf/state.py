@@ -543,13 +543,12 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     x, log_w, exists = state.x, state.log_w, state.exists
     b, n, k, d = x.shape
     present = reference_exists
+    ref: Tensor | None = reference
     if reference is None and iterations > 0 and k > 1:  # one particle's labels are consistent: the heaviest one's
         # (no rounds or one slot: the reference is not read, so not made)
         best = log_w.argmax(-1)[:, None, None]
         ref = torch.take_along_dim(x, best[..., None], 1).squeeze(1)
         present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
-    else:
-        ref = reference
     if exists is not None and present is not None and ref is not None and k > 1:
         # labels the reference has no target for: the densest place of the live slots the
         # present labels leave over (relabelled against them first) founds one new label per
@@ -575,6 +574,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     for _ in range(max(1, int(iterations))):
         near = None  # (B, N, K): the slots within the cutoff of their label's reference
         if iterations > 0 and k > 1:
+            assert ref is not None  # made above when there are rounds and slots to relabel
             xr, er = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
             pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
             near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2
