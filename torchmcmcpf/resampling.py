@@ -297,5 +297,6 @@ def gather_particles(x: Tensor, idx: Tensor) -> Tensor:
     the CPU than ``take_along_dim`` with an index expanded over ``*E`` (B = 100, N = 5000).
     """
     b, n = x.shape[:2]
-    flat = idx + torch.arange(b, device=idx.device).unsqueeze(-1) * n  # (B, M) rows of (B N, *E)
+    # (B, M) rows of (B N, *E); one run's rows are its indices (four operations fewer at B = 1)
+    flat = idx if b == 1 else idx + torch.arange(b, device=idx.device).unsqueeze(-1) * n
     return x.flatten(0, 1).index_select(0, flat.flatten()).view(idx.shape + x.shape[2:])

@@ -90,7 +90,9 @@ def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, ne
             exists = gather_particles(exists, idx)
     # (x, exists) propagated jointly: one code path whatever the number of targets
     x, exists, log_ratio = dynamics.propagate(x, exists, eps, birth)
-    log_lik = sensor.log_likelihood(x, z, exists) + log_exclusion(settings.exclusion, sensor, x, exists)  # (B, N)
+    log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
+    if settings.exclusion is not None and sensor.resolved:  # else log Phi = 0: no zeros added
+        log_lik = log_lik + log_exclusion(settings.exclusion, sensor, x, exists)
     if dynamics.existence is not None:
         log_lik = log_lik + log_ratio.sum(-1)  # the birth correction p_0 / q_0
     return x, exists, (log_lik - math.log(n)) if every_step else log_w + log_lik
