@@ -43,7 +43,7 @@ from ..kernels.moves import MOVES, init_chains, joint_move, refine_move, refine_
 from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step, prior_covariance, random_walk_move
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_exclusion, check_recapture
+from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_exclusion, check_recapture, exclusion_on
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -473,7 +473,7 @@ def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, settings: MCMC
             programs["joint"] = compile(lambda chain, noise, cloud, z: joint_move(
                 chain, noise, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor, exclusion=exclusion))
         if "refine" in names:
-            if sensor.separable and dynamics.existence is None and (exclusion is None or not sensor.resolved):
+            if sensor.separable and dynamics.existence is None and not exclusion_on(exclusion, sensor):
                 programs["refine"] = compile(lambda chain, noise, z: refine_move(
                     chain, noise, z=z, dynamics=dynamics, sensor=sensor))
             else:

@@ -17,7 +17,7 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
-from ..models.multitarget import Exclusion, log_exclusion
+from ..models.multitarget import Exclusion, exclusion_on, log_exclusion
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize_ess
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -91,7 +91,7 @@ def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, ne
     # (x, exists) propagated jointly: one code path whatever the number of targets
     x, exists, log_ratio = dynamics.propagate(x, exists, eps, birth)
     log_lik = sensor.log_likelihood(x, z, exists)  # (B, N)
-    if settings.exclusion is not None and sensor.resolved:  # else log Phi = 0: no zeros added
+    if exclusion_on(settings.exclusion, sensor):  # else log Phi = 0: no zeros added
         log_lik = log_lik + log_exclusion(settings.exclusion, sensor, x, exists)
     if dynamics.existence is not None:
         log_lik = log_lik + log_ratio.sum(-1)  # the birth correction p_0 / q_0

@@ -57,7 +57,7 @@ import torch
 
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
-from ..models.multitarget import Exclusion, RelocationNoise, log_q_component
+from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
 from ..resampling import cdf, inverse_cdf, normalize
 from ..typing import Measurement, Tensor
 from .mh import mh_accept, mh_select
@@ -367,7 +367,7 @@ def exchange_iteration(
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
     cur_src, cur_lw = source, log_w_source
     cur_u = u_moved = None
-    if exclusion is not None and sensor.resolved:  # the chains' and the moved slots' coordinates, one call
+    if exclusion_on(exclusion, sensor):  # the chains' and the moved slots' coordinates, one call
         u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
         cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
     update = None

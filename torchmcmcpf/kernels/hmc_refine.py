@@ -40,7 +40,7 @@ from .._validation import check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
 from ..models.motion import LinearGaussianMotion
-from ..models.multitarget import Exclusion, log_exclusion
+from ..models.multitarget import Exclusion, exclusion_on, log_exclusion
 from ..typing import Measurement, Tensor
 from .hmc import hmc_transition, value_and_grad
 
@@ -149,7 +149,7 @@ def with_exclusion(log_prior: Callable[[Tensor], Tensor], exclusion: Exclusion |
     differentiable, so the HMC move targets the filter's target with exclusion; ``log_prior``
     itself when the term is off.
     """
-    if exclusion is None or not sensor.resolved:
+    if not exclusion_on(exclusion, sensor):
         return log_prior
 
     def log_prior_excl(x: Tensor) -> Tensor:

@@ -106,7 +106,7 @@ import torch
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import TargetDynamics
-from ..models.multitarget import Exclusion, exclusion_change, log_exclusion
+from ..models.multitarget import Exclusion, exclusion_change, exclusion_on, log_exclusion
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
 from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, draw_ancestors, evaluate
@@ -255,7 +255,7 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, dynami
     x_prop, e_prop, ratio_prop = dynamics.propagate(chain.x_prev, chain.exists_prev, noise.eps, noise.birth,
                                                     noise.relocation)
     log_ratio = ratio_prop if chain.log_ratio is None else ratio_prop - chain.log_ratio
-    coupled = exclusion is not None and sensor.resolved
+    coupled = exclusion_on(exclusion, sensor)
     if chain.log_lik_terms is not None and not coupled:  # separable sensor, no flags: all K slots at once
         terms_prop = sensor.log_likelihood_per_target(x_prop, z)
         accepted = mh_accept(terms_prop - chain.log_lik_terms + log_ratio, noise.u)

@@ -77,7 +77,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 
 import torch
 
@@ -88,7 +88,7 @@ if TYPE_CHECKING:  # the sensor protocol is imported by the callers
     from .base import SensorModel
 
 __all__ = ["Exclusion", "check_exclusion", "check_recapture", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR",
-           "relocate", "log_exclusion", "exclusion_change", "exclusion_against", "draw_relocation",
+           "relocate", "exclusion_on", "log_exclusion", "exclusion_change", "exclusion_against", "draw_relocation",
            "log_q_component", "FIXED", "MOTION", "RELOCATED"]
 
 #: Lower bound of ``log phi(d)`` (``phi = e^-50``): two coincident slots get a finite, very low
@@ -194,15 +194,22 @@ def check_recapture(recapture: object) -> Recapture | None:
     return recapture
 
 
+def exclusion_on(exclusion: Exclusion | None, sensor: SensorModel) -> TypeGuard[Exclusion]:
+    """Whether the exclusion term applies: it is set and the sensor declares a resolution
+    (:attr:`~torchmcmcpf.models.base.SensorModel.resolved`); else every ``log Phi`` is 0.
+    """
+    return exclusion is not None and sensor.resolved
+
+
 def log_exclusion(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, exists: Tensor | None = None
                   ) -> Tensor:
     """``log Phi(x)`` of states ``x (*S, K, D)`` (flags ``exists (*S, K)``) with the sensor's
     resolution: ``(*S,)``; zeros when ``exclusion`` is None or the sensor declares no
     resolution (:attr:`~torchmcmcpf.models.base.SensorModel.resolved`).
     """
-    if exclusion is None or not sensor.resolved:
-        return torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
-    return exclusion.log_factor(sensor.resolution_coords(x), exists)
+    if exclusion_on(exclusion, sensor):
+        return exclusion.log_factor(sensor.resolution_coords(x), exists)
+    return torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
 
 
 def exclusion_change(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, x_n: Tensor, n: Tensor,
@@ -211,11 +218,11 @@ def exclusion_change(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor
     ``n (*S)`` int64, flags ``exists (*S, K)``, ``exists_n (*S)`` -> ``(*S,)`` (zeros when
     off, as :func:`log_exclusion`).
     """
-    if exclusion is None or not sensor.resolved:
-        return torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
-    u = sensor.resolution_coords(x)
-    u_n = sensor.resolution_coords(x_n.unsqueeze(-2)).squeeze(-2)
-    return exclusion.log_change(u, u_n, n, exists, exists_n)
+    if exclusion_on(exclusion, sensor):
+        u = sensor.resolution_coords(x)
+        u_n = sensor.resolution_coords(x_n.unsqueeze(-2)).squeeze(-2)
+        return exclusion.log_change(u, u_n, n, exists, exists_n)
+    return torch.zeros(x.shape[:-2], dtype=x.dtype, device=x.device)
 
 
 def exclusion_against(exclusion: Exclusion | None, sensor: SensorModel, x: Tensor, ref: Tensor) -> Tensor:
@@ -224,7 +231,7 @@ def exclusion_against(exclusion: Exclusion | None, sensor: SensorModel, x: Tenso
     independent-partition filter's weights, whose other targets sit at the reference).
     Zeros when off (as :func:`log_exclusion`).
     """
-    if exclusion is None or not sensor.resolved:
+    if not exclusion_on(exclusion, sensor):
         return torch.zeros(x.shape[:-1], dtype=x.dtype, device=x.device)
     u = sensor.resolution_coords(x)  # (B, *S, K, r)
     u_ref = sensor.resolution_coords(ref)  # (B, K, r)
