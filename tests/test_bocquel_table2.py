@@ -6,6 +6,7 @@ import json
 import pytest
 import torch
 
+from torchmcmcpf.experiments import _study
 from torchmcmcpf.experiments import bocquel_table2 as exp
 from torchmcmcpf.experiments._options import RunOptions
 
@@ -59,7 +60,9 @@ def test_compile_reaches_every_row(monkeypatch):
 
     from torchmcmcpf import ConstantVelocity, LinearGaussian
 
-    scn = SimpleNamespace(motion=ConstantVelocity(1.0, 1.0), sensor=LinearGaussian.position(1.0))
+    scn = SimpleNamespace(motion=ConstantVelocity(1.0, 1.0), sensor=LinearGaussian.position(1.0), num_targets=1,
+                          truth=torch.zeros(1, 1, 1, 4))
+    monkeypatch.setattr(_study, "_REUSED", {})  # a fresh process: no filter kept from another test
     for compile_ in (True, False):
         cfg = exp.STUDY.settings(compile=compile_, chains=5, particles=(10,), burn_in=2, max_extensions=0,
                                  pmmh_candidates=2)
@@ -99,6 +102,7 @@ def test_pmmh_runs_in_batches_of_bounded_particles(monkeypatch):
             return super().forward(measurements, **kwargs)
 
     monkeypatch.setattr(exp, "PMMHFilter", Spy)
+    monkeypatch.setattr(_study, "_REUSED", {})  # the spy is built here and kept from no other test
     cfg = exp.STUDY.settings(pmmh_candidates=2, compile=False)
     for budget, batches in ((1, [1, 1, 1]), (2 * 20 * 2, [2, 1]), (10**9, [3])):
         monkeypatch.setattr(exp, "PMMH_BATCH_PARTICLES", budget)
@@ -107,3 +111,43 @@ def test_pmmh_runs_in_batches_of_bounded_particles(monkeypatch):
         assert calls == batches
         assert mean.shape == (2, 3, 2, 5) and torch.isfinite(mean).all()
         assert extra["acceptance"].shape == extra["theta_mean"].shape == (3,)
+
+
+def test_shards_reuse_each_rows_filter(monkeypatch):
+    """Each row's filter is built once per process and reused by the later shards (a compiled
+    filter would otherwise compile again in every shard: torch.cond graphs skip Inductor's
+    cache), with the same results as a filter built for the shard alone."""
+    monkeypatch.setattr(_study, "_REUSED", {})
+    cfg = exp.STUDY.settings(quick=True, steps=2, algorithms=("SIR PF", "PMMH", "IP-MCMC-PF"), pmmh_candidates=2)
+    device = torch.device("cpu")
+
+    def shard(index):
+        return exp.STUDY.run_shard(cfg, range(index, index + 1), generator=torch.Generator().manual_seed(index),
+                                   device=device)[0]
+
+    shard(0)
+    built = dict(_study._REUSED)
+    assert len(built) == len(cfg.targets) * len(cfg.particles) * len(cfg.algorithms)
+    reused = shard(1)
+    assert all(_study._REUSED[key] is filt for key, filt in built.items())  # no filter built again
+    monkeypatch.setattr(_study, "_REUSED", {})
+    fresh = shard(1)
+    assert len(_study._REUSED) == len(built)
+    assert reused.keys() == fresh.keys()
+    for key in fresh:
+        torch.testing.assert_close(reused[key], fresh[key], rtol=0, atol=0, msg=key)
+
+
+def test_reused_keeps_the_newest(monkeypatch):
+    monkeypatch.setattr(_study, "_REUSED", {})
+    monkeypatch.setattr(_study, "REUSED_MAX", 2)
+    made = []
+
+    def build(key):
+        return lambda: made.append(key) or object()
+
+    a = _study.reused("a", build("a"))
+    _study.reused("b", build("b"))
+    assert _study.reused("a", build("a")) is a  # kept: built once
+    _study.reused("c", build("c"))  # drops "b", the least recently used
+    assert list(_study._REUSED) == ["a", "c"] and made == ["a", "b", "c"]
