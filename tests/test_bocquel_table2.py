@@ -60,8 +60,7 @@ def test_compile_reaches_every_row(monkeypatch):
 
     from torchmcmcpf import ConstantVelocity, LinearGaussian
 
-    scn = SimpleNamespace(motion=ConstantVelocity(1.0, 1.0), sensor=LinearGaussian.position(1.0), num_targets=1,
-                          truth=torch.zeros(1, 1, 1, 4))
+    scn = SimpleNamespace(motion=ConstantVelocity(1.0, 1.0), sensor=LinearGaussian.position(1.0), num_targets=1)
     monkeypatch.setattr(_study, "_REUSED", {})  # a fresh process: no filter kept from another test
     for compile_ in (True, False):
         cfg = exp.STUDY.settings(compile=compile_, chains=5, particles=(10,), burn_in=2, max_extensions=0,
@@ -151,3 +150,20 @@ def test_reused_keeps_the_newest(monkeypatch):
     assert _study.reused("a", build("a")) is a  # kept: built once
     _study.reused("c", build("c"))  # drops "b", the least recently used
     assert list(_study._REUSED) == ["a", "c"] and made == ["a", "b", "c"]
+
+
+def test_models_key_tells_models_apart():
+    """Scenarios drawn from other random numbers share their models' key (their filters are
+    reused); another grid (more steps widen it), noise level or dtype does not."""
+    from torchmcmcpf.scenarios.ground_radar import ground_radar
+
+    def key(steps=20, seed=0, **kw):
+        scn = ground_radar(3, steps, 2, generator=torch.Generator().manual_seed(seed), **kw)
+        return _study.models_key(scn.motion, scn.sensor)
+
+    assert key() == key(seed=5)
+    hash(key())
+    assert key() != key(steps=21)
+    assert key() != key(noise_std=2.0)
+    assert key() != key(q=0.5)
+    assert key() != key(dtype=torch.float64)

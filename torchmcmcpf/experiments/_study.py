@@ -51,7 +51,7 @@ from ._options import RunOptions, positive_int
 from ._provenance import write_metrics
 from ._shards import Shards, run_shards
 
-__all__ = ["Settings", "Study", "option", "rows_option", "in_order", "generator", "StepTimer", "reused"]
+__all__ = ["Settings", "Study", "option", "rows_option", "in_order", "generator", "StepTimer", "reused", "models_key"]
 
 _SAME = object()
 
@@ -271,8 +271,8 @@ def reused(key: Hashable, build: Callable[[], T]) -> T:
     B = 10, N = 5000: 72 s against 1.5 s for a step). Building each row's filter once per
     process and reusing it in the later shards gives the same bits (filters keep nothing
     between calls but compiled code and caches of it). ``key`` must say everything ``build``
-    depends on: the settings, the row, and whatever fixes the models. At most
-    :data:`REUSED_MAX` objects are kept; the oldest goes first.
+    depends on: the settings, the row, and the models (:func:`models_key`). At most
+    :data:`REUSED_MAX` objects are kept; the least recently used goes first.
     """
     if key in _REUSED:
         _REUSED[key] = _REUSED.pop(key)  # the newest again
@@ -281,6 +281,21 @@ def reused(key: Hashable, build: Callable[[], T]) -> T:
         del _REUSED[next(iter(_REUSED))]
     _REUSED[key] = obj = build()
     return obj
+
+
+def models_key(*models: torch.nn.Module) -> tuple:
+    """A hashable key equal for models built alike (for :func:`reused`): each model's class,
+    its parameters' and buffers' values, dtypes and devices, and its public scalar attributes
+    (numbers, strings, tuples). Two scenarios drawn from other random numbers with the same
+    settings give equal keys; another grid or noise level does not.
+    """
+    def one(m: torch.nn.Module) -> tuple:
+        tensors = tuple((k, str(v.dtype), str(v.device), tuple(v.detach().cpu().flatten().tolist()))
+                        for k, v in m.state_dict().items())
+        scalars = tuple((k, v) for k, v in vars(m).items()
+                        if not k.startswith("_") and isinstance(v, (bool, int, float, str, tuple)))
+        return (type(m).__qualname__, tensors, scalars)
+    return tuple(one(m) for m in models)
 
 
 def _sync(device: torch.device | None) -> None:

@@ -62,7 +62,7 @@ from ..scenarios.ground_radar import ground_radar
 from ._figures import np_label, pyplot, save_figure
 from ._options import nonnegative_int
 from ._shards import Shards
-from ._study import Settings, StepTimer, Study, option, reused
+from ._study import Settings, StepTimer, Study, models_key, option, reused
 
 #: paper 000 Table II (10 targets): (algorithm, Np) -> (RMSE [m], TLR, CPU s per step)
 PAPER = {
@@ -140,12 +140,11 @@ def _make_filter(name: str, scn: Scenario, n: int,
 
 def _reused_filter(cfg: Table2Settings, scn: Scenario, name: str, n: int, build: Callable[[], F]) -> F:
     """The row's filter, built once per process (:func:`~torchmcmcpf.experiments._study.reused`:
-    each shard's compilations would otherwise be paid again). The models of
-    :func:`~torchmcmcpf.scenarios.ground_radar.ground_radar` depend on the number of steps,
-    the device and the dtype only, which the key holds with the settings and the row.
+    each shard's compilations would otherwise be paid again), for the settings, the row and
+    the scenario's models (equal in every shard: they depend on the number of steps, the
+    device and the dtype, not on the random numbers).
     """
-    x = scn.truth
-    return reused(("bocquel-table2", cfg, scn.num_targets, name, n, str(x.device), x.dtype), build)
+    return reused(("bocquel-table2", cfg, scn.num_targets, name, n, models_key(scn.motion, scn.sensor)), build)
 
 
 def _key(num_targets: int, name: str, n: int) -> str:
