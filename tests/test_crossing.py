@@ -130,6 +130,11 @@ def test_crossing_study_quick(tmp_path):
     r = payload["results"]["IP-MCMC-PF"]
     assert 0 <= r["runs_uncovered_late"] <= r["runs"] and float(r["matched_rmse"]) >= 0
     assert "| IP-MCMC-PF |" in crossing_study.STUDY.summary(payload)
+    # a row that re-captured in no run has no median step: "0% (-)", live (NaN) or stored (null)
+    for median in (torch.tensor(float("nan"), dtype=torch.float64), None):
+        row = dict(r, recaptured_share=torch.tensor(0.0, dtype=torch.float64), recapture_step_median=median)
+        text = crossing_study.STUDY.summary({"config": payload["config"], "results": {"IP-MCMC-PF": row}})
+        assert "| 0% (-) |" in text and "nan" not in text
 
 
 def test_soak_study_quick(tmp_path):

@@ -46,6 +46,7 @@ the whole study.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -244,8 +245,10 @@ class Crossing(Study[CrossingSettings]):
                  f"coalescence: runs re-captured within {cfg['coalesce_steps']} steps (median step) | s / step |",
                  "|---|---|---|---|---|---|---|"]
         for name, r in payload["results"].items():
+            median = r["recapture_step_median"]  # NaN (None once stored) when no run re-captured
+            median = "-" if median is None or math.isnan(float(median)) else f"{float(median):.0f}"
             recaptured = ("-" if r["recaptured_share"] is None  # the clairvoyant reference
-                          else f"{float(r['recaptured_share']):.0%} ({float(r['recapture_step_median']):.0f})")
+                          else f"{float(r['recaptured_share']):.0%} ({median})")
             lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} ({r['late_gaps_the_filters']} / "
                          f"{r['late_gaps_the_models']}) | "
                          f"{r['runs_shared_late']} / {r['runs']} | "
