@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import time
 from collections.abc import Callable, Hashable, Mapping
 from dataclasses import MISSING, dataclass, field, fields
@@ -51,7 +52,8 @@ from ._options import RunOptions, positive_int
 from ._provenance import write_metrics
 from ._shards import Shards, run_shards
 
-__all__ = ["Settings", "Study", "option", "rows_option", "in_order", "generator", "StepTimer", "reused", "models_key"]
+__all__ = ["Settings", "Study", "option", "rows_option", "in_order", "generator", "StepTimer", "reused", "models_key",
+           "cell"]
 
 _SAME = object()
 
@@ -85,6 +87,15 @@ def rows_option(rows: tuple[str, ...]) -> Any:
 def in_order(names: tuple[str, ...], chosen: tuple[str, ...]) -> tuple[str, ...]:
     """The ``chosen`` among ``names``, in the order of ``names`` (the study's own)."""
     return tuple(n for n in names if n in chosen)
+
+
+def cell(value: Any, digits: int = 2) -> str:
+    """A number for a summary table with ``digits`` decimals, or ``-`` where there is none
+    (``None``, as stored results hold it, or NaN).
+    """
+    if value is None or math.isnan(float(value)):
+        return "-"
+    return f"{float(value):.{digits}f}"
 
 
 def _fmt(value: Any) -> str:

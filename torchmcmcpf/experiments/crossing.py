@@ -46,7 +46,6 @@ the whole study.
 
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -63,7 +62,7 @@ from ..scenarios.crossing import crossing
 from ..typing import Tensor
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
-from ._study import Settings, StepTimer, Study, in_order, option, rows_option
+from ._study import Settings, StepTimer, Study, cell, in_order, option, rows_option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
 CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
@@ -245,10 +244,8 @@ class Crossing(Study[CrossingSettings]):
                  f"coalescence: runs re-captured within {cfg['coalesce_steps']} steps (median step) | s / step |",
                  "|---|---|---|---|---|---|---|"]
         for name, r in payload["results"].items():
-            median = r["recapture_step_median"]  # NaN (None once stored) when no run re-captured
-            median = "-" if median is None or math.isnan(float(median)) else f"{float(median):.0f}"
             recaptured = ("-" if r["recaptured_share"] is None  # the clairvoyant reference
-                          else f"{float(r['recaptured_share']):.0%} ({median})")
+                          else f"{float(r['recaptured_share']):.0%} ({cell(r['recapture_step_median'], 0)})")
             lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} ({r['late_gaps_the_filters']} / "
                          f"{r['late_gaps_the_models']}) | "
                          f"{r['runs_shared_late']} / {r['runs']} | "

@@ -30,7 +30,7 @@ import contextlib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, SupportsFloat
+from typing import Any
 
 import torch
 
@@ -39,7 +39,7 @@ from ..models.sensors.association import AssociationSensor
 from ..scenarios import maroulas as scenario
 from ._figures import np_label, save_figure
 from ._options import RunOptions
-from ._study import Settings, StepTimer, Study, generator, option
+from ._study import Settings, StepTimer, Study, cell, generator, option
 
 #: paper 003 sec. 2.2-2.3: observation -> (N improved, N generic, RMSE improved (mean, std
 #: over time), RMSE generic (mean, std), ESS improved [% of N])
@@ -131,10 +131,6 @@ def _figures(out: str | Path, obs: str, results: dict, data: scenario.MaroulasDa
     save_figure(fig, out, f"tracks_{obs}.png", quick=quick)
 
 
-def _pct(value: SupportsFloat | None) -> str:
-    return "-" if value is None else f"{float(value):.1f}"
-
-
 class HMCvsGeneric(Study[MaroulasSettings]):
     """Figs. 3, 4, 7, 8 of paper 003 (module docstring); not sharded."""
 
@@ -188,7 +184,7 @@ class HMCvsGeneric(Study[MaroulasSettings]):
             for name, r in payload[obs].items():
                 if isinstance(r, dict):
                     lines.append(f"| {obs} | {name} | {r['particles']} | {float(r['rmse_time_average']):.2f} | "
-                                 f"{float(r['ess_percent']):.1f} | {_pct(r.get('ess_after_move_percent'))} | "
+                                 f"{float(r['ess_percent']):.1f} | {cell(r.get('ess_after_move_percent'), 1)} | "
                                  f"{r['seconds_per_step']:.3f} |")
         return "\n".join(lines) + "\n"
 

@@ -65,7 +65,7 @@ from ..typing import Tensor
 from ._figures import pyplot, save_figure
 from ._options import RunOptions, nonnegative_int
 from ._provenance import write_metrics
-from ._study import Settings, Study, generator, option
+from ._study import Settings, Study, cell, generator, option
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
@@ -536,9 +536,6 @@ class Groups(Study[GroupsSettings]):
         """The headline table printed by ``reproduce``: the expected number of targets and the
         merged structure's probability next to the ceiling, the reference and the paper.
         """
-        def f(v: Any, digits: int = 2) -> str:
-            return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{float(v):.{digits}f}"
-
         h = payload["headline"]
         cfg = payload["config"]
         cols = [k for k in h if h[k]["ours"] is not None]
@@ -554,13 +551,13 @@ class Groups(Study[GroupsSettings]):
                 ("group MCMC-PF (ours)", "ours"), ("P(merged)", "p_merged"), ("P(merged | all four alive)",
                                                                               "p_merged_all_alive")]
         for label, key in rows:
-            lines.append(f"| {label} | " + " | ".join(f(h[k][key]) for k in cols) + " |")
-        lines += ["", f"ceiling in the long run {f(ceiling['stationary'])} (P_d,1 = {f(ceiling['p_d1'])}), "
-                  f"{f(ceiling['stationary_17db'])} at the paper's 17 dB (P_d,1 = {f(ceiling['p_d1_17db'], 3)}); "
+            lines.append(f"| {label} | " + " | ".join(cell(h[k][key]) for k in cols) + " |")
+        lines += ["", f"ceiling in the long run {cell(ceiling['stationary'])} (P_d,1 = {cell(ceiling['p_d1'])}), "
+                  f"{cell(ceiling['stationary_17db'])} at the paper's 17 dB (P_d,1 = {cell(ceiling['p_d1_17db'], 3)}); "
                   "paper: ~4 within ten steps (Fig. 6), [1 1 1 1] ~1 after the merge (Fig. 5)",
                   f"runs with P(merged) > 0.5 after step {payload['merge_step']}: {payload['runs_merged']} of "
                   f"{cfg['runs']}"
-                  f"; OSPA {f(payload['ospa'], 1)} m" + (f" (reference {f(payload['reference']['ospa'], 1)} m)"
+                  f"; OSPA {cell(payload['ospa'], 1)} m" + (f" (reference {cell(payload['reference']['ospa'], 1)} m)"
                                                         if "reference" in payload else "")]
         return "\n".join(lines)
 
