@@ -53,3 +53,47 @@ def test_weighted_cov_float32_keeps_the_spread_of_far_particles():
     got = weighted_cov(x, log_w, weighted_mean(x, log_w))
     ref = _reference(x.double().numpy(), np.full((2, 5000), 1 / 5000), np.ones((2, 5000, 1), dtype=bool))
     np.testing.assert_allclose(got.double().numpy(), ref, rtol=1e-3, atol=1e-3)
+
+
+def test_slot_bits_pack_every_slot_into_words():
+    from torchmcmcpf.state import _slot_bits
+
+    g = torch.Generator().manual_seed(0)
+    for k in (1, 5, 8, 63, 70):
+        flags = torch.rand((3, 4, k), generator=g) < 0.4
+        bits = _slot_bits(flags)
+        width = min(k, 63)
+        assert bits.shape == (3, 4, -(-k // width))
+        unpacked = ((bits.unsqueeze(-1).to(torch.int64) >> torch.arange(width)) & 1).flatten(-2)[..., :k]
+        assert torch.equal(unpacked.bool(), flags)
+
+
+def test_densest_place_matches_a_direct_count():
+    """The candidates' support (weight of particles with a live slot within the cutoff) equals
+    a per-candidate count written out directly, in label order, with the relabelling applied.
+    """
+    from torchmcmcpf.state import _candidates, _densest
+
+    g = torch.Generator().manual_seed(1)
+    b, n, k, cutoff = 2, 40, 3, 100.0
+    pos = 300.0 * torch.rand((b, n, k, 2), generator=g, dtype=torch.float64)
+    live = torch.rand((b, n, k), generator=g) < 0.6
+    slot_of = torch.argsort(torch.rand((b, n, k), generator=g), -1)
+    log_w = torch.randn((b, n), generator=g, dtype=torch.float64)
+    cands = _candidates(pos, cutoff, candidates=8)
+    at, support = _densest(cands, slot_of, live, log_w)
+    pos_l = torch.take_along_dim(pos, slot_of.unsqueeze(-1), 2)  # label order
+    w = torch.softmax(log_w, -1)
+    for r in range(b):  # the reference, written out: every candidate in label order
+        best, best_at = -1.0, None
+        for p in cands.pick.tolist():
+            for lab in range(k):
+                if not live[r, p, lab]:
+                    s = 0.0
+                else:
+                    d = (pos_l[r] - pos_l[r, p, lab]).norm(dim=-1)  # (N, K)
+                    s = float((((d <= cutoff) & live[r]).any(-1).double() * w[r]).sum())
+                if s > best:
+                    best, best_at = s, pos_l[r, p, lab]
+        assert math.isclose(float(support[r]), best, rel_tol=1e-12)
+        assert torch.equal(at[r], best_at)

@@ -483,29 +483,83 @@ def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Ten
     return label
 
 
-def _densest(pos: Tensor, live: Tensor, log_w: Tensor, cutoff: float, candidates: int = 32) -> tuple[Tensor, Tensor]:
-    """The densest place of the live slots of a cloud: among the live slots of ``candidates``
-    evenly spaced particles, the one with the most weight of live slots within ``cutoff``
-    (each counted once per particle).
+class _Candidates(NamedTuple):
+    """The candidate places of :func:`_densest` and which slots lie near each, made once per
+    cloud: relabelling permutes a particle's slots, never moves them, so the distances do not
+    change from round to round (only which slots are spare and how candidates are labelled).
+
+    Attributes
+    ----------
+    pick : (P,) int64, the candidate particles (evenly spaced).
+    pos : (B, P, K, 2) their slots' positions, in the particles' own slot order.
+    close : (B, P, K, N, W) integer words, slot ``j``'s bit (:func:`_slot_bits`) set where slot ``k`` of
+        candidate particle ``p`` lies within ``cutoff`` of slot ``j`` of particle ``n`` (own
+        slot orders): one AND per particle and candidate then tests every slot of the
+        particle (``W = 1`` up to 63 slots).
+    """
+
+    pick: Tensor
+    pos: Tensor
+    close: Tensor
+
+
+def _slot_bits(flags: Tensor) -> Tensor:
+    """Bool ``flags (..., K)`` packed into integer words ``(..., ceil(K / 63))`` (int8 up to 7
+    slots, ..., int64 up to 63 a word): slot ``j`` is bit ``j % 63`` of word ``j // 63``.
+    """
+    k = flags.shape[-1]
+    width = max(1, min(k, 63))
+    words = -(-k // width)
+    pad = torch.zeros(flags.shape[:-1] + (words * width - k,), dtype=torch.bool, device=flags.device)
+    bits = torch.cat([flags, pad], -1).unflatten(-1, (words, width))
+    dtype = next(t for t, top in ((torch.int8, 7), (torch.int16, 15), (torch.int32, 31), (torch.int64, 63))
+                 if width <= top)  # the narrowest word that holds the bits: less memory to read
+    weights = (1 << torch.arange(width, device=flags.device)).to(dtype)
+    return (bits.to(dtype) * weights).sum(-1, dtype=dtype)  # distinct powers of 2: an OR
+
+
+def _candidates(pos: Tensor, cutoff: float, candidates: int = 32) -> _Candidates:
+    """:class:`_Candidates` of the positions ``pos (B, N, K, 2)``: the slots of ``candidates``
+    evenly spaced particles.
+    """
+    n = pos.shape[1]
+    pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
+    b, p, k = pos.shape[0], pick.numel(), pos.shape[2]
+    cand = pos[:, pick]  # (B, P, K, 2)
+    # one kernel over every (candidate, slot) pair, differences squared and summed exactly
+    # (no |a|^2 + |b|^2 - 2 a.b): 2.8x faster than broadcast differences of the coordinates
+    dist = torch.cdist(cand.reshape(b, p * k, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
+    return _Candidates(pick, cand, _slot_bits((dist <= cutoff).reshape(b, p, k, n, k)))
+
+
+def _densest(cands: _Candidates, slot_of: Tensor, live: Tensor, log_w: Tensor) -> tuple[Tensor, Tensor]:
+    """The densest place of the live slots of a relabelled cloud: among the live slots of the
+    candidate particles (:func:`_candidates`), the one with the most weight of live slots
+    within ``cutoff`` (each counted once per particle); ties go to the first in label order.
 
     Parameters
     ----------
-    pos : (B, N, K, 2) positions; live : (B, N, K) bool; log_w : (B, N).
+    cands : :class:`_Candidates` of the cloud in its own slot order.
+    slot_of : (B, N, K) int64, the relabelling (:func:`relabel_order`: label ``r`` is carried by
+        slot ``slot_of[..., r]``); live : (B, N, K) bool in label order; log_w : (B, N).
 
     Returns
     -------
     at : (B, 2) that slot's position; support : (B,) the weight of the particles with a live
     slot within ``cutoff`` of it (0 where no slot is live).
     """
-    b, n, k, _ = pos.shape
-    pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
-    cand, cand_live = pos[:, pick].reshape(b, -1, 2), live[:, pick].reshape(b, -1)  # (B, C K, ...)
-    d2 = (cand[:, :, None, None, 0] - pos[:, None, ..., 0]).square() \
-        + (cand[:, :, None, None, 1] - pos[:, None, ..., 1]).square()  # (B, C K, N, K)
-    near = ((d2 <= cutoff**2) & live.unsqueeze(1)).any(-1)  # (B, C K, N)
-    w = torch.softmax(log_w, -1).to(pos.dtype)
-    support = (near.to(pos.dtype) * w.unsqueeze(1)).sum(-1).masked_fill(~cand_live, 0.0)  # (B, C K)
+    b, n, k = live.shape
+    dtype = cands.pos.dtype
+    own_live = torch.zeros_like(live).scatter(2, slot_of, live)  # the particles' own slot order
+    live_bits = _slot_bits(own_live)  # (B, N, W)
+    near = ((cands.close & live_bits[:, None, None]) != 0).any(-1)  # (B, P, K, N): a live slot near
+    w = torch.softmax(log_w, -1).to(dtype)
+    support = (near.to(dtype) * w[:, None, None]).sum(-1)  # (B, P, K), own slot order
+    order = slot_of[:, cands.pick]  # (B, P, K): the candidates in label order
+    support = torch.take_along_dim(support, order, -1).reshape(b, -1)
+    support = support.masked_fill(~live[:, cands.pick].reshape(b, -1), 0.0)  # (B, P K)
     best = support.argmax(-1)  # (B,)
+    cand = torch.take_along_dim(cands.pos, order.unsqueeze(-1), 2).reshape(b, -1, 2)
     at = torch.take_along_dim(cand, best[:, None, None], 1).squeeze(1)
     return at, torch.take_along_dim(support, best[:, None], 1).squeeze(1)
 
@@ -556,11 +610,12 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         # reference gets one label in every particle, not a share of each, and a stray slot
         # of one particle founds none
         ref, present = ref.clone(), present.clone()
+        cands = _candidates(torch.stack([x[..., X], x[..., Y]], -1), cutoff) if iterations > 0 else None
         for _ in range(k if iterations > 0 else 0):  # one new label a round, while one is found
-            xs, es = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
-            assert es is not None
-            spare = es & ~present.unsqueeze(1)  # (B, N, K)
-            at, support = _densest(torch.stack([xs[..., X], xs[..., Y]], -1), spare, log_w, cutoff)
+            assert cands is not None
+            slot_of = relabel_order(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
+            spare = torch.take_along_dim(exists, slot_of, 2) & ~present.unsqueeze(1)  # (B, N, K), label order
+            at, support = _densest(cands, slot_of, spare, log_w)
             new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
             found = (support > 0.5) & (~present).any(-1)  # most of the weight has a slot there
             onto = found.unsqueeze(-1) & (torch.arange(k, device=x.device) == new.unsqueeze(-1))  # (B, K)
