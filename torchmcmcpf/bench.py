@@ -28,6 +28,33 @@ Headlines (``--quick``: tiny sizes, eager, one repeat, seconds):
 
 The R-hat extensions of the IP-MCMC-PF are off (``max_extensions=0``) so that a step always
 runs ``burn_in + Np / C`` iterations. Use :func:`run` from Python, or the command line.
+
+``bench.json`` (``schema`` :data:`SCHEMA`) holds a ``machine`` record (:func:`machine`: its
+``name``, the CPU model and core count or the GPU; ``cpu``, ``cores``, ``torch``, ``threads``,
+``device_type``, ``python``, ``platform``, ``date``) and every figure with its ``seconds`` per
+step, ``per_run_s``, ``params``, ``kind`` (``ours``, ``floor`` or ``peer``), its ``floor`` (the
+floor figure's name) and ``floor_s``, ``target_s``, ``note`` and ``check``.
+
+The guard against regressions (issue 49): a stored run, kept in ``benchmarks/`` with its
+machine named, and every later run compared with it (:func:`compare`), so that a change that
+slows a step shows in the closing note of ``bench``::
+
+    # once, on a quiet machine (the lead engineer; then commit the file)
+    python -m torchmcmcpf bench --threads 1 --save          # -> benchmarks/reference-cpu.json
+    # after a change
+    python -m torchmcmcpf bench --threads 1 --compare       # <- benchmarks/reference-cpu.json
+    python -m torchmcmcpf bench --compare OTHER.json --threshold 1.2
+
+``--compare`` reads the stored run before anything is timed (a missing, non-JSON or malformed
+file is a one-line error naming ``--compare``), prints after the table each figure's time now
+and stored and their ratio, now / stored (and the ratio of the figure's multiples of its floor,
+which divides out the machine's own speed), flags a figure of ours above ``--threshold``
+(1.10) as SLOWER, lists the figures in one run only, warns when the machines (both named),
+torch, the thread counts or the sizes differ, and ends on one line naming the slower figures.
+It also writes ``bench_compare.md`` and keeps the comparison under the result's
+``comparison``. With ``--device cuda`` the stored run is ``benchmarks/reference-cuda.json``.
+No reference is committed until one is measured on a quiet machine: one from a busy machine
+would flag noise.
 """
 
 from __future__ import annotations
