@@ -10,7 +10,9 @@
   ``run_shard``; the others refuse the shard options with a one-line error).
 - ``bench``: the headline benchmarks of :mod:`torchmcmcpf.bench` (radar SIR, IP-MCMC-PF and
   MCMC-PF steps, point SIR against Stone Soup, scaling in N, K and B); writes ``bench.json``,
-  ``bench.md`` and ``bench_scaling.png``. ``--quick``: tiny sizes, seconds.
+  ``bench.md`` and ``bench_scaling.png``. ``--quick``: tiny sizes, seconds. ``--compare
+  [FILE]``: each figure's ratio to a stored run (``benchmarks/reference-cpu.json``, written by
+  ``--save``), the slower ones flagged in the closing note.
 
 Errors are one line on stderr naming the argument (exit status 2): argparse's own, the
 cross-option checks, and any ``ValueError`` the run raises (a study's settings refused by a
@@ -330,7 +332,18 @@ def headline_table(result: dict) -> str:
     return "\n".join(["| quantity | value |", "| --- | --- |", *(f"| {k} | {v} |" for k, v in rows)])
 
 
-BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png")
+BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png", "bench_compare.md")
+
+
+def _ratio_above_1(text: str) -> float:
+    """An argparse type: a ratio > 1 (``--threshold``)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 1 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a ratio above 1 (e.g. 1.10: 10% slower)")
+    return value
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -350,6 +363,16 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
             "busy machine torch's threads spin (benchmarks/README.md). The detailed benchmarks are "
             "pytest-benchmark files: pytest benchmarks/ --benchmark-only."
         ),
+        epilog=(
+            "Guard against regressions: --compare FILE prints, after the table, each figure's ratio "
+            "now / stored beside both times (and bench_compare.md), flags a figure of ours above "
+            "--threshold (1.10) as SLOWER, warns when the machines, torch, thread counts or sizes differ, "
+            "and ends on one line saying which figures got slower. The stored CPU run is "
+            "benchmarks/reference-cpu.json (--compare and --save without FILE use it; "
+            "reference-cuda.json with --device cuda): write it on a quiet machine with "
+            "'python -m torchmcmcpf bench --threads 1 --save' and commit it; compare a change with "
+            "'python -m torchmcmcpf bench --threads 1 --compare'."
+        ),
     )
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="device (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="tiny sizes, eager, one repeat (seconds)")
@@ -358,21 +381,64 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=out_dir, default=Path("results") / "bench",
                    help="output directory (default: results/bench); files of the same name are replaced")
     p.add_argument("--no-stonesoup", action="store_true", help="skip the Stone Soup comparison")
+    p.add_argument("--compare", nargs="?", const="", metavar="FILE",
+                   help="compare with a stored run (a bench.json; no FILE: benchmarks/reference-<device>.json), "
+                        "read before anything is timed")
+    p.add_argument("--threshold", type=_ratio_above_1, default=None, metavar="RATIO",
+                   help="with --compare: flag a figure of ours slower than RATIO x the stored run (default: 1.10)")
+    p.add_argument("--save", nargs="?", const="", metavar="FILE",
+                   help="also write the result (bench.json) to FILE, a stored run for a later --compare "
+                        "(no FILE: benchmarks/reference-<device>.json)")
     p.set_defaults(command=_bench)
 
 
+def _bench_files(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
+    """``--compare`` and ``--save`` as paths (no FILE: the stored reference of the device),
+    checked before anything is timed: a ``ValueError`` naming the argument otherwise.
+    """
+    from .bench import load_result, reference_path
+
+    stored = save = None
+    if args.compare is not None:
+        stored = Path(args.compare) if args.compare else reference_path(args.device)
+        try:
+            load_result(stored)
+        except ValueError as err:
+            raise ValueError(f"argument --compare: {err}") from None
+    elif args.threshold is not None:
+        raise ValueError("argument --threshold: needs --compare (the stored run to compare with)")
+    if args.save is not None:
+        save = Path(args.save) if args.save else reference_path(args.device)
+        if not args.save and args.quick:
+            raise ValueError(f"argument --save: a --quick run is no reference; give a FILE other than {save}")
+        if save.is_dir():
+            raise ValueError(f"argument --save: {str(save)!r} is a directory, expected a file")
+        for parent in save.parents:
+            if parent.exists():
+                if not parent.is_dir():
+                    raise ValueError(f"argument --save: {str(save)!r} lies under {str(parent)!r}, which is a file")
+                break
+    return stored, save
+
+
 def _bench(args: argparse.Namespace) -> dict:
-    from .bench import run
+    from .bench import SLOWER, comparison_markdown, run, write_result
 
     if args.device == "cuda":
         import torch
 
         if not torch.cuda.is_available():
             raise SystemExit("error: argument --device: cuda requested but torch.cuda.is_available() is False")
+    stored, save = _bench_files(args)
     out = prepare_out(args.out, BENCH_OUTPUTS)
     result = run(args.device, quick=args.quick, threads=args.threads, out=out, stonesoup=not args.no_stonesoup,
-                 log=lambda line: print(line, flush=True))
+                 log=lambda line: print(line, flush=True), compare_with=stored, threshold=args.threshold or SLOWER)
+    if save is not None:
+        stored_run = {k: v for k, v in result.items() if k != "comparison"}
+        print(f"saved the run to {write_result(stored_run, save)} (a stored run for --compare)")
     print((out / "bench.md").read_text())
+    if "comparison" in result:  # the closing note: which figures got slower than the stored run
+        print(comparison_markdown(result["comparison"]), end="")
     return result
 
 
