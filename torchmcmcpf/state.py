@@ -286,7 +286,7 @@ def weighted_cov(x: Tensor, log_w: Tensor, mean: Tensor, exists: Tensor | None =
     w = torch.softmax(log_w, dim=-1).to(x.dtype)[:, None, None, :]  # (B, 1, 1, N)
     # the particles along the last dim, (B, K, D, N): the centring and the weighting then
     # broadcast over whole rows (laid out (B, N, K, D) their inner loop was D = 4 long, 1.0
-    # against 0.88 ms at B = 100, N = 2000, K = 1: benchmarks/README.md, session 25)
+    # against 0.88 ms at B = 100, N = 2000, K = 1: CHANGELOG.md, 2026-12-04)
     d = x.permute(0, 2, 3, 1) - mean.unsqueeze(-1)
     if exists is not None:
         live = exists.transpose(1, 2).unsqueeze(2)  # (B, K, 1, N)
