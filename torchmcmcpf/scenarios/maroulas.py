@@ -39,6 +39,7 @@ from ..models.sensors.association import (
     PointFrame,
     shuffle,
 )
+from ..runtime import check_allocation
 from ..state import ParticleState
 from ..typing import VX, VY, Tensor, X, Y
 
@@ -173,6 +174,11 @@ def birth_particles(sensor: AssociationSensor, z: Tensor, num_particles: int, *,
     ``sensor.to_position``; velocity ``U[-1, 1]^2``.
     """
     b, k, d = z.shape
+    num_particles = check_positive_int(num_particles, "num_particles")
+    # the noise, the positions, the velocities and the stacked cloud: about 3 (B, N, K, 4)
+    check_allocation(3 * b * num_particles * k * 4 * z.element_size(),
+                     f"birth_particles(num_particles={num_particles}) of {b} runs x {k} targets", z.device,
+                     hint="use fewer particles or runs")
     w = torch.randn((b, num_particles, k, d), generator=generator, dtype=z.dtype, device=z.device)
     pos = sensor.to_position(z.unsqueeze(1) + w * sensor.noise_std.to(z.dtype))
     vel = _uniform((b, num_particles, k, 2), -1.0, 1.0, generator=generator, dtype=z.dtype, device=z.device)
