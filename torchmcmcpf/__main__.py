@@ -398,6 +398,9 @@ def headline_table(result: dict) -> str:
 
 
 BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png")
+#: how long the full ``bench`` takes on 2 quiet cores, as benchmarks/README.md measured it (the
+#: one figure the help, the README and the benchmarks README state)
+BENCH_MINUTES = "4-6"
 
 
 def _bench_parser(sub: argparse._SubParsersAction) -> None:
@@ -412,8 +415,8 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
             "figures), bench.md (the table) and bench_scaling.png (log-log scaling), under results/bench "
             "unless --out says otherwise. It also times the point SIR through forward and step against "
             "Stone Soup and particles (T=25, N=2000, B=100, with the log-evidence against the Kalman value). "
-            "About 5-8 "
-            "minutes on 2 CPU cores; --quick takes seconds. Compare figures within one run: on a "
+            f"About {BENCH_MINUTES} minutes on 2 quiet CPU cores (benchmarks/README.md); --quick takes seconds. "
+            "Compare figures within one run: on a "
             "busy machine torch's threads spin (benchmarks/README.md). The detailed benchmarks are "
             "pytest-benchmark files: pytest benchmarks/ --benchmark-only."
         ),
