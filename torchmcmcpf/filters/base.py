@@ -499,8 +499,9 @@ class Filter(nn.Module):
             raise ValueError(f"state.extras has no {missing}: a state of {name} carries {sorted(self.state_extras)} "
                              "between steps, and this one is incomplete (build a fresh state with filt.init)")
         if missing:
+            maker = _maker(sorted(keys)) if keys else "a filter without them"
             raise ValueError(f"state.extras has no {missing}, which the states of {name} carry between steps: a "
-                             f"state of {_maker(sorted(keys)) if keys else 'a filter without them'}, not of this filter; "
+                             f"state of {maker}, not of this filter; "
                              f"resume a run with the filter that made its state, or start this one afresh from "
                              f"the particles: filt.init(state.x, state.exists)")
 
