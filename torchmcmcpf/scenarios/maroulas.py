@@ -67,9 +67,11 @@ def target_counts(num_steps: int) -> list[int]:
     return alive_schedule(num_steps).sum(-1).tolist()
 
 
-def alive_schedule(num_steps: int) -> Tensor:
-    """``(num_steps + 1, K_MAX)`` bool: which slot holds a target at each time (module doc)."""
-    t = torch.arange(num_steps + 1).unsqueeze(-1)
+def alive_schedule(num_steps: int, device: torch.device | str | None = None) -> Tensor:
+    """``(num_steps + 1, K_MAX)`` bool on ``device`` (default CPU): which slot holds a target
+    at each time (module doc).
+    """
+    t = torch.arange(num_steps + 1, device=device).unsqueeze(-1)
     return torch.cat([t >= 0, (t <= 1) | (t >= 3), t >= 4, t >= 5], -1)
 
 
@@ -145,7 +147,7 @@ def simulate(
     if not isinstance(sensor, AssociationSensor):
         raise ValueError(f"sensor must be an AssociationSensor, got {type(sensor).__name__}")
     motion = motion or WhiteAccelerationMotion().to(device)
-    alive = alive_schedule(num_steps).to(device).unsqueeze(1).expand(-1, num_runs, -1)
+    alive = alive_schedule(num_steps, device).unsqueeze(1).expand(-1, num_runs, -1)
     xs, frames, z_slot = [], [], []
     x = _new_targets((num_runs, K_MAX), generator=generator, dtype=dtype, device=device)
     for t in range(num_steps + 1):
