@@ -156,6 +156,8 @@ def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
                          f"{tuple(state.x.shape[:1] + state.x.shape[2:3])}")
     prob = present.to(mean.dtype)
     return ExistenceEstimate(prob, prob.sum(-1), mean, present)
+
+
 def _maker(keys: list[str]) -> str:
     """The filter classes whose states carry ``keys`` (:attr:`Filter.state_extras`), in words."""
     found = sorted({cls.__name__ for cls in _filter_classes()
@@ -164,9 +166,10 @@ def _maker(keys: list[str]) -> str:
     return " or ".join(found) if found else "another filter"
 
 
-def _filter_classes() -> list[type]:
+def _filter_classes() -> list[type[Filter]]:
     """Every subclass of :class:`Filter` defined so far (the library's, imported with it)."""
-    out, todo = [], list(Filter.__subclasses__())
+    out: list[type[Filter]] = []
+    todo = list(Filter.__subclasses__())
     while todo:
         cls = todo.pop()
         out.append(cls)
