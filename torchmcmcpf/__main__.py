@@ -92,10 +92,46 @@ def _resolve_demo(args: argparse.Namespace) -> None:
             setattr(args, key, value)
 
 
+def load_average() -> tuple[float, int]:
+    """``(1-minute load average, CPU cores)`` of this machine; ``(0.0, 1)`` where the
+    platform has no load average (Windows). The demo's one reading of the load (tests
+    replace it).
+    """
+    try:
+        return os.getloadavg()[0], os.cpu_count() or 1
+    except (OSError, AttributeError):
+        return 0.0, 1
+
+
+#: the torch thread count the demo picks by itself on a loaded machine (``--threads`` not given)
+LOADED_THREADS = 1
+
+
+def demo_threads(args: argparse.Namespace) -> tuple[int | None, str | None]:
+    """The torch thread count the demo sets, and why (a line to print, or ``None``).
+
+    ``--threads`` given: that count, no note. Otherwise, when the load average exceeds the
+    cores and torch would use more than :data:`LOADED_THREADS` threads: that many (torch's
+    threads spin under contention, which made a step of the default demo 38.5 s instead of
+    0.5 s on a busy 2-core machine, issue 52), with a note saying so. Else ``None``: torch's
+    own count.
+    """
+    if args.threads:
+        return args.threads, None
+    load, cores = load_average()
+    current = torch_threads()
+    if load > cores and current > LOADED_THREADS:
+        return LOADED_THREADS, (f"note: load average {load:.1f} on {cores} cores: running torch on {LOADED_THREADS} "
+                                f"thread instead of {current} (its threads spin under contention, which can make "
+                                "each step 10x slower); --threads N overrides")
+    return None, None
+
+
 def demo_expectation(args: argparse.Namespace) -> str | None:
     """What the demo announces before it runs: the expected time at a preset's sizes, and a
-    warning when the load average exceeds the cores (other processes slow torch down many
-    times over); ``None`` when there is nothing to say.
+    note when the load average exceeds the cores (other processes slow it down); ``None``
+    when there is nothing to say. The thread count is :func:`demo_threads`'s business (it
+    has already been set when this runs).
     """
     lines = []
     for name, preset in (("quick", DEMO_QUICK), ("default", DEMO_DEFAULTS)):
@@ -104,10 +140,7 @@ def demo_expectation(args: argparse.Namespace) -> str | None:
             lines.append(f"expected: about {per_step * args.steps:.0f} s of filtering ({per_step:.2f} s per step) "
                          "on a quiet 2-core CPU")
             break
-    try:
-        load, cores = os.getloadavg()[0], os.cpu_count() or 1
-    except OSError:
-        load, cores = 0.0, 1
+    load, cores = load_average()
     if load > cores and (args.threads or torch_threads()) > 1:
         lines.append(f"note: load average {load:.1f} on {cores} cores: other processes compete for the CPU and "
                      "torch's threads spin under contention, which can make each step 10x slower; --threads 1 "
@@ -119,8 +152,18 @@ def demo_expectation(args: argparse.Namespace) -> str | None:
 
 
 def _check_demo(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
-    """Errors argparse cannot see option by option (one line each, exit status 2)."""
+    """Errors argparse cannot see option by option (one line each, exit status 2), all
+    before the output folder is touched: the filter's settings are built here once, so a
+    value the filter refuses (``--chains 1``) fails as an argument error.
+    """
     if args.filter == "ipmcmc":
+        from .filters.ipmcmc import IPMCMCSettings
+
+        try:
+            IPMCMCSettings(num_chains=args.chains, burn_in=args.burn_in)
+        except ValueError as err:
+            parser.error(f"argument --{str(err).split(' ', 1)[0].replace('num_chains', 'chains').replace('_', '-')}: "
+                         f"{err}")
         if args.particles % args.chains:
             parser.error(f"argument --particles: {args.particles} particles do not divide into "
                          f"--chains {args.chains}; use a multiple of {args.chains}")
@@ -140,7 +183,8 @@ def _demo_parser(sub: argparse._SubParsersAction) -> None:
             "rate, and write metrics.json and tracks.png. Defaults: 1000 particles in 50 chains, "
             "burn-in 100, 2 runs, 20 steps, 10 targets: about 10 s on a quiet 2-core CPU (0.5 s per "
             "step); --quick: 1 run, 5 steps, 500 particles, about 1 s. Other processes on the cores "
-            "slow it down many times over (torch's threads spin); the demo says so when the load is high."
+            "slow it down many times over (torch's threads spin): when the load is high and --threads is not "
+            "given, the demo runs torch on 1 thread and says so."
         ),
     )
     p.add_argument("--particles", type=positive_int,
@@ -187,15 +231,38 @@ def _demo(args: argparse.Namespace) -> dict:
 
     matplotlib.use("Agg")
 
+    out = prepare_out(args.out, DEMO_OUTPUTS)
+    threads, why = demo_threads(args)
+    if why:
+        print(why, flush=True)
+    with torch_threads_set(threads):
+        args.threads = threads or args.threads  # recorded in metrics.json; the expectation's note knows it
+        return _run_demo(args, out)
+
+
+@contextlib.contextmanager
+def torch_threads_set(threads: int | None) -> Iterator[None]:
+    """``torch.set_num_threads(threads)`` for the block (nothing when ``None``), the previous
+    count restored after it (``main`` called in-process, as the tests do, leaves torch as it was).
+    """
     import torch
 
+    previous = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        if threads:
+            torch.set_num_threads(previous)
+
+
+def _run_demo(args: argparse.Namespace, out: Path) -> dict:
+    """The demo proper, in the output folder ``out``, with its thread count set."""
     from . import runtime
     from .metrics import position_rmse, track_loss
     from .scenarios import ground_radar
 
-    out = prepare_out(args.out, DEMO_OUTPUTS)
-    if args.threads:
-        torch.set_num_threads(args.threads)
     if args.memory_budget:
         runtime.set_memory_budget(args.memory_budget)
     g = generator(args.device, args.seed)
@@ -333,6 +400,9 @@ def headline_table(result: dict) -> str:
 
 
 BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png", "bench_compare.md")
+#: how long the full ``bench`` takes on 2 quiet cores, as benchmarks/README.md measured it (the
+#: one figure the help, the README and the benchmarks README state)
+BENCH_MINUTES = "4-6"
 
 
 def _ratio_above_1(text: str) -> float:
@@ -358,8 +428,8 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
             "figures), bench.md (the table) and bench_scaling.png (log-log scaling), under results/bench "
             "unless --out says otherwise. It also times the point SIR through forward and step against "
             "Stone Soup and particles (T=25, N=2000, B=100, with the log-evidence against the Kalman value). "
-            "About 5-8 "
-            "minutes on 2 CPU cores; --quick takes seconds. Compare figures within one run: on a "
+            f"About {BENCH_MINUTES} minutes on 2 quiet CPU cores (benchmarks/README.md); --quick takes seconds. "
+            "Compare figures within one run: on a "
             "busy machine torch's threads spin (benchmarks/README.md). The detailed benchmarks are "
             "pytest-benchmark files: pytest benchmarks/ --benchmark-only."
         ),

@@ -18,7 +18,10 @@ here, by name, and each answer is written down once with its reason:
 - :class:`Program` and :func:`compile_program`: ``torch.compile(fullgraph=True)`` of a pure
   function, with CUDA graphs on a GPU (per call, or a whole loop captured as one graph);
 - :func:`memory_budget`: the bytes of temporaries a grid sensor may hold at once, a
-  process-wide default (``--memory-budget`` on the command line);
+  process-wide default (``--memory-budget`` on the command line, at least 1 MiB);
+- :func:`check_allocation`: a large allocation (initial particles, a filter's working
+  memory) estimated and refused beyond :func:`allocation_budget` (default: the memory
+  available on the device; :func:`set_allocation_budget` overrides it);
 - :func:`tune_cpu_allocator`: glibc's allocator kept from returning large blocks.
 
 Vocabulary (one word, one meaning): a **move** is one Metropolis-Hastings transition of every
@@ -61,7 +64,8 @@ from ._validation import check_positive_int
 
 __all__ = ["on_cuda", "compiling", "in_function_transform", "neighbour_count", "broadcast_sums", "compiled_for_cpu",
            "blocked_linear_map", "fused_elementwise", "generated_reductions", "Program", "compile_program",
-           "memory_budget", "set_memory_budget", "tune_cpu_allocator"]
+           "memory_budget", "set_memory_budget", "check_memory_budget", "MIN_MEMORY_BUDGET", "available_memory",
+           "allocation_budget", "set_allocation_budget", "check_allocation", "tune_cpu_allocator"]
 
 
 # ----------------------------------------------------------------------------- the facts
@@ -341,13 +345,102 @@ def memory_budget() -> int:
     return _memory_budget[0]
 
 
+#: the smallest :func:`memory_budget` accepted (1 MiB): below it a grid sensor's blocks hold a
+#: handful of samples each and a step runs thousands of tiny blocks (a budget in bytes given as,
+#: say, megabytes: ``--memory-budget 10``)
+MIN_MEMORY_BUDGET = 2**20
+
+
+def check_memory_budget(num_bytes: object, name: str = "memory_budget") -> int:
+    """``num_bytes`` as an ``int >= MIN_MEMORY_BUDGET`` (1 MiB); a ``ValueError`` naming
+    ``name`` otherwise.
+    """
+    return check_positive_int(num_bytes, f"{name} (bytes)", minimum=MIN_MEMORY_BUDGET)
+
+
 def set_memory_budget(num_bytes: int) -> int:
     """Set the process-wide :func:`memory_budget` (``--memory-budget`` on the command line);
-    returns the previous value.
+    returns the previous value. Below :data:`MIN_MEMORY_BUDGET` (1 MiB) it is refused.
     """
     old = _memory_budget[0]
-    _memory_budget[0] = check_positive_int(num_bytes, "memory_budget")
+    _memory_budget[0] = check_memory_budget(num_bytes)
     return old
+
+
+# ----------------------------------------------------------------------------- allocation guard
+#: the process-wide :func:`allocation_budget` set by :func:`set_allocation_budget` (bytes), or
+#: ``None``: the memory available on the device at the time of the check
+_allocation_budget: list[int | None] = [None]
+
+
+def available_memory(device: torch.device | str | None = None) -> int | None:
+    """Bytes free on ``device`` now: ``torch.cuda.mem_get_info`` on a GPU, ``MemAvailable`` of
+    ``/proc/meminfo`` (Linux) or the free physical pages (other POSIX) on the CPU; ``None``
+    where the platform does not say.
+    """
+    device = torch.device("cpu" if device is None else device)
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    if device.type != "cpu":
+        return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        import os
+
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def allocation_budget(device: torch.device | str | None = None) -> int | None:
+    """The most bytes one large allocation of the library (a cloud of initial particles, a
+    filter's working memory, :func:`check_allocation`) may take on ``device``: the value of
+    :func:`set_allocation_budget` when one is set, else the memory available on the device
+    now (:func:`available_memory`; ``None``: unknown, nothing is refused).
+    """
+    return _allocation_budget[0] if _allocation_budget[0] is not None else available_memory(device)
+
+
+def set_allocation_budget(num_bytes: int | None) -> int | None:
+    """Set the process-wide :func:`allocation_budget` in bytes (``None``: back to the memory
+    available at each check); returns the previous setting. Raise it to let a problem through
+    that the estimate refuses (the estimates are lower bounds, so a refused one would not have
+    fitted), lower it to keep a process small.
+    """
+    old = _allocation_budget[0]
+    _allocation_budget[0] = None if num_bytes is None else check_positive_int(num_bytes, "allocation_budget")
+    return old
+
+
+def _size(num_bytes: float) -> str:
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if num_bytes >= scale:
+            return f"{num_bytes / scale:.3g} {unit}"
+    return f"{num_bytes:.0f} bytes"
+
+
+def check_allocation(num_bytes: float, what: str, device: torch.device | str | None = None, *,
+                     hint: str = "") -> None:
+    """Refuse, before anything is allocated, ``what`` (e.g. ``"initial_particles(num_particles=
+    100000000)"``) whose estimated size ``num_bytes`` exceeds :func:`allocation_budget` on
+    ``device``: a ``ValueError`` naming the estimate, the budget and how to change it, instead
+    of torch's allocator error or minutes of swapping. ``hint`` ends the message (what to make
+    smaller).
+    """
+    budget = allocation_budget(device)
+    if budget is None or num_bytes <= budget:
+        return
+    source = ("runtime.set_allocation_budget" if _allocation_budget[0] is not None
+              else f"the memory available on {torch.device('cpu' if device is None else device)}")
+    raise ValueError(f"{what} needs an estimated {_size(num_bytes)} ({int(num_bytes):,} bytes), above the allocation "
+                     f"budget of {_size(budget)} ({source}); {hint + '; ' if hint else ''}"
+                     "torchmcmcpf.runtime.set_allocation_budget(bytes) changes the budget")
 
 
 # ----------------------------------------------------------------------------- the allocator

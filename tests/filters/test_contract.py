@@ -209,7 +209,7 @@ def _bad_inputs(zs, init):
         "time axis of length 0": (zs[:0], init, "measurements has shape .*time axis of length 0"),
         "NaN in the last frame": (torch.cat([zs[:-1], zs[-1:] * math.nan]), init,
                                   rf"measurements\[{T - 1}\] contains {zs[-1].numel()} NaN"),
-        "wrong batch": (zs[:, :1], init, "measurements has batch size 1"),
+        "wrong batch": (zs[:, :1], init, r"expected \(T, B, \*grid\) with B = \d+ runs .* got 1"),
         "NaN in init": (zs, init * math.nan, "init contains"),
     }
 

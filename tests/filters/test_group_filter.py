@@ -540,7 +540,7 @@ def test_bad_input_names_the_argument():
         GroupMCMCSettings(xi=0.5, p_window_birth=0.1)
     with pytest.raises(ValueError, match="p_window_birth must be a probability"):
         GroupMCMCSettings(lag=2, p_past=0.1, p_window_birth=-0.1)
-    with pytest.raises(ValueError, match=r"state.extras\['w_cov'\] is missing"):
+    with pytest.raises(ValueError, match=r"state.extras has no \['w_cov'\]"):
         filt(frames, init=init._replace(extras={k: v for k, v in init.extras.items() if k != "w_cov"}), generator=g)
     with pytest.raises(ValueError, match=r"state.extras\['labels'\] has shape"):
         filt.step(init._replace(extras={**init.extras, "labels": init.extras["labels"][:, :4]}), frames[0],
@@ -553,9 +553,9 @@ def test_state_of_another_size_is_refused():
     big = GroupMCMCFilter(filt.motion, filt.sensor, 16, existence=filt.existence,
                           structure_prior=filt.structure_prior, num_chains=4, burn_in=3)
     g = torch.Generator().manual_seed(0)
-    with pytest.raises(ValueError, match=r"init has shape \(2, 16, 4, 4\), expected \(\*, 8, \*, 4\)"):
+    with pytest.raises(ValueError, match=r"init has shape \(2, 16, 4, 4\), expected \(B, N, K, D\) = \(\*, 8, \*, 4\)"):
         filt(frames, init=big.init_inactive(2), generator=g)
-    with pytest.raises(ValueError, match=r"has shape \(2, 16, 4, 4\), expected \(\*, 8, \*, 4\)"):
+    with pytest.raises(ValueError, match=r"has shape \(2, 16, 4, 4\), expected \(B, N, K, D\) = \(\*, 8, \*, 4\)"):
         filt.step(big.init_inactive(2), frames[0], generator=g)
 
 

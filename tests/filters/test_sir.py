@@ -80,11 +80,11 @@ def test_bad_input(gen):
         SIRFilter(motion, sensor, 0)
     with pytest.raises(ValueError, match="resample_method"):
         SIRFilter(motion, sensor, 10, resample_method="nope")
-    with pytest.raises(ValueError, match=r"init has shape \(3, 100, 2, 4\), expected \(\*, 200, \*, 4\)"):
+    with pytest.raises(ValueError, match=r"\(3, 100, 2, 4\), expected \(B, N, K, D\) = \(\*, 200, \*, 4\)"):
         filt(zs, init=init[:, :100], generator=gen)
     with pytest.raises(ValueError, match="init contains"):
         filt(zs, init=init.clone().index_fill_(1, torch.tensor([0]), float("nan")), generator=gen)
-    with pytest.raises(ValueError, match=r"measurements has batch size 2"):
+    with pytest.raises(ValueError, match=r"measurements has shape \(6, 2, 2, 2\), expected \(T, B, \*grid\) with B"):
         filt(zs[:, :2], init=init, generator=gen)
     bad = zs.clone()
     bad[3, 0, 0, 0] = float("inf")

@@ -20,6 +20,7 @@ import torch
 __all__ = [
     "positive_int",
     "nonnegative_int",
+    "memory_budget_arg",
     "device_arg",
     "out_dir",
     "prepare_out",
@@ -48,6 +49,24 @@ def positive_int(text: str) -> int:
 def nonnegative_int(text: str) -> int:
     """An argparse type: an integer >= 0."""
     return _int_at_least(text, 0)
+
+
+def memory_budget_arg(text: str) -> int:
+    """An argparse type: ``--memory-budget`` in bytes, at least
+    :data:`~torchmcmcpf.runtime.MIN_MEMORY_BUDGET` (1 MiB; ``10`` is a slip for 10 MB or 10 GB,
+    not a budget); a suffix ``k``, ``M`` or ``G`` (powers of 1024) is accepted (``512M``).
+    """
+    from ..runtime import MIN_MEMORY_BUDGET
+
+    scale = {"k": 2**10, "m": 2**20, "g": 2**30}.get(text[-1:].lower(), 1)
+    try:
+        value = int(float(text[:-1] if scale > 1 else text) * scale)
+    except ValueError:
+        value = None
+    if value is None or value < MIN_MEMORY_BUDGET:
+        raise argparse.ArgumentTypeError(f"must be a number of bytes >= {MIN_MEMORY_BUDGET} (1 MiB; suffixes k, M, "
+                                         f"G accepted, e.g. 512M), got {text!r}")
+    return value
 
 
 def device_arg(text: str) -> torch.device:
@@ -100,9 +119,10 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, name: str, quick: b
                             "torch intra-op threads of every shard, here or in a Ray worker (default: this "
                             "process's torch threads, so both compute alike; with --workers on one machine "
                             "use cores / workers)")
-    group.add_argument("--memory-budget", type=positive_int, default=None, metavar="BYTES",
+    group.add_argument("--memory-budget", type=memory_budget_arg, default=None, metavar="BYTES",
                        help="bytes of temporaries a grid sensor's likelihood may hold at once (its memory_budget, "
-                            "runtime.memory_budget; default: 1 GiB); smaller blocks of samples, same results")
+                            "runtime.memory_budget; default: 1 GiB, at least 1 MiB; 512M, 2G accepted); smaller "
+                            "blocks of samples, same results")
     group.add_argument("--no-progress", dest="progress", action="store_false",
                        help="hide the progress bars")
     if shards:

@@ -127,9 +127,9 @@ def _late_check(cfg: CrossingSettings, name: str, mean: Tensor, scn: Scenario, e
         found = metrics.map_trajectory(scn.sensor, scn.motion, z, start, exclusion=exclusion,
                                        max_iter=cfg.map_iterations)
         r = runs.numel()
-        odds[runs] = (found.log_posterior[r:] - found.log_posterior[:r]).cpu()
+        odds[runs.cpu()] = (found.log_posterior[r:] - found.log_posterior[:r]).cpu()  # odds, covers: CPU results
         cover = metrics.slot_coverage(found.x[:, :r], scn.truth[late][:, runs].double(), radius=COVER)
-        covers[runs] = (cover > 0).all(-1).all(0).cpu()
+        covers[runs.cpu()] = (cover > 0).all(-1).all(0).cpu()
     return {f"{name}|gap_log_odds": odds, f"{name}|gap_map_covers": covers}
 
 

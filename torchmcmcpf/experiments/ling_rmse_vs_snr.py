@@ -127,7 +127,7 @@ def run_study(cfg: LingSettings, *, device: torch.device, seed: int, progress: b
 def _filter(cfg: LingSettings, scn: LingScenario, moves: str, device: str | torch.device) -> MCMCFilter:
     return MCMCFilter(scn.motion, scn.sensor, num_particles=cfg.particles, num_chains=1, burn_in=cfg.burn_in,
                       thinning=cfg.thinning, moves="random_walk" if moves == "adaptive_random_walk" else moves,
-                      rw_scale=torch.tensor(RW_SCALE) if moves == "random_walk" else
+                      rw_scale=torch.tensor(RW_SCALE, device=device) if moves == "random_walk" else
                       "adaptive" if moves == "adaptive_random_walk" else None).to(device)
 
 

@@ -43,7 +43,7 @@ from torch.utils._pytree import tree_map
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor, measurement_leaves
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..runtime import compile_program
+from ..runtime import check_allocation, compile_program
 from ..state import (
     ExistenceEstimate,
     FilterResult,
@@ -156,6 +156,27 @@ def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
                          f"{tuple(state.x.shape[:1] + state.x.shape[2:3])}")
     prob = present.to(mean.dtype)
     return ExistenceEstimate(prob, prob.sum(-1), mean, present)
+
+
+def _maker(keys: list[str]) -> str:
+    """The filter classes whose states carry ``keys`` (:attr:`Filter.state_extras`), in words."""
+    found = sorted({cls.__name__ for cls in _filter_classes()
+                    if cls.state_extras and cls.state_extras <= set(keys) | cls.optional_state_extras
+                    and set(keys) <= cls.state_extras | cls.optional_state_extras})
+    return " or ".join(found) if found else "another filter"
+
+
+def _filter_classes() -> list[type[Filter]]:
+    """Every subclass of :class:`Filter` defined so far (the library's, imported with it)."""
+    out: list[type[Filter]] = []
+    todo = list(Filter.__subclasses__())
+    while todo:
+        cls = todo.pop()
+        out.append(cls)
+        todo.extend(cls.__subclasses__())
+    return out
+
+
 #: how many states a filter remembers as its own (:meth:`Filter._trust`): the last few outputs
 #: and initial states, so that stepping a few states in turn stays cheap
 _TRUSTED_STATES = 4
@@ -262,6 +283,18 @@ class Filter(nn.Module):
     #: whether :meth:`estimate_targets` may relabel the particles' slots (False where a
     #: slot's label is part of the model, as the group filter's group structure)
     relabels: bool = True
+
+    #: copies of the particle state ``(B, N, K, D)`` a step holds at once, at least (the state
+    #: in, the prediction or proposal, the resampled cloud, the state out): the factor of
+    #: :meth:`working_bytes`, the estimate :meth:`init` checks against the allocation budget
+    working_copies: ClassVar[int] = 4
+    #: the keys of ``ParticleState.extras`` this filter's states carry between steps (besides
+    #: ``forward``'s estimate, :data:`ESTIMATE` and :data:`PRESENT`), all of them required in a
+    #: state that resumes a run, none of them in a fresh one (:meth:`check_resume`)
+    state_extras: ClassVar[frozenset[str]] = frozenset()
+    #: keys of ``ParticleState.extras`` a state of this filter may carry besides
+    #: :attr:`state_extras` (optional fields, e.g. the group filter's fixed-lag path)
+    optional_state_extras: ClassVar[frozenset[str]] = frozenset()
 
     #: the settings dataclass of the algorithm: the ``settings=`` of the constructor, and its
     #: fields the constructor's keyword shortcuts (:func:`settings_from`)
@@ -408,16 +441,81 @@ class Filter(nn.Module):
         -------
         ParticleState with ``log_w = -log N``.
         """
+        if isinstance(particles, ParticleState):
+            raise ValueError("init takes the particles (B, N, K, D) as a tensor, got a ParticleState; pass the "
+                             "state to step() or forward(init=state) as it is")
         self._check_state_tensors(check_tensor(particles, "init"), exists)
         if exists is not None:
             exists = exists.to(torch.bool)
         b, n = particles.shape[:2]
+        self.check_memory_estimate(b, particles.shape[2], particles.dtype, particles.device)
         log_w = torch.full((b, n), -torch.log(torch.tensor(float(n), dtype=torch.float64)).item(),
                            device=particles.device, dtype=particles.dtype)
         return self._trust(ParticleState(particles, log_w, exists))
 
+    def working_bytes(self, batch_size: int, num_targets: int, dtype: torch.dtype = torch.float32, *,
+                      num_steps: int = 0) -> int:
+        """A lower bound on the bytes a run of this filter holds at once: :attr:`working_copies`
+        particle states (``x (B, N, K, D)``, ``log_w (B, N)``, ``exists (B, N, K)``), the
+        sensor's ``memory_budget`` of temporaries (grid sensors), and ``num_steps`` more states
+        for ``forward(..., history=True)``.
+        """
+        itemsize = torch.empty((), dtype=dtype).element_size()
+        b, n, k = batch_size, self.num_particles, num_targets
+        state = b * n * (k * self.motion.dim * itemsize + itemsize + k)
+        return (self.working_copies + num_steps) * state + int(getattr(self.sensor, "memory_budget", 0) or 0)
+
+    def check_memory_estimate(self, batch_size: int, num_targets: int, dtype: torch.dtype,
+                              device: torch.device | str | None, *, num_steps: int = 0) -> None:
+        """Refuse a problem whose :meth:`working_bytes` exceed
+        :func:`~torchmcmcpf.runtime.allocation_budget` (the memory available on ``device``
+        unless :func:`~torchmcmcpf.runtime.set_allocation_budget` set one) with a ``ValueError``
+        naming the estimate and the budget, before a step allocates anything.
+        """
+        need = self.working_bytes(batch_size, num_targets, dtype, num_steps=num_steps)
+        history = f", history of {num_steps} steps" if num_steps else ""
+        check_allocation(need, f"{type(self).__name__} with N={self.num_particles} particles, B={batch_size} runs, "
+                               f"K={num_targets} targets ({self.working_copies} working copies of the state{history})",
+                         device, hint="use fewer particles or runs" + (" or history=False" if num_steps else ""))
+
+    def check_resume(self, state: ParticleState) -> None:
+        """Refuse a state made by another kind of filter: one that carries ``extras`` (a state
+        from ``step`` or ``forward``, not a fresh ``init``) must hold every key of
+        :attr:`state_extras` (a ``PMMHFilter`` resumes its candidates' ``theta``) and no key
+        of another filter's states (an ``IPMCMCFilter`` given a ``PMMHFilter``'s state would
+        drop its candidates without a word). ``ValueError`` naming what is missing or foreign.
+        """
+        extras = state.extras
+        if not extras:
+            return
+        if not isinstance(extras, Mapping):
+            raise ValueError(f"state.extras must be a dict of tensors or None, got {type(extras).__name__}")
+        keys = set(extras) - {ESTIMATE, PRESENT}
+        name = type(self).__name__
+        foreign = sorted(keys - self.state_extras - self.optional_state_extras)
+        if foreign:
+            raise ValueError(f"state.extras holds {foreign}, which the states of {name} do not carry: a state of "
+                             f"{_maker(foreign)}, not of this filter; resume a run with the filter that made its "
+                             f"state, or start this one afresh from the particles: filt.init(state.x, state.exists)")
+        missing = sorted(self.state_extras - keys)
+        if missing and keys & self.state_extras:
+            raise ValueError(f"state.extras has no {missing}: a state of {name} carries {sorted(self.state_extras)} "
+                             "between steps, and this one is incomplete (build a fresh state with filt.init)")
+        if missing:
+            maker = _maker(sorted(keys)) if keys else "a filter without them"
+            raise ValueError(f"state.extras has no {missing}, which the states of {name} carry between steps: a "
+                             f"state of {maker}, not of this filter; "
+                             f"resume a run with the filter that made its state, or start this one afresh from "
+                             f"the particles: filt.init(state.x, state.exists)")
+
     def _check_state_tensors(self, x: Tensor, exists: Tensor | None) -> None:
-        check_shape(x, "init", (None, self.num_particles, None, self.motion.dim))
+        if x.dim() != 4:
+            raise ValueError(f"init has shape {tuple(x.shape)} ({x.dim()} dims), expected (B, N, K, D) = (B, "
+                             f"{self.num_particles}, K, {self.motion.dim}): runs, particles, targets, state; add "
+                             "the run axis with x.unsqueeze(0) for one run")
+        if x.shape[1] != self.num_particles or x.shape[3] != self.motion.dim:
+            raise ValueError(f"init has shape {tuple(x.shape)}, expected (B, N, K, D) = (*, {self.num_particles}, *, "
+                             f"{self.motion.dim}): N = num_particles of the filter, D = motion.dim")
         if x.shape[0] == 0 or x.shape[2] == 0:
             raise ValueError(f"init has shape {tuple(x.shape)}, expected B >= 1 and K >= 1")
         if x.device.type == "meta":
@@ -435,6 +533,7 @@ class Filter(nn.Module):
 
     def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
         if isinstance(init, ParticleState):
+            self.check_resume(init)
             state = self.init(init.x, init.exists)
             check_shape(init.log_w, "init.log_w", tuple(init.x.shape[:2]))
             if init.log_w.device != init.x.device or init.log_w.dtype != init.x.dtype:
@@ -503,7 +602,8 @@ class Filter(nn.Module):
         if sequence:
             leaves = measurement_leaves(measurements, name)
             if any(t.dim() < 2 for t in leaves):
-                raise ValueError(f"{name} has shapes {[tuple(t.shape) for t in leaves]}, expected (T, B, ...)")
+                raise ValueError(f"{name} has shapes {[tuple(t.shape) for t in leaves]}, expected (T, B, *grid): "
+                                 "time first, then runs")
             t0 = leaves[0].shape[0]
             if t0 == 0:
                 raise ValueError(f"{name} has shape {tuple(leaves[0].shape)}: a time axis of length 0, "
@@ -511,8 +611,11 @@ class Filter(nn.Module):
             if any(t.shape[0] != t0 for t in leaves):
                 raise ValueError(f"{name} have different time lengths: {[tuple(t.shape) for t in leaves]}")
             if any(t.shape[1] != b for t in leaves):
-                raise ValueError(f"{name} has batch size {leaves[0].shape[1]} (shape "
-                                 f"{tuple(leaves[0].shape)}), expected {b} to match init")
+                bad = next(t for t in leaves if t.shape[1] != b)
+                single = (" (one frame (B, *grid) without the time axis? add it with measurements.unsqueeze(0))"
+                          if bad.shape[0] == b else "")
+                raise ValueError(f"{name} has shape {tuple(bad.shape)}, expected (T, B, *grid) with B = {b} runs "
+                                 f"(those of init) on axis 1, got {bad.shape[1]}{single}")
             for i, leaf in enumerate(leaves):  # name the first bad frame (one reduction, one sync)
                 if leaf.is_floating_point():
                     bad = (~torch.isfinite(leaf)).flatten(1).sum(1)  # (T,)
@@ -544,8 +647,11 @@ class Filter(nn.Module):
         """
         check_generator(generator)
         if not isinstance(state, ParticleState):
-            raise ValueError(f"state must be a ParticleState, got {type(state).__name__}")
+            hint = (f" (shape {tuple(state.shape)}); wrap initial particles (B, N, K, D) with state = filt.init(x) "
+                    "first" if torch.is_tensor(state) else "")
+            raise ValueError(f"state must be a ParticleState, got {type(state).__name__}{hint}")
         if not self._is_trusted(state):
+            self.check_resume(state)
             self._check_state_tensors(state.x, state.exists)
         self.validate(state, z, sequence=False, name="z")
         new, info = self._step(state, z, generator)
@@ -585,6 +691,9 @@ class Filter(nn.Module):
         state = self._as_state(init)
         self.validate(state, measurements, sequence=True)
         num_steps = measurement_leaves(measurements, "measurements")[0].shape[0]
+        if history:
+            self.check_memory_estimate(state.batch_size, state.num_targets, state.x.dtype, state.x.device,
+                                       num_steps=num_steps)
         steps, note = self._progress(num_steps, state.x, progress)
         means, covs, infos, exists_prob, states = [], [], [], [], []
         est = _carried_estimate(state)

@@ -1321,6 +1321,10 @@ class GroupMCMCFilter(Filter):
     sensor: ThresholdedPixels
     existence: GroupExistence
     settings: GroupMCMCSettings
+    #: the group fields of the state (module docstring, "State and outputs"); the fixed-lag
+    #: path's fields only with ``lag > 0``
+    state_extras = frozenset({"labels", "w_mean", "w_cov", "frames"})
+    optional_state_extras = frozenset(PATH_KEYS)
     settings_class = GroupMCMCSettings
     motion_type = VirtualLeaderMotion
     relabels = False  # a slot's label is its place in the group structure

@@ -387,6 +387,8 @@ class PMMHFilter(Filter):
     """
 
     compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
+    #: the candidates carried between steps (:func:`pmmh_step`): a resumed state must hold them
+    state_extras = frozenset({"theta", "log_evidence", "log_w_candidate"})
     settings_class = PMMHSettings
     settings: PMMHSettings
 

@@ -162,8 +162,14 @@ def chains_to_arviz(state: ParticleState, *, num_chains: int, run: int = 0, attr
     exists = state.exists
     if exists is not None:
         posterior["exists"] = _np(exists[r]).reshape(c, n // c, k).astype(np.float64)
-    return az.from_dict(posterior=posterior, dims={name: ["target"] for name in posterior},
-                        coords={"target": np.arange(k)}, posterior_attrs=dict(attrs or {}))
+    with warnings.catch_warnings():
+        # ArviZ guesses that an array with more chains than draws was passed as (draw, chain)
+        # and warns "More chains (C) than draws (S)"; ours is (chain, draw) by construction
+        # (module docstring), and an IP-MCMC-PF keeps few draws of many chains (C = 50, S = 20
+        # in paper 000), so the guess is wrong here: that one warning is silenced
+        warnings.filterwarnings("ignore", message=r"More chains \(\d+\) than draws", category=UserWarning)
+        return az.from_dict(posterior=posterior, dims={name: ["target"] for name in posterior},
+                            coords={"target": np.arange(k)}, posterior_attrs=dict(attrs or {}))
 
 
 def result_to_arviz(result: FilterResult, *, step: int = -1, run: int = 0) -> Any:

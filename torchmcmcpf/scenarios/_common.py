@@ -11,6 +11,7 @@ import torch
 
 from .._validation import check_generator, check_positive, check_positive_int
 from ..models.base import MotionModel
+from ..runtime import check_allocation
 from ..typing import RHO, VX, VY, Tensor, X, Y
 
 if TYPE_CHECKING:  # the grid sensors are imported lazily by the scenario builders
@@ -85,6 +86,13 @@ class Scenario:
         Returns
         -------
         (B, N, K, D), dtype and device of ``truth``.
+
+        Raises
+        ------
+        ValueError : when the cloud (and its noise, twice ``B N K D`` values) would exceed
+            :func:`torchmcmcpf.runtime.allocation_budget` (the memory available on the device
+            unless :func:`~torchmcmcpf.runtime.set_allocation_budget` set one), before
+            anything is allocated.
         """
         num_particles = check_positive_int(num_particles, "num_particles")
         check_generator(generator)
@@ -99,6 +107,10 @@ class Scenario:
         if x0.shape[-1] > RHO:
             std[..., RHO] = s_amp * x0[..., RHO].abs()
         b, k, d = x0.shape
+        # the noise and the cloud: two (B, N, K, D) tensors
+        check_allocation(2 * b * num_particles * k * d * x0.element_size(),
+                         f"initial_particles(num_particles={num_particles}) of {b} runs x {k} targets x {d}",
+                         x0.device, hint="use fewer particles or runs")
         eps = torch.randn((b, num_particles, k, d), generator=generator, device=x0.device, dtype=x0.dtype)
         return x0[:, None] + std[:, None] * eps
 

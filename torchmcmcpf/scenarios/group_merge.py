@@ -106,13 +106,13 @@ class GroupMergeScenario(NamedTuple):
 
 
 def _initial(motion: VirtualLeaderMotion, merge_index: int, merge_point: Sequence[float], speed: Sequence[float],
-             spread: float, gap: float, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
-    """Leaders and members at step 1 (module docstring): ``x (4, 4)``, ``v (2, 4)``."""
-    Fk = torch.linalg.matrix_power(motion.F_ll.to(dtype), merge_index)  # per-axis leader map
+             spread: float, gap: float, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """Leaders and members at step 1 (module docstring): ``x (4, 4)``, ``v (2, 4)``, on ``device``."""
+    Fk = torch.linalg.matrix_power(motion.F_ll.to(device=device, dtype=dtype), merge_index)  # per-axis leader map
     xs, vs = [], []
     for sign in (1.0, -1.0):
-        u0 = torch.tensor([speed[0], sign * speed[1]], dtype=dtype)
-        aim = torch.tensor([merge_point[0], merge_point[1] - sign * gap / 2], dtype=dtype)
+        u0 = torch.tensor([speed[0], sign * speed[1]], dtype=dtype, device=device)
+        aim = torch.tensor([merge_point[0], merge_point[1] - sign * gap / 2], dtype=dtype, device=device)
         p0 = (aim - Fk[0, 1] * u0) / Fk[0, 0]
         v = torch.stack([p0[0], u0[0], p0[1], u0[1]])
         across = torch.stack([-u0[1], u0[0]]) / u0.norm()
@@ -160,19 +160,19 @@ def group_merge(batch_size: int, *, generator: torch.Generator, num_slots: int =
     existence = GroupExistence(0.2, 0.05, sensor.area)
     scale = gap + spread if closeness_scale is None else closeness_scale
     prior = GroupStructurePrior(0.6, 0.05, scale=scale, power=closeness_power)
-    for mod in (motion, truth_motion, existence):
+    for mod in (motion, truth_motion, existence, sensor, prior):  # every model on the generator's device
         mod.to(device=dev)
 
     bt = 1 if same_tracks else b
-    x0, v0 = _initial(truth_motion, m_idx, merge_point, speed, spread, gap, dtype)
+    x0, v0 = _initial(truth_motion, m_idx, merge_point, speed, spread, gap, dtype, dev)
     x = torch.zeros(bt, k, 4, dtype=dtype, device=dev)
     v = torch.zeros(bt, k, 4, dtype=dtype, device=dev)
-    x[:, :4], v[:, :2] = x0.to(dev), v0.to(dev)
+    x[:, :4], v[:, :2] = x0, v0
     alive = torch.zeros(bt, k, dtype=torch.bool, device=dev)
     alive[:, :4] = True
     extra = torch.arange(k, device=dev) - 2  # dead slots 4.. in their own groups
-    before = torch.cat([torch.tensor([0, 0, 1, 1], device=dev), extra[4:]]).expand(bt, k)
-    after = torch.cat([torch.tensor([0, 0, 0, 0], device=dev), extra[4:] - 1]).expand(bt, k)
+    before = torch.cat([torch.tensor([0, 0, 1, 1], dtype=extra.dtype, device=dev), extra[4:]]).expand(bt, k)
+    after = torch.cat([torch.tensor([0, 0, 0, 0], dtype=extra.dtype, device=dev), extra[4:] - 1]).expand(bt, k)
     labels = [before if t < m_idx else after for t in range(t_max)]
     xs, vs = [x], [v]
     for t in range(1, t_max):

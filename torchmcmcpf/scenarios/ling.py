@@ -128,7 +128,7 @@ def ling(
     device = torch.device(device) if device is not None else torch.device("cpu")
     if generator.device.type != device.type:
         raise ValueError(f"generator is on {generator.device}, expected a generator on {device}")
-    snr = torch.as_tensor(snr_db, dtype=dtype).to(device)
+    snr = torch.as_tensor(snr_db, dtype=dtype, device=device)
     if snr.dim() > 1 or not bool(torch.isfinite(snr).all()):
         raise ValueError(f"snr_db must be a finite number or a (B,) sequence, got shape {tuple(snr.shape)}")
     if snr.dim() == 1 and snr.shape[0] != b:
@@ -136,8 +136,9 @@ def ling(
     snr = snr.expand(b)
 
     # Noise-free constant velocity, float64 for the grid limits: truth[t] = F^(t+1) initial.
-    kin = torch.tensor(INITIAL_STATES, dtype=torch.float64)  # (K, 4)
-    elapsed = dt * torch.arange(0, t_len + 1, dtype=torch.float64)[:, None]  # (T + 1, 1), 0 = initial
+    # on the CPU on purpose: the grid's limits are read to the host (then moved to ``device``)
+    kin = torch.tensor(INITIAL_STATES, dtype=torch.float64, device="cpu")  # (K, 4)
+    elapsed = dt * torch.arange(0, t_len + 1, dtype=torch.float64, device="cpu")[:, None]  # (T + 1, 1), 0 = initial
     px = kin[:, X] + elapsed * kin[:, VX]
     py = kin[:, Y] + elapsed * kin[:, VY]
     az, rng = torch.atan2(py, px), torch.hypot(px, py)

@@ -39,6 +39,7 @@ from ..models.sensors.association import (
     PointFrame,
     shuffle,
 )
+from ..runtime import check_allocation
 from ..state import ParticleState
 from ..typing import VX, VY, Tensor, X, Y
 
@@ -66,9 +67,11 @@ def target_counts(num_steps: int) -> list[int]:
     return alive_schedule(num_steps).sum(-1).tolist()
 
 
-def alive_schedule(num_steps: int) -> Tensor:
-    """``(num_steps + 1, K_MAX)`` bool: which slot holds a target at each time (module doc)."""
-    t = torch.arange(num_steps + 1).unsqueeze(-1)
+def alive_schedule(num_steps: int, device: torch.device | str | None = None) -> Tensor:
+    """``(num_steps + 1, K_MAX)`` bool on ``device`` (default CPU): which slot holds a target
+    at each time (module doc).
+    """
+    t = torch.arange(num_steps + 1, device=device).unsqueeze(-1)
     return torch.cat([t >= 0, (t <= 1) | (t >= 3), t >= 4, t >= 5], -1)
 
 
@@ -144,7 +147,7 @@ def simulate(
     if not isinstance(sensor, AssociationSensor):
         raise ValueError(f"sensor must be an AssociationSensor, got {type(sensor).__name__}")
     motion = motion or WhiteAccelerationMotion().to(device)
-    alive = alive_schedule(num_steps).to(device).unsqueeze(1).expand(-1, num_runs, -1)
+    alive = alive_schedule(num_steps, device).unsqueeze(1).expand(-1, num_runs, -1)
     xs, frames, z_slot = [], [], []
     x = _new_targets((num_runs, K_MAX), generator=generator, dtype=dtype, device=device)
     for t in range(num_steps + 1):
@@ -173,6 +176,11 @@ def birth_particles(sensor: AssociationSensor, z: Tensor, num_particles: int, *,
     ``sensor.to_position``; velocity ``U[-1, 1]^2``.
     """
     b, k, d = z.shape
+    num_particles = check_positive_int(num_particles, "num_particles")
+    # the noise, the positions, the velocities and the stacked cloud: about 3 (B, N, K, 4)
+    check_allocation(3 * b * num_particles * k * 4 * z.element_size(),
+                     f"birth_particles(num_particles={num_particles}) of {b} runs x {k} targets", z.device,
+                     hint="use fewer particles or runs")
     w = torch.randn((b, num_particles, k, d), generator=generator, dtype=z.dtype, device=z.device)
     pos = sensor.to_position(z.unsqueeze(1) + w * sensor.noise_std.to(z.dtype))
     vel = _uniform((b, num_particles, k, 2), -1.0, 1.0, generator=generator, dtype=z.dtype, device=z.device)

@@ -118,11 +118,11 @@ def septier(
     k = check_positive_int(num_slots, "num_slots")
     size = check_positive(area_size, "area_size")
     area = ((0.0, size), (0.0, size))
-    motion = ConstantVelocity(dt, q).to(dtype)
-    sensor = PoissonClutterPoints(clutter_rate, detection_rate, area, noise_std=noise_std).to(dtype)
+    dev = generator.device  # every tensor and model on the generator's device
+    motion = ConstantVelocity(dt, q).to(device=dev, dtype=dtype)
+    sensor = PoissonClutterPoints(clutter_rate, detection_rate, area, noise_std=noise_std).to(device=dev, dtype=dtype)
     existence = BirthDeath(p_birth, p_death, area, velocity_std=velocity_std,
-                           birth_std=noise_std).to(dtype)
-    dev = generator.device
+                           birth_std=noise_std).to(device=dev, dtype=dtype)
     # k = -1: stationary existence, states from p_0 (a stationary chain for every slot)
     pi = existence.stationary()
     exists = torch.rand((b, k), generator=generator, device=dev, dtype=dtype) < pi
