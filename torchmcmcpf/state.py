@@ -14,6 +14,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
@@ -218,8 +219,6 @@ class FilterResult(NamedTuple):
         the state layout, the info fields as variables, the settings and provenance as
         attributes. Needs ``pip install 'torchmcmcpf[interop]'``.
         """
-        from .interop import result_to_xarray
-
         return result_to_xarray(self)
 
     def to_arviz(self, *, step: int = -1, run: int = 0) -> Any:
@@ -228,8 +227,6 @@ class FilterResult(NamedTuple):
         (:func:`torchmcmcpf.interop.chains_to_arviz`); a step before the last needs
         ``history``. Needs ``pip install 'torchmcmcpf[interop]'``.
         """
-        from .interop import result_to_arviz
-
         return result_to_arviz(self, step=step, run=run)
 
     def to_stonesoup(self, *, run: int = 0, kind: str = "gaussian", start_time: Any = None,
@@ -240,8 +237,6 @@ class FilterResult(NamedTuple):
         (:func:`torchmcmcpf.interop.tracks_to_stonesoup`). Needs Stone Soup
         (``pip install 'torchmcmcpf[interop]'``).
         """
-        from .interop import tracks_to_stonesoup
-
         return tracks_to_stonesoup(self, run=run, kind=kind, start_time=start_time, dt=dt, threshold=threshold)
 
     def to_numpy(self) -> dict[str, Any]:
