@@ -40,7 +40,7 @@ import platform
 import time
 import warnings
 from types import ModuleType
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -50,6 +50,14 @@ from .._version import __version__
 from ._layout import Cloud, Result, check_index, component_names, optional
 
 __all__ = ["result_to_xarray", "chains_to_arviz", "result_to_arviz"]
+
+
+class _Step(NamedTuple):
+    """Step ``t`` of a result's history, as :func:`chains_to_arviz` reads it (a :class:`Cloud`)."""
+
+    x: torch.Tensor
+    log_w: torch.Tensor
+    exists: torch.Tensor | None
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -180,6 +188,6 @@ def result_to_arviz(result: Result, *, step: int = -1, run: int = 0) -> Any:
                          "forward(..., history=True) to keep every step's chains")
     else:
         h = result.history
-        state = type(h)(h.x[t], h.log_w[t], None if h.exists is None else h.exists[t])
+        state = _Step(h.x[t], h.log_w[t], None if h.exists is None else h.exists[t])
     attrs = {k: v for k, v in _attrs(meta).items() if k != "created_utc"}
     return chains_to_arviz(state, num_chains=num_chains, run=run, attrs={**attrs, "step": t})
