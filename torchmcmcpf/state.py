@@ -326,6 +326,22 @@ class ExistenceEstimate(NamedTuple):
     mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
         no particle has it).
     present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> from torchmcmcpf.state import ParticleState, existence_estimate
+    >>> x = torch.zeros(1, 8, 2, 4)                        # (B, N, K, D)
+    >>> x[..., 0] = torch.arange(8.0).view(1, 8, 1)        # particle n sits at x = n
+    >>> exists = torch.zeros(1, 8, 2, dtype=torch.bool)
+    >>> exists[:, :6, 0] = True                            # slot 0 exists in 6 of 8 particles
+    >>> exists[:, :2, 1] = True                            # slot 1 in 2 of 8
+    >>> est = existence_estimate(ParticleState(x, torch.full((1, 8), -math.log(8)), exists))
+    >>> est.exists_prob, est.expected_count, est.present
+    (tensor([[0.7500, 0.2500]]), tensor([1.]), tensor([[ True, False]]))
+    >>> est.mean[..., 0]                                   # mean over the particles where it exists
+    tensor([[2.5000, 0.5000]])
     """
 
     exists_prob: Tensor
