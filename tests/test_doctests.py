@@ -1,7 +1,9 @@
-"""Every public class's docstring example runs as written (doctest), so ``help(tp.X)`` can be
-pasted. Public: the classes named in the ``__all__`` of the package and of its public
-subpackages. The classes of the top-level ``__all__`` must have an example, and it may not
-skip its lines (``# doctest: +SKIP``)."""
+"""Every public class has a runnable docstring example (doctest), so ``help(tp.X)`` can be
+pasted: public are the classes named in the ``__all__`` of the package and of its public
+subpackages (:data:`MODULES`). The example runs as written, may not skip its lines
+(``# doctest: +SKIP``) and shows some output to check (a shape, a value). A class without
+one fails unless :data:`EXEMPT` names it with the reason; an exemption whose class has
+gained an example fails too, so the list stays true."""
 
 from __future__ import annotations
 
@@ -16,9 +18,19 @@ import torchmcmcpf as tp
 MODULES = ["torchmcmcpf", "torchmcmcpf.models", "torchmcmcpf.models.group", "torchmcmcpf.filters",
            "torchmcmcpf.kernels", "torchmcmcpf.scenarios", "torchmcmcpf.metrics", "torchmcmcpf.diagnostics",
            "torchmcmcpf.state", "torchmcmcpf.resampling", "torchmcmcpf.plotting", "torchmcmcpf.runtime",
-           "torchmcmcpf.typing"]
-#: classes whose example another branch of issue 25 rewrites; remove the entry when it lands
-PENDING: dict[str, str] = {}
+           "torchmcmcpf.typing", "torchmcmcpf.models.sensors", "torchmcmcpf.models.sensors.grid",
+           "torchmcmcpf.interop"]
+_REWRITE = "example pending: module being rewritten"
+#: public classes without an example: name -> why (remove the entry when the example lands)
+EXEMPT: dict[str, str] = {
+    "MCMCSettings": _REWRITE,  # filters/mcmc.py
+    "IPMCMCSettings": _REWRITE,  # filters/ipmcmc.py
+    "ExchangeChains": _REWRITE,  # kernels/exchange.py
+    "ExchangeProposal": _REWRITE,
+    "ExchangeNoise": _REWRITE,
+    "Program": "what it does is compile (torch.compile with inductor: seconds on the CPU, and a C++ toolchain); "
+               "runtime.compile_program and tests/test_runtime.py show it at work",
+}
 
 
 def public_classes() -> dict[str, type]:
@@ -42,8 +54,7 @@ def examples(cls: type) -> list[doctest.Example]:
     return [e for t in tests for e in t.examples]
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.skip(reason=PENDING[n])) if n in PENDING else n
-                                  for n in CLASSES])
+@pytest.mark.parametrize("name", list(CLASSES))
 def test_class_example_runs(name):
     cls = CLASSES[name]
     runner = doctest.DocTestRunner(optionflags=FLAGS)
@@ -53,10 +64,22 @@ def test_class_example_runs(name):
     assert result.failed == 0, f"{name}: {result.failed} of {result.attempted} lines failed (output above)"
 
 
-@pytest.mark.parametrize("name", [n for n in TOP if n not in PENDING])
-def test_top_level_classes_have_a_runnable_example(name):
-    found = examples(getattr(tp, name))
-    assert found, f"tp.{name} has no docstring example"
+@pytest.mark.parametrize("name", [n for n in CLASSES if n not in EXEMPT])
+def test_public_classes_have_a_runnable_example(name):
+    found = examples(CLASSES[name])
+    assert found, f"{name} has no docstring example: add one (an 'Example' section) or list it in EXEMPT with a reason"
     skipped = [e.source.strip() for e in found if e.options.get(doctest.SKIP)]
-    assert not skipped, f"tp.{name} skips {skipped}"
-    assert any(e.want for e in found), f"tp.{name}'s example shows no output to check"
+    assert not skipped, f"{name} skips {skipped}"
+    assert any(e.want for e in found), f"{name}'s example shows no output to check"
+
+
+@pytest.mark.parametrize("name", list(EXEMPT))
+def test_exemptions_are_current(name):
+    assert name in CLASSES, f"EXEMPT names {name}, which is not a public class (MODULES)"
+    assert EXEMPT[name].strip(), f"EXEMPT[{name!r}] gives no reason"
+    assert not examples(CLASSES[name]), f"{name} has an example now: remove it from EXEMPT"
+
+
+def test_top_level_classes_are_covered():
+    assert set(TOP) <= set(CLASSES)
+    assert not set(TOP) & set(EXEMPT), "the classes of torchmcmcpf.__all__ are never exempt"

@@ -5,6 +5,7 @@ each algorithm is a pure step function wrapped by a thin ``nn.Module`` Filter.
 """
 
 from . import diagnostics, interop, kernels, metrics, models, plotting, resampling, runtime, scenarios
+from ._version import __version__ as __version__
 from .filters import (
     Filter,
     GroupMCMCFilter,
@@ -32,8 +33,6 @@ from .models import (
     RangeDopplerBearingTBD,
 )
 from .state import FilterResult, ParticleState, StepInfo
-
-__version__ = "0.2.0"
 
 __all__ = [
     "Filter",

@@ -14,6 +14,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
@@ -218,8 +219,6 @@ class FilterResult(NamedTuple):
         the state layout, the info fields as variables, the settings and provenance as
         attributes. Needs ``pip install 'torchmcmcpf[interop]'``.
         """
-        from .interop import result_to_xarray
-
         return result_to_xarray(self)
 
     def to_arviz(self, *, step: int = -1, run: int = 0) -> Any:
@@ -228,8 +227,6 @@ class FilterResult(NamedTuple):
         (:func:`torchmcmcpf.interop.chains_to_arviz`); a step before the last needs
         ``history``. Needs ``pip install 'torchmcmcpf[interop]'``.
         """
-        from .interop import result_to_arviz
-
         return result_to_arviz(self, step=step, run=run)
 
     def to_stonesoup(self, *, run: int = 0, kind: str = "gaussian", start_time: Any = None,
@@ -240,8 +237,6 @@ class FilterResult(NamedTuple):
         (:func:`torchmcmcpf.interop.tracks_to_stonesoup`). Needs Stone Soup
         (``pip install 'torchmcmcpf[interop]'``).
         """
-        from .interop import tracks_to_stonesoup
-
         return tracks_to_stonesoup(self, run=run, kind=kind, start_time=start_time, dt=dt, threshold=threshold)
 
     def to_numpy(self) -> dict[str, Any]:
@@ -331,6 +326,22 @@ class ExistenceEstimate(NamedTuple):
     mean : (B, K, D) posterior mean of each slot given that it exists (``x_death`` where
         no particle has it).
     present : (B, K) bool, the slots reported as targets: ``exists_prob > threshold``.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> from torchmcmcpf.state import ParticleState, existence_estimate
+    >>> x = torch.zeros(1, 8, 2, 4)                        # (B, N, K, D)
+    >>> x[..., 0] = torch.arange(8.0).view(1, 8, 1)        # particle n sits at x = n
+    >>> exists = torch.zeros(1, 8, 2, dtype=torch.bool)
+    >>> exists[:, :6, 0] = True                            # slot 0 exists in 6 of 8 particles
+    >>> exists[:, :2, 1] = True                            # slot 1 in 2 of 8
+    >>> est = existence_estimate(ParticleState(x, torch.full((1, 8), -math.log(8)), exists))
+    >>> est.exists_prob, est.expected_count, est.present
+    (tensor([[0.7500, 0.2500]]), tensor([1.]), tensor([[ True, False]]))
+    >>> est.mean[..., 0]                                   # mean over the particles where it exists
+    tensor([[2.5000, 0.5000]])
     """
 
     exists_prob: Tensor

@@ -55,6 +55,21 @@ class PointFrame(NamedTuple):
     ----------
     z : (B, M, d) measurements, in no particular order.
     mask : (B, M) bool, True for a real measurement (rows with False are padding).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.typing import PointFrame, split_points
+    >>> z = torch.tensor([[[0.0, 1.0], [2.0, 3.0], [0.0, 0.0]],
+    ...                   [[5.0, 5.0], [0.0, 0.0], [0.0, 0.0]]])   # (B, M, d) = (2, 3, 2)
+    >>> frame = PointFrame(z, mask=torch.tensor([[True, True, False], [True, False, False]]))
+    >>> frame.mask.sum(-1)                                  # real measurements per run
+    tensor([2, 1])
+    >>> points, mask = split_points(frame)                  # what the point sensors read
+    >>> points[mask]
+    tensor([[0., 1.],
+            [2., 3.],
+            [5., 5.]])
     """
 
     z: Tensor

@@ -13,8 +13,8 @@ so adding a study means adding a module, nothing else:
 A study whose runs are independent defines ``run_shard`` (its runs in fixed-size shards,
 each with the generator of ``(seed, shard index)``), so it runs the same in this process or
 on Ray. Modules whose name starts with ``_`` are the shared machinery, not studies:
-``_study`` (the base and its settings), ``_options`` (the command line), ``_shards`` and
-``_ray`` (the shard runner), ``_provenance`` (``metrics.json``), ``_figures``.
+``_study`` (the base and its settings), ``_options`` (the command line), ``_shards`` (the
+shard runner, here or on Ray), ``_provenance`` (``metrics.json``), ``_figures``.
 """
 
 from __future__ import annotations

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .._version import __version__
 from ._options import RunOptions
 
 __all__ = ["device_name", "to_jsonable", "provenance", "write_metrics"]
@@ -95,8 +96,6 @@ def provenance(options: RunOptions | None = None, device: str | torch.device | N
     layout (``shards``, the layout :func:`~torchmcmcpf.experiments._shards.run_shards`
     returns), device, threads, versions, wall time (since ``options.started``).
     """
-    from .. import __version__
-
     versions = {"torchmcmcpf": __version__, "git_commit": _git_commit(), "torch": torch.__version__,
                 "numpy": np.__version__, "python": platform.python_version()}
     if "ray" in sys.modules:

@@ -13,7 +13,7 @@ them), then concatenates ``per_run`` along the run dim and sums ``seconds``.
 The stream of every run therefore depends only on ``(seed, shard size, run index)``:
 without ``--workers`` (in this process, Ray never imported) and with ``--workers N`` (a local
 Ray cluster of N CPUs started for the command, or ``--ray-address`` to join one,
-:mod:`torchmcmcpf.experiments._ray`) the same numbers come out, so ``metrics.json`` is
+:func:`run_on_ray`) the same numbers come out, so ``metrics.json`` is
 identical but for its timings and ``provenance``. A worker receives the study object itself
 (pickled by reference to its class) and its frozen settings, nothing looked up by name.
 """
@@ -23,10 +23,12 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import logging
+import os
 import platform
 import time
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
 
@@ -37,7 +39,7 @@ from .. import runtime
 from ._options import RunOptions, positive_int
 from ._provenance import to_jsonable
 
-__all__ = ["ShardError", "Shards", "ShardedStudy", "shard_generator", "shard_layout", "run_shards"]
+__all__ = ["ShardError", "Shards", "ShardedStudy", "shard_generator", "shard_layout", "run_shards", "run_on_ray"]
 
 
 class ShardError(RuntimeError):
@@ -215,8 +217,6 @@ def run_shards(study: ShardedStudy, settings: Any, options: RunOptions) -> Shard
     lone = options.progress and len(layout) == 1  # then the filters show progress
     try:
         if options.workers:
-            from ._ray import run_on_ray
-
             run_on_ray(todo, study, settings, options, threads, on_done)
         else:
             for index, runs, key in todo:
@@ -240,3 +240,59 @@ def run_shards(study: ShardedStudy, settings: Any, options: RunOptions) -> Shard
                    for i, r in enumerate(ordered)],
     }
     return Shards(per_run, seconds, report)
+
+
+def _package_root() -> str:
+    return str(Path(__file__).resolve().parents[2])
+
+
+def run_on_ray(todo: list, study: ShardedStudy, settings: Any, options: RunOptions, threads: int,
+               on_done: Callable[[int, range, str, dict], None]) -> None:
+    """Run the shards ``todo`` [(index, runs, key)] of ``study`` as Ray tasks, at most
+    ``options.workers`` in flight; ``on_done(index, runs, key, result)`` as each finishes.
+    A local cluster of ``options.workers`` CPUs is started for the call (and shut down after)
+    unless Ray is initialised already or ``options.ray_address`` names one. The first failure
+    cancels the rest and raises :class:`ShardError` naming the shard.
+    """
+    try:
+        import ray  # optional (the cluster extra), imported only here: a study without --workers never imports it
+    except ImportError as err:
+        raise ImportError("--workers needs Ray: pip install 'torchmcmcpf[cluster]'") from err
+    name, device = study.name, options.device
+    started = False
+    if not ray.is_initialized():
+        env = {"env_vars": {"PYTHONPATH": os.pathsep.join(filter(None, [_package_root(),
+                                                                        os.environ.get("PYTHONPATH")]))}}
+        if options.ray_address:
+            ray.init(address=options.ray_address, logging_level=logging.ERROR, log_to_driver=False)
+        else:
+            ray.init(num_cpus=options.workers, include_dashboard=False, logging_level=logging.ERROR,
+                     log_to_driver=False, runtime_env=env)
+        started = True
+    try:
+        gpus = float(options.gpus_per_shard) if device.type == "cuda" else 0
+        have = ray.cluster_resources()
+        if have.get("CPU", 0) < 1 or have.get("GPU", 0) < gpus:  # a task that can never be placed waits forever
+            raise ShardError(f"{name}: the Ray cluster has {have.get('CPU', 0):g} CPUs and {have.get('GPU', 0):g} "
+                             f"GPUs; each shard needs 1 CPU and {gpus:g} GPUs (--gpus-per-shard)")
+        task = ray.remote(compute_shard).options(num_cpus=1, num_gpus=gpus, max_retries=0)
+        queue = list(todo)
+        running: dict[Any, tuple[int, range, str]] = {}  # Ray ObjectRef -> shard
+        while queue or running:
+            while queue and len(running) < (options.workers or 1):
+                index, runs, key = queue.pop(0)
+                ref = task.remote(study, settings, options.seed, index, runs.start, runs.stop, str(device), threads,
+                                  False, options.memory_budget)
+                running[ref] = (index, runs, key)
+            done, _ = ray.wait(list(running), num_returns=1)
+            index, runs, key = running.pop(done[0])
+            try:
+                result = ray.get(done[0])
+            except Exception as err:
+                for ref in running:
+                    ray.cancel(ref, force=True)
+                raise shard_failed(name, index, runs, err) from None
+            on_done(index, runs, key, result)
+    finally:
+        if started:
+            ray.shutdown()

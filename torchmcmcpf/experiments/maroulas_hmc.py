@@ -30,13 +30,17 @@ import contextlib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
+from .._validation import check_generator
+from ..filters.base import Filter
 from ..filters.resample_move import ResampleMoveFilter
-from ..models.sensors.association import AssociationSensor
+from ..models.sensors.association import AssociationSensor, PointFrame
 from ..scenarios import maroulas as scenario
+from ..state import ParticleState
+from ..typing import Tensor
 from ._figures import np_label, save_figure
 from ._options import RunOptions
 from ._study import Settings, StepTimer, Study, cell, generator, option
@@ -60,6 +64,85 @@ class MaroulasSettings(Settings):
     max_equal_time_particles: int = option(20000, 2000, cli=False)
 
 
+class TrackResult(NamedTuple):
+    """What :func:`track` returns.
+
+    Attributes
+    ----------
+    mean : (T+1, B, K, 4) estimates (time 0: the mean of the initial cloud).
+    ess : (T, B) effective sample size of each step's weights.
+    acceptance : (T, B) HMC acceptance, or None for filters without a move.
+    ess_after_move : (T, B) ESS of ``g`` over the particles each step returns (paper 003
+        sec. 1.3's reading; ``info.extras["ess_after_move"]``), or None for a filter
+        without it.
+    """
+
+    mean: Tensor
+    ess: Tensor
+    acceptance: Tensor | None
+    ess_after_move: Tensor | None = None
+
+
+def track(filt: Filter, data: scenario.MaroulasData, *, generator: torch.Generator,
+          progress: bool = False) -> TrackResult:
+    """Run ``filt`` over a simulated scenario with the scenario's births and deaths: before each
+    step the slots that died are switched off; after it, the newborn slots get particles from
+    the birth density (:func:`~torchmcmcpf.scenarios.maroulas.birth_particles`). It runs a
+    filter, so it lives here, not in :mod:`torchmcmcpf.scenarios` (which never imports filters).
+
+    Parameters
+    ----------
+    filt : a Filter whose sensor is an AssociationSensor (e.g. ResampleMoveFilter, or
+        SIRFilter).
+    data : from :func:`torchmcmcpf.scenarios.maroulas.simulate`.
+    generator : source of randomness.
+    progress : tqdm bar over time.
+
+    Returns
+    -------
+    :class:`TrackResult`.
+    """
+    check_generator(generator)
+    n = filt.num_particles
+    alive = data.alive
+    sensor = filt.sensor
+    if not isinstance(sensor, AssociationSensor):
+        raise ValueError(f"filt.sensor must be an AssociationSensor (births are drawn around its measurements), "
+                         f"got {type(sensor).__name__}")
+    x0 = scenario.birth_particles(sensor, data.z_slot[0], n, generator=generator)
+    x0 = torch.where(alive[0].unsqueeze(1).unsqueeze(-1), x0, torch.zeros_like(x0))
+    state = filt.init(x0, alive[0].unsqueeze(1).expand(-1, n, -1))
+    means, esss, accs, after = [state.mean()], [], [], []
+    steps = range(1, alive.shape[0])
+    if progress:
+        from tqdm.auto import tqdm
+
+        steps = tqdm(steps, desc=type(filt).__name__, leave=False)
+    for t in steps:
+        state = state._replace(exists=_flags(state) & alive[t].unsqueeze(1))  # deaths
+        frame = PointFrame(data.frames.z[t], data.frames.mask[t])
+        state, info = filt.step(state, frame, generator=generator)
+        born = alive[t] & ~alive[t - 1]  # (B, K), the same for every run
+        if bool(born.any()):
+            xb = scenario.birth_particles(sensor, data.z_slot[t], n, generator=generator)
+            bn = born.unsqueeze(1)
+            state = ParticleState(torch.where(bn.unsqueeze(-1), xb, state.x), state.log_w, _flags(state) | bn)
+        means.append(filt.estimate(state))
+        esss.append(info.ess)
+        accs.append(info.acceptance)
+        after.append(info.extras.get("ess_after_move"))
+    acc = torch.stack(accs)
+    return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc,
+                       None if any(a is None for a in after) else torch.stack([a for a in after if a is not None]))
+
+
+def _flags(state: ParticleState) -> Tensor:
+    """``state.exists (B, N, K)``; a ValueError if the filter returned a state without flags."""
+    if state.exists is None:
+        raise ValueError("the filter returned a state with exists=None; track needs existence flags")
+    return state.exists
+
+
 @contextlib.contextmanager
 def _one_thread(device: torch.device) -> Iterator[None]:
     """Small tensors: on the CPU one intra-op thread is faster (no oversubscription)."""
@@ -72,7 +155,7 @@ def _one_thread(device: torch.device) -> Iterator[None]:
         torch.set_num_threads(old)
 
 
-def _summary(result: scenario.TrackResult, data: scenario.MaroulasData, n: int, seconds: float) -> dict:
+def _summary(result: TrackResult, data: scenario.MaroulasData, n: int, seconds: float) -> dict:
     rmse = scenario.rmse_per_target(result.mean, data.x, data.alive)[1:]  # (T, B), t = 1..T
     per_run = rmse.mean(0)  # time average of each run
     curve = rmse.mean(1)
@@ -159,7 +242,7 @@ class HMCvsGeneric(Study[MaroulasSettings]):
                 times: dict[str, float] = {}
                 for name, filt in filters.items():
                     with StepTimer(device, cfg["steps"]) as timer:
-                        res = scenario.track(filt, data, generator=g, progress=options.progress)
+                        res = track(filt, data, generator=g, progress=options.progress)
                     times[name] = timer.seconds
                     results[name] = _summary(res, data, filt.num_particles, timer.seconds)
                     results[name]["track_mean"] = res.mean[:, 0]
@@ -167,7 +250,7 @@ class HMCvsGeneric(Study[MaroulasSettings]):
                 n_eq = min(int(n_gen * ratio), cfg["max_equal_time_particles"])
                 filt = ResampleMoveFilter(motion, sensor, num_particles=n_eq, num_hmc_steps=0)
                 with StepTimer(device, cfg["steps"]) as timer:
-                    res = scenario.track(filt, data, generator=g, progress=options.progress)
+                    res = track(filt, data, generator=g, progress=options.progress)
                 results["generic_equal_time"] = _summary(res, data, n_eq, timer.seconds)
                 _figures(options.out, obs, results, data, sensor, quick=settings.quick)
                 for v in results.values():

@@ -41,6 +41,7 @@ from torch import nn
 from torch.utils._pytree import tree_map
 
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor, measurement_leaves
+from .._version import __version__
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..runtime import check_allocation, compile_program
@@ -737,8 +738,6 @@ class Filter(nn.Module):
         """What made a result (``FilterResult.meta``): the filter, its settings as plain
         values, the models, the sampling time and the versions.
         """
-        from .. import __version__
-
         dt = getattr(self.motion, "dt", None)
         return {"filter": type(self).__name__, "num_particles": self.num_particles,
                 "settings": _plain(self.settings), "motion": type(self.motion).__name__,

@@ -232,6 +232,17 @@ class GroupMCMCSettings:
     p_window_birth : probability of the window birth/death move per iteration (needs
         ``lag >= 1``; 0: off, the paper's sampler).
     max_memory_gb : refuse a problem whose step needs more (:func:`estimate_step_bytes`).
+
+    Example
+    -------
+    >>> from torchmcmcpf.filters.group import GroupMCMCSettings
+    >>> settings = GroupMCMCSettings(num_chains=4, burn_in=20, lag=2, p_past=0.2)   # with the past move
+    >>> settings.thinning, settings.xi                      # the paper's values by default
+    (6, 0.75)
+    >>> GroupMCMCSettings(p_past=0.5)
+    Traceback (most recent call last):
+    ...
+    ValueError: lag >= 1 and p_past > 0 go together (the past move needs a past), got lag=0, p_past=0.5
     """
 
     num_chains: int = 20

@@ -90,6 +90,16 @@ class PartitionedSIRSettings:
         particles from the frame's data (module docstring; ``p_jump`` and ``p_propose`` are
         used, the IP-MCMC two-slot fields are not). Turned off for a sensor without a
         data-driven proposal (:func:`~torchmcmcpf.filters.base.active_prior`).
+
+    Example
+    -------
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.filters.partitioned import PartitionedSIRSettings
+    >>> PartitionedSIRSettings(resample_method="stratified", recapture=None)
+    PartitionedSIRSettings(resample_method='stratified', exclusion=Exclusion(scale=1.0), recapture=None)
+    >>> filt = tp.PartitionedSIRFilter(tp.ConstantVelocity(), tp.LinearGaussian.position(noise_std=1.0), 100)
+    >>> filt.settings      # a sensor without resolution or data-driven proposal: both prior terms off
+    PartitionedSIRSettings(resample_method='systematic', exclusion=None, recapture=None)
     """
 
     resample_method: str = "systematic"

@@ -76,6 +76,21 @@ class PMMHResult(NamedTuple):
     aux : pytree of ``(L, B, C, ...)`` tensors: the accepted auxiliary output of the
         evaluator (e.g. filter means), or ``None``.
     acceptance : (B, C) acceptance rate of every chain.
+
+    Example
+    -------
+    An exact log-evidence ``-(theta - 1)^2 / 2`` in place of a filter's estimate, a flat prior:
+
+    >>> import torch
+    >>> from torchmcmcpf.filters.pmmh import pmmh
+    >>> def evaluate(theta, *, generator):                  # (B, C, P) -> (B, C), aux
+    ...     return -0.5 * (theta - 1.0).square().sum(-1), None
+    >>> result = pmmh(evaluate, torch.zeros(2, 4, 1, dtype=torch.float64), log_prior=lambda t: 0.0 * t.sum(-1),
+    ...               proposal_std=1.0, num_iterations=2000, generator=torch.Generator().manual_seed(0))
+    >>> result.theta.shape, result.log_evidence.shape, result.acceptance.shape   # (L, B, C, P), ...
+    (torch.Size([2000, 2, 4, 1]), torch.Size([2000, 2, 4]), torch.Size([2, 4]))
+    >>> round(result.theta[500:].mean().item(), 1)          # the posterior N(1, 1)
+    1.0
     """
 
     theta: Tensor
@@ -202,6 +217,21 @@ class PMMHSettings:
     prior_mean, prior_std : the ``N(prior_mean, prior_std^2)`` prior of ``theta``, the log
         of the process-noise scale (the proposal of the independence sampler).
     resample_method, ess_threshold : of each candidate's SIR filter (:class:`SIRSettings`).
+
+    Example
+    -------
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.filters.pmmh import PMMHSettings
+    >>> settings = PMMHSettings(num_candidates=4, prior_std=0.5)
+    >>> settings.sir                                        # what each candidate's SIR filter runs
+    SIRSettings(resample_method='systematic', ess_threshold=1.0, exclusion=Exclusion(scale=1.0))
+    >>> tp.PMMHFilter(tp.ConstantVelocity(), tp.LinearGaussian.position(noise_std=1.0), 100,
+    ...               settings=settings).settings.num_candidates    # 4 candidates of 25 particles
+    4
+    >>> PMMHSettings(num_candidates=4, burn_in=4)
+    Traceback (most recent call last):
+    ...
+    ValueError: burn_in must be an integer in [0, num_candidates = 4), got 4
     """
 
     num_candidates: int = 10

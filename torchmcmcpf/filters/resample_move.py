@@ -91,6 +91,18 @@ class ResampleMoveSettings:
         weights and the HMC target include the exclusion factor ``Phi(x)`` between slots
         (Khan et al. 2005). Set to None with ``association="metropolis"``, whose per-slot HMC
         chains (eq. 9) need a target that factorises over the slots.
+
+    Example
+    -------
+    >>> from torchmcmcpf.filters.resample_move import ResampleMoveSettings
+    >>> ResampleMoveSettings(num_hmc_steps=0).num_hmc_steps     # the generic particle filter
+    0
+    >>> ResampleMoveSettings(association="metropolis").exclusion is None   # a factorised target
+    True
+    >>> ResampleMoveSettings(step_size=-0.1)
+    Traceback (most recent call last):
+    ...
+    ValueError: step_size must be > 0 and finite, got -0.1
     """
 
     step_size: float = 0.1

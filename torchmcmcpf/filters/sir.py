@@ -38,6 +38,19 @@ class SIRSettings:
     exclusion : :class:`~torchmcmcpf.models.multitarget.Exclusion` (default) or None: the
         weights include the exclusion factor ``Phi(x)`` between slots (Khan et al. 2005); None
         is the paper's factorised prior. Ignored for a sensor without ``resolution_coords``.
+
+    Example
+    -------
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.filters.sir import SIRSettings
+    >>> settings = SIRSettings(ess_threshold=0.5)          # resample when ESS < N / 2
+    >>> filt = tp.SIRFilter(tp.ConstantVelocity(), tp.LinearGaussian.position(noise_std=1.0), 100, settings=settings)
+    >>> filt.settings              # what the filter does: this sensor declares no resolution, so no exclusion
+    SIRSettings(resample_method='systematic', ess_threshold=0.5, exclusion=None)
+    >>> SIRSettings(resample_method="residual")
+    Traceback (most recent call last):
+    ...
+    ValueError: resample_method must be one of ['multinomial', 'stratified', 'systematic'], got 'residual'
     """
 
     resample_method: str = "systematic"

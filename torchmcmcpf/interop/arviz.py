@@ -40,18 +40,24 @@ import platform
 import time
 import warnings
 from types import ModuleType
-from typing import TYPE_CHECKING, Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from .._validation import check_positive_int
-from ._layout import check_index, component_names, optional
-
-if TYPE_CHECKING:
-    from ..state import FilterResult, ParticleState
+from .._version import __version__
+from ._layout import Cloud, Result, check_index, component_names, optional
 
 __all__ = ["result_to_xarray", "chains_to_arviz", "result_to_arviz"]
+
+
+class _Step(NamedTuple):
+    """Step ``t`` of a result's history, as :func:`chains_to_arviz` reads it (a :class:`Cloud`)."""
+
+    x: torch.Tensor
+    log_w: torch.Tensor
+    exists: torch.Tensor | None
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -60,8 +66,6 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 def _attrs(meta: dict | None) -> dict[str, Any]:
     """A result's ``meta`` as netCDF-safe attributes (strings and numbers)."""
-    from .. import __version__
-
     meta = meta or {}
     out: dict[str, Any] = {}
     for key in ("filter", "num_particles", "motion", "sensor", "existence", "dt", "compile_step"):
@@ -82,7 +86,7 @@ def _attrs(meta: dict | None) -> dict[str, Any]:
     return out
 
 
-def result_to_xarray(result: FilterResult) -> Any:
+def result_to_xarray(result: Result) -> Any:
     """A filter result as an ``xarray.Dataset`` (layout in the module docstring).
 
     Parameters
@@ -134,7 +138,7 @@ def _arviz() -> ModuleType:
         return optional("arviz", "arviz")
 
 
-def chains_to_arviz(state: ParticleState, *, num_chains: int, run: int = 0, attrs: dict | None = None) -> Any:
+def chains_to_arviz(state: Cloud, *, num_chains: int, run: int = 0, attrs: dict | None = None) -> Any:
     """The kept samples of an MCMC filter's chains at one step as ArviZ ``InferenceData``.
 
     Parameters
@@ -172,7 +176,7 @@ def chains_to_arviz(state: ParticleState, *, num_chains: int, run: int = 0, attr
                             coords={"target": np.arange(k)}, posterior_attrs=dict(attrs or {}))
 
 
-def result_to_arviz(result: FilterResult, *, step: int = -1, run: int = 0) -> Any:
+def result_to_arviz(result: Result, *, step: int = -1, run: int = 0) -> Any:
     """:func:`chains_to_arviz` of a result's step ``step`` (the last by default; an earlier
     one needs ``result.history``), with the filter's ``num_chains`` read from ``result.meta``.
     """
@@ -190,6 +194,6 @@ def result_to_arviz(result: FilterResult, *, step: int = -1, run: int = 0) -> An
                          "forward(..., history=True) to keep every step's chains")
     else:
         h = result.history
-        state = type(h)(h.x[t], h.log_w[t], None if h.exists is None else h.exists[t])
+        state = _Step(h.x[t], h.log_w[t], None if h.exists is None else h.exists[t])
     attrs = {k: v for k, v in _attrs(meta).items() if k != "created_utc"}
     return chains_to_arviz(state, num_chains=num_chains, run=run, attrs={**attrs, "step": t})

@@ -23,16 +23,13 @@ filtering (the tensors are moved to NumPy once).
 from __future__ import annotations
 
 from datetime import datetime, timedelta
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from .._validation import check_positive
-from ._layout import check_index, optional
-
-if TYPE_CHECKING:
-    from ..state import FilterResult
+from ._layout import Result, check_index, optional
 
 __all__ = ["EPOCH", "tracks_to_stonesoup", "truth_to_stonesoup", "timestamps"]
 
@@ -66,7 +63,7 @@ def _dt(dt: float | None, meta_dt: Any) -> float:
     return 1.0 if meta_dt is None else float(meta_dt)
 
 
-def tracks_to_stonesoup(result: FilterResult, *, run: int = 0, kind: str = "gaussian",
+def tracks_to_stonesoup(result: Result, *, run: int = 0, kind: str = "gaussian",
                         start_time: datetime | None = None, dt: float | None = None,
                         threshold: float = 0.5) -> list:
     """Stone Soup ``Track`` s of one Monte Carlo run of a filter result.

@@ -43,6 +43,25 @@ class ChainState(NamedTuple):
         ``x``; the relocation ratios of :mod:`torchmcmcpf.models.multitarget` for a
         surviving slot; 0 for an inactive one); ``None`` without either (module docstring
         of :mod:`torchmcmcpf.kernels.moves`).
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import JointNoise, init_chains, previous_cloud
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> dynamics, g = TargetDynamics(motion), torch.Generator().manual_seed(0)
+    >>> cloud = previous_cloud(torch.zeros(2, 100, 3, 4), torch.full((2, 100), -math.log(100)), motion=motion)
+    >>> like, z = torch.zeros(2, 8, 3, 4), torch.zeros(2, 3, 2)   # chains (B, C, K, D); a frame (B, K, 2)
+    >>> chain = init_chains(cloud, JointNoise.draw(like, dynamics, generator=g), z, dynamics=dynamics, sensor=sensor)
+    >>> chain.x.shape, chain.x_prev.shape, chain.log_lik.shape
+    (torch.Size([2, 8, 3, 4]), torch.Size([2, 8, 3, 4]), torch.Size([2, 8]))
+    >>> chain.log_lik_terms.shape, chain.exists              # a separable sensor; no existence model
+    (torch.Size([2, 8, 3]), None)
+    >>> torch.allclose(chain.log_lik, sensor.log_likelihood(chain.x, z))   # kept beside the state
+    True
     """
 
     x: Tensor
@@ -66,6 +85,20 @@ class PreviousCloud(NamedTuple):
     exists : (B, N, K) bool, optional: the particles' existence flags.
     white_mean : (B, N, K * D), optional: the whitened predicted means ``L^-1 F x^i`` of a
         linear-Gaussian motion, computed once per frame for :func:`log_transition`.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import previous_cloud
+    >>> from torchmcmcpf.kernels.chains import draw_ancestors
+    >>> log_w = torch.log(torch.tensor([[0.5, 0.25, 0.25]]))             # (B, N)
+    >>> cloud = previous_cloud(torch.zeros(1, 3, 2, 4), log_w, motion=tp.ConstantVelocity())
+    >>> cloud.cdf, cloud.white_mean.shape                                # (B, N), (B, N, K * D)
+    (tensor([[0.5000, 0.7500, 1.0000]], dtype=torch.float64), torch.Size([1, 3, 8]))
+    >>> draw_ancestors(cloud, torch.tensor([[0.1, 0.6, 0.9]]))          # inversion of the weights
+    tensor([[0, 1, 2]])
     """
 
     x: Tensor
@@ -106,6 +139,25 @@ class JointNoise(NamedTuple):
     K, noise_dim)`` standard normals (the transition noise of every target), with existence
     ``birth`` (:class:`BirthNoise`) and with re-capture ``relocation``
     (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`), leading ``(B, C, K)``.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import JointNoise, init_chains, joint_move, previous_cloud
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> dynamics, g = TargetDynamics(motion), torch.Generator().manual_seed(0)
+    >>> cloud = previous_cloud(torch.zeros(2, 100, 3, 4), torch.full((2, 100), -math.log(100)), motion=motion)
+    >>> like, z = torch.zeros(2, 8, 3, 4), torch.zeros(2, 3, 2)   # chains (B, C, K, D); a frame (B, K, 2)
+    >>> chain = init_chains(cloud, JointNoise.draw(like, dynamics, generator=g), z, dynamics=dynamics, sensor=sensor)
+    >>> noise = JointNoise.draw(like, dynamics, generator=g)
+    >>> noise.u_ancestor.shape, noise.eps.shape, noise.birth    # no existence model: no birth noise
+    (torch.Size([2, 8]), torch.Size([2, 8, 3, 4]), None)
+    >>> chain, accepted = joint_move(chain, noise, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor)
+    >>> accepted.shape, accepted.dtype                      # one accept/reject per chain
+    (torch.Size([2, 8]), torch.bool)
     """
 
     u_ancestor: Tensor
@@ -131,6 +183,25 @@ class RefineNoise(NamedTuple):
     """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
     slot), ``u (B, C, K)`` uniforms (one accept/reject per slot) and, as in
     :class:`JointNoise`, ``birth`` and ``relocation``.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import JointNoise, RefineNoise, init_chains, previous_cloud, refine_move
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> dynamics, g = TargetDynamics(motion), torch.Generator().manual_seed(0)
+    >>> cloud = previous_cloud(torch.zeros(2, 100, 3, 4), torch.full((2, 100), -math.log(100)), motion=motion)
+    >>> like, z = torch.zeros(2, 8, 3, 4), torch.zeros(2, 3, 2)   # chains (B, C, K, D); a frame (B, K, 2)
+    >>> chain = init_chains(cloud, JointNoise.draw(like, dynamics, generator=g), z, dynamics=dynamics, sensor=sensor)
+    >>> noise = RefineNoise.draw(like, dynamics, generator=g)
+    >>> noise.eps.shape, noise.u.shape                      # one proposal and one uniform per slot
+    (torch.Size([2, 8, 3, 4]), torch.Size([2, 8, 3]))
+    >>> chain, accepted = refine_move(chain, noise, z=z, dynamics=dynamics, sensor=sensor)
+    >>> accepted.shape                                      # (B, C, K)
+    torch.Size([2, 8, 3])
     """
 
     eps: Tensor

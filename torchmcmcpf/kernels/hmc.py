@@ -43,6 +43,21 @@ class HMCInfo(NamedTuple):
         Fraction of the ``num_steps`` accept/reject rounds that accepted, per chain.
     log_target : (*C)
         ``log_target`` at the returned state.
+
+    Example
+    -------
+    4000 chains on ``N(3, 1)``:
+
+    >>> import torch
+    >>> from torchmcmcpf.kernels import hmc
+    >>> q, info = hmc(torch.zeros(4000, 1, dtype=torch.float64), lambda q: -0.5 * (q - 3.0).square().sum(-1),
+    ...               step_size=0.5, num_leapfrog=5, num_steps=30, generator=torch.Generator().manual_seed(0))
+    >>> info.acceptance.shape, info.log_target.shape        # per chain
+    (torch.Size([4000]), torch.Size([4000]))
+    >>> round(q.mean().item(), 1), round(q.std().item(), 1)
+    (3.0, 1.0)
+    >>> bool(info.acceptance.mean() > 0.9)
+    True
     """
 
     acceptance: Tensor

@@ -63,6 +63,21 @@ class HMCRefine:
     The defaults suit a unit-scale linear-Gaussian problem. On the radar scene the doppler
     likelihood is far sharper than ``sqrt(Q)`` in velocity: ``step_size=0.05`` gives an
     acceptance of 0.98, ``0.5`` accepts nothing (README, "Reproducing the papers").
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import HMCRefine
+    >>> settings = HMCRefine(step_size=0.5, num_leapfrog=3, every=2)
+    >>> filt = tp.MCMCFilter(tp.ConstantVelocity(), tp.LinearGaussian.position(noise_std=1.0), 64, num_chains=4,
+    ...                      burn_in=2, hmc=settings)         # an HMC transition every 2nd iteration
+    >>> filt(torch.zeros(2, 1, 1, 2), init=torch.zeros(1, 64, 1, 4), generator=torch.Generator()).mean.shape
+    torch.Size([2, 1, 1, 4])
+    >>> HMCRefine(every=0)
+    Traceback (most recent call last):
+    ...
+    ValueError: hmc.every must be an integer >= 1, got 0
     """
 
     step_size: float = 0.5
@@ -90,6 +105,22 @@ def check_hmc_motion(motion: MotionModel, existence: BirthDeath | None) -> Linea
 class HMCRefineNoise(NamedTuple):
     """Pre-drawn randomness of one HMC transition: momenta ``p (B, C, K, D)`` and accept
     uniforms ``u (B, C)``.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import HMCRefine, HMCRefineNoise, hmc_refine
+    >>> from torchmcmcpf.kernels.hmc_refine import ancestor_log_prior
+    >>> motion, sensor = tp.ConstantVelocity(), tp.LinearGaussian.position(noise_std=1.0)
+    >>> x, z = torch.zeros(2, 8, 3, 4), torch.zeros(2, 3, 2)     # chains (B, C, K, D), a frame
+    >>> noise = HMCRefineNoise.draw(x, generator=torch.Generator().manual_seed(0))
+    >>> noise.p.shape, noise.u.shape
+    (torch.Size([2, 8, 3, 4]), torch.Size([2, 8]))
+    >>> x_new, log_lik, accepted = hmc_refine(x, sensor.log_likelihood(x, z), noise, z, sensor=sensor, motion=motion,
+    ...                                       log_prior=ancestor_log_prior(x, motion), settings=HMCRefine())
+    >>> x_new.shape, accepted.shape
+    (torch.Size([2, 8, 3, 4]), torch.Size([2, 8]))
     """
 
     p: Tensor

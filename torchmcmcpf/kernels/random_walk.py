@@ -31,6 +31,27 @@ _CHUNK_ELEMENTS = 1 << 22
 class RandomWalkNoise(NamedTuple):
     """Noise of one random-walk move: ``eps (B, C, K, D)`` normals, ``u (B, C)`` uniforms for
     the accept/reject and ``u_ancestor (B, C)`` for the Gibbs redraw of the ancestor.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels import JointNoise, RandomWalkNoise, init_chains, previous_cloud, random_walk_move
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> dynamics, g = TargetDynamics(motion), torch.Generator().manual_seed(0)
+    >>> cloud = previous_cloud(torch.zeros(2, 100, 3, 4), torch.full((2, 100), -math.log(100)), motion=motion)
+    >>> like, z = torch.zeros(2, 8, 3, 4), torch.zeros(2, 3, 2)   # chains (B, C, K, D); a frame (B, K, 2)
+    >>> chain = init_chains(cloud, JointNoise.draw(like, dynamics, generator=g), z, dynamics=dynamics, sensor=sensor)
+    >>> from torchmcmcpf.kernels.random_walk import adapted_step, prior_covariance
+    >>> noise = RandomWalkNoise.draw(like, motion, generator=g)
+    >>> noise.eps.shape, noise.u.shape, noise.u_ancestor.shape
+    (torch.Size([2, 8, 3, 4]), torch.Size([2, 8]), torch.Size([2, 8]))
+    >>> step = adapted_step(prior_covariance(cloud, motion), torch.float32)   # (B, 1, K, D, D)
+    >>> chain, accepted = random_walk_move(chain, noise, cloud=cloud, z=z, motion=motion, sensor=sensor, scale=step)
+    >>> accepted.shape
+    torch.Size([2, 8])
     """
 
     eps: Tensor

@@ -194,6 +194,20 @@ class GroupStructurePrior(nn.Module):
     scale, power : of the default closeness (default 300 m and 2: two targets 300 m apart are
         in one group with score ``e^{-1/2}``); the group-merge scenario sets them from its
         geometry (:func:`~torchmcmcpf.scenarios.group_merge.group_merge`).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.models.group import GroupStructurePrior, group_structures
+    >>> prior = GroupStructurePrior(p_nc=0.6, p_q=0.05)
+    >>> group_structures(2)                                  # Bell(2) = 2 structures: together, apart
+    tensor([[0, 0],
+            [0, 1]])
+    >>> pos = torch.tensor([[[0.0, 0.0], [20.0, 0.0]]], dtype=torch.float64)   # (S, K, 2): 20 m apart
+    >>> prior.log_scores(pos, torch.tensor([[True, True]])).exp().round(decimals=3)
+    tensor([[0.9980, 0.0020]], dtype=torch.float64)
+    >>> prior.sample(torch.tensor([1]), pos, torch.tensor([[True, True]]), generator=torch.Generator()).shape
+    torch.Size([1])
     """
 
     def __init__(self, p_nc: float, p_q: float, closeness: Callable[[Tensor, Tensor], Tensor] | None = None, *,
@@ -308,6 +322,20 @@ class GroupExistence(BirthDeath):
     group_birth_std : ``(s_p [m], s_v [m/s])`` of ``Q_bT`` (default (50, 2)).
     leader_birth_std : ``(s_p, s_v)`` of ``Q_bVL`` (default (50, 2)).
     x_death, v_death : (4,) (default zeros).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.models.group import GroupExistence
+    >>> existence = GroupExistence(0.2, 0.05, ((0.0, 1000.0), (0.0, 2000.0)))   # P_B, P_D, area
+    >>> pos = torch.tensor([[500.0, 500.0], [1500.0, 500.0]])    # (K, 2): inside, outside
+    >>> existence.log_p0_position(pos)                      # uniform: -log(1000 * 2000) inside
+    tensor([-14.5087,     -inf])
+    >>> existence.sample_p0_position((3, 2), generator=torch.Generator()).shape
+    torch.Size([3, 2, 2])
+    >>> existence.group_birth_cov                           # Q_bT per axis, diag(50^2, 2^2)
+    tensor([[2500.,    0.],
+            [   0.,    4.]], dtype=torch.float64)
     """
 
     group_birth_cov: Tensor  # (2, 2) Q_bT per axis
@@ -359,6 +387,15 @@ class ExistenceLimit(NamedTuple):
         expectation is an exact enumeration, ``t <= window``).
     stationary : the long-run mean of the posterior, ``lim_t E[P(alive at t | d_1:t)]``.
     stationary_error : half-width of its bracket.
+
+    Example
+    -------
+    >>> from torchmcmcpf.models.group import existence_limit
+    >>> limit = existence_limit(30, p_birth=0.2, p_death=0.05, p_d1=0.9, p_fa=0.01, window=8)
+    >>> limit.per_step[:3]                                  # exact for t <= window
+    tensor([0.8642, 0.9438, 0.9576], dtype=torch.float64)
+    >>> round(limit.stationary, 4), limit.stationary_error < 1e-6   # x K targets: the count's ceiling
+    (0.9594, True)
     """
 
     per_step: Tensor
@@ -480,6 +517,24 @@ class AffineTransition(NamedTuple):
     free_birth : (*S, K) bool, independent births ``Upsilon_2^1`` (position from ``p_0``).
     born_gain : (*S, 4K, K) how those newborns' positions (per axis) enter the mean: the new
         leaders of eq. 35 (the offset ``r`` holds ``born_gain @ pos_born``).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.models.group import GroupExistence, VirtualLeaderMotion
+    >>> motion = VirtualLeaderMotion(alpha=0.0006, beta=0.05, gamma1=0.001, gamma2=0.001, sigma_x=0.2,
+    ...                              sigma_g=0.5, dt=5.0)          # paper 004 Table 1
+    >>> existence = GroupExistence(0.2, 0.05, ((0.0, 1000.0), (0.0, 1000.0)))
+    >>> x = torch.tensor([[[100.0, 1.0, 100.0, 0.0], [120.0, 1.0, 100.0, 0.0]]], dtype=torch.float64)
+    >>> v = torch.tensor([[[110.0, 1.0, 100.0, 0.0], [0.0, 0.0, 0.0, 0.0]]], dtype=torch.float64)
+    >>> labels, alive = torch.tensor([[0, 0]]), torch.tensor([[True, True]])   # (S, K): one group of two
+    >>> tr = motion.transition(x[..., 0::2], labels, labels, alive, alive, existence=existence)
+    >>> tr.Psi.shape, tr.r.shape, tr.Q.shape                # 4K = 8 per axis
+    (torch.Size([1, 8, 8]), torch.Size([1, 2, 8]), torch.Size([1, 8, 8]))
+    >>> tr.random            # [pos, vel, leader pos, leader vel] x 2 slots: group 1 has no leader
+    tensor([[ True,  True,  True,  True,  True, False,  True, False]])
+    >>> tr.observed, tr.free_birth                          # two survivors, no independent birth
+    (tensor([[True, True]]), tensor([[False, False]]))
     """
 
     Psi: Tensor
@@ -503,6 +558,25 @@ class VirtualLeaderMotion(nn.Module):
     dt : ``tau`` [s] (Table 1: 5).
     r1, r2 : repulsion constants ``R_1``, ``R_2`` of eq. 11 (Table 1: 8, 12); ``None`` (default)
         switches the repulsion off.
+
+    Example
+    -------
+    Two targets (``x (S, K, 4)``) in one group led by leader slot 0 (``v (S, K, 4)``):
+
+    >>> import torch
+    >>> from torchmcmcpf.models.group import GroupExistence, VirtualLeaderMotion
+    >>> motion = VirtualLeaderMotion(alpha=0.0006, beta=0.05, gamma1=0.001, gamma2=0.001, sigma_x=0.2,
+    ...                              sigma_g=0.5, dt=5.0)          # paper 004 Table 1
+    >>> existence = GroupExistence(0.2, 0.05, ((0.0, 1000.0), (0.0, 1000.0)))
+    >>> x = torch.tensor([[[100.0, 1.0, 100.0, 0.0], [120.0, 1.0, 100.0, 0.0]]], dtype=torch.float64)
+    >>> v = torch.tensor([[[110.0, 1.0, 100.0, 0.0], [0.0, 0.0, 0.0, 0.0]]], dtype=torch.float64)
+    >>> labels, alive = torch.tensor([[0, 0]]), torch.tensor([[True, True]])   # (S, K): one group of two
+    >>> x_next, v_next = motion.sample(x, v, labels, labels, alive, alive, existence=existence,
+    ...                                generator=torch.Generator().manual_seed(0))
+    >>> x_next.shape, v_next.shape
+    (torch.Size([1, 2, 4]), torch.Size([1, 2, 4]))
+    >>> motion.log_prob(x_next, v_next, x, v, labels, labels, alive, alive, existence=existence).shape   # (S,)
+    torch.Size([1])
     """
 
     #: per-target state size of the ``[x, vx, y, vy]`` layout (the filters' ``motion.dim``)
@@ -824,6 +898,16 @@ class KalmanStats(NamedTuple):
     ----------
     mean : (*S, 2, 3K) one row per axis.
     cov : (*S, 3K, 3K) shared by both axes.
+
+    Example
+    -------
+    >>> from torchmcmcpf.models.group import GroupExistence, pairwise_kalman_init
+    >>> existence = GroupExistence(0.2, 0.05, ((0.0, 1000.0), (0.0, 1000.0)))
+    >>> stats = pairwise_kalman_init((5,), 2, existence=existence)   # 5 samples, K = 2: all inactive
+    >>> stats.mean.shape, stats.cov.shape                   # w = [velocities, leader pos, leader vel]
+    (torch.Size([5, 2, 6]), torch.Size([5, 6, 6]))
+    >>> float(stats.cov.abs().max())                        # nothing uncertain yet
+    0.0
     """
 
     mean: Tensor
@@ -840,6 +924,27 @@ class GroupPrediction(NamedTuple):
     cov : (*S, 4K, 4K).
     transition : the AffineTransition it came from (``observed``, ``free_birth``,
         ``born_gain``).
+
+    Example
+    -------
+    One step of the pairwise Kalman filter (eqs. 47-58):
+
+    >>> import torch
+    >>> from torchmcmcpf.models.group import GroupExistence, VirtualLeaderMotion
+    >>> motion = VirtualLeaderMotion(alpha=0.0006, beta=0.05, gamma1=0.001, gamma2=0.001, sigma_x=0.2,
+    ...                              sigma_g=0.5, dt=5.0)          # paper 004 Table 1
+    >>> existence = GroupExistence(0.2, 0.05, ((0.0, 1000.0), (0.0, 1000.0)))
+    >>> x = torch.tensor([[[100.0, 1.0, 100.0, 0.0], [120.0, 1.0, 100.0, 0.0]]], dtype=torch.float64)
+    >>> v = torch.tensor([[[110.0, 1.0, 100.0, 0.0], [0.0, 0.0, 0.0, 0.0]]], dtype=torch.float64)
+    >>> labels, alive = torch.tensor([[0, 0]]), torch.tensor([[True, True]])   # (S, K): one group of two
+    >>> from torchmcmcpf.models.group import pairwise_kalman_init, pairwise_kalman_predict, pairwise_kalman_update
+    >>> tr = motion.transition(x[..., 0::2], labels, labels, alive, alive, existence=existence)
+    >>> pred = pairwise_kalman_predict(pairwise_kalman_init((1,), 2, existence=existence), x[..., 0::2], tr)
+    >>> pred.position_mean.shape, pred.position_cov.shape   # (S, K, 2), (S, K, K) per axis
+    (torch.Size([1, 2, 2]), torch.Size([1, 2, 2]))
+    >>> log_pred, stats = pairwise_kalman_update(pred, x[..., 0::2])   # condition on positions at t
+    >>> log_pred.shape, stats.mean.shape
+    (torch.Size([1]), torch.Size([1, 2, 6]))
     """
 
     mean: Tensor

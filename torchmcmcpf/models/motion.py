@@ -30,6 +30,18 @@ class LinearGaussianMotion(MotionModel):
 
     Attributes ``F``, ``Q`` and ``L`` (lower Cholesky factor of Q) are buffers, so
     ``.to(device)`` moves them with the filter. Used directly for Kalman cross-checks.
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.models.motion import LinearGaussianMotion
+    >>> motion = LinearGaussianMotion(F=torch.tensor([[0.9]]), Q=torch.tensor([[0.19]]))  # AR(1), D = 1
+    >>> x = torch.ones(10000, 1, 1)                          # (N, K, D)
+    >>> x_next = motion.sample(x, generator=torch.Generator().manual_seed(0))
+    >>> x_next.shape, motion.log_prob(x_next, x).shape
+    (torch.Size([10000, 1, 1]), torch.Size([10000, 1]))
+    >>> round(x_next.mean().item(), 1), round(x_next.var().item(), 2)   # F x = 0.9, Q = 0.19
+    (0.9, 0.19)
     """
 
     F: Tensor
@@ -143,6 +155,19 @@ class WhiteAccelerationMotion(MotionModel):
     dt : T > 0 (paper: 1).
     sigma : ``(s_x, s_y)`` acceleration standard deviations, or one float for both
         (paper: 1).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.models.motion import WhiteAccelerationMotion
+    >>> motion = WhiteAccelerationMotion(dt=1.0, sigma=1.0)
+    >>> x = torch.tensor([[0.0, 1.0, 0.0, 2.0]])             # (K, D) = [x, vx, y, vy]
+    >>> motion.noise_dim                                     # one acceleration per axis
+    2
+    >>> motion.propagate(x, torch.tensor([[1.0, 0.0]]))      # a unit push along x: +T^2/2, +T
+    tensor([[1.5000, 2.0000, 2.0000, 2.0000]])
+    >>> motion.sample(x.expand(5, 1, 4), generator=torch.Generator()).shape
+    torch.Size([5, 1, 4])
     """
 
     A: Tensor
@@ -195,6 +220,19 @@ class ProcessNoiseScale(MotionModel):
     ----------
     base : LinearGaussianMotion (F, Q).
     scale : (M,) positive scales, one per leading (batch) entry of the states it moves.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.models.motion import ProcessNoiseScale
+    >>> motion = ProcessNoiseScale(tp.ConstantVelocity(dt=1.0, q=1.0), torch.tensor([1.0, 4.0]))
+    >>> x = torch.zeros(2, 1, 4)                            # (M, K, D): entry 1 has q = 4
+    >>> motion.log_prob(x, x)                               # 4 x the covariance in D = 4: - 2 log 4 lower
+    tensor([[-1.1908],
+            [-3.9634]])
+    >>> motion.sample(x, generator=torch.Generator()).shape
+    torch.Size([2, 1, 4])
     """
 
     scale: Tensor

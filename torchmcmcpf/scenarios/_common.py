@@ -37,6 +37,19 @@ class Scenario:
     snr_db : (B, K)
         Signal-to-noise ratio of each target [dB].
     dt : sampling time [s].
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> g = torch.Generator().manual_seed(0)
+    >>> scene = tp.scenarios.ground_radar(num_targets=2, num_steps=3, batch_size=4, generator=g)
+    >>> scene.truth.shape, scene.measurements.shape      # (T, B, K, D), (T, B, Nr, Nd, Nb)
+    (torch.Size([3, 4, 2, 5]), torch.Size([3, 4, 36, 22, 21]))
+    >>> type(scene.sensor).__name__, type(scene.motion).__name__   # the models the filters should use
+    ('RangeDopplerBearingTBD', 'ConstantVelocity')
+    >>> scene.initial_particles(100, generator=g).shape  # (B, N, K, D) around the truth before frame 0
+    torch.Size([4, 100, 2, 5])
     """
 
     truth: Tensor

@@ -85,6 +85,16 @@ class GroupMergeScenario(NamedTuple):
     existence : GroupExistence (paper: ``P_B = 0.2``, ``P_D = 0.05``);
     structure_prior : GroupStructurePrior (paper: ``P_NC = 0.6``, ``P_Q = 0.05``).
     merge_step : 0-based index of the first merged step.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> scene = tp.scenarios.group_merge(1, generator=torch.Generator().manual_seed(0), num_steps=50, merge_step=20)
+    >>> scene.truth.shape, scene.frames.shape, scene.frames.dtype   # (T, B, K, 4), (T, B, H, W) pixels
+    (torch.Size([50, 1, 4, 4]), torch.Size([50, 1, 100, 100]), torch.bool)
+    >>> scene.labels[0], scene.labels[-1]                # two groups of two, then one group of four
+    (tensor([[0, 0, 1, 1]]), tensor([[0, 0, 0, 0]]))
     """
 
     truth: Tensor

@@ -76,6 +76,16 @@ class LingScenario(Scenario):
     ``[x, vx, y, vy, P]``, the frames ``(T, B, Na, Nr)``, ``snr_db (B, K)``. Its
     :meth:`~Scenario.initial_particles` know the power by default (``spread = (5 m, 1 m/s, 0)``,
     :data:`INITIAL_SPREAD`).
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> scene = tp.scenarios.ling(10.0, 2, generator=torch.Generator().manual_seed(0), num_steps=3)
+    >>> scene.truth.shape, scene.measurements.shape      # three targets; (T, B, Na, Nr) frames
+    (torch.Size([3, 2, 3, 5]), torch.Size([3, 2, 51, 10]))
+    >>> scene.range_resolution, scene.snr_db[0]
+    (10.0, tensor([10., 10., 10.]))
     """
 
     initial_spread = INITIAL_SPREAD

@@ -12,7 +12,8 @@ Design for the known, time-varying number of targets (the paper's filter knows K
 state has ``K_max = 4`` slots and an ``exists (B, N, K)`` mask dictated by the scenario's
 schedule ``alive (T+1, K)``. Slot 0 lives throughout; slot 1 holds the second initial
 target (t = 0, 1), dies at t = 2 and is reused by the target born at t = 3; slots 2 and 3
-are born at t = 4 and t = 5. :func:`track` runs a filter over the scenario: before each
+are born at t = 4 and t = 5. A filter runs over the scenario
+(:func:`torchmcmcpf.experiments.maroulas_hmc.track`; scenarios never import filters): before each
 step the slots that died are switched off; after it, the newborn slots get particles
 from the birth density. Birth density (paper 003 sec. 2: "the perturbed bearing and range
 were transformed back to xy space to create the position of the newborn target"): per
@@ -29,7 +30,6 @@ from typing import NamedTuple
 import torch
 
 from .._validation import check_generator, check_positive_int
-from ..filters.base import Filter
 from ..models.base import MotionModel
 from ..models.motion import WhiteAccelerationMotion
 from ..models.sensors.association import (
@@ -40,7 +40,6 @@ from ..models.sensors.association import (
     shuffle,
 )
 from ..runtime import check_allocation
-from ..state import ParticleState
 from ..typing import VX, VY, Tensor, X, Y
 
 __all__ = [
@@ -51,8 +50,6 @@ __all__ = [
     "paper_sensor",
     "simulate",
     "birth_particles",
-    "track",
-    "TrackResult",
     "rmse_per_target",
     "OBSERVATIONS",
     "K_MAX",
@@ -185,82 +182,6 @@ def birth_particles(sensor: AssociationSensor, z: Tensor, num_particles: int, *,
     pos = sensor.to_position(z.unsqueeze(1) + w * sensor.noise_std.to(z.dtype))
     vel = _uniform((b, num_particles, k, 2), -1.0, 1.0, generator=generator, dtype=z.dtype, device=z.device)
     return torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
-
-
-class TrackResult(NamedTuple):
-    """What :func:`track` returns.
-
-    Attributes
-    ----------
-    mean : (T+1, B, K, 4) estimates (time 0: the mean of the initial cloud).
-    ess : (T, B) effective sample size of each step's weights.
-    acceptance : (T, B) HMC acceptance, or None for filters without a move.
-    ess_after_move : (T, B) ESS of ``g`` over the particles each step returns (paper 003
-        sec. 1.3's reading; ``info.extras["ess_after_move"]``), or None for a filter
-        without it.
-    """
-
-    mean: Tensor
-    ess: Tensor
-    acceptance: Tensor | None
-    ess_after_move: Tensor | None = None
-
-
-def track(filt: Filter, data: MaroulasData, *, generator: torch.Generator,
-          progress: bool = False) -> TrackResult:
-    """Run ``filt`` over a simulated scenario with the scenario's births and deaths.
-
-    Parameters
-    ----------
-    filt : a Filter whose sensor is an AssociationSensor (e.g. ResampleMoveFilter, or
-        SIRFilter).
-    data : from :func:`simulate`.
-    generator : source of randomness.
-    progress : tqdm bar over time.
-
-    Returns
-    -------
-    :class:`TrackResult`.
-    """
-    check_generator(generator)
-    n = filt.num_particles
-    alive = data.alive
-    sensor = filt.sensor
-    if not isinstance(sensor, AssociationSensor):
-        raise ValueError(f"filt.sensor must be an AssociationSensor (births are drawn around its measurements), "
-                         f"got {type(sensor).__name__}")
-    x0 = birth_particles(sensor, data.z_slot[0], n, generator=generator)
-    x0 = torch.where(alive[0].unsqueeze(1).unsqueeze(-1), x0, torch.zeros_like(x0))
-    state = filt.init(x0, alive[0].unsqueeze(1).expand(-1, n, -1))
-    means, esss, accs, after = [state.mean()], [], [], []
-    steps = range(1, alive.shape[0])
-    if progress:
-        from tqdm.auto import tqdm
-
-        steps = tqdm(steps, desc=type(filt).__name__, leave=False)
-    for t in steps:
-        state = state._replace(exists=_flags(state) & alive[t].unsqueeze(1))  # deaths
-        frame = PointFrame(data.frames.z[t], data.frames.mask[t])
-        state, info = filt.step(state, frame, generator=generator)
-        born = alive[t] & ~alive[t - 1]  # (B, K), the same for every run
-        if bool(born.any()):
-            xb = birth_particles(sensor, data.z_slot[t], n, generator=generator)
-            bn = born.unsqueeze(1)
-            state = ParticleState(torch.where(bn.unsqueeze(-1), xb, state.x), state.log_w, _flags(state) | bn)
-        means.append(filt.estimate(state))
-        esss.append(info.ess)
-        accs.append(info.acceptance)
-        after.append(info.extras.get("ess_after_move"))
-    acc = torch.stack(accs)
-    return TrackResult(torch.stack(means), torch.stack(esss), None if bool(torch.isnan(acc).all()) else acc,
-                       None if any(a is None for a in after) else torch.stack([a for a in after if a is not None]))
-
-
-def _flags(state: ParticleState) -> Tensor:
-    """``state.exists (B, N, K)``; a ValueError if the filter returned a state without flags."""
-    if state.exists is None:
-        raise ValueError("the filter returned a state with exists=None; track needs existence flags")
-    return state.exists
 
 
 def rmse_per_target(mean: Tensor, x_true: Tensor, alive: Tensor) -> Tensor:

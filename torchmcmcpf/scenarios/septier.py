@@ -52,6 +52,19 @@ class SeptierScenario(NamedTuple):
     measurements : PointFrame ``(z (T, B, M, 2), mask (T, B, M))``.
     motion : ConstantVelocity; sensor : PoissonClutterPoints; existence : BirthDeath
         (births near the measurements, ``birth_std`` = the noise standard deviation).
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> scene = tp.scenarios.septier(2, 5, generator=torch.Generator().manual_seed(5))
+    >>> scene.truth.shape, scene.alive.shape             # (T, B, K, D) in K slots, (T, B, K)
+    (torch.Size([5, 2, 5, 4]), torch.Size([5, 2, 5]))
+    >>> scene.measurements.z.shape                       # (T, B, M, 2), padded: mask (T, B, M)
+    torch.Size([5, 2, 32, 2])
+    >>> scene.true_count.T                               # (B, T): deaths in both runs
+    tensor([[4, 4, 3, 3, 3],
+            [1, 1, 1, 0, 0]])
     """
 
     truth: Tensor

@@ -11,23 +11,20 @@ the accepted moves by :func:`add_accepted_changes`, the one place where it chang
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import torch
 
 from ....typing import Tensor
+from ._protocol import GridSensorLike
 from .delta import box_in_box
 from .inputs import check_inputs, check_move, check_state, flat_inputs
 from .slots import truncated_amplitude
 from .spread import neighbour_profiles, outer_sum
 
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
-
 __all__ = ["amplitude_cache", "log_likelihood_delta_cached", "add_accepted_changes"]
 
 
-def amplitude_cache(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None = None) -> Tensor:
+def amplitude_cache(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) -> Tensor:
     """Each sample's amplitude per cell, ``(B, *S, G)`` flat over the grid."""
     check_state(sensor, x, exists)
     u, s, _ = flat_inputs(sensor, x, exists)  # (B, P, K, n), (B, P, K)
@@ -36,7 +33,7 @@ def amplitude_cache(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | Non
     return truncated_amplitude(geometry, sensor.all_bins(), u, s, firsts).reshape(x.shape[:-2] + (geometry.num_cells,))
 
 
-def log_likelihood_delta_cached(sensor: SeparableGridSensor, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor,
+def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor,
                                 z: Tensor, exists: Tensor | None = None, exists_n: Tensor | None = None
                                 ) -> tuple[Tensor, Tensor, Tensor]:
     """The change of a move of one slot or of ``M`` slots read from the cache: ``(delta (B,
@@ -59,7 +56,7 @@ def log_likelihood_delta_cached(sensor: SeparableGridSensor, cache: Tensor, x: T
         change.reshape((B,) + S + change.shape[2:])
 
 
-def _change(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
+def _change(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
             exists_n: Tensor | None) -> tuple[Tensor, Tensor, list[Tensor]]:
     """Where and by how much the move changes the cache, flat over the samples: ``cells,
     change (B, P, 2M, *V)`` over the boxes old, new of the first moved slot, then of the next

@@ -6,20 +6,17 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import torch
 
 from ....resampling import cdf, inverse_cdf
 from ....typing import Tensor
 from ...base import neighbourhood
-
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
+from ._protocol import GridSensorLike
 
 __all__ = ["peaks", "detections", "log_data_density", "sample_from_data"]
 
-def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
+def peaks(sensor: GridSensorLike, z: Tensor) -> Tensor:
     """The cells at which :func:`detections` finds its peaks: ``(B, *G)`` bool."""
     B, G = z.shape[0], sensor.geometry.num_cells
     _, mask, at = _clean(sensor, sensor.detection_statistic(z))
@@ -28,7 +25,7 @@ def peaks(sensor: SeparableGridSensor, z: Tensor) -> Tensor:
     return out[:, :G].reshape(z.shape)
 
 
-def detections(sensor: SeparableGridSensor, z: Tensor) -> tuple[Tensor, Tensor]:
+def detections(sensor: GridSensorLike, z: Tensor) -> tuple[Tensor, Tensor]:
     """The frame's peaks as points, found by CLEAN (Hogbom 1974): ``centres (B, P, n)``
     (``P = min(max_peaks, G)``, strongest first, padded) and ``mask (B, P)``.
 
@@ -56,7 +53,7 @@ def _spread(cells: Tensor, centre: Tensor, width: Tensor) -> Tensor:
     return torch.exp(-0.5 * ((cells - centre.unsqueeze(1)) / width).square().sum(-1))
 
 
-def _clean(sensor: SeparableGridSensor, stat: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _clean(sensor: GridSensorLike, stat: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """CLEAN over the statistic ``stat (B, *G)`` (:func:`detections`): centres in cell
     units ``(B, P, n)``, ``mask (B, P)`` and the peaks' flat cells ``(B, P)``.
 
@@ -107,7 +104,7 @@ def _clean(sensor: SeparableGridSensor, stat: Tensor) -> tuple[Tensor, Tensor, T
     return centres, mask, cells
 
 
-def log_data_density(sensor: SeparableGridSensor, coords: Tensor, centres: Tensor, mask: Tensor) -> Tensor:
+def log_data_density(sensor: GridSensorLike, coords: Tensor, centres: Tensor, mask: Tensor) -> Tensor:
     """``log g(u | z)`` at ``coords (B, *S, n)`` given the frame's detections: ``(B, *S)``."""
     geometry = sensor.geometry
     B, n = coords.shape[0], geometry.n_axes
@@ -128,7 +125,7 @@ def log_data_density(sensor: SeparableGridSensor, coords: Tensor, centres: Tenso
     return log_q.reshape(coords.shape[:-1])
 
 
-def sample_from_data(sensor: SeparableGridSensor, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
+def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
                      dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
     """Draws ``coords (*shape, n)`` from ``g(u | z)`` and ``log p_0 - log g`` there ``(*shape)``."""
     geometry = sensor.geometry

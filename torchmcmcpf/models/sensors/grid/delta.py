@@ -7,22 +7,19 @@ overlap them (:meth:`~.sensor.SeparableGridSensor.log_likelihood_delta` states t
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import torch
 
 from ....typing import Tensor
 from . import whole
+from ._protocol import GridSensorLike
 from .inputs import check_inputs, check_move, flat_inputs, slots
 from .spread import neighbour_index, neighbour_profiles, outer_sum, with_neighbours
-
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
 
 __all__ = ["log_likelihood_delta", "box_in_box"]
 
 
-def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
+def log_likelihood_delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
                          exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
     """``log p(z | x with slot n = x_n) - log p(z | x)`` ``(B, *S)`` on the windowed path,
     or the difference of two whole-grid evaluations with ``method="grid"``.
@@ -53,7 +50,7 @@ def log_likelihood_delta(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n:
                            inputs).reshape((B,) + S)
 
 
-def _parts(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
+def _parts(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
            exists: Tensor | None, exists_n: Tensor | None) -> tuple[Tensor, ...]:
     """The arguments of :func:`log_likelihood_delta` (checked) -> ``(u_all, s, s_old, s_new,
     z, *firsts, others)``: ``u_all (B, P, K + 2, n)`` the coordinates of the K slots, then
@@ -81,7 +78,7 @@ def _parts(sensor: SeparableGridSensor, x: Tensor, x_n: Tensor, n: int | Tensor,
     return (u_all, s, s_old, s_new, z.to(x.dtype), *firsts, others)
 
 
-def _box_sums(sensor: SeparableGridSensor, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor,
+def _box_sums(sensor: GridSensorLike, count: int, u_all: Tensor, s: Tensor, s_old: Tensor, s_new: Tensor,
               z: Tensor, *rest: Tensor) -> Tensor:
     """:func:`log_likelihood_delta` ``(B, P)`` from :func:`_parts`, with ``count`` neighbour
     slots per box.

@@ -140,6 +140,16 @@ class GridGeometry:
     origins, cell_sizes : the first centre and the spacing of each axis.
     widths : the point-spread standard deviation ``w_a`` of each axis.
     window : the half-width of a box in cells.
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.models.sensors.grid import GridGeometry
+    >>> grid = GridGeometry((20, 30), origins=(0.0, 0.0), cell_sizes=(5.0, 1.0), widths=(5.0, 1.0), window=3)
+    >>> grid.num_cells, grid.window_sizes, grid.box_cells   # 7 x 7 cells per box, the last two merged
+    (600, (7, 7), (49,))
+    >>> grid.box_firsts(torch.tensor([[50.0, 1.0]]))        # a target at cell (10, 1): box from (7, 0)
+    [tensor([7.]), tensor([0.])]
     """
 
     frame_shape: tuple[int, ...]

@@ -6,19 +6,16 @@ so the hot paths stay compile-friendly; values are checked once per frame by the
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import torch
 
 from ....typing import Tensor
-
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
+from ._protocol import GridSensorLike
 
 __all__ = ["check_inputs", "check_state", "check_move", "flat_inputs", "slots"]
 
 
-def check_state(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None) -> None:
+def check_state(sensor: GridSensorLike, x: Tensor, exists: Tensor | None) -> None:
     """Shapes of a state ``x (B, *S, K, D)`` and its flags ``exists (B, *S, K)``."""
     if x.dim() < 3 or x.shape[-1] != sensor.dim:
         raise ValueError(f"x has shape {tuple(x.shape)}, expected (B, *S, K, {sensor.dim})")
@@ -26,7 +23,7 @@ def check_state(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None) -
         raise ValueError(f"exists has shape {tuple(exists.shape)}, expected {tuple(x.shape[:-1])}")
 
 
-def check_inputs(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tensor | None) -> None:
+def check_inputs(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor | None) -> None:
     """:func:`check_state` and the frame ``z (B, *G)`` against ``x``."""
     check_state(sensor, x, exists)
     if z.dim() != 1 + sensor.n_axes or tuple(z.shape[1:]) != sensor.frame_shape or z.shape[0] != x.shape[0]:
@@ -52,7 +49,7 @@ def check_move(x: Tensor, x_n: Tensor, exists_n: Tensor | None) -> bool:
     return many
 
 
-def flat_inputs(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+def flat_inputs(sensor: GridSensorLike, x: Tensor, exists: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """``x (B, *S, K, D) -> u (B, P, K, n), s (B, P, K), e (B, P, K)`` with ``P = prod(S)``;
     ``s`` already multiplied by the existence flags ``e`` (float, dtype of ``x``).
     """

@@ -7,19 +7,16 @@ the maths).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import torch
 
 from ....typing import Tensor
 from ...base import check_reference
 from . import chunks
+from ._protocol import GridSensorLike
 from .geometry import GridGeometry
 from .inputs import check_inputs
 from .spread import contract, neighbour_profiles, outer_sum, profiles
-
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
 
 __all__ = ["log_likelihood_slot_changes", "truncated_amplitude"]
 
@@ -36,7 +33,7 @@ def truncated_amplitude(geometry: GridGeometry, bins: Sequence[Tensor], u: Tenso
     return contract(s, truncated)
 
 
-def log_likelihood_slot_changes(sensor: SeparableGridSensor, ref: Tensor, x: Tensor, z: Tensor) -> Tensor:
+def log_likelihood_slot_changes(sensor: GridSensorLike, ref: Tensor, x: Tensor, z: Tensor) -> Tensor:
     """``ref (B, K, D)``, ``x (B, *S, K, D)``, ``z (B, *G)`` -> ``(B, *S, K)`` on the windowed
     path (blocks of samples sized from the memory budget).
     """
@@ -58,7 +55,7 @@ def log_likelihood_slot_changes(sensor: SeparableGridSensor, ref: Tensor, x: Ten
     return (moved - at_ref).reshape(x.shape[:-1])
 
 
-def _slot_term(sensor: SeparableGridSensor, y: Tensor, zc: Tensor, A: Tensor, u_ref: Tensor, s_ref: Tensor,
+def _slot_term(sensor: GridSensorLike, y: Tensor, zc: Tensor, A: Tensor, u_ref: Tensor, s_ref: Tensor,
                f_ref: Sequence[Tensor]) -> Tensor:
     """``term_k(y)`` of :meth:`~.sensor.SeparableGridSensor.log_likelihood_slot_changes` for a
     block: ``y (b, p, K, D)``, ``zc, A (b, *G)``, ``u_ref (b, K, n)``, ``s_ref (b, K)``,

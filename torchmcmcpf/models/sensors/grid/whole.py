@@ -5,27 +5,23 @@ over every cell, the amplitude ``A`` over the grid as ``sum_k s_k a_k(i_1) ... a
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from ....typing import Tensor
 from . import chunks
+from ._protocol import GridSensorLike
 from .inputs import check_inputs, flat_inputs
 from .spread import contract, profiles
-
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
 
 __all__ = ["log_likelihood", "signal_grid"]
 
 
-def signal_grid(sensor: SeparableGridSensor, x: Tensor, exists: Tensor | None = None) -> Tensor:
+def signal_grid(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) -> Tensor:
     """Noise-free signal ``A`` in every cell: ``x (B, *S, K, D) -> (B, *S, *G)`` (not chunked)."""
     u, s, _ = flat_inputs(sensor, x, exists)
     A = contract(s, profiles(sensor.geometry, sensor.all_bins(), u))
     return A.reshape(x.shape[:-2] + sensor.frame_shape)
 
 
-def log_likelihood(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
+def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
     """:meth:`~.sensor.SeparableGridSensor.cell_log_ratio` summed over every cell of the grid:
     ``x (B, *S, K, D)``, ``z (B, *G)``, ``exists (B, *S, K)`` -> ``(B, *S)``. Blocks of at most
     :func:`~.chunks.grid_chunk_size` rows of ``(B, prod(S))`` at a time (checkpointed under

@@ -5,22 +5,18 @@ spreads are truncated to each target's box, summed box by box over the union of 
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 
 from ....typing import Tensor
 from . import chunks
+from ._protocol import GridSensorLike
 from .inputs import check_inputs, flat_inputs
 from .spread import neighbour_index, neighbour_profiles, outer_sum, with_neighbours
-
-if TYPE_CHECKING:
-    from .sensor import SeparableGridSensor
 
 __all__ = ["log_likelihood", "parts"]
 
 
-def parts(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tensor | None = None) -> tuple[Tensor, ...]:
+def parts(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor | None = None) -> tuple[Tensor, ...]:
     """``x (b, p, K, D)``, ``z (b, *G)``, ``exists (b, p, K)`` -> ``(u, s, e, zc, *firsts,
     others)``: see :func:`~.inputs.flat_inputs`; ``firsts[a] (b, p, K)`` the box starts and
     ``others (b, p, J, K)`` whether the boxes of live targets ``j != k`` overlap.
@@ -35,7 +31,7 @@ def parts(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tensor | No
     return (u, s, e, sensor.prepare_frame(z.to(x.dtype)), *firsts, others)
 
 
-def _box_sums(sensor: SeparableGridSensor, count: int, u: Tensor, s: Tensor, e: Tensor, zc: Tensor,
+def _box_sums(sensor: GridSensorLike, count: int, u: Tensor, s: Tensor, e: Tensor, zc: Tensor,
               *rest: Tensor) -> Tensor:
     """Windowed log-likelihood ``(b, p)`` of a block of samples from :func:`parts`, with
     ``count`` neighbour slots per box (at least the most other boxes overlapping one box).
@@ -58,7 +54,7 @@ def _box_sums(sensor: SeparableGridSensor, count: int, u: Tensor, s: Tensor, e: 
     return torch.where(owned, sensor.cell_log_ratio(A, zw), 0.0).sum(tuple(range(2, 3 + len(V))))
 
 
-def log_likelihood(sensor: SeparableGridSensor, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
+def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
     """The windowed log-likelihood ``(B, *S)`` of ``x (B, *S, K, D)``, blocks of at most
     :func:`~.chunks.window_chunk_size` samples (checkpointed under autograd).
     """
