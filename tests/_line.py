@@ -39,7 +39,7 @@ class LineSensor(SensorModel):
         log_u = -math.log(FOV[1] - FOV[0])
         return torch.logaddexp(torch.full_like(near, math.log(P_U) + log_u), math.log1p(-P_U) + near)
 
-    def sample_from_data(self, z, shape, *, generator, dtype=torch.float32):
+    def sample_from_data(self, z, shape, *, generator, dtype=torch.float32, scored=None):
         b, k = z.shape[:2]
         q = math.prod(shape[1:])
         pick = torch.randint(k, (b, q), generator=generator)
@@ -47,8 +47,10 @@ class LineSensor(SensorModel):
         flat = FOV[0] + (FOV[1] - FOV[0]) * torch.rand(b, q, generator=generator, dtype=DT)
         u = torch.where(torch.rand(b, q, generator=generator, dtype=DT) < P_U, flat, near)
         inside = (u >= FOV[0]) & (u <= FOV[1])
-        log_ratio = torch.where(inside, -math.log(FOV[1] - FOV[0]) - self.log_g(u, z), -math.inf)
-        return u.reshape(tuple(shape) + (1,)).to(dtype), log_ratio.reshape(tuple(shape)).to(dtype)
+        log_ratio = torch.where(inside, -math.log(FOV[1] - FOV[0]) - self.log_g(u, z), -math.inf).reshape(tuple(shape))
+        if scored is not None:  # the protocol: 0 where no move reads the ratio
+            log_ratio = torch.where(scored, log_ratio, 0.0)
+        return u.reshape(tuple(shape) + (1,)).to(dtype), log_ratio.to(dtype)
 
 
 def log_fov(u):

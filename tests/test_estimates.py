@@ -97,3 +97,56 @@ def test_densest_place_matches_a_direct_count():
                     best, best_at = s, pos_l[r, p, lab]
         assert math.isclose(float(support[r]), best, rel_tol=1e-12)
         assert torch.equal(at[r], best_at)
+
+
+def _relabel_reference(cost, cutoff):
+    """The relabelling rule written plainly (every row searched, every sweep over all rows):
+    the cheapest-label permutation where distinct, else pairwise swaps from the own labels
+    until none lowers the cost; the own labels kept unless the result saves > (cutoff/4)^2."""
+    b, n, k, _ = cost.shape
+    out = torch.empty((b, n, k), dtype=torch.int64)
+    for i in range(b):
+        for j in range(n):
+            c = cost[i, j]
+            nearest = c.argmin(-1)
+            if sorted(nearest.tolist()) == list(range(k)):
+                label = nearest.clone()
+            else:
+                label = torch.arange(k)
+                for _ in range(k * (k - 1) // 2):
+                    best, at = 1e-9 * cutoff**2, None
+                    for a in range(k):
+                        for d in range(a + 1, k):
+                            g = c[a, label[a]] + c[d, label[d]] - c[a, label[d]] - c[d, label[a]]
+                            if g > best:
+                                best, at = g, (a, d)
+                    if at is None:
+                        break
+                    a, d = at
+                    label[a], label[d] = label[d].clone(), label[a].clone()
+            own = torch.diagonal(c).sum()
+            if own - c[torch.arange(k), label].sum() <= (cutoff / 4) ** 2:
+                label = torch.arange(k)
+            out[i, j] = torch.argsort(label)
+    return out
+
+
+def test_relabel_order_matches_the_plain_rule():
+    """The settled rows and the shrinking swap search give the labels of the plain rule, on
+    clouds with exchanged labels, close targets and absent slots sharing x_death (ties)."""
+    from torchmcmcpf.state import relabel_order
+
+    g = torch.Generator().manual_seed(4)
+    b, n, k, cutoff = 3, 60, 4, 100.0
+    centres = torch.tensor([[0.0, 0.0], [150.0, 0.0], [0.0, 60.0], [400.0, 400.0]], dtype=torch.float64)
+    perm = torch.stack([torch.randperm(k, generator=g) if i % 3 else torch.arange(k) for i in range(b * n)])
+    pos = centres[perm].reshape(b, n, k, 2) + 30.0 * torch.randn(b, n, k, 2, generator=g, dtype=torch.float64)
+    dead = torch.rand(b, n, k, generator=g) < 0.3
+    pos = torch.where(dead.unsqueeze(-1), torch.zeros_like(pos), pos)  # absent slots at x_death = 0
+    x = torch.zeros(b, n, k, 4, dtype=torch.float64)
+    x[..., 0], x[..., 2] = pos[..., 0], pos[..., 1]
+    ref = x[:, 0].clone()
+    got = relabel_order(x, ref, cutoff=cutoff)
+    d2 = (pos.unsqueeze(-2) - torch.stack([ref[..., 0], ref[..., 2]], -1)[:, None, None]).square().sum(-1)
+    cost = d2.clamp(max=cutoff**2)
+    assert torch.equal(got, _relabel_reference(cost, cutoff))

@@ -126,3 +126,36 @@ def test_bad_settings_raise(kw, match):
     args = {"p_birth": 0.1, "p_death": 0.1, "area": AREA, "velocity_std": 1.0, **kw}
     with pytest.raises(ValueError, match=match):
         BirthDeath(args.pop("p_birth"), args.pop("p_death"), args.pop("area"), **args)
+
+
+def test_birth_ratios_are_taken_where_a_slot_can_be_born(gen):
+    """The birth noise scores a candidate (a sum over the frame's points) only where its
+    uniform can turn an inactive slot on (``may_be_born``); the candidates, and every ratio a
+    transition reads, are those of scoring all of them."""
+    bd = BirthDeath(0.1, 0.05, AREA, velocity_std=3.0, birth_std=20.0, p_uniform=0.2).double()
+    bd = bd.with_proposal((0.3, 0.1))
+    pts = torch.tensor([[[100.0, 100.0], [900.0, 400.0], [0.0, 0.0]]], dtype=torch.float64)
+    frame = PointFrame(pts, torch.tensor([[True, True, False]]))
+    x = torch.zeros(1, 400, 3, 4, dtype=torch.float64)
+    exists = torch.rand(1, 400, 3, generator=gen) < 0.5
+    motion = ConstantVelocity(1.0, 1.0).double()
+    eps, noise = bd.draw_noise(x, motion, frame, generator=torch.Generator().manual_seed(2))
+    u = noise.u
+    full_x, full_r = bd._draw_births(u.shape, frame, generator=_after_uniforms(u, motion), dtype=u.dtype,
+                                     device=u.device)
+    assert torch.equal(noise.x, full_x)
+    can = bd.may_be_born(u)
+    assert 0 < int(can.sum()) < can.numel() and torch.equal(can, u < 0.3)
+    assert torch.equal(noise.log_ratio, torch.where(can, full_r, 0.0))
+    for from_prior in (False, True):
+        _, _, log_r = bd.propagate(x, exists, eps, noise, motion=motion, from_prior=from_prior)
+        _, _, ref = bd.propagate(x, exists, eps, noise._replace(log_ratio=full_r), motion=motion, from_prior=from_prior)
+        assert torch.equal(log_r, ref)
+
+
+def _after_uniforms(u, motion):
+    """The generator of ``draw_noise`` after its uniforms and motion noise (seed 2)."""
+    g = torch.Generator().manual_seed(2)
+    torch.rand(u.shape, generator=g, dtype=u.dtype)
+    torch.randn(u.shape + (motion.noise_dim,), generator=g, dtype=u.dtype)
+    return g

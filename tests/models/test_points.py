@@ -118,3 +118,65 @@ def test_validate_rejects_bad_input():
 def test_bad_settings_raise(kw, match):
     with pytest.raises(ValueError, match=match):
         sensor(**kw)
+
+
+# ----------------------------------------------------------------------------- the chains' intensity cache
+def test_intensity_cache_delta_and_updates_follow_the_chains(gen):
+    """The cached one- and two-slot ratios equal the difference of two full evaluations, and
+    adding the accepted moves' changes keeps the cache equal to one made afresh (float64)."""
+    s = sensor()
+    b, c, k = 2, 6, 4
+    x = torch.randn(b, c, k, 4, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0, 0, 0])
+    exists = torch.rand(b, c, k, generator=gen) < 0.6
+    pts = torch.randn(b, 7, 2, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0])
+    pts[:, 0] = x[:, 0, 0, [0, 2]]  # a point on a slot: its term dominates the clutter there
+    z = PointFrame(pts, torch.arange(7).expand(b, 7) < torch.tensor([[7], [5]]))  # run 1 has padding
+    cache = s.amplitude_cache(x, exists, z)
+    assert cache.shape == (b, c, 7) and cache.dtype == torch.float64
+    for moved in (1, 2):
+        for _ in range(4):
+            slot = torch.stack([torch.randperm(k, generator=gen)[:moved] for _ in range(b * c)]).reshape(b, c, moved)
+            x_n = torch.randn(b, c, moved, 4, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0, 0, 0])
+            e_n = torch.rand(b, c, moved, generator=gen) < 0.5
+            delta, cells, change = s.log_likelihood_delta_cached(cache, x, x_n, slot, z, exists, e_n)
+            here = torch.nn.functional.one_hot(slot, k).sum(-2).bool()  # (B, C, K)
+            x_new, e_new = x.clone(), exists.clone()
+            x_new.scatter_(2, slot.unsqueeze(-1).expand(-1, -1, -1, 4), x_n)
+            e_new.scatter_(2, slot, e_n)
+            ref = s.log_likelihood(x_new, z, e_new) - s.log_likelihood(x, z, exists)
+            torch.testing.assert_close(delta, ref, rtol=1e-9, atol=1e-9)
+            assert bool(here.any())
+            accepted = torch.rand(b, c, generator=gen) < 0.5
+            s.update_amplitude_cache(cache, cells, change, accepted)
+            keep = accepted[..., None, None]
+            x = torch.where(keep, x_new, x)
+            exists = torch.where(accepted[..., None], e_new, exists)
+            torch.testing.assert_close(cache, s.amplitude_cache(x, exists, z), rtol=1e-12, atol=1e-15)
+    # one slot given as (B, C, D) with n (B, C)
+    d1, _, _ = s.log_likelihood_delta_cached(cache, x, x_n[:, :, 0], slot[:, :, 0], z, exists, e_n[:, :, 0])
+    torch.testing.assert_close(d1, s.log_likelihood_delta(x, x_n[:, :, 0], slot[:, :, 0], z, exists, e_n[:, :, 0]))
+
+
+def test_intensity_cache_needs_the_frame_and_clutter(gen):
+    x = torch.zeros(1, 2, 3, 4, dtype=torch.float64)
+    z = torch.zeros(1, 4, 2, dtype=torch.float64)
+    with pytest.raises(ValueError, match="z is required"):
+        sensor().amplitude_cache(x)
+    assert sensor(clutter_rate=0.0).amplitude_cache(x, z=z) is None  # an intensity may be 0: no cache
+    with pytest.raises(ValueError, match="cache has shape"):
+        slot = torch.zeros(1, 2, dtype=torch.int64)
+        sensor().log_likelihood_delta_cached(torch.zeros(1, 2, 3), x, x[:, :, 0], slot, z)
+
+
+def test_data_draws_score_only_where_asked(gen):
+    """``scored`` leaves the draws as they are and gives the same ratio where it is True, 0
+    elsewhere (the relocation noise scores the draws a proposal can read)."""
+    s = sensor()
+    pts = torch.randn(3, 6, 2, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0])
+    z = PointFrame(pts, torch.arange(6).expand(3, 6) < torch.tensor([[6], [2], [0]]))  # run 2 has no point
+    scored = torch.rand(3, 5, 4, generator=gen) < 0.3
+    full = s.sample_from_data(z, (3, 5, 4), generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    part = s.sample_from_data(z, (3, 5, 4), generator=torch.Generator().manual_seed(1), dtype=torch.float64,
+                              scored=scored)
+    assert torch.equal(full[0], part[0])
+    assert torch.equal(part[1], torch.where(scored, full[1], 0.0))

@@ -498,7 +498,7 @@ def ipmcmc_step(
                                             ).unsqueeze(-1).repeat(1, 1, k)
     chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
                             None if existence is None and recapture is None else log_r, kind, source, log_w_source,
-                            sensor.amplitude_cache(y, e))
+                            sensor.amplitude_cache(y, e, z))
     pairs = None
     if pair_every and recapture is not None:
         if exists is None:
@@ -532,7 +532,7 @@ def ipmcmc_step(
             y_new, ll_new, acc = hmc_refine(ch.y, ch.log_lik, HMCRefineNoise(*(a[i] for a in hmc_noise)), z,
                                             log_prior=log_prior, sensor=sensor, motion=hmc_motion, settings=hmc)
             # every slot may have moved: the amplitudes afresh
-            amplitude = None if ch.amplitude is None else sensor.amplitude_cache(y_new, ch.exists)
+            amplitude = None if ch.amplitude is None else sensor.amplitude_cache(y_new, ch.exists, z)
             return ch._replace(y=y_new, log_lik=ll_new, amplitude=amplitude), acc
 
     done = 0  # iterations run so far (the two-slot schedule counts across segments)

@@ -239,7 +239,8 @@ def draw_exchange_noise(
         drawn = dynamics.draw_births(template, z, generator=generator)  # leading (B, L, C, M)
         birth = None if drawn is None else BirthNoise(*(t.transpose(0, 1) for t in drawn))
     relocation = dynamics.draw_relocations((b, num_iterations, num_chains, m), z, generator=generator, dtype=dtype,
-                                           device=dev)
+                                           device=dev, p_propose=None if dynamics.recapture is None or m == 1
+                                           else dynamics.recapture.p_propose_pair)
     if relocation is not None:
         relocation = RelocationNoise(*(t.transpose(0, 1) for t in relocation))
     rho = 0.0 if pairs is None or dynamics.recapture is None else dynamics.recapture.p_same_source

@@ -74,7 +74,8 @@ class BirthNoise(NamedTuple):
         """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
-        born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device)
+        born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
+                                                 scored=existence.may_be_born(u))
         return cls(u, born, log_ratio)
 
 
@@ -252,10 +253,21 @@ class BirthDeath(nn.Module):
         x, _ = self._draw_births(tuple(shape), None, generator=generator, dtype=dtype, device=device)
         return x
 
+    def may_be_born(self, u: Tensor) -> Tensor:
+        """Where the existence uniforms ``u (*S, K)`` of a :class:`BirthNoise` can turn an
+        inactive slot on, under the chain or the proposal (:meth:`propagate`): ``u <
+        max(P_B, birth_proposal)``, bool ``(*S, K)``. Only there is a newborn's ``log p_0 -
+        log q_0`` read.
+        """
+        return u.to(torch.float64) < max(self.p_birth, self.birth_proposal)
+
     def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
-                     dtype: torch.dtype, device: torch.device | str | None) -> tuple[Tensor, Tensor]:
+                     dtype: torch.dtype, device: torch.device | str | None, scored: Tensor | None = None
+                     ) -> tuple[Tensor, Tensor]:
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
-        ``(*shape)``; ``shape = (B, *S, K)``.
+        ``(*shape)``; ``shape = (B, *S, K)``. With ``scored (*shape)`` bool the ratio (a sum
+        over the frame's points per candidate) is taken where it is True only, 0 elsewhere
+        (:meth:`may_be_born`); the candidates are the same.
         """
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         pos = self.uniform_position(u)
@@ -280,7 +292,14 @@ class BirthDeath(nn.Module):
                                                      device=device, dtype=dtype)
         use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)
         pos = torch.where(use_near.unsqueeze(-1), near, pos)
-        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
+        if scored is None:
+            return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
+        # the candidates that can be born only (eager: the noise is drawn outside compiled code)
+        rows, cols = scored.reshape(b, -1).nonzero(as_tuple=True)
+        ratio = self._log_birth_ratio(pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows],
+                                      self.birth_std).squeeze(1)
+        log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=dtype, device=device).index_put_((rows, cols), ratio)
+        return self._newborn(pos, vel_eps), log_ratio.reshape(tuple(shape))
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
         """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
@@ -375,7 +394,8 @@ class BirthDeath(nn.Module):
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         eps = torch.randn(shape + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
-        born, log_ratio = self._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device)
+        born, log_ratio = self._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
+                                            scored=self.may_be_born(u))
         return eps, BirthNoise(u, born, log_ratio)
 
     def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator
@@ -436,11 +456,14 @@ class TargetDynamics(NamedTuple):
         return None if self.existence is None else BirthNoise.draw(x, self.existence, z, generator=generator)
 
     def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
-                         dtype: torch.dtype, device: torch.device | str) -> RelocationNoise | None:
+                         dtype: torch.dtype, device: torch.device | str, p_propose: float | None = None
+                         ) -> RelocationNoise | None:
         """:class:`~torchmcmcpf.models.multitarget.RelocationNoise` for slots of leading
-        ``shape (B, *S, K)``, drawn from the frame ``z``; ``None`` without re-capture.
+        ``shape (B, *S, K)``, drawn from the frame ``z`` for proposals with ``epsilon <=
+        p_propose`` (default ``recapture.p_propose``); ``None`` without re-capture.
         """
-        return draw_relocation(self.recapture, self.sensor, shape, z, generator=generator, dtype=dtype, device=device)
+        return draw_relocation(self.recapture, self.sensor, shape, z, generator=generator, dtype=dtype, device=device,
+                               p_propose=p_propose)
 
     def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
                   relocation: RelocationNoise | None = None) -> tuple[Tensor, Tensor | None, Tensor]:

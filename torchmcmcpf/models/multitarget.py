@@ -299,7 +299,10 @@ class RelocationNoise(NamedTuple):
     u : (*S, K) uniforms: a slot is proposed from the data where ``u < p_propose``.
     coords : (*S, K, r) measured coordinates drawn from ``g(. | z)``
         (:meth:`~torchmcmcpf.models.base.SensorModel.sample_from_data`).
-    log_ratio : (*S, K) ``log p_0(coords) - log g(coords | z)``.
+    log_ratio : (*S, K) ``log p_0(coords) - log g(coords | z)`` where ``u`` is below the
+        ``p_propose`` the noise was drawn for (:meth:`draw`), 0 elsewhere: :func:`relocate`
+        reads it only where ``u < epsilon``, so a proposal with that ``epsilon`` or a smaller
+        one may use the noise.
     """
 
     u: Tensor
@@ -308,24 +311,31 @@ class RelocationNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, ...], sensor: SensorModel, z: object, *, generator: torch.Generator,
-             dtype: torch.dtype, device: torch.device | str | None) -> RelocationNoise:
-        """Draw for slots of ``shape = (B, *S, K)`` from the frame ``z`` (one per run)."""
+             dtype: torch.dtype, device: torch.device | str | None, p_propose: float = 1.0) -> RelocationNoise:
+        """Draw for slots of ``shape = (B, *S, K)`` from the frame ``z`` (one per run), for
+        proposals with ``epsilon <= p_propose``: ``g`` (a sum over the frame's points or
+        peaks) is evaluated for those draws only (``u < p_propose``; 10 % at the default
+        ``epsilon``), the same draws either way.
+        """
         u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
-        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype)
+        scored = None if p_propose >= 1.0 else u < p_propose
+        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored)
         return cls(u, coords, log_ratio)
 
 
 def draw_relocation(recapture: Recapture | None, sensor: SensorModel | None, shape: tuple[int, ...], z: object, *,
-                    generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None
-                    ) -> RelocationNoise | None:
-    """:class:`RelocationNoise` for slots of ``shape = (B, *S, K)`` from the frame ``z``, or
-    None without ``recapture``.
+                    generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None,
+                    p_propose: float | None = None) -> RelocationNoise | None:
+    """:class:`RelocationNoise` for slots of ``shape = (B, *S, K)`` from the frame ``z``, for
+    proposals with ``epsilon <= p_propose`` (default ``recapture.p_propose``, that of
+    :func:`relocate`), or None without ``recapture``.
     """
     if recapture is None:
         return None
     if sensor is None or z is None:
         raise ValueError("recapture needs the sensor and the frame z to draw from the data")
-    return RelocationNoise.draw(shape, sensor, z, generator=generator, dtype=dtype, device=device)
+    return RelocationNoise.draw(shape, sensor, z, generator=generator, dtype=dtype, device=device,
+                                p_propose=recapture.p_propose if p_propose is None else p_propose)
 
 
 #: The component a slot was proposed from (:func:`relocate`): its prior density over its

@@ -35,7 +35,7 @@ from ... import runtime
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...resampling import cdf, inverse_cdf
 from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
-from ..base import SensorModel, squared_norm
+from ..base import SensorModel
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 
@@ -69,6 +69,32 @@ def _logsumexp_backward(ctx, grad):
 
 
 _logsumexp.register_autograd(_logsumexp_backward, setup_context=_logsumexp_context)
+
+
+def _intensity_change_eager(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """The arithmetic of :meth:`PoissonClutterPoints.log_likelihood_delta_cached` on flat rows:
+    ``rate_terms (R, 2V, M)`` the moved slots' ``log(L_x N(z_m; H x, R))`` (old then new),
+    ``sign (R, 2V)`` float64 (``-e_old``, ``+e_new``), ``cache (R, M)`` float64 intensities,
+    ``mask (R, M)`` bool -> ``(sum over valid points of log(lambda'_m / lambda_m) (R,),
+    change lambda' - lambda (R, M))``, both float64.
+    """
+    change = (rate_terms.to(torch.float64).exp() * sign.unsqueeze(-1)).sum(-2)  # (R, M)
+    log_ratio = torch.where(mask, torch.log1p(change / cache), 0.0)
+    return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
+            ).squeeze(-1), change
+
+
+@torch.library.custom_op("torchmcmcpf::intensity_change", mutates_args=())
+def _intensity_change(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_intensity_change_eager`, opaque to ``torch.compile`` (the same ATen kernels as
+    eager code: Inductor's ``exp`` and ``log1p`` differ from ATen's in the last bit).
+    """
+    return _intensity_change_eager(rate_terms, sign, cache, mask)
+
+
+@_intensity_change.register_fake
+def _(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    return cache.sum(-1), torch.empty_like(cache)
 
 
 def as_area(area: AreaLike, name: str = "area") -> Tensor:
@@ -111,9 +137,15 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     if mask is None:
         mask = torch.ones((b, m), dtype=torch.bool, device=pts.device)
     Wt = W.to(pos.dtype)
-    white = (pos.unsqueeze(-2) - pts.to(pos.dtype).reshape(lead[:-1] + (1, m, 2))) @ Wt.mT  # (B, *S, M, 2)
+    # whitened first (W is linear): the residuals are then differences of two whitened
+    # coordinates, one contiguous (B, *S, M) tensor per axis, instead of a (B, *S, M, 2)
+    # difference times W (a 2-column product and a reduction over 2: 3x the time)
+    wpos, wpts = pos @ Wt.mT, pts.to(pos.dtype) @ Wt.mT  # (B, *S, 2), (B, M, 2)
+    pts_shape = lead[:-1] + (1, m)
+    dx = wpos[..., 0:1] - wpts[..., 0].reshape(pts_shape)  # (B, *S, M)
+    dy = wpos[..., 1:2] - wpts[..., 1].reshape(pts_shape)
     log_norm = float(torch.log(torch.abs(torch.det(W.to(torch.float64))))) - math.log(2 * math.pi)
-    log_g = log_norm - 0.5 * white.square().sum(-1)
+    log_g = log_norm - 0.5 * (dx.square_() + dy.square_())
     mk = mask.reshape(lead[:-1] + (1, m))
     log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
@@ -203,10 +235,13 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         W = self.W.to(x.dtype)
         pos = torch.stack([x[..., X], x[..., Y]], -1) @ W.mT  # (B, *S, K, 2), whitened
         wz = z.to(x.dtype) @ W.mT
-        zb = wz.reshape(wz.shape[:1] + (1,) * (x.dim() - 3) + wz.shape[1:])  # (B, 1.., M, 2)
-        r = zb.unsqueeze(-3) - pos.unsqueeze(-2)  # (B, *S, K, M, 2): L^{-1} (z_m - H x_n)
+        at = (wz.shape[0],) + (1,) * (x.dim() - 2) + wz.shape[1:2]  # (B, 1.., 1, M)
+        # L^{-1} (z_m - H x_n) one axis at a time, each a contiguous (B, *S, K, M) tensor (a
+        # (B, *S, K, M, 2) residual read with stride 2 cost twice the time; the same values)
+        r0 = wz[..., 0].reshape(at) - pos[..., 0:1]
+        r1 = wz[..., 1].reshape(at) - pos[..., 1:2]
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        return log_rate + self._log_norm - 0.5 * squared_norm(r)
+        return log_rate + self._log_norm - 0.5 * (r0.square_() + r1.square_())
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
@@ -245,6 +280,84 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         total = (per_point.reshape(-1, per_point.shape[-1]) @ ones).reshape(per_point.shape[:-1])
         return total - (self.clutter_rate + self.detection_rate * n_live)
 
+    # -- the chain cache: each sample's intensity at every point ----------------------------
+    def amplitude_cache(self, x: Tensor, exists: Tensor | None = None, z: PointMeasurement | None = None
+                        ) -> Tensor | None:
+        """Each sample's Poisson intensity at every point of the frame ``z``.
+
+            ``lambda_m = L_C / V + L_x sum_n e_n N(z_m; H x_n, R)``   ``(B, *S, M)``, float64,
+
+        is kept beside MCMC chains so that a move of one slot (or of ``M`` slots) pays for that
+        slot's ``M`` terms only (:meth:`log_likelihood_delta_cached`), not for the other
+        targets' (DESIGN.md, "Every move pays for what it changes"). Float64 whatever the
+        state's dtype: a move subtracts the old slot's terms from the sum, and a target's
+        term is up to ``1e4`` times the clutter floor at its points. ``None`` without clutter
+        (``L_C = 0``: an intensity can then be 0, whose log-ratio the cache cannot carry).
+
+        Parameters
+        ----------
+        x : (B, *S, K, D); exists : (B, *S, K) bool, optional; z : the frame (required).
+        """
+        if z is None:
+            raise ValueError("z is required: the point sensor's cache holds the intensity at the frame's points")
+        if self.clutter_rate <= 0:
+            return None
+        pts, _ = split_points(z)
+        rate = self.log_intensity_terms(x, pts).to(torch.float64).exp()  # (B, *S, K, M)
+        if exists is not None:
+            rate = rate * exists.unsqueeze(-1)
+        return self.clutter_rate / self.volume + rate.sum(-2)
+
+    def log_likelihood_delta_cached(self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: PointMeasurement,
+                                    exists: Tensor | None = None, exists_n: Tensor | None = None
+                                    ) -> tuple[Tensor, Tensor, Tensor]:
+        """:meth:`log_likelihood_delta` from the samples' intensities (:meth:`amplitude_cache`).
+
+        With ``lambda'_m = lambda_m - L_x sum_{moved j} (e_j N(z_m; H x_j, R) - e'_j N(z_m; H
+        x'_j, R))``,
+
+            ``delta = sum_m log(lambda'_m / lambda_m) - L_x sum_{moved j} (e'_j - e_j)``
+
+        (paper 001's association-free likelihood, DESIGN.md): ``2 M_moved`` terms per point
+        instead of ``K``. Equal to :meth:`log_likelihood_delta` to round-off (tested).
+
+        Parameters
+        ----------
+        cache : (B, *S, M) float64, the intensities of ``x`` (kept current by
+            :meth:`update_amplitude_cache`).
+        x : (B, *S, K, D); x_n : (B, *S, D) the new state of slot ``n``, or (B, *S, V, D)
+            those of ``V`` distinct slots; n : int64 broadcastable to (B, *S) (or (B, *S, V));
+        z : the frame; exists : (B, *S, K) bool, optional; exists_n : (B, *S) (or (B, *S, V))
+            bool, optional: the moved slots' new flags.
+
+        Returns
+        -------
+        delta : (B, *S) in the dtype of ``x``; cells : (B, *S, M) int64, flat indices of the
+        cache's entries; change : (B, *S, M) float64, ``lambda' - lambda`` there.
+        """
+        pts, mask = split_points(z)
+        lead, m = tuple(x.shape[:-2]), pts.shape[1]
+        if tuple(cache.shape) != lead + (m,):
+            raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {lead + (m,)}")
+        many = x_n.dim() == x.dim()
+        xn = x_n if many else x_n.unsqueeze(-2)  # (B, *S, V, D)
+        slot = n.to(device=x.device, dtype=torch.int64)
+        slot = (slot if many else slot.unsqueeze(-1)).expand(xn.shape[:-1])
+        x_old = torch.take_along_dim(x, slot.unsqueeze(-1), -2)
+        e_old = torch.ones_like(slot, dtype=torch.bool) if exists is None else torch.take_along_dim(exists, slot, -1)
+        e_new = e_old if exists_n is None else (exists_n if many else exists_n.unsqueeze(-1)).expand(slot.shape)
+        terms = self.log_intensity_terms(torch.cat([x_old, xn], -2), pts)  # (B, *S, 2V, M)
+        sign = torch.cat([-e_old.to(torch.float64), e_new.to(torch.float64)], -1)  # (B, *S, 2V)
+        valid = torch.ones(pts.shape[:2], dtype=torch.bool, device=x.device) if mask is None else mask
+        valid = valid.reshape((valid.shape[0],) + (1,) * (len(lead) - 1) + (m,)).expand(lead + (m,))
+        change_fn = _intensity_change if runtime.generated_reductions() else _intensity_change_eager
+        log_ratio, change = change_fn(terms.reshape(-1, *terms.shape[-2:]), sign.reshape(-1, sign.shape[-1]),
+                                      cache.reshape(-1, m), valid.reshape(-1, m))
+        born = (e_new.to(x.dtype) - e_old.to(x.dtype)).sum(-1)
+        delta = log_ratio.reshape(lead).to(x.dtype) - self.detection_rate * born
+        cells = torch.arange(cache.numel(), device=x.device).reshape(cache.shape)
+        return delta, cells, change.reshape(cache.shape)
+
     # -- the multitarget prior's hooks --------------------------------------------------
     #: weight of the uniform part of the data-driven density (:meth:`sample_from_data`)
     uniform_weight: float = 0.05
@@ -260,7 +373,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         return torch.cat([coords[..., :1], x[..., 1:2], coords[..., 1:2], x[..., 3:]], -1)
 
     def sample_from_data(self, z: PointMeasurement, shape: tuple[int, ...], *, generator: torch.Generator,
-                         dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None
+                         ) -> tuple[Tensor, Tensor]:
         """Positions from ``g(pos | z) = p_u U(area) + (1 - p_u) (1/M) sum_m N(pos; z_m, R)``
         (:func:`log_near_points`; ``p_u`` = :attr:`uniform_weight`): a valid point drawn
         uniformly and a position scattered around it by the measurement noise, or a uniform
@@ -269,6 +383,10 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         Parameters
         ----------
         z : ``PointFrame(z (B, M, 2), mask (B, M))``; shape : ``(B, *S)``.
+        scored : (B, *S) bool, optional: the draws whose ``log_ratio`` a move can read
+            (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`); ``g`` (a sum over the
+            ``M`` points) is evaluated there only and ``log_ratio`` is 0 elsewhere. The draws
+            themselves do not depend on it.
 
         Returns
         -------
@@ -293,10 +411,17 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             near = centre + eps @ torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype).mT
             use = (u_pick[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
             pos = torch.where(use.unsqueeze(-1), near, pos)
-        log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area)
         a = self.area.to(dtype)
         inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
-        log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
+        if scored is None:
+            log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area)
+            log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
+        else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
+            rows, cols = scored.reshape(b, p).nonzero(as_tuple=True)
+            log_q = log_near_points(pos[rows, cols].unsqueeze(1), pts[rows], mask[rows], W=self.W,
+                                    p_uniform=self.uniform_weight, area=self.area).squeeze(1)
+            ratio = torch.where(inside[rows, cols], -math.log(self.volume) - log_q, -math.inf)
+            log_ratio = torch.zeros((b, p), dtype=dtype, device=dev).index_put_((rows, cols), ratio)
         return pos.reshape(tuple(shape) + (2,)), log_ratio.reshape(tuple(shape))
 
     # -- simulation ---------------------------------------------------------------------

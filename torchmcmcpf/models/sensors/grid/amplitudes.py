@@ -5,7 +5,8 @@ the windowed path), so that a move of one slot (or of M slots) reads the amplitu
 The cache is a field of the chains' state (:class:`~torchmcmcpf.kernels.exchange.ExchangeChains`,
 ``amplitude``): made once at the start of a step (:func:`amplitude_cache`), read by a move
 (:func:`log_likelihood_delta_cached`, which also returns the move's change) and advanced for
-the accepted moves by :func:`add_accepted_changes`, the one place where it changes.
+the accepted moves by :meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache`, the one
+place where it changes.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from .inputs import check_inputs, check_move, check_state, flat_inputs
 from .slots import truncated_amplitude
 from .spread import neighbour_profiles, outer_sum
 
-__all__ = ["amplitude_cache", "log_likelihood_delta_cached", "add_accepted_changes"]
+__all__ = ["amplitude_cache", "log_likelihood_delta_cached"]
 
 
 def amplitude_cache(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) -> Tensor:
@@ -90,21 +91,3 @@ def _change(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: T
     rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(geometry.box_cells))) \
         * geometry.num_cells
     return geometry.flat_cells(firsts, sensor.box_offsets) + rows, change * torch.stack(once, 2), firsts
-
-
-def add_accepted_changes(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
-    """``cache`` with the ``change`` of the ``accepted (B, *S)`` moves added at their
-    ``cells`` (:func:`log_likelihood_delta_cached`), in place; returns ``cache``.
-
-    The one place the chain cache changes. It belongs to the chains (made for them at the
-    start of a step, never shared), so adding in place is the functional update ``cache ->
-    cache'`` without a copy of the grid per iteration (12 MB per run on the ground radar's
-    61,248 cells and 50 chains: the copy would cost about what the iteration does). One
-    scatter-add of every move's cells, the rejected ones adding exact zeros: no host sync
-    (no ``nonzero``), so it runs inside a captured CUDA graph as well; a cell changes once
-    per move (``change`` is 0 on the cells of the new box that the old box holds), so the
-    result does not depend on the order of the additions.
-    """
-    keep = accepted.reshape(accepted.shape + (1,) * (change.dim() - accepted.dim()))
-    cache.view(-1).index_add_(0, cells.reshape(-1), torch.where(keep, change, 0.0).reshape(-1))
-    return cache

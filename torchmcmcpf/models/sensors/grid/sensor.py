@@ -366,9 +366,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
         return slots.log_likelihood_slot_changes(self, ref, x, z)
 
     # ---------------------------------------------------------------- the chain cache
-    def amplitude_cache(self, x: Tensor, exists: Tensor | None = None) -> Tensor | None:
+    def amplitude_cache(self, x: Tensor, exists: Tensor | None = None, z: Tensor | None = None) -> Tensor | None:
         """Each sample's amplitude per cell, ``(B, *S, G)`` flat over the grid (truncated
-        spreads, as :meth:`log_likelihood_window`), for :meth:`log_likelihood_delta_cached`;
+        spreads, as :meth:`log_likelihood_window`; ``z`` is not read), for
+        :meth:`log_likelihood_delta_cached`;
         ``None`` with ``method="grid"`` (the whole-grid reference has no truncated spreads).
         ``G * 4`` bytes per sample in float32 (244 kB on the ground radar's 87 x 22 x 32
         cells). :mod:`.amplitudes`.
@@ -410,13 +411,6 @@ class SeparableGridSensor(SensorModel[Tensor]):
             :meth:`update_amplitude_cache`.
         """
         return amplitudes.log_likelihood_delta_cached(self, cache, x, x_n, n, z, exists, exists_n)
-
-    @staticmethod
-    def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
-        """Add the ``change`` of the ``accepted (B, *S)`` moves to ``cache`` (the chains' own
-        buffer, in place: :func:`~.amplitudes.add_accepted_changes`); returns ``cache``.
-        """
-        return amplitudes.add_accepted_changes(cache, cells, change, accepted)
 
     # ---------------------------------------------------------------- multitarget prior hooks
     #: Threshold of the data-driven proposal on :meth:`detection_statistic`: a noise-only
@@ -494,7 +488,8 @@ class SeparableGridSensor(SensorModel[Tensor]):
         return data.log_data_density(self, coords, centres, mask)
 
     def sample_from_data(self, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
-                         dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None
+                         ) -> tuple[Tensor, Tensor]:
         """Measured coordinates from ``g(u | z) = (1 - p_u) (1/P) sum_p N(u; c_p, S) + p_u
         U(grid)``: a peak ``p`` of the frame drawn uniformly (:meth:`detections`: centroids
         ``c_p``; ``S`` diagonal, :attr:`peak_spread` cells per axis), or with probability
@@ -506,13 +501,15 @@ class SeparableGridSensor(SensorModel[Tensor]):
         ----------
         z : (B, *G) one frame per run; shape : ``(B, *S)``.
         generator : source of randomness; dtype : of the outputs.
+        scored : (B, *S) bool, optional: ``log_ratio`` is 0 where False (the base method).
 
         Returns
         -------
         coords : (B, *S, n) in the units of :meth:`measurement_coords`;
         log_ratio : (B, *S).
         """
-        return data.sample_from_data(self, z, shape, generator=generator, dtype=dtype)
+        coords, log_ratio = data.sample_from_data(self, z, shape, generator=generator, dtype=dtype)
+        return coords, log_ratio if scored is None else torch.where(scored, log_ratio, 0.0)
 
     # ---------------------------------------------------------------- checks
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
