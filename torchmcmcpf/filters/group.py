@@ -146,9 +146,9 @@ from typing import Any, NamedTuple
 
 import torch
 import torch.nn.functional as F
-from torch.utils._pytree import tree_map
 
 from .._validation import check_positive, check_positive_int, check_shape
+from ..kernels.mh import mh_accept, mh_select
 from ..models.base import neighbourhood
 from ..models.group import (
     GroupExistence,
@@ -616,14 +616,6 @@ def _draw_structure(log_pg: Tensor, u: Tensor) -> Tensor:
     return inverse_cdf(cdf(log_pg), u.unsqueeze(-1)).squeeze(-1)
 
 
-def _select(mask: Tensor, new: Any, old: Any) -> Any:
-    """Chain-wise ``torch.where`` over every tensor of two chain states; ``mask (B, C)``."""
-    def pick(a: Tensor, b: Tensor) -> Tensor:
-        m = mask.reshape(mask.shape + (1,) * (a.dim() - mask.dim()))
-        return torch.where(m, a, b)
-    return tree_map(pick, new, old)
-
-
 def _path_step(stats: KalmanStats, pos_p: Tensor, g_p: Tensor, lab_p: Tensor, ex_p: Tensor, pos: Tensor, g: Tensor,
                lab: Tensor, ex: Tensor, z: Tensor, models: Models) -> tuple[Tensor, KalmanStats]:
     """One step of a particle's path: its term of the target, ``log p(x_s | x_{0:s-1}, g, e)
@@ -713,8 +705,8 @@ def joint_move(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor, models:
     """
     prop = joint_proposal(noise, cloud, z, models)
     log_rho = (prop.log_lik + prop.log_wq + prop.log_birth) - (chain.log_lik + chain.log_wq + chain.log_birth)
-    acc = torch.log(noise.u) < log_rho
-    return _select(acc, prop, chain), acc
+    acc = mh_accept(log_rho, noise.u)
+    return mh_select(acc, prop, chain), acc
 
 
 def refine_move(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor, models: Models
@@ -731,10 +723,10 @@ def refine_move(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor, model
     labels = cloud.table[g]
     pm, S, obs, free = _predict(prev, labels, chain.exists, models)
     log_px = _log_px(chain.pos, pm, S, obs, free, existence)
-    acc_g = torch.log(noise.u_g) < log_px - chain.log_px
+    acc_g = mh_accept(log_px - chain.log_px, noise.u_g)
     prop = chain._replace(g=g, labels=labels, log_px=log_px, log_birth=_birth_ratio(chain.pos, free, cloud, models),
                           pm=pm, S=S, observed=obs, free=free)
-    chain = _select(acc_g, prop, chain)
+    chain = mh_select(acc_g, prop, chain)
     # -- each target (rho_3)
     x_born = _draw_q0(noise, cloud, sensor, existence, models.p_i)  # (B, C, K, 2)
     dead = _death_pos(existence, chain.pos)
@@ -755,10 +747,10 @@ def refine_move(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor, model
         log_lik = _log_lik(pos, exists, z, sensor)
         log_px = _log_px(pos, pm, S, obs, free, existence)
         log_rho = (log_lik + log_px - log_q_fwd) - (chain.log_lik + chain.log_px - log_q_rev)
-        acc = torch.log(noise.u_x[..., i]) < log_rho
+        acc = mh_accept(log_rho, noise.u_x[..., i])
         prop = chain._replace(exists=exists, pos=pos, log_lik=log_lik, log_px=log_px,
                               log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free)
-        chain = _select(acc, prop, chain)
+        chain = mh_select(acc, prop, chain)
         accs.append(acc)
     return chain, acc_g, torch.stack(accs, -1)
 
@@ -785,8 +777,8 @@ def past_move(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor, models: M
                           log_px=_log_px(pos, pm, S, obs, free, models.existence),
                           log_birth=_birth_ratio(pos, free, cloud, models), pm=pm, S=S, observed=obs, free=free,
                           prev=new_prev)
-    acc = torch.log(noise.u) < _past_log_target(prop) - _past_log_target(chain)
-    return _select(acc, prop, chain), acc
+    acc = mh_accept(_past_log_target(prop) - _past_log_target(chain), noise.u)
+    return mh_select(acc, prop, chain), acc
 
 
 def _past_log_target(chain: Chain) -> Tensor:
@@ -920,8 +912,8 @@ def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, 
     log_rho = log_rho + torch.where(birth, -log_q, log_q)
     n_new = torch.stack(_eligible(anchor_ex, win_exists, exists, cloud.n_pair)).any(0).flatten(-2).sum(-1)
     log_rho = log_rho + torch.log(n_elig.to(y.dtype)) - torch.log(n_new.to(y.dtype))  # the pick's 1 / n ratio
-    acc = (birth | death) & (torch.log(noise.u) < log_rho)
-    return _select(acc, prop, chain), acc
+    acc = (birth | death) & mh_accept(log_rho, noise.u)
+    return mh_select(acc, prop, chain), acc
 
 
 def _eligible(anchor_ex: Tensor, win_ex: Tensor, ex: Tensor, n_pair: Tensor) -> tuple[Tensor, Tensor]:
