@@ -147,7 +147,6 @@ __all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "JointNois
 # The moves, their containers and the step's pieces stay importable from here (as before the
 # split) for code that drives the moves one by one (tests/filters/test_group_filter.py,
 # benchmarks/bench_group.py); each module's __all__ lists its own.
-from .moves import LOG_2PI as LOG_2PI  # noqa: E402
 from .moves import Chain as Chain  # noqa: E402
 from .moves import Cloud as Cloud  # noqa: E402
 from .moves import GroupView as GroupView  # noqa: E402

@@ -28,7 +28,7 @@ from ...typing import Tensor
 from .noise import BirthNoise, JointNoise, PastNoise, RefineNoise
 
 __all__ = ["GroupView", "Cloud", "Prev", "Chain", "Models", "make_chain", "joint_proposal", "joint_move",
-           "refine_move", "past_move", "window_birth_move", "LOG_2PI"]
+           "refine_move", "past_move", "window_birth_move"]
 
 LOG_2PI = math.log(2 * math.pi)
 
