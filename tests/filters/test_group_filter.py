@@ -22,13 +22,13 @@ import torch
 
 from torchmcmcpf.filters import group as G
 from torchmcmcpf.filters.group import (
-    BirthNoise,
+    GroupJointNoise,
     GroupMCMCFilter,
     GroupMCMCSettings,
-    JointNoise,
+    GroupPastNoise,
+    GroupRefineNoise,
+    GroupWindowBirthNoise,
     Models,
-    PastNoise,
-    RefineNoise,
     joint_move,
     make_chain,
     make_cloud,
@@ -171,9 +171,9 @@ def test_move_leaves_target_invariant(setup, move, alpha, birth):
     accepted = []
     for _ in range(4):
         if move == "joint":
-            chain, acc = joint_move(chain, JointNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, acc = joint_move(chain, GroupJointNoise.draw((1, C, K), generator=g), cloud, z, models)
         else:
-            chain, _, acc = refine_move(chain, RefineNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, _, acc = refine_move(chain, GroupRefineNoise.draw((1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     est = summaries(chain.j, chain.g, chain.exists, chain.pos).mean(0)
@@ -262,7 +262,7 @@ def test_past_move_leaves_its_target_invariant():
                        win_pos=win[:, pick[0]])
     accepted = []
     for _ in range(8):
-        chain, acc = past_move(chain, PastNoise.draw((1, C, K), generator=g), cloud, z, models)
+        chain, acc = past_move(chain, GroupPastNoise.draw((1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     moved = chain.prev.win_pos
@@ -308,7 +308,7 @@ def test_past_move_target_is_the_model_density():
     chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
                        win_pos=win[:, pick[0]])
     for _ in range(3):
-        chain, _ = past_move(chain, PastNoise.draw((1, 500, K), generator=g), cloud, z, models)
+        chain, _ = past_move(chain, GroupPastNoise.draw((1, 500, K), generator=g), cloud, z, models)
     cached = GM._past_log_target(chain)  # the move's ratio is its difference
     direct = _log_target(filt, state, z, chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos)
     diff = (cached - direct)[0]
@@ -391,7 +391,8 @@ def test_window_birth_move_leaves_its_target_invariant():
     births = chain.prev.win_exists[:, :, -1].sum()
     accepted = []
     for _ in range(12):
-        chain, acc = window_birth_move(chain, BirthNoise.draw((1, C, K), generator=g, window=2), cloud, z, models)
+        noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+        chain, acc = window_birth_move(chain, noise, cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.01 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     assert int(chain.prev.win_exists[:, :, -1].sum()) != int(births)
@@ -422,7 +423,8 @@ def test_window_birth_move_detects_a_dropped_density():
     try:
         GM._pixel_log_q = dropped
         for _ in range(12):
-            chain, _ = window_birth_move(chain, BirthNoise.draw((1, C, K), generator=g, window=2), cloud, z, models)
+            noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+            chain, _ = window_birth_move(chain, noise, cloud, z, models)
     finally:
         GM._pixel_log_q = orig
     moved = _window_e_stats(chain.prev.win_pos, chain.prev.win_exists, chain.exists)

@@ -137,12 +137,12 @@ per-target refinement loops over the ``K`` slots (a Gibbs sweep is sequential by
 """
 
 from .filter import GroupMCMCFilter
-from .noise import BirthNoise, JointNoise, PastNoise, RefineNoise
+from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
 from .step import group_mcmc_step
 
-__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "JointNoise", "RefineNoise", "PastNoise",
-           "BirthNoise", "default_chains", "estimate_step_bytes"]
+__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "GroupJointNoise", "GroupRefineNoise",
+           "GroupPastNoise", "GroupWindowBirthNoise", "default_chains", "estimate_step_bytes"]
 
 # The moves, their containers and the step's pieces stay importable from here (as before the
 # split) for code that drives the moves one by one (tests/filters/test_group_filter.py,

@@ -25,7 +25,7 @@ from ...models.group import (
 from ...models.sensors.pixels import ThresholdedPixels
 from ...resampling import cdf, inverse_cdf
 from ...typing import Tensor
-from .noise import BirthNoise, JointNoise, PastNoise, RefineNoise
+from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise
 
 __all__ = ["GroupView", "Cloud", "Prev", "Chain", "Models", "make_chain", "joint_proposal", "joint_move",
            "refine_move", "past_move", "window_birth_move"]
@@ -215,8 +215,8 @@ def _log_q0(pos: Tensor, cloud: Cloud, sensor: ThresholdedPixels, existence: Gro
     return torch.where(torch.isfinite(log_p0), q.log(), log_p0)
 
 
-def _draw_q0(noise: JointNoise | RefineNoise, cloud: Cloud, sensor: ThresholdedPixels, existence: GroupExistence,
-             p_i: float) -> Tensor:
+def _draw_q0(noise: GroupJointNoise | GroupRefineNoise, cloud: Cloud, sensor: ThresholdedPixels,
+             existence: GroupExistence, p_i: float) -> Tensor:
     """Positions from ``q_0`` (eqs. 64-65): ``(B, C, K, 2)`` from the birth noise (pixels by
     the shared inverse CDF).
     """
@@ -305,7 +305,7 @@ def make_chain(j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, 
                  _birth_ratio(pos, free, cloud, models), pm, S, obs, free, prev)
 
 
-def joint_proposal(noise: JointNoise, cloud: Cloud, z: Tensor, models: Models) -> Chain:
+def joint_proposal(noise: GroupJointNoise, cloud: Cloud, z: Tensor, models: Models) -> Chain:
     """Algorithm 1 steps 1-4 (eqs. 61-65) for every chain: the proposed state with its caches."""
     existence = models.existence
     use_alpha = noise.mix < models.p_a
@@ -325,7 +325,7 @@ def joint_proposal(noise: JointNoise, cloud: Cloud, z: Tensor, models: Models) -
                  _birth_ratio(pos, free, cloud, models), pm, S, obs, free, prev)
 
 
-def joint_move(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
+def joint_move(chain: Chain, noise: GroupJointNoise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
     """Algorithm 1 with the acceptance ratio ``rho_1`` of eq. 60 (package docstring).
     Returns the new chain and ``accepted (B, C)`` bool.
     """
@@ -335,7 +335,7 @@ def joint_move(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor, models:
     return mh_select(acc, prop, chain), acc
 
 
-def refine_move(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor, models: Models
+def refine_move(chain: Chain, noise: GroupRefineNoise, cloud: Cloud, z: Tensor, models: Models
                 ) -> tuple[Chain, Tensor, Tensor]:
     """Algorithm 2: the structure by ``rho_2``, then each slot's ``(x_i, e_i)`` by ``rho_3``
     (eq. 66; package docstring). Returns the chain, ``accepted_structure (B, C)`` bool and
@@ -381,7 +381,7 @@ def refine_move(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor, model
     return chain, acc_g, torch.stack(accs, -1)
 
 
-def past_move(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
+def past_move(chain: Chain, noise: GroupPastNoise, cloud: Cloud, z: Tensor, models: Models) -> tuple[Chain, Tensor]:
     """One slot's live positions at ``t - W .. t`` translated by ``a + b (s - t)`` and
     accepted by ``rho_4`` (package docstring, "A target's recent past"). Returns the new
     chain and ``accepted (B, C)`` bool.
@@ -470,7 +470,7 @@ def _alive_path(chain: Chain, cloud: Cloud, models: Models, onehot: Tensor, s: T
     return torch.stack(out[:w], 2), out[w], log_q
 
 
-def window_birth_move(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor, models: Models
+def window_birth_move(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, z: Tensor, models: Models
                       ) -> tuple[Chain, Tensor]:
     """One slot ``i`` born at a window step ``s`` and alive through ``t``, or the reverse
     (package docstring, "A target born in the window"); accepted by ``rho_5``. Returns the new

@@ -13,7 +13,7 @@ import torch
 from ..._validation import check_positive_int
 from ...typing import Tensor
 
-__all__ = ["JointNoise", "RefineNoise", "PastNoise", "BirthNoise", "NOISES"]
+__all__ = ["GroupJointNoise", "GroupRefineNoise", "GroupPastNoise", "GroupWindowBirthNoise", "NOISES"]
 
 #: the dims of each noise field after the chains' ``(B, C)`` ("K": the slots); every field is
 #: ``U(0, 1)`` but the standard normals ``eps`` and ``step``
@@ -39,7 +39,7 @@ def _draw_fields(cls: Any, shape: tuple[int, int, int], generator: torch.Generat
     return cls(*fields)
 
 
-class JointNoise(NamedTuple):
+class GroupJointNoise(NamedTuple):
     """Uniforms and normals of one joint draw for chains ``(B, C)`` of ``K`` slots: ``mix``,
     ``j``, ``g``, ``u (B, C)``; ``e (B, C, K)``; ``eps (B, C, K, 2)``; the birth proposal's
     ``b_sel``, ``b_pix (B, C, K)`` and ``b_xy (B, C, K, 2)`` (eqs. 64-65).
@@ -57,12 +57,12 @@ class JointNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-             device: torch.device | str | None = None) -> JointNoise:
+             device: torch.device | str | None = None) -> GroupJointNoise:
         """Draw for ``shape = (B, C, K)``."""
         return _draw_fields(cls, shape, generator, dtype, device)
 
 
-class RefineNoise(NamedTuple):
+class GroupRefineNoise(NamedTuple):
     """Uniforms and normals of one refinement sweep for chains ``(B, C)`` of ``K`` slots:
     ``g``, ``u_g (B, C)``; ``e``, ``u_x (B, C, K)``; ``eps (B, C, K, 2)``; the birth uniforms.
     """
@@ -78,12 +78,12 @@ class RefineNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-             device: torch.device | str | None = None) -> RefineNoise:
+             device: torch.device | str | None = None) -> GroupRefineNoise:
         """Draw for ``shape = (B, C, K)``."""
         return _draw_fields(cls, shape, generator, dtype, device)
 
 
-class PastNoise(NamedTuple):
+class GroupPastNoise(NamedTuple):
     """Noise of one past move for chains ``(B, C)``: ``slot`` uniforms (the slot moved),
     ``step (B, C, 2, 2)`` standard normals (shift, velocity step; per axis), ``u (B, C)``.
     """
@@ -94,12 +94,12 @@ class PastNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-             device: torch.device | str | None = None) -> PastNoise:
+             device: torch.device | str | None = None) -> GroupPastNoise:
         """Draw for ``shape = (B, C, K)``."""
         return _draw_fields(cls, shape, generator, dtype, device)
 
 
-class BirthNoise(NamedTuple):
+class GroupWindowBirthNoise(NamedTuple):
     """Noise of one window birth/death move for chains ``(B, C)``: ``slot`` uniforms (the slot
     and the window step of the birth or death), ``y_pix (B, C)`` and ``y_xy (B, C, 2)``
     uniforms (the pixel of ``Z_s`` and the place in it), ``x_eps (B, C, L, 2)`` standard
@@ -114,9 +114,11 @@ class BirthNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, int, int], *, generator: torch.Generator, dtype: torch.dtype = torch.float64,
-             device: torch.device | str | None = None, window: int = 1) -> BirthNoise:
+             device: torch.device | str | None = None, window: int = 1) -> GroupWindowBirthNoise:
         """Draw for ``shape = (B, C, K)`` and a window of ``window`` steps."""
         return _draw_fields(cls, shape, generator, dtype, device, check_positive_int(window, "window"))
 
 
-NOISES: dict[str, Any] = {"joint": JointNoise, "refine": RefineNoise, "past": PastNoise, "birth": BirthNoise}
+#: the noise type of each move of :meth:`~torchmcmcpf.filters.group.GroupMCMCSettings.moves`
+NOISES: dict[str, Any] = {"joint": GroupJointNoise, "refine": GroupRefineNoise, "past": GroupPastNoise,
+                          "birth": GroupWindowBirthNoise}

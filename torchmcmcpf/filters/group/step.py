@@ -47,7 +47,7 @@ from .moves import (
     refine_move,
     window_birth_move,
 )
-from .noise import NOISES, BirthNoise, JointNoise, PastNoise, RefineNoise, _draw_fields
+from .noise import NOISES, GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise, _draw_fields
 from .settings import GroupMCMCSettings
 
 __all__ = ["group_mcmc_step", "make_cloud", "unpack", "PATH_KEYS"]
@@ -278,7 +278,8 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     moves = moves or _bind(models)
     dtype, dev = state.x.dtype, state.x.device
     cloud = make_cloud(state, z, models=models, settings=settings)
-    chain = joint_proposal(JointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev), cloud, z, models)
+    first = GroupJointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev)
+    chain = joint_proposal(first, cloud, z, models)
     per_chain = n // c
     names = (["joint", "structure", "target"] + (["past"] if settings.lag else [])
              + (["birth"] if settings.p_window_birth else []))
@@ -321,16 +322,16 @@ def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None)
     """``moves(move, chain, noise, cloud, z)``: the moves with the models bound (each compiled
     on its own with ``compile``: three functions, so that each has its own compile cache).
     """
-    def joint(chain: Chain, noise: JointNoise, cloud: Cloud, z: Tensor) -> Any:
+    def joint(chain: Chain, noise: GroupJointNoise, cloud: Cloud, z: Tensor) -> Any:
         return joint_move(chain, noise, cloud, z, models)
 
-    def refine(chain: Chain, noise: RefineNoise, cloud: Cloud, z: Tensor) -> Any:
+    def refine(chain: Chain, noise: GroupRefineNoise, cloud: Cloud, z: Tensor) -> Any:
         return refine_move(chain, noise, cloud, z, models)
 
-    def past(chain: Chain, noise: PastNoise, cloud: Cloud, z: Tensor) -> Any:
+    def past(chain: Chain, noise: GroupPastNoise, cloud: Cloud, z: Tensor) -> Any:
         return past_move(chain, noise, cloud, z, models)
 
-    def birth(chain: Chain, noise: BirthNoise, cloud: Cloud, z: Tensor) -> Any:
+    def birth(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, z: Tensor) -> Any:
         return window_birth_move(chain, noise, cloud, z, models)
 
     programs: dict[str, Callable[..., Any]] = {"joint": joint, "refine": refine, "past": past, "birth": birth}
