@@ -117,7 +117,7 @@ def _iteration_args(move):
 
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_eager(benchmark, move):
-    from torchmcmcpf.filters.group import _bind
+    from torchmcmcpf.filters.group.step import _bind
 
     models, args = _iteration_args(move)
     kernel = _bind(models)
@@ -129,7 +129,7 @@ def test_group_iteration_eager(benchmark, move):
 @pytest.mark.compile
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_compiled(benchmark, move):
-    from torchmcmcpf.filters.group import _bind
+    from torchmcmcpf.filters.group.step import _bind
     from torchmcmcpf.runtime import compile_program
 
     models, args = _iteration_args(move)

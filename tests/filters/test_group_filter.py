@@ -22,13 +22,13 @@ import torch
 
 from torchmcmcpf.filters import group as G
 from torchmcmcpf.filters.group import (
-    BirthNoise,
+    GroupJointNoise,
     GroupMCMCFilter,
     GroupMCMCSettings,
-    JointNoise,
+    GroupPastNoise,
+    GroupRefineNoise,
+    GroupWindowBirthNoise,
     Models,
-    PastNoise,
-    RefineNoise,
     joint_move,
     make_chain,
     make_cloud,
@@ -36,6 +36,7 @@ from torchmcmcpf.filters.group import (
     refine_move,
     window_birth_move,
 )
+from torchmcmcpf.filters.group import moves as GM
 from torchmcmcpf.models.group import (
     GroupExistence,
     GroupStructurePrior,
@@ -170,9 +171,9 @@ def test_move_leaves_target_invariant(setup, move, alpha, birth):
     accepted = []
     for _ in range(4):
         if move == "joint":
-            chain, acc = joint_move(chain, JointNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, acc = joint_move(chain, GroupJointNoise.draw((1, C, K), generator=g), cloud, z, models)
         else:
-            chain, _, acc = refine_move(chain, RefineNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, _, acc = refine_move(chain, GroupRefineNoise.draw((1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     est = summaries(chain.j, chain.g, chain.exists, chain.pos).mean(0)
@@ -222,7 +223,7 @@ def path_problem():
     z = torch.zeros(1, 6, 6, dtype=torch.bool)
     z[0, 2, 3] = z[0, 3, 4] = z[0, 1, 5] = z[0, 5, 0] = True
     cloud = make_cloud(state, z, models=filt.models(), settings=filt.settings)
-    prev = G._past(torch.arange(3).unsqueeze(0), cloud.view.win_pos, cloud, filt.models())
+    prev = GM._past(torch.arange(3).unsqueeze(0), cloud.view.win_pos, cloud, filt.models())
     x[..., 1::2] = prev.w_mean[..., :K].transpose(-1, -2)
     terms = torch.zeros(1, 3, 3, dtype=DT)
     terms[..., -1] = prev.log_win  # only the sum over the window enters the moves
@@ -261,7 +262,7 @@ def test_past_move_leaves_its_target_invariant():
                        win_pos=win[:, pick[0]])
     accepted = []
     for _ in range(8):
-        chain, acc = past_move(chain, PastNoise.draw((1, C, K), generator=g), cloud, z, models)
+        chain, acc = past_move(chain, GroupPastNoise.draw((1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     moved = chain.prev.win_pos
@@ -307,8 +308,8 @@ def test_past_move_target_is_the_model_density():
     chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
                        win_pos=win[:, pick[0]])
     for _ in range(3):
-        chain, _ = past_move(chain, PastNoise.draw((1, 500, K), generator=g), cloud, z, models)
-    cached = G._past_log_target(chain)  # the move's ratio is its difference
+        chain, _ = past_move(chain, GroupPastNoise.draw((1, 500, K), generator=g), cloud, z, models)
+    cached = GM._past_log_target(chain)  # the move's ratio is its difference
     direct = _log_target(filt, state, z, chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos)
     diff = (cached - direct)[0]
     for i in range(3):
@@ -390,7 +391,8 @@ def test_window_birth_move_leaves_its_target_invariant():
     births = chain.prev.win_exists[:, :, -1].sum()
     accepted = []
     for _ in range(12):
-        chain, acc = window_birth_move(chain, BirthNoise.draw((1, C, K), generator=g, window=2), cloud, z, models)
+        noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+        chain, acc = window_birth_move(chain, noise, cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.01 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     assert int(chain.prev.win_exists[:, :, -1].sum()) != int(births)
@@ -412,18 +414,19 @@ def test_window_birth_move_detects_a_dropped_density():
     cloud = make_cloud(state, z, models=models, settings=filt.settings)
     chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
                        win_pos=win[:, pick[0]], win_exists=win_e[:, pick[0]])
-    orig = G._pixel_log_q
+    orig = GM._pixel_log_q
 
     def dropped(*args):
         log_q = orig(*args)
         return torch.where(torch.isfinite(log_q), torch.zeros_like(log_q), log_q)
 
     try:
-        G._pixel_log_q = dropped
+        GM._pixel_log_q = dropped
         for _ in range(12):
-            chain, _ = window_birth_move(chain, BirthNoise.draw((1, C, K), generator=g, window=2), cloud, z, models)
+            noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+            chain, _ = window_birth_move(chain, noise, cloud, z, models)
     finally:
-        G._pixel_log_q = orig
+        GM._pixel_log_q = orig
     moved = _window_e_stats(chain.prev.win_pos, chain.prev.win_exists, chain.exists)
     est = summaries(chain.j, chain.g, chain.exists, chain.pos, moved).mean(0)
     tol = 5 * (ref_var / C + ref_se2).sqrt() + 1e-12
@@ -444,7 +447,7 @@ def test_stored_path_reproduces_the_kalman_statistics():
     cloud = make_cloud(state, z, models=filt.models(), settings=filt.settings)
     n = state.x.shape[1]
     j = torch.arange(n).unsqueeze(0)
-    prev = G._past(j, cloud.view.win_pos, cloud, filt.models())
+    prev = GM._past(j, cloud.view.win_pos, cloud, filt.models())
     assert state.extras["path_pos"].shape[2] == 3  # anchor + 2 past steps
     torch.testing.assert_close(prev.w_mean, state.extras["w_mean"], rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(prev.w_cov, state.extras["w_cov"], rtol=1e-9, atol=1e-9)

@@ -1,0 +1,237 @@
+"""The group filter's driver: :class:`GroupMCMCFilter`, a :class:`~torchmcmcpf.filters.base.Filter`
+whose step is :func:`~torchmcmcpf.filters.group.step.group_mcmc_step` with the models bound.
+
+The maths, the moves' targets and acceptance ratios: the docstring of :mod:`torchmcmcpf.filters.group`.
+"""
+
+from __future__ import annotations
+
+import inspect
+import math
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from ..._validation import check_positive_int, check_shape
+from ...models.group import (
+    GroupExistence,
+    GroupStructurePrior,
+    VirtualLeaderMotion,
+    bell_number,
+    pairwise_kalman_init,
+)
+from ...models.sensors.pixels import ThresholdedPixels
+from ...state import ParticleState, StepInfo
+from ...typing import Tensor
+from ..base import Filter
+from .moves import Models
+from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
+from .step import PATH_KEYS, _bind, group_mcmc_step
+
+__all__ = ["GroupMCMCFilter"]
+
+
+class GroupMCMCFilter(Filter):
+    """Marginalised MCMC-based particle filter for coordinated groups (paper 004, sec. 4).
+
+    Parameters
+    ----------
+    motion : VirtualLeaderMotion (eqs. 1-16); sensor : ThresholdedPixels (eqs. 39-41) or
+        a pixel sensor with ``shape``, ``pixel_size``, ``position_index``.
+    num_particles : N, a multiple of ``num_chains``.
+    existence : GroupExistence (eq. 25, births eqs. 29-37); structure_prior :
+        GroupStructurePrior (eq. 19).
+    settings : :class:`GroupMCMCSettings`, optional; each of its fields is also a keyword
+        shortcut (``burn_in=50``), with its default written once, in the dataclass, except
+        ``num_chains``, whose default depends on N: :func:`default_chains` (the largest
+        divisor of N up to 20) unless ``settings`` is given.
+    compile_step : compile each move (``torch.compile(fullgraph=True)``; noise drawn
+        eagerly, so compiled == eager).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf import GroupMCMCFilter
+    >>> from torchmcmcpf.scenarios.group_merge import group_merge
+    >>> scn = group_merge(2, generator=torch.Generator().manual_seed(0), num_steps=3)
+    >>> filt = GroupMCMCFilter(scn.motion, scn.sensor, 40, existence=scn.existence,
+    ...                        structure_prior=scn.structure_prior, burn_in=10)
+    >>> filt.settings.num_chains
+    20
+    >>> res = filt(scn.frames, init=filt.init_inactive(2), generator=torch.Generator().manual_seed(1))
+    >>> res.info.extras["structure_prob"].shape  # (T, B, Bell(4)): the probability of each structure
+    torch.Size([3, 2, 15])
+    >>> res.exists_prob.shape  # (T, B, K)
+    torch.Size([3, 2, 4])
+    """
+
+    motion: VirtualLeaderMotion  # type: ignore[assignment]  # a whole-configuration motion (motion_type)
+    sensor: ThresholdedPixels
+    existence: GroupExistence
+    settings: GroupMCMCSettings
+    #: the group fields of the state (package docstring, "State and outputs"); the fixed-lag
+    #: path's fields only with ``lag > 0``
+    state_extras = frozenset({"labels", "w_mean", "w_cov", "frames"})
+    optional_state_extras = frozenset(PATH_KEYS)
+    settings_class = GroupMCMCSettings
+    motion_type = VirtualLeaderMotion
+    relabels = False  # a slot's label is its place in the group structure
+
+    def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int,
+                 settings: GroupMCMCSettings | None = None, *, existence: GroupExistence,
+                 structure_prior: GroupStructurePrior, compile_step: bool = False, **shortcuts: Any) -> None:
+        if not all(hasattr(sensor, a) for a in ("shape", "pixel_size", "position_index", "log_likelihood")):
+            raise ValueError(f"sensor must be a pixel sensor (ThresholdedPixels), got {type(sensor).__name__}")
+        if not isinstance(existence, GroupExistence):
+            raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
+        if not isinstance(structure_prior, GroupStructurePrior):
+            raise ValueError(f"structure_prior must be a GroupStructurePrior, got {type(structure_prior).__name__}")
+        n = check_positive_int(num_particles, "num_particles")
+        if shortcuts.get("num_chains", 0) is None:
+            del shortcuts["num_chains"]
+        if settings is None and "num_chains" not in shortcuts:  # the one default that depends on N
+            shortcuts["num_chains"] = default_chains(n)
+        if "past_step" in shortcuts:
+            shortcuts["past_step"] = tuple(shortcuts["past_step"])
+        super().__init__(motion, sensor, n, settings, existence=existence,  # type: ignore[arg-type]
+                         compile_step=compile_step, **shortcuts)
+        self.settings.check(n)
+        self.structure_prior = structure_prior
+
+    def models(self) -> Models:
+        """The models and proposal constants the moves are bound to."""
+        s = self.settings
+        return Models(self.motion, self.sensor, self.existence, self.structure_prior, float(s.p_i), float(s.p_a),
+                      s.past_step)
+
+    def _build_compiled(self, compile: Callable[[Callable], Callable]) -> Callable:
+        return _bind(self.models(), compile)
+
+    # -- state ---------------------------------------------------------------------------
+    def check_memory(self, batch_size: int, num_slots: int) -> None:
+        """Refuse (``ValueError`` with the estimate) a problem whose step would need more than
+        ``max_memory_gb`` (:func:`estimate_step_bytes`), before anything is allocated.
+        """
+        need = estimate_step_bytes(batch_size, self.num_particles, num_slots, lag=self.settings.lag)
+        if need > self.settings.max_memory_gb * 2**30:
+            raise ValueError(
+                f"num_slots={num_slots} with batch_size={batch_size} and num_particles={self.num_particles} needs "
+                f"about {need / 2**30:.1f} GiB per step (Bell({num_slots}) = {bell_number(num_slots)} group "
+                f"structures), above max_memory_gb={self.settings.max_memory_gb:g}; use fewer slots (N_max) or "
+                "particles, or raise max_memory_gb")
+
+    def init(self, particles: Tensor, exists: Tensor | None = None,  # type: ignore[override]
+             labels: Tensor | None = None) -> ParticleState:
+        """Wrap initial particles ``(B, N, K, 4)`` (``[x, vx, y, vy]``; ``exists (B, N, K)``,
+        default all inactive; ``labels (B, N, K)``, default each slot its own group) into a
+        state with exact (zero-covariance) Kalman statistics: velocities from ``particles``,
+        leaders at ``v_death``.
+        """
+        self._check_state_tensors(particles, exists)
+        b, n, k, _ = particles.shape
+        self.check_memory(b, k)
+        for t in list(self.buffers()) + list(self.parameters()):  # init reads the models (x_death, v_death)
+            if t.device != particles.device:
+                raise ValueError(f"the models' parameters are on {t.device}, expected {particles.device} (the device "
+                                 "of init); move them with filt.to(device)")
+        if exists is None:
+            exists = torch.zeros((b, n, k), dtype=torch.bool, device=particles.device)
+        if labels is None:
+            labels = torch.arange(k, device=particles.device).expand(b, n, k)
+        check_shape(labels, "init.labels", (b, n, k))
+        exists = exists.to(torch.bool)
+        x = torch.where(exists.unsqueeze(-1), particles, self.existence.x_death.to(particles))
+        st = pairwise_kalman_init((b, n), k, existence=self.existence, dtype=particles.dtype, device=particles.device)
+        w_mean = st.mean.clone()
+        w_mean[..., :k] = x[..., 1::2].transpose(-1, -2)
+        labels = labels.to(torch.int64).contiguous()
+        h, w = self.sensor.shape
+        extras = {"labels": labels, "w_mean": w_mean, "w_cov": st.cov,
+                  "frames": torch.zeros((b, 0, h, w), dtype=torch.bool, device=particles.device)}
+        lag = self.settings.lag
+        if lag:
+            # all inactive: a past of L inactive steps (empty frames) is the same start, and the state
+            # has its final shapes from the first step on (compiled moves compile once)
+            p = lag + 1 if not bool(exists.any()) else 1
+            extras.update(path_pos=x[..., 0::2].unsqueeze(2).expand(b, n, p, k, 2).clone(),
+                          path_labels=labels.unsqueeze(2).expand(b, n, p, k).clone(),
+                          path_exists=exists.unsqueeze(2).expand(b, n, p, k).clone(), path_log=x.new_zeros((b, n, p)),
+                          anchor_w_mean=w_mean.clone(), anchor_w_cov=st.cov.clone())
+            extras["frames"] = torch.zeros((b, p - 1, h, w), dtype=torch.bool, device=particles.device)
+        return ParticleState(x, particles.new_full((b, n), -math.log(n)), exists, extras)
+
+    def init_inactive(self, batch_size: int, num_slots: int = 4, *, dtype: torch.dtype = torch.float64,
+                      device: torch.device | str | None = None) -> ParticleState:
+        """``K = num_slots`` slots, all inactive in every particle of every run (paper 004 sec. 5).
+        Refuses a ``num_slots`` whose ``Bell(K)`` structures do not fit ``max_memory_gb``.
+        """
+        b = check_positive_int(batch_size, "batch_size")
+        k = check_positive_int(num_slots, "num_slots")
+        self.check_memory(b, k)
+        return self.init(torch.zeros((b, self.num_particles, k, 4), dtype=dtype, device=device))
+
+    def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
+        state = super()._as_state(init)
+        if state.extras is None:  # a plain ParticleState: the group fields start as init's
+            state = self.init(state.x, state.exists)._replace(log_w=state.log_w)
+        return state
+
+    def check_extras(self, state: ParticleState) -> None:
+        """The group fields of ``state.extras`` (package docstring): keys, shapes, dtypes and
+        devices against ``x (B, N, K, 4)``; ``ValueError`` naming the field otherwise.
+        """
+        b, n, k, _ = state.x.shape
+        if state.exists is None:
+            raise ValueError("state.exists is None; the group filter's state has existence flags (filt.init)")
+        ex = state.extras or {}
+        h, w = self.sensor.shape
+        f = ex["frames"].shape[1] if torch.is_tensor(ex.get("frames")) and ex["frames"].dim() == 4 else None
+        p = ex["path_pos"].shape[2] if torch.is_tensor(ex.get("path_pos")) and ex["path_pos"].dim() == 5 else None
+        expected: dict[str, tuple[tuple[int | None, ...], torch.dtype | None]] = {
+            "labels": ((b, n, k), torch.int64), "w_mean": ((b, n, 2, 3 * k), state.x.dtype),
+            "w_cov": ((b, n, 3 * k, 3 * k), state.x.dtype), "frames": ((b, f, h, w), torch.bool)}
+        if any(key in ex for key in PATH_KEYS):
+            expected.update(path_pos=((b, n, p, k, 2), state.x.dtype), path_labels=((b, n, p, k), torch.int64),
+                            path_exists=((b, n, p, k), torch.bool), path_log=((b, n, p), state.x.dtype),
+                            anchor_w_mean=((b, n, 2, 3 * k), state.x.dtype),
+                            anchor_w_cov=((b, n, 3 * k, 3 * k), state.x.dtype))
+        for key, (shape, dtype) in expected.items():
+            t = ex.get(key)
+            if not torch.is_tensor(t):
+                raise ValueError(f"state.extras[{key!r}] is missing; expected a tensor of shape {shape} "
+                                 "(build the state with filt.init or filt.init_inactive)")
+            check_shape(t, f"state.extras[{key!r}]", shape)
+            if t.dtype != dtype or t.device != state.x.device:
+                raise ValueError(f"state.extras[{key!r}] is {t.dtype} on {t.device}, expected {dtype} on "
+                                 f"{state.x.device}")
+
+    def validate(self, state: ParticleState, measurements: Any, *, sequence: bool,
+                 name: str = "measurements") -> None:
+        """:meth:`Filter.validate`, the group fields (:meth:`check_extras`) and the memory
+        estimate (:meth:`check_memory`).
+        """
+        super().validate(state, measurements, sequence=sequence, name=name)
+        self.check_extras(state)
+        self.check_memory(state.batch_size, state.num_targets)
+
+    def _step(self, state: ParticleState, z: Any, generator: torch.Generator) -> tuple[ParticleState, StepInfo]:
+        """One call of :func:`group_mcmc_step` with this filter's models and settings."""
+        return group_mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
+                               generator=generator, existence=self.existence, structure_prior=self.structure_prior,
+                               moves=self.compiled())
+
+
+def _group_signature() -> inspect.Signature:
+    """The constructor's signature (``help``, the documentation): the common one of
+    :class:`Filter` with its settings' fields, ``existence`` and ``structure_prior`` required.
+    """
+    sig = inspect.signature(GroupMCMCFilter)
+    params = [p.replace(default=inspect.Parameter.empty) if p.name == "existence" else p
+              for p in sig.parameters.values()]
+    at = [p.name for p in params].index("existence") + 1
+    params.insert(at, inspect.Parameter("structure_prior", inspect.Parameter.KEYWORD_ONLY))
+    return sig.replace(parameters=params)
+
+
+GroupMCMCFilter.__signature__ = _group_signature()  # type: ignore[attr-defined]
