@@ -1,0 +1,81 @@
+"""Where a births/deaths step goes: the IP-MCMC-PF and the MCMC-PF of
+``reproduce septier-birth-death`` (its full settings, B = 10 runs batched, one thread), one
+step profiled after two warm steps, split into the parts of issue 49 item 1 by the
+profiler's inclusive time of the functions that do each part. Run from the repository root:
+
+    python benchmarks/profile_birth_death.py
+
+Prints, per filter, the unprofiled time per step and run and each part's share of the
+profiled step (profiling inflates the Python-heavy parts a little; the shares are of the
+profiled total).
+"""
+
+from __future__ import annotations
+
+import time
+
+import torch
+from torch.profiler import profile
+
+from torchmcmcpf.experiments._shards import shard_generator
+from torchmcmcpf.experiments.septier_birth_death import BirthDeathSettings, _filters
+from torchmcmcpf.scenarios.septier import septier
+
+#: part -> the functions whose inclusive time it is (file suffix, function name)
+PARTS = {
+    "IP-MCMC-PF": {
+        "likelihood arithmetic": [("points.py", "log_likelihood_delta_cached"), ("points.py", "log_likelihood"),
+                                  ("points.py", "amplitude_cache")],
+        "move bookkeeping": [("exchange.py", "exchange_iteration"), ("exchange.py", "with_accepted_amplitudes")],
+        "noise and proposals": [("ipmcmc.py", "draw"), ("existence.py", "draw_noise")],
+        "R-hat": [("ipmcmc.py", "_rhat_report")],
+        "relabelling and estimation": [("base.py", "_estimate")],
+    },
+    "MCMC-PF": {
+        "likelihood arithmetic": [("points.py", "log_likelihood")],
+        "move bookkeeping": [("mcmc.py", "mcmc_iteration")],
+        "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations")],
+        "relabelling and estimation": [("base.py", "_estimate")],
+    },
+}
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    cfg = BirthDeathSettings(stonesoup=False)
+    scn = septier(10, 4, generator=shard_generator("cpu", 0, 0))
+    b, k = scn.alive.shape[1:]
+    init = torch.zeros((b, cfg.particles, k, 4), dtype=torch.float64)
+    z = scn.measurements
+
+    def frames(a: int, e: int):
+        return type(z)(*(t[a:e] for t in z))
+
+    for name, parts in PARTS.items():
+        filt = _filters(cfg, scn.motion, scn.sensor, scn.existence)[name]
+        g = torch.Generator().manual_seed(0)
+        state = filt(frames(0, 2), init=init, generator=g).state
+        start = time.perf_counter()
+        filt(frames(2, 3), init=state, generator=torch.Generator().manual_seed(1))
+        plain = time.perf_counter() - start
+        with profile() as prof:
+            filt(frames(3, 4), init=state, generator=torch.Generator().manual_seed(1))
+        totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
+
+        def inclusive(file: str, fn: str) -> float:
+            return sum(v for key, v in totals.items() if key.endswith(f"): {fn}") and f"/{file}(" in key)
+
+        total = max(v for key, v in totals.items() if key.endswith("): forward"))
+        shares = {part: sum(inclusive(f, fn) for f, fn in where) for part, where in parts.items()}
+        # the iterations' own sensor calls are inside the bookkeeping's inclusive time
+        inner = inclusive("points.py", "log_likelihood_delta_cached" if name == "IP-MCMC-PF" else "log_likelihood")
+        shares["move bookkeeping"] -= inner
+        shares["the rest (start, resampling, Python and dispatch)"] = total - sum(shares.values())
+        print(f"\n{name}: {1e3 * plain / b:.1f} ms per step and run (B = {b}, unprofiled); profiled step "
+              f"{total / 1e3:.0f} ms")
+        for part, v in shares.items():
+            print(f"  {part:52s} {100 * v / total:5.1f} %")
+
+
+if __name__ == "__main__":
+    main()
