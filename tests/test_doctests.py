@@ -20,14 +20,8 @@ MODULES = ["torchmcmcpf", "torchmcmcpf.models", "torchmcmcpf.models.group", "tor
            "torchmcmcpf.state", "torchmcmcpf.resampling", "torchmcmcpf.plotting", "torchmcmcpf.runtime",
            "torchmcmcpf.typing", "torchmcmcpf.models.sensors", "torchmcmcpf.models.sensors.grid",
            "torchmcmcpf.interop"]
-_REWRITE = "example pending: module being rewritten"
 #: public classes without an example: name -> why (remove the entry when the example lands)
 EXEMPT: dict[str, str] = {
-    "MCMCSettings": _REWRITE,  # filters/mcmc.py
-    "IPMCMCSettings": _REWRITE,  # filters/ipmcmc.py
-    "ExchangeChains": _REWRITE,  # kernels/exchange.py
-    "ExchangeProposal": _REWRITE,
-    "ExchangeNoise": _REWRITE,
     "Program": "what it does is compile (torch.compile with inductor: seconds on the CPU, and a C++ toolchain); "
                "runtime.compile_program and tests/test_runtime.py show it at work",
 }

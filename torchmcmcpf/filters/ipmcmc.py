@@ -375,6 +375,18 @@ class IPMCMCSettings:
 
     Both are turned off for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
+
+    Example
+    -------
+    >>> from torchmcmcpf.filters.ipmcmc import IPMCMCSettings
+    >>> settings = IPMCMCSettings(num_chains=50, burn_in=100)          # paper 000's Table II
+    >>> settings.rhat_threshold, settings.max_extensions               # extend while R-hat >= 1.1
+    (1.1, 2)
+    >>> settings.check(500)                                            # 10 kept samples per chain
+    >>> settings.check(75)
+    Traceback (most recent call last):
+    ...
+    ValueError: num_chains=50 must divide num_particles=75
     """
 
     num_chains: int = 50

@@ -149,6 +149,18 @@ class MCMCSettings:
 
     Both are turned off (set to None) for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
+
+    Example
+    -------
+    >>> from torchmcmcpf.filters.mcmc import MCMCSettings
+    >>> settings = MCMCSettings(num_chains=50, burn_in=20, moves="mixture")
+    >>> settings.pairs                                  # paper 004: joint draw w.p. 0.75, else a sweep
+    (('joint', 0.75), ('refine', 0.25))
+    >>> settings.check(5000, 4, None)                   # N = 5000, D = 4: 50 chains of 100 samples
+    >>> MCMCSettings(moves="gibbs")
+    Traceback (most recent call last):
+    ...
+    ValueError: moves must be one of ['joint', 'mixture', 'random_walk'] or a sequence of ... got 'gibbs'
     """
 
     num_chains: int = 1

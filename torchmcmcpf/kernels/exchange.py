@@ -89,6 +89,29 @@ class ExchangeChains(NamedTuple):
         choice, not another algorithm: with it or without, the chains are the same to
         round-off (tested in float64). Made once per step for the chains, advanced for the
         accepted moves by :func:`with_accepted_amplitudes` only, never recorded in a trace.
+
+    Example
+    -------
+    One exchange iteration of 8 chains in each of 2 runs, 3 slots, a linear sensor:
+
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels.exchange import ExchangeChains, ExchangeNoise, draw_exchange_noise, exchange_iteration
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> motion, sensor = tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0)
+    >>> dynamics, g = TargetDynamics(motion), torch.Generator().manual_seed(0)
+    >>> x_prev, log_w = torch.zeros(2, 100, 3, 4), torch.full((2, 100), -math.log(100))   # (B, N, K, D)
+    >>> z, y = torch.zeros(2, 3, 2), torch.zeros(2, 8, 3, 4)          # a frame; the chains (B, C, K, D)
+    >>> chains = ExchangeChains(y, sensor.log_likelihood(y, z))
+    >>> noise = draw_exchange_noise(log_w, 1, 8, 3, dynamics=dynamics, generator=g, dtype=torch.float32)
+    >>> first = ExchangeNoise(*(t if t is None else t[0] for t in noise))   # iteration 0: leading (B, C)
+    >>> chains, accepted, update = exchange_iteration(chains, x_prev, None, z, first, dynamics=dynamics,
+    ...                                               sensor=sensor)
+    >>> chains.y.shape, accepted.shape, update        # a linear sensor keeps no amplitude cache
+    (torch.Size([2, 8, 3, 4]), torch.Size([2, 8]), None)
+    >>> torch.allclose(chains.log_lik, sensor.log_likelihood(chains.y, z))
+    True
     """
 
     y: Tensor
@@ -130,6 +153,21 @@ class ExchangeProposal(NamedTuple):
     log_r : (*L, B, C, M) their ``log r`` at this move's ``epsilon`` (zeros without an
         existence model or re-capture).
     kind : (*L, B, C, M) int8, their proposal components with re-capture, else ``None``.
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels.exchange import draw_exchange_noise, propose_slots
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> dynamics = TargetDynamics(tp.ConstantVelocity(dt=1.0, q=1.0))
+    >>> x_prev, log_w = torch.zeros(2, 100, 3, 4), torch.full((2, 100), -math.log(100))
+    >>> noise = draw_exchange_noise(log_w, 5, 8, 3, dynamics=dynamics, generator=torch.Generator(),
+    ...                             dtype=torch.float32)
+    >>> proposal = propose_slots(noise, x_prev, None, dynamics=dynamics)   # 5 iterations at once
+    >>> proposal.moved.shape, proposal.exists, proposal.kind          # (L, B, C, M, D); no births, no re-capture
+    (torch.Size([5, 2, 8, 1, 4]), None, None)
     """
 
     moved: Tensor
@@ -158,6 +196,22 @@ class ExchangeNoise(NamedTuple):
     proposal : :class:`ExchangeProposal` with leading ``(L, B, C)``, optional: the slots
         this noise proposes, made in advance (:func:`propose_slots`); without it each
         iteration makes its own (the same values).
+
+    Example
+    -------
+    >>> import math
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.kernels.exchange import draw_exchange_noise
+    >>> from torchmcmcpf.models.existence import TargetDynamics
+    >>> dynamics = TargetDynamics(tp.ConstantVelocity(dt=1.0, q=1.0))
+    >>> log_w = torch.full((2, 100), -math.log(100))                   # the previous weights (B, N)
+    >>> noise = draw_exchange_noise(log_w, 5, 8, 3, dynamics=dynamics, generator=torch.Generator(),
+    ...                             dtype=torch.float32)
+    >>> noise.source.shape, noise.eps.shape, noise.u.shape            # (L, B, C, M), ..., (L, B, C)
+    (torch.Size([5, 2, 8, 1]), torch.Size([5, 2, 8, 1, 4]), torch.Size([5, 2, 8]))
+    >>> bool((noise.slot < 3).all()), noise.birth, noise.relocation
+    (True, None, None)
     """
 
     source: Tensor
