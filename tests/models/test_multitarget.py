@@ -262,3 +262,18 @@ def test_terms_are_off_where_the_sensor_cannot_support_them():
     # re-capture needs the labelled prior: off with the random walk or HMC
     mcmc = tp.MCMCFilter(scn.motion, scn.sensor, 100, moves="random_walk", rw_scale=1.0)
     assert mcmc.settings.recapture is None and mcmc.settings.exclusion == Exclusion()
+
+
+def test_radar_data_draws_score_only_where_asked(gen):
+    """``sample_from_data(scored=)`` (what :class:`RelocationNoise` asks for the draws a
+    proposal can read): the same draws, the same ratio where scored, 0 elsewhere."""
+    scn = ground_radar(3, 2, 2, generator=gen, dtype=DT, snr_db=20.0)
+    sensor, z = scn.sensor, scn.measurements[0]
+    scored = torch.rand(2, 50, 3, generator=gen) < 0.2
+    full = sensor.sample_from_data(z, (2, 50, 3), generator=torch.Generator().manual_seed(1), dtype=DT)
+    part = sensor.sample_from_data(z, (2, 50, 3), generator=torch.Generator().manual_seed(1), dtype=DT, scored=scored)
+    assert torch.equal(full[0], part[0])
+    assert torch.equal(part[1], torch.where(scored, full[1], 0.0))
+    noise = RelocationNoise.draw((2, 50, 3), sensor, z, generator=torch.Generator().manual_seed(2), dtype=DT,
+                                 device="cpu", p_propose=0.1)
+    assert torch.equal(noise.log_ratio == 0, noise.u >= 0.1)

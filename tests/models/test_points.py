@@ -180,3 +180,6 @@ def test_data_draws_score_only_where_asked(gen):
                               scored=scored)
     assert torch.equal(full[0], part[0])
     assert torch.equal(part[1], torch.where(scored, full[1], 0.0))
+    none = s.sample_from_data(z, (3, 5, 4), generator=torch.Generator().manual_seed(1), dtype=torch.float64,
+                              scored=torch.zeros(3, 5, 4, dtype=torch.bool))
+    assert torch.equal(none[0], full[0]) and not none[1].any()  # nothing to score: no sum at all

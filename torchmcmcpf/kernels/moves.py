@@ -269,8 +269,9 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, dynami
 
 def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | None, x_prop: Tensor,
                 e_prop: Tensor | None, r_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
-                n: int | Tensor, z: Measurement, *, sensor: SensorModel, exclusion: Exclusion | None = None
-                ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor]:
+                n: int | Tensor, z: Measurement, cache: Tensor | None = None, *, sensor: SensorModel,
+                exclusion: Exclusion | None = None
+                ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor, tuple[Tensor, Tensor] | None]:
     """The MH update of one slot ``n`` of the sequential sweep (pure; the program the
     ``compile_step`` of the MCMC filter compiles, once for every slot).
 
@@ -283,12 +284,18 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
         ``log_ratio`` the difference ``log r'_n - log r_n`` taken against the sweep's start).
     n : Python int, or (B, C) int64 (the same slot everywhere, as a tensor so that one
         compiled graph serves every slot).
-    z : the frame; sensor : the SensorModel.
+    z : the frame; cache : the chains' amplitude cache
+        (:meth:`~torchmcmcpf.models.base.SensorModel.amplitude_cache`), optional: the
+        proposal's ratio is then read from it (the moved slot's terms only).
+    sensor : the SensorModel.
     exclusion : the exclusion term, optional (its ``K - 1`` factors of slot ``n``).
 
     Returns
     -------
-    x, log_lik, e, log_r : the chains after the update; accepted : (B, C) bool.
+    x, log_lik, e, log_r : the chains after the update; accepted : (B, C) bool; update : the
+    cache's ``(cells, change)`` for the accepted moves
+    (:meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache`, applied by the
+    caller), ``None`` without a cache.
     """
     if e is not None and (e_prop is None or r_prop is None or log_r is None):
         raise ValueError("with existence flags e, e_prop, r_prop and log_r must be given too")
@@ -303,8 +310,12 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
     x_n = pick(x_prop)
     e_n = None if e is None or e_prop is None else pick(e_prop)
     x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
-    # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
-    log_lik_cand = sensor.log_likelihood_slot(x, x_n, n, z, log_lik, exists=e, exists_n=e_n)
+    update = None
+    if cache is not None:  # the moved slot's terms read against the chains' cache
+        delta, cells, change = sensor.log_likelihood_delta_cached(cache, x, x_n, n_t, z, exists=e, exists_n=e_n)
+        log_lik_cand, update = log_lik + delta, (cells, change)
+    else:  # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
+        log_lik_cand = sensor.log_likelihood_slot(x, x_n, n, z, log_lik, exists=e, exists_n=e_n)
     log_alpha = log_lik_cand - log_lik + pick(log_ratio) + exclusion_change(exclusion, sensor, x, x_n, n_t, e, e_n)
     acc = mh_accept(log_alpha, pick(u))
     x = mh_select(acc, x_cand, x)
@@ -313,7 +324,7 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
         e = mh_select(acc, torch.where(here, e_prop, e), e)
     if log_r is not None and r_prop is not None:
         log_r = torch.where(acc.unsqueeze(-1) & here, r_prop, log_r)
-    return x, log_lik, e, log_r, acc
+    return x, log_lik, e, log_r, acc, update
 
 
 def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: Tensor, z: Measurement,
@@ -328,13 +339,20 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
     x, log_lik, e, log_r = chain.x, chain.log_lik, chain.exists, chain.log_ratio
     if log_r is None:
         r_prop = None
+    # the sweep's own cache of the chains' point intensities (a sensor whose cache pays for a
+    # sweep, SensorModel.sweep_cache): made once, each slot's update then pays for that slot's
+    # terms only, and the accepted changes are added to it (as the IP-MCMC-PF's moves do)
+    cache = sensor.amplitude_cache(x, e, z) if sensor.sweep_cache else None
     flags = []
     for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)
         args = (x, log_lik, e, log_r, x_prop, e_prop, r_prop, log_ratio, u)
         if slot_program is None:
-            x, log_lik, e, log_r, acc = refine_slot(*args, n, z, sensor=sensor, exclusion=exclusion)
+            x, log_lik, e, log_r, acc, update = refine_slot(*args, n, z, cache, sensor=sensor, exclusion=exclusion)
         else:
-            x, log_lik, e, log_r, acc = slot_program(*args, torch.full(log_lik.shape, n, device=x.device), z)
+            x, log_lik, e, log_r, acc, update = slot_program(*args, torch.full(log_lik.shape, n, device=x.device), z,
+                                                             cache)
+        if cache is not None and update is not None:
+            cache = sensor.update_amplitude_cache(cache, *update, acc)
         flags.append(acc)
     return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_ratio=log_r), \
         torch.stack(flags, dim=-1)

@@ -296,9 +296,10 @@ class BirthDeath(nn.Module):
             return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
         # the candidates that can be born only (eager: the noise is drawn outside compiled code)
         rows, cols = scored.reshape(b, -1).nonzero(as_tuple=True)
-        ratio = self._log_birth_ratio(pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows],
-                                      self.birth_std).squeeze(1)
-        log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=dtype, device=device).index_put_((rows, cols), ratio)
+        log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=dtype, device=device)
+        if rows.numel():
+            log_ratio.index_put_((rows, cols), self._log_birth_ratio(
+                pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows], self.birth_std).squeeze(1))
         return self._newborn(pos, vel_eps), log_ratio.reshape(tuple(shape))
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:

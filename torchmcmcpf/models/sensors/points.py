@@ -281,6 +281,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         return total - (self.clutter_rate + self.detection_rate * n_live)
 
     # -- the chain cache: each sample's intensity at every point ----------------------------
+    sweep_cache = True  # M numbers per sample: cheap beside the K M terms a slot update saves
+
     def amplitude_cache(self, x: Tensor, exists: Tensor | None = None, z: PointMeasurement | None = None
                         ) -> Tensor | None:
         """Each sample's Poisson intensity at every point of the frame ``z``.
@@ -418,10 +420,12 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
         else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
             rows, cols = scored.reshape(b, p).nonzero(as_tuple=True)
-            log_q = log_near_points(pos[rows, cols].unsqueeze(1), pts[rows], mask[rows], W=self.W,
-                                    p_uniform=self.uniform_weight, area=self.area).squeeze(1)
-            ratio = torch.where(inside[rows, cols], -math.log(self.volume) - log_q, -math.inf)
-            log_ratio = torch.zeros((b, p), dtype=dtype, device=dev).index_put_((rows, cols), ratio)
+            log_ratio = torch.zeros((b, p), dtype=dtype, device=dev)
+            if rows.numel():
+                log_q = log_near_points(pos[rows, cols].unsqueeze(1), pts[rows], mask[rows], W=self.W,
+                                        p_uniform=self.uniform_weight, area=self.area).squeeze(1)
+                log_ratio.index_put_((rows, cols), torch.where(inside[rows, cols], -math.log(self.volume) - log_q,
+                                                               -math.inf))
         return pos.reshape(tuple(shape) + (2,)), log_ratio.reshape(tuple(shape))
 
     # -- simulation ---------------------------------------------------------------------

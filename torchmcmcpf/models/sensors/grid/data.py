@@ -126,8 +126,10 @@ def log_data_density(sensor: GridSensorLike, coords: Tensor, centres: Tensor, ma
 
 
 def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
-                     dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
-    """Draws ``coords (*shape, n)`` from ``g(u | z)`` and ``log p_0 - log g`` there ``(*shape)``."""
+                     dtype: torch.dtype = torch.float32, scored: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Draws ``coords (*shape, n)`` from ``g(u | z)`` and ``log p_0 - log g`` there ``(*shape)``
+    (with ``scored (*shape)`` bool: only there, 0 elsewhere; the draws are the same).
+    """
     geometry = sensor.geometry
     B = z.shape[0]
     if not shape or shape[0] != B:
@@ -146,5 +148,12 @@ def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], 
     use = (u[..., 1] >= sensor.uniform_weight) & mask.any(-1, keepdim=True)
     coords = torch.where(use.unsqueeze(-1), near, low + span * box)  # (B, Q, n)
     inside = ((coords >= low) & (coords <= low + span)).all(-1)
-    log_ratio = torch.where(inside, -log_volume - log_data_density(sensor, coords, centres, mask), float("-inf"))
+    if scored is None:
+        log_ratio = torch.where(inside, -log_volume - log_data_density(sensor, coords, centres, mask), float("-inf"))
+    else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
+        rows, cols = scored.reshape(B, Q).nonzero(as_tuple=True)
+        log_ratio = torch.zeros((B, Q), dtype=dtype, device=z.device)
+        if rows.numel():
+            log_g = log_data_density(sensor, coords[rows, cols].unsqueeze(1), centres[rows], mask[rows]).squeeze(1)
+            log_ratio.index_put_((rows, cols), torch.where(inside[rows, cols], -log_volume - log_g, float("-inf")))
     return coords.reshape(tuple(shape) + (n,)), log_ratio.reshape(tuple(shape))

@@ -501,15 +501,15 @@ class SeparableGridSensor(SensorModel[Tensor]):
         ----------
         z : (B, *G) one frame per run; shape : ``(B, *S)``.
         generator : source of randomness; dtype : of the outputs.
-        scored : (B, *S) bool, optional: ``log_ratio`` is 0 where False (the base method).
+        scored : (B, *S) bool, optional: ``g`` is evaluated where True only, ``log_ratio``
+            is 0 elsewhere (the base method); the draws are the same.
 
         Returns
         -------
         coords : (B, *S, n) in the units of :meth:`measurement_coords`;
         log_ratio : (B, *S).
         """
-        coords, log_ratio = data.sample_from_data(self, z, shape, generator=generator, dtype=dtype)
-        return coords, log_ratio if scored is None else torch.where(scored, log_ratio, 0.0)
+        return data.sample_from_data(self, z, shape, generator=generator, dtype=dtype, scored=scored)
 
     # ---------------------------------------------------------------- checks
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
