@@ -7,7 +7,7 @@ profiler's inclusive time of the functions that do each part. Run from the repos
 
 Prints, per filter, the unprofiled time per step and run and each part's share of the
 profiled step (profiling inflates the Python-heavy parts a little; the shares are of the
-profiled total).
+profiled total), then the IP-MCMC-PF step's arithmetic floor (:func:`floor`).
 """
 
 from __future__ import annotations
@@ -40,6 +40,33 @@ PARTS = {
 }
 
 
+def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int = 41) -> float:
+    """The IP-MCMC-PF step's arithmetic floor at the study's settings, per step and run [s]:
+    the random numbers its ``iterations`` x ``chains`` exchange moves draw (about 23 each:
+    source, slot, motion, accept, birth and relocation draws) and the transcendental
+    functions they must evaluate (the moved slot's old and new terms at every point, the
+    scored data densities, 0.6 of a draw's ``points`` terms, one ``log1p`` per point), timed
+    as single calls of ``torch.rand``, ``torch.exp`` and ``torch.log1p`` on that many float64
+    numbers (one thread): what no implementation avoids.
+    """
+    g = torch.Generator().manual_seed(0)
+    moves = batch * chains * iterations
+
+    def best(f) -> float:
+        times = []
+        for _ in range(5):
+            start = time.perf_counter()
+            f()
+            times.append(time.perf_counter() - start)
+        return min(times)
+
+    x = torch.rand(int(2.6 * points * moves), generator=g, dtype=torch.float64)
+    y = torch.rand(points * moves, generator=g, dtype=torch.float64)
+    total = best(lambda: torch.rand(23 * moves, generator=g, dtype=torch.float64)) + best(lambda: torch.exp(x)) \
+        + best(lambda: torch.log1p(y))
+    return total / batch
+
+
 def main() -> None:
     torch.set_num_threads(1)
     cfg = BirthDeathSettings(stonesoup=False)
@@ -58,7 +85,7 @@ def main() -> None:
         start = time.perf_counter()
         filt(frames(2, 3), init=state, generator=torch.Generator().manual_seed(1))
         plain = time.perf_counter() - start
-        with profile() as prof:
+        with profile(with_stack=True) as prof:
             filt(frames(3, 4), init=state, generator=torch.Generator().manual_seed(1))
         totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
 
@@ -75,6 +102,8 @@ def main() -> None:
               f"{total / 1e3:.0f} ms")
         for part, v in shares.items():
             print(f"  {part:52s} {100 * v / total:5.1f} %")
+    print(f"\nIP-MCMC-PF floor (random numbers and transcendentals, one thread): {1e3 * floor():.1f} ms per step "
+          "and run")
 
 
 if __name__ == "__main__":
