@@ -200,7 +200,8 @@ def test_reproduce_list_and_run(fake_experiment, tmp_path, capsys):
     assert p["command"].endswith("reproduce fake-study --quick --out " + str(out) + " --seed 5 --level 3 --no-progress")
     assert p["seed"] == 5 and p["threads"] >= 1 and p["wall_seconds"] > 0 and p["device"].startswith("cpu")
     assert p["versions"]["torch"] == torch.__version__ and p["versions"]["torchmcmcpf"]
-    assert "fake-study" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "fake-study" in printed and "QUICK RUN" in printed and "not comparable" in printed  # issue 52
 
 
 # ------------------------------------------------------------------ shards and Ray

@@ -33,6 +33,7 @@ def test_plot_tracks_draws_the_given_run(ax, gen):
         np.testing.assert_allclose(out["truth"][k].get_ydata(), truth[:, 1, k, 2].numpy(), rtol=1e-6)
         np.testing.assert_allclose(out["estimate"][k].get_ydata(), est[:, 1, k, 2].numpy(), rtol=1e-6)
     np.testing.assert_allclose(out["start"].get_offsets(), truth[0, 1][:, [0, 2]].numpy(), rtol=1e-6)
+    assert ax.get_aspect() == 1.0  # equal axes: metres are metres both ways (issue 52)
 
 
 def test_plot_tracks_without_batch_dim(ax):
@@ -223,3 +224,10 @@ def test_save_figure_stamps_quick_mode(tmp_path, monkeypatch):
     assert any("quick" in t for t in seen["texts"])
     monkeypatch.undo()
     plt.close(fig)
+
+
+def test_plot_cardinality_takes_each_curve_style(ax):
+    """A study gives each tracker its colour in every figure (issue 52)."""
+    lines = plot_cardinality(ax, [1, 2], {"a": [1.0, 2.0], "b": [1.0, 1.0]}, styles={"b": {"color": "C7", "ls": "--"}})
+    assert lines[2].get_color() == "C7" and lines[2].get_linestyle() == "--"
+    assert lines[1].get_color() == "C3"  # the default cycle where no style is given

@@ -371,6 +371,9 @@ def _reproduce(argv: Sequence[str], command_line: str, started: float) -> dict:
     result = study.run(settings, options)
     print(f"\n{known.name}: wrote {out}")
     print(study.summary(result) or headline_table(result))
+    if getattr(settings, "quick", False):  # the figures are stamped too; the terminal says it here
+        print("\nQUICK RUN: tiny sizes (seconds, for checking that the study runs). These figures are not "
+              "comparable with each other, the full study's or the papers'; run without --quick for those.")
     return result
 
 

@@ -59,7 +59,7 @@ def plot_tracks(
     estimate_label: str = "estimate",
     match_colors: bool = True,
 ) -> dict:
-    """True (and estimated) tracks in the x-y plane (paper 000 figs. 1, 4, 5).
+    """True (and estimated) tracks in the x-y plane (paper 000 figs. 1, 4, 5), on equal axes.
 
     Parameters
     ----------
@@ -111,6 +111,7 @@ def plot_tracks(
         if out["estimate"]:
             handles.append(Line2D([], [], color="0.3", ls="--", lw=1.2, label=estimate_label))
         ax.legend(handles=handles, loc="best", fontsize="small")
+    ax.set_aspect("equal", adjustable="datalim")  # metres on both axes: a crossing looks like one
     return out
 
 
@@ -192,7 +193,7 @@ def plot_rmse(ax: Axes, rmse: ArrayLike | Mapping[str, ArrayLike], *, dt: float 
 
 
 def plot_cardinality(ax: Axes, true_count: ArrayLike, est_count: ArrayLike | Mapping[str, ArrayLike], *,
-                     dt: float = 1.0, est_label: str = "estimated") -> list:
+                     dt: float = 1.0, est_label: str = "estimated", styles: Mapping[str, dict] | None = None) -> list:
     """True and estimated number of targets over time.
 
     Parameters
@@ -203,6 +204,8 @@ def plot_cardinality(ax: Axes, true_count: ArrayLike, est_count: ArrayLike | Map
         mapping label -> (T,) (one line per filter).
     dt : time between steps [s].
     est_label : legend entry of a single ``est_count``.
+    styles : label -> keyword arguments of ``ax.plot`` for that curve (``color``, ``ls``,
+        ...), optional: a study gives each tracker the colour it has in its other figures.
 
     Returns
     -------
@@ -216,7 +219,8 @@ def plot_cardinality(ax: Axes, true_count: ArrayLike, est_count: ArrayLike | Map
         ec = _np(values)
         if tc.ndim != 1 or ec.shape != tc.shape:
             raise ValueError(f"true_count and est_count must both be (T,), got {tc.shape} and {ec.shape}")
-        (line,) = ax.plot(t, ec, "o-", color=f"C{(i + 3) % 10}", ms=3, label=label)
+        style = {"color": f"C{(i + 3) % 10}", "marker": "o", "ms": 3, **(styles or {}).get(label, {})}
+        (line,) = ax.plot(t, ec, label=label, **style)
         lines.append(line)
     (true_line,) = ax.step(t, tc, where="mid", color="k", label="true")
     ax.set_xlabel(TIME_LABEL)

@@ -445,17 +445,20 @@ class BirthsAndDeaths(Study[BirthDeathSettings]):
             ax.set_title(f"{name} (existence > 0.5)")
         fig.suptitle(f"run 0: true tracks (solid) and estimates (dashed){quick}")
         save_figure(fig, out, "tracks.png", quick=cfg.quick)
+        colour = {name: f"C{i}" for i, name in enumerate(results)}  # one colour per tracker in every figure
         fig, ax = plt.subplots(figsize=(8, 4.5))
         curves = {f"{label(name)}: expected number": r["expected_count_per_step"] for name, r in results.items()
                   if "expected_count_per_step" in r}
         curves.update({f"{label(name)}: reported": r["reported_per_step"] for name, r in results.items()})
-        plot_cardinality(ax, true_count, curves)
+        styles = {f"{label(name)}: {kind}": {"color": colour[name], "ls": ls, "marker": "o" if ls == "-" else ""}
+                  for name in results for kind, ls in (("expected number", "-"), ("reported", "--"))}
+        plot_cardinality(ax, true_count, curves, styles=styles)
         ax.legend(fontsize="x-small")
         ax.set_title(f"mean number of targets over {runs} runs{quick}")
         save_figure(fig, out, "cardinality.png", quick=cfg.quick)
         fig, axes = plt.subplots(1, 2, figsize=(13, 4.5), layout="constrained")
-        for i, name in enumerate(results):
-            color, ls = f"C{i}", "-" if name in FILTERS else "--"
+        for name in results:
+            color, ls = colour[name], "-" if name in FILTERS else "--"
             plot_rmse(axes[0], {label(name): results[name]["ospa_per_step"]}, color=color, ls=ls,
                       ylabel=f"OSPA (c = {CUTOFF:g} m, p = {ORDER:g}) [m]")
             plot_rmse(axes[1], {label(name): results[name]["gospa_per_step"]}, color=color, ls=ls,
