@@ -127,6 +127,8 @@ def test_crossing_study_quick(tmp_path):
     reference = payload["results"][crossing_study.CLAIRVOYANT]
     assert reference["recaptured_share"] is None
     assert "| clairvoyant reference |" in crossing_study.STUDY.summary(payload)
+    # quick counts after the targets separate, as the full study: the reference holds both (issue 52)
+    assert reference["runs_shared_late"] == 0 and reference["runs_uncovered_late"] == 0
     r = payload["results"]["IP-MCMC-PF"]
     assert 0 <= r["runs_uncovered_late"] <= r["runs"] and float(r["matched_rmse"]) >= 0
     assert "| IP-MCMC-PF |" in crossing_study.STUDY.summary(payload)

@@ -76,12 +76,14 @@ class CrossingSettings(Settings):
     """The settings of :class:`Crossing` (full values; the second of each pair: ``--quick``)."""
 
     runs: int = option(20, 2, help="Monte Carlo runs of each scene")
-    steps: int = option(80, 30, help="time steps of the crossing")
+    steps: int = option(80, 60, help="time steps of the crossing")
     particles: int = option(500, 100, help="particles Np (a multiple of 10)")
     burn_in: int = option(100, 20, help="MCMC burn-in per step")
     shard_size: int = option(5, 1, cli=False)
     coalesce_steps: int = option(20, 8, help="time steps of the coalescence scene")
-    from_step: int = option(50, 20, help="first step at which uncovered and shared targets count")
+    # the targets cross at step 20 and stay unresolved until about step 45: a count from the
+    # crossing itself (the quick value was 20) sees two slots on one target in every filter
+    from_step: int = option(50, help="first step at which uncovered and shared targets count")
     map_iterations: int = option(1000, 100, cli=False)  # L-BFGS iterations of a late gap's check
     filters: tuple[str, ...] = rows_option(ROWS)
 
