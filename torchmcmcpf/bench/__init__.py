@@ -73,14 +73,44 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from .peers import (
+    POINT_M0,
+    POINT_MODEL,
+    STONESOUP_WEIGHTS,
+    _point_track,
+    evidence_errors,
+    kalman_log_evidence,
+    particles_runs,
+    point_filter,
+    point_floor,
+    point_sir_forward,
+    point_sir_step,
+    radar_floor,
+    stonesoup_step,
+)
+from .results import (
+    KINDS,
+    SCHEMA,
+    SLOWER,
+    check_result,
+    compare,
+    comparison_markdown,
+    comparison_summary,
+    figure_kind,
+    load_result,
+    reference_path,
+)
+
 if TYPE_CHECKING:
-    from .filters.base import Filter
-    from .scenarios.ground_radar import Scenario
-    from .typing import Measurement
+    from ..filters.base import Filter
+    from ..scenarios.ground_radar import Scenario
+    from ..typing import Measurement
 
 __all__ = ["Figure", "run", "time_step", "time_interleaved", "radar_problem", "stonesoup_step", "point_filter",
            "point_sir_forward", "point_sir_step", "point_floor", "radar_floor", "particles_runs", "kalman_log_evidence",
-           "evidence_errors", "TARGETS_S"]
+           "evidence_errors", "TARGETS_S", "POINT_M0", "POINT_MODEL", "KINDS", "SCHEMA", "SLOWER", "check_result",
+           "compare", "comparison_markdown", "comparison_summary", "figure_kind", "load_result", "reference_path",
+           "write_result"]
 
 #: issue 12's targets on a 2-core CPU [s per step] (per run for the batched IP-MCMC-PF)
 TARGETS_S = {"radar-sir": 0.030, "ipmcmc-5000": 0.040, "ipmcmc-500-B10": 0.015, "mcmc-pf": 0.2}
@@ -91,12 +121,6 @@ GPU_TARGETS_S = {"ipmcmc-5000-B100": 0.010 / 100}
 TARGET_SPEEDUP = {1: 5.0, 100: 20.0}
 #: the bootstrap filter of ``particles`` per run / ours per run (B runs batched) at least this, by B
 TARGET_SPEEDUP_PARTICLES = {100: 20.0}
-#: the layout of ``bench.json`` (its ``schema`` field); :func:`load_result` refuses another
-SCHEMA = "torchmcmcpf.bench/1"
-#: :func:`compare` flags a figure of ours whose time now / stored exceeds this (and below 1 / this as faster)
-SLOWER = 1.10
-#: the kinds of :class:`Figure`
-KINDS = ("ours", "floor", "peer")
 
 
 @dataclass
@@ -183,7 +207,7 @@ def radar_problem(n: int, k: int, b: int, device: torch.device, seed: int = 0) -
     """The ground radar of paper 000 (K targets, B runs, 20 frames, windowed likelihood) and
     its initial cloud ``(B, N, K, 5)``: ``(scenario, x0)``.
     """
-    from .scenarios import ground_radar
+    from ..scenarios import ground_radar
 
     g = torch.Generator(device).manual_seed(seed)
     scn = ground_radar(k, 20, b, generator=g, device=device)
@@ -204,7 +228,7 @@ def filter_step(filt: Filter, x0: torch.Tensor, z: Measurement, device: torch.de
 
 
 def radar_sir(n: int, k: int, b: int, compiled: bool, device: torch.device) -> Callable[[], object]:
-    from .filters import SIRFilter
+    from ..filters import SIRFilter
 
     scn, x0 = radar_problem(n, k, b, device)
     return filter_step(SIRFilter(scn.motion, scn.sensor, n, compile_step=compiled), x0, scn.measurements[0], device)
@@ -212,7 +236,7 @@ def radar_sir(n: int, k: int, b: int, compiled: bool, device: torch.device) -> C
 
 def radar_ipmcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, chains: int,
                  burn_in: int) -> Callable[[], object]:
-    from .filters import IPMCMCFilter
+    from ..filters import IPMCMCFilter
 
     scn, x0 = radar_problem(n, k, b, device)
     filt = IPMCMCFilter(scn.motion, scn.sensor, n, num_chains=chains, burn_in=burn_in, max_extensions=0,
@@ -222,7 +246,7 @@ def radar_ipmcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *
 
 def radar_mcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, chains: int
                ) -> Callable[[], object]:
-    from .filters import MCMCFilter
+    from ..filters import MCMCFilter
 
     scn, x0 = radar_problem(n, k, b, device)
     filt = MCMCFilter(scn.motion, scn.sensor, n, num_chains=chains, burn_in=0, thinning=1, moves="mixture",
@@ -230,278 +254,6 @@ def radar_mcmc(n: int, k: int, b: int, compiled: bool, device: torch.device, *, 
     return filter_step(filt, x0, scn.measurements[0], device)
 
 
-# -- point measurements: ours against Stone Soup and particles ----------------------------------
-#: the point problem: one target, constant velocity (dt, q), its position measured with unit noise
-POINT_MODEL = dict(dt=1.0, q=0.1, noise_std=1.0)
-#: mean of the initial cloud ``N(m0, I)`` (every library starts from it)
-POINT_M0 = (0.0, 1.0, 0.0, 1.0)
-#: Stone Soup's documented ways of giving the particles' weights (all timed; the fastest is kept)
-STONESOUP_WEIGHTS = ("weight", "log_weight", "Probability")
-
-
-def _point_track(b: int, steps: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Constant-velocity truth ``(steps, B, 4)`` and its noisy position measurements
-    ``(steps, B, 2)`` (float64, CPU; every library filters the same numbers).
-    """
-    from .models import ConstantVelocity
-
-    g = torch.Generator().manual_seed(seed)
-    motion = ConstantVelocity(POINT_MODEL["dt"], POINT_MODEL["q"]).double()
-    x = torch.tensor(POINT_M0, dtype=torch.float64).expand(b, 1, 4)
-    truth, z = [], []
-    for _ in range(steps):
-        x = motion.sample(x, generator=g)
-        truth.append(x[:, 0])
-        z.append(x[:, 0, ::2] + POINT_MODEL["noise_std"] * torch.randn(b, 2, generator=g, dtype=torch.float64))
-    return torch.stack(truth), torch.stack(z)
-
-
-def point_filter(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
-                 compile_step: bool = False, seed: int = 0) -> tuple[Filter, torch.Tensor, torch.Tensor]:
-    """Our SIR filter on the point problem (systematic resampling at every step), the
-    measurements ``(T, B, K = 1, 2)`` and an initial cloud ``(B, N, 1, 4)`` drawn from
-    ``N(m0, I)``: ``(filt, z, x0)``.
-    """
-    from .filters import SIRFilter
-    from .models import ConstantVelocity, LinearGaussian
-
-    _, z = _point_track(b, steps, seed)
-    z = z.to(device=device, dtype=dtype).unsqueeze(2)
-    motion = ConstantVelocity(POINT_MODEL["dt"], POINT_MODEL["q"])
-    filt = SIRFilter(motion, LinearGaussian.position(POINT_MODEL["noise_std"]), n, resample_method="systematic",
-                     compile_step=compile_step).to(device=device, dtype=dtype)
-    g = torch.Generator(device).manual_seed(seed + 1)
-    x0 = torch.tensor(POINT_M0, device=device, dtype=dtype) + torch.randn(b, n, 1, 4, generator=g, device=device,
-                                                                          dtype=dtype)
-    return filt, z, x0
-
-
-def point_sir_forward(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
-                      compile_step: bool = False) -> Callable[[], object]:
-    """Each call filters the whole sequence of ``steps`` frames through the public
-    ``filt(z, init=x0, generator=g)`` (divide its time by ``steps`` for a time per step).
-    """
-    filt, z, x0 = point_filter(n, b, steps, device, dtype, compile_step=compile_step)
-    g = torch.Generator(device).manual_seed(2)
-    return lambda: filt(z, init=x0, generator=g)
-
-
-def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
-                   compile_step: bool = False, public: bool = True) -> Callable[[], object]:
-    """Each call filters the next frame (B runs at once) from the state the previous call
-    returned: through the public ``filt.step`` (``public``), or through the pure step
-    function :func:`~torchmcmcpf.filters.sir_step` with the filter's step body, which checks
-    nothing (the cost of the step itself, to measure what ``step``'s checks add).
-    """
-    from .filters import sir_step
-
-    filt, z, x0 = point_filter(n, b, steps, device, dtype, compile_step=compile_step)
-    g = torch.Generator(device).manual_seed(2)
-    state: list[Any] = [filt.init(x0), 0]
-
-    def step():
-        s, t = state
-        if public:
-            state[0], _ = filt.step(s, z[t % steps], generator=g)
-        else:
-            state[0], _ = sir_step(s, z[t % steps], motion=filt.motion, sensor=filt.sensor, settings=filt.settings,
-                                   generator=g, body=filt.compiled())
-        state[1] = t + 1
-        return state[0]
-
-    return step
-
-
-def point_floor(n: int, b: int, device: torch.device, dtype: torch.dtype = torch.float32) -> Callable[[], object]:
-    """The floor of one point SIR step (B runs, N particles, K = 1, D = 4): what no
-    implementation of the step can avoid with torch's generator. The random numbers it must
-    draw (4 normals per particle, one uniform per run) and one pass over the memory it must
-    touch (read the cloud and the noise, write the new cloud; read and write the weights).
-    """
-    g = torch.Generator(device).manual_seed(0)
-    x = torch.randn(b, n, 1, 4, generator=g, device=device, dtype=dtype)
-    eps, out = torch.empty_like(x), torch.empty_like(x)
-    log_w = torch.randn(b, n, generator=g, device=device, dtype=dtype)
-
-    def step():
-        torch.randn(x.shape, generator=g, out=eps)
-        torch.rand(b, 1, generator=g, device=device, dtype=torch.float64)
-        torch.add(x, eps, out=out)
-        return log_w.neg_()
-
-    return step
-
-
-def radar_floor(terms: int, sensor: Any, device: torch.device, dtype: torch.dtype = torch.float32,
-                compiled: bool = True) -> Callable[[], object]:
-    """The arithmetic floor of a windowed radar step that evaluates ``terms`` cell terms: what
-    no implementation of the windowed likelihood can avoid, one amplitude per (sample, target,
-    box cell), the product of the target's amplitude and its profile values (per axis, the
-    last two merged as the library lays a box out), and the sensor's Rician log ratio there
-    (:meth:`RangeDopplerBearingTBD.cell_log_ratio`), summed; compiled (``compiled=True``)
-    into one loop over the terms, built from inputs of a few KB (no memory traffic but the
-    loop's own). Lower than any real step: no neighbours' amplitudes summed into a cell, no
-    ownership of cells shared by two boxes, no gathers of the frame.
-
-    ``terms``: ``N K V`` for the SIR step (every particle's K boxes of ``V =
-    prod(geometry.window_sizes)`` cells, 7^3 for the radar); ``B (burn_in + N / C) C x 2 boxes x 2 x V`` for the
-    IP-MCMC-PF's one-slot moves (the old and the new box, the cells' log ratio before and
-    after the move).
-    """
-    geometry = sensor.geometry
-    box = math.prod(geometry.window_sizes)
-    g = torch.Generator(device).manual_seed(0)
-    # the boxes' cells in the library's layout (GridGeometry.box_cells: the last two axes merged,
-    # an innermost loop of 49, which vectorises; one of 7 does not): amp * p_first * p_merged
-    layout = tuple(geometry.box_cells)
-    amp = 1.0 + torch.rand((max(terms // box, 1),) + (1,) * len(layout), generator=g, device=device, dtype=dtype)
-    profiles = [torch.rand((1,) + tuple(w if i == a else 1 for i in range(len(layout))), generator=g, device=device,
-                           dtype=dtype) for a, w in enumerate(layout)]
-    zc = 3.0 * torch.rand((1,) + layout, generator=g, device=device, dtype=dtype)
-
-    def kernel(amp: torch.Tensor, zc: torch.Tensor, *profiles: torch.Tensor) -> torch.Tensor:
-        a = amp
-        for p in profiles:
-            a = a * p
-        return sensor.cell_log_ratio(a, zc).sum()
-
-    fn = torch.compile(kernel, fullgraph=True) if compiled else kernel
-    return lambda: fn(amp, zc, *profiles)
-
-
-def stonesoup_step(n: int, b: int, steps: int, weights: str = "weight") -> Callable[[], object]:
-    """Stone Soup's particle filter on the same problem: ``ParticlePredictor`` +
-    ``ParticleUpdater`` with a ``SystematicResampler`` (resampling at every update), a
-    Python loop over the B runs; each call filters the next measurement of every run.
-
-    ``weights``: how the initial ``ParticleState`` gets its weights, one of
-    :data:`STONESOUP_WEIGHTS`: ``"weight"`` (a float array), ``"log_weight"`` (a float
-    array of logs), ``"Probability"`` (an array of Stone Soup ``Probability``, as in its
-    particle filter tutorial). Stone Soup draws from NumPy's global generator.
-    """
-    import numpy as np
-    from stonesoup.models.measurement.linear import LinearGaussian as SSLinearGaussian
-    from stonesoup.models.transition.linear import CombinedLinearGaussianTransitionModel
-    from stonesoup.models.transition.linear import ConstantVelocity as SSConstantVelocity
-    from stonesoup.predictor.particle import ParticlePredictor
-    from stonesoup.resampler.particle import SystematicResampler
-    from stonesoup.types.array import StateVectors
-    from stonesoup.types.detection import Detection
-    from stonesoup.types.hypothesis import SingleHypothesis
-    from stonesoup.types.numeric import Probability
-    from stonesoup.types.state import ParticleState as SSParticleState
-    from stonesoup.updater.particle import ParticleUpdater
-
-    if weights not in STONESOUP_WEIGHTS:
-        raise ValueError(f"weights must be one of {STONESOUP_WEIGHTS}, got {weights!r}")
-    z = _point_track(b, steps)[1].numpy()
-    q, r = POINT_MODEL["q"], POINT_MODEL["noise_std"] ** 2
-    transition = CombinedLinearGaussianTransitionModel([SSConstantVelocity(q), SSConstantVelocity(q)])
-    sensor = SSLinearGaussian(ndim_state=4, mapping=(0, 2), noise_covar=np.diag([r, r]))
-    predictor = ParticlePredictor(transition)
-    updater = ParticleUpdater(sensor, resampler=SystematicResampler())
-    start = datetime.datetime(2026, 1, 1)
-    dt = datetime.timedelta(seconds=POINT_MODEL["dt"])
-    rng = np.random.default_rng(1)
-
-    def prior():
-        sv = StateVectors(np.array(POINT_M0).reshape(4, 1) + rng.standard_normal((4, n)))
-        if weights == "weight":
-            return SSParticleState(sv, weight=np.full(n, 1.0 / n), timestamp=start)
-        if weights == "log_weight":
-            return SSParticleState(sv, log_weight=np.full(n, -math.log(n)), timestamp=start)
-        return SSParticleState(sv, weight=np.array([Probability(1.0 / n)] * n), timestamp=start)
-
-    priors = [prior() for _ in range(b)]
-    t = [0]
-
-    def step():
-        k = t[0] % steps
-        for i in range(b):  # Stone Soup filters one run at a time
-            prediction = predictor.predict(priors[i], timestamp=priors[i].timestamp + dt)
-            detection = Detection(z[k, i].reshape(2, 1), timestamp=prediction.timestamp, measurement_model=sensor)
-            priors[i] = updater.update(SingleHypothesis(prediction, detection))
-        t[0] += 1
-        return priors
-
-    return step
-
-
-def kalman_log_evidence(z: torch.Tensor) -> torch.Tensor:
-    """Exact ``log p(z_1:T)`` of the point problem for each run (Kalman filter, float64):
-    ``z (T, B, 2) -> (B,)``. The state starts from ``N(m0, I)`` and is predicted once before
-    each measurement, as :meth:`~torchmcmcpf.filters.base.Filter.forward` runs.
-    """
-    from .models.motion import cv_matrices
-
-    z = z.to(torch.float64)
-    F, Q = cv_matrices(POINT_MODEL["dt"], POINT_MODEL["q"], dtype=torch.float64)
-    H = torch.zeros(2, 4, dtype=torch.float64)
-    H[0, 0] = H[1, 2] = 1.0
-    R = POINT_MODEL["noise_std"] ** 2 * torch.eye(2, dtype=torch.float64)
-    m = torch.tensor(POINT_M0, dtype=torch.float64).expand(z.shape[1], 4)
-    P = torch.eye(4, dtype=torch.float64)  # the same for every run: it does not depend on the data
-    total = torch.zeros(z.shape[1], dtype=torch.float64)
-    for zt in z:
-        m, P = m @ F.mT, F @ P @ F.mT + Q
-        S = H @ P @ H.mT + R
-        v = zt - m @ H.mT  # (B, 2) innovations
-        total += -0.5 * (2 * math.log(2 * math.pi) + torch.logdet(S) + (v @ torch.linalg.inv(S) * v).sum(-1))
-        G = P @ H.mT @ torch.linalg.inv(S)
-        m = m + v @ G.mT
-        P = (torch.eye(4, dtype=torch.float64) - G @ H) @ P
-    return total
-
-
-def particles_runs(n: int, b: int, steps: int, seed: int = 0) -> Callable[[], torch.Tensor]:
-    """``particles`` (Chopin's SMC library) on the point problem, one run at a time: each
-    call runs a bootstrap filter (``ssm.Bootstrap`` on ``kalman.MVLinearGauss``,
-    ``SMC(resampling="systematic", ESSrmin=1.0, store_history=False, collect="off")``,
-    i.e. systematic resampling at every step, nothing recorded) over the ``steps`` frames
-    of each of the B runs and returns their log-evidence ``(B,)``. One short run is made
-    here, before the first call, so that numba's compilation is not timed. Its initial law is the
-    predicted one, ``N(F m0, F F' + Q)``, so that its first weighting matches ours.
-    """
-    import numpy as np
-    import particles
-    from particles import kalman
-    from particles import state_space_models as ssm
-
-    from .models.motion import cv_matrices
-
-    F, Q = (a.numpy() for a in cv_matrices(POINT_MODEL["dt"], POINT_MODEL["q"], dtype=torch.float64))
-    H = np.zeros((2, 4))
-    H[0, 0] = H[1, 2] = 1.0
-    model = kalman.MVLinearGauss(F=F, G=H, covX=Q, covY=POINT_MODEL["noise_std"] ** 2 * np.eye(2),
-                                 mu0=F @ np.array(POINT_M0), cov0=F @ F.T + Q)
-    z = _point_track(b, steps, seed)[1].numpy()
-    # warm-up: particles compiles its resampling with numba on first use (seconds)
-    particles.SMC(fk=ssm.Bootstrap(ssm=model, data=list(z[:2, 0])), N=n, resampling="systematic", ESSrmin=1.0,
-                  store_history=False, collect="off", verbose=False).run()
-
-    def runs():
-        np.random.seed(seed + 3)  # particles draws from NumPy's global generator
-        out = np.empty(b)
-        for i in range(b):  # particles filters one run at a time
-            pf = particles.SMC(fk=ssm.Bootstrap(ssm=model, data=list(z[:, i])), N=n, resampling="systematic",
-                               ESSrmin=1.0, store_history=False, collect="off", verbose=False)
-            pf.run()
-            out[i] = pf.logLt
-        return torch.from_numpy(out)
-
-    return runs
-
-
-def evidence_errors(log_z: torch.Tensor, exact: torch.Tensor) -> dict:
-    """Median and inter-quartile range of ``log_z - exact`` over runs (the check that a
-    library filters the model it is timed on: a wrong model is off by tens of nats).
-    """
-    err = (log_z.to(torch.float64) - exact).cpu()
-    q = torch.quantile(err, torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64))
-    return dict(median=float(q[1]), iqr=float(q[2] - q[0]))
-
-
-# -- the run -------------------------------------------------------------------------------------
 #: sizes of the full run (the issue's headline figures) and of ``--quick`` (seconds, for tests)
 FULL: dict[str, Any] = dict(n=5000, k=10, chains=50, burn_in=100, n_small=500, b_small=10, b_gpu=100, point_b=(1, 100),
             point_steps=10, point_rounds=9, particles=dict(n=2000, b=100, steps=25), repeats=5,
@@ -563,7 +315,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
         run is compared with it (:func:`compare`, flagging ratios above ``threshold``), the
         comparison kept under the result's ``comparison`` and written to ``bench_compare.md``.
     """
-    from .runtime import tune_cpu_allocator
+    from ..runtime import tune_cpu_allocator
 
     stored = None if compare_with is None else load_result(compare_with)
     dev = torch.device(device)
@@ -624,7 +376,7 @@ def run(device: str = "cpu", *, quick: bool = False, threads: int | None = None,
     # the MCMC-PF's mixture kernel (burn-in 0, N / C iterations per chain): a joint draw
     # (probability 0.75) evaluates one full likelihood, K boxes of one log ratio per cell; a
     # refinement sweep (0.25) K one-slot changes of 2 boxes x 2 log ratios: expected terms
-    from .filters.mcmc import MOVE_PRESETS
+    from ..filters.mcmc import MOVE_PRESETS
 
     mix = dict(MOVE_PRESETS["mixture"])
     radar("mcmc-pf", radar_mcmc(n, k, 1, compiled, dev, chains=c), dict(N=n, C=c, K=k, B=1, compiled=compiled),
@@ -836,229 +588,3 @@ def plot_scaling(sweeps: dict, path: Path, title: str = "") -> None:
     plt.close(fig)
 
 
-# -- the guard against regressions: a run compared with a stored one (issue 49) -------------------
-def reference_path(device_type: str = "cpu") -> Path:
-    """The stored reference run of ``bench --compare`` / ``bench --save`` without a FILE:
-    ``benchmarks/reference-<device type>.json`` in the repository.
-    """
-    return Path(__file__).resolve().parent.parent / "benchmarks" / f"reference-{device_type}.json"
-
-
-def figure_kind(fig: dict) -> str:
-    """A figure's ``kind`` (:class:`Figure`); read from its name in files written before kinds were."""
-    if fig.get("kind") in KINDS:
-        return fig["kind"]
-    name = fig["name"]
-    if name.endswith("-floor") or name.startswith("point-floor-"):
-        return "floor"
-    if name.startswith("stonesoup-") or (name.startswith("particles-") and not name.startswith("particles-ours")):
-        return "peer"
-    return "ours"
-
-
-def check_result(result: object, what: str = "the result") -> dict:
-    """``result`` checked as a ``bench.json`` dictionary and returned with a ``machine`` record
-    (built from the top-level ``device``, ``torch`` and ``threads`` of a file written before
-    the record was); a ``ValueError`` that starts with ``what`` otherwise: not a JSON object,
-    another ``schema``, no ``figures`` or none, a figure without a ``name`` or a positive,
-    finite ``seconds``, two figures of one name.
-    """
-    if not isinstance(result, dict):
-        raise ValueError(f"{what} is not a bench result: expected a JSON object with 'figures', got "
-                         f"{type(result).__name__}")
-    if "schema" in result and result["schema"] != SCHEMA:
-        raise ValueError(f"{what} has schema {result['schema']!r}, expected {SCHEMA!r}")
-    figures = result.get("figures")
-    if not isinstance(figures, list):
-        raise ValueError(f"{what} is not a bench result: expected a list 'figures', got "
-                         f"{type(figures).__name__ if 'figures' in result else 'none'}")
-    if not figures:
-        raise ValueError(f"{what} holds no figures")
-    seen = set()
-    for i, fig in enumerate(figures):
-        name = fig.get("name") if isinstance(fig, dict) else None
-        if not isinstance(name, str) or not name:
-            raise ValueError(f"{what}: figures[{i}] has no 'name'")
-        secs = fig.get("seconds")
-        if isinstance(secs, bool) or not isinstance(secs, (int, float)) or not 0 < secs < math.inf:
-            raise ValueError(f"{what}: figure {name!r} has seconds {secs!r}, expected a positive number")
-        if name in seen:
-            raise ValueError(f"{what}: figure {name!r} appears twice")
-        seen.add(name)
-    record = result.get("machine")
-    if record is not None and not isinstance(record, dict):
-        raise ValueError(f"{what}: 'machine' is {type(record).__name__}, expected an object")
-    if record is None:
-        record = {key: result[key] for key in ("device_type", "torch", "threads") if key in result}
-        if "device" in result:
-            record["name"] = result["device"]
-    return {**result, "machine": record}
-
-
-def load_result(path: str | Path) -> dict:
-    """Read a stored run (``bench.json``, or ``benchmarks/reference-cpu.json``), checked by
-    :func:`check_result`. Raises a ``ValueError`` that names ``path``: missing, unreadable,
-    not JSON, or not a bench result.
-    """
-    what = repr(str(path))
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ValueError(f"{what} does not exist (write a stored run with: python -m torchmcmcpf bench "
-                         f"--save {path})") from None
-    except UnicodeDecodeError:
-        raise ValueError(f"{what} is not JSON (not UTF-8 text)") from None
-    except OSError as err:
-        raise ValueError(f"{what} cannot be read ({err.strerror})") from None
-    try:
-        result = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{what} is not JSON ({err.msg} at line {err.lineno})") from None
-    return check_result(result, what)
-
-
-def _machine_text(record: dict) -> str:
-    """``name`` (torch, threads), with the host CPU for a GPU."""
-    host = f", host {record['cpu']}" if record.get("device_type") == "cuda" and record.get("cpu") else ""
-    return (f"{record.get('name', 'an unnamed machine')}{host} (torch {record.get('torch', '?')}, "
-            f"{record.get('threads', '?')} threads)")
-
-
-def _machine_warnings(now: dict, stored: dict) -> list[str]:
-    """What differs between the two runs' conditions, besides the code: the machine, torch,
-    threads, sizes (``--quick``), the CPU allocator's tuning.
-    """
-    a, b = stored["machine"], now["machine"]
-    warnings = []
-    if "name" not in a:
-        warnings.append("the stored run names no machine: its ratios may mix the code's change with the machines'")
-    elif (a.get("name"), a.get("cpu", b.get("cpu"))) != (b.get("name"), b.get("cpu", a.get("cpu"))):
-        warnings.append(f"the machines differ: stored on {_machine_text(a)}, now on {_machine_text(b)}; the ratios "
-                        "mix the code's change with the machines' difference (the x-floor column divides the "
-                        "machine's arithmetic speed out)")
-    for key, label in (("torch", "torch versions"), ("threads", "thread counts")):
-        if key in a and a.get(key) != b.get(key):
-            warnings.append(f"{label} differ: stored {a[key]}, now {b.get(key)}")
-    if "quick" in stored and bool(stored["quick"]) != bool(now.get("quick")):
-        size = {True: "--quick sizes", False: "full sizes"}
-        warnings.append(f"sizes differ: stored at {size[bool(stored['quick'])]}, now at {size[bool(now.get('quick'))]}")
-    if "cpu_allocator_tuned" in stored and stored["cpu_allocator_tuned"] != now.get("cpu_allocator_tuned"):
-        warnings.append(f"the CPU allocator's tuning differs: stored {stored['cpu_allocator_tuned']}, "
-                        f"now {now.get('cpu_allocator_tuned')}")
-    return warnings
-
-
-def compare(now: dict, stored: dict, *, threshold: float = SLOWER, source: str = "the stored run") -> dict:
-    """A run (``now``) against a stored one, figure by figure: the guard against regressions.
-
-    For every figure in both (by name), ``ratio = now / stored`` of its ``seconds`` per step;
-    where both have a floor, ``floor_multiple_ratio``, the ratio of the figure's multiples of
-    its floor (its ratio divided by the floor's: what is left once the machine's arithmetic
-    speed is divided out). A figure of ours whose ratio exceeds ``threshold`` is flagged
-    ``"slower"``, below ``1 / threshold`` ``"faster"``; floors and peers are shown but never
-    flagged (they measure the machine); a figure whose settings (``params``) changed is marked
-    ``"settings differ"`` instead (its ratio is no regression). Warns when the machines,
-    torch, the thread counts or the sizes differ, and when the floors themselves moved by
-    more than ``threshold`` (the machine is busier or faster than when stored).
-
-    Returns a JSON-able dictionary: ``source``, ``threshold``, ``stored_machine``,
-    ``now_machine``, ``warnings``, ``rows`` (``name``, ``kind``, ``stored_s``, ``now_s``,
-    ``ratio``, ``floor_multiple_ratio``, ``settings`` ``{param: [stored, now]}``, ``flag``),
-    ``only_stored`` and ``only_now`` (figure names), ``slower`` and ``faster`` (names).
-    Raises ``ValueError`` when either is not a bench result (:func:`check_result`) or
-    ``threshold <= 1``.
-    """
-    if not threshold > 1:
-        raise ValueError(f"threshold must be a ratio above 1, got {threshold!r}")
-    now, stored = check_result(now, "this run"), check_result(stored, source)
-    before = {f["name"]: f for f in stored["figures"]}
-    after = {f["name"]: f for f in now["figures"]}
-    rows = []
-    for name, fig in after.items():
-        if name not in before:
-            continue
-        old = before[name]
-        ratio = fig["seconds"] / old["seconds"]
-        kind = figure_kind(fig)
-        # params as JSON has them (a tuple of this run is the stored run's list)
-        p, q = (json.loads(json.dumps(f.get("params") or {})) for f in (old, fig))
-        settings = {k: [p.get(k), q.get(k)] for k in sorted({*p, *q}) if p.get(k) != q.get(k)}
-        floors = (old.get("floor_s"), fig.get("floor_s"))
-        floor_multiple = ratio * floors[0] / floors[1] if all(isinstance(f, (int, float)) and f > 0
-                                                              for f in floors) else None
-        flag = ""
-        if settings:
-            flag = "settings differ"
-        elif kind == "ours" and ratio > threshold:
-            flag = "slower"
-        elif kind == "ours" and ratio < 1 / threshold:
-            flag = "faster"
-        rows.append(dict(name=name, kind=kind, stored_s=old["seconds"], now_s=fig["seconds"], ratio=ratio,
-                         floor_multiple_ratio=floor_multiple, settings=settings, flag=flag))
-    warnings = _machine_warnings(now, stored)
-    floor_ratios = sorted(r["ratio"] for r in rows if r["kind"] == "floor" and not r["settings"])
-    if floor_ratios:
-        mid = floor_ratios[len(floor_ratios) // 2]
-        if not 1 / threshold <= mid <= threshold:
-            state = "busier or slower" if mid > 1 else "faster or quieter"
-            warnings.append(f"the floors themselves take {mid:.2f}x their stored times (median of "
-                            f"{len(floor_ratios)}): this machine is {state} than when stored; read the x-floor column")
-    return dict(source=source, threshold=threshold, stored_machine=stored["machine"], now_machine=now["machine"],
-                warnings=warnings, rows=rows, only_stored=[n for n in before if n not in after],
-                only_now=[n for n in after if n not in before],
-                slower=[r["name"] for r in rows if r["flag"] == "slower"],
-                faster=[r["name"] for r in rows if r["flag"] == "faster"])
-
-
-def comparison_summary(comparison: dict) -> str:
-    """The closing line of a comparison: which figures of ours got slower, or that none did."""
-    rows = {r["name"]: r for r in comparison["rows"]}
-    ours = [r for r in rows.values() if r["kind"] == "ours" and not r["settings"]]
-    thr = comparison["threshold"]
-    head = f"vs {comparison['source']}"
-    if not ours:
-        text = f"{head}: no figure of ours to compare (none in both runs with the same settings)"
-    elif comparison["slower"]:
-        text = (f"{head}: SLOWER: {len(comparison['slower'])} of {len(ours)} figures of ours above {thr:.2f}x the "
-                "stored run: " + ", ".join(f"{n} {rows[n]['ratio']:.2f}x" for n in comparison["slower"]))
-    else:
-        ratios = sorted(r["ratio"] for r in ours)
-        text = (f"{head}: no figure of ours above {thr:.2f}x the stored run ({len(ours)} compared, median ratio "
-                f"{ratios[len(ratios) // 2]:.2f})")
-    if comparison["faster"]:
-        text += f"; {len(comparison['faster'])} faster below {1 / thr:.2f}x"
-    if comparison["warnings"]:
-        text += f" ({len(comparison['warnings'])} warning{'s' if len(comparison['warnings']) > 1 else ''} above)"
-    return text
-
-
-def comparison_markdown(comparison: dict) -> str:
-    """The comparison as text (``bench_compare.md``): both machines, the warnings, one row per
-    figure in both runs (times in ms per step, the ratio now / stored, the ratio of multiples
-    of the floor, the flag), the figures in one run only, and the closing line.
-    """
-    a, b = comparison["stored_machine"], comparison["now_machine"]
-    lines = [f"Compared with {comparison['source']}: stored {a.get('date', '(undated)')} on {_machine_text(a)}; "
-             f"now {b.get('date', '(undated)')} on {_machine_text(b)}. Ratio = now / stored, ms per step; a figure "
-             f"of ours above {comparison['threshold']:.2f}x is SLOWER. Floors and peers measure the machine.", ""]
-    lines += [f"warning: {w}" for w in comparison["warnings"]]
-    if comparison["warnings"]:
-        lines.append("")
-    lines += ["| figure | kind | stored ms | now ms | now / stored | x floor now / stored | |",
-              "|---|---|---:|---:|---:|---:|---|"]
-    for r in comparison["rows"]:
-        multiple = "" if r["floor_multiple_ratio"] is None else f"{r['floor_multiple_ratio']:.3f}"
-        flag = {"slower": "**SLOWER**", "faster": "faster"}.get(r["flag"], r["flag"])
-        if r["settings"]:
-            flag += ": " + ", ".join(f"{k} {x} -> {y}" for k, (x, y) in r["settings"].items())
-        lines.append(f"| {r['name']} | {r['kind']} | {r['stored_s'] * 1e3:.4g} | {r['now_s'] * 1e3:.4g} | "
-                     f"{r['ratio']:.3f} | {multiple} | {flag} |")
-    lines.append("")
-    if comparison["only_stored"]:
-        lines.append(f"Only in the stored run: {', '.join(comparison['only_stored'])}")
-    if comparison["only_now"]:
-        lines.append(f"Only in this run: {', '.join(comparison['only_now'])}")
-    if comparison["only_stored"] or comparison["only_now"]:
-        lines.append("")
-    lines.append(comparison_summary(comparison))
-    return "\n".join(lines) + "\n"
