@@ -190,9 +190,10 @@ class Study(Generic[S]):
                 continue
             kw = dict(f.metadata.get("argparse", {}))
             default = f.default if f.default is not MISSING else None
-            if isinstance(default, bool) and "type" not in kw:
-                parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, action="store_true", default=None,
-                                    help=f.metadata["help"])
+            if isinstance(default, bool) and "type" not in kw:  # --name / --no-name: a default True can be turned off
+                parser.add_argument("--" + f.name.replace("_", "-"), dest=f.name, action=argparse.BooleanOptionalAction,
+                                    default=None, help=f.metadata["help"] if "(default" in f.metadata["help"]
+                                    else f"{f.metadata['help']} ({self.defaults_text(f.name)})")
                 continue
             element = default[0] if isinstance(default, tuple) and default else default
             if "type" not in kw and "choices" not in kw:

@@ -107,8 +107,9 @@ class GroupsSettings(Settings):
     xi: float = option(PROPOSALS["xi"], help="probability of the joint draw (default 0.45; the paper's 0.75)")
     reference_particles: int = option(100_000, 2000, type=nonnegative_int,
                                       help="particles of the per-target reference filter, 0 to skip it")
-    compile: bool = option(False, record=False, help="compile the three moves (GroupMCMCFilter(compile_step=True)): "
-                                                     "about 2x faster per iteration, a few minutes to compile")
+    compile: bool = option(True, False, record=False,
+                           help="compile the three moves (GroupMCMCFilter(compile_step=True)): about 2x faster per "
+                                "iteration, a few minutes to compile; --no-compile runs eager")
     beyond: bool = option(False, record=False, help="also run issue 11 item 4 (a) and (b)")
     beyond_runs: int = option(10, 2, help="--beyond: runs")
     beyond_steps: int = option(30, 4, help="--beyond: time steps")
