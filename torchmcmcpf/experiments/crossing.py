@@ -274,11 +274,11 @@ class Crossing(Study[CrossingSettings]):
         fig.suptitle(f"two targets crossing unresolved at step 20, {runs} runs{quick}")
         save_figure(fig, out, "crossing.png", quick=cfg.quick)
 
-        fig, ax = plt.subplots(figsize=(7, 4))
+        fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")  # title, label and legend apart
         plot_rmse(ax, {np_label(k, n): r["recaptured_per_step"] for k, r in results.items()
                        if r["recaptured_per_step"] is not None},
-                  ylabel=f"share of runs with a slot within {RECAPTURE:g} m of the weak target")
-        ax.set_title(f"staged coalescence: both slots start on the strong target, {runs} runs{quick}")
+                  ylabel=f"runs with a slot within {RECAPTURE:g} m\nof the weak target (share)")
+        ax.set_title(f"staged coalescence: both slots start on the strong target\n{runs} runs{quick}")
         save_figure(fig, out, "coalescence.png", quick=cfg.quick)
 
         shown = [name for name in FILTERS if name in results]
