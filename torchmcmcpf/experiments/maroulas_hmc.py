@@ -198,7 +198,7 @@ def _figures(out: str | Path, obs: str, results: dict, data: scenario.MaroulasDa
 
     fig, ax = plt.subplots(figsize=(5, 5))
     alive = data.alive[:, 0].unsqueeze(-1)
-    nan = torch.tensor(float("nan"), dtype=data.x.dtype)
+    nan = torch.tensor(float("nan"), dtype=data.x.dtype, device=data.x.device)
     xy = torch.where(alive, data.x[:, 0][..., [0, 2]], nan)  # NaN breaks the line of a reused slot
     zxy = torch.where(alive, sensor.to_position(data.z_slot[:, 0]), nan)
     est = torch.where(alive, results["improved"]["track_mean"][..., [0, 2]], nan)[::5]

@@ -339,10 +339,10 @@ def plot_groups(ax: Axes, truth: Tensor, est: Tensor, present: Tensor, labels_mo
                 continue
             p = est[t][members]
             centre = p.mean(0)
-            span = (p.amax(0) - p.amin(0)) if p.shape[0] > 1 else torch.zeros(2)
+            span = (p.amax(0) - p.amin(0)) if p.shape[0] > 1 else torch.zeros(2, dtype=p.dtype, device=p.device)
             ax.add_patch(Ellipse((float(centre[0]), float(centre[1])), float(span[0]) + 250, float(span[1]) + 250,
                                  fill=False, color="k", lw=1))
-            ax.annotate(str(int(members.sum())), (float(centre[0]), float(centre[1]) + span[1] / 2 + 150),
+            ax.annotate(str(int(members.sum())), (float(centre[0]), float(centre[1]) + float(span[1]) / 2 + 150),
                         ha="center", fontsize=9)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
