@@ -573,3 +573,32 @@ def test_point_intensity_cache_is_a_speed_choice():
     assert float(with_cache.state.exists.float().mean()) > 0  # births were accepted
     assert torch.equal(with_cache.state.x, without.state.x)
     assert torch.equal(with_cache.state.exists, without.state.exists)
+
+
+def test_chains_relabelled_relabels_distinct_states_only_with_the_same_result():
+    """R-hat's relabelling permutes each chain's distinct states and carries the permutation
+    over the repeats (rejected moves): the states are those of relabelling every state."""
+    from torchmcmcpf.filters.ipmcmc import _chains_relabelled
+    from torchmcmcpf.state import relabel_order
+
+    g = torch.Generator().manual_seed(3)
+    w, b, c, k = 12, 2, 6, 3
+    centres = torch.tensor([[0.0, 0.0], [150.0, 0.0], [0.0, 300.0]], dtype=DT)
+    first = torch.stack([centres[torch.randperm(k, generator=g)] for _ in range(b * c)]).reshape(b, c, k, 2)
+    steps = [first + 20 * torch.randn(b, c, k, 2, generator=g, dtype=DT)]
+    for _ in range(w - 1):  # one slot moves in a quarter of the chains, the others repeat their state
+        move = (torch.rand(b, c, generator=g) < 0.25)[..., None, None] & \
+            (torch.arange(k) == torch.randint(k, (b, c, 1), generator=g))[..., None]
+        steps.append(torch.where(move, steps[-1] + 30 * torch.randn(b, c, k, 2, generator=g, dtype=DT), steps[-1]))
+    pos = torch.stack(steps)  # (W, B, C, K, 2)
+    window = torch.zeros(w, b, c, k, 4, dtype=DT)
+    window[..., 0], window[..., 2] = pos[..., 0], pos[..., 1]
+    states = window.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, 4)  # the plain rule: every state
+    relabelled, reference = states, window[-1, :, 0]
+    for _ in range(2):
+        relabelled = torch.take_along_dim(states, relabel_order(states, reference).unsqueeze(-1), 2)
+        reference = relabelled.mean(1)
+    plain = relabelled.reshape(b, w, c, k, 4).permute(1, 0, 2, 3, 4)
+    got = _chains_relabelled(window)
+    assert not torch.equal(got, window)  # some states were relabelled
+    assert torch.equal(got, plain)

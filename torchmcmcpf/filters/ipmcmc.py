@@ -316,12 +316,23 @@ def _chains_relabelled(window: Tensor, rounds: int = 2) -> Tensor:
     w, b, c, k, d = window.shape
     if k < 2:
         return window
-    states = window.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, d)
-    relabelled, reference = states, window[-1, :, 0]
+    # a chain whose move was rejected repeats its state, and an equal state gets the equal
+    # permutation: relabel each chain's distinct states only (a quarter of the window at the
+    # usual acceptance), each against its run's reference, and carry the permutation forward
+    changed = torch.ones((w, b, c), dtype=torch.bool, device=window.device)
+    changed[1:] = (window[1:] != window[:-1]).flatten(-2).any(-1)
+    at_w, at_b, at_c = changed.nonzero(as_tuple=True)  # one host read
+    steps = torch.arange(w, device=window.device).reshape(w, 1, 1)
+    last = torch.where(changed, steps, 0).cummax(0).values  # (W, B, C): the state's last change
+    runs, chains = torch.arange(b, device=window.device).reshape(1, b, 1), torch.arange(c, device=window.device)
+    distinct = window[at_w, at_b, at_c].unsqueeze(1)  # (R, 1, K, D), each its own "run"
+    reference = window[-1, :, 0]
     for _ in range(rounds):
-        relabelled = torch.take_along_dim(states, relabel_order(states, reference).unsqueeze(-1), 2)
-        reference = relabelled.mean(1)
-    return relabelled.reshape(b, w, c, k, d).permute(1, 0, 2, 3, 4)
+        order = torch.empty((w, b, c, k), dtype=torch.int64, device=window.device)
+        order[at_w, at_b, at_c] = relabel_order(distinct, reference[at_b]).squeeze(1)
+        relabelled = torch.take_along_dim(window, order[last, runs, chains].unsqueeze(-1), 3)
+        reference = relabelled.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, d).mean(1)
+    return relabelled
 
 
 def _rhat_report(ys: list, offset: int, method: str, exchangeable: bool) -> RhatReport:
