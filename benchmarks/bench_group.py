@@ -117,10 +117,10 @@ def _iteration_args(move):
 
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_eager(benchmark, move):
-    from torchmcmcpf.filters.group.step import _bind
+    from torchmcmcpf.filters.group.step import group_program
 
     models, args = _iteration_args(move)
-    kernel = _bind(models)
+    kernel = group_program(models)
     benchmark.group = f"group-iteration-{move}-B{RUNS}-C{CHAINS}"
     with torch.no_grad():
         benchmark.pedantic(lambda *a: kernel(move, *a), args=args, rounds=5, iterations=1, warmup_rounds=1)
@@ -129,11 +129,11 @@ def test_group_iteration_eager(benchmark, move):
 @pytest.mark.compile
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])
 def test_group_iteration_compiled(benchmark, move):
-    from torchmcmcpf.filters.group.step import _bind
+    from torchmcmcpf.filters.group.step import group_program
     from torchmcmcpf.runtime import compile_program
 
     models, args = _iteration_args(move)
-    kernel = _bind(models, compile_program)
+    kernel = group_program(models, compile_program)
     benchmark.group = f"group-iteration-{move}-B{RUNS}-C{CHAINS}"
     with torch.no_grad():
         benchmark.pedantic(lambda *a: kernel(move, *a), args=args, rounds=5, iterations=1, warmup_rounds=1)
@@ -146,6 +146,4 @@ def test_group_step_paper_budget(benchmark, compiled):
     filt.compile_step = compiled
     benchmark.group = f"group-step-paper-budget-B{RUNS}"
     with torch.no_grad():
-        if compiled:
-            filt.compiled()
         benchmark.pedantic(lambda: filt.step(state, z, generator=g), rounds=1, iterations=1)

@@ -21,7 +21,8 @@ def _run(make, graphs: bool):
     x0 = scn.initial_particles(200, generator=torch.Generator("cuda").manual_seed(1))
     filt = make(scn).to("cuda")
     if not graphs:  # the same kernels without CUDA graphs
-        filt._compiled = filt._build_compiled(lambda f: torch.compile(f, fullgraph=True, dynamic=False))
+        filt._bound = filt.bind(filt.motion, filt.sensor, filt.settings, filt.existence,
+                                compile=lambda f: torch.compile(f, fullgraph=True, dynamic=False))
     return filt(scn.measurements, init=x0, generator=torch.Generator("cuda").manual_seed(2))
 
 

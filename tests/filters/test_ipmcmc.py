@@ -224,7 +224,7 @@ def test_rhat_window_is_second_half_of_iterations():
     state, info = filt.step(filt.init(x_prev), z, generator=torch.Generator().manual_seed(1))
     # replay the chains by hand with the same random stream
     from torchmcmcpf.diagnostics import rhat
-    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _run_chains, bind_iteration
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _run_chains, ipmcmc_program
     from torchmcmcpf.resampling import gather_particles, systematic
     g = torch.Generator().manual_seed(1)
     log_w = torch.full((b, n), -math.log(n), dtype=DT)
@@ -232,7 +232,7 @@ def test_rhat_window_is_second_half_of_iterations():
     x0 = gather_particles(x_prev, start)
     y = motion.propagate(x0, torch.randn(x0.shape[:-1] + (1,), generator=g, dtype=DT))
     noise = draw_exchange_noise(log_w, 5 + 3 * 4, c, 2, dynamics=TargetDynamics(motion), generator=g, dtype=DT)
-    it = bind_iteration(TargetDynamics(motion), sensor, None)
+    it = ipmcmc_program(TargetDynamics(motion), sensor, None)
     _, trace, _, _ = _run_chains(ExchangeChains(y, sensor.log_likelihood(y, z)), SegmentNoise(noise),
                                  lambda ch, nz: it(ch, x_prev, None, z, nz), sensor)
     ys = torch.stack([t[0] for t in trace])  # (17, B, C, K, 1)
@@ -415,7 +415,7 @@ def test_segment_is_run_chains_with_a_stacked_trace():
     """The loop that ``Program.capture`` runs as one CUDA graph (``_segment``) gives
     the chains, trace and acceptance counts of ``_run_chains``; ``_unstack`` restores the
     list of chain tuples."""
-    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _run_chains, _segment, _unstack, bind_iteration
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise, _run_chains, _segment, _unstack, ipmcmc_program
     motion, sensor = _scalar_models(1.0, 1.0)
     b, n, c, k, steps = 2, 8, 3, 2, 7
     g = torch.Generator().manual_seed(4)
@@ -425,7 +425,7 @@ def test_segment_is_run_chains_with_a_stacked_trace():
     chain = ExchangeChains(y, sensor.log_likelihood(y, z))
     noise = SegmentNoise(draw_exchange_noise(torch.full((b, n), -math.log(n), dtype=DT), steps, c, k,
                                              dynamics=TargetDynamics(motion), generator=g, dtype=DT))
-    it = bind_iteration(TargetDynamics(motion), sensor, None)
+    it = ipmcmc_program(TargetDynamics(motion), sensor, None)
     final, stacked, acc = _segment(it, chain, noise, x_prev, None, z, 3, sensor)
     ref_final, ref_trace, ref_acc, _ = _run_chains(chain, noise, lambda ch, nz: it(ch, x_prev, None, z, nz), sensor,
                                                    record_from=3)

@@ -74,11 +74,11 @@ def point_sir_forward(n: int, b: int, steps: int, device: torch.device, dtype: t
 def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torch.dtype = torch.float32, *,
                    compile_step: bool = False, public: bool = True) -> Callable[[], object]:
     """Each call filters the next frame (B runs at once) from the state the previous call
-    returned: through the public ``filt.step`` (``public``), or through the pure step
-    function :func:`~torchmcmcpf.filters.sir_step` with the filter's step body, which checks
+    returned: through the public ``filt.step`` (``public``), or through
+    :func:`~torchmcmcpf.filters.sir_bound_step` on the filter's bound object, which checks
     nothing (the cost of the step itself, to measure what ``step``'s checks add).
     """
-    from ..filters import sir_step
+    from ..filters import sir_bound_step
 
     filt, z, x0 = point_filter(n, b, steps, device, dtype, compile_step=compile_step)
     g = torch.Generator(device).manual_seed(2)
@@ -89,8 +89,7 @@ def point_sir_step(n: int, b: int, steps: int, device: torch.device, dtype: torc
         if public:
             state[0], _ = filt.step(s, z[t % steps], generator=g)
         else:
-            state[0], _ = sir_step(s, z[t % steps], motion=filt.motion, sensor=filt.sensor, settings=filt.settings,
-                                   generator=g, body=filt.compiled())
+            state[0], _ = sir_bound_step(s, z[t % steps], filt.bound, generator=g)
         state[1] = t + 1
         return state[0]
 

@@ -14,15 +14,23 @@
   offline random-walk PMMH driven by the SIR log-evidence.
 - :class:`ResampleMoveFilter` / :func:`resample_move_step`: SIR + HMC move over the
   Brownian increments (Maroulas and Stinis 2010).
+
+Bind once, step many (:mod:`torchmcmcpf.filters._bound`): each algorithm also has
+``bind_<algo>(motion, sensor, settings, existence, *, num_particles, compile) -> Bound`` and
+``<algo>_bound_step(state, z, bound, *, generator)``, the step with nothing left to resolve;
+``xxx_step`` is the two in a row, and a ``Filter`` binds once, at construction.
 """
 
+from ._bound import Bound
 from .base import Filter
-from .group import GroupMCMCFilter, GroupMCMCSettings, group_mcmc_step
-from .ipmcmc import IPMCMCFilter, IPMCMCSettings, ipmcmc_step
-from .mcmc import MCMCFilter, MCMCSettings, mcmc_step
+from .group import GroupMCMCFilter, GroupMCMCSettings, bind_group, group_mcmc_bound_step, group_mcmc_step
+from .ipmcmc import IPMCMCFilter, IPMCMCSettings, bind_ipmcmc, ipmcmc_bound_step, ipmcmc_step
+from .mcmc import MCMCFilter, MCMCSettings, bind_mcmc, mcmc_bound_step, mcmc_step
 from .partitioned import (
     PartitionedSIRFilter,
     PartitionedSIRSettings,
+    bind_partitioned_sir,
+    partitioned_sir_bound_step,
     partitioned_sir_step,
 )
 from .pmmh import (
@@ -30,21 +38,33 @@ from .pmmh import (
     PMMHResult,
     PMMHSettings,
     ProcessNoiseScale,
+    bind_pmmh,
     pmmh,
+    pmmh_bound_step,
     pmmh_step,
     sir_log_evidence,
 )
-from .resample_move import ResampleMoveFilter, ResampleMoveSettings, resample_move_step
-from .sir import SIRFilter, SIRSettings, sir_step
+from .resample_move import (
+    ResampleMoveFilter,
+    ResampleMoveSettings,
+    bind_resample_move,
+    resample_move_bound_step,
+    resample_move_step,
+)
+from .sir import SIRFilter, SIRSettings, bind_sir, sir_bound_step, sir_step
 
-# one line per algorithm (module docstring order): its Filter, its settings, its step function
+# one line per algorithm (module docstring order): its Filter, its settings, its step function,
+# its bind function and its step on the bound object
 __all__ = [
-    "Filter",
-    "SIRFilter", "SIRSettings", "sir_step",
-    "MCMCFilter", "MCMCSettings", "mcmc_step",
-    "IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step",
-    "GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step",
-    "PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step",
-    "PMMHFilter", "PMMHSettings", "pmmh_step", "PMMHResult", "ProcessNoiseScale", "pmmh", "sir_log_evidence",
-    "ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step",
+    "Filter", "Bound",
+    "SIRFilter", "SIRSettings", "sir_step", "bind_sir", "sir_bound_step",
+    "MCMCFilter", "MCMCSettings", "mcmc_step", "bind_mcmc", "mcmc_bound_step",
+    "IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_ipmcmc", "ipmcmc_bound_step",
+    "GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "bind_group", "group_mcmc_bound_step",
+    "PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "bind_partitioned_sir",
+    "partitioned_sir_bound_step",
+    "PMMHFilter", "PMMHSettings", "pmmh_step", "bind_pmmh", "pmmh_bound_step", "PMMHResult", "ProcessNoiseScale",
+    "pmmh", "sir_log_evidence",
+    "ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "bind_resample_move",
+    "resample_move_bound_step",
 ]

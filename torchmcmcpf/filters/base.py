@@ -5,25 +5,33 @@ types):
 
 - constructor ``(motion, sensor, num_particles, *, settings=None, existence=None,
   compile_step=False, **shortcuts)``; the settings live in one frozen dataclass per
-  algorithm (:attr:`Filter.settings_class`, ``filt.settings``), which the pure step function
-  also takes: ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``.
-  Each field of the dataclass is also a keyword of the constructor (a shortcut:
-  ``IPMCMCFilter(m, s, n, burn_in=20)`` is ``IPMCMCFilter(m, s, n,
-  settings=IPMCMCSettings(burn_in=20))``), so every default is written once, in the
-  dataclass;
+  algorithm (:attr:`Filter.settings_class`, ``filt.settings``). Each field of the dataclass
+  is also a keyword of the constructor (a shortcut: ``IPMCMCFilter(m, s, n, burn_in=20)`` is
+  ``IPMCMCFilter(m, s, n, settings=IPMCMCSettings(burn_in=20))``), so every default is
+  written once, in the dataclass;
+- bind once, step many: the constructor resolves everything a step needs that does not
+  change from step to step (the settings as the filter runs them, the existence law with its
+  proposal, the slots' joint model, the algorithm's program, compiled when
+  ``compile_step=True``) into one frozen :class:`~torchmcmcpf.filters._bound.Bound`
+  (``filt.bound``), by the algorithm's ``bind_<algo>`` (:attr:`Filter.bind`); each step
+  calls the algorithm's ``<algo>_bound_step(state, z, bound, *, generator)``
+  (:attr:`Filter.bound_step`), which re-derives nothing. The pure step function of the
+  design, ``xxx_step(state, z, *, motion, sensor, settings, generator, existence=None)``, is
+  the same step with an eager bind in front of it;
 - ``step(state, z, *, generator) -> (state, StepInfo)`` validates its arguments: ``z`` and
   ``generator`` always, the state in full unless it is one the filter made itself and that
   is unchanged since (``Filter.step``), so that stepping its own output costs the step;
 - ``forward(measurements, *, init, generator, progress=None) -> FilterResult`` validates the
   whole sequence once, before the first step, then runs the steps without checks;
-- ``compile_step=True`` compiles the filter's programs (:mod:`torchmcmcpf.runtime`: an MCMC
+- ``compile_step=True`` compiles the filter's program (:mod:`torchmcmcpf.runtime`: an MCMC
   iteration, each move of one, an HMC move, or the body of an SIR step) with
   ``torch.compile(fullgraph=True)``; the random numbers are drawn eagerly from the
   generator and passed in, so compiled and eager runs consume the same random stream.
 
-A filter holds models and settings; the filtering state is passed in and returned, never
-stored on the module, so filters are reentrant. Resume = the state plus
-``generator.get_state()``.
+A filter holds models and its bound object; the filtering state is passed in and returned,
+never stored on the module, so filters are reentrant. Resume = the state plus
+``generator.get_state()``. A pickled filter (``torch.save``, ``copy.deepcopy``) leaves its
+program out and binds it again when loaded.
 """
 
 from __future__ import annotations
@@ -56,22 +64,9 @@ from ..state import (
     weighted_cov,
 )
 from ..typing import Measurement, Tensor
+from ._bound import Bound, Compile, active_prior, check_existence
 
 __all__ = ["Filter", "active_prior", "check_existence", "settings_from", "ESTIMATE", "PRESENT"]
-
-
-def active_prior(settings: Any, sensor: SensorModel) -> Any:
-    """``settings`` with the multitarget prior's terms the sensor cannot support turned off:
-    ``exclusion=None`` for a sensor without ``resolution_coords``, ``recapture=None`` for one
-    without a data-driven proposal (:mod:`torchmcmcpf.models.multitarget`), so that
-    ``filt.settings`` says what the filter does.
-    """
-    changes: dict[str, None] = {}
-    if getattr(settings, "exclusion", None) is not None and not sensor.resolved:
-        changes["exclusion"] = None
-    if getattr(settings, "recapture", None) is not None and not sensor.data_driven:
-        changes["recapture"] = None
-    return dataclasses.replace(settings, **changes) if changes else settings
 
 
 def settings_from(settings_class: type, settings: Any, shortcuts: Mapping[str, Any]) -> Any:
@@ -200,13 +195,6 @@ def _same(a: tuple, b: tuple) -> bool:
             and (a[2] is None) == (b[2] is None) and (a[2] is None or a[2]() is b[2]()))
 
 
-def check_existence(existence: object) -> BirthDeath | None:
-    """``existence`` must be a :class:`~torchmcmcpf.models.existence.BirthDeath` or ``None``."""
-    if existence is not None and not isinstance(existence, BirthDeath):
-        raise ValueError(f"existence must be a BirthDeath model or None, got {type(existence).__name__}")
-    return existence
-
-
 def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name: str,
                           model_devices: Iterable[torch.device]) -> None:
     """Devices (none on ``meta``, all equal, the models' ``model_devices`` too) and dtypes
@@ -243,10 +231,10 @@ def _check_devices_dtypes(state: ParticleState, measurements: Measurement, name:
 class Filter(nn.Module):
     """Base of every particle filter in torchmcmcpf (module docstring: the contract).
 
-    Subclasses set :attr:`settings_class` and implement :meth:`_step` (call the pure step
-    function), for ``compile_step`` :meth:`_build_compiled` (what the step function takes,
-    with its programs compiled) and, when the settings must agree with the models or the
-    size, :meth:`_check_problem`.
+    Subclasses set :attr:`settings_class`, :attr:`bind` (the algorithm's ``bind_<algo>``,
+    which also checks the settings against the models and the size) and :attr:`bound_step`
+    (its ``<algo>_bound_step``); the base binds once, in the constructor (:attr:`bound`), and
+    every step calls ``bound_step(state, z, self.bound, generator=generator)``.
 
     Example
     -------
@@ -273,7 +261,6 @@ class Filter(nn.Module):
     sensor: SensorModel
     num_particles: int
     existence: BirthDeath | None
-    settings: Any
     #: seconds the first ``compile_step=True`` step of a new shape takes to compile, cold, on a
     #: 2-core CPU (5-target ground radar, ``benchmarks/bench_compile.py``); shown in the progress
     #: bar while that step runs
@@ -300,6 +287,15 @@ class Filter(nn.Module):
     #: the settings dataclass of the algorithm: the ``settings=`` of the constructor, and its
     #: fields the constructor's keyword shortcuts (:func:`settings_from`)
     settings_class: ClassVar[type | None] = None
+    #: the algorithm's bind function, ``(motion, sensor, settings, existence, *, num_particles,
+    #: compile, **models) -> Bound`` (a ``staticmethod``: e.g. ``bind_sir``)
+    bind: ClassVar[Callable[..., Bound]]
+    #: the algorithm's step on its bound object, ``(state, z, bound, *, generator) -> (state,
+    #: StepInfo)`` (a ``staticmethod``: e.g. ``sir_bound_step``)
+    bound_step: ClassVar[Callable[..., tuple[ParticleState, StepInfo]]]
+    #: keywords of the constructor that are models besides motion, sensor and existence (the
+    #: group filter's ``structure_prior``): registered as submodules and passed to :attr:`bind`
+    extra_models: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Give a filter class with a :attr:`settings_class` the constructor signature its
@@ -312,6 +308,7 @@ class Filter(nn.Module):
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any = None, *,
                  existence: BirthDeath | None = None, compile_step: bool = False, **shortcuts: Any):
         super().__init__()
+        models = {name: shortcuts.pop(name) for name in self.extra_models if name in shortcuts}
         if self.settings_class is not None:
             settings = settings_from(self.settings_class, settings, shortcuts)
         elif shortcuts:
@@ -324,31 +321,63 @@ class Filter(nn.Module):
             raise ValueError(f"compile_step must be a bool, got {compile_step!r}")
         self.motion = motion
         self.sensor = sensor
+        for name, model in models.items():
+            setattr(self, name, model)
         self.num_particles = check_positive_int(num_particles, "num_particles")
-        self.existence = check_existence(existence)
-        self.settings = active_prior(settings, sensor)
-        proposal = getattr(self.settings, "existence_proposal", None)
-        if self.existence is not None and proposal is not None:  # the MCMC filters' birth and death proposals
-            self.existence = self.existence.with_proposal(proposal)
-        self.compile_step = compile_step
-        self._compiled: Callable | None = None
+        self._compile_step = compile_step
         self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
         self._trusted: deque = deque(maxlen=_TRUSTED_STATES)
         self._devices: frozenset | None = None  # _model_devices, until the filter is moved
-        self._check_problem()
+        self._bind(settings, check_existence(existence))
 
-    def _check_problem(self) -> None:
-        """Checks of the settings against the models and the number of particles (a
-        ``ValueError`` naming the setting); none by default.
+    def _bind(self, settings: Any, existence: BirthDeath | None) -> None:
+        """Resolve the filter's :class:`~torchmcmcpf.filters._bound.Bound` (:attr:`bind`: the
+        settings' checks against the models and ``num_particles``, the program compiled when
+        :attr:`compile_step`), and register its existence model (with the settings' proposal)
+        as the submodule ``existence``, so that ``.to(device)`` moves the one the steps use.
         """
+        compile: Compile = compile_program if self._compile_step else None
+        self._bound = self.bind(self.motion, self.sensor, settings, existence, num_particles=self.num_particles,
+                                compile=compile, **{name: getattr(self, name) for name in self.extra_models})
+        self.existence = self._bound.existence
+
+    @property
+    def bound(self) -> Bound:
+        """What every step of this filter runs with, resolved once (module docstring):
+        ``type(filt).bound_step(state, z, filt.bound, generator=g)`` is ``filt.step`` without
+        its checks.
+        """
+        return self._bound
+
+    @property
+    def settings(self) -> Any:
+        """The settings as the filter runs them (``filt.bound.settings``: the prior's terms the
+        sensor cannot support turned off, :func:`~torchmcmcpf.filters._bound.active_prior`).
+        """
+        return self._bound.settings
 
     @property
     def dynamics(self) -> TargetDynamics:
-        """The slots' joint model of this filter: its motion, existence model (with the
-        settings' existence proposal), re-capture (when its settings have one) and sensor,
-        the :class:`~torchmcmcpf.models.existence.TargetDynamics` its compiled programs bind.
+        """The slots' joint model of this filter (``filt.bound.dynamics``): its motion,
+        existence model (with the settings' existence proposal), re-capture (when its settings
+        have one) and sensor, the :class:`~torchmcmcpf.models.existence.TargetDynamics` its
+        program binds.
         """
-        return TargetDynamics(self.motion, self.existence, getattr(self.settings, "recapture", None), self.sensor)
+        return self._bound.dynamics
+
+    @property
+    def compile_step(self) -> bool:
+        """Whether the filter's program is compiled (:func:`~torchmcmcpf.runtime.compile_program`);
+        setting it binds the program again, compiled or eager.
+        """
+        return self._compile_step
+
+    @compile_step.setter
+    def compile_step(self, value: bool) -> None:
+        if not isinstance(value, bool):
+            raise ValueError(f"compile_step must be a bool, got {value!r}")
+        self._compile_step = value
+        self._bind(self.settings, self.existence)
 
     # -- the states this filter vouches for ----------------------------------------------
     def _trust(self, state: ParticleState) -> ParticleState:
@@ -396,38 +425,21 @@ class Filter(nn.Module):
         return False
 
     def __getstate__(self) -> dict:
-        """Pickle without the weak references of :meth:`_trust` (a copy trusts nothing) and
-        without the models' devices (a copy may be loaded elsewhere, ``map_location``).
+        """Pickle without the weak references of :meth:`_trust` (a copy trusts nothing), without
+        the models' devices (a copy may be loaded elsewhere, ``map_location``) and without the
+        program (a closure, compiled or not, does not pickle): :meth:`__setstate__` binds again.
         """
         d = super().__getstate__()
         d["_trusted"] = None
         d["_devices"] = None
+        d["_bound"] = dataclasses.replace(self._bound, program=None)
         return d
 
     def __setstate__(self, d: dict) -> None:
         super().__setstate__(d)
         self._trusted = deque(maxlen=_TRUSTED_STATES)
         self._devices = None
-
-    # -- the compiled programs ------------------------------------------------------------
-    def _build_compiled(self, compile: Callable[[Callable], Callable]) -> Callable:
-        """What the step function takes for ``compile_step=True`` (the body of a step, an
-        iteration or a move), with ``compile`` applied to its pure programs (one iteration /
-        one step / one move, never the loops over them).
-        """
-        raise NotImplementedError
-
-    def compiled(self) -> Callable | None:
-        """What the step function takes (:meth:`_build_compiled`), built once with its
-        programs compiled (:func:`~torchmcmcpf.runtime.compile_program`:
-        ``torch.compile(fullgraph=True, dynamic=False)``, with CUDA graphs on a GPU) when
-        ``compile_step=True``, else ``None`` (the step function's eager one).
-        """
-        if not self.compile_step:
-            return None
-        if self._compiled is None:
-            self._compiled = self._build_compiled(compile_program)
-        return self._compiled
+        self._bind(self._bound.settings, self._bound.existence)
 
     # -- state ---------------------------------------------------------------------------
     def init(self, particles: Tensor, exists: Tensor | None = None) -> ParticleState:
@@ -633,7 +645,8 @@ class Filter(nn.Module):
     # -- one step ------------------------------------------------------------------------
     def _step(self, state: ParticleState, z: Measurement, generator: torch.Generator
               ) -> tuple[ParticleState, StepInfo]:
-        raise NotImplementedError
+        """One step without checks: :attr:`bound_step` with this filter's :attr:`bound`."""
+        return self.bound_step(state, z, self._bound, generator=generator)
 
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
              ) -> tuple[ParticleState, StepInfo]:

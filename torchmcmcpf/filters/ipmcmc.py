@@ -189,9 +189,10 @@ from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_re
 from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
-from .base import Filter, active_prior, check_existence_proposal
+from ._bound import Bound, Compile, bind
+from .base import Filter, check_existence_proposal
 
-__all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_iteration"]
+__all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_ipmcmc", "ipmcmc_bound_step", "ipmcmc_program"]
 
 
 class SegmentNoise(NamedTuple):
@@ -440,6 +441,25 @@ class IPMCMCSettings:
             )
 
 
+def bind_ipmcmc(motion: MotionModel, sensor: SensorModel, settings: IPMCMCSettings | None = None,
+                existence: BirthDeath | None = None, *, num_particles: int | None = None, compile: Compile = None
+                ) -> Bound:
+    """The IP-MCMC-PF's :class:`~torchmcmcpf.filters._bound.Bound`: the models, ``settings``
+    (default :class:`IPMCMCSettings`) checked against them (:meth:`IPMCMCSettings.check` with
+    ``num_particles`` when given; ``hmc`` needs a linear-Gaussian motion and no existence),
+    the existence model with the settings' ``existence_proposal``, and the program, one
+    exchange iteration (:func:`ipmcmc_program`, compiled with ``compile``).
+    """
+    def check(bound: Bound) -> None:
+        if num_particles is not None:
+            bound.settings.check(num_particles)
+        if bound.settings.hmc is not None:
+            check_hmc_motion(motion, bound.existence)
+
+    return bind(motion, sensor, IPMCMCSettings() if settings is None else settings, existence, check=check,
+                program=lambda b, c: ipmcmc_program(b.dynamics, b.sensor, b.settings.exclusion, c), compile=compile)
+
+
 def ipmcmc_step(
     state: ParticleState,
     z: Measurement,
@@ -449,8 +469,18 @@ def ipmcmc_step(
     settings: IPMCMCSettings = IPMCMCSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    iteration: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
+    """One IP-MCMC-PF step: :func:`ipmcmc_bound_step` after an eager :func:`bind_ipmcmc` (a
+    filter binds once). Parameters and returns: :func:`ipmcmc_bound_step`, with the models
+    ``motion``, ``sensor``, ``existence`` and ``settings`` (:class:`IPMCMCSettings`) in place
+    of ``bound``.
+    """
+    bound = bind_ipmcmc(motion, sensor, settings, existence, num_particles=state.x.shape[1])
+    return ipmcmc_bound_step(state, z, bound, generator=generator)
+
+
+def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, generator: torch.Generator
+                      ) -> tuple[ParticleState, StepInfo]:
     """One IP-MCMC-PF step (paper 000 Alg. 1-2); see the module docstring.
 
     Parameters
@@ -459,16 +489,14 @@ def ipmcmc_step(
         MCMC step; any normalised weights are honoured by the start and source draws).
         ``exists (B, N, K)``: with ``existence`` only (None: every slot starts inactive).
     z : one frame per run ``(B, *G)``.
-    motion, sensor : the models; settings : :class:`IPMCMCSettings`.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_ipmcmc`: the models,
+        :class:`IPMCMCSettings`, the existence model (births and deaths, module docstring:
+        the starting points are predicted by :meth:`BirthDeath.propose`, births near the
+        points of ``z`` when it draws them so) and the program, one exchange iteration
+        (:func:`ipmcmc_program`, ``program(chains, x_prev, exists_prev, z, noise)``; compiled
+        by ``IPMCMCFilter(compile_step=True)``, a :class:`~torchmcmcpf.runtime.Program` whose
+        ``capture`` runs each segment as one CUDA graph on a GPU).
     generator : the only source of randomness.
-    existence : BirthDeath, optional: births and deaths (module docstring); the starting
-        points are predicted by :meth:`BirthDeath.propose` (births near the points of ``z``
-        when it draws them so).
-    iteration : one iteration of the chains, :func:`exchange_iteration` with the models
-        bound (``iteration(chains, x_prev, exists_prev, z, noise)``);
-        ``IPMCMCFilter(compile_step=True)`` passes a compiled one
-        (:class:`~torchmcmcpf.runtime.Program`, whose ``capture`` runs each segment as one
-        CUDA graph on a GPU); default eager.
 
     Returns
     -------
@@ -482,6 +510,10 @@ def ipmcmc_step(
         ``"extensions" (B,)`` how many extensions ran and, with ``settings.hmc``,
         ``"acceptance_hmc" (B,)`` the HMC refinement's acceptance rate.
     """
+    motion, sensor, settings, existence = bound.motion, bound.sensor, bound.settings, bound.existence
+    # (x, exists) jointly: one model of the slots with or without births and re-capture, for
+    # the starting points, the noise and the moves
+    dynamics, iteration = bound.dynamics, bound.program
     x_prev, log_w, exists = state.x, state.log_w, state.exists
     num_chains, burn_in = settings.num_chains, settings.burn_in
     rhat_threshold, max_extensions, rhat_method = settings.rhat_threshold, settings.max_extensions, settings.rhat_method
@@ -491,16 +523,8 @@ def ipmcmc_step(
     b, n, k, _ = x_prev.shape
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
-    settings = active_prior(settings, sensor)
-    settings.check(n)
-    existence = None if existence is None else existence.with_proposal(settings.existence_proposal)
     keep = n // num_chains
     recapture = settings.recapture
-    # (x, exists) jointly: one model of the slots with or without births and re-capture, for
-    # the starting points, the noise and the moves
-    dynamics = TargetDynamics(motion, existence, recapture, sensor)
-    if iteration is None:
-        iteration = bind_iteration(dynamics, sensor, settings.exclusion)
 
     # 1. starting points: C previous particles (systematic: one per stratum), predicted
     start = systematic(log_w, torch.rand((b, 1), dtype=torch.float64, generator=generator,
@@ -618,14 +642,15 @@ def ipmcmc_step(
     return ParticleState(x_new, log_w_new, exists_new), info
 
 
-def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None) -> Callable:
-    """:func:`exchange_iteration` with the models and the exclusion term bound:
-    ``iteration(chains, x_prev, exists_prev, z, noise)`` (a function of its own, the program
-    ``compile_step=True`` compiles).
+def ipmcmc_program(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None,
+                   compile: Compile = None) -> Callable:
+    """The IP-MCMC-PF's program: :func:`exchange_iteration` with the models and the exclusion
+    term bound, ``program(chains, x_prev, exists_prev, z, noise)``, compiled with ``compile``
+    (``compile_step=True``), else eager.
     """
     def iteration(*args: Any) -> tuple[ExchangeChains, Tensor, tuple[Tensor, Tensor] | None]:
         return exchange_iteration(*args, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
-    return iteration
+    return iteration if compile is None else compile(iteration)
 
 
 class IPMCMCFilter(Filter):
@@ -669,16 +694,5 @@ class IPMCMCFilter(Filter):
 
     compile_seconds = 14.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     settings_class = IPMCMCSettings
-    settings: IPMCMCSettings
-
-    def _check_problem(self) -> None:
-        self.settings.check(self.num_particles)
-        if self.settings.hmc is not None:
-            check_hmc_motion(self.motion, self.existence)
-
-    def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(bind_iteration(self.dynamics, self.sensor, self.settings.exclusion))
-
-    def _step(self, state, z, generator):
-        return ipmcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                           generator=generator, existence=self.existence, iteration=self.compiled())
+    bind = staticmethod(bind_ipmcmc)
+    bound_step = staticmethod(ipmcmc_bound_step)

@@ -47,10 +47,11 @@ from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_ex
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from .base import Filter, active_prior, check_existence_proposal
+from ._bound import Bound, Compile, bind
+from .base import Filter, check_existence_proposal
 
-__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "mcmc_iteration", "bind_iteration", "draw_iteration_noise",
-           "pick_moves", "parse_moves", "MOVE_PRESETS"]
+__all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "bind_mcmc", "mcmc_bound_step", "mcmc_iteration", "mcmc_program",
+           "draw_iteration_noise", "pick_moves", "parse_moves", "MOVE_PRESETS"]
 
 MoveSpec = str | Sequence[tuple[str, float]]
 MoveNoise = JointNoise | RefineNoise | RandomWalkNoise
@@ -349,6 +350,26 @@ def mcmc_iteration(
     return new, acc.to(chain.x.dtype)
 
 
+def bind_mcmc(motion: MotionModel, sensor: SensorModel, settings: MCMCSettings | None = None,
+              existence: BirthDeath | None = None, *, num_particles: int | None = None, compile: Compile = None
+              ) -> Bound:
+    """The sequential MCMC filter's :class:`~torchmcmcpf.filters._bound.Bound`: the models,
+    ``settings`` (default :class:`MCMCSettings`) checked against them
+    (:meth:`MCMCSettings.check` with ``num_particles`` when given; ``hmc`` needs a
+    linear-Gaussian motion and no existence), the existence model with the settings'
+    ``existence_proposal``, and the program, one iteration of the chains
+    (:func:`mcmc_program`, its moves compiled with ``compile``).
+    """
+    def check(bound: Bound) -> None:
+        if num_particles is not None:
+            bound.settings.check(num_particles, motion.dim, bound.existence)
+        if bound.settings.hmc is not None:
+            check_hmc_motion(motion, bound.existence)
+
+    return bind(motion, sensor, MCMCSettings() if settings is None else settings, existence, check=check,
+                program=lambda b, c: mcmc_program(b.dynamics, b.sensor, b.settings, c), compile=compile)
+
+
 def mcmc_step(
     state: ParticleState,
     z: Measurement,
@@ -358,8 +379,18 @@ def mcmc_step(
     settings: MCMCSettings = MCMCSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    iteration: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
+    """One time step of the sequential MCMC particle filter: :func:`mcmc_bound_step` after an
+    eager :func:`bind_mcmc` (a filter binds once). Parameters and returns:
+    :func:`mcmc_bound_step`, with the models ``motion``, ``sensor``, ``existence`` and
+    ``settings`` (:class:`MCMCSettings`) in place of ``bound``.
+    """
+    bound = bind_mcmc(motion, sensor, settings, existence, num_particles=state.x.shape[1])
+    return mcmc_bound_step(state, z, bound, generator=generator)
+
+
+def mcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, generator: torch.Generator
+                    ) -> tuple[ParticleState, StepInfo]:
     """One time step of the sequential MCMC particle filter.
 
     Each of the C chains of each run starts from a previous particle drawn by weight and
@@ -373,16 +404,15 @@ def mcmc_step(
         honoured: the target mixes over ``w^i p(x | x^i)``). Known number of targets
         (``existence`` None): ``state.exists`` must be ``None``.
     z : one frame per run ``(B, *G)``.
-    motion, sensor : the models; settings : :class:`MCMCSettings`.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_mcmc`: the models,
+        :class:`MCMCSettings`, the existence model and the program, one iteration of the
+        chains (:func:`mcmc_program`: :func:`mcmc_iteration` with the models and settings
+        bound, called as ``program(chain, noise, move, cloud, z, rw_scale)``, its moves
+        compiled by ``MCMCFilter(compile_step=True)``). With an existence model the number of
+        targets is unknown (paper 001's adapted algorithm; :mod:`torchmcmcpf.kernels.moves`,
+        "Existence"): ``state.exists (B, N, K)`` None means every slot starts inactive;
+        births are drawn near the points of ``z`` when the model draws them so.
     generator : the only source of randomness (all draws in eager code).
-    existence : BirthDeath, optional: an unknown number of targets (paper 001's adapted
-        algorithm; :mod:`torchmcmcpf.kernels.moves`, "Existence"). ``state.exists (B, N, K)``
-        None means every slot starts inactive; births are drawn near the points of ``z``
-        when ``existence`` draws them so. ``moves`` may not use ``"random_walk"``.
-    iteration : one iteration of the chains, :func:`mcmc_iteration` with the models and
-        settings bound, called as ``iteration(chain, noise, move, cloud, z, rw_scale)``
-        (``MCMCFilter(compile_step=True)`` passes one whose moves are compiled,
-        :func:`bind_iteration`); default eager.
 
     Returns
     -------
@@ -394,11 +424,10 @@ def mcmc_step(
         (per target update for ``"refine"``), NaN where no iteration of the step picked the
         move (one pick per iteration for every chain, :func:`pick_moves`).
     """
+    motion, sensor, settings, existence = bound.motion, bound.sensor, bound.settings, bound.existence
+    dynamics = bound.dynamics  # (x, exists) jointly: one model of the slots with or without births and re-capture
     x_prev = state.x
     b, n, k, d = x_prev.shape
-    settings = active_prior(settings, sensor)
-    settings.check(n, d, existence)
-    existence = None if existence is None else existence.with_proposal(settings.existence_proposal)
     pairs, num_chains, burn_in, thinning = settings.pairs, settings.num_chains, settings.burn_in, settings.thinning
     exists = state.exists
     if existence is None and exists is not None:
@@ -409,10 +438,7 @@ def mcmc_step(
     adaptive = settings.rw_scale == "adaptive" and any(name == "random_walk" for name, _ in pairs)
     scale = None if settings.rw_scale is None or isinstance(settings.rw_scale, str) else torch.tensor(
         settings.rw_scale, device=x_prev.device, dtype=x_prev.dtype)
-    # (x, exists) jointly: one model of the slots with or without births and re-capture
-    dynamics = TargetDynamics(motion, existence, settings.recapture, sensor)
-    if iteration is None:
-        iteration = bind_iteration(dynamics, sensor, settings)
+    iteration = bound.program
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
     chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=generator, z=z), z, dynamics=dynamics,
@@ -464,10 +490,11 @@ def mcmc_step(
     return ParticleState(x, log_w, exists), StepInfo.make(acceptance, acceptance=acceptance, extras=extras)
 
 
-def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, settings: MCMCSettings,
-                   compile: Callable | None = None) -> Callable:
-    """:func:`mcmc_iteration` with the models and settings bound: ``iteration(chain, noise,
-    move, cloud, z, rw_scale)``.
+def mcmc_program(dynamics: TargetDynamics, sensor: SensorModel, settings: MCMCSettings,
+                 compile: Compile = None) -> Callable:
+    """The MCMC filter's program: :func:`mcmc_iteration` with the models and settings (as
+    the filter runs them, :func:`bind_mcmc`) bound, ``program(chain, noise, move, cloud, z,
+    rw_scale)``.
 
     With ``compile``, each move is compiled on its own (the joint draw; the refinement whole
     when the sensor is separable and no exclusion couples the slots, else its one-slot
@@ -475,7 +502,6 @@ def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, settings: MCMC
     unrolled slot updates; the mixture's choice between them is made once per iteration in
     eager code (:func:`pick_moves`).
     """
-    settings = active_prior(settings, sensor)
     exclusion = settings.exclusion
     programs = None
     if compile is not None:
@@ -532,7 +558,7 @@ class MCMCFilter(Filter):
         estimate of a slot is then its mean given existence
         (:func:`torchmcmcpf.state.existence_estimate`).
     compile_step : compile each move of one MCMC iteration (the refinement as one slot
-        update) with ``torch.compile(fullgraph=True)`` (:func:`bind_iteration`).
+        update) with ``torch.compile(fullgraph=True)`` (:func:`mcmc_program`).
 
     Each time step runs ``burn_in + thinning * N / C`` iterations of every chain.
 
@@ -553,16 +579,5 @@ class MCMCFilter(Filter):
 
     compile_seconds = 27.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     settings_class = MCMCSettings
-    settings: MCMCSettings
-
-    def _check_problem(self) -> None:
-        self.settings.check(self.num_particles, self.motion.dim, self.existence)
-        if self.settings.hmc is not None:
-            check_hmc_motion(self.motion, self.existence)
-
-    def _build_compiled(self, compile: Callable) -> Callable:
-        return bind_iteration(self.dynamics, self.sensor, self.settings, compile)
-
-    def _step(self, state, z, generator):
-        return mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                         generator=generator, existence=self.existence, iteration=self.compiled())
+    bind = staticmethod(bind_mcmc)
+    bound_step = staticmethod(mcmc_bound_step)

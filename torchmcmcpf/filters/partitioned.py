@@ -68,10 +68,11 @@ from ..models.multitarget import (
 from ..resampling import RESAMPLERS, ess, normalize
 from ..state import ParticleState, StepInfo, weighted_mean
 from ..typing import Measurement, Tensor
-from .base import Filter, active_prior
+from ._bound import Bound, Compile, bind
+from .base import Filter
 
-__all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "partitioned_sir_body",
-           "clairvoyant_partitions"]
+__all__ = ["PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "bind_partitioned_sir",
+           "partitioned_sir_bound_step", "partitioned_sir_body", "partitioned_sir_program", "clairvoyant_partitions"]
 
 
 @dataclass(frozen=True)
@@ -172,13 +173,71 @@ def partitioned_sir_body(x: Tensor, log_w: Tensor, z: Measurement, u: Tensor, ep
     return x_new.transpose(1, 2), log_lik
 
 
-def bind_body(motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings) -> Callable:
-    """:func:`partitioned_sir_body` with the models bound: ``body(x, log_w, z, u, eps)`` (a
-    function of its own, the program ``compile_step=True`` compiles).
+def partitioned_sir_program(motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings,
+                            compile: Compile = None) -> Callable:
+    """The independent-partition filter's program: :func:`partitioned_sir_body` with the
+    models bound, ``program(x, log_w, z, u, eps, reference, relocation)``, compiled with
+    ``compile`` (``compile_step=True``), else eager.
     """
     def body(*args: Any) -> tuple[Tensor, Tensor]:
         return partitioned_sir_body(*args, motion=motion, sensor=sensor, settings=settings)
-    return body
+    return body if compile is None else compile(body)
+
+
+def bind_partitioned_sir(motion: MotionModel, sensor: SensorModel, settings: PartitionedSIRSettings | None = None,
+                         existence: BirthDeath | None = None, *, num_particles: int | None = None,
+                         compile: Compile = None) -> Bound:
+    """The independent-partition filter's :class:`~torchmcmcpf.filters._bound.Bound`: the
+    models (``existence`` must be None: a known number of targets), ``settings`` (default
+    :class:`PartitionedSIRSettings`) as the filter runs them, and the program
+    (:func:`partitioned_sir_program`, compiled with ``compile``). ``num_particles`` is
+    accepted for the common bind signature (no setting depends on it).
+    """
+    if existence is not None:
+        raise ValueError("existence must be None: the independent-partition filter tracks a known number of targets")
+    return bind(motion, sensor, PartitionedSIRSettings() if settings is None else settings, None,
+                program=lambda b, c: partitioned_sir_program(b.motion, b.sensor, b.settings, c), compile=compile)
+
+
+def partitioned_sir_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, generator: torch.Generator,
+                               reference: Tensor | None = None) -> tuple[ParticleState, StepInfo]:
+    """One independent-partition step (module docstring: weighting and approximation) with
+    everything but the state, the frame and the generator resolved in ``bound``.
+
+    Parameters
+    ----------
+    state : ParticleState with ``x (B, N, K, D)`` and normalised ``log_w (B, N)``.
+    z : one measurement per run, ``(B, *G)``.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_partitioned_sir`: the
+        models, :class:`PartitionedSIRSettings` and the program (:func:`partitioned_sir_body`
+        with the models bound, compiled by ``PartitionedSIRFilter(compile_step=True)``).
+    generator : source of randomness (motion noise, resampling uniforms, the re-capture's
+        draws; drawn here, eagerly).
+    reference : (B, K, D), optional: the states the other targets are fixed at (default: the
+        noise-free prediction of the previous posterior mean; :func:`partitioned_sir_body`).
+
+    Returns
+    -------
+    state : the resampled particles, equal weights ``-log N``.
+    info : ``ess (B,)`` the mean over targets of the partitions' ESS before resampling;
+        ``log_evidence`` and ``acceptance`` NaN; extras ``ess_min (B,)``, the smallest
+        partition ESS.
+    """
+    motion, sensor, settings = bound.motion, bound.sensor, bound.settings
+    x, log_w = state.x, state.log_w
+    b, n, k, _ = x.shape
+    draw, _ = RESAMPLERS[settings.resample_method]
+    u = draw(b * k, n, generator=generator, device=x.device)
+    eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
+    relocation = draw_relocation(settings.recapture, sensor, (b, n, k), z, generator=generator, dtype=x.dtype,
+                                 device=x.device)
+    if reference is not None and reference.shape != (b, k, x.shape[-1]):
+        raise ValueError(f"reference has shape {tuple(reference.shape)}, expected (B, K, D) = {(b, k, x.shape[-1])}")
+    x_new, log_lik = bound.program(x, log_w, z, u, eps, reference, relocation)
+    ess_k = ess(normalize(log_lik)[0])  # (B, K); a partition with all weights -inf: uniform, not NaN
+    log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
+    return ParticleState(x_new, log_w_new), StepInfo.make(ess_k[:, 0], ess=ess_k.mean(-1),
+                                                          extras={"ess_min": ess_k.amin(-1)})
 
 
 def partitioned_sir_step(
@@ -190,50 +249,16 @@ def partitioned_sir_step(
     settings: PartitionedSIRSettings = PartitionedSIRSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    body: Callable | None = None,
     reference: Tensor | None = None,
 ) -> tuple[ParticleState, StepInfo]:
-    """One independent-partition step (module docstring: weighting and approximation).
-
-    Parameters
-    ----------
-    state : ParticleState with ``x (B, N, K, D)`` and normalised ``log_w (B, N)``.
-    z : one measurement per run, ``(B, *G)``.
-    motion, sensor : the models; settings : :class:`PartitionedSIRSettings`.
-    generator : source of randomness (motion noise, resampling uniforms, the re-capture's
-        draws; drawn here, eagerly).
-    existence : must be None (known number of targets).
-    body : :func:`partitioned_sir_body` with the models bound (compiled by
-        ``PartitionedSIRFilter(compile_step=True)``); default eager.
-    reference : (B, K, D), optional: the states the other targets are fixed at (default: the
-        noise-free prediction of the previous posterior mean; :func:`partitioned_sir_body`).
-
-    Returns
-    -------
-    state : the resampled particles, equal weights ``-log N``.
-    info : ``ess (B,)`` the mean over targets of the partitions' ESS before resampling;
-        ``log_evidence`` and ``acceptance`` NaN; extras ``ess_min (B,)``, the smallest
-        partition ESS.
+    """One independent-partition step: :func:`partitioned_sir_bound_step` after an eager
+    :func:`bind_partitioned_sir` (a filter binds once). Parameters and returns:
+    :func:`partitioned_sir_bound_step`, with the models ``motion``, ``sensor`` and
+    ``settings`` (:class:`PartitionedSIRSettings`) in place of ``bound``; ``existence``
+    must be None (a known number of targets).
     """
-    if existence is not None:
-        raise ValueError("existence must be None: the independent-partition filter tracks a known number of targets")
-    x, log_w = state.x, state.log_w
-    b, n, k, _ = x.shape
-    draw, _ = RESAMPLERS[settings.resample_method]
-    u = draw(b * k, n, generator=generator, device=x.device)
-    eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
-    settings = active_prior(settings, sensor)
-    relocation = draw_relocation(settings.recapture, sensor, (b, n, k), z, generator=generator, dtype=x.dtype,
-                                 device=x.device)
-    if body is None:
-        body = bind_body(motion, sensor, settings)
-    if reference is not None and reference.shape != (b, k, x.shape[-1]):
-        raise ValueError(f"reference has shape {tuple(reference.shape)}, expected (B, K, D) = {(b, k, x.shape[-1])}")
-    x_new, log_lik = body(x, log_w, z, u, eps, reference, relocation)
-    ess_k = ess(normalize(log_lik)[0])  # (B, K); a partition with all weights -inf: uniform, not NaN
-    log_w_new = torch.full((b, n), -math.log(n), device=x.device, dtype=x.dtype)
-    return ParticleState(x_new, log_w_new), StepInfo.make(ess_k[:, 0], ess=ess_k.mean(-1),
-                                                          extras={"ess_min": ess_k.amin(-1)})
+    bound = bind_partitioned_sir(motion, sensor, settings, existence)
+    return partitioned_sir_bound_step(state, z, bound, generator=generator, reference=reference)
 
 
 def clairvoyant_partitions(frames: Tensor, truth: Tensor, x: Tensor, *, motion: MotionModel, sensor: SensorModel,
@@ -261,10 +286,10 @@ def clairvoyant_partitions(frames: Tensor, truth: Tensor, x: Tensor, *, motion: 
                          f"{(len(frames), x.shape[0]) + tuple(x.shape[2:])}")
     log_w = torch.full(x.shape[:2], -math.log(x.shape[1]), dtype=x.dtype, device=x.device)
     state, means = ParticleState(x, log_w), []
-    settings = PartitionedSIRSettings(exclusion=None, recapture=None)  # the others are where they are
+    # the others are where they are: no exclusion, no re-capture; bound once for every frame
+    bound = bind_partitioned_sir(motion, sensor, PartitionedSIRSettings(exclusion=None, recapture=None))
     for t, ref in enumerate(truth):  # a loop over time only
-        state, _ = partitioned_sir_step(state, frames[t], motion=motion, sensor=sensor, settings=settings,
-                                        generator=generator, reference=ref)
+        state, _ = partitioned_sir_bound_step(state, frames[t], bound, generator=generator, reference=ref)
         means.append(state.x.mean(1))
     return state.x, torch.stack(means)
 
@@ -283,7 +308,8 @@ class PartitionedSIRFilter(Filter):
     settings : :class:`PartitionedSIRSettings`, optional; its fields ``resample_method``,
         ``exclusion``, ``recapture`` are also keywords of the constructor.
     existence : must be None (known number of targets).
-    compile_step : compile :func:`partitioned_sir_body` (the whole step but its draws).
+    compile_step : compile :func:`partitioned_sir_body` (the whole step but its draws;
+        :func:`partitioned_sir_program`).
 
     Notes
     -----
@@ -308,15 +334,5 @@ class PartitionedSIRFilter(Filter):
 
     compile_seconds = 16.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     settings_class = PartitionedSIRSettings
-    settings: PartitionedSIRSettings
-
-    def _check_problem(self) -> None:
-        if self.existence is not None:
-            raise ValueError("existence must be None: PartitionedSIRFilter tracks a known number of targets")
-
-    def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(bind_body(self.motion, self.sensor, self.settings))
-
-    def _step(self, state, z, generator):
-        return partitioned_sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                                    generator=generator, body=self.compiled())
+    bind = staticmethod(bind_partitioned_sir)
+    bound_step = staticmethod(partitioned_sir_bound_step)

@@ -43,9 +43,10 @@ Kalman posterior).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import torch
@@ -54,16 +55,17 @@ from torch.utils._pytree import tree_map
 from .._validation import as_int, check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
-from ..models.existence import BirthDeath, TargetDynamics
+from ..models.existence import BirthDeath
 from ..models.motion import ProcessNoiseScale
 from ..resampling import ess, normalize
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
+from ._bound import Bound, Compile, bind
 from .base import Filter
-from .sir import SIRFilter, SIRSettings, bind_body, sir_step
+from .sir import SIRFilter, SIRSettings, sir_bound_step, sir_program
 
 __all__ = ["pmmh", "PMMHResult", "sir_log_evidence", "ProcessNoiseScale", "PMMHFilter", "PMMHSettings",
-           "pmmh_step"]
+           "pmmh_step", "bind_pmmh", "pmmh_bound_step"]
 
 
 class PMMHResult(NamedTuple):
@@ -217,6 +219,7 @@ class PMMHSettings:
     prior_mean, prior_std : the ``N(prior_mean, prior_std^2)`` prior of ``theta``, the log
         of the process-noise scale (the proposal of the independence sampler).
     resample_method, ess_threshold : of each candidate's SIR filter (:class:`SIRSettings`).
+    sir : the settings of every candidate's SIR filter (set on construction).
 
     Example
     -------
@@ -240,6 +243,7 @@ class PMMHSettings:
     prior_std: float = 1.0
     resample_method: str = "systematic"
     ess_threshold: float = 1.0
+    sir: SIRSettings = field(init=False, repr=False, compare=False)
 
     def __post_init__(self):
         num_candidates = check_positive_int(self.num_candidates, "num_candidates", minimum=2)
@@ -255,12 +259,9 @@ class PMMHSettings:
             raise ValueError(f"prior_std must be finite and > 0, got {self.prior_std!r}")
         object.__setattr__(self, "prior_mean", float(self.prior_mean))
         object.__setattr__(self, "prior_std", float(self.prior_std))
-        object.__setattr__(self, "ess_threshold", self.sir.ess_threshold)  # validates it and resample_method
-
-    @property
-    def sir(self) -> SIRSettings:
-        """The settings of every candidate's SIR filter."""
-        return SIRSettings(resample_method=self.resample_method, ess_threshold=self.ess_threshold)
+        sir = SIRSettings(resample_method=self.resample_method, ess_threshold=self.ess_threshold)  # validates them
+        object.__setattr__(self, "sir", sir)
+        object.__setattr__(self, "ess_threshold", sir.ess_threshold)
 
 
 def _first_extras(state: ParticleState, settings: PMMHSettings, generator: torch.Generator) -> dict:
@@ -285,6 +286,24 @@ def _check_extras(extras: dict, b: int, n: int, lc: int) -> None:
         check_shape(extras[key], f"state.extras[{key!r}]", shape)
 
 
+def bind_pmmh(motion: MotionModel, sensor: SensorModel, settings: PMMHSettings | None = None,
+              existence: BirthDeath | None = None, *, num_particles: int | None = None, compile: Compile = None
+              ) -> Bound:
+    """The sequential PMMH filter's :class:`~torchmcmcpf.filters._bound.Bound`: the models,
+    ``settings`` (default :class:`PMMHSettings`; ``num_particles``, when given, a multiple of
+    ``num_candidates``) and the program, the candidates' SIR body
+    (:func:`~torchmcmcpf.filters.sir.sir_program` with ``settings.sir``, compiled with
+    ``compile``).
+    """
+    def check(bound: Bound) -> None:
+        lc = bound.settings.num_candidates
+        if num_particles is not None and num_particles % lc:
+            raise ValueError(f"num_particles must be a multiple of num_candidates = {lc}, got {num_particles}")
+
+    return bind(motion, sensor, PMMHSettings() if settings is None else settings, existence, check=check,
+                program=lambda b, c: sir_program(b.dynamics, b.sensor, b.settings.sir, c), compile=compile)
+
+
 def pmmh_step(
     state: ParticleState,
     z: Measurement,
@@ -294,8 +313,17 @@ def pmmh_step(
     settings: PMMHSettings = PMMHSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    body: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
+    """One step of the sequential PMMH filter: :func:`pmmh_bound_step` after an eager
+    :func:`bind_pmmh` (a filter binds once). Parameters and returns: :func:`pmmh_bound_step`,
+    with the models ``motion``, ``sensor``, ``existence`` and ``settings`` (:class:`PMMHSettings`)
+    in place of ``bound``.
+    """
+    return pmmh_bound_step(state, z, bind_pmmh(motion, sensor, settings, existence), generator=generator)
+
+
+def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, generator: torch.Generator
+                    ) -> tuple[ParticleState, StepInfo]:
     """One step of the sequential PMMH filter (particle independent MH with theta, module
     docstring): advance the L candidates' SIR filters, then run the MH chain over them.
 
@@ -309,13 +337,13 @@ def pmmh_step(
         the first step: ``theta`` is then drawn from the prior and ``log_w`` split into the
         L blocks of ``N / L`` particles, each renormalised).
     z : one measurement per run ``(B, *G)`` (every candidate reads it).
-    motion, sensor : the models (``theta = 0`` is the motion as given).
-    settings : :class:`PMMHSettings`.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_pmmh`: the models
+        (``theta = 0`` is the motion as given; the existence model, optional, is every
+        candidate's), :class:`PMMHSettings` and the program, the candidates' SIR body
+        (:func:`~torchmcmcpf.filters.sir.sir_body` with the models bound, compiled by
+        ``PMMHFilter(compile_step=True)``).
     generator : the only source of randomness (theta at the first step, the SIR draws, the
         L MH uniforms).
-    existence : BirthDeath, optional: passed to every candidate's SIR step.
-    body : :func:`~torchmcmcpf.filters.sir.sir_body` with the models bound (compiled by
-        ``PMMHFilter(compile_step=True)``); default eager.
 
     Returns
     -------
@@ -329,6 +357,7 @@ def pmmh_step(
         chain's posterior mean of theta and ``candidate_ess`` (B,) the ESS of the
         candidates' evidences (how many candidates the data leave alive).
     """
+    settings = bound.settings
     x, exists = state.x, state.exists
     b, n, k, d = x.shape
     lc, burn = settings.num_candidates, settings.burn_in
@@ -343,14 +372,15 @@ def pmmh_step(
     sub = ParticleState(x.reshape(b * lc, m, k, d), extras["log_w_candidate"].reshape(b * lc, m),
                         None if exists is None else exists.reshape(b * lc, m, k))
     zc = tree_map(lambda a: a.repeat_interleave(lc, dim=0), z)
-    base = body if body is not None else bind_body(TargetDynamics(motion, existence), sensor, settings.sir)
+    base = bound.program
     scale = (0.5 * theta).exp().reshape(b * lc, 1, 1, 1)
 
     def scaled(x_, log_w_, exists_, z_, need, u, eps, birth):
         return base(x_, log_w_, exists_, z_, need, u, eps * scale.to(eps.dtype), birth)
 
-    sub, sub_info = sir_step(sub, zc, motion=motion, sensor=sensor, settings=settings.sir, generator=generator,
-                             existence=existence, body=scaled)
+    # each candidate's SIR step: the same bound models, the noise scaled by its theta
+    candidates = dataclasses.replace(bound, settings=settings.sir, program=scaled)
+    sub, sub_info = sir_bound_step(sub, zc, candidates, generator=generator)
     log_ev_new = log_ev + sub_info.log_evidence.reshape(b, lc)  # (B, L)
 
     # the PIMH chain over the candidates, in order (MCMC iterations: a loop over L)
@@ -420,16 +450,5 @@ class PMMHFilter(Filter):
     #: the candidates carried between steps (:func:`pmmh_step`): a resumed state must hold them
     state_extras = frozenset({"theta", "log_evidence", "log_w_candidate"})
     settings_class = PMMHSettings
-    settings: PMMHSettings
-
-    def _check_problem(self) -> None:
-        if self.num_particles % self.settings.num_candidates:
-            raise ValueError(f"num_particles must be a multiple of num_candidates = {self.settings.num_candidates}, "
-                             f"got {self.num_particles}")
-
-    def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(bind_body(self.dynamics, self.sensor, self.settings.sir))
-
-    def _step(self, state, z, generator):
-        return pmmh_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                         generator=generator, existence=self.existence, body=self.compiled())
+    bind = staticmethod(bind_pmmh)
+    bound_step = staticmethod(pmmh_bound_step)

@@ -69,9 +69,11 @@ from ..models.sensors.association import (
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize, resample
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor, split_points
-from .base import Filter, active_prior
+from ._bound import Bound, Compile, bind
+from .base import Filter
 
-__all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "bind_move", "ASSOCIATIONS"]
+__all__ = ["ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "bind_resample_move",
+           "resample_move_bound_step", "resample_move_program", "ASSOCIATIONS"]
 
 ASSOCIATIONS = ("exact", "metropolis")
 
@@ -135,6 +137,23 @@ def _predict(x_prev: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoi
     return x, e, log_ratio.sum(-1)
 
 
+def bind_resample_move(motion: MotionModel, sensor: SensorModel, settings: ResampleMoveSettings | None = None,
+                       existence: BirthDeath | None = None, *, num_particles: int | None = None,
+                       compile: Compile = None) -> Bound:
+    """The resample-move filter's :class:`~torchmcmcpf.filters._bound.Bound`: the models,
+    ``settings`` (default :class:`ResampleMoveSettings`; ``association="metropolis"`` needs an
+    :class:`~torchmcmcpf.models.sensors.association.AssociationSensor`) and the program, one
+    HMC transition (:func:`resample_move_program`, compiled with ``compile``).
+    ``num_particles`` is accepted for the common bind signature (no setting depends on it).
+    """
+    def check(bound: Bound) -> None:
+        if bound.settings.association == "metropolis" and not isinstance(sensor, AssociationSensor):
+            raise ValueError(f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}")
+
+    return bind(motion, sensor, ResampleMoveSettings() if settings is None else settings, existence, check=check,
+                program=lambda b, c: resample_move_program(b.dynamics, b.sensor, b.settings, c), compile=compile)
+
+
 def resample_move_step(
     state: ParticleState,
     z: Measurement,
@@ -144,8 +163,18 @@ def resample_move_step(
     settings: ResampleMoveSettings = ResampleMoveSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    move: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
+    """One step of the particle filter with an HMC move: :func:`resample_move_bound_step`
+    after an eager :func:`bind_resample_move` (a filter binds once). Parameters and returns:
+    :func:`resample_move_bound_step`, with the models ``motion``, ``sensor``, ``existence``
+    and ``settings`` (:class:`ResampleMoveSettings`) in place of ``bound``.
+    """
+    bound = bind_resample_move(motion, sensor, settings, existence)
+    return resample_move_bound_step(state, z, bound, generator=generator)
+
+
+def resample_move_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, generator: torch.Generator
+                             ) -> tuple[ParticleState, StepInfo]:
     """One step of the particle filter with an HMC move (module docstring, paper 003).
 
     Parameters
@@ -153,18 +182,16 @@ def resample_move_step(
     state : ParticleState, ``x (B, N, K, D)``, normalised ``log_w (B, N)``, optional
         ``exists (B, N, K)``.
     z : one measurement per run (e.g. ``PointFrame(z (B, M, d), mask (B, M))``).
-    motion : any MotionModel (the move acts on its ``propagate`` noise).
-    sensor : any SensorModel differentiable in ``x``.
-    settings : :class:`ResampleMoveSettings`.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_resample_move`: any
+        MotionModel (the move acts on its ``propagate`` noise), any SensorModel
+        differentiable in ``x``, :class:`ResampleMoveSettings`, the existence model (births
+        and deaths, propagated with the same law as every other filter,
+        :meth:`BirthDeath.propagate`; the HMC move acts on the motion noise with the
+        existence draws of the resampled pair fixed; ``state.exists`` None: every slot starts
+        inactive) and the program, the HMC move, one transition
+        (:func:`resample_move_program`, ``program(eps, value, grad, p, u, x_prev, exists,
+        birth, z, assignment)``, compiled by ``ResampleMoveFilter(compile_step=True)``).
     generator : the only source of randomness.
-    existence : BirthDeath, optional: births and deaths, propagated with the same law as
-        every other filter (:meth:`BirthDeath.propagate`); the HMC move acts on the motion
-        noise with the existence draws of the resampled pair fixed (``state.exists`` None:
-        every slot starts inactive).
-    move : the HMC move, one transition (:func:`~torchmcmcpf.kernels.hmc.hmc_transition` with
-        the target bound, :func:`bind_move`), called as ``move(eps, value, grad, p, u, x_prev,
-        exists, birth, z, assignment)``; ``ResampleMoveFilter(compile_step=True)`` passes a
-        compiled one.
 
     Returns
     -------
@@ -180,21 +207,19 @@ def resample_move_step(
         ``w_{k-1} g_lambda`` of the predicted particles; after: ``g_lambda`` of the returned
         ones) averaged over the existing targets.
     """
+    sensor, settings, existence = bound.sensor, bound.settings, bound.existence
+    dynamics = bound.dynamics  # (x, exists) jointly, with or without births and deaths
     x_prev, log_w_prev, exists = state.x, state.log_w, state.exists
     b, n, k, _ = x_prev.shape
     if existence is not None and exists is None:
         exists = torch.zeros((b, n, k), dtype=torch.bool, device=x_prev.device)
-    settings = active_prior(settings, sensor)
-    dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly, with or without births and deaths
     eps, birth, _ = dynamics.draw_noise(x_prev, z, generator=generator)
     x, exists_new, log_birth = _predict(x_prev, exists, eps, birth, dynamics)
 
     assignment = None
     extras = {}
     assoc: AssociationSensor | None = None
-    if settings.association == "metropolis":
-        if not isinstance(sensor, AssociationSensor):
-            raise ValueError(f"association='metropolis' needs an AssociationSensor, got {type(sensor).__name__}")
+    if settings.association == "metropolis" and isinstance(sensor, AssociationSensor):  # bind_resample_move checks
         assoc = sensor
         zz, mask = split_points(z)
         square, _ = padded_pair_log_likelihood(sensor.pair_log_likelihood(x, zz), exists_new, mask)
@@ -232,8 +257,7 @@ def resample_move_step(
 
     if assignment is not None:
         assignment = gather_particles(assignment, idx)
-    if move is None:
-        move = bind_move(dynamics, sensor, settings)
+    move = bound.program
     target = _target(dynamics, sensor, settings.exclusion)
     value, grad = value_and_grad(lambda u: target(u, x_prev, exists, birth, z, assignment), eps)
     accepted = torch.zeros_like(value)
@@ -285,11 +309,15 @@ def _target(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion 
     return log_target
 
 
-def bind_move(dynamics: TargetDynamics, sensor: SensorModel, settings: ResampleMoveSettings) -> Callable:
-    """The HMC move, one transition with the models bound; gradients by ``torch.func.grad``
-    (which traces under ``torch.compile(fullgraph=True)``, unlike ``torch.autograd.grad``).
+def resample_move_program(dynamics: TargetDynamics, sensor: SensorModel, settings: ResampleMoveSettings,
+                          compile: Compile = None) -> Callable:
+    """The resample-move filter's program: the HMC move, one transition with the models and
+    the settings (as the filter runs them, :func:`bind_resample_move`) bound,
+    ``program(eps, value, grad, p, u, x_prev, exists, birth, z, assignment)``; gradients by
+    ``torch.func.grad`` (which traces under ``torch.compile(fullgraph=True)``, unlike
+    ``torch.autograd.grad``). Compiled with ``compile``, else eager.
     """
-    target = _target(dynamics, sensor, active_prior(settings, sensor).exclusion)
+    target = _target(dynamics, sensor, settings.exclusion)
 
     def move(eps, value, grad, p, u, x_prev, exists, birth, z, assignment):
         def log_target(q):
@@ -300,7 +328,7 @@ def bind_move(dynamics: TargetDynamics, sensor: SensorModel, settings: ResampleM
 
         return hmc_transition(eps, value, grad, p, u, log_target=log_target, step_size=settings.step_size,
                               num_leapfrog=settings.num_leapfrog, grad_fn=grad_fn)
-    return move
+    return move if compile is None else compile(move)
 
 
 class ResampleMoveFilter(Filter):
@@ -343,17 +371,5 @@ class ResampleMoveFilter(Filter):
 
     compile_seconds = 29.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     settings_class = ResampleMoveSettings
-    settings: ResampleMoveSettings
-
-    def _check_problem(self) -> None:
-        if self.settings.association == "metropolis" and not isinstance(self.sensor, AssociationSensor):
-            raise ValueError(
-                f"association='metropolis' needs an AssociationSensor, got {type(self.sensor).__name__}"
-            )
-
-    def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(bind_move(self.dynamics, self.sensor, self.settings))
-
-    def _step(self, state, z, generator):
-        return resample_move_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                                  generator=generator, existence=self.existence, move=self.compiled())
+    bind = staticmethod(bind_resample_move)
+    bound_step = staticmethod(resample_move_bound_step)

@@ -21,9 +21,10 @@ from ..models.multitarget import Exclusion, exclusion_on, log_exclusion
 from ..resampling import RESAMPLERS, ess, gather_particles, normalize_ess
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
+from ._bound import Bound, Compile, bind
 from .base import Filter
 
-__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_body", "bind_body"]
+__all__ = ["SIRFilter", "SIRSettings", "sir_step", "sir_body", "sir_program", "bind_sir", "sir_bound_step"]
 
 
 @dataclass(frozen=True)
@@ -68,8 +69,8 @@ class SIRSettings:
 def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, need: Tensor, u: Tensor,
              eps: Tensor, birth: BirthNoise | None, *, dynamics: TargetDynamics, sensor: SensorModel,
              settings: SIRSettings) -> tuple[Tensor, Tensor | None, Tensor]:
-    """The body of one SIR step: all of it but its random draws (pure; the program
-    ``compile_step=True`` compiles).
+    """The body of one SIR step: all of it but its random draws (pure; the filter's program,
+    :func:`sir_program`, which ``compile_step=True`` compiles).
 
     Parameters
     ----------
@@ -111,13 +112,63 @@ def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, ne
     return x, exists, (log_lik - math.log(n)) if every_step else log_w + log_lik
 
 
-def bind_body(dynamics: TargetDynamics, sensor: SensorModel, settings: SIRSettings) -> Callable:
-    """:func:`sir_body` with the models bound: ``body(x, log_w, exists, z, need, u, eps,
-    birth)``, the program ``compile_step=True`` compiles.
+def sir_program(dynamics: TargetDynamics, sensor: SensorModel, settings: SIRSettings, compile: Compile = None
+                ) -> Callable:
+    """:func:`sir_body` with the models bound, ``program(x, log_w, exists, z, need, u, eps,
+    birth)``: compiled with ``compile`` (``compile_step=True``), else eager.
     """
     def body(*args: Any) -> tuple[Tensor, Tensor | None, Tensor]:
         return sir_body(*args, dynamics=dynamics, sensor=sensor, settings=settings)
-    return body
+    return body if compile is None else compile(body)
+
+
+def bind_sir(motion: MotionModel, sensor: SensorModel, settings: SIRSettings | None = None,
+             existence: BirthDeath | None = None, *, num_particles: int | None = None, compile: Compile = None
+             ) -> Bound:
+    """The SIR filter's :class:`~torchmcmcpf.filters._bound.Bound`: the models, ``settings``
+    (default :class:`SIRSettings`) as the filter runs them, and the program :func:`sir_program`
+    (compiled with ``compile``). ``num_particles`` is accepted for the common bind signature
+    (no setting depends on it).
+    """
+    return bind(motion, sensor, SIRSettings() if settings is None else settings, existence,
+                program=lambda b, c: sir_program(b.dynamics, b.sensor, b.settings, c), compile=compile)
+
+
+def sir_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, generator: torch.Generator
+                   ) -> tuple[ParticleState, StepInfo]:
+    """One SIR step (:func:`sir_step`) with everything but the state, the frame and the
+    generator resolved beforehand in ``bound`` (:func:`bind_sir`): resample (when ESS <
+    ``ess_threshold * N``), propagate, weight.
+
+    Parameters
+    ----------
+    state : ParticleState with ``x (B, N, K, D)``, normalised ``log_w (B, N)`` and, with an
+        existence model, ``exists (B, N, K)`` (None: every slot starts inactive).
+    z : one measurement per run, ``(B, *G)``.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_sir` (its ``program``
+        is :func:`sir_body` with the models bound, compiled or eager).
+    generator : source of randomness (every draw is made here, in eager code).
+
+    Returns
+    -------
+    ``(state, info)`` as :func:`sir_step`.
+    """
+    settings, dynamics = bound.settings, bound.dynamics
+    x, log_w, exists = state.x, state.log_w, state.exists
+    b, n, k, _ = x.shape
+    draw, _ = RESAMPLERS[settings.resample_method]
+    u = draw(b, n, generator=generator, device=x.device)
+    eps, birth, _ = dynamics.draw_noise(x, z, generator=generator)
+    # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
+    if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
+        need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)
+    else:
+        need = ess(log_w) < settings.ess_threshold * n  # (B,)
+    x, exists, log_w = bound.program(x, log_w, exists, z, need, u, eps, birth)
+    log_w_new, log_mean, ess_new = normalize_ess(log_w)
+    # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
+    log_evidence = log_mean + math.log(n)
+    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess_new, log_evidence=log_evidence)
 
 
 def sir_step(
@@ -129,9 +180,9 @@ def sir_step(
     settings: SIRSettings = SIRSettings(),
     generator: torch.Generator,
     existence: BirthDeath | None = None,
-    body: Callable | None = None,
 ) -> tuple[ParticleState, StepInfo]:
-    """One SIR step: resample (when ESS < ``ess_threshold * N``), propagate, weight.
+    """One SIR step: resample (when ESS < ``ess_threshold * N``), propagate, weight
+    (:func:`sir_bound_step` after an eager :func:`bind_sir`; a filter binds once).
 
     Parameters
     ----------
@@ -143,8 +194,6 @@ def sir_step(
         propagated jointly (:class:`~torchmcmcpf.models.existence.TargetDynamics`, births near
         the points of ``z`` when it draws them so, with the weight correction ``p_0 / q_0``);
         ``state.exists`` None means every slot starts inactive (paper 004 sec. 5).
-    body : :func:`sir_body` with the models bound (compiled by ``SIRFilter(compile_step=True)``);
-        default eager.
 
     Returns
     -------
@@ -158,24 +207,7 @@ def sir_step(
     An all-underflowing set of weights does not produce NaN: weights stay in log space and
     a run whose likelihoods are all ``-inf`` keeps uniform weights (``log_evidence = -inf``).
     """
-    x, log_w, exists = state.x, state.log_w, state.exists
-    b, n, k, _ = x.shape
-    draw, _ = RESAMPLERS[settings.resample_method]
-    u = draw(b, n, generator=generator, device=x.device)
-    dynamics = TargetDynamics(motion, existence)  # (x, exists) jointly: one path whatever the number of targets
-    eps, birth, _ = dynamics.draw_noise(x, z, generator=generator)
-    # ESS in eager code (1.0 and 0.0 decided statically, never by round-off at ESS = N)
-    if settings.ess_threshold >= 1.0 or settings.ess_threshold <= 0.0:
-        need = torch.full((b,), settings.ess_threshold >= 1.0, device=x.device)
-    else:
-        need = ess(log_w) < settings.ess_threshold * n  # (B,)
-    if body is None:
-        body = bind_body(dynamics, sensor, settings)
-    x, exists, log_w = body(x, log_w, exists, z, need, u, eps, birth)
-    log_w_new, log_mean, ess_new = normalize_ess(log_w)
-    # log p(z_k | z_1:k-1) ~= log sum_i w_{k-1}^i p(z_k | x_k^i), w_{k-1} normalised
-    log_evidence = log_mean + math.log(n)
-    return ParticleState(x, log_w_new, exists), StepInfo.make(log_evidence, ess=ess_new, log_evidence=log_evidence)
+    return sir_bound_step(state, z, bind_sir(motion, sensor, settings, existence), generator=generator)
 
 
 class SIRFilter(Filter):
@@ -191,7 +223,8 @@ class SIRFilter(Filter):
         ``ess_threshold``, ``exclusion`` are also keywords of the constructor.
     existence : BirthDeath, optional: births and deaths (see :func:`sir_step`); the
         estimate of a slot is then its mean given existence.
-    compile_step : compile :func:`sir_body` (the whole step but its random draws).
+    compile_step : compile :func:`sir_body` (the whole step but its random draws;
+        :func:`sir_program`).
 
     Notes
     -----
@@ -217,11 +250,5 @@ class SIRFilter(Filter):
 
     compile_seconds = 20.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     settings_class = SIRSettings
-    settings: SIRSettings
-
-    def _build_compiled(self, compile: Callable) -> Callable:
-        return compile(bind_body(self.dynamics, self.sensor, self.settings))
-
-    def _step(self, state, z, generator):
-        return sir_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                        generator=generator, existence=self.existence, body=self.compiled())
+    bind = staticmethod(bind_sir)
+    bound_step = staticmethod(sir_bound_step)

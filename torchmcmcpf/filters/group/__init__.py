@@ -139,9 +139,10 @@ per-target refinement loops over the ``K`` slots (a Gibbs sweep is sequential by
 from .filter import GroupMCMCFilter
 from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
-from .step import group_mcmc_step
+from .step import bind_group, group_mcmc_bound_step, group_mcmc_step
 
-__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "GroupJointNoise", "GroupRefineNoise",
+__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "bind_group", "group_mcmc_bound_step",
+           "GroupJointNoise", "GroupRefineNoise",
            "GroupPastNoise", "GroupWindowBirthNoise", "default_chains", "estimate_step_bytes"]
 
 # The moves, their containers and the step's pieces stay importable from here (as before the

@@ -1,5 +1,6 @@
 """The group filter's driver: :class:`GroupMCMCFilter`, a :class:`~torchmcmcpf.filters.base.Filter`
-whose step is :func:`~torchmcmcpf.filters.group.step.group_mcmc_step` with the models bound.
+whose step is :func:`~torchmcmcpf.filters.group.step.group_mcmc_bound_step` on the object
+:func:`~torchmcmcpf.filters.group.step.bind_group` binds once, at construction.
 
 The maths, the moves' targets and acceptance ratios: the docstring of :mod:`torchmcmcpf.filters.group`.
 """
@@ -8,7 +9,6 @@ from __future__ import annotations
 
 import inspect
 import math
-from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -22,18 +22,20 @@ from ...models.group import (
     pairwise_kalman_init,
 )
 from ...models.sensors.pixels import ThresholdedPixels
-from ...state import ParticleState, StepInfo
+from ...state import ParticleState
 from ...typing import Tensor
 from ..base import Filter
 from .moves import Models
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
-from .step import PATH_KEYS, _bind, group_mcmc_step
+from .step import PATH_KEYS, bind_group, group_mcmc_bound_step
 
 __all__ = ["GroupMCMCFilter"]
 
 
 class GroupMCMCFilter(Filter):
-    """Marginalised MCMC-based particle filter for coordinated groups (paper 004, sec. 4).
+    """Marginalised MCMC-based particle filter for coordinated groups (paper 004, sec. 4):
+    :func:`~torchmcmcpf.filters.group.step.group_mcmc_bound_step` on the filter's
+    :func:`~torchmcmcpf.filters.group.step.bind_group` (bound once, at construction).
 
     Parameters
     ----------
@@ -69,12 +71,14 @@ class GroupMCMCFilter(Filter):
     motion: VirtualLeaderMotion  # type: ignore[assignment]  # a whole-configuration motion (motion_type)
     sensor: ThresholdedPixels
     existence: GroupExistence
-    settings: GroupMCMCSettings
     #: the group fields of the state (package docstring, "State and outputs"); the fixed-lag
     #: path's fields only with ``lag > 0``
     state_extras = frozenset({"labels", "w_mean", "w_cov", "frames"})
     optional_state_extras = frozenset(PATH_KEYS)
     settings_class = GroupMCMCSettings
+    bind = staticmethod(bind_group)
+    bound_step = staticmethod(group_mcmc_bound_step)
+    extra_models = ("structure_prior",)
     motion_type = VirtualLeaderMotion
     relabels = False  # a slot's label is its place in the group structure
 
@@ -95,18 +99,11 @@ class GroupMCMCFilter(Filter):
         if "past_step" in shortcuts:
             shortcuts["past_step"] = tuple(shortcuts["past_step"])
         super().__init__(motion, sensor, n, settings, existence=existence,  # type: ignore[arg-type]
-                         compile_step=compile_step, **shortcuts)
-        self.settings.check(n)
-        self.structure_prior = structure_prior
+                         compile_step=compile_step, structure_prior=structure_prior, **shortcuts)
 
     def models(self) -> Models:
-        """The models and proposal constants the moves are bound to."""
-        s = self.settings
-        return Models(self.motion, self.sensor, self.existence, self.structure_prior, float(s.p_i), float(s.p_a),
-                      s.past_step)
-
-    def _build_compiled(self, compile: Callable[[Callable], Callable]) -> Callable:
-        return _bind(self.models(), compile)
+        """The models and proposal constants the moves are bound to (``filt.bound.dynamics``)."""
+        return self.bound.dynamics
 
     # -- state ---------------------------------------------------------------------------
     def check_memory(self, batch_size: int, num_slots: int) -> None:
@@ -214,12 +211,6 @@ class GroupMCMCFilter(Filter):
         super().validate(state, measurements, sequence=sequence, name=name)
         self.check_extras(state)
         self.check_memory(state.batch_size, state.num_targets)
-
-    def _step(self, state: ParticleState, z: Any, generator: torch.Generator) -> tuple[ParticleState, StepInfo]:
-        """One call of :func:`group_mcmc_step` with this filter's models and settings."""
-        return group_mcmc_step(state, z, motion=self.motion, sensor=self.sensor, settings=self.settings,
-                               generator=generator, existence=self.existence, structure_prior=self.structure_prior,
-                               moves=self.compiled())
 
 
 def _group_signature() -> inspect.Signature:

@@ -30,6 +30,7 @@ from ...resampling import cdf
 from ...runtime import repeating
 from ...state import ParticleState, StepInfo
 from ...typing import Tensor
+from .._bound import Bound, Compile
 from ..mcmc import pick_moves
 from .moves import (
     Chain,
@@ -50,7 +51,8 @@ from .moves import (
 from .noise import NOISES, GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise, _draw_fields
 from .settings import GroupMCMCSettings
 
-__all__ = ["group_mcmc_step", "make_cloud", "unpack", "PATH_KEYS"]
+__all__ = ["group_mcmc_step", "bind_group", "group_mcmc_bound_step", "group_program", "make_cloud", "unpack",
+           "PATH_KEYS"]
 
 # ----------------------------------------------------------------------------------------
 # the state: a ParticleState whose extras hold the group fields
@@ -242,10 +244,41 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
     return extras
 
 
+def bind_group(motion: VirtualLeaderMotion, sensor: ThresholdedPixels, settings: GroupMCMCSettings | None = None,
+               existence: GroupExistence | None = None, *, structure_prior: GroupStructurePrior,
+               num_particles: int | None = None, compile: Compile = None) -> Bound:
+    """The group filter's :class:`~torchmcmcpf.filters._bound.Bound`: the models, ``settings``
+    (default :class:`GroupMCMCSettings`; ``num_particles``, when given, a multiple of
+    ``num_chains``), as ``dynamics`` the :class:`~torchmcmcpf.filters.group.moves.Models`
+    the moves read (the models, the structure prior of eq. 19 and the proposal constants),
+    and the program, the move runner ``program(move, chain, noise, cloud, z)``
+    (:func:`group_program`, each move compiled with ``compile``).
+    """
+    settings = GroupMCMCSettings() if settings is None else settings
+    if num_particles is not None:
+        settings.check(num_particles)
+    if not isinstance(existence, GroupExistence):
+        raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
+    models = Models(motion, sensor, existence, structure_prior, float(settings.p_i), float(settings.p_a),
+                    settings.past_step)
+    return Bound(motion, sensor, settings, existence, models, group_program(models, compile))
+
+
 def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMotion, sensor: ThresholdedPixels,
                     settings: GroupMCMCSettings = GroupMCMCSettings(), generator: torch.Generator,
-                    existence: GroupExistence, structure_prior: GroupStructurePrior,
-                    moves: Callable[..., Any] | None = None) -> tuple[ParticleState, StepInfo]:
+                    existence: GroupExistence, structure_prior: GroupStructurePrior) -> tuple[ParticleState, StepInfo]:
+    """One time step of the group filter: :func:`group_mcmc_bound_step` after an eager
+    :func:`bind_group` (a filter binds once). Parameters and returns:
+    :func:`group_mcmc_bound_step`, with the models ``motion``, ``sensor``, ``existence``,
+    ``structure_prior`` and ``settings`` (:class:`GroupMCMCSettings`) in place of ``bound``.
+    """
+    bound = bind_group(motion, sensor, settings, existence, structure_prior=structure_prior,
+                       num_particles=state.x.shape[1])
+    return group_mcmc_bound_step(state, z, bound, generator=generator)
+
+
+def group_mcmc_bound_step(state: ParticleState, z: Tensor, bound: Bound, *, generator: torch.Generator
+                          ) -> tuple[ParticleState, StepInfo]:
     """One time step of the marginalised MCMC-based particle filter (package docstring).
 
     Parameters
@@ -253,11 +286,12 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     state : ParticleState at ``t - 1`` with the group extras (``x (B, N, K, 4)``;
         :meth:`GroupMCMCFilter.init`).
     z : (B, H, W) binary frame at ``t``.
-    motion, sensor, existence, structure_prior : the models (eqs. 13, 41, 25/33, 19).
-    settings : GroupMCMCSettings; generator : the only source of randomness (eager draws).
-    moves : ``moves(move, chain, noise, cloud, z)`` running the move ``"joint"``,
-        ``"refine"``, ``"past"`` or ``"birth"`` (compiled ones, ``GroupMCMCFilter(compile_step=True)``);
-        default eager.
+    bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_group`: the models
+        (eqs. 13, 41, 25/33, 19; ``bound.dynamics`` the :class:`Models` the moves read),
+        :class:`GroupMCMCSettings` and the program ``program(move, chain, noise, cloud, z)``
+        running the move ``"joint"``, ``"refine"``, ``"past"`` or ``"birth"`` (compiled ones
+        with ``GroupMCMCFilter(compile_step=True)``).
+    generator : the only source of randomness (eager draws).
 
     Returns
     -------
@@ -270,12 +304,9 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
         alive) and ``structure_prob_all_exist (B, Bell(K))``, the structure given that every
         slot is alive (NaN where no particle has them all).
     """
+    settings, models, moves = bound.settings, bound.dynamics, bound.program
     b, n, k, _ = state.x.shape
-    settings.check(n)
     c = settings.num_chains
-    models = Models(motion, sensor, existence, structure_prior, float(settings.p_i), float(settings.p_a),
-                    settings.past_step)
-    moves = moves or _bind(models)
     dtype, dev = state.x.dtype, state.x.device
     cloud = make_cloud(state, z, models=models, settings=settings)
     first = GroupJointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev)
@@ -318,9 +349,10 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     return new, StepInfo.make(acceptance, acceptance=acceptance, extras=info)
 
 
-def _bind(models: Models, compile: Callable[[Callable], Callable] | None = None) -> Callable[..., Any]:
-    """``moves(move, chain, noise, cloud, z)``: the moves with the models bound (each compiled
-    on its own with ``compile``: three functions, so that each has its own compile cache).
+def group_program(models: Models, compile: Compile = None) -> Callable[..., Any]:
+    """The group filter's program, ``program(move, chain, noise, cloud, z)``: the moves with
+    the models bound (each compiled on its own with ``compile``: one function per move, so
+    that each has its own compile cache), eager without ``compile``.
     """
     def joint(chain: Chain, noise: GroupJointNoise, cloud: Cloud, z: Tensor) -> Any:
         return joint_move(chain, noise, cloud, z, models)
