@@ -314,3 +314,131 @@ def test_births_and_deaths_same_contract(name, tmp_path):
     rest = filt(type(z)(z.z[2:], z.mask[2:]), init=ckpt["state"], generator=g2)
     assert torch.equal(torch.cat([first.exists_prob, rest.exists_prob]), whole.exists_prob)
     assert torch.equal(rest.state.x, whole.state.x) and torch.equal(rest.state.exists, whole.state.exists)
+
+
+# ----------------------------------------------------------------------------- bind once
+def _step_function(name):
+    """The public step function of a filter of :data:`FILTERS` and its keyword models besides
+    ``motion``, ``sensor``, ``settings``, ``existence``."""
+    from torchmcmcpf.filters import (
+        group_mcmc_step,
+        ipmcmc_step,
+        mcmc_step,
+        partitioned_sir_step,
+        pmmh_step,
+        resample_move_step,
+        sir_step,
+    )
+
+    fn = {"sir": sir_step, "mcmc": mcmc_step, "mcmc_hmc": mcmc_step, "ipmcmc": ipmcmc_step,
+          "ipmcmc_hmc": ipmcmc_step, "resample_move": resample_move_step, "pmmh": pmmh_step,
+          "partitioned": partitioned_sir_step, "group": group_mcmc_step}[name]
+    return fn
+
+
+def _first_state(filt, name, init):
+    return filt.init_inactive(B, 4, dtype=DT) if name == "group" else filt.init(init)
+
+
+@pytest.fixture
+def no_setup_in_steps(monkeypatch):
+    """From now on building a TargetDynamics, calling active_prior or applying an existence
+    proposal raises: a step must find all of it in the filter's bound object."""
+    from torchmcmcpf.filters import _bound
+    from torchmcmcpf.models.existence import BirthDeath, TargetDynamics
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("a step re-derived its setup (TargetDynamics, active_prior or with_proposal)")
+
+    def arm():
+        monkeypatch.setattr(TargetDynamics, "__new__", refuse)
+        monkeypatch.setattr(_bound, "active_prior", refuse)
+        monkeypatch.setattr(BirthDeath, "with_proposal", refuse)
+    return arm
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_a_step_re_derives_nothing(name, no_setup_in_steps):
+    """Bind once, step many: after construction a filter's steps build no TargetDynamics, call
+    no active_prior and apply no existence proposal (all of it is in ``filt.bound``)."""
+    filt, zs, init = build(name)
+    state = _first_state(filt, name, init)
+    no_setup_in_steps()
+    state, _ = filt.step(state, zs[0], generator=torch.Generator().manual_seed(0))
+    filt.step(state, zs[1], generator=torch.Generator().manual_seed(1))
+    filt(zs, init=init if name != "group" else state, generator=torch.Generator().manual_seed(2))
+
+
+@pytest.mark.parametrize("name", EXISTENCE_FILTERS)
+def test_a_step_with_births_re_derives_nothing(name, no_setup_in_steps):
+    motion, sensor, existence, z, init = existence_problem()
+    filt = EXISTENCE_FILTERS[name](motion, sensor, existence)
+    no_setup_in_steps()
+    filt(z, init=init, generator=torch.Generator().manual_seed(2))
+
+
+def _assert_same_step(a, b):
+    (sa, ia), (sb, ib) = a, b
+    assert torch.equal(sa.x, sb.x) and torch.equal(sa.log_w, sb.log_w)
+    assert (sa.exists is None) == (sb.exists is None) and (sa.exists is None or torch.equal(sa.exists, sb.exists))
+    assert (sa.extras or {}).keys() == (sb.extras or {}).keys()
+    for k in sa.extras or {}:
+        assert torch.equal(sa.extras[k], sb.extras[k]), k
+    for f in ("ess", "log_evidence", "acceptance"):
+        assert _same_bits(getattr(ia, f), getattr(ib, f)), f
+    assert ia.extras.keys() == ib.extras.keys()
+    for k in ia.extras:
+        assert _same_bits(ia.extras[k], ib.extras[k]), k
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_public_step_function_gives_the_filters_bits(name):
+    """``xxx_step(state, z, *, motion, sensor, settings, generator, existence)`` (the design's
+    signature: an eager bind, then the bound step) gives ``filt.step``'s bits, two steps on."""
+    filt, zs, init = build(name)
+    kwargs = dict(motion=filt.motion, sensor=filt.sensor, settings=filt.settings, existence=filt.existence)
+    if name == "group":
+        kwargs["structure_prior"] = filt.structure_prior
+    fn = _step_function(name)
+    ours = theirs = (_first_state(filt, name, init), None)
+    for t in range(2):
+        ours = filt.step(ours[0], zs[t], generator=torch.Generator().manual_seed(t))
+        theirs = fn(theirs[0], zs[t], generator=torch.Generator().manual_seed(t), **kwargs)
+        _assert_same_step(ours, theirs)
+
+
+def test_births_public_step_function_gives_the_filters_bits():
+    from torchmcmcpf.filters import mcmc_step
+
+    motion, sensor, existence, z, init = existence_problem()
+    filt = EXISTENCE_FILTERS["mcmc"](motion, sensor, existence)  # its existence proposal applied once
+    frame = type(z)(z.z[0], z.mask[0])
+    _assert_same_step(filt.step(filt.init(init), frame, generator=torch.Generator().manual_seed(0)),
+                      mcmc_step(filt.init(init), frame, motion=motion, sensor=sensor, settings=filt.settings,
+                                existence=existence, generator=torch.Generator().manual_seed(0)))
+
+
+def test_the_bound_object_travels_with_the_filter():
+    """``filt.bound`` holds the filter's own models (``.to`` moves them in place), a pickled
+    copy binds its program again (a compiled one does not pickle), and setting
+    ``compile_step`` binds the program again."""
+    import copy
+    import pickle
+
+    from torchmcmcpf.runtime import Program
+
+    filt, zs, init = build("mcmc", compile_step=True)
+    bound = filt.bound
+    assert bound.motion is filt.motion and bound.sensor is filt.sensor and filt.settings is bound.settings
+    assert filt.dynamics is bound.dynamics and bound.dynamics.motion is filt.motion
+    filt.to(torch.float32).to(DT)
+    assert filt.bound is bound and bound.motion is filt.motion
+    for clone in (pickle.loads(pickle.dumps(filt)), copy.deepcopy(filt)):
+        assert clone.compile_step and clone.settings == filt.settings
+        assert clone.bound.motion is clone.motion and clone.bound.program is not None
+    ipmcmc = build("ipmcmc", compile_step=True)[0]
+    assert isinstance(pickle.loads(pickle.dumps(ipmcmc)).bound.program, Program)
+    ipmcmc.compile_step = False
+    assert not isinstance(ipmcmc.bound.program, Program)
+    eager = build("ipmcmc")[0]
+    assert_same(run(ipmcmc, zs, init, 3), run(eager, zs, init, 3))
