@@ -442,3 +442,15 @@ def test_the_bound_object_travels_with_the_filter():
     assert not isinstance(ipmcmc.bound.program, Program)
     eager = build("ipmcmc")[0]
     assert_same(run(ipmcmc, zs, init, 3), run(eager, zs, init, 3))
+
+
+def test_a_filter_pickled_before_binding_once_loads():
+    """A filter pickled when its settings and compile flag were attributes (no bound object)
+    loads, binds and steps as a new one."""
+    new, zs, init = build("pmmh")
+    d = new.__getstate__()
+    d.update(settings=d.pop("_bound").settings, compile_step=d.pop("_compile_step"), _compiled=None)
+    old = PMMHFilter.__new__(PMMHFilter)
+    old.__setstate__(d)
+    assert old.settings == new.settings and old.bound.motion is old.motion and not old.compile_step
+    assert_same(run(old, zs, init, 2), run(new, zs, init, 2))

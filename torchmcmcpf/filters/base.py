@@ -439,6 +439,11 @@ class Filter(nn.Module):
         super().__setstate__(d)
         self._trusted = deque(maxlen=_TRUSTED_STATES)
         self._devices = None
+        if "_bound" not in d:  # pickled before filters bound once: settings and flag were attributes
+            self._compile_step = self.__dict__.pop("compile_step")
+            self.__dict__.pop("_compiled", None)
+            settings = dataclasses.replace(self.__dict__.pop("settings"))  # its derived fields afresh
+            self._bound = Bound(self.motion, self.sensor, settings, self.existence, None, None)
         self._bind(self._bound.settings, self._bound.existence)
 
     # -- state ---------------------------------------------------------------------------
