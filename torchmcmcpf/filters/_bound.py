@@ -93,7 +93,7 @@ class Bound:
     settings: Any
     existence: BirthDeath | None
     dynamics: Any
-    program: Callable | None
+    program: Callable[..., Any]
 
 
 def bind(motion: MotionModel, sensor: SensorModel, settings: Any, existence: BirthDeath | None, *,
@@ -113,7 +113,7 @@ def bind(motion: MotionModel, sensor: SensorModel, settings: Any, existence: Bir
     if existence is not None and proposal is not None:  # the MCMC filters' birth and death proposals
         existence = existence.with_proposal(proposal)
     dynamics = TargetDynamics(motion, existence, getattr(settings, "recapture", None), sensor)
-    bound = Bound(motion, sensor, settings, existence, dynamics, None)
+    bound = Bound(motion, sensor, settings, existence, dynamics, None)  # type: ignore[arg-type]  # program next
     if check is not None:
         check(bound)
     return dataclasses.replace(bound, program=program(bound, compile))

@@ -432,7 +432,7 @@ class Filter(nn.Module):
         d = super().__getstate__()
         d["_trusted"] = None
         d["_devices"] = None
-        d["_bound"] = dataclasses.replace(self._bound, program=None)
+        d["_bound"] = dataclasses.replace(self._bound, program=None)  # type: ignore[arg-type]
         return d
 
     def __setstate__(self, d: dict) -> None:
@@ -443,7 +443,7 @@ class Filter(nn.Module):
             self._compile_step = self.__dict__.pop("compile_step")
             self.__dict__.pop("_compiled", None)
             settings = dataclasses.replace(self.__dict__.pop("settings"))  # its derived fields afresh
-            self._bound = Bound(self.motion, self.sensor, settings, self.existence, None, None)
+            self._bound = Bound(self.motion, self.sensor, settings, self.existence, None, None)  # type: ignore[arg-type]
         self._bind(self._bound.settings, self._bound.existence)
 
     # -- state ---------------------------------------------------------------------------

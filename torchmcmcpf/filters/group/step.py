@@ -261,7 +261,8 @@ def bind_group(motion: VirtualLeaderMotion, sensor: ThresholdedPixels, settings:
         raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
     models = Models(motion, sensor, existence, structure_prior, float(settings.p_i), float(settings.p_a),
                     settings.past_step)
-    return Bound(motion, sensor, settings, existence, models, group_program(models, compile))
+    # a whole-configuration motion (Filter.motion_type), not a per-slot MotionModel
+    return Bound(motion, sensor, settings, existence, models, group_program(models, compile))  # type: ignore[arg-type]
 
 
 def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMotion, sensor: ThresholdedPixels,
