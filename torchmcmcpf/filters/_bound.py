@@ -12,19 +12,23 @@ SIR step, one MCMC iteration, one HMC move), compiled by
 compile=None) -> Bound`` (built on :func:`bind`) and its ``<algo>_bound_step(state, z, bound,
 *, generator) -> (state, info)``, which re-derives nothing; the eager and the compiled paths
 share the one object, so they cannot drift apart.
+
+The settings' helpers live here too: :func:`settings_from` (a filter's settings from its
+keyword shortcuts), :func:`constructor_signature` and :func:`check_existence_proposal`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+import inspect
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 
-__all__ = ["Bound", "bind", "active_prior", "check_existence"]
+__all__ = ["Bound", "bind", "active_prior", "check_existence", "settings_from", "check_existence_proposal"]
 
 #: ``compile`` of a bind function: a pure function -> its compiled program
 #: (:func:`~torchmcmcpf.runtime.compile_program`), or None for the eager program
@@ -117,3 +121,52 @@ def bind(motion: MotionModel, sensor: SensorModel, settings: Any, existence: Bir
     if check is not None:
         check(bound)
     return dataclasses.replace(bound, program=program(bound, compile))
+
+
+# ----------------------------------------------------------------------------- settings
+def settings_from(settings_class: type, settings: Any, shortcuts: Mapping[str, Any]) -> Any:
+    """A filter's settings: ``settings`` (an instance of ``settings_class``, or ``None`` for
+    its defaults) with the keyword ``shortcuts`` (fields of ``settings_class``) replaced.
+    An unknown keyword is a ``TypeError`` naming it and the fields.
+    """
+    fields = [f.name for f in dataclasses.fields(settings_class) if f.init]
+    unknown = sorted(set(shortcuts) - set(fields))
+    if unknown:
+        raise TypeError(f"unexpected keyword argument(s) {unknown}; the settings of this filter are "
+                        f"{fields} ({settings_class.__name__}), plus settings=, existence=, compile_step=")
+    if settings is None:
+        return settings_class(**shortcuts)
+    if not isinstance(settings, settings_class):
+        raise ValueError(f"settings must be a {settings_class.__name__}, got {type(settings).__name__}")
+    return dataclasses.replace(settings, **shortcuts) if shortcuts else settings  # type: ignore[type-var]
+
+
+def constructor_signature(settings_class: type) -> inspect.Signature:
+    """The constructor signature of a filter whose settings are ``settings_class``: the
+    models, the size, ``settings``, ``existence``, ``compile_step`` and one keyword per field,
+    with the field's default (what ``help()`` and the documentation show).
+    """
+    kw = inspect.Parameter.KEYWORD_ONLY
+    params = [inspect.Parameter("motion", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+              inspect.Parameter("sensor", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+              inspect.Parameter("num_particles", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+              inspect.Parameter("settings", inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None),
+              inspect.Parameter("existence", kw, default=None),
+              inspect.Parameter("compile_step", kw, default=False)]
+    params += [inspect.Parameter(f.name, kw, default=f.default) for f in dataclasses.fields(settings_class) if f.init]
+    return inspect.Signature(params)
+
+
+def check_existence_proposal(value: object) -> tuple[float, float] | None:
+    """``existence_proposal`` of the MCMC filters' settings: ``None`` or ``(q_birth, q_death)``,
+    two probabilities in (0, 1); returns it as a tuple of floats.
+    """
+    if value is None:
+        return None
+    try:
+        q = tuple(float(v) for v in value)  # type: ignore[attr-defined]
+    except (TypeError, ValueError):
+        q = ()
+    if len(q) != 2 or not all(0.0 < v < 1.0 for v in q):
+        raise ValueError(f"existence_proposal must be None or (q_birth, q_death) in (0, 1), got {value!r}")
+    return (q[0], q[1])

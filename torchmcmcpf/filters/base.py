@@ -37,7 +37,6 @@ program out and binds it again when loaded.
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import itertools
 import weakref
 from collections import deque
@@ -64,57 +63,9 @@ from ..state import (
     weighted_cov,
 )
 from ..typing import Measurement, Tensor
-from ._bound import Bound, Compile, active_prior, check_existence
+from ._bound import Bound, Compile, active_prior, check_existence, constructor_signature, settings_from
 
 __all__ = ["Filter", "active_prior", "check_existence", "settings_from", "ESTIMATE", "PRESENT"]
-
-
-def settings_from(settings_class: type, settings: Any, shortcuts: Mapping[str, Any]) -> Any:
-    """A filter's settings: ``settings`` (an instance of ``settings_class``, or ``None`` for
-    its defaults) with the keyword ``shortcuts`` (fields of ``settings_class``) replaced.
-    An unknown keyword is a ``TypeError`` naming it and the fields.
-    """
-    fields = [f.name for f in dataclasses.fields(settings_class) if f.init]
-    unknown = sorted(set(shortcuts) - set(fields))
-    if unknown:
-        raise TypeError(f"unexpected keyword argument(s) {unknown}; the settings of this filter are "
-                        f"{fields} ({settings_class.__name__}), plus settings=, existence=, compile_step=")
-    if settings is None:
-        return settings_class(**shortcuts)
-    if not isinstance(settings, settings_class):
-        raise ValueError(f"settings must be a {settings_class.__name__}, got {type(settings).__name__}")
-    return dataclasses.replace(settings, **shortcuts) if shortcuts else settings  # type: ignore[type-var]
-
-
-def _signature(settings_class: type) -> inspect.Signature:
-    """The constructor signature of a filter whose settings are ``settings_class``: the
-    models, the size, ``settings``, ``existence``, ``compile_step`` and one keyword per field,
-    with the field's default (what ``help()`` and the documentation show).
-    """
-    kw = inspect.Parameter.KEYWORD_ONLY
-    params = [inspect.Parameter("motion", inspect.Parameter.POSITIONAL_OR_KEYWORD),
-              inspect.Parameter("sensor", inspect.Parameter.POSITIONAL_OR_KEYWORD),
-              inspect.Parameter("num_particles", inspect.Parameter.POSITIONAL_OR_KEYWORD),
-              inspect.Parameter("settings", inspect.Parameter.POSITIONAL_OR_KEYWORD, default=None),
-              inspect.Parameter("existence", kw, default=None),
-              inspect.Parameter("compile_step", kw, default=False)]
-    params += [inspect.Parameter(f.name, kw, default=f.default) for f in dataclasses.fields(settings_class) if f.init]
-    return inspect.Signature(params)
-
-
-def check_existence_proposal(value: object) -> tuple[float, float] | None:
-    """``existence_proposal`` of the MCMC filters' settings: ``None`` or ``(q_birth, q_death)``,
-    two probabilities in (0, 1); returns it as a tuple of floats.
-    """
-    if value is None:
-        return None
-    try:
-        q = tuple(float(v) for v in value)  # type: ignore[attr-defined]
-    except (TypeError, ValueError):
-        q = ()
-    if len(q) != 2 or not all(0.0 < v < 1.0 for v in q):
-        raise ValueError(f"existence_proposal must be None or (q_birth, q_death) in (0, 1), got {value!r}")
-    return (q[0], q[1])
 
 
 def _plain(value: Any) -> Any:
@@ -303,7 +254,7 @@ class Filter(nn.Module):
         """
         super().__init_subclass__(**kwargs)
         if cls.__dict__.get("settings_class") is not None:
-            cls.__signature__ = _signature(cls.__dict__["settings_class"])  # type: ignore[attr-defined]
+            cls.__signature__ = constructor_signature(cls.__dict__["settings_class"])  # type: ignore[attr-defined]
 
     def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any = None, *,
                  existence: BirthDeath | None = None, compile_step: bool = False, **shortcuts: Any):

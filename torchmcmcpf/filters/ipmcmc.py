@@ -189,8 +189,8 @@ from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_re
 from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
-from ._bound import Bound, Compile, bind
-from .base import Filter, check_existence_proposal
+from ._bound import Bound, Compile, bind, check_existence_proposal
+from .base import Filter
 
 __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_ipmcmc", "ipmcmc_bound_step", "ipmcmc_program"]
 

@@ -47,8 +47,8 @@ from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_ex
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
-from ._bound import Bound, Compile, bind
-from .base import Filter, check_existence_proposal
+from ._bound import Bound, Compile, bind, check_existence_proposal
+from .base import Filter
 
 __all__ = ["MCMCFilter", "MCMCSettings", "mcmc_step", "bind_mcmc", "mcmc_bound_step", "mcmc_iteration", "mcmc_program",
            "draw_iteration_noise", "pick_moves", "parse_moves", "MOVE_PRESETS"]
