@@ -11,6 +11,7 @@ covered (with its own problem in ``PROBLEMS`` when it needs other models, as the
 pixel frames and virtual-leader motion).
 """
 
+import copy
 import functools
 import math
 
@@ -245,7 +246,7 @@ def test_step_validates_like_forward(name):
 @pytest.mark.parametrize("name", FILTERS)
 def test_models_on_another_device_are_refused(name):
     filt, zs, init = build(name)
-    filt.to("meta")
+    filt = copy.deepcopy(filt).to("meta")  # a copy: the group problem's models are shared (functools.cache)
     with pytest.raises(ValueError, match="the models' parameters are on meta, expected cpu"):
         filt(zs, init=init, generator=torch.Generator().manual_seed(0))
     if torch.cuda.is_available():
@@ -422,7 +423,6 @@ def test_the_bound_object_travels_with_the_filter():
     """``filt.bound`` holds the filter's own models (``.to`` moves them in place), a pickled
     copy binds its program again (a compiled one does not pickle), and setting
     ``compile_step`` binds the program again."""
-    import copy
     import pickle
 
     from torchmcmcpf.runtime import Program
