@@ -473,7 +473,8 @@ def ipmcmc_step(
     """One IP-MCMC-PF step: :func:`ipmcmc_bound_step` after an eager :func:`bind_ipmcmc` (a
     filter binds once). Parameters and returns: :func:`ipmcmc_bound_step`, with the models
     ``motion``, ``sensor``, ``existence`` and ``settings`` (:class:`IPMCMCSettings`) in place
-    of ``bound``.
+    of ``bound``: ``state`` with ``x (B, N, K, D)``, ``log_w (B, N)`` (``exists (B, N, K)`` with
+    births and deaths) and ``z`` one frame per run ``(B, *G)`` give a state of the same shapes.
     """
     bound = bind_ipmcmc(motion, sensor, settings, existence, num_particles=state.x.shape[1])
     return ipmcmc_bound_step(state, z, bound, generator=generator)

@@ -383,7 +383,9 @@ def mcmc_step(
     """One time step of the sequential MCMC particle filter: :func:`mcmc_bound_step` after an
     eager :func:`bind_mcmc` (a filter binds once). Parameters and returns:
     :func:`mcmc_bound_step`, with the models ``motion``, ``sensor``, ``existence`` and
-    ``settings`` (:class:`MCMCSettings`) in place of ``bound``.
+    ``settings`` (:class:`MCMCSettings`) in place of ``bound``: ``state`` with ``x (B, N, K,
+    D)``, ``log_w (B, N)`` (``exists (B, N, K)`` with births and deaths) and ``z`` one frame per
+    run ``(B, *G)`` give a state of the same shapes.
     """
     bound = bind_mcmc(motion, sensor, settings, existence, num_particles=state.x.shape[1])
     return mcmc_bound_step(state, z, bound, generator=generator)

@@ -255,7 +255,8 @@ def partitioned_sir_step(
     :func:`bind_partitioned_sir` (a filter binds once). Parameters and returns:
     :func:`partitioned_sir_bound_step`, with the models ``motion``, ``sensor`` and
     ``settings`` (:class:`PartitionedSIRSettings`) in place of ``bound``; ``existence``
-    must be None (a known number of targets).
+    must be None (a known number of targets): ``state`` with ``x (B, N, K, D)``, ``log_w (B,
+    N)`` and ``z`` one frame per run ``(B, *G)`` give a state of the same shapes.
     """
     bound = bind_partitioned_sir(motion, sensor, settings, existence)
     return partitioned_sir_bound_step(state, z, bound, generator=generator, reference=reference)

@@ -317,7 +317,9 @@ def pmmh_step(
     """One step of the sequential PMMH filter: :func:`pmmh_bound_step` after an eager
     :func:`bind_pmmh` (a filter binds once). Parameters and returns: :func:`pmmh_bound_step`,
     with the models ``motion``, ``sensor``, ``existence`` and ``settings`` (:class:`PMMHSettings`)
-    in place of ``bound``.
+    in place of ``bound``: ``state`` with ``x (B, N, K, D)``, ``log_w (B, N)`` and ``z`` one
+    frame per run ``(B, *G)`` give a state of the same shapes with ``extras`` ``theta (B, L)``,
+    ``log_evidence (B, L)``, ``log_w_candidate (B, N)``.
     """
     return pmmh_bound_step(state, z, bind_pmmh(motion, sensor, settings, existence), generator=generator)
 

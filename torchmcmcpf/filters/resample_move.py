@@ -167,7 +167,9 @@ def resample_move_step(
     """One step of the particle filter with an HMC move: :func:`resample_move_bound_step`
     after an eager :func:`bind_resample_move` (a filter binds once). Parameters and returns:
     :func:`resample_move_bound_step`, with the models ``motion``, ``sensor``, ``existence``
-    and ``settings`` (:class:`ResampleMoveSettings`) in place of ``bound``.
+    and ``settings`` (:class:`ResampleMoveSettings`) in place of ``bound``: ``state`` with
+    ``x (B, N, K, D)``, ``log_w (B, N)`` (``exists (B, N, K)`` with births and deaths) and ``z``
+    one measurement per run give a state of the same shapes.
     """
     bound = bind_resample_move(motion, sensor, settings, existence)
     return resample_move_bound_step(state, z, bound, generator=generator)

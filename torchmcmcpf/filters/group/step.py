@@ -271,7 +271,9 @@ def group_mcmc_step(state: ParticleState, z: Tensor, *, motion: VirtualLeaderMot
     """One time step of the group filter: :func:`group_mcmc_bound_step` after an eager
     :func:`bind_group` (a filter binds once). Parameters and returns:
     :func:`group_mcmc_bound_step`, with the models ``motion``, ``sensor``, ``existence``,
-    ``structure_prior`` and ``settings`` (:class:`GroupMCMCSettings`) in place of ``bound``.
+    ``structure_prior`` and ``settings`` (:class:`GroupMCMCSettings`) in place of ``bound``:
+    ``state`` with ``x (B, N, K, 4)`` and the group extras and ``z`` a binary frame ``(B, H, W)``
+    give a state of the same shapes.
     """
     bound = bind_group(motion, sensor, settings, existence, structure_prior=structure_prior,
                        num_particles=state.x.shape[1])
