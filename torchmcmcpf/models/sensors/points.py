@@ -42,13 +42,46 @@ __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 AreaLike = Tensor | Sequence[Sequence[float]]
 
 
+#: At or below this a float64 (or float32) ``exp`` is exactly 0 (``e^-746 < 2^-1075``, half the
+#: least subnormal). ATen's vectorised ``exp`` is 6x slower on such arguments than on ones in
+#: range and on ``-inf`` only 2x (AMD EPYC, one thread); the far (point, target) pairs of a
+#: frame give them, 40 % of a births/deaths likelihood's terms. :func:`_exp_` sets them to
+#: ``-inf`` first (``torch.threshold``, which keeps NaN): the same values, the same bits.
+UNDERFLOW = -746.0
+
+
+def _exp_(t: Tensor) -> Tensor:
+    """``t.exp_()`` with the arguments at or below :data:`UNDERFLOW` set to ``-inf`` first (in
+    place; the same bits as ``t.exp()``, without ATen's slow path for underflowing arguments).
+    """
+    return torch.threshold_(t, UNDERFLOW, -math.inf).exp_()
+
+
+def _logsumexp_fast(x: Tensor, dim: int) -> Tensor:
+    """``torch.logsumexp(x, dim)`` bit for bit (ATen's steps: the maxima, infinite ones set to
+    0, ``exp`` of the differences summed, ``log``, the maxima added back) with :func:`_exp_`:
+    no autograd (its in-place steps), ``x`` not modified.
+    """
+    maxes = x.amax(dim, keepdim=True)
+    maxes.masked_fill_(maxes.abs() == math.inf, 0)
+    return _exp_(x - maxes).sum(dim).log_().add_(maxes.squeeze(dim))
+
+
+def _plain(x: Tensor) -> bool:
+    """Whether a call on ``x`` may take the in-place paths: no gradient to record, no
+    ``torch.func`` transform, not traced by ``torch.compile``.
+    """
+    return not (x.requires_grad and torch.is_grad_enabled()) and not runtime.in_function_transform() \
+        and not runtime.compiling()
+
+
 @torch.library.custom_op("torchmcmcpf::logsumexp", mutates_args=())
 def _logsumexp(x: Tensor, dim: int) -> Tensor:
     """``torch.logsumexp(x, dim)``, opaque to ``torch.compile``: a compiled kernel calls the
-    same ATen kernel as eager code, so its bits are eager's (Inductor's own ``exp`` differs
+    same ATen kernels as eager code, so its bits are eager's (Inductor's own ``exp`` differs
     from ATen's in the last bit, and a filter's ``compile_step=True`` must equal eager).
     """
-    return torch.logsumexp(x, dim)
+    return _logsumexp_fast(x, dim)
 
 
 @_logsumexp.register_fake
@@ -78,7 +111,8 @@ def _intensity_change_eager(rate_terms: Tensor, sign: Tensor, cache: Tensor, mas
     ``mask (R, M)`` bool -> ``(sum over valid points of log(lambda'_m / lambda_m) (R,),
     change lambda' - lambda (R, M))``, both float64.
     """
-    change = (rate_terms.to(torch.float64).exp() * sign.unsqueeze(-1)).sum(-2)  # (R, M)
+    rate = rate_terms.to(torch.float64)
+    change = (torch.threshold(rate, UNDERFLOW, -math.inf).exp_() * sign.unsqueeze(-1)).sum(-2)  # (R, M), as _exp_
     log_ratio = torch.where(mask, torch.log1p(change / cache), 0.0)
     return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
             ).squeeze(-1), change
@@ -149,7 +183,8 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     mk = mask.reshape(lead[:-1] + (1, m))
     log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
-    log_near = torch.logsumexp(log_g, -1) - torch.log(n_valid.clamp(min=1))
+    lse = _logsumexp_fast if _plain(log_g) else torch.logsumexp  # the same bits
+    log_near = lse(log_g, -1) - torch.log(n_valid.clamp(min=1))
     log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
     log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
     log_q = torch.logaddexp(log_pi + log_u, log_pn + log_near)
@@ -228,9 +263,10 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         self._log_norm = -math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
 
     # -- likelihood ---------------------------------------------------------------------
-    def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
+    def log_intensity_terms(self, x: Tensor, z: Tensor, clutter: float | None = None) -> Tensor:
         """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
-        -> (B, *S, K, M)``.
+        -> (B, *S, K, M)``; with ``clutter`` (no autograd: in place) ``(B, *S, 1 + K, M)``,
+        row 0 that value (``log(L_C / V)``, the clutter term of :meth:`log_likelihood`).
         """
         W = self.W.to(x.dtype)
         pos = torch.stack([x[..., X], x[..., Y]], -1) @ W.mT  # (B, *S, K, 2), whitened
@@ -241,7 +277,15 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         r0 = wz[..., 0].reshape(at) - pos[..., 0:1]
         r1 = wz[..., 1].reshape(at) - pos[..., 1:2]
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        return log_rate + self._log_norm - 0.5 * (r0.square_() + r1.square_())
+        if clutter is None:
+            return log_rate + self._log_norm - 0.5 * (r0.square_() + r1.square_())
+        # c - 0.5 s as -0.5 s + c (the same rounding), written after the clutter row
+        out = r0.new_empty(r0.shape[:-2] + (r0.shape[-2] + 1, r0.shape[-1]))
+        out[..., 0, :] = clutter
+        terms = out[..., 1:, :]
+        torch.mul(r0.square_().add_(r1.square_()), -0.5, out=terms)
+        terms.add_(log_rate + self._log_norm)
+        return out
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
@@ -258,18 +302,26 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         (B, *S). Differentiable in ``x``; a frame with ``M = 0`` gives ``-(L_C + L_x n)``.
         """
         pts, mask = split_points(z)
-        terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
+        log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
         if exists is not None:
-            terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
             n_live = exists.to(x.dtype).sum(-1)
         else:
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
-        log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
-        clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
-        # compiled: through the opaque op, so that a compiled kernel gives eager's bits; eager:
-        # torch.logsumexp itself (the same kernel, and torch.func transforms see through it)
-        lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
-        per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
+        if _plain(x):  # the clutter row and the terms in one buffer, in place: the same bits
+            terms = self.log_intensity_terms(x, pts, clutter=log_clutter)  # (B, *S, 1 + K, M)
+            if exists is not None:  # + 0 or -inf: a term is never -0 or +inf, so the same values as a where
+                off = torch.zeros(exists.shape, dtype=x.dtype, device=x.device).masked_fill_(~exists, -math.inf)
+                terms[..., 1:, :].add_(off.unsqueeze(-1))
+            per_point = _logsumexp_fast(terms, -2)
+        else:
+            terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
+            if exists is not None:
+                terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
+            clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
+            # compiled: through the opaque op, so that a compiled kernel gives eager's bits; with
+            # autograd or a torch.func transform: torch.logsumexp itself (the same values)
+            lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
+            per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
@@ -305,7 +357,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         if self.clutter_rate <= 0:
             return None
         pts, _ = split_points(z)
-        rate = self.log_intensity_terms(x, pts).to(torch.float64).exp()  # (B, *S, K, M)
+        terms = self.log_intensity_terms(x, pts).to(torch.float64)
+        rate = _exp_(terms) if _plain(x) else terms.exp()  # (B, *S, K, M); a fresh tensor, the same bits
         if exists is not None:
             rate = rate * exists.unsqueeze(-1)
         return self.clutter_rate / self.volume + rate.sum(-2)
