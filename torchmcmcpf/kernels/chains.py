@@ -43,6 +43,10 @@ class ChainState(NamedTuple):
         ``x``; the relocation ratios of :mod:`torchmcmcpf.models.multitarget` for a
         surviving slot; 0 for an inactive one); ``None`` without either (module docstring
         of :mod:`torchmcmcpf.kernels.moves`).
+    log_phi : ``(x, exists, log Phi (B, C))``, optional: the exclusion factor of the state,
+        kept by an eager joint draw beside the very tensors ``x`` and ``exists`` it belongs to
+        and read only while the chain holds those (a move that replaces ``x`` leaves it
+        stale and it is recomputed; :func:`~torchmcmcpf.kernels.moves.joint_move`).
 
     Example
     -------
@@ -71,6 +75,7 @@ class ChainState(NamedTuple):
     exists: Tensor | None = None
     exists_prev: Tensor | None = None
     log_ratio: Tensor | None = None
+    log_phi: tuple[Tensor, Tensor | None, Tensor] | None = None
 
 
 class PreviousCloud(NamedTuple):
