@@ -209,3 +209,18 @@ def test_fast_exp_and_logsumexp_keep_the_bits(gen):
         plain = s.log_likelihood(x, z, e)
         tracked = s.log_likelihood(x.clone().requires_grad_(True), z, e).detach()
         assert torch.equal(plain, tracked)
+
+
+def test_diagonal_whitening_equals_the_matrix_product(gen):
+    """With a diagonal ``R`` the whitening, the resolution coordinates and the data draws take a
+    product per axis: the same bits as the matrix products they replace."""
+    from torchmcmcpf.models.sensors.points import _whiten
+
+    s = sensor(noise_std=7.0)
+    assert s.diagonal and not sensor(R=torch.tensor([[9.0, 2.0], [2.0, 4.0]], dtype=torch.float64),
+                                     noise_std=None).diagonal
+    v = torch.randn(5000, 2, generator=gen, dtype=torch.float64) * torch.tensor([1e-3, 1e4], dtype=torch.float64)
+    v[0] = 0.0
+    assert torch.equal(_whiten(v, s.W, True), v @ s.W.mT)
+    L = torch.linalg.cholesky(s.R)
+    assert torch.equal(_whiten(v, L, True), v @ L.mT)

@@ -351,7 +351,7 @@ class BirthDeath(nn.Module):
         ``s`` the birth standard deviation (:func:`~torchmcmcpf.models.sensors.points.log_near_points`).
         """
         W = torch.eye(2, dtype=torch.float64, device=pos.device) / s
-        log_q = log_near_points(pos, pts, mask, W=W, p_uniform=self.p_uniform, area=self.area)
+        log_q = log_near_points(pos, pts, mask, W=W, p_uniform=self.p_uniform, area=self.area, diagonal=True)
         return self._log_uniform(pos) - log_q
 
     # -- the joint transition of (x, e) ---------------------------------------------------

@@ -141,8 +141,18 @@ def as_area(area: AreaLike, name: str = "area") -> Tensor:
     return a
 
 
+def _whiten(v: Tensor, W: Tensor, diagonal: bool) -> Tensor:
+    """``v @ W.mT`` for ``v (..., 2)``; with ``diagonal`` (``W`` diagonal) as one product per axis:
+    each entry of the matrix product is ``v_j W_jj`` plus an exact zero, so the same values for
+    finite ``v`` (no BLAS call on a product of inner size 2, 4x the time on a million rows).
+    """
+    if diagonal:
+        return v * torch.diagonal(W)
+    return v @ W.mT
+
+
 def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor, p_uniform: float,
-                    area: Tensor) -> Tensor:
+                    area: Tensor, diagonal: bool = False) -> Tensor:
     """``log g(pos)`` of the density "near one of the points, or anywhere".
 
         ``g(pos) = p_u U(pos; area) + (1 - p_u) (1 / M) sum_m N(pos; z_m, R)``,  ``R^{-1} = W^T W``
@@ -156,7 +166,8 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     ----------
     pos : (B, *S, 2) positions; pts : (B, M, 2) points; mask : (B, M) bool or None (all valid).
     W : (2, 2) whitening matrix (``I / s`` for an isotropic spread ``s``); p_uniform : ``p_u``;
-    area : (2, 2) ``((x_lo, x_hi), (y_lo, y_hi))``.
+    area : (2, 2) ``((x_lo, x_hi), (y_lo, y_hi))``; diagonal : whether ``W`` is diagonal (the
+    whitening then per axis, the same values).
 
     Returns
     -------
@@ -174,7 +185,7 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     # whitened first (W is linear): the residuals are then differences of two whitened
     # coordinates, one contiguous (B, *S, M) tensor per axis, instead of a (B, *S, M, 2)
     # difference times W (a 2-column product and a reduction over 2: 3x the time)
-    wpos, wpts = pos @ Wt.mT, pts.to(pos.dtype) @ Wt.mT  # (B, *S, 2), (B, M, 2)
+    wpos, wpts = _whiten(pos, Wt, diagonal), _whiten(pts.to(pos.dtype), Wt, diagonal)  # (B, *S, 2), (B, M, 2)
     pts_shape = lead[:-1] + (1, m)
     dx = wpos[..., 0:1] - wpts[..., 0].reshape(pts_shape)  # (B, *S, M)
     dy = wpos[..., 1:2] - wpts[..., 1].reshape(pts_shape)
@@ -256,6 +267,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         # computations follow the dtype of x): points and targets are whitened once per call,
         # not each of the K x M residuals, and no Cholesky per call
         self.register_buffer("W", torch.linalg.inv(L).tril())
+        #: whether ``R`` (so ``W`` and ``L``) is diagonal: whitening and noise then per axis
+        self.diagonal = bool((R == torch.diag(torch.diagonal(R))).all())
         self.volume = float((area_t[:, 1] - area_t[:, 0]).prod())
         self.dim = dim
         self.meas_dim = 2
@@ -269,8 +282,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         row 0 that value (``log(L_C / V)``, the clutter term of :meth:`log_likelihood`).
         """
         W = self.W.to(x.dtype)
-        pos = torch.stack([x[..., X], x[..., Y]], -1) @ W.mT  # (B, *S, K, 2), whitened
-        wz = z.to(x.dtype) @ W.mT
+        pos = _whiten(torch.stack([x[..., X], x[..., Y]], -1), W, self.diagonal)  # (B, *S, K, 2), whitened
+        wz = _whiten(z.to(x.dtype), W, self.diagonal)
         at = (wz.shape[0],) + (1,) * (x.dim() - 2) + wz.shape[1:2]  # (B, 1.., 1, M)
         # L^{-1} (z_m - H x_n) one axis at a time, each a contiguous (B, *S, K, M) tensor (a
         # (B, *S, K, M, 2) residual read with stride 2 cost twice the time; the same values)
@@ -421,7 +434,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         """The whitened position ``L^-1 H x`` (one unit is one noise standard deviation):
         ``(*S, K, D) -> (*S, K, 2)``.
         """
-        return torch.stack([x[..., X], x[..., Y]], -1) @ self.W.to(x.dtype).mT
+        return _whiten(torch.stack([x[..., X], x[..., Y]], -1), self.W.to(x.dtype), self.diagonal)
 
     def place(self, x: Tensor, coords: Tensor) -> Tensor:
         """``x (*S, D)`` with its position set to ``coords (*S, 2)``, the velocity kept."""
@@ -463,20 +476,23 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M)
             idx = inverse_cdf(cdf(log_pick), u_pick[..., 0])  # (B, P)
             centre = torch.take_along_dim(pts.to(dtype), idx.unsqueeze(-1), dim=1)
-            near = centre + eps @ torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype).mT
+            L = torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype)
+            near = centre + _whiten(eps, L, self.diagonal)  # eps @ L^T
             use = (u_pick[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
             pos = torch.where(use.unsqueeze(-1), near, pos)
         a = self.area.to(dtype)
         inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
         if scored is None:
-            log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area)
+            log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area,
+                                    diagonal=self.diagonal)
             log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
         else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
             rows, cols = scored.reshape(b, p).nonzero(as_tuple=True)
             log_ratio = torch.zeros((b, p), dtype=dtype, device=dev)
             if rows.numel():
                 log_q = log_near_points(pos[rows, cols].unsqueeze(1), pts[rows], mask[rows], W=self.W,
-                                        p_uniform=self.uniform_weight, area=self.area).squeeze(1)
+                                        p_uniform=self.uniform_weight, area=self.area,
+                                        diagonal=self.diagonal).squeeze(1)
                 log_ratio.index_put_((rows, cols), torch.where(inside[rows, cols], -math.log(self.volume) - log_q,
                                                                -math.inf))
         return pos.reshape(tuple(shape) + (2,)), log_ratio.reshape(tuple(shape))
