@@ -169,3 +169,20 @@ def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     dist = torch.cdist(got.pos.reshape(b, -1, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
     want = _slot_bits((dist <= 100.0).reshape(b, got.pick.numel(), k, n, k))
     assert torch.equal(got.close, want)
+
+
+def test_relabelling_a_cloud_with_repeats_labels_each_repeat_as_its_first(gen):
+    """The swap search runs once per run of equal rows and copies the labels to the repeats:
+    a cloud of repeated particles gets, particle by particle, the labels of the same cloud
+    without repeats (integer coordinates: every cost exact, whatever the batch shape)."""
+    from torchmcmcpf.state import relabel_order
+
+    b, n, k, rep = 2, 300, 4, 3
+    ref = torch.tensor([[0.0, 0, 0, 0], [20.0, 0, 10, 0], [5.0, 0, 30, 0], [30.0, 0, 25, 0]], dtype=torch.float64)
+    ref = ref.expand(b, k, 4)
+    perm = torch.rand(b, n, k, generator=gen).argsort(-1)
+    x = torch.take_along_dim(ref.unsqueeze(1).expand(b, n, k, 4), perm.unsqueeze(-1), 2).clone()
+    x[..., [0, 2]] += torch.randint(-12, 13, (b, n, k, 2), generator=gen).to(x.dtype)
+    once = relabel_order(x, ref)
+    many = relabel_order(x.repeat_interleave(rep, 1), ref)
+    assert torch.equal(many, once.repeat_interleave(rep, 1))

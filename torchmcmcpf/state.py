@@ -464,9 +464,13 @@ def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
     settled = (torch.diagonal(cost, dim1=-2, dim2=-1) - cost.amin(-1)).sum(-1) <= (cutoff / 4) ** 2
     rows = (~distinct & ~settled).flatten().nonzero().squeeze(1)  # one host read: the particles left
     if rows.numel():
-        sub = _swap_search(cost.reshape(b * n, k, k)[rows], label.reshape(b * n, k)[rows], cutoff,
-                           k * (k - 1) // 2 if max_sweeps is None else max_sweeps)
-        label = label.reshape(b * n, k).index_copy(0, rows, sub).reshape(b, n, k)
+        c_rows, l_rows = cost.reshape(b * n, k, k)[rows], label.reshape(b * n, k)[rows]
+        # a row equal to the one before it (an MCMC chain's repeated state) gets its labels: the
+        # search is a function of the row alone, so it runs on the first of each run of equal rows
+        first = torch.ones(rows.shape, dtype=torch.bool, device=x.device)
+        first[1:] = (c_rows[1:] != c_rows[:-1]).flatten(1).any(-1) | (l_rows[1:] != l_rows[:-1]).any(-1)
+        sub = _swap_search(c_rows[first], l_rows[first], cutoff, k * (k - 1) // 2 if max_sweeps is None else max_sweeps)
+        label = label.reshape(b * n, k).index_copy(0, rows, sub[first.cumsum(0) - 1]).reshape(b, n, k)
     # a particle keeps its own labels unless relabelling lowers its cost by more than
     # (cutoff / 4)^2: where two targets are close, the positions alone cannot tell which is
     # which, and a particle's own labels carry their identity through the crossing
