@@ -41,7 +41,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch
 from torch import nn
@@ -66,7 +66,7 @@ class BirthNoise(NamedTuple):
 
     u: Tensor
     x: Tensor
-    log_ratio: Tensor | None
+    log_ratio: Tensor  # None at run time until scored, for noise drawn deferred
 
     @classmethod
     def draw(cls, x: Tensor, existence: BirthDeath, z: PointMeasurement | None, *,
@@ -86,7 +86,7 @@ class BirthNoise(NamedTuple):
             existence.may_be_born(u) if exists is None else existence.can_be_born(u, exists)
         born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
                                                  scored=scored)
-        return cls(u, born, None if deferred else log_ratio)
+        return cls(u, born, cast(Tensor, None) if deferred else log_ratio)
 
 
 def _probability(value: float, name: str) -> float:
@@ -296,18 +296,18 @@ class BirthDeath(nn.Module):
             mask = torch.ones((b, m), dtype=torch.bool, device=device)
         pos = torch.stack([birth.x[..., X], birth.x[..., Y]], -1)
         scored = self.can_be_born(birth.u, exists)
-        return birth._replace(log_ratio=self._scored_ratio(pos, pts.to(dtype), mask, scored))
+        return birth._replace(log_ratio=self._scored_ratio(pos, pts.to(dtype), mask, scored, self.birth_std))
 
-    def _scored_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, scored: Tensor) -> Tensor:
+    def _scored_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, scored: Tensor, s: float) -> Tensor:
         """``log p_0 - log q_0`` of the candidates at ``pos (B, *S, K, 2)`` where ``scored (B,
-        *S, K)``, 0 elsewhere (eager: a host read of the scored count).
+        *S, K)``, 0 elsewhere (eager: a host read of the scored count); ``s`` the birth spread.
         """
         b = pts.shape[0]
         rows, cols = scored.reshape(b, -1).nonzero(as_tuple=True)
         log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=pos.dtype, device=pos.device)
         if rows.numel():
             log_ratio.index_put_((rows, cols), self._log_birth_ratio(
-                pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows], self.birth_std).squeeze(1))
+                pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows], s).squeeze(1))
         return log_ratio.reshape(scored.shape)
 
     def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
@@ -344,7 +344,8 @@ class BirthDeath(nn.Module):
         if scored is None:
             return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
         # the candidates that can be born only (eager: the noise is drawn outside compiled code)
-        return self._newborn(pos, vel_eps), self._scored_ratio(pos, pts, mask, scored.reshape(tuple(shape)))
+        return self._newborn(pos, vel_eps), self._scored_ratio(pos, pts, mask, scored.reshape(tuple(shape)),
+                                                               self.birth_std)
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
         """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
@@ -398,6 +399,9 @@ class BirthDeath(nn.Module):
         plus ``log p(e_k | e_{k-1}) - log q(e_k | e_{k-1})`` when the flags are drawn from
         ``birth_proposal`` / ``death_proposal`` rather than the chain.
         """
+        if birth.log_ratio is None:  # drawn deferred and never scored (BirthNoise.draw)
+            raise ValueError("birth.log_ratio is None: noise drawn deferred needs BirthDeath.score_births before "
+                             "it is propagated")
         q_on = self._p_on(exists, proposal=True)
         exists_next = birth.u.to(torch.float64) < (self._p_on(exists) if from_prior else q_on)
         born = exists_next & ~exists
