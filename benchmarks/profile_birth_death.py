@@ -5,9 +5,11 @@ profiler's inclusive time of the functions that do each part. Run from the repos
 
     python benchmarks/profile_birth_death.py
 
-Prints, per filter, the unprofiled time per step and run and each part's share of the
-profiled step (profiling inflates the Python-heavy parts a little; the shares are of the
-profiled total), then the IP-MCMC-PF step's arithmetic floor (:func:`floor`).
+Prints, per filter, the unprofiled time per step and run (wall clock and the process's CPU
+time, which a busy shared machine inflates less) and each part's share of the profiled step
+(profiling inflates the Python-heavy parts a little; the shares are of the profiled total),
+then the IP-MCMC-PF step's arithmetic floor (:func:`floor`). Glibc's allocator is tuned as
+``python -m torchmcmcpf`` tunes it (large temporaries reuse warm pages).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from torch.profiler import profile
 
 from torchmcmcpf.experiments._shards import shard_generator
 from torchmcmcpf.experiments.septier_birth_death import BirthDeathSettings, _filters
+from torchmcmcpf.runtime import tune_cpu_allocator
 from torchmcmcpf.scenarios.septier import septier
 
 #: part -> the functions whose inclusive time it is (file suffix, function name)
@@ -34,9 +37,16 @@ PARTS = {
     "MCMC-PF": {
         "likelihood arithmetic": [("points.py", "log_likelihood")],
         "move bookkeeping": [("mcmc.py", "mcmc_iteration")],
-        "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations")],
+        "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations"),
+                                ("chains.py", "score_births")],
         "relabelling and estimation": [("base.py", "_estimate")],
     },
+}
+
+#: filter -> the functions whose time the bookkeeping's inclusive time holds but another part counts
+INNER = {
+    "IP-MCMC-PF": [("points.py", "log_likelihood_delta_cached")],
+    "MCMC-PF": [("points.py", "log_likelihood"), ("chains.py", "score_births")],  # the births' ratios: proposals
 }
 
 
@@ -69,6 +79,7 @@ def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int 
 
 def main() -> None:
     torch.set_num_threads(1)
+    tune_cpu_allocator()  # as `python -m torchmcmcpf reproduce` runs the study (torchmcmcpf.runtime)
     cfg = BirthDeathSettings(stonesoup=False)
     scn = septier(10, 4, generator=shard_generator("cpu", 0, 0))
     b, k = scn.alive.shape[1:]
@@ -82,9 +93,9 @@ def main() -> None:
         filt = _filters(cfg, scn.motion, scn.sensor, scn.existence)[name]
         g = torch.Generator().manual_seed(0)
         state = filt(frames(0, 2), init=init, generator=g).state
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         filt(frames(2, 3), init=state, generator=torch.Generator().manual_seed(1))
-        plain = time.perf_counter() - start
+        plain, cpu = time.perf_counter() - start, time.process_time() - cpu
         with profile(with_stack=True) as prof:
             filt(frames(3, 4), init=state, generator=torch.Generator().manual_seed(1))
         totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
@@ -94,12 +105,12 @@ def main() -> None:
 
         total = max(v for key, v in totals.items() if key.endswith("): forward"))
         shares = {part: sum(inclusive(f, fn) for f, fn in where) for part, where in parts.items()}
-        # the iterations' own sensor calls are inside the bookkeeping's inclusive time
-        inner = inclusive("points.py", "log_likelihood_delta_cached" if name == "IP-MCMC-PF" else "log_likelihood")
-        shares["move bookkeeping"] -= inner
+        # the iterations' own sensor calls (and the MCMC-PF's birth ratios) are inside the
+        # bookkeeping's inclusive time
+        shares["move bookkeeping"] -= sum(inclusive(f, fn) for f, fn in INNER[name])
         shares["the rest (start, resampling, Python and dispatch)"] = total - sum(shares.values())
-        print(f"\n{name}: {1e3 * plain / b:.1f} ms per step and run (B = {b}, unprofiled); profiled step "
-              f"{total / 1e3:.0f} ms")
+        print(f"\n{name}: {1e3 * plain / b:.1f} ms per step and run (B = {b}, unprofiled; CPU time "
+              f"{1e3 * cpu / b:.1f} ms); profiled step {total / 1e3:.0f} ms")
         for part, v in shares.items():
             print(f"  {part:52s} {100 * v / total:5.1f} %")
     print(f"\nIP-MCMC-PF floor (random numbers and transcendentals, one thread): {1e3 * floor():.1f} ms per step "

@@ -150,3 +150,39 @@ def test_relabel_order_matches_the_plain_rule():
     d2 = (pos.unsqueeze(-2) - torch.stack([ref[..., 0], ref[..., 2]], -1)[:, None, None]).square().sum(-1)
     cost = d2.clamp(max=cutoff**2)
     assert torch.equal(got, _relabel_reference(cost, cutoff))
+
+
+def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
+    """The densest-place candidates take the distances of the first of each run of equal
+    particles only (an MCMC chain repeats its state on a rejected move) and copy them to the
+    repeats: the same words as taking every particle's."""
+    from torchmcmcpf.state import _candidates, _slot_bits
+
+    b, n, k = 3, 400, 4
+    pos = torch.rand(b, n, k, 2, generator=gen, dtype=torch.float64) * 500
+    keep = torch.rand(b, n, generator=gen) < 0.25  # a new state where True, else the one before
+    keep[:, 0] = True
+    src = torch.where(keep, torch.arange(n), 0).cummax(1).values
+    pos = torch.take_along_dim(pos, src[:, :, None, None], 1)
+    pos[1, 7, 2, 0] = float("nan")  # never equal to anything: a first of its own
+    got = _candidates(pos, 100.0)
+    dist = torch.cdist(got.pos.reshape(b, -1, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
+    want = _slot_bits((dist <= 100.0).reshape(b, got.pick.numel(), k, n, k))
+    assert torch.equal(got.close, want)
+
+
+def test_relabelling_a_cloud_with_repeats_labels_each_repeat_as_its_first(gen):
+    """The swap search runs once per run of equal rows and copies the labels to the repeats:
+    a cloud of repeated particles gets, particle by particle, the labels of the same cloud
+    without repeats (integer coordinates: every cost exact, whatever the batch shape)."""
+    from torchmcmcpf.state import relabel_order
+
+    b, n, k, rep = 2, 300, 4, 3
+    ref = torch.tensor([[0.0, 0, 0, 0], [20.0, 0, 10, 0], [5.0, 0, 30, 0], [30.0, 0, 25, 0]], dtype=torch.float64)
+    ref = ref.expand(b, k, 4)
+    perm = torch.rand(b, n, k, generator=gen).argsort(-1)
+    x = torch.take_along_dim(ref.unsqueeze(1).expand(b, n, k, 4), perm.unsqueeze(-1), 2).clone()
+    x[..., [0, 2]] += torch.randint(-12, 13, (b, n, k, 2), generator=gen).to(x.dtype)
+    once = relabel_order(x, ref)
+    many = relabel_order(x.repeat_interleave(rep, 1), ref)
+    assert torch.equal(many, once.repeat_interleave(rep, 1))

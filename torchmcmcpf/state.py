@@ -464,9 +464,13 @@ def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
     settled = (torch.diagonal(cost, dim1=-2, dim2=-1) - cost.amin(-1)).sum(-1) <= (cutoff / 4) ** 2
     rows = (~distinct & ~settled).flatten().nonzero().squeeze(1)  # one host read: the particles left
     if rows.numel():
-        sub = _swap_search(cost.reshape(b * n, k, k)[rows], label.reshape(b * n, k)[rows], cutoff,
-                           k * (k - 1) // 2 if max_sweeps is None else max_sweeps)
-        label = label.reshape(b * n, k).index_copy(0, rows, sub).reshape(b, n, k)
+        c_rows, l_rows = cost.reshape(b * n, k, k)[rows], label.reshape(b * n, k)[rows]
+        # a row equal to the one before it (an MCMC chain's repeated state) gets its labels: the
+        # search is a function of the row alone, so it runs on the first of each run of equal rows
+        first = torch.ones(rows.shape, dtype=torch.bool, device=x.device)
+        first[1:] = (c_rows[1:] != c_rows[:-1]).flatten(1).any(-1) | (l_rows[1:] != l_rows[:-1]).any(-1)
+        sub = _swap_search(c_rows[first], l_rows[first], cutoff, k * (k - 1) // 2 if max_sweeps is None else max_sweeps)
+        label = label.reshape(b * n, k).index_copy(0, rows, sub[first.cumsum(0) - 1]).reshape(b, n, k)
     # a particle keeps its own labels unless relabelling lowers its cost by more than
     # (cutoff / 4)^2: where two targets are close, the positions alone cannot tell which is
     # which, and a particle's own labels carry their identity through the crossing
@@ -546,15 +550,35 @@ def _slot_bits(flags: Tensor) -> Tensor:
 def _candidates(pos: Tensor, cutoff: float, candidates: int = 32) -> _Candidates:
     """:class:`_Candidates` of the positions ``pos (B, N, K, 2)``: the slots of ``candidates``
     evenly spaced particles.
+
+    A particle equal to the one before it (an MCMC chain's rejected move repeats its state:
+    80 % of an IP-MCMC-PF cloud on the births/deaths scene) has that one's words, so the
+    distances are taken for the first of each run of equal particles only (as many per run as
+    the run with the most) and copied to the repeats, where that saves a fifth: the same words.
     """
     n = pos.shape[1]
     pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
     b, p, k = pos.shape[0], pick.numel(), pos.shape[2]
     cand = pos[:, pick]  # (B, P, K, 2)
+    first = torch.ones((b, n), dtype=torch.bool, device=pos.device)
+    first[:, 1:] = (pos[:, 1:] != pos[:, :-1]).flatten(2).any(-1)  # NaN differs: kept, never merged
+    rank = first.cumsum(1) - 1  # (B, N): the particle's place among the firsts of its run
+    m = int(rank[:, -1].max()) + 1  # one host read: the most firsts of a run
+    few = 5 * m < 4 * n  # worth the copies below (an MCMC-PF cloud of 2-sample chains is not)
+    m = m if few else n
+    sub = pos
+    if few:  # the firsts of each run in order, then (beyond its own count) any particles: never read
+        at = torch.where(first, torch.arange(n, device=pos.device), n + torch.arange(n, device=pos.device))
+        firsts = at.sort(-1).values[:, :m].remainder_(n)  # (B, m)
+        sub = torch.take_along_dim(pos, firsts[:, :, None, None], 1)  # (B, m, K, 2)
     # one kernel over every (candidate, slot) pair, differences squared and summed exactly
-    # (no |a|^2 + |b|^2 - 2 a.b): 2.8x faster than broadcast differences of the coordinates
-    dist = torch.cdist(cand.reshape(b, p * k, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
-    return _Candidates(pick, cand, _slot_bits((dist <= cutoff).reshape(b, p, k, n, k)))
+    # (no |a|^2 + |b|^2 - 2 a.b): 2.8x faster than broadcast differences of the coordinates;
+    # each pair's distance alone, so the same values whichever particles are in the call
+    dist = torch.cdist(cand.reshape(b, p * k, 2), sub.reshape(b, m * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
+    close = _slot_bits((dist <= cutoff).reshape(b, p, k, m, k))  # (B, P, K, m, W)
+    if few:  # each particle the words of its run's first
+        close = close.gather(3, rank[:, None, None, :, None].expand(b, p, k, n, close.shape[-1]))
+    return _Candidates(pick, cand, close)
 
 
 def _densest(cands: _Candidates, slot_of: Tensor, live: Tensor, log_w: Tensor) -> tuple[Tensor, Tensor]:
@@ -579,7 +603,8 @@ def _densest(cands: _Candidates, slot_of: Tensor, live: Tensor, log_w: Tensor) -
     live_bits = _slot_bits(own_live)  # (B, N, W)
     near = ((cands.close & live_bits[:, None, None]) != 0).any(-1)  # (B, P, K, N): a live slot near
     w = torch.softmax(log_w, -1).to(dtype)
-    support = (near.to(dtype) * w[:, None, None]).sum(-1)  # (B, P, K), own slot order
+    # w where near, else 0: the values of near * w (w finite, >= 0) without a float copy of near
+    support = torch.where(near, w[:, None, None], 0.0).sum(-1)  # (B, P, K), own slot order
     order = slot_of[:, cands.pick]  # (B, P, K): the candidates in label order
     support = torch.take_along_dim(support, order, -1).reshape(b, -1)
     support = support.masked_fill(~live[:, cands.pick].reshape(b, -1), 0.0)  # (B, P K)

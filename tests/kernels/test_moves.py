@@ -568,3 +568,32 @@ def test_adapted_random_walk_keeps_the_posterior(gen):
                       gen=gen, rw_scale=scale)
     assert (acc["random_walk"] > 10).all()
     _assert_pi(chain, post, cloud)
+
+
+def test_joint_draw_cache_of_the_exclusion_keeps_the_bits(gen):
+    """The exclusion factor an eager joint draw keeps beside the chain (``ChainState.log_phi``)
+    equals ``log Phi`` of the chain's state, is not read once another move replaced the state,
+    and leaves every decision as recomputing it would (the same bits, births and deaths on)."""
+    from torchmcmcpf.models.multitarget import Exclusion, log_exclusion
+
+    motion, sensor, existence, cloud, z, _, _ = _existence_problem(3.0)
+    dynamics, exclusion = TargetDynamics(motion, existence), Exclusion()
+    template = cloud.x.new_empty(B, EX_C, K, D)
+    runs, kept = [], 0
+    for strip in (False, True):
+        g = torch.Generator().manual_seed(11)
+        chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=g, z=z), z, dynamics=dynamics,
+                            sensor=sensor)
+        for move in pick_moves((("joint", 0.6), ("refine", 0.4)), 30, generator=g):
+            if strip:
+                chain = chain._replace(log_phi=None)
+            noise = draw_iteration_noise(move, chain.x, dynamics, generator=g, z=z)
+            chain, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor,
+                                      exclusion=exclusion)
+            if chain.log_phi is not None and chain.log_phi[0] is chain.x:
+                assert torch.equal(chain.log_phi[2], log_exclusion(exclusion, sensor, chain.x, chain.exists))
+                kept += not strip
+        runs.append(chain)
+    assert kept > 5  # the joint draws kept it
+    for a, b in zip(runs[0][:7], runs[1][:7]):
+        assert (a is None and b is None) or torch.equal(a, b)

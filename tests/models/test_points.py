@@ -183,3 +183,44 @@ def test_data_draws_score_only_where_asked(gen):
     none = s.sample_from_data(z, (3, 5, 4), generator=torch.Generator().manual_seed(1), dtype=torch.float64,
                               scored=torch.zeros(3, 5, 4, dtype=torch.bool))
     assert torch.equal(none[0], full[0]) and not none[1].any()  # nothing to score: no sum at all
+
+
+def test_fast_exp_and_logsumexp_keep_the_bits(gen):
+    """``_exp_`` (underflowing arguments set to -inf first) and ``_logsumexp_fast`` give
+    torch's own bits, NaN and infinities included; the likelihood's in-place path equals its
+    autograd path bit for bit.
+    """
+    from torchmcmcpf.models.sensors.points import UNDERFLOW, _exp_, _logsumexp_fast
+
+    t = torch.cat([torch.randn(4000, generator=gen, dtype=torch.float64) * 500 - 700,
+                   torch.tensor([UNDERFLOW, UNDERFLOW + 1e-9, -745.2, -1e308, -math.inf, math.inf, math.nan, 0.0],
+                                dtype=torch.float64)])
+    assert torch.equal(_exp_(t.clone()).nan_to_num(7.0), t.exp().nan_to_num(7.0))
+    v = t[:4000].reshape(40, 5, 20).clone()
+    v[0, :, 0] = -math.inf  # a column without any finite term
+    v[1, 2, 3] = math.nan
+    assert torch.equal(_logsumexp_fast(v, -2).nan_to_num(7.0), torch.logsumexp(v, -2).nan_to_num(7.0))
+    s = sensor()
+    x = torch.randn(2, 30, 4, 4, generator=gen, dtype=torch.float64) * 60 + torch.tensor([100.0, 0, 0, 0])
+    exists = torch.rand(2, 30, 4, generator=gen) < 0.6
+    z = PointFrame(torch.randn(2, 9, 2, generator=gen, dtype=torch.float64) * 60 + torch.tensor([100.0, 0]),
+                   torch.rand(2, 9, generator=gen) < 0.8)
+    for e in (exists, None):
+        plain = s.log_likelihood(x, z, e)
+        tracked = s.log_likelihood(x.clone().requires_grad_(True), z, e).detach()
+        assert torch.equal(plain, tracked)
+
+
+def test_diagonal_whitening_equals_the_matrix_product(gen):
+    """With a diagonal ``R`` the whitening, the resolution coordinates and the data draws take a
+    product per axis: the same bits as the matrix products they replace."""
+    from torchmcmcpf.models.sensors.points import _whiten
+
+    s = sensor(noise_std=7.0)
+    assert s.diagonal and not sensor(R=torch.tensor([[9.0, 2.0], [2.0, 4.0]], dtype=torch.float64),
+                                     noise_std=None).diagonal
+    v = torch.randn(5000, 2, generator=gen, dtype=torch.float64) * torch.tensor([1e-3, 1e4], dtype=torch.float64)
+    v[0] = 0.0
+    assert torch.equal(_whiten(v, s.W, True), v @ s.W.mT)
+    L = torch.linalg.cholesky(s.R)
+    assert torch.equal(_whiten(v, L, True), v @ L.mT)

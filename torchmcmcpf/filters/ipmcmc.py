@@ -562,7 +562,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     def draw(steps: int, offset: int) -> SegmentNoise:
         def one(count: int, close: Tensor | None) -> ExchangeNoise:
             noise = draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
-                                        dtype=x_prev.dtype, z=z, pairs=close)
+                                        dtype=x_prev.dtype, z=z, pairs=close, exists=exists)
             # the segment's proposals in one batched call (an independence proposal)
             return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics))
         at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)

@@ -30,7 +30,16 @@ from typing import Any
 import torch
 
 from .._validation import check_positive_int
-from ..kernels.chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
+from ..kernels.chains import (
+    ChainState,
+    JointNoise,
+    PreviousCloud,
+    RefineNoise,
+    draw_ancestors,
+    evaluate,
+    previous_cloud,
+    score_births,
+)
 from ..kernels.hmc_refine import (
     HMCRefine,
     HMCRefineNoise,
@@ -44,6 +53,7 @@ from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step,
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_exclusion, check_recapture, exclusion_on
+from ..resampling import gather_particles
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -262,13 +272,16 @@ def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, gene
     Returns
     -------
     the move's noise NamedTuple (:class:`JointNoise`, :class:`RefineNoise`, :class:`RandomWalkNoise`).
+    With births, the newborns' ratios are left to :func:`mcmc_iteration`, which takes them
+    where the chains' ancestors let a slot be born (:func:`~torchmcmcpf.kernels.chains.score_births`;
+    ``birth.log_ratio`` None until then).
     """
     if move == "random_walk":  # no existence variant (refused with existence)
         return RandomWalkNoise.draw(x, dynamics.motion, generator=generator)
     if move not in ("joint", "refine"):
         raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
     return (JointNoise if move == "joint" else RefineNoise).draw(x, dynamics, generator=generator, z=z,
-                                                                 relocation=relocation)
+                                                                 relocation=relocation, deferred=True)
 
 
 #: At most this many slots' relocations are drawn at once by :func:`relocations` (their data
@@ -328,6 +341,14 @@ def mcmc_iteration(
     accepted : (B, C) fraction of the move's accept/reject decisions that accepted (per
         target for ``refine``).
     """
+    # newborns' ratios drawn deferred (draw_iteration_noise): taken now, where the ancestors'
+    # flags let a slot be born (the joint draw's ancestors are the noise's, the refinement's the chain's)
+    if move == "joint" and isinstance(noise, JointNoise) and noise.birth is not None and noise.birth.log_ratio is None:
+        exists_prev = None if cloud.exists is None else \
+            gather_particles(cloud.exists, draw_ancestors(cloud, noise.u_ancestor))
+        noise = score_births(noise, exists_prev, z, dynamics)
+    elif move == "refine" and isinstance(noise, RefineNoise):
+        noise = score_births(noise, chain.exists_prev, z, dynamics)
     if programs is not None:
         fn = programs[move]
         new, acc = (fn(chain, noise, z) if move == "refine" else

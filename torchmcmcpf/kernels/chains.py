@@ -17,7 +17,7 @@ from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 
 __all__ = ["ChainState", "PreviousCloud", "previous_cloud", "draw_ancestors", "uniforms", "normals", "JointNoise",
-           "RefineNoise", "evaluate", "whiten"]
+           "RefineNoise", "score_births", "evaluate", "whiten"]
 
 
 class ChainState(NamedTuple):
@@ -43,6 +43,10 @@ class ChainState(NamedTuple):
         ``x``; the relocation ratios of :mod:`torchmcmcpf.models.multitarget` for a
         surviving slot; 0 for an inactive one); ``None`` without either (module docstring
         of :mod:`torchmcmcpf.kernels.moves`).
+    log_phi : ``(x, exists, log Phi (B, C))``, optional: the exclusion factor of the state,
+        kept by an eager joint draw beside the very tensors ``x`` and ``exists`` it belongs to
+        and read only while the chain holds those (a move that replaces ``x`` leaves it
+        stale and it is recomputed; :func:`~torchmcmcpf.kernels.moves.joint_move`).
 
     Example
     -------
@@ -71,6 +75,7 @@ class ChainState(NamedTuple):
     exists: Tensor | None = None
     exists_prev: Tensor | None = None
     log_ratio: Tensor | None = None
+    log_phi: tuple[Tensor, Tensor | None, Tensor] | None = None
 
 
 class PreviousCloud(NamedTuple):
@@ -168,15 +173,17 @@ class JointNoise(NamedTuple):
 
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
-             z: Measurement | None = None, relocation: RelocationNoise | None = None) -> JointNoise:
+             z: Measurement | None = None, relocation: RelocationNoise | None = None,
+             deferred: bool = False) -> JointNoise:
         """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``) moved by
         ``dynamics``: the birth noise only with its existence model, the relocation noise only
         with its re-capture (both from the frame ``z``; ``relocation``, leading ``(B, C, K)``,
-        when it was drawn beforehand).
+        when it was drawn beforehand). ``deferred``: the newborns' ratios are left to
+        :func:`score_births` (the same draws).
         """
         b, c, k, _ = x.shape
         return cls(uniforms((b, c), x, generator), normals((b, c, k, dynamics.motion.noise_dim), x, generator),
-                   uniforms((b, c), x, generator), *_slot_changes(x, dynamics, z, generator, relocation))
+                   uniforms((b, c), x, generator), *_slot_changes(x, dynamics, z, generator, relocation, deferred))
 
 
 class RefineNoise(NamedTuple):
@@ -211,26 +218,44 @@ class RefineNoise(NamedTuple):
 
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
-             z: Measurement | None = None, relocation: RelocationNoise | None = None) -> RefineNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``, ``relocation``:
-        as :meth:`JointNoise.draw`).
+             z: Measurement | None = None, relocation: RelocationNoise | None = None,
+             deferred: bool = False) -> RefineNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``, ``relocation``,
+        ``deferred``: as :meth:`JointNoise.draw`).
         """
         slots = x.shape[:-1]  # (B, C, K)
         return cls(normals((*slots, dynamics.motion.noise_dim), x, generator), uniforms(slots, x, generator),
-                   *_slot_changes(x, dynamics, z, generator, relocation))
+                   *_slot_changes(x, dynamics, z, generator, relocation, deferred))
 
 
 def _slot_changes(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator,
-                  relocation: RelocationNoise | None = None) -> tuple[BirthNoise | None, RelocationNoise | None]:
+                  relocation: RelocationNoise | None = None, deferred: bool = False
+                  ) -> tuple[BirthNoise | None, RelocationNoise | None]:
     """The noise every move draws after its own, for chains ``x (B, C, K, D)``: the births
-    (with an existence model), then the relocations (with re-capture; ``relocation`` when
-    drawn beforehand).
+    (with an existence model; their ratios left to :func:`score_births` when ``deferred``),
+    then the relocations (with re-capture; ``relocation`` when drawn beforehand).
     """
-    births = dynamics.draw_births(x, z, generator=generator)
+    births = dynamics.draw_births(x, z, generator=generator, deferred=deferred)
     if relocation is None:
         relocation = dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
                                                device=x.device)
     return births, relocation
+
+
+def score_births(noise: JointNoise | RefineNoise, exists_prev: Tensor | None, z: Measurement | None,
+                 dynamics: TargetDynamics) -> JointNoise | RefineNoise:
+    """A move's noise drawn ``deferred`` with its newborns' ratios taken where the slots, whose
+    ancestors carry the flags ``exists_prev (B, C, K)``, can be born
+    (:meth:`~torchmcmcpf.models.existence.BirthDeath.score_births`): an inactive ancestor's
+    slot only, a third to a half of them on the births/deaths scene instead of every slot
+    whose uniform allows a birth. ``noise`` unchanged when it carries its ratios already.
+    """
+    birth = noise.birth
+    if birth is None or birth.log_ratio is not None or dynamics.existence is None:
+        return noise
+    if exists_prev is None:  # no flags: every slot inactive (TargetDynamics.propagate_labelled)
+        exists_prev = torch.zeros(birth.u.shape, dtype=torch.bool, device=birth.u.device)
+    return noise._replace(birth=dynamics.existence.score_births(birth, z, exists_prev))
 
 
 # -- likelihood ------------------------------------------------------------------------------

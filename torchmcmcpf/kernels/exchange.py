@@ -249,6 +249,7 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
 def draw_exchange_noise(
     log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, *, dynamics: TargetDynamics,
     generator: torch.Generator, dtype: torch.dtype, z: Measurement | None = None, pairs: Tensor | None = None,
+    exists: Tensor | None = None,
 ) -> ExchangeNoise:
     """Draw the randomness of ``L = num_iterations`` iterations: one slot per iteration
     (uniform over the K slots) or, with ``pairs``, two slots (uniform over the close pairs of
@@ -264,6 +265,11 @@ def draw_exchange_noise(
     Parameters
     ----------
     pairs : (B, K, K) bool, optional (:func:`close_pairs`): draw two-slot moves.
+    exists : (B, N, K) bool, optional: the previous particles' flags. A newborn's ratio (a
+        sum over the frame's points) is then taken only where the moved slot's source slot is
+        inactive (with ``p_same_source``, where either possible source's is), the only place
+        a move reads it (:meth:`~torchmcmcpf.models.existence.BirthDeath.can_be_born`); the
+        draws are the same.
     """
     b, n = log_w.shape
     m = 1 if pairs is None else 2
@@ -290,7 +296,20 @@ def draw_exchange_noise(
     birth = None
     if dynamics.existence is not None:
         template = torch.empty((b, num_iterations, num_chains, m, dynamics.existence.dim), device=dev, dtype=dtype)
-        drawn = dynamics.draw_births(template, z, generator=generator)  # leading (B, L, C, M)
+        parent_e = None
+        if exists is not None:  # the source slots' flags, leading (B, L, C, M)
+            flags = exists.reshape(b, n * exists.shape[-1])
+            src = source.transpose(0, 1)
+
+            def flag(particle: Tensor) -> Tensor:
+                at = (particle * exists.shape[-1] + slot.transpose(0, 1)).reshape(b, -1)
+                return torch.take_along_dim(flags, at, 1).reshape(at.shape[:1] + src.shape[1:])
+
+            parent_e = flag(src)
+            if pairs is not None and dynamics.recapture is not None and dynamics.recapture.p_same_source > 0:
+                # the second slot may take the first's source (drawn below): live only where both are
+                parent_e = parent_e & flag(src[..., :1].expand(src.shape))
+        drawn = dynamics.draw_births(template, z, generator=generator, exists=parent_e)  # leading (B, L, C, M)
         birth = None if drawn is None else BirthNoise(*(t.transpose(0, 1) for t in drawn))
     relocation = dynamics.draw_relocations((b, num_iterations, num_chains, m), z, generator=generator, dtype=dtype,
                                            device=dev, p_propose=None if dynamics.recapture is None or m == 1

@@ -219,10 +219,24 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
                          "with init_chains(..., dynamics=dynamics)")
     log_alpha = cand.log_lik - chain.log_lik  # the prior parts cancel (eq. 60, P_a = 0)
     log_alpha = log_alpha + _log_ratio_sum(cand) - _log_ratio_sum(chain)
-    log_alpha = log_alpha + log_exclusion(exclusion, sensor, cand.x, cand.exists) \
-        - log_exclusion(exclusion, sensor, chain.x, chain.exists)
-    accepted = mh_accept(log_alpha, noise.u)
-    return mh_select(accepted, cand, chain), accepted
+    phi_cand = log_exclusion(exclusion, sensor, cand.x, cand.exists)
+    phi = _log_phi(chain, exclusion, sensor)
+    accepted = mh_accept(log_alpha + phi_cand - phi, noise.u)
+    new = mh_select(accepted, cand, chain._replace(log_phi=None))
+    if exclusion_on(exclusion, sensor) and not torch.compiler.is_compiling():  # eager: keep log Phi of the new state
+        new = new._replace(log_phi=(new.x, new.exists, torch.where(accepted, phi_cand, phi)))
+    return new, accepted
+
+
+def _log_phi(chain: ChainState, exclusion: Exclusion | None, sensor: SensorModel) -> Tensor:
+    """``log Phi`` of the chains' states ``(B, C)``: the joint draw's cached value while the
+    chain holds the tensors it was taken for (the same function of the same values: the same
+    bits), else computed.
+    """
+    cached = chain.log_phi
+    if cached is not None and cached[0] is chain.x and cached[1] is chain.exists:
+        return cached[2]
+    return log_exclusion(exclusion, sensor, chain.x, chain.exists)
 
 
 # -- per-target refinement -------------------------------------------------------------------

@@ -41,7 +41,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import NamedTuple, cast
 
 import torch
 from torch import nn
@@ -59,24 +59,34 @@ __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
 class BirthNoise(NamedTuple):
     """Pre-drawn existence noise for every slot: ``u (*S, K)`` uniforms for
     ``e'_n ~ p(. | e_n)``, newborn candidates ``x (*S, K, D)`` from the birth proposal
-    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``.
+    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)`` (taken where a slot can be
+    born, 0 elsewhere; ``None`` until :meth:`BirthDeath.score_births` takes it, for noise drawn
+    ``deferred``).
     """
 
     u: Tensor
     x: Tensor
-    log_ratio: Tensor
+    log_ratio: Tensor  # None at run time until scored, for noise drawn deferred
 
     @classmethod
     def draw(cls, x: Tensor, existence: BirthDeath, z: PointMeasurement | None, *,
-             generator: torch.Generator) -> BirthNoise:
+             generator: torch.Generator, exists: Tensor | None = None, deferred: bool = False) -> BirthNoise:
         """Draw for slots shaped like ``x (B, *S, K, D)`` (dtype and device of ``x``); births
         near the points of ``z`` when ``existence`` draws them so.
+
+        The ratio (a sum over the frame's points per candidate) is taken only where a move
+        can read it: ``exists (B, *S, K)``, the flags of the slots' ancestors when the draw
+        knows them, narrows that to :meth:`BirthDeath.can_be_born`; ``deferred`` takes none
+        (``log_ratio`` None) for :meth:`BirthDeath.score_births` once the ancestors are known.
+        The draws are the same either way.
         """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
+        scored = torch.zeros(shape, dtype=torch.bool, device=x.device) if deferred else \
+            existence.may_be_born(u) if exists is None else existence.can_be_born(u, exists)
         born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
-                                                 scored=existence.may_be_born(u))
-        return cls(u, born, log_ratio)
+                                                 scored=scored)
+        return cls(u, born, cast(Tensor, None) if deferred else log_ratio)
 
 
 def _probability(value: float, name: str) -> float:
@@ -261,6 +271,45 @@ class BirthDeath(nn.Module):
         """
         return u.to(torch.float64) < max(self.p_birth, self.birth_proposal)
 
+    def can_be_born(self, u: Tensor, exists: Tensor) -> Tensor:
+        """:meth:`may_be_born` for slots whose ancestors' flags ``exists (*S, K)`` are known:
+        only an inactive slot can be born, so only there is the newborn's ratio read
+        (:meth:`propagate`), bool ``(*S, K)``.
+        """
+        return self.may_be_born(u) & ~exists
+
+    def score_births(self, birth: BirthNoise, z: PointMeasurement | None, exists: Tensor) -> BirthNoise:
+        """``birth`` drawn ``deferred`` (:meth:`BirthNoise.draw`) with its ``log_ratio`` taken
+        where a slot with the ancestors' flags ``exists (*S, K)`` can be born
+        (:meth:`can_be_born`), 0 elsewhere: the values :meth:`BirthNoise.draw` would have
+        given there, from the candidates' positions (the same arithmetic, the same bits).
+        """
+        shape = tuple(birth.u.shape)
+        dtype, device = birth.x.dtype, birth.x.device
+        if z is None or self.birth_std is None:
+            return birth._replace(log_ratio=torch.zeros(shape, dtype=dtype, device=device))
+        pts, mask = split_points(z)
+        b, m = pts.shape[:2]
+        if m == 0:
+            return birth._replace(log_ratio=torch.zeros(shape, dtype=dtype, device=device))
+        if mask is None:
+            mask = torch.ones((b, m), dtype=torch.bool, device=device)
+        pos = torch.stack([birth.x[..., X], birth.x[..., Y]], -1)
+        scored = self.can_be_born(birth.u, exists)
+        return birth._replace(log_ratio=self._scored_ratio(pos, pts.to(dtype), mask, scored, self.birth_std))
+
+    def _scored_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, scored: Tensor, s: float) -> Tensor:
+        """``log p_0 - log q_0`` of the candidates at ``pos (B, *S, K, 2)`` where ``scored (B,
+        *S, K)``, 0 elsewhere (eager: a host read of the scored count); ``s`` the birth spread.
+        """
+        b = pts.shape[0]
+        rows, cols = scored.reshape(b, -1).nonzero(as_tuple=True)
+        log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=pos.dtype, device=pos.device)
+        if rows.numel():
+            log_ratio.index_put_((rows, cols), self._log_birth_ratio(
+                pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows], s).squeeze(1))
+        return log_ratio.reshape(scored.shape)
+
     def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
                      dtype: torch.dtype, device: torch.device | str | None, scored: Tensor | None = None
                      ) -> tuple[Tensor, Tensor]:
@@ -295,19 +344,15 @@ class BirthDeath(nn.Module):
         if scored is None:
             return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
         # the candidates that can be born only (eager: the noise is drawn outside compiled code)
-        rows, cols = scored.reshape(b, -1).nonzero(as_tuple=True)
-        log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=dtype, device=device)
-        if rows.numel():
-            log_ratio.index_put_((rows, cols), self._log_birth_ratio(
-                pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows], self.birth_std).squeeze(1))
-        return self._newborn(pos, vel_eps), log_ratio.reshape(tuple(shape))
+        return self._newborn(pos, vel_eps), self._scored_ratio(pos, pts, mask, scored.reshape(tuple(shape)),
+                                                               self.birth_std)
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
         """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
         ``s`` the birth standard deviation (:func:`~torchmcmcpf.models.sensors.points.log_near_points`).
         """
         W = torch.eye(2, dtype=torch.float64, device=pos.device) / s
-        log_q = log_near_points(pos, pts, mask, W=W, p_uniform=self.p_uniform, area=self.area)
+        log_q = log_near_points(pos, pts, mask, W=W, p_uniform=self.p_uniform, area=self.area, diagonal=True)
         return self._log_uniform(pos) - log_q
 
     # -- the joint transition of (x, e) ---------------------------------------------------
@@ -354,6 +399,9 @@ class BirthDeath(nn.Module):
         plus ``log p(e_k | e_{k-1}) - log q(e_k | e_{k-1})`` when the flags are drawn from
         ``birth_proposal`` / ``death_proposal`` rather than the chain.
         """
+        if birth.log_ratio is None:  # drawn deferred and never scored (BirthNoise.draw)
+            raise ValueError("birth.log_ratio is None: noise drawn deferred needs BirthDeath.score_births before "
+                             "it is propagated")
         q_on = self._p_on(exists, proposal=True)
         exists_next = birth.u.to(torch.float64) < (self._p_on(exists) if from_prior else q_on)
         born = exists_next & ~exists
@@ -449,12 +497,15 @@ class TargetDynamics(NamedTuple):
         return eps, birth, self.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
                                                  device=x.device)
 
-    def draw_births(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator
-                    ) -> BirthNoise | None:
+    def draw_births(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator,
+                    exists: Tensor | None = None, deferred: bool = False) -> BirthNoise | None:
         """:class:`BirthNoise` for slots shaped like ``x (B, *S, K, D)`` (births near the points
-        of ``z`` when the model draws them so); ``None`` without an existence model.
+        of ``z`` when the model draws them so; ``exists``, the ancestors' flags, and
+        ``deferred``: where the ratios are taken, :meth:`BirthNoise.draw`); ``None`` without an
+        existence model.
         """
-        return None if self.existence is None else BirthNoise.draw(x, self.existence, z, generator=generator)
+        return None if self.existence is None else BirthNoise.draw(x, self.existence, z, generator=generator,
+                                                                   exists=exists, deferred=deferred)
 
     def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
                          dtype: torch.dtype, device: torch.device | str, p_propose: float | None = None

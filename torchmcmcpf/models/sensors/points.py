@@ -42,13 +42,46 @@ __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 AreaLike = Tensor | Sequence[Sequence[float]]
 
 
+#: At or below this a float64 (or float32) ``exp`` is exactly 0 (``e^-746 < 2^-1075``, half the
+#: least subnormal). ATen's vectorised ``exp`` is 6x slower on such arguments than on ones in
+#: range and on ``-inf`` only 2x (AMD EPYC, one thread); the far (point, target) pairs of a
+#: frame give them, 40 % of a births/deaths likelihood's terms. :func:`_exp_` sets them to
+#: ``-inf`` first (``torch.threshold``, which keeps NaN): the same values, the same bits.
+UNDERFLOW = -746.0
+
+
+def _exp_(t: Tensor) -> Tensor:
+    """``t.exp_()`` with the arguments at or below :data:`UNDERFLOW` set to ``-inf`` first (in
+    place; the same bits as ``t.exp()``, without ATen's slow path for underflowing arguments).
+    """
+    return torch.threshold_(t, UNDERFLOW, -math.inf).exp_()
+
+
+def _logsumexp_fast(x: Tensor, dim: int) -> Tensor:
+    """``torch.logsumexp(x, dim)`` bit for bit (ATen's steps: the maxima, infinite ones set to
+    0, ``exp`` of the differences summed, ``log``, the maxima added back) with :func:`_exp_`:
+    no autograd (its in-place steps), ``x`` not modified.
+    """
+    maxes = x.amax(dim, keepdim=True)
+    maxes.masked_fill_(maxes.abs() == math.inf, 0)
+    return _exp_(x - maxes).sum(dim).log_().add_(maxes.squeeze(dim))
+
+
+def _plain(x: Tensor) -> bool:
+    """Whether a call on ``x`` may take the in-place paths: no gradient to record, no
+    ``torch.func`` transform, not traced by ``torch.compile``.
+    """
+    return not (x.requires_grad and torch.is_grad_enabled()) and not runtime.in_function_transform() \
+        and not runtime.compiling()
+
+
 @torch.library.custom_op("torchmcmcpf::logsumexp", mutates_args=())
 def _logsumexp(x: Tensor, dim: int) -> Tensor:
     """``torch.logsumexp(x, dim)``, opaque to ``torch.compile``: a compiled kernel calls the
-    same ATen kernel as eager code, so its bits are eager's (Inductor's own ``exp`` differs
+    same ATen kernels as eager code, so its bits are eager's (Inductor's own ``exp`` differs
     from ATen's in the last bit, and a filter's ``compile_step=True`` must equal eager).
     """
-    return torch.logsumexp(x, dim)
+    return _logsumexp_fast(x, dim)
 
 
 @_logsumexp.register_fake
@@ -78,7 +111,8 @@ def _intensity_change_eager(rate_terms: Tensor, sign: Tensor, cache: Tensor, mas
     ``mask (R, M)`` bool -> ``(sum over valid points of log(lambda'_m / lambda_m) (R,),
     change lambda' - lambda (R, M))``, both float64.
     """
-    change = (rate_terms.to(torch.float64).exp() * sign.unsqueeze(-1)).sum(-2)  # (R, M)
+    rate = rate_terms.to(torch.float64)
+    change = (torch.threshold(rate, UNDERFLOW, -math.inf).exp_() * sign.unsqueeze(-1)).sum(-2)  # (R, M), as _exp_
     log_ratio = torch.where(mask, torch.log1p(change / cache), 0.0)
     return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
             ).squeeze(-1), change
@@ -107,8 +141,18 @@ def as_area(area: AreaLike, name: str = "area") -> Tensor:
     return a
 
 
+def _whiten(v: Tensor, W: Tensor, diagonal: bool) -> Tensor:
+    """``v @ W.mT`` for ``v (..., 2)``; with ``diagonal`` (``W`` diagonal) as one product per axis:
+    each entry of the matrix product is ``v_j W_jj`` plus an exact zero, so the same values for
+    finite ``v`` (no BLAS call on a product of inner size 2, 4x the time on a million rows).
+    """
+    if diagonal:
+        return v * torch.diagonal(W)
+    return v @ W.mT
+
+
 def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor, p_uniform: float,
-                    area: Tensor) -> Tensor:
+                    area: Tensor, diagonal: bool = False) -> Tensor:
     """``log g(pos)`` of the density "near one of the points, or anywhere".
 
         ``g(pos) = p_u U(pos; area) + (1 - p_u) (1 / M) sum_m N(pos; z_m, R)``,  ``R^{-1} = W^T W``
@@ -122,7 +166,8 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     ----------
     pos : (B, *S, 2) positions; pts : (B, M, 2) points; mask : (B, M) bool or None (all valid).
     W : (2, 2) whitening matrix (``I / s`` for an isotropic spread ``s``); p_uniform : ``p_u``;
-    area : (2, 2) ``((x_lo, x_hi), (y_lo, y_hi))``.
+    area : (2, 2) ``((x_lo, x_hi), (y_lo, y_hi))``; diagonal : whether ``W`` is diagonal (the
+    whitening then per axis, the same values).
 
     Returns
     -------
@@ -140,7 +185,7 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     # whitened first (W is linear): the residuals are then differences of two whitened
     # coordinates, one contiguous (B, *S, M) tensor per axis, instead of a (B, *S, M, 2)
     # difference times W (a 2-column product and a reduction over 2: 3x the time)
-    wpos, wpts = pos @ Wt.mT, pts.to(pos.dtype) @ Wt.mT  # (B, *S, 2), (B, M, 2)
+    wpos, wpts = _whiten(pos, Wt, diagonal), _whiten(pts.to(pos.dtype), Wt, diagonal)  # (B, *S, 2), (B, M, 2)
     pts_shape = lead[:-1] + (1, m)
     dx = wpos[..., 0:1] - wpts[..., 0].reshape(pts_shape)  # (B, *S, M)
     dy = wpos[..., 1:2] - wpts[..., 1].reshape(pts_shape)
@@ -149,7 +194,8 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     mk = mask.reshape(lead[:-1] + (1, m))
     log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
-    log_near = torch.logsumexp(log_g, -1) - torch.log(n_valid.clamp(min=1))
+    lse = _logsumexp_fast if _plain(log_g) else torch.logsumexp  # the same bits
+    log_near = lse(log_g, -1) - torch.log(n_valid.clamp(min=1))
     log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
     log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
     log_q = torch.logaddexp(log_pi + log_u, log_pn + log_near)
@@ -221,6 +267,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         # computations follow the dtype of x): points and targets are whitened once per call,
         # not each of the K x M residuals, and no Cholesky per call
         self.register_buffer("W", torch.linalg.inv(L).tril())
+        #: whether ``R`` (so ``W`` and ``L``) is diagonal: whitening and noise then per axis
+        self.diagonal = bool((R == torch.diag(torch.diagonal(R))).all())
         self.volume = float((area_t[:, 1] - area_t[:, 0]).prod())
         self.dim = dim
         self.meas_dim = 2
@@ -228,20 +276,29 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         self._log_norm = -math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
 
     # -- likelihood ---------------------------------------------------------------------
-    def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
+    def log_intensity_terms(self, x: Tensor, z: Tensor, clutter: float | None = None) -> Tensor:
         """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
-        -> (B, *S, K, M)``.
+        -> (B, *S, K, M)``; with ``clutter`` (no autograd: in place) ``(B, *S, 1 + K, M)``,
+        row 0 that value (``log(L_C / V)``, the clutter term of :meth:`log_likelihood`).
         """
         W = self.W.to(x.dtype)
-        pos = torch.stack([x[..., X], x[..., Y]], -1) @ W.mT  # (B, *S, K, 2), whitened
-        wz = z.to(x.dtype) @ W.mT
+        pos = _whiten(torch.stack([x[..., X], x[..., Y]], -1), W, self.diagonal)  # (B, *S, K, 2), whitened
+        wz = _whiten(z.to(x.dtype), W, self.diagonal)
         at = (wz.shape[0],) + (1,) * (x.dim() - 2) + wz.shape[1:2]  # (B, 1.., 1, M)
         # L^{-1} (z_m - H x_n) one axis at a time, each a contiguous (B, *S, K, M) tensor (a
         # (B, *S, K, M, 2) residual read with stride 2 cost twice the time; the same values)
         r0 = wz[..., 0].reshape(at) - pos[..., 0:1]
         r1 = wz[..., 1].reshape(at) - pos[..., 1:2]
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        return log_rate + self._log_norm - 0.5 * (r0.square_() + r1.square_())
+        if clutter is None:
+            return log_rate + self._log_norm - 0.5 * (r0.square_() + r1.square_())
+        # c - 0.5 s as -0.5 s + c (the same rounding), written after the clutter row
+        out = r0.new_empty(r0.shape[:-2] + (r0.shape[-2] + 1, r0.shape[-1]))
+        out[..., 0, :] = clutter
+        terms = out[..., 1:, :]
+        torch.mul(r0.square_().add_(r1.square_()), -0.5, out=terms)
+        terms.add_(log_rate + self._log_norm)
+        return out
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
@@ -258,18 +315,26 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         (B, *S). Differentiable in ``x``; a frame with ``M = 0`` gives ``-(L_C + L_x n)``.
         """
         pts, mask = split_points(z)
-        terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
+        log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
         if exists is not None:
-            terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
             n_live = exists.to(x.dtype).sum(-1)
         else:
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
-        log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
-        clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
-        # compiled: through the opaque op, so that a compiled kernel gives eager's bits; eager:
-        # torch.logsumexp itself (the same kernel, and torch.func transforms see through it)
-        lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
-        per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
+        if _plain(x):  # the clutter row and the terms in one buffer, in place: the same bits
+            terms = self.log_intensity_terms(x, pts, clutter=log_clutter)  # (B, *S, 1 + K, M)
+            if exists is not None:  # + 0 or -inf: a term is never -0 or +inf, so the same values as a where
+                off = torch.zeros(exists.shape, dtype=x.dtype, device=x.device).masked_fill_(~exists, -math.inf)
+                terms[..., 1:, :].add_(off.unsqueeze(-1))
+            per_point = _logsumexp_fast(terms, -2)
+        else:
+            terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
+            if exists is not None:
+                terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
+            clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
+            # compiled: through the opaque op, so that a compiled kernel gives eager's bits; with
+            # autograd or a torch.func transform: torch.logsumexp itself (the same values)
+            lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
+            per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
@@ -305,7 +370,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         if self.clutter_rate <= 0:
             return None
         pts, _ = split_points(z)
-        rate = self.log_intensity_terms(x, pts).to(torch.float64).exp()  # (B, *S, K, M)
+        terms = self.log_intensity_terms(x, pts).to(torch.float64)
+        rate = _exp_(terms) if _plain(x) else terms.exp()  # (B, *S, K, M); a fresh tensor, the same bits
         if exists is not None:
             rate = rate * exists.unsqueeze(-1)
         return self.clutter_rate / self.volume + rate.sum(-2)
@@ -368,7 +434,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         """The whitened position ``L^-1 H x`` (one unit is one noise standard deviation):
         ``(*S, K, D) -> (*S, K, 2)``.
         """
-        return torch.stack([x[..., X], x[..., Y]], -1) @ self.W.to(x.dtype).mT
+        return _whiten(torch.stack([x[..., X], x[..., Y]], -1), self.W.to(x.dtype), self.diagonal)
 
     def place(self, x: Tensor, coords: Tensor) -> Tensor:
         """``x (*S, D)`` with its position set to ``coords (*S, 2)``, the velocity kept."""
@@ -410,20 +476,23 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M)
             idx = inverse_cdf(cdf(log_pick), u_pick[..., 0])  # (B, P)
             centre = torch.take_along_dim(pts.to(dtype), idx.unsqueeze(-1), dim=1)
-            near = centre + eps @ torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype).mT
+            L = torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype)
+            near = centre + _whiten(eps, L, self.diagonal)  # eps @ L^T
             use = (u_pick[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
             pos = torch.where(use.unsqueeze(-1), near, pos)
         a = self.area.to(dtype)
         inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
         if scored is None:
-            log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area)
+            log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area,
+                                    diagonal=self.diagonal)
             log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
         else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
             rows, cols = scored.reshape(b, p).nonzero(as_tuple=True)
             log_ratio = torch.zeros((b, p), dtype=dtype, device=dev)
             if rows.numel():
                 log_q = log_near_points(pos[rows, cols].unsqueeze(1), pts[rows], mask[rows], W=self.W,
-                                        p_uniform=self.uniform_weight, area=self.area).squeeze(1)
+                                        p_uniform=self.uniform_weight, area=self.area,
+                                        diagonal=self.diagonal).squeeze(1)
                 log_ratio.index_put_((rows, cols), torch.where(inside[rows, cols], -math.log(self.volume) - log_q,
                                                                -math.inf))
         return pos.reshape(tuple(shape) + (2,)), log_ratio.reshape(tuple(shape))
