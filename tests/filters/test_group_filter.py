@@ -31,6 +31,7 @@ from torchmcmcpf.filters.group import (
     GroupState,
     GroupWindowBirthNoise,
     Models,
+    draw_noise,
     joint_move,
     make_chain,
     make_cloud,
@@ -173,9 +174,9 @@ def test_move_leaves_target_invariant(setup, move, alpha, birth):
     accepted = []
     for _ in range(4):
         if move == "joint":
-            chain, acc = joint_move(chain, GroupJointNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, acc = joint_move(chain, draw_noise(GroupJointNoise, (1, C, K), generator=g), cloud, z, models)
         else:
-            chain, _, acc = refine_move(chain, GroupRefineNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, _, acc = refine_move(chain, draw_noise(GroupRefineNoise, (1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     est = summaries(chain.j, chain.g, chain.exists, chain.pos).mean(0)
@@ -265,7 +266,7 @@ def test_past_move_leaves_its_target_invariant():
                        win_pos=win[:, pick[0]])
     accepted = []
     for _ in range(8):
-        chain, acc = past_move(chain, GroupPastNoise.draw((1, C, K), generator=g), cloud, z, models)
+        chain, acc = past_move(chain, draw_noise(GroupPastNoise, (1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     moved = chain.prev.win_pos
@@ -311,7 +312,7 @@ def test_past_move_target_is_the_model_density():
     chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
                        win_pos=win[:, pick[0]])
     for _ in range(3):
-        chain, _ = past_move(chain, GroupPastNoise.draw((1, 500, K), generator=g), cloud, z, models)
+        chain, _ = past_move(chain, draw_noise(GroupPastNoise, (1, 500, K), generator=g), cloud, z, models)
     cached = GM._past_log_target(chain)  # the move's ratio is its difference
     direct = _log_target(filt, state, z, chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos)
     diff = (cached - direct)[0]
@@ -394,7 +395,7 @@ def test_window_birth_move_leaves_its_target_invariant():
     births = chain.prev.win_exists[:, :, -1].sum()
     accepted = []
     for _ in range(12):
-        noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+        noise = draw_noise(GroupWindowBirthNoise, (1, C, K), generator=g, window=2)
         chain, acc = window_birth_move(chain, noise, cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.01 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
@@ -426,7 +427,7 @@ def test_window_birth_move_detects_a_dropped_density():
     try:
         GM._pixel_log_q = dropped
         for _ in range(12):
-            noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+            noise = draw_noise(GroupWindowBirthNoise, (1, C, K), generator=g, window=2)
             chain, _ = window_birth_move(chain, noise, cloud, z, models)
     finally:
         GM._pixel_log_q = orig

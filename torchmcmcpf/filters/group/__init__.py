@@ -139,14 +139,14 @@ per-target refinement loops over the ``K`` slots (a Gibbs sweep is sequential by
 """
 
 from .filter import GroupMCMCFilter
-from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise
+from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise, draw_noise
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
 from .state import GroupPath, GroupState
 from .step import bind_group, group_mcmc_bound_step, group_mcmc_step
 
 __all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "GroupState", "GroupPath", "group_mcmc_step", "bind_group",
            "group_mcmc_bound_step", "GroupJointNoise", "GroupRefineNoise",
-           "GroupPastNoise", "GroupWindowBirthNoise", "default_chains", "estimate_step_bytes"]
+           "GroupPastNoise", "GroupWindowBirthNoise", "draw_noise", "default_chains", "estimate_step_bytes"]
 
 # The moves, their containers and the step's pieces stay importable from here (as before the
 # split) for code that drives the moves one by one (tests/filters/test_group_filter.py,

@@ -48,7 +48,15 @@ from .moves import (
     refine_move,
     window_birth_move,
 )
-from .noise import NOISES, GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise, _draw_fields
+from .noise import (
+    NOISES,
+    GroupJointNoise,
+    GroupPastNoise,
+    GroupRefineNoise,
+    GroupWindowBirthNoise,
+    _draw_fields,
+    draw_noise,
+)
 from .settings import GroupMCMCSettings
 from .state import KEY, GroupPath, GroupState
 
@@ -316,7 +324,7 @@ def group_mcmc_bound_step(state: ParticleState, z: Tensor, bound: Bound, *, gene
     c = settings.num_chains
     dtype, dev = state.x.dtype, state.x.device
     cloud = make_cloud(state, z, models=models, settings=settings)
-    first = GroupJointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev)
+    first = draw_noise(GroupJointNoise, (b, c, k), generator=generator, dtype=dtype, device=dev)
     chain = joint_proposal(first, cloud, z, models)
     per_chain = n // c
     names = (["joint", "structure", "target"] + (["past"] if settings.lag else [])
