@@ -44,7 +44,13 @@ class GroupMCMCFilter(Filter):
         a pixel sensor with ``shape``, ``pixel_size``, ``position_index``.
     num_particles : N, a multiple of ``num_chains``.
     existence : GroupExistence (eq. 25, births eqs. 29-37); structure_prior :
-        GroupStructurePrior (eq. 19).
+        GroupStructurePrior (eq. 19), the transition of the group structure: a model like the
+        others, handed to the base as ``models={"structure_prior": ...}`` (registered as a
+        submodule, passed to :func:`~torchmcmcpf.filters.group.step.bind_group`, which checks
+        the classes of the models). The motion is a whole-configuration
+        :class:`~torchmcmcpf.models.base.Motion` whose slots are not exchangeable, so the
+        estimate never relabels them; the state carries a typed
+        :class:`~torchmcmcpf.filters.group.GroupState`.
     settings : :class:`GroupMCMCSettings`, optional; each of its fields is also a keyword
         shortcut (``burn_in=50``), with its default written once, in the dataclass, except
         ``num_chains``, whose default depends on N: :func:`default_chains` (the largest
@@ -87,8 +93,6 @@ class GroupMCMCFilter(Filter):
             raise ValueError(f"motion must be a VirtualLeaderMotion, got {type(motion).__name__}")
         if not all(hasattr(sensor, a) for a in ("shape", "pixel_size", "position_index", "log_likelihood")):
             raise ValueError(f"sensor must be a pixel sensor (ThresholdedPixels), got {type(sensor).__name__}")
-        if not isinstance(existence, GroupExistence):
-            raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
         n = check_positive_int(num_particles, "num_particles")
         if shortcuts.get("num_chains", 0) is None:
             del shortcuts["num_chains"]

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from torch.utils._pytree import tree_map
 
 from ...models.base import neighbourhood
 from ...models.group import (
@@ -196,7 +197,7 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
     lag, w = settings.lag, win_pos.shape[2]
     labels = cloud.table[g]
     trim = lag > 0 and w == lag  # the path is full: its first entry leaves, the next is the anchor
-    parts: dict[str, list[Tensor]] = {}
+    parts: list[tuple[Tensor, Tensor, GroupPath | None]] = []  # (w_mean, w_cov, path) per chunk
     for s in range(0, j.shape[1], chunk):
         sl = slice(s, s + chunk)
         jj = j[:, sl]
@@ -214,8 +215,7 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
                 eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
                 mean = mean + eps @ L.transpose(-1, -2)
                 cov = torch.zeros_like(cov)
-            parts.setdefault("w_mean", []).append(mean)
-            parts.setdefault("w_cov", []).append(cov)
+            parts.append((mean, cov, None))
             continue
         stats = KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
         a_pos, a_g, a_lab, a_ex = (_gather(t, jj) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels,
@@ -238,18 +238,15 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
         anchor = first if trim else KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
         if trim:
             path, terms = path[1:], terms[1:]
-        for key, val in (("w_mean", stats.mean), ("w_cov", stats.cov), ("anchor_w_mean", anchor.mean),
-                         ("anchor_w_cov", anchor.cov), ("path_pos", torch.stack([p[0] for p in path], 2)),
-                         ("path_labels", torch.stack([p[1] for p in path], 2)),
-                         ("path_exists", torch.stack([p[2] for p in path], 2)),
-                         ("path_log", torch.stack([torch.zeros_like(terms[0])] + terms, 2))):
-            parts.setdefault(key, []).append(val)
-    out = {key: torch.cat(val, 1) for key, val in parts.items()}
-    new_path = None if not lag else GroupPath(out["path_pos"], out["path_labels"], out["path_exists"],
-                                              out["path_log"], out["anchor_w_mean"], out["anchor_w_cov"])
+        parts.append((stats.mean, stats.cov, GroupPath(
+            torch.stack([p[0] for p in path], 2), torch.stack([p[1] for p in path], 2),
+            torch.stack([p[2] for p in path], 2), torch.stack([torch.zeros_like(terms[0])] + terms, 2),
+            anchor.mean, anchor.cov)))
+    # the chunks joined along the particles, field by field (the path None without a lag)
+    w_mean, w_cov, new_path = tree_map(lambda *ts: None if ts[0] is None else torch.cat(ts, 1), *parts)
     frames = torch.cat([v.frames, z.to(torch.bool).unsqueeze(1)], 1)
     frames = frames[:, frames.shape[1] - (new_path.length - 1 if new_path is not None else 1):].contiguous()
-    return GroupState(labels, out["w_mean"], out["w_cov"], frames, new_path)
+    return GroupState(labels, w_mean, w_cov, frames, new_path)
 
 
 def bind_group(motion: VirtualLeaderMotion, sensor: ThresholdedPixels, settings: GroupMCMCSettings | None = None,
