@@ -108,8 +108,7 @@ def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
 def _maker(keys: list[str]) -> str:
     """The filter classes whose states carry ``keys`` (:attr:`Filter.state_extras`), in words."""
     found = sorted({cls.__name__ for cls in _filter_classes()
-                    if cls.state_extras and cls.state_extras <= set(keys) | cls.optional_state_extras
-                    and set(keys) <= cls.state_extras | cls.optional_state_extras})
+                    if cls.state_extras and cls.state_extras == set(keys)})
     return " or ".join(found) if found else "another filter"
 
 
@@ -225,9 +224,6 @@ class Filter(nn.Module):
     #: ``forward``'s estimate, :data:`ESTIMATE` and :data:`PRESENT`), all of them required in a
     #: state that resumes a run, none of them in a fresh one (:meth:`check_resume`)
     state_extras: ClassVar[frozenset[str]] = frozenset()
-    #: keys of ``ParticleState.extras`` a state of this filter may carry besides
-    #: :attr:`state_extras` (optional fields, e.g. the group filter's fixed-lag path)
-    optional_state_extras: ClassVar[frozenset[str]] = frozenset()
 
     #: the settings dataclass of the algorithm: the ``settings=`` of the constructor, and its
     #: fields the constructor's keyword shortcuts (:func:`settings_from`)
@@ -464,7 +460,7 @@ class Filter(nn.Module):
             raise ValueError(f"state.extras must be a dict of tensors or None, got {type(extras).__name__}")
         keys = set(extras) - {ESTIMATE, PRESENT}
         name = type(self).__name__
-        foreign = sorted(keys - self.state_extras - self.optional_state_extras)
+        foreign = sorted(keys - self.state_extras)
         if foreign:
             raise ValueError(f"state.extras holds {foreign}, which the states of {name} do not carry: a state of "
                              f"{_maker(foreign)}, not of this filter; resume a run with the filter that made its "
