@@ -105,14 +105,14 @@ PAST = dict(lag=2, p_past=0.25, xi=0.5)
 
 
 def _iteration_args(move):
-    from torchmcmcpf.filters.group import NOISES, joint_proposal, make_cloud
+    from torchmcmcpf.filters.group import NOISES, draw_noise, joint_proposal, make_cloud
 
     filt, state, z, g = group_problem(**(PAST if move == "past" else {}))
     models = filt.models()
     cloud = make_cloud(state, z, models=models, settings=filt.settings)
     shape = (RUNS, CHAINS, 4)
-    chain = joint_proposal(NOISES["joint"].draw(shape, generator=g), cloud, z, models)
-    return models, (chain, NOISES[move].draw(shape, generator=g), cloud, z)
+    chain = joint_proposal(draw_noise(NOISES["joint"], shape, generator=g), cloud, z, models)
+    return models, (chain, draw_noise(NOISES[move], shape, generator=g), cloud, z)
 
 
 @pytest.mark.parametrize("move", ["joint", "refine", "past"])

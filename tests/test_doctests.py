@@ -16,6 +16,7 @@ import pytest
 import torchmcmcpf as tp
 
 MODULES = ["torchmcmcpf", "torchmcmcpf.models", "torchmcmcpf.models.group", "torchmcmcpf.filters",
+           "torchmcmcpf.filters.group",
            "torchmcmcpf.kernels", "torchmcmcpf.scenarios", "torchmcmcpf.metrics", "torchmcmcpf.diagnostics",
            "torchmcmcpf.state", "torchmcmcpf.resampling", "torchmcmcpf.plotting", "torchmcmcpf.runtime",
            "torchmcmcpf.typing", "torchmcmcpf.models.sensors", "torchmcmcpf.models.sensors.grid",

@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import torch
+from torch.utils._pytree import tree_map
 
 from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
 from .typing import Tensor, X, Y
@@ -53,12 +54,13 @@ class ParticleState(NamedTuple):
     exists : (B, N, K) bool, optional
         Existence flag of each target slot, for filters with births and deaths; ``None``
         when the number of targets is known.
-    extras : dict name -> tensor with the run dim first, optional
+    extras : dict name -> tensor (or a typed NamedTuple of tensors) with the run dim first, optional
         Filtering state beyond the weighted cloud that an algorithm carries from step to
         step, so that a checkpoint of the state alone resumes it (PMMHFilter: the candidate
         parameters ``theta (B, L)``, their accumulated log-evidence ``log_evidence (B, L)``
-        and the within-candidate log-weights ``log_w_candidate (B, N)``); ``None`` for the
-        filters that need none.
+        and the within-candidate log-weights ``log_w_candidate (B, N)``; the group filter:
+        one :class:`~torchmcmcpf.filters.group.GroupState` under ``"group"``); ``None`` for
+        the filters that need none.
 
     Example
     -------
@@ -74,7 +76,7 @@ class ParticleState(NamedTuple):
     x: Tensor
     log_w: Tensor
     exists: Tensor | None = None
-    extras: dict[str, Tensor] | None = None
+    extras: dict[str, Any] | None = None
 
     def __repr__(self) -> str:
         return _short_repr(self)
@@ -299,8 +301,9 @@ def stack_states(states: list[ParticleState]) -> ParticleState:
         raise ValueError("states is empty, expected at least one ParticleState")
     first = states[0]
     exists = None if first.exists is None else torch.stack([s.exists for s in states])  # type: ignore[misc]
-    extras = None if first.extras is None else {k: torch.stack([s.extras[k] for s in states])  # type: ignore[index]
-                                                 for k in first.extras}
+    extras = None if first.extras is None else {  # a typed value (a NamedTuple of tensors) stacks field by field
+        k: tree_map(lambda *ts: None if ts[0] is None else torch.stack(ts), *[s.extras[k] for s in states])  # type: ignore[index]
+        for k in first.extras}
     return ParticleState(torch.stack([s.x for s in states]), torch.stack([s.log_w for s in states]), exists, extras)
 
 

@@ -17,6 +17,7 @@ import math
 
 import pytest
 import torch
+from torch.utils._pytree import tree_flatten
 
 from torchmcmcpf import (
     ConstantVelocity,
@@ -383,8 +384,10 @@ def _assert_same_step(a, b):
     assert torch.equal(sa.x, sb.x) and torch.equal(sa.log_w, sb.log_w)
     assert (sa.exists is None) == (sb.exists is None) and (sa.exists is None or torch.equal(sa.exists, sb.exists))
     assert (sa.extras or {}).keys() == (sb.extras or {}).keys()
-    for k in sa.extras or {}:
-        assert torch.equal(sa.extras[k], sb.extras[k]), k
+    for k in sa.extras or {}:  # a tensor, or a typed value (the group filter's GroupState): leaf by leaf
+        la, spec_a = tree_flatten(sa.extras[k])
+        lb, spec_b = tree_flatten(sb.extras[k])
+        assert spec_a == spec_b and all(x is y or torch.equal(x, y) for x, y in zip(la, lb)), k
     for f in ("ess", "log_evidence", "acceptance"):
         assert _same_bits(getattr(ia, f), getattr(ib, f)), f
     assert ia.extras.keys() == ib.extras.keys()

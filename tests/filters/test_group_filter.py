@@ -26,9 +26,12 @@ from torchmcmcpf.filters.group import (
     GroupMCMCFilter,
     GroupMCMCSettings,
     GroupPastNoise,
+    GroupPath,
     GroupRefineNoise,
+    GroupState,
     GroupWindowBirthNoise,
     Models,
+    draw_noise,
     joint_move,
     make_chain,
     make_cloud,
@@ -78,7 +81,7 @@ def small_problem():
     frame_prev = torch.zeros(1, 1, 6, 6, dtype=torch.bool)
     frame_prev[0, 0, 2, 2] = frame_prev[0, 0, 4, 1] = True
     state = ParticleState(x, torch.log(torch.tensor([[0.5, 0.3, 0.2]], dtype=DT)), exists.unsqueeze(0),
-                          {"labels": labels.unsqueeze(0), "w_mean": w_mean, "w_cov": w_cov, "frames": frame_prev})
+                          {"group": GroupState(labels.unsqueeze(0), w_mean, w_cov, frame_prev)})
     z = torch.zeros(1, 6, 6, dtype=torch.bool)
     z[0, 2, 2] = z[0, 3, 3] = z[0, 4, 1] = z[0, 0, 5] = True
     return sensor, motion, existence, prior, state, z
@@ -115,11 +118,11 @@ def reference(sensor, motion, existence, prior, state, z, generator):
     def take(t):
         return t[0, j[0]].unsqueeze(0)
 
-    ex = state.extras
-    pos_prev, lab_prev, e_prev = take(state.x[..., 0::2]), take(ex["labels"]), take(state.exists)
+    ex = state.extras["group"]
+    pos_prev, lab_prev, e_prev = take(state.x[..., 0::2]), take(ex.labels), take(state.exists)
     lab = table[g]
     tr = motion.transition(pos_prev, lab_prev, lab, e_prev, e, existence=existence)
-    pred = pairwise_kalman_predict(KalmanStats(take(ex["w_mean"]), take(ex["w_cov"])), pos_prev, tr)
+    pred = pairwise_kalman_predict(KalmanStats(take(ex.w_mean), take(ex.w_cov)), pos_prev, tr)
     pos = _draw_positions(pred, tr, existence, generator)
     log_t = take(state.log_w.unsqueeze(-1)).squeeze(-1)
     log_t = log_t + prior.log_prob(g, structure_index(lab_prev), pos_prev, e_prev)
@@ -171,9 +174,9 @@ def test_move_leaves_target_invariant(setup, move, alpha, birth):
     accepted = []
     for _ in range(4):
         if move == "joint":
-            chain, acc = joint_move(chain, GroupJointNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, acc = joint_move(chain, draw_noise(GroupJointNoise, (1, C, K), generator=g), cloud, z, models)
         else:
-            chain, _, acc = refine_move(chain, GroupRefineNoise.draw((1, C, K), generator=g), cloud, z, models)
+            chain, _, acc = refine_move(chain, draw_noise(GroupRefineNoise, (1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     est = summaries(chain.j, chain.g, chain.exists, chain.pos).mean(0)
@@ -213,10 +216,10 @@ def path_problem():
     w_cov = (A @ A.T).expand(3, 6, 6)
     frames = torch.zeros(1, 2, 6, 6, dtype=torch.bool)
     frames[0, 0, 2, 2] = frames[0, 0, 3, 3] = frames[0, 1, 2, 2] = frames[0, 1, 3, 4] = frames[0, 1, 1, 4] = True
-    extras = {"labels": path_labels[None, :, -1], "w_mean": w_mean[None], "w_cov": w_cov[None].contiguous(),
-              "frames": frames, "path_pos": path_pos[None], "path_labels": path_labels[None],
-              "path_exists": path_exists[None], "path_log": torch.zeros(1, 3, 3, dtype=DT),
-              "anchor_w_mean": w_mean[None].clone(), "anchor_w_cov": w_cov[None].contiguous()}
+    path = GroupPath(path_pos[None], path_labels[None], path_exists[None], torch.zeros(1, 3, 3, dtype=DT),
+                     w_mean[None].clone(), w_cov[None].contiguous())
+    group = GroupState(path_labels[None, :, -1], w_mean[None], w_cov[None].contiguous(), frames, path)
+    extras = {"group": group}
     x = torch.zeros(1, 3, K, 4, dtype=DT)
     x[..., 0::2] = path_pos[None, :, -1]
     state = ParticleState(x, torch.log(torch.tensor([[0.5, 0.3, 0.2]], dtype=DT)), path_exists[None, :, -1], extras)
@@ -227,7 +230,8 @@ def path_problem():
     x[..., 1::2] = prev.w_mean[..., :K].transpose(-1, -2)
     terms = torch.zeros(1, 3, 3, dtype=DT)
     terms[..., -1] = prev.log_win  # only the sum over the window enters the moves
-    state = state._replace(x=x, extras={**extras, "w_mean": prev.w_mean, "w_cov": prev.w_cov, "path_log": terms})
+    group = group._replace(w_mean=prev.w_mean, w_cov=prev.w_cov, path=path._replace(log=terms))
+    state = state._replace(x=x, extras={"group": group})
     filt.check_extras(state)
     return filt, state, z
 
@@ -244,7 +248,7 @@ def past_reference(filt, state, z, generator):
 
 
 def _window_stats(win, j, state):
-    live = state.extras["path_exists"][0, j[0], 1:].unsqueeze(0)  # (1, M, W, K)
+    live = state.extras["group"].path.exists[0, j[0], 1:].unsqueeze(0)  # (1, M, W, K)
     v = (win * live.unsqueeze(-1)).flatten(-3) / 100.0
     return [v, v.square()]
 
@@ -262,7 +266,7 @@ def test_past_move_leaves_its_target_invariant():
                        win_pos=win[:, pick[0]])
     accepted = []
     for _ in range(8):
-        chain, acc = past_move(chain, GroupPastNoise.draw((1, C, K), generator=g), cloud, z, models)
+        chain, acc = past_move(chain, draw_noise(GroupPastNoise, (1, C, K), generator=g), cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.05 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
     moved = chain.prev.win_pos
@@ -275,17 +279,17 @@ def _log_target(filt, state, z, j, g, e, pos, win):
     """``log pi(j, x_w, g, e, x)`` of the past move's target less ``log w_j - log c_j`` and
     the existence prior (the module docstring), assembled from the model pieces directly."""
     motion, sensor, existence, prior = filt.motion, filt.sensor, filt.existence, filt.structure_prior
-    ex = state.extras
+    ex = state.extras["group"]
 
     def take(t):
         return t[0, j[0]].unsqueeze(0)
 
-    pl, pe = take(ex["path_labels"]), take(ex["path_exists"])
+    pl, pe = take(ex.path.labels), take(ex.path.exists)
     w = pl.shape[2] - 1
-    stats = KalmanStats(take(ex["anchor_w_mean"]), take(ex["anchor_w_cov"]))
-    pos_p, lab_p, e_p = take(ex["path_pos"])[:, :, 0], pl[:, :, 0], pe[:, :, 0]
+    stats = KalmanStats(take(ex.path.anchor_w_mean), take(ex.path.anchor_w_cov))
+    pos_p, lab_p, e_p = take(ex.path.pos)[:, :, 0], pl[:, :, 0], pe[:, :, 0]
     total = torch.zeros_like(pos_p[..., 0, 0])
-    steps = [(win[:, :, s - 1], pl[:, :, s], pe[:, :, s], ex["frames"][:, -w - 1 + s]) for s in range(1, w + 1)]
+    steps = [(win[:, :, s - 1], pl[:, :, s], pe[:, :, s], ex.frames[:, -w - 1 + s]) for s in range(1, w + 1)]
     for pos_s, lab, e_s, z_s in steps + [(pos, group_structures(K)[g], e, z)]:
         tr = motion.transition(pos_p, lab_p, lab, e_p, e_s, existence=existence)
         log_pred, stats = pairwise_kalman_update(pairwise_kalman_predict(stats, pos_p, tr), pos_s)
@@ -308,7 +312,7 @@ def test_past_move_target_is_the_model_density():
     chain = make_chain(j[:, pick[0]], s[:, pick[0]], e[:, pick[0]], pos[:, pick[0]], cloud, z, models,
                        win_pos=win[:, pick[0]])
     for _ in range(3):
-        chain, _ = past_move(chain, GroupPastNoise.draw((1, 500, K), generator=g), cloud, z, models)
+        chain, _ = past_move(chain, draw_noise(GroupPastNoise, (1, 500, K), generator=g), cloud, z, models)
     cached = GM._past_log_target(chain)  # the move's ratio is its difference
     direct = _log_target(filt, state, z, chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos)
     diff = (cached - direct)[0]
@@ -330,14 +334,14 @@ def window_reference(filt, state, z, generator, free_existence=True):
     table = group_structures(K)
     n = state.x.shape[1]
     j, g, e = _strata(n, POOL // 24)
-    ex = state.extras
+    ex = state.extras["group"]
 
     def take(t):
         return t[0, j[0]].unsqueeze(0)
 
-    pp, pl, pe = take(ex["path_pos"]), take(ex["path_labels"]), take(ex["path_exists"])
+    pp, pl, pe = take(ex.path.pos), take(ex.path.labels), take(ex.path.exists)
     w = pp.shape[2] - 1
-    stats = KalmanStats(take(ex["anchor_w_mean"]), take(ex["anchor_w_cov"]))
+    stats = KalmanStats(take(ex.path.anchor_w_mean), take(ex.path.anchor_w_cov))
     pos_p, lab_p, e_p = pp[:, :, 0], pl[:, :, 0], pe[:, :, 0]
     log_win = torch.zeros_like(pos_p[..., 0, 0])
     window, window_e = [], []
@@ -350,7 +354,7 @@ def window_reference(filt, state, z, generator, free_existence=True):
         pos = _draw_positions(pred, tr, existence, generator)
         _, stats = pairwise_kalman_update(pred, pos)
         log_win = log_win + prior.log_prob(structure_index(lab), structure_index(lab_p), pos_p, e_p)
-        log_win = log_win + _lik(sensor, pos, e_s, ex["frames"][:, -w - 1 + s])
+        log_win = log_win + _lik(sensor, pos, e_s, ex.frames[:, -w - 1 + s])
         window.append(pos)
         window_e.append(e_s)
         pos_p, lab_p, e_p = pos, lab, e_s
@@ -391,7 +395,7 @@ def test_window_birth_move_leaves_its_target_invariant():
     births = chain.prev.win_exists[:, :, -1].sum()
     accepted = []
     for _ in range(12):
-        noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+        noise = draw_noise(GroupWindowBirthNoise, (1, C, K), generator=g, window=2)
         chain, acc = window_birth_move(chain, noise, cloud, z, models)
         accepted.append(acc.to(DT).mean())
     assert 0.01 < float(torch.stack(accepted).mean()) < 0.99  # the move does move
@@ -423,7 +427,7 @@ def test_window_birth_move_detects_a_dropped_density():
     try:
         GM._pixel_log_q = dropped
         for _ in range(12):
-            noise = GroupWindowBirthNoise.draw((1, C, K), generator=g, window=2)
+            noise = draw_noise(GroupWindowBirthNoise, (1, C, K), generator=g, window=2)
             chain, _ = window_birth_move(chain, noise, cloud, z, models)
     finally:
         GM._pixel_log_q = orig
@@ -443,15 +447,15 @@ def test_stored_path_reproduces_the_kalman_statistics():
                            burn_in=10, xi=0.5, lag=2, p_past=0.25, birth="frame")
     state = filt(scn.frames[:4], init=filt.init_inactive(2), generator=torch.Generator().manual_seed(1)).state
     z = scn.frames[4]
-    assert bool(state.extras["path_exists"].any())  # targets were born on the way
+    assert bool(state.extras["group"].path.exists.any())  # targets were born on the way
     cloud = make_cloud(state, z, models=filt.models(), settings=filt.settings)
     n = state.x.shape[1]
     j = torch.arange(n).unsqueeze(0)
     prev = GM._past(j, cloud.view.win_pos, cloud, filt.models())
-    assert state.extras["path_pos"].shape[2] == 3  # anchor + 2 past steps
-    torch.testing.assert_close(prev.w_mean, state.extras["w_mean"], rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(prev.w_cov, state.extras["w_cov"], rtol=1e-9, atol=1e-9)
-    torch.testing.assert_close(prev.log_win, state.extras["path_log"][..., 1:].sum(-1), rtol=1e-9, atol=1e-9)
+    assert state.extras["group"].path.pos.shape[2] == 3  # anchor + 2 past steps
+    torch.testing.assert_close(prev.w_mean, state.extras["group"].w_mean, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(prev.w_cov, state.extras["group"].w_cov, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(prev.log_win, state.extras["group"].path.log[..., 1:].sum(-1), rtol=1e-9, atol=1e-9)
     torch.testing.assert_close(prev.pos, state.x[..., 0::2])
 
 
@@ -484,12 +488,12 @@ def test_outputs_shapes_and_public_api(lag):
     assert bool(torch.isnan(res.info.ess).all()) and bool(torch.isnan(res.log_evidence).all())
     st = res.state
     assert isinstance(st, ParticleState)
-    assert st.x.shape == (b, 8, 4, 4) and st.extras["w_mean"].shape == (b, 8, 2, 12)
-    assert st.extras["w_cov"].shape == (b, 8, 12, 12) and bool(torch.isfinite(st.x).all())
+    assert st.x.shape == (b, 8, 4, 4) and st.extras["group"].w_mean.shape == (b, 8, 2, 12)
+    assert st.extras["group"].w_cov.shape == (b, 8, 12, 12) and bool(torch.isfinite(st.x).all())
     assert bool((st.x[~st.exists] == 0).all())  # the dead slots carry x_death
     if lag:
-        assert st.extras["path_pos"].shape == (b, 8, lag + 1, 4, 2) and st.extras["frames"].shape[1] == lag
-        torch.testing.assert_close(st.extras["path_pos"][:, :, -1], st.x[..., 0::2])
+        assert st.extras["group"].path.pos.shape == (b, 8, lag + 1, 4, 2) and st.extras["group"].frames.shape[1] == lag
+        torch.testing.assert_close(st.extras["group"].path.pos[:, :, -1], st.x[..., 0::2])
     # issue 25: to_numpy on a group result (GroupState had no extras)
     arrays = res.to_numpy()
     assert arrays["state.x"].shape == (b, 8, 4, 4) and arrays["info.structure_prob"].shape == (t, b, 15)
@@ -498,7 +502,8 @@ def test_outputs_shapes_and_public_api(lag):
 def test_without_marginalisation_carries_point_masses():
     filt, frames, init = tiny_filter(marginalise=False)
     res = filt(frames, init=init, generator=torch.Generator().manual_seed(2))
-    assert bool((res.state.extras["w_cov"] == 0).all()) and bool(torch.isfinite(res.state.extras["w_mean"]).all())
+    group = res.state.extras["group"]
+    assert bool((group.w_cov == 0).all()) and bool(torch.isfinite(group.w_mean).all())
 
 
 def test_resume_with_a_lag_same_bits(tmp_path):
@@ -543,11 +548,15 @@ def test_bad_input_names_the_argument():
         GroupMCMCSettings(xi=0.5, p_window_birth=0.1)
     with pytest.raises(ValueError, match="p_window_birth must be a probability"):
         GroupMCMCSettings(lag=2, p_past=0.1, p_window_birth=-0.1)
-    with pytest.raises(ValueError, match=r"state.extras has no \['w_cov'\]"):
-        filt(frames, init=init._replace(extras={k: v for k, v in init.extras.items() if k != "w_cov"}), generator=g)
-    with pytest.raises(ValueError, match=r"state.extras\['labels'\] has shape"):
-        filt.step(init._replace(extras={**init.extras, "labels": init.extras["labels"][:, :4]}), frames[0],
-                  generator=g)
+    group = init.extras["group"]
+    with pytest.raises(ValueError, match=r"state.extras has no \['group'\]"):
+        filt(frames, init=init._replace(extras={"estimate": init.x[:, 0]}), generator=g)
+    with pytest.raises(ValueError, match=r"state.extras\['group'\].labels has shape \(2, 4, 4\), expected \(2, 8, 4\)"):
+        filt.step(init._replace(extras={"group": group._replace(labels=group.labels[:, :4])}), frames[0], generator=g)
+    with pytest.raises(ValueError, match=r"state.extras\['group'\].w_cov is torch.float32 .* expected torch.float64"):
+        filt.step(init._replace(extras={"group": group._replace(w_cov=group.w_cov.float())}), frames[0], generator=g)
+    with pytest.raises(ValueError, match=r"state.extras\['group'\] must be a GroupState, got dict"):
+        filt.step(init._replace(extras={"group": dict(group._asdict())}), frames[0], generator=g)
 
 
 def test_state_of_another_size_is_refused():
@@ -597,6 +606,91 @@ def test_cuda_end_to_end_matches_the_cpu_statistics():
     filt = filt.to("cuda")
     g = torch.Generator(device="cuda").manual_seed(0)
     res = filt(frames.cuda(), init=filt.init_inactive(2, device="cuda"), generator=g)
-    assert res.mean.device.type == "cuda" and res.state.extras["w_cov"].device.type == "cuda"
+    assert res.mean.device.type == "cuda" and res.state.extras["group"].w_cov.device.type == "cuda"
     torch.testing.assert_close(res.info.extras["structure_prob"].sum(-1).cpu(), torch.ones(frames.shape[:2], dtype=DT))
     assert bool(torch.isfinite(res.mean).all())
+
+
+# ----------------------------------------------------------------------------- typed state, models
+#: sha256 of a few seeded steps' outputs (mean, cov, exists_prob, the state with its GroupState,
+#: the carried estimate, every StepInfo field), recorded with the group filter before its state
+#: became a GroupState and its special cases left the Filter base: the bits must not move
+RECORDED = {
+    "plain": "e9fafe3d058f8b90eac1c4cd60854a84c1daf3e1db1936e8d721d1ec24ad0127",
+    "lag": "c271f4b5031bed73826f9f92169d5039e36e8b932c5abdb2a909974eaddb0179",
+    "sampled": "e78469f56623b3cfde161369573bdc7e34dc575751b1832d7dc5f2337f15920d",
+}
+
+
+@pytest.mark.parametrize("name, kw", [("plain", {}), ("lag", {"lag": 2, "p_past": 0.1, "p_window_birth": 0.1}),
+                                      ("sampled", {"marginalise": False})])
+def test_bits_match_the_recorded_run(name, kw):
+    import hashlib
+
+    from torchmcmcpf.scenarios.group_merge import group_merge
+
+    scn = group_merge(2, generator=torch.Generator().manual_seed(0), num_steps=5)
+    filt = GroupMCMCFilter(scn.motion, scn.sensor, 24, existence=scn.existence, structure_prior=scn.structure_prior,
+                           burn_in=5, **kw)
+    res = filt(scn.frames, init=filt.init_inactive(2), generator=torch.Generator().manual_seed(1))
+    st, group = res.state, res.state.extras["group"]
+    tensors = [res.mean, res.cov, res.exists_prob, st.x, st.log_w, st.exists, st.extras["estimate"],
+               st.extras["estimate_present"], group.labels, group.w_mean, group.w_cov, group.frames]
+    tensors += [] if group.path is None else list(group.path)
+    tensors += [res.info.extras[k] for k in sorted(res.info.extras)]
+    tensors += [res.info.ess, res.info.log_evidence, res.info.acceptance]
+    h = hashlib.sha256()
+    for t in tensors:
+        h.update(t.contiguous().numpy().tobytes())
+    assert h.hexdigest() == RECORDED[name]
+
+
+def test_result_saves_loads_with_weights_only_and_resumes(tmp_path):
+    """A whole result (its state a GroupState with a path, its history stacked field by field)
+    round-trips through torch.save / torch.load(weights_only=True) and resumes bit for bit."""
+    filt, frames, init = tiny_filter(lag=2, p_past=0.2, xi=0.5)
+    whole = filt(frames, init=init, generator=torch.Generator().manual_seed(7))
+    g = torch.Generator().manual_seed(7)
+    first = filt(frames[:2], init=init, generator=g, history=True)
+    assert first.history.extras["group"].path.pos.shape[:3] == (2, 2, 8)  # (T, B, N, ...)
+    torch.save(first, tmp_path / "result.pt")
+    loaded = torch.load(tmp_path / "result.pt", weights_only=True)
+    assert isinstance(loaded.state.extras["group"], GroupState)
+    assert isinstance(loaded.state.extras["group"].path, GroupPath)
+    rest = filt(frames[2:], init=loaded.state, generator=g)
+    assert torch.equal(torch.cat([first.mean, rest.mean]), whole.mean) and torch.equal(rest.state.x, whole.state.x)
+
+
+def test_models_not_flags():
+    """The motion says what it is (Motion.exchangeable_slots); the structure prior is a model
+    the group filter registers (it moves with .to); the other filters refuse the group motion."""
+    from torchmcmcpf import SIRFilter
+    from torchmcmcpf.filters.base import Filter
+    from torchmcmcpf.models.base import Motion
+
+    filt, _, _ = tiny_filter()
+    assert isinstance(filt.motion, Motion) and not filt.motion.exchangeable_slots
+    assert filt.structure_prior is dict(filt.named_children())["structure_prior"]
+    assert not any(hasattr(Filter, a) for a in ("motion_type", "relabels", "extra_models"))
+    with pytest.raises(ValueError, match="motion must be a MotionModel .* got VirtualLeaderMotion"):
+        SIRFilter(filt.motion, filt.sensor, 8)
+    with pytest.raises(ValueError, match="structure_prior must be a .*, got NoneType"):
+        GroupMCMCFilter(filt.motion, filt.sensor, 8, existence=filt.existence, structure_prior=None)
+
+
+def test_a_state_saved_with_open_keys_resumes():
+    """A state whose group fields are the open keys of ``extras`` (as saved before the state
+    was typed) resumes as the typed one does."""
+    filt, frames, init = tiny_filter(lag=2, p_past=0.2, xi=0.5)
+    g = torch.Generator().manual_seed(3)
+    first = filt(frames[:2], init=init, generator=g)
+    group = first.state.extras["group"]
+    old = {**{k: v for k, v in first.state.extras.items() if k != "group"}, "labels": group.labels,
+           "w_mean": group.w_mean, "w_cov": group.w_cov, "frames": group.frames,
+           **dict(zip(("path_pos", "path_labels", "path_exists", "path_log", "anchor_w_mean", "anchor_w_cov"),
+                      group.path))}
+    state = g.get_state()
+    typed = filt(frames[2:], init=first.state, generator=g)
+    g.set_state(state)
+    legacy = filt(frames[2:], init=first.state._replace(extras=old), generator=g)
+    assert torch.equal(typed.mean, legacy.mean) and torch.equal(typed.state.x, legacy.state.x)

@@ -108,9 +108,13 @@ def bind(motion: MotionModel, sensor: SensorModel, settings: Any, existence: Bir
     :class:`~torchmcmcpf.models.existence.TargetDynamics`, then ``check(bound)`` (the
     algorithm's checks against the models: a ``ValueError`` naming the setting) and
     ``program(bound, compile)``, the algorithm's program (compiled with ``compile``, eager
-    when it is None). Every step of binding is idempotent, so a bound object binds again to
-    itself (a filter loaded from a pickle, or switched to ``compile_step``).
+    when it is None). ``motion`` must be a per-slot
+    :class:`~torchmcmcpf.models.base.MotionModel` (a ``ValueError`` otherwise). Every step
+    of binding is idempotent, so a bound object binds again to itself (a filter loaded from
+    a pickle, or switched to ``compile_step``).
     """
+    if not isinstance(motion, MotionModel):  # e.g. a whole-configuration Motion, which its own filter binds
+        raise ValueError(f"motion must be a MotionModel (one transition for every slot), got {type(motion).__name__}")
     existence = check_existence(existence)
     settings = active_prior(settings, sensor)
     proposal = getattr(settings, "existence_proposal", None)

@@ -41,7 +41,7 @@ import itertools
 import weakref
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import torch
 from torch import nn
@@ -49,7 +49,7 @@ from torch.utils._pytree import tree_map
 
 from .._validation import check_generator, check_positive_int, check_shape, check_tensor, measurement_leaves
 from .._version import __version__
-from ..models.base import MotionModel, SensorModel
+from ..models.base import Motion, MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..runtime import check_allocation, compile_program
 from ..state import (
@@ -108,8 +108,7 @@ def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
 def _maker(keys: list[str]) -> str:
     """The filter classes whose states carry ``keys`` (:attr:`Filter.state_extras`), in words."""
     found = sorted({cls.__name__ for cls in _filter_classes()
-                    if cls.state_extras and cls.state_extras <= set(keys) | cls.optional_state_extras
-                    and set(keys) <= cls.state_extras | cls.optional_state_extras})
+                    if cls.state_extras and cls.state_extras == set(keys)})
     return " or ".join(found) if found else "another filter"
 
 
@@ -208,7 +207,7 @@ class Filter(nn.Module):
     (torch.Size([1, 50, 2, 4]), torch.Size([1]))
     """
 
-    motion: MotionModel
+    motion: Motion
     sensor: SensorModel
     num_particles: int
     existence: BirthDeath | None
@@ -216,12 +215,6 @@ class Filter(nn.Module):
     #: 2-core CPU (5-target ground radar, ``benchmarks/bench_compile.py``); shown in the progress
     #: bar while that step runs
     compile_seconds: float = 20.0
-    #: the class of motion model the filter takes (the group filter's is a whole-configuration
-    #: model, :class:`~torchmcmcpf.models.group.VirtualLeaderMotion`, with ``dim``)
-    motion_type: type = MotionModel
-    #: whether :meth:`estimate_targets` may relabel the particles' slots (False where a
-    #: slot's label is part of the model, as the group filter's group structure)
-    relabels: bool = True
 
     #: copies of the particle state ``(B, N, K, D)`` a step holds at once, at least (the state
     #: in, the prediction or proposal, the resampled cloud, the state out): the factor of
@@ -231,9 +224,6 @@ class Filter(nn.Module):
     #: ``forward``'s estimate, :data:`ESTIMATE` and :data:`PRESENT`), all of them required in a
     #: state that resumes a run, none of them in a fresh one (:meth:`check_resume`)
     state_extras: ClassVar[frozenset[str]] = frozenset()
-    #: keys of ``ParticleState.extras`` a state of this filter may carry besides
-    #: :attr:`state_extras` (optional fields, e.g. the group filter's fixed-lag path)
-    optional_state_extras: ClassVar[frozenset[str]] = frozenset()
 
     #: the settings dataclass of the algorithm: the ``settings=`` of the constructor, and its
     #: fields the constructor's keyword shortcuts (:func:`settings_from`)
@@ -244,9 +234,6 @@ class Filter(nn.Module):
     #: the algorithm's step on its bound object, ``(state, z, bound, *, generator) -> (state,
     #: StepInfo)`` (a ``staticmethod``: e.g. ``sir_bound_step``)
     bound_step: ClassVar[Callable[..., tuple[ParticleState, StepInfo]]]
-    #: keywords of the constructor that are models besides motion, sensor and existence (the
-    #: group filter's ``structure_prior``): registered as submodules and passed to :attr:`bind`
-    extra_models: ClassVar[tuple[str, ...]] = ()
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Give a filter class with a :attr:`settings_class` the constructor signature its
@@ -256,16 +243,23 @@ class Filter(nn.Module):
         if cls.__dict__.get("settings_class") is not None:
             cls.__signature__ = constructor_signature(cls.__dict__["settings_class"])  # type: ignore[attr-defined]
 
-    def __init__(self, motion: MotionModel, sensor: SensorModel, num_particles: int, settings: Any = None, *,
-                 existence: BirthDeath | None = None, compile_step: bool = False, **shortcuts: Any):
+    def __init__(self, motion: Motion, sensor: SensorModel, num_particles: int, settings: Any = None, *,
+                 existence: BirthDeath | None = None, compile_step: bool = False,
+                 models: Mapping[str, nn.Module] | None = None, **shortcuts: Any):
+        """``models``: the algorithm's models besides ``motion``, ``sensor`` and ``existence``,
+        by the keyword its :attr:`bind` takes them (the group filter's ``structure_prior``),
+        registered as submodules (``.to(device)`` moves them) and passed to :attr:`bind`; a
+        filter whose algorithm needs one takes it as its own constructor argument and passes
+        it on here. The other arguments: the module docstring.
+        """
         super().__init__()
-        models = {name: shortcuts.pop(name) for name in self.extra_models if name in shortcuts}
+        models = dict(models or {})
         if self.settings_class is not None:
             settings = settings_from(self.settings_class, settings, shortcuts)
         elif shortcuts:
             raise TypeError(f"unexpected keyword argument(s) {sorted(shortcuts)} for {type(self).__name__}")
-        if not isinstance(motion, self.motion_type):
-            raise ValueError(f"motion must be a {self.motion_type.__name__}, got {type(motion).__name__}")
+        if not isinstance(motion, Motion):  # which kind of motion the algorithm takes: its bind checks
+            raise ValueError(f"motion must be a MotionModel (or another Motion), got {type(motion).__name__}")
         if not isinstance(sensor, SensorModel):
             raise ValueError(f"sensor must be a SensorModel, got {type(sensor).__name__}")
         if not isinstance(compile_step, bool):
@@ -273,7 +267,10 @@ class Filter(nn.Module):
         self.motion = motion
         self.sensor = sensor
         for name, model in models.items():
+            if not isinstance(model, nn.Module):
+                raise ValueError(f"{name} must be a model (an nn.Module), got {type(model).__name__}")
             setattr(self, name, model)
+        self._model_names = tuple(models)
         self.num_particles = check_positive_int(num_particles, "num_particles")
         self._compile_step = compile_step
         self._compiled_shapes: set[tuple] = set()  # (B, N, K, D, dtype, device) already run compiled
@@ -289,7 +286,7 @@ class Filter(nn.Module):
         """
         compile: Compile = compile_program if self._compile_step else None
         self._bound = self.bind(self.motion, self.sensor, settings, existence, num_particles=self.num_particles,
-                                compile=compile, **{name: getattr(self, name) for name in self.extra_models})
+                                compile=compile, **{name: getattr(self, name) for name in self._model_names})
         self.existence = self._bound.existence
 
     @property
@@ -390,6 +387,8 @@ class Filter(nn.Module):
         super().__setstate__(d)
         self._trusted = deque(maxlen=_TRUSTED_STATES)
         self._devices = None
+        if "_model_names" not in d:  # pickled when the further models were a class attribute: its submodules
+            self._model_names = tuple(n for n in self._modules if n not in ("motion", "sensor", "existence"))
         if "_bound" not in d:  # pickled before filters bound once: settings and flag were attributes
             self._compile_step = self.__dict__.pop("compile_step")
             self.__dict__.pop("_compiled", None)
@@ -461,7 +460,7 @@ class Filter(nn.Module):
             raise ValueError(f"state.extras must be a dict of tensors or None, got {type(extras).__name__}")
         keys = set(extras) - {ESTIMATE, PRESENT}
         name = type(self).__name__
-        foreign = sorted(keys - self.state_extras - self.optional_state_extras)
+        foreign = sorted(keys - self.state_extras)
         if foreign:
             raise ValueError(f"state.extras holds {foreign}, which the states of {name} do not carry: a state of "
                              f"{_maker(foreign)}, not of this filter; resume a run with the filter that made its "
@@ -533,8 +532,9 @@ class Filter(nn.Module):
             (``forward`` passes it). A sensor without
             :meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords` (labelled
             measurements, such as :class:`~torchmcmcpf.models.LinearGaussian`) says which slot
-            is which target, as does a filter whose slots' labels are part of its model
-            (:attr:`relabels`, the group filter): there the particles are not relabelled.
+            is which target, as does a motion whose slots' labels are part of the model
+            (``motion.exchangeable_slots`` False, :class:`~torchmcmcpf.models.base.Motion`:
+            the group filter's): there the particles are not relabelled.
 
         Returns
         -------
@@ -546,13 +546,13 @@ class Filter(nn.Module):
                   ) -> tuple[ExistenceEstimate, ParticleState]:
         """:meth:`estimate_targets` and the relabelled cloud it averaged."""
         x_death = None if self.existence is None else self.existence.x_death
-        if not (self.relabels and self.sensor.resolved):  # labelled measurements or slots: the slots are the targets
+        if not (self.motion.exchangeable_slots and self.sensor.resolved):  # labelled measurements or slots
             return relabelled_estimate(state, x_death=x_death, iterations=0)
         ref = present = None
         if reference is not None:
             m = reference.mean
-            ref = self.motion.propagate(m, torch.zeros(m.shape[:-1] + (self.motion.noise_dim,), dtype=m.dtype,
-                                                       device=m.device))
+            motion = cast(MotionModel, self.motion)  # exchangeable slots: a per-slot MotionModel
+            ref = motion.propagate(m, torch.zeros(m.shape[:-1] + (motion.noise_dim,), dtype=m.dtype, device=m.device))
             present = reference.present if state.exists is not None else None
         return relabelled_estimate(state, ref, reference_exists=present, x_death=x_death)
 
@@ -667,7 +667,7 @@ class Filter(nn.Module):
         steps, note = self._progress(num_steps, state.x, progress)
         means, covs, infos, exists_prob, states = [], [], [], [], []
         est = _carried_estimate(state)
-        if est is None and self.relabels and self.sensor.resolved and state.num_targets > 1:
+        if est is None and self.motion.exchangeable_slots and self.sensor.resolved and state.num_targets > 1:
             # a fresh start: the initial cloud's own slot means are the first reference (its
             # labels are the caller's), not one particle of the first step's cloud
             x_death = None if self.existence is None else self.existence.x_death

@@ -3,7 +3,7 @@ sensors (likelihoods).
 """
 
 from ..state import ExistenceEstimate, existence_estimate
-from .base import MotionModel, SensorModel
+from .base import Motion, MotionModel, SensorModel
 from .existence import BirthDeath
 from .group import (
     AffineTransition,
@@ -24,6 +24,7 @@ from .sensors import *  # noqa: F401,F403
 from .sensors import __all__ as _sensors
 
 __all__ = [
+    "Motion",
     "MotionModel",
     "SensorModel",
     "ConstantVelocity",

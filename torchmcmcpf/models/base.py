@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from typing import Generic, TypeVar
+from typing import ClassVar, Generic, TypeVar
 
 import torch
 from torch import nn
@@ -18,7 +18,7 @@ from .. import runtime
 from .._validation import check_batch, check_finite, check_shape
 from ..typing import Measurement, Tensor
 
-__all__ = ["MotionModel", "SensorModel", "linear_map", "squared_norm", "check_reference"]
+__all__ = ["Motion", "MotionModel", "SensorModel", "linear_map", "squared_norm", "check_reference"]
 
 
 def linear_map(x: Tensor, M: Tensor) -> Tensor:
@@ -124,7 +124,43 @@ def _block(M: Tensor, g: int) -> Tensor:
     return block
 
 
-class MotionModel(nn.Module):
+class Motion(nn.Module):
+    """What every motion model declares to the filters: the per-target state size ``dim``
+    and whether its slots are exchangeable (:attr:`exchangeable_slots`). The one base of
+    motion models: :class:`MotionModel` (the same transition applied to every slot, which
+    every filter but the group filter takes) and whole-configuration motions such as
+    :class:`~torchmcmcpf.models.group.VirtualLeaderMotion` (the slots move jointly, a slot's
+    label is its place in the group structure), which only the filter built for them takes
+    (its bind function checks the motion's class). The :class:`~torchmcmcpf.filters.base.Filter`
+    base reads :attr:`exchangeable_slots` to decide whether its estimate may relabel the
+    particles' slots; nothing about a particular motion is a flag of the filter.
+
+    Attributes
+    ----------
+    dim : int
+        Per-target state size D (``x (B, N, K, D)``).
+    exchangeable_slots : bool
+        True (the default) where the motion treats every slot alike, so that a slot's label
+        carries no meaning and the estimate may relabel the particles (Stephens 2000); False
+        where a slot's label is part of the model.
+
+    Example
+    -------
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.models.base import Motion
+    >>> from torchmcmcpf.models.group import VirtualLeaderMotion
+    >>> cv = tp.ConstantVelocity()
+    >>> isinstance(cv, Motion), cv.dim, cv.exchangeable_slots          # a per-slot MotionModel
+    (True, 4, True)
+    >>> VirtualLeaderMotion.exchangeable_slots                         # labels are group places
+    False
+    """
+
+    dim: int
+    exchangeable_slots: ClassVar[bool] = True
+
+
+class MotionModel(Motion):
     """Per-target Markov transition ``p(x_k | x_{k-1})``, applied to every slot alike.
 
     Subclasses implement :meth:`propagate` (deterministic given standard normal noise) and

@@ -118,15 +118,17 @@ State and outputs
 The filtering state is a :class:`~torchmcmcpf.state.ParticleState` like every filter's:
 ``x (B, N, K, 4)`` holds ``[x, vx, y, vy]`` (the sampled positions and each particle's Kalman
 posterior-mean velocities, so ``existence_estimate`` gives positions and velocities),
-``log_w``, ``exists``, and ``extras`` holds the rest (run dim first):
+``log_w``, ``exists``, and ``extras["group"]`` the rest, one typed
+:class:`~torchmcmcpf.filters.group.GroupState` (run dim first; validated by
+:meth:`GroupState.check <torchmcmcpf.filters.group.GroupState.check>`):
 
 - ``labels (B, N, K)`` int64, the structure; ``w_mean (B, N, 2, 3K)``, ``w_cov (B, N, 3K,
   3K)``, the Kalman statistics of ``w = [velocities, leader positions, leader velocities]``
   per axis; ``frames (B, F, H, W)`` bool, the last ``F`` frames (eq. 65 and the window);
-- with ``lag >= 1``, the path ``t - P + 1 .. t`` (``P <= L + 1`` entries, the first the
-  anchor): ``path_pos (B, N, P, K, 2)``, ``path_labels``, ``path_exists (B, N, P, K)``,
-  ``path_log (B, N, P)`` (each entry's term of the target above), ``anchor_w_mean``,
-  ``anchor_w_cov``.
+- ``path``, with ``lag >= 1``, a :class:`~torchmcmcpf.filters.group.GroupPath`: the path
+  ``t - P + 1 .. t`` (``P <= L + 1`` entries, the first the anchor): ``pos (B, N, P, K, 2)``,
+  ``labels``, ``exists (B, N, P, K)``, ``log (B, N, P)`` (each entry's term of the target
+  above), ``anchor_w_mean``, ``anchor_w_cov``; None without a lag.
 
 ``StepInfo.extras`` has ``structure_prob (B, Bell(K))`` (posterior probability of every row
 of :func:`~torchmcmcpf.models.group.group_structures`), ``exists_prob (B, K)``,
@@ -137,13 +139,14 @@ per-target refinement loops over the ``K`` slots (a Gibbs sweep is sequential by
 """
 
 from .filter import GroupMCMCFilter
-from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise
+from .noise import GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise, draw_noise
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
+from .state import GroupPath, GroupState
 from .step import bind_group, group_mcmc_bound_step, group_mcmc_step
 
-__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "bind_group", "group_mcmc_bound_step",
-           "GroupJointNoise", "GroupRefineNoise",
-           "GroupPastNoise", "GroupWindowBirthNoise", "default_chains", "estimate_step_bytes"]
+__all__ = ["GroupMCMCFilter", "GroupMCMCSettings", "GroupState", "GroupPath", "group_mcmc_step", "bind_group",
+           "group_mcmc_bound_step", "GroupJointNoise", "GroupRefineNoise",
+           "GroupPastNoise", "GroupWindowBirthNoise", "draw_noise", "default_chains", "estimate_step_bytes"]
 
 # The moves, their containers and the step's pieces stay importable from here (as before the
 # split) for code that drives the moves one by one (tests/filters/test_group_filter.py,
@@ -162,6 +165,5 @@ from .moves import window_birth_move as window_birth_move  # noqa: E402
 from .noise import NOISES as NOISES  # noqa: E402
 from .settings import ALPHAS as ALPHAS  # noqa: E402
 from .settings import BIRTHS as BIRTHS  # noqa: E402
-from .step import PATH_KEYS as PATH_KEYS  # noqa: E402
 from .step import make_cloud as make_cloud  # noqa: E402
 from .step import unpack as unpack  # noqa: E402

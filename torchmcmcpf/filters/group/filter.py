@@ -27,7 +27,8 @@ from ...typing import Tensor
 from ..base import Filter
 from .moves import Models
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
-from .step import PATH_KEYS, bind_group, group_mcmc_bound_step
+from .state import KEY, GroupPath, GroupState, from_keys
+from .step import bind_group, group_mcmc_bound_step
 
 __all__ = ["GroupMCMCFilter"]
 
@@ -43,7 +44,13 @@ class GroupMCMCFilter(Filter):
         a pixel sensor with ``shape``, ``pixel_size``, ``position_index``.
     num_particles : N, a multiple of ``num_chains``.
     existence : GroupExistence (eq. 25, births eqs. 29-37); structure_prior :
-        GroupStructurePrior (eq. 19).
+        GroupStructurePrior (eq. 19), the transition of the group structure: a model like the
+        others, handed to the base as ``models={"structure_prior": ...}`` (registered as a
+        submodule, passed to :func:`~torchmcmcpf.filters.group.step.bind_group`, which checks
+        the classes of the models). The motion is a whole-configuration
+        :class:`~torchmcmcpf.models.base.Motion` whose slots are not exchangeable, so the
+        estimate never relabels them; the state carries a typed
+        :class:`~torchmcmcpf.filters.group.GroupState`.
     settings : :class:`GroupMCMCSettings`, optional; each of its fields is also a keyword
         shortcut (``burn_in=50``), with its default written once, in the dataclass, except
         ``num_chains``, whose default depends on N: :func:`default_chains` (the largest
@@ -68,29 +75,24 @@ class GroupMCMCFilter(Filter):
     torch.Size([3, 2, 4])
     """
 
-    motion: VirtualLeaderMotion  # type: ignore[assignment]  # a whole-configuration motion (motion_type)
+    motion: VirtualLeaderMotion  # type: ignore[assignment]  # a whole-configuration Motion
+    structure_prior: GroupStructurePrior
     sensor: ThresholdedPixels
     existence: GroupExistence
-    #: the group fields of the state (package docstring, "State and outputs"); the fixed-lag
-    #: path's fields only with ``lag > 0``
-    state_extras = frozenset({"labels", "w_mean", "w_cov", "frames"})
-    optional_state_extras = frozenset(PATH_KEYS)
+    #: the state carries its group fields as one :class:`~torchmcmcpf.filters.group.GroupState`
+    #: under ``extras["group"]`` (package docstring, "State and outputs")
+    state_extras = frozenset({KEY})
     settings_class = GroupMCMCSettings
     bind = staticmethod(bind_group)
     bound_step = staticmethod(group_mcmc_bound_step)
-    extra_models = ("structure_prior",)
-    motion_type = VirtualLeaderMotion
-    relabels = False  # a slot's label is its place in the group structure
 
     def __init__(self, motion: VirtualLeaderMotion, sensor: ThresholdedPixels, num_particles: int,
                  settings: GroupMCMCSettings | None = None, *, existence: GroupExistence,
                  structure_prior: GroupStructurePrior, compile_step: bool = False, **shortcuts: Any) -> None:
+        if not isinstance(motion, VirtualLeaderMotion):
+            raise ValueError(f"motion must be a VirtualLeaderMotion, got {type(motion).__name__}")
         if not all(hasattr(sensor, a) for a in ("shape", "pixel_size", "position_index", "log_likelihood")):
             raise ValueError(f"sensor must be a pixel sensor (ThresholdedPixels), got {type(sensor).__name__}")
-        if not isinstance(existence, GroupExistence):
-            raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
-        if not isinstance(structure_prior, GroupStructurePrior):
-            raise ValueError(f"structure_prior must be a GroupStructurePrior, got {type(structure_prior).__name__}")
         n = check_positive_int(num_particles, "num_particles")
         if shortcuts.get("num_chains", 0) is None:
             del shortcuts["num_chains"]
@@ -99,7 +101,7 @@ class GroupMCMCFilter(Filter):
         if "past_step" in shortcuts:
             shortcuts["past_step"] = tuple(shortcuts["past_step"])
         super().__init__(motion, sensor, n, settings, existence=existence,  # type: ignore[arg-type]
-                         compile_step=compile_step, structure_prior=structure_prior, **shortcuts)
+                         compile_step=compile_step, models={"structure_prior": structure_prior}, **shortcuts)
 
     def models(self) -> Models:
         """The models and proposal constants the moves are bound to (``filt.bound.dynamics``)."""
@@ -144,19 +146,18 @@ class GroupMCMCFilter(Filter):
         w_mean[..., :k] = x[..., 1::2].transpose(-1, -2)
         labels = labels.to(torch.int64).contiguous()
         h, w = self.sensor.shape
-        extras = {"labels": labels, "w_mean": w_mean, "w_cov": st.cov,
-                  "frames": torch.zeros((b, 0, h, w), dtype=torch.bool, device=particles.device)}
-        lag = self.settings.lag
+        lag, p, path = self.settings.lag, 1, None
         if lag:
             # all inactive: a past of L inactive steps (empty frames) is the same start, and the state
             # has its final shapes from the first step on (compiled moves compile once)
             p = lag + 1 if not bool(exists.any()) else 1
-            extras.update(path_pos=x[..., 0::2].unsqueeze(2).expand(b, n, p, k, 2).clone(),
-                          path_labels=labels.unsqueeze(2).expand(b, n, p, k).clone(),
-                          path_exists=exists.unsqueeze(2).expand(b, n, p, k).clone(), path_log=x.new_zeros((b, n, p)),
-                          anchor_w_mean=w_mean.clone(), anchor_w_cov=st.cov.clone())
-            extras["frames"] = torch.zeros((b, p - 1, h, w), dtype=torch.bool, device=particles.device)
-        return ParticleState(x, particles.new_full((b, n), -math.log(n)), exists, extras)
+            path = GroupPath(x[..., 0::2].unsqueeze(2).expand(b, n, p, k, 2).clone(),
+                             labels.unsqueeze(2).expand(b, n, p, k).clone(),
+                             exists.unsqueeze(2).expand(b, n, p, k).clone(), x.new_zeros((b, n, p)), w_mean.clone(),
+                             st.cov.clone())
+        frames = torch.zeros((b, p - 1, h, w), dtype=torch.bool, device=particles.device)
+        group = GroupState(labels, w_mean, st.cov, frames, path)
+        return ParticleState(x, particles.new_full((b, n), -math.log(n)), exists, {KEY: group})
 
     def init_inactive(self, batch_size: int, num_slots: int = 4, *, dtype: torch.dtype = torch.float64,
                       device: torch.device | str | None = None) -> ParticleState:
@@ -169,39 +170,26 @@ class GroupMCMCFilter(Filter):
         return self.init(torch.zeros((b, self.num_particles, k, 4), dtype=dtype, device=device))
 
     def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
+        if isinstance(init, ParticleState):  # a state saved with the fields as open keys: typed first
+            init = init._replace(extras=from_keys(init.extras))
         state = super()._as_state(init)
         if state.extras is None:  # a plain ParticleState: the group fields start as init's
             state = self.init(state.x, state.exists)._replace(log_w=state.log_w)
         return state
 
     def check_extras(self, state: ParticleState) -> None:
-        """The group fields of ``state.extras`` (package docstring): keys, shapes, dtypes and
-        devices against ``x (B, N, K, 4)``; ``ValueError`` naming the field otherwise.
+        """The group fields of a state: ``extras["group"]`` a :class:`GroupState` whose fields
+        fit ``x (B, N, K, 4)`` and the sensor's frames (:meth:`GroupState.check`), and
+        existence flags; a ``ValueError`` naming the field otherwise.
         """
-        b, n, k, _ = state.x.shape
         if state.exists is None:
             raise ValueError("state.exists is None; the group filter's state has existence flags (filt.init)")
-        ex = state.extras or {}
+        group = (state.extras or {}).get(KEY)
+        if not isinstance(group, GroupState):
+            raise ValueError(f"state.extras[{KEY!r}] must be a GroupState, got {type(group).__name__} "
+                             "(build the state with filt.init or filt.init_inactive)")
         h, w = self.sensor.shape
-        f = ex["frames"].shape[1] if torch.is_tensor(ex.get("frames")) and ex["frames"].dim() == 4 else None
-        p = ex["path_pos"].shape[2] if torch.is_tensor(ex.get("path_pos")) and ex["path_pos"].dim() == 5 else None
-        expected: dict[str, tuple[tuple[int | None, ...], torch.dtype | None]] = {
-            "labels": ((b, n, k), torch.int64), "w_mean": ((b, n, 2, 3 * k), state.x.dtype),
-            "w_cov": ((b, n, 3 * k, 3 * k), state.x.dtype), "frames": ((b, f, h, w), torch.bool)}
-        if any(key in ex for key in PATH_KEYS):
-            expected.update(path_pos=((b, n, p, k, 2), state.x.dtype), path_labels=((b, n, p, k), torch.int64),
-                            path_exists=((b, n, p, k), torch.bool), path_log=((b, n, p), state.x.dtype),
-                            anchor_w_mean=((b, n, 2, 3 * k), state.x.dtype),
-                            anchor_w_cov=((b, n, 3 * k, 3 * k), state.x.dtype))
-        for key, (shape, dtype) in expected.items():
-            t = ex.get(key)
-            if not torch.is_tensor(t):
-                raise ValueError(f"state.extras[{key!r}] is missing; expected a tensor of shape {shape} "
-                                 "(build the state with filt.init or filt.init_inactive)")
-            check_shape(t, f"state.extras[{key!r}]", shape)
-            if t.dtype != dtype or t.device != state.x.device:
-                raise ValueError(f"state.extras[{key!r}] is {t.dtype} on {t.device}, expected {dtype} on "
-                                 f"{state.x.device}")
+        group.check(state.x, (h, w))
 
     def validate(self, state: ParticleState, measurements: Any, *, sequence: bool,
                  name: str = "measurements") -> None:

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
+from torch.utils._pytree import tree_map
 
 from ...models.base import neighbourhood
 from ...models.group import (
@@ -48,35 +49,42 @@ from .moves import (
     refine_move,
     window_birth_move,
 )
-from .noise import NOISES, GroupJointNoise, GroupPastNoise, GroupRefineNoise, GroupWindowBirthNoise, _draw_fields
+from .noise import (
+    NOISES,
+    GroupJointNoise,
+    GroupPastNoise,
+    GroupRefineNoise,
+    GroupWindowBirthNoise,
+    _draw_fields,
+    draw_noise,
+)
 from .settings import GroupMCMCSettings
+from .state import KEY, GroupPath, GroupState
 
-__all__ = ["group_mcmc_step", "bind_group", "group_mcmc_bound_step", "group_program", "make_cloud", "unpack",
-           "PATH_KEYS"]
+__all__ = ["group_mcmc_step", "bind_group", "group_mcmc_bound_step", "group_program", "make_cloud", "unpack"]
+
 
 # ----------------------------------------------------------------------------------------
-# the state: a ParticleState whose extras hold the group fields
+# the state: a ParticleState whose extras["group"] is the GroupState
 # ----------------------------------------------------------------------------------------
-PATH_KEYS = ("path_pos", "path_labels", "path_exists", "path_log", "anchor_w_mean", "anchor_w_cov")
-
-
 def unpack(state: ParticleState, lag: int) -> GroupView:
-    """The group fields of a state (package docstring, "State and outputs") as a
-    :class:`GroupView`; a state without a path (or with a longer one than ``lag``) starts one
-    at its current step.
+    """The group fields of a state (its :class:`~torchmcmcpf.filters.group.GroupState`,
+    package docstring "State and outputs") as a :class:`GroupView`; a state without a path
+    (or with a longer one than ``lag``) starts one at its current step.
     """
-    ex = state.extras or {}
+    group: GroupState = state.extras[KEY]  # type: ignore[index]
     pos = state.x[..., 0::2]
     exists = state.exists if state.exists is not None else torch.zeros(pos.shape[:-1], dtype=torch.bool,
                                                                        device=pos.device)
-    labels, w_mean, w_cov, frames = ex["labels"], ex["w_mean"], ex["w_cov"], ex["frames"]
+    labels, w_mean, w_cov, frames = group.labels, group.w_mean, group.w_cov, group.frames
     g = structure_index(labels)
     b, n, k = labels.shape
-    if lag > 0 and all(key in ex for key in PATH_KEYS) and ex["path_pos"].shape[2] <= lag + 1:
-        pp, pl, pe, plog = ex["path_pos"], ex["path_labels"], ex["path_exists"], ex["path_log"]
+    path = group.path
+    if lag > 0 and path is not None and path.length <= lag + 1:
+        pp, pl, pe, plog = path.pos, path.labels, path.exists, path.log
         pg = structure_index(pl)
         return GroupView(pos, g, labels, exists, w_mean, w_cov, state.log_w, frames,
-                         pp[:, :, 0], pg[:, :, 0], pl[:, :, 0], pe[:, :, 0], ex["anchor_w_mean"], ex["anchor_w_cov"],
+                         pp[:, :, 0], pg[:, :, 0], pl[:, :, 0], pe[:, :, 0], path.anchor_w_mean, path.anchor_w_cov,
                          pp[:, :, 1:], pg[:, :, 1:], pl[:, :, 1:], pe[:, :, 1:], plog[:, :, 1:])
     none = pos.new_zeros((b, n, 0))
     return GroupView(pos, g, labels, exists, w_mean, w_cov, state.log_w, frames,
@@ -180,16 +188,16 @@ def _uniform_cdf(mask: Tensor) -> Tensor:
 
 def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, win_exists: Tensor,
           z: Tensor, models: Models, settings: GroupMCMCSettings, generator: torch.Generator, chunk: int = 512
-          ) -> dict[str, Tensor]:
-    """The extras of the kept states ``(B, N, ...)`` at ``t``: the Kalman statistics (eqs.
-    53-57; from the anchor through the window with a lag, sampled with zero covariance when
-    not marginalising), the frames and, with a lag, the new path.
+          ) -> GroupState:
+    """The group fields of the kept states ``(B, N, ...)`` at ``t``: the Kalman statistics
+    (eqs. 53-57; from the anchor through the window with a lag, sampled with zero covariance
+    when not marginalising), the frames and, with a lag, the new path.
     """
     v = cloud.view
     lag, w = settings.lag, win_pos.shape[2]
     labels = cloud.table[g]
     trim = lag > 0 and w == lag  # the path is full: its first entry leaves, the next is the anchor
-    parts: dict[str, list[Tensor]] = {}
+    parts: list[tuple[Tensor, Tensor, GroupPath | None]] = []  # (w_mean, w_cov, path) per chunk
     for s in range(0, j.shape[1], chunk):
         sl = slice(s, s + chunk)
         jj = j[:, sl]
@@ -207,8 +215,7 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
                 eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype, device=mean.device)
                 mean = mean + eps @ L.transpose(-1, -2)
                 cov = torch.zeros_like(cov)
-            parts.setdefault("w_mean", []).append(mean)
-            parts.setdefault("w_cov", []).append(cov)
+            parts.append((mean, cov, None))
             continue
         stats = KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
         a_pos, a_g, a_lab, a_ex = (_gather(t, jj) for t in (v.anchor_pos, v.anchor_g, v.anchor_labels,
@@ -231,17 +238,15 @@ def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_p
         anchor = first if trim else KalmanStats(_gather(v.anchor_w_mean, jj), _gather(v.anchor_w_cov, jj))
         if trim:
             path, terms = path[1:], terms[1:]
-        for key, val in (("w_mean", stats.mean), ("w_cov", stats.cov), ("anchor_w_mean", anchor.mean),
-                         ("anchor_w_cov", anchor.cov), ("path_pos", torch.stack([p[0] for p in path], 2)),
-                         ("path_labels", torch.stack([p[1] for p in path], 2)),
-                         ("path_exists", torch.stack([p[2] for p in path], 2)),
-                         ("path_log", torch.stack([torch.zeros_like(terms[0])] + terms, 2))):
-            parts.setdefault(key, []).append(val)
-    extras = {key: torch.cat(val, 1) for key, val in parts.items()}
+        parts.append((stats.mean, stats.cov, GroupPath(
+            torch.stack([p[0] for p in path], 2), torch.stack([p[1] for p in path], 2),
+            torch.stack([p[2] for p in path], 2), torch.stack([torch.zeros_like(terms[0])] + terms, 2),
+            anchor.mean, anchor.cov)))
+    # the chunks joined along the particles, field by field (the path None without a lag)
+    w_mean, w_cov, new_path = tree_map(lambda *ts: None if ts[0] is None else torch.cat(ts, 1), *parts)
     frames = torch.cat([v.frames, z.to(torch.bool).unsqueeze(1)], 1)
-    extras["frames"] = frames[:, frames.shape[1] - (extras["path_pos"].shape[2] - 1 if lag else 1):].contiguous()
-    extras["labels"] = labels
-    return extras
+    frames = frames[:, frames.shape[1] - (new_path.length - 1 if new_path is not None else 1):].contiguous()
+    return GroupState(labels, w_mean, w_cov, frames, new_path)
 
 
 def bind_group(motion: VirtualLeaderMotion, sensor: ThresholdedPixels, settings: GroupMCMCSettings | None = None,
@@ -257,11 +262,15 @@ def bind_group(motion: VirtualLeaderMotion, sensor: ThresholdedPixels, settings:
     settings = GroupMCMCSettings() if settings is None else settings
     if num_particles is not None:
         settings.check(num_particles)
+    if not isinstance(motion, VirtualLeaderMotion):
+        raise ValueError(f"motion must be a VirtualLeaderMotion, got {type(motion).__name__}")
     if not isinstance(existence, GroupExistence):
         raise ValueError(f"existence must be a GroupExistence, got {type(existence).__name__}")
+    if not isinstance(structure_prior, GroupStructurePrior):
+        raise ValueError(f"structure_prior must be a GroupStructurePrior, got {type(structure_prior).__name__}")
     models = Models(motion, sensor, existence, structure_prior, float(settings.p_i), float(settings.p_a),
                     settings.past_step)
-    # a whole-configuration motion (Filter.motion_type), not a per-slot MotionModel
+    # a whole-configuration Motion, not a per-slot MotionModel: the shared bind would refuse it
     return Bound(motion, sensor, settings, existence, models, group_program(models, compile))  # type: ignore[arg-type]
 
 
@@ -312,7 +321,7 @@ def group_mcmc_bound_step(state: ParticleState, z: Tensor, bound: Bound, *, gene
     c = settings.num_chains
     dtype, dev = state.x.dtype, state.x.device
     cloud = make_cloud(state, z, models=models, settings=settings)
-    first = GroupJointNoise.draw((b, c, k), generator=generator, dtype=dtype, device=dev)
+    first = draw_noise(GroupJointNoise, (b, c, k), generator=generator, dtype=dtype, device=dev)
     chain = joint_proposal(first, cloud, z, models)
     per_chain = n // c
     names = (["joint", "structure", "target"] + (["past"] if settings.lag else [])
@@ -337,10 +346,10 @@ def group_mcmc_bound_step(state: ParticleState, z: Tensor, bound: Bound, *, gene
             if m > settings.burn_in and (m - settings.burn_in) % settings.thinning == 0:
                 kept.append((chain.j, chain.g, chain.exists, chain.pos, chain.prev.win_pos, chain.prev.win_exists))
     j, g, exists, pos, win_pos, win_ex = (torch.stack(t, 2).flatten(1, 2) for t in zip(*kept))  # (B, C * N/C, ...)
-    extras = _keep(cloud, j, g, exists, pos, win_pos, win_ex, z, models, settings, generator)
-    vel = extras["w_mean"][..., :k].transpose(-1, -2)  # (B, N, K, 2)
+    group = _keep(cloud, j, g, exists, pos, win_pos, win_ex, z, models, settings, generator)
+    vel = group.w_mean[..., :k].transpose(-1, -2)  # (B, N, K, 2)
     x = torch.stack([pos[..., 0], vel[..., 0], pos[..., 1], vel[..., 1]], -1)
-    new = ParticleState(x, x.new_full((b, n), -math.log(n)), exists, extras)
+    new = ParticleState(x, x.new_full((b, n), -math.log(n)), exists, {KEY: group})
     one_hot = F.one_hot(g, cloud.table.shape[0]).to(x.dtype)  # (B, N, G)
     all_exist = exists.all(-1).to(x.dtype)  # (B, N)
     exists_prob = exists.to(x.dtype).mean(1)

@@ -10,10 +10,10 @@ import math
 from typing import NamedTuple
 
 import torch
-from torch import nn
 
 from ..._validation import check_positive, check_positive_int
 from ...typing import Tensor
+from ..base import Motion
 from .existence import GroupExistence
 from .structures import _same_group
 
@@ -93,8 +93,12 @@ class AffineTransition(NamedTuple):
     born_gain: Tensor
 
 
-class VirtualLeaderMotion(nn.Module):
-    """The virtual-leader group model of eqs. 1-16 with the repulsion of eqs. 8-11.
+class VirtualLeaderMotion(Motion):
+    """The virtual-leader group model of eqs. 1-16 with the repulsion of eqs. 8-11: a
+    whole-configuration :class:`~torchmcmcpf.models.base.Motion` (the slots move jointly
+    through their leaders, eq. 13), not a per-slot :class:`~torchmcmcpf.models.base.MotionModel`;
+    a slot's label is its place in the group structure, so its slots are not exchangeable
+    (:attr:`exchangeable_slots` False: the filter's estimate never relabels them).
 
     Parameters
     ----------
@@ -128,6 +132,8 @@ class VirtualLeaderMotion(nn.Module):
 
     #: per-target state size of the ``[x, vx, y, vy]`` layout (the filters' ``motion.dim``)
     dim = 4
+    #: a slot's label is its place in the group structure (:class:`~torchmcmcpf.models.base.Motion`)
+    exchangeable_slots = False
     # per-axis 2 x 2 blocks ([pos, vel]) of F, R, Q read from ``matrices(2)`` (module docstring)
     F_ss: Tensor  # member <- itself
     F_sl: Tensor  # member <- its leader
