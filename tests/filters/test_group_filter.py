@@ -634,8 +634,8 @@ def test_bits_match_the_recorded_run(name, kw):
                            burn_in=5, **kw)
     res = filt(scn.frames, init=filt.init_inactive(2), generator=torch.Generator().manual_seed(1))
     st, group = res.state, res.state.extras["group"]
-    tensors = [res.mean, res.cov, res.exists_prob, st.x, st.log_w, st.exists, st.extras["estimate"],
-               st.extras["estimate_present"], group.labels, group.w_mean, group.w_cov, group.frames]
+    tensors = [res.mean, res.cov, res.exists_prob, st.x, st.log_w, st.exists, st.extras["estimate"].mean,
+               st.extras["estimate"].present, group.labels, group.w_mean, group.w_cov, group.frames]
     tensors += [] if group.path is None else list(group.path)
     tensors += [res.info.extras[k] for k in sorted(res.info.extras)]
     tensors += [res.info.ess, res.info.log_evidence, res.info.acceptance]

@@ -158,8 +158,8 @@ def test_sequential_pmmh_filter_matches_the_exact_posterior_over_theta():
     assert (theta.mean() - exact_theta).abs() <= 5 * theta.std() / b**0.5, (theta.mean(), exact_theta)
     assert 0.2 < float(res.info.acceptance.mean()) < 0.9  # the PIMH chain moves
     # the state carries the candidates: theta drawn once, evidence accumulated
-    assert res.state.extras["theta"].shape == (b, lc)
-    torch.testing.assert_close(res.state.extras["log_evidence"].logsumexp(-1) - math.log(lc),
+    assert res.state.extras["pmmh"].theta.shape == (b, lc)
+    torch.testing.assert_close(res.state.extras["pmmh"].log_evidence.logsumexp(-1) - math.log(lc),
                                res.log_evidence)
 
 

@@ -41,7 +41,7 @@ import itertools
 import weakref
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any, ClassVar, cast
+from typing import Any, ClassVar, NamedTuple, cast
 
 import torch
 from torch import nn
@@ -64,8 +64,9 @@ from ..state import (
 )
 from ..typing import Measurement, Tensor
 from ._bound import Bound, Compile, active_prior, check_existence, constructor_signature, settings_from
+from ._carry import carry, check_carries, check_fields, typed_extras
 
-__all__ = ["Filter", "active_prior", "check_existence", "settings_from", "ESTIMATE", "PRESENT"]
+__all__ = ["Filter", "CarriedEstimate", "active_prior", "check_existence", "settings_from", "ESTIMATE"]
 
 
 def _plain(value: Any) -> Any:
@@ -85,24 +86,67 @@ def _plain(value: Any) -> Any:
     return repr(value)
 
 
-#: Keys of ``ParticleState.extras`` under which ``forward`` carries its last estimate ``(B, K,
-#: D)`` and the slots it reported ``(B, K)`` bool: the reference of the next step's relabelling.
-ESTIMATE, PRESENT = "estimate", "estimate_present"
+#: the key of ``ParticleState.extras`` under which ``forward`` carries its last estimate
+#: (:class:`CarriedEstimate`): the reference of the next step's relabelling
+ESTIMATE = "estimate"
+#: the open key under which older states held the estimate's ``present`` flags (converted on resume)
+_PRESENT = "estimate_present"
 
 
-def _carried_estimate(state: ParticleState) -> ExistenceEstimate | None:
-    """The estimate a state carries from ``forward`` (``extras[ESTIMATE]``), or None."""
-    extras = state.extras or {}
-    if ESTIMATE not in extras or PRESENT not in extras:
-        return None
-    mean, present = extras[ESTIMATE], extras[PRESENT].to(torch.bool)
-    if tuple(mean.shape) != tuple(state.x.shape[:1] + state.x.shape[2:]) or tuple(present.shape) != tuple(
-            state.x.shape[:1] + state.x.shape[2:3]):
-        raise ValueError(f"state.extras[{ESTIMATE!r}] has shape {tuple(mean.shape)} and [{PRESENT!r}] "
-                         f"{tuple(present.shape)}, expected {tuple(state.x.shape[:1] + state.x.shape[2:])} and "
-                         f"{tuple(state.x.shape[:1] + state.x.shape[2:3])}")
-    prob = present.to(mean.dtype)
-    return ExistenceEstimate(prob, prob.sum(-1), mean, present)
+def _estimate_from_keys(extras: dict) -> dict:
+    """An older state's estimate (a tensor under ``"estimate"``, the flags under
+    ``"estimate_present"``) as one :class:`CarriedEstimate`; other ``extras`` unchanged.
+    """
+    if not (torch.is_tensor(extras.get(ESTIMATE)) and _PRESENT in extras):
+        return extras
+    rest = {k: v for k, v in extras.items() if k not in (ESTIMATE, _PRESENT)}
+    return {**rest, ESTIMATE: CarriedEstimate(extras[ESTIMATE], extras[_PRESENT].to(torch.bool))}
+
+
+@carry(ESTIMATE, convert=_estimate_from_keys)
+class CarriedEstimate(NamedTuple):
+    """The estimate ``forward`` carries in a state (``extras["estimate"]``): the reference of
+    the next step's relabelling, so that a resumed run labels its targets as the uninterrupted
+    one does (:meth:`Filter.estimate_targets`).
+
+    Attributes
+    ----------
+    mean : (B, K, D), the last step's estimate of each slot.
+    present : (B, K) bool, the slots it reported (all True without existence).
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.filters.base import CarriedEstimate
+    >>> filt = tp.SIRFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 50)
+    >>> result = filt(torch.zeros(3, 2, 2, 2), init=torch.zeros(2, 50, 2, 4), generator=torch.Generator())
+    >>> carried = result.state.extras["estimate"]
+    >>> isinstance(carried, CarriedEstimate), tuple(carried.mean.shape), tuple(carried.present.shape)
+    (True, (2, 2, 4), (2, 2))
+    >>> carried._replace(present=carried.present[:1]).check(result.state)
+    Traceback (most recent call last):
+    ...
+    ValueError: state.extras['estimate'].present has shape (1, 2), expected (2, 2)
+    """
+
+    mean: Tensor
+    present: Tensor
+
+    def check(self, state: ParticleState, name: str = f"state.extras[{ESTIMATE!r}]") -> None:
+        """``mean (B, K, D)`` of the dtype of ``state.x (B, N, K, D)`` and ``present (B, K)``
+        bool, on its device; a ``ValueError`` naming the field and the shapes otherwise.
+        """
+        b, _, k, d = state.x.shape
+        check_fields(name, [("mean", self.mean, (b, k, d), state.x.dtype), ("present", self.present, (b, k), torch.bool)],
+                     state.x.device)
+
+    def as_estimate(self) -> ExistenceEstimate:
+        """The :class:`~torchmcmcpf.state.ExistenceEstimate` it stands for (``exists_prob`` the
+        flags as numbers), the ``reference`` of :meth:`Filter.estimate_targets`.
+        """
+        prob = self.present.to(self.mean.dtype)
+        return ExistenceEstimate(prob, prob.sum(-1), self.mean, self.present)
 
 
 def _maker(keys: list[str]) -> str:
@@ -221,8 +265,9 @@ class Filter(nn.Module):
     #: :meth:`working_bytes`, the estimate :meth:`init` checks against the allocation budget
     working_copies: ClassVar[int] = 4
     #: the keys of ``ParticleState.extras`` this filter's states carry between steps (besides
-    #: ``forward``'s estimate, :data:`ESTIMATE` and :data:`PRESENT`), all of them required in a
-    #: state that resumes a run, none of them in a fresh one (:meth:`check_resume`)
+    #: ``forward``'s estimate, :data:`ESTIMATE`), each a typed carry (:mod:`~torchmcmcpf.filters._carry`),
+    #: all of them required in a state that resumes a run, none of them in a fresh one
+    #: (:meth:`check_resume`)
     state_extras: ClassVar[frozenset[str]] = frozenset()
 
     #: the settings dataclass of the algorithm: the ``settings=`` of the constructor, and its
@@ -446,19 +491,28 @@ class Filter(nn.Module):
                                f"K={num_targets} targets ({self.working_copies} working copies of the state{history})",
                          device, hint="use fewer particles or runs" + (" or history=False" if num_steps else ""))
 
+    def carry_sizes(self) -> dict[str, dict[str, Any]]:
+        """The sizes this filter knows of its carries besides the state's shapes, by key of
+        ``extras``: the keyword arguments of each carry's ``check`` (:meth:`check_resume`;
+        e.g. a ``PMMHFilter``'s ``{"pmmh": {"num_candidates": L}}``). None by default.
+        """
+        return {}
+
     def check_resume(self, state: ParticleState) -> None:
-        """Refuse a state made by another kind of filter: one that carries ``extras`` (a state
-        from ``step`` or ``forward``, not a fresh ``init``) must hold every key of
-        :attr:`state_extras` (a ``PMMHFilter`` resumes its candidates' ``theta``) and no key
-        of another filter's states (an ``IPMCMCFilter`` given a ``PMMHFilter``'s state would
-        drop its candidates without a word). ``ValueError`` naming what is missing or foreign.
+        """Refuse a state made by another kind of filter, or one whose carries do not fit it:
+        one that carries ``extras`` (a state from ``step`` or ``forward``, not a fresh ``init``)
+        must hold every key of :attr:`state_extras` (a ``PMMHFilter`` resumes its candidates)
+        and no key of another filter's states (an ``IPMCMCFilter`` given a ``PMMHFilter``'s
+        state would drop its candidates without a word), and each typed value must pass its
+        type's check (:func:`~torchmcmcpf.filters._carry.check_carries` with
+        :meth:`carry_sizes`). ``ValueError`` naming what is missing, foreign or misshapen.
         """
         extras = state.extras
         if not extras:
             return
         if not isinstance(extras, Mapping):
-            raise ValueError(f"state.extras must be a dict of tensors or None, got {type(extras).__name__}")
-        keys = set(extras) - {ESTIMATE, PRESENT}
+            raise ValueError(f"state.extras must be a dict of typed values or None, got {type(extras).__name__}")
+        keys = set(extras) - {ESTIMATE}
         name = type(self).__name__
         foreign = sorted(keys - self.state_extras)
         if foreign:
@@ -475,6 +529,7 @@ class Filter(nn.Module):
                              f"state of {maker}, not of this filter; "
                              f"resume a run with the filter that made its state, or start this one afresh from "
                              f"the particles: filt.init(state.x, state.exists)")
+        check_carries(state, self.carry_sizes())
 
     def _check_state_tensors(self, x: Tensor, exists: Tensor | None) -> None:
         if x.dim() != 4:
@@ -501,6 +556,7 @@ class Filter(nn.Module):
 
     def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
         if isinstance(init, ParticleState):
+            init = init._replace(extras=typed_extras(init.extras))  # a state saved with open keys: typed
             self.check_resume(init)
             state = self.init(init.x, init.exists)
             check_shape(init.log_w, "init.log_w", tuple(init.x.shape[:2]))
@@ -621,6 +677,7 @@ class Filter(nn.Module):
                     "first" if torch.is_tensor(state) else "")
             raise ValueError(f"state must be a ParticleState, got {type(state).__name__}{hint}")
         if not self._is_trusted(state):
+            state = state._replace(extras=typed_extras(state.extras))  # a state saved with open keys: typed
             self.check_resume(state)
             self._check_state_tensors(state.x, state.exists)
         self.validate(state, z, sequence=False, name="z")
@@ -666,7 +723,8 @@ class Filter(nn.Module):
                                        num_steps=num_steps)
         steps, note = self._progress(num_steps, state.x, progress)
         means, covs, infos, exists_prob, states = [], [], [], [], []
-        est = _carried_estimate(state)
+        carried = (state.extras or {}).get(ESTIMATE)
+        est = None if carried is None else carried.as_estimate()
         if est is None and self.motion.exchangeable_slots and self.sensor.resolved and state.num_targets > 1:
             # a fresh start: the initial cloud's own slot means are the first reference (its
             # labels are the caller's), not one particle of the first step's cloud
@@ -684,7 +742,7 @@ class Filter(nn.Module):
             est, relabelled = self._estimate(state, est)  # relabelled against the previous estimate
             # the estimate is the next step's reference: carried in the state, so a resumed run
             # labels its targets as the uninterrupted one does
-            state = state._replace(extras={**(state.extras or {}), ESTIMATE: est.mean, PRESENT: est.present})
+            state = state._replace(extras={**(state.extras or {}), ESTIMATE: CarriedEstimate(est.mean, est.present)})
             means.append(est.mean)
             covs.append(weighted_cov(relabelled.x, relabelled.log_w, est.mean, relabelled.exists))
             if self.existence is not None and state.exists is not None:

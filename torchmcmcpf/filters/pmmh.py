@@ -61,11 +61,12 @@ from ..resampling import ess, normalize
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
 from ._bound import Bound, Compile, bind
+from ._carry import carry, check_fields, typed_extras
 from .base import Filter
 from .sir import SIRFilter, SIRSettings, sir_bound_step, sir_program
 
 __all__ = ["pmmh", "PMMHResult", "sir_log_evidence", "ProcessNoiseScale", "PMMHFilter", "PMMHSettings",
-           "pmmh_step", "bind_pmmh", "pmmh_bound_step"]
+           "PMMHState", "pmmh_step", "bind_pmmh", "pmmh_bound_step"]
 
 
 class PMMHResult(NamedTuple):
@@ -264,26 +265,66 @@ class PMMHSettings:
         object.__setattr__(self, "ess_threshold", sir.ess_threshold)
 
 
-def _first_extras(state: ParticleState, settings: PMMHSettings, generator: torch.Generator) -> dict:
-    """The PMMH part of the state at the first step: ``theta (B, L)`` drawn from the prior,
-    zero log-evidence, the within-candidate log-weights ``(B, N)``.
+@carry("pmmh", old_keys=("theta", "log_evidence", "log_w_candidate"))
+class PMMHState(NamedTuple):
+    """The sequential PMMH filter's carry (``ParticleState.extras["pmmh"]``): its L candidates,
+    run dim first (module docstring, :func:`pmmh_bound_step`).
+
+    Attributes
+    ----------
+    theta : (B, L), the candidate parameters (drawn from the prior at the first step).
+    log_evidence : (B, L), each candidate's accumulated ``log hat Z_l(t) = log hat p(z_{1:t} |
+        theta_l)``.
+    log_w_candidate : (B, N), each candidate's normalised SIR log-weights, block ``l`` of
+        ``N / L`` particles per candidate.
+
+    Example
+    -------
+    >>> import torch
+    >>> import torchmcmcpf as tp
+    >>> from torchmcmcpf.filters.pmmh import PMMHState
+    >>> filt = tp.PMMHFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 100,
+    ...                      num_candidates=4)
+    >>> result = filt(torch.zeros(3, 2, 1, 2), init=torch.zeros(2, 100, 1, 4), generator=torch.Generator())
+    >>> carry = result.state.extras["pmmh"]
+    >>> isinstance(carry, PMMHState), tuple(carry.theta.shape), tuple(carry.log_w_candidate.shape)   # (B, L), (B, N)
+    (True, (2, 4), (2, 100))
+    >>> carry.check(result.state, num_candidates=5)
+    Traceback (most recent call last):
+    ...
+    ValueError: state.extras['pmmh'].theta has shape (2, 4), expected (2, 5)
     """
-    x, log_w = state.x, state.log_w
-    b, n = log_w.shape
-    lc = settings.num_candidates
-    theta = settings.prior_mean + settings.prior_std * torch.randn(
-        (b, lc), generator=generator, device=x.device, dtype=x.dtype)
-    log_w_c = normalize(log_w.reshape(b * lc, n // lc))[0].reshape(b, n)
-    return {"theta": theta, "log_evidence": torch.zeros_like(theta), "log_w_candidate": log_w_c}
 
+    theta: Tensor
+    log_evidence: Tensor
+    log_w_candidate: Tensor
 
-def _check_extras(extras: dict, b: int, n: int, lc: int) -> None:
-    expected = {"theta": (b, lc), "log_evidence": (b, lc), "log_w_candidate": (b, n)}
-    if not isinstance(extras, dict) or not set(expected) <= set(extras):  # others (forward's estimate) pass
-        got = sorted(extras) if isinstance(extras, dict) else type(extras).__name__
-        raise ValueError(f"state.extras must hold {sorted(expected)} (a PMMHFilter state), got {got}")
-    for key, shape in expected.items():
-        check_shape(extras[key], f"state.extras[{key!r}]", shape)
+    @staticmethod
+    def first(state: ParticleState, settings: PMMHSettings, generator: torch.Generator) -> PMMHState:
+        """The carry at the first step: ``theta (B, L)`` drawn from the prior, zero
+        log-evidence, ``state.log_w (B, N)`` split into the L blocks, each renormalised.
+        """
+        x, log_w = state.x, state.log_w
+        b, n = log_w.shape
+        lc = settings.num_candidates
+        theta = settings.prior_mean + settings.prior_std * torch.randn(
+            (b, lc), generator=generator, device=x.device, dtype=x.dtype)
+        log_w_c = normalize(log_w.reshape(b * lc, n // lc))[0].reshape(b, n)
+        return PMMHState(theta, torch.zeros_like(theta), log_w_c)
+
+    def check(self, state: ParticleState, name: str = "state.extras['pmmh']", *,
+              num_candidates: int | None = None) -> None:
+        """Every field against ``state.x (B, N, K, D)`` (its dtype and device) and
+        ``num_candidates`` (L, any when None, the same for both ``(B, L)`` fields); a
+        ``ValueError`` naming the field, the shape seen and the shape expected otherwise.
+        """
+        b, n = state.x.shape[:2]
+        lc = num_candidates
+        if lc is None and torch.is_tensor(self.theta) and self.theta.dim() == 2:
+            lc = self.theta.shape[1]
+        real = state.x.dtype
+        check_fields(name, [("theta", self.theta, (b, lc), real), ("log_evidence", self.log_evidence, (b, lc), real),
+                            ("log_w_candidate", self.log_w_candidate, (b, n), real)], state.x.device)
 
 
 def bind_pmmh(motion: MotionModel, sensor: SensorModel, settings: PMMHSettings | None = None,
@@ -318,8 +359,8 @@ def pmmh_step(
     :func:`bind_pmmh` (a filter binds once). Parameters and returns: :func:`pmmh_bound_step`,
     with the models ``motion``, ``sensor``, ``existence`` and ``settings`` (:class:`PMMHSettings`)
     in place of ``bound``: ``state`` with ``x (B, N, K, D)``, ``log_w (B, N)`` and ``z`` one
-    frame per run ``(B, *G)`` give a state of the same shapes with ``extras`` ``theta (B, L)``,
-    ``log_evidence (B, L)``, ``log_w_candidate (B, N)``.
+    frame per run ``(B, *G)`` give a state of the same shapes with ``extras["pmmh"]`` a
+    :class:`PMMHState` (``theta (B, L)``, ``log_evidence (B, L)``, ``log_w_candidate (B, N)``).
     """
     return pmmh_bound_step(state, z, bind_pmmh(motion, sensor, settings, existence), generator=generator)
 
@@ -335,9 +376,10 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
 
     Parameters
     ----------
-    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)`` and ``extras`` (None at
-        the first step: ``theta`` is then drawn from the prior and ``log_w`` split into the
-        L blocks of ``N / L`` particles, each renormalised).
+    state : ParticleState with ``x (B, N, K, D)``, ``log_w (B, N)`` and ``extras["pmmh"]`` a
+        :class:`PMMHState` (absent at the first step: ``theta`` is then drawn from the prior
+        and ``log_w`` split into the L blocks of ``N / L`` particles, each renormalised,
+        :meth:`PMMHState.first`; the open keys of older states are converted).
     z : one measurement per run ``(B, *G)`` (every candidate reads it).
     bound : :class:`~torchmcmcpf.filters._bound.Bound` of :func:`bind_pmmh`: the models
         (``theta = 0`` is the motion as given; the existence model, optional, is every
@@ -351,8 +393,8 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     -------
     state : ``log_w (B, N)`` the PIMH estimate's weights, ``(occupancy of candidate l) / (L -
         burn_in)`` times the candidate's normalised SIR weights (``state.mean()`` is the
-        PMMH estimate); ``extras`` ``theta (B, L)``, ``log_evidence (B, L)`` (``log hat
-        Z_l(t)``), ``log_w_candidate (B, N)``.
+        PMMH estimate); ``extras["pmmh"]`` a :class:`PMMHState`: ``theta (B, L)``,
+        ``log_evidence (B, L)`` (``log hat Z_l(t)``), ``log_w_candidate (B, N)``.
     info : ``ess`` (B,) of the combined weights; ``log_evidence`` (B,) the increment of
         ``log (1/L) sum_l hat Z_l(t)`` (the prior-averaged evidence); ``acceptance`` (B,)
         the fraction of the L - 1 MH moves that accepted; extras ``theta_mean`` (B,) the
@@ -366,12 +408,15 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     if n % lc:
         raise ValueError(f"state.x has {n} particles, expected a multiple of num_candidates = {lc}")
     m = n // lc
-    extras = state.extras if state.extras and "theta" in state.extras else _first_extras(state, settings, generator)
-    _check_extras(extras, b, n, lc)
-    theta, log_ev = extras["theta"], extras["log_evidence"]
+    carried = typed_extras(state.extras or {}).get(PMMHState.KEY)
+    pmmh_state = PMMHState.first(state, settings, generator) if carried is None else carried
+    if not isinstance(pmmh_state, PMMHState):
+        raise ValueError(f"state.extras['pmmh'] must be a PMMHState, got {type(pmmh_state).__name__}")
+    pmmh_state.check(state, num_candidates=lc)
+    theta, log_ev = pmmh_state.theta, pmmh_state.log_evidence
 
     # the L candidates' SIR filters as B * L runs of N / L particles
-    sub = ParticleState(x.reshape(b * lc, m, k, d), extras["log_w_candidate"].reshape(b * lc, m),
+    sub = ParticleState(x.reshape(b * lc, m, k, d), pmmh_state.log_w_candidate.reshape(b * lc, m),
                         None if exists is None else exists.reshape(b * lc, m, k))
     zc = tree_map(lambda a: a.repeat_interleave(lc, dim=0), z)
     base = bound.program
@@ -404,7 +449,7 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     log_w_new = occupancy.log().repeat_interleave(m, dim=1) + log_w_c
     new_state = ParticleState(sub.x.reshape(b, n, k, d), log_w_new,
                               None if sub.exists is None else sub.exists.reshape(b, n, k),
-                              {"theta": theta, "log_evidence": log_ev_new, "log_w_candidate": log_w_c})
+                              {PMMHState.KEY: PMMHState(theta, log_ev_new, log_w_c)})
     log_mean_ev = torch.logsumexp(log_ev_new, -1) - torch.logsumexp(log_ev, -1)
     info = StepInfo.make(log_mean_ev, ess=ess(log_w_new), log_evidence=log_mean_ev,
                          acceptance=accepted / (lc - 1),
@@ -431,9 +476,10 @@ class PMMHFilter(Filter):
     Notes
     -----
     ``StepInfo``: ``ess``, ``log_evidence``, ``acceptance`` (the PIMH moves); extras
-    ``theta_mean``, ``candidate_ess``. The state carries ``extras`` (the candidates'
-    ``theta``, accumulated log-evidence and within-candidate weights), so a checkpoint of
-    the state and the generator resumes bit for bit.
+    ``theta_mean``, ``candidate_ess``. The state carries a :class:`PMMHState` under
+    ``extras["pmmh"]`` (the candidates' ``theta``, accumulated log-evidence and
+    within-candidate weights), so a checkpoint of the state and the generator resumes bit for
+    bit.
 
     Example
     -------
@@ -442,15 +488,20 @@ class PMMHFilter(Filter):
     >>> filt = tp.PMMHFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 100,
     ...                      num_candidates=4, prior_std=0.5)   # 4 candidates of 25 particles, theta ~ N(0, 0.5^2)
     >>> result = filt(torch.zeros(5, 2, 1, 2), init=torch.zeros(2, 100, 1, 4), generator=torch.Generator())
-    >>> result.state.extras["theta"].shape            # (B, L): each run's candidates, carried in the state
+    >>> result.state.extras["pmmh"].theta.shape       # (B, L): each run's candidates, carried in the state
     torch.Size([2, 4])
     >>> result.info.extras["theta_mean"].shape        # (T, B): posterior mean of log q
     torch.Size([5, 2])
     """
 
     compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
-    #: the candidates carried between steps (:func:`pmmh_step`): a resumed state must hold them
-    state_extras = frozenset({"theta", "log_evidence", "log_w_candidate"})
+    #: the candidates carried between steps (:class:`PMMHState` under ``extras["pmmh"]``): a
+    #: resumed state must hold them
+    state_extras = frozenset({"pmmh"})
     settings_class = PMMHSettings
     bind = staticmethod(bind_pmmh)
     bound_step = staticmethod(pmmh_bound_step)
+
+    def carry_sizes(self) -> dict[str, dict[str, Any]]:
+        """:meth:`Filter.carry_sizes`: the number of candidates of :class:`PMMHState`."""
+        return {"pmmh": {"num_candidates": self.settings.num_candidates}}

@@ -27,7 +27,8 @@ from ...typing import Tensor
 from ..base import Filter
 from .moves import Models
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
-from .state import KEY, GroupPath, GroupState, from_keys
+from .._carry import check_carries
+from .state import KEY, GroupPath, GroupState
 from .step import bind_group, group_mcmc_bound_step
 
 __all__ = ["GroupMCMCFilter"]
@@ -170,8 +171,6 @@ class GroupMCMCFilter(Filter):
         return self.init(torch.zeros((b, self.num_particles, k, 4), dtype=dtype, device=device))
 
     def _as_state(self, init: Tensor | ParticleState) -> ParticleState:
-        if isinstance(init, ParticleState):  # a state saved with the fields as open keys: typed first
-            init = init._replace(extras=from_keys(init.extras))
         state = super()._as_state(init)
         if state.extras is None:  # a plain ParticleState: the group fields start as init's
             state = self.init(state.x, state.exists)._replace(log_w=state.log_w)
@@ -184,12 +183,15 @@ class GroupMCMCFilter(Filter):
         """
         if state.exists is None:
             raise ValueError("state.exists is None; the group filter's state has existence flags (filt.init)")
-        group = (state.extras or {}).get(KEY)
-        if not isinstance(group, GroupState):
-            raise ValueError(f"state.extras[{KEY!r}] must be a GroupState, got {type(group).__name__} "
-                             "(build the state with filt.init or filt.init_inactive)")
+        if KEY not in (state.extras or {}):
+            raise ValueError(f"state.extras has no {KEY!r}, expected a GroupState (build the state with filt.init "
+                             "or filt.init_inactive)")
+        check_carries(state, self.carry_sizes())
+
+    def carry_sizes(self) -> dict[str, dict[str, Any]]:
+        """:meth:`Filter.carry_sizes`: the sensor's frame shape ``(H, W)`` of :class:`GroupState`."""
         h, w = self.sensor.shape
-        group.check(state.x, (h, w))
+        return {KEY: {"frame_shape": (h, w)}}
 
     def validate(self, state: ParticleState, measurements: Any, *, sequence: bool,
                  name: str = "measurements") -> None:

@@ -5,7 +5,9 @@ validated by its type and shapes in one place (:meth:`GroupState.check`).
 
 A ``ParticleState`` stays the one state type of every filter (``forward`` adds its estimate
 to ``extras``, results stack and save alike); the group filter's fields are one typed value
-in it instead of ten open keys. Both tuples are registered with
+in it instead of ten open keys. :class:`GroupState` is a typed carry (:func:`~torchmcmcpf.filters._carry.carry`:
+``Filter.check_resume`` checks it as every filter's carries, a state saved with the open keys
+is converted on resume); both tuples are registered with
 :func:`torch.serialization.add_safe_globals`, so a result saved with ``torch.save`` loads with
 ``torch.load(weights_only=True)`` and resumes (``filt(z, init=result.state)``).
 
@@ -18,8 +20,9 @@ from typing import NamedTuple
 
 import torch
 
-from ..._validation import check_shape
+from ...state import ParticleState
 from ...typing import Tensor
+from .._carry import carry, check_fields
 
 __all__ = ["GroupState", "GroupPath", "KEY"]
 
@@ -87,7 +90,8 @@ class GroupState(NamedTuple):
     >>> group = filt.init_inactive(1).extras["group"]
     >>> isinstance(group, GroupState), tuple(group.w_mean.shape), group.path is None   # (B, N, 2, 3K)
     (True, (1, 8, 2, 12), True)
-    >>> group._replace(labels=group.labels[:, :4]).check(torch.zeros(1, 8, 4, 4), (100, 100))
+    >>> state = filt.init_inactive(1)
+    >>> group._replace(labels=group.labels[:, :4]).check(state, frame_shape=(100, 100))
     Traceback (most recent call last):
     ...
     ValueError: state.extras['group'].labels has shape (1, 4, 4), expected (1, 8, 4)
@@ -99,13 +103,15 @@ class GroupState(NamedTuple):
     frames: Tensor
     path: GroupPath | None = None
 
-    def check(self, x: Tensor, frame_shape: tuple[int, int], name: str = f"state.extras[{KEY!r}]") -> None:
-        """Every field's shape, dtype and device against the particles ``x (B, N, K, 4)`` and
-        frames of ``frame_shape = (H, W)``; a ``ValueError`` naming the field, the shape seen
-        and the shape expected otherwise.
+    def check(self, state: ParticleState, name: str = f"state.extras[{KEY!r}]", *,
+              frame_shape: tuple[int, int] | None = None) -> None:
+        """Every field's shape, dtype and device against the particles ``state.x (B, N, K, 4)``
+        and frames of ``frame_shape = (H, W)`` (any when None); a ``ValueError`` naming the
+        field, the shape seen and the shape expected otherwise.
         """
+        x = state.x
         b, n, k, _ = x.shape
-        h, w = frame_shape
+        h, w = frame_shape if frame_shape is not None else (None, None)
         real, flag, index = x.dtype, torch.bool, torch.int64
         f = self.frames.shape[1] if torch.is_tensor(self.frames) and self.frames.dim() == 4 else None
         fields: list[tuple[str, object, tuple[int | None, ...], torch.dtype]] = [
@@ -120,13 +126,7 @@ class GroupState(NamedTuple):
                        ("path.exists", pp.exists, (b, n, p, k), flag), ("path.log", pp.log, (b, n, p), real),
                        ("path.anchor_w_mean", pp.anchor_w_mean, (b, n, 2, 3 * k), real),
                        ("path.anchor_w_cov", pp.anchor_w_cov, (b, n, 3 * k, 3 * k), real)]
-        for field, t, shape, dtype in fields:
-            if not torch.is_tensor(t):
-                raise ValueError(f"{name}.{field} is {type(t).__name__}, expected a tensor of shape {shape} "
-                                 "(build the state with filt.init or filt.init_inactive)")
-            check_shape(t, f"{name}.{field}", shape)
-            if t.dtype != dtype or t.device != x.device:
-                raise ValueError(f"{name}.{field} is {t.dtype} on {t.device}, expected {dtype} on {x.device}")
+        check_fields(name, fields, x.device)
 
 
 #: the open keys of ``extras`` under which the group filter's states carried these fields before
@@ -135,17 +135,18 @@ _KEYS = ("labels", "w_mean", "w_cov", "frames")
 _PATH_KEYS = ("path_pos", "path_labels", "path_exists", "path_log", "anchor_w_mean", "anchor_w_cov")
 
 
-def from_keys(extras: dict | None) -> dict | None:
+def from_keys(extras: dict) -> dict:
     """``extras`` with the group fields of a state saved before they were typed (the open
     keys ``labels``, ``w_mean``, ``w_cov``, ``frames`` and the ``path_*`` / ``anchor_*`` ones)
     gathered into one :class:`GroupState` under :data:`KEY`, the other keys kept; any other
     ``extras`` unchanged. Lets ``filt(z, init=old_result.state)`` resume an old checkpoint.
     """
-    if not isinstance(extras, dict) or KEY in extras or not all(k in extras for k in _KEYS):
+    if KEY in extras or not all(k in extras for k in _KEYS):
         return extras
     rest = {k: v for k, v in extras.items() if k not in _KEYS + _PATH_KEYS}
     path = GroupPath(*(extras[k] for k in _PATH_KEYS)) if all(k in extras for k in _PATH_KEYS) else None
     return {**rest, KEY: GroupState(extras["labels"], extras["w_mean"], extras["w_cov"], extras["frames"], path)}
 
 
-torch.serialization.add_safe_globals([GroupState, GroupPath])
+carry(KEY, convert=from_keys)(GroupState)  # its key, torch.load(weights_only=True), old keys
+torch.serialization.add_safe_globals([GroupPath])

@@ -1,0 +1,134 @@
+"""Typed carries: what a filter keeps in ``ParticleState.extras`` from step to step, one typed
+value (a ``NamedTuple`` of tensors, run dim first) under one key, validated by its type.
+
+A carry type is a ``NamedTuple`` with a ``check(state, name, **sizes)`` method (the
+:class:`Carry` protocol: every field's shape, dtype and device against the state's ``x (B, N,
+K, D)``, a ``ValueError`` naming the field, the shape seen and the shape expected; the
+``sizes`` a filter knows besides the state, such as the number of candidates, keyword
+arguments that default to "any"), registered with :func:`carry`:
+
+- under its key of ``extras`` (:func:`carry_type` finds the type of a key), so that
+  :meth:`Filter.check_resume <torchmcmcpf.filters.base.Filter.check_resume>` checks every
+  carried value of a state the same way (:func:`check_carries`);
+- with :func:`torch.serialization.add_safe_globals`, so that a result saved with
+  ``torch.save`` loads with ``torch.load(weights_only=True)`` and resumes;
+- with the open keys under which older states held its fields, so that ``forward(init=...)``
+  and ``step`` resume such a state (:func:`typed_extras` gathers them into the type).
+
+``stack_states`` stacks a typed value field by field (a ``NamedTuple`` is a pytree), so a
+``history`` of states needs nothing more. The carries of the library:
+:class:`~torchmcmcpf.filters.base.CarriedEstimate` (``forward``'s estimate, every filter),
+:class:`~torchmcmcpf.filters.pmmh.PMMHState` and
+:class:`~torchmcmcpf.filters.group.GroupState`.
+
+To give a filter's state a new carry (say a fixed-lag window of five tensors):
+
+1. write ``class Window(NamedTuple)`` with the five fields (shapes in the docstring) and a
+   ``check(self, state, name=..., *, lag=None)`` that lists ``(field, tensor, shape,
+   dtype)`` rows and hands them to :func:`check_fields`;
+2. decorate it with ``@carry("window", old_keys=(...))`` (the open keys it replaces, in field
+   order, if states were ever saved with them);
+3. set the filter's ``state_extras = frozenset({"window"})`` (an optional carry, present only
+   with some settings: leave it out of ``state_extras`` and check it where the step reads it)
+   and return the sizes it knows from :meth:`Filter.carry_sizes
+   <torchmcmcpf.filters.base.Filter.carry_sizes>` (``{"window": {"lag": L}}``);
+4. the step reads ``state.extras["window"].paths`` and writes ``{**extras, "window": new}``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any, Protocol
+
+import torch
+
+from .._validation import check_shape
+from ..state import ParticleState
+
+__all__ = ["Carry", "carry", "carry_type", "check_carries", "check_fields", "typed_extras"]
+
+
+class Carry(Protocol):
+    """What a typed carry offers (module docstring): its key of ``extras`` and one check."""
+
+    KEY: str
+
+    def check(self, state: ParticleState, name: str = ..., **sizes: Any) -> None:
+        """Every field against ``state`` (and the ``sizes`` given); ``ValueError`` otherwise."""
+
+
+#: key of ``extras`` -> its carry type, and the converter of the open keys it replaced
+_TYPES: dict[str, type] = {}
+_CONVERT: dict[str, Callable[[dict], dict]] = {}
+
+
+def carry(key: str, *, old_keys: Sequence[str] = (), convert: Callable[[dict], dict] | None = None
+          ) -> Callable[[type], type]:
+    """Class decorator that registers a carry type under ``key`` (module docstring): sets its
+    ``KEY``, allows it in ``torch.load(weights_only=True)`` and records how an older state's
+    ``extras`` become typed: ``convert(extras) -> extras``, or by default, where every one of
+    ``old_keys`` (the type's fields in order) is present and ``key`` is not, the type built
+    from them, the old keys dropped.
+    """
+    def register(cls: type) -> type:
+        cls.KEY = key  # type: ignore[attr-defined]
+        _TYPES[key] = cls
+        torch.serialization.add_safe_globals([cls])
+        if convert is not None:
+            _CONVERT[key] = convert
+        elif old_keys:
+            def from_keys(extras: dict) -> dict:
+                if key in extras or not all(k in extras for k in old_keys):
+                    return extras
+                rest = {k: v for k, v in extras.items() if k not in old_keys}
+                return {**rest, key: cls(*(extras[k] for k in old_keys))}
+            _CONVERT[key] = from_keys
+        return cls
+    return register
+
+
+def carry_type(key: str) -> type | None:
+    """The carry type registered under ``key`` of ``extras``, or None."""
+    return _TYPES.get(key)
+
+
+def typed_extras(extras: Any) -> Any:
+    """``extras`` with the open keys of an older state gathered into their carry types (each
+    registered conversion in turn, :func:`carry`); anything else unchanged.
+    """
+    if not isinstance(extras, dict):
+        return extras
+    for convert in _CONVERT.values():
+        extras = convert(extras)
+    return extras
+
+
+def check_fields(name: str, rows: Sequence[tuple[str, Any, tuple[int | None, ...], torch.dtype]],
+                 device: torch.device) -> None:
+    """Check the fields of a carry: each row ``(field, value, shape, dtype)`` must be a tensor of
+    that shape (None: any size), dtype and ``device``; a ``ValueError`` naming
+    ``{name}.{field}``, the shape (or dtype and device) seen and the one expected otherwise.
+    """
+    for field, t, shape, dtype in rows:
+        if not torch.is_tensor(t):
+            raise ValueError(f"{name}.{field} is {type(t).__name__}, expected a tensor of shape {shape} "
+                             "(build the state with the filter's init)")
+        check_shape(t, f"{name}.{field}", shape)
+        if t.dtype != dtype or t.device != device:
+            raise ValueError(f"{name}.{field} is {t.dtype} on {t.device}, expected {dtype} on {device}")
+
+
+def check_carries(state: ParticleState, sizes: Mapping[str, Mapping[str, Any]] | None = None) -> None:
+    """Check every typed value of ``state.extras``: the value under a registered key must be
+    of its type (:func:`carry`) and pass its ``check`` with the ``sizes`` given for that key;
+    a ``ValueError`` naming ``state.extras[key]`` otherwise. Keys of no carry type pass.
+    """
+    for key, value in (state.extras or {}).items():
+        cls = _TYPES.get(key)
+        if cls is None:
+            continue
+        name = f"state.extras[{key!r}]"
+        if not isinstance(value, cls):
+            raise ValueError(f"{name} must be a {cls.__name__}, got {type(value).__name__} "
+                             "(build the state with the filter's init, or resume one of its results)")
+        value.check(state, name, **dict((sizes or {}).get(key, {})))
