@@ -54,13 +54,14 @@ class ParticleState(NamedTuple):
     exists : (B, N, K) bool, optional
         Existence flag of each target slot, for filters with births and deaths; ``None``
         when the number of targets is known.
-    extras : dict name -> tensor (or a typed NamedTuple of tensors) with the run dim first, optional
+    extras : dict name -> typed value (a NamedTuple of tensors with the run dim first), optional
         Filtering state beyond the weighted cloud that an algorithm carries from step to
-        step, so that a checkpoint of the state alone resumes it (PMMHFilter: the candidate
-        parameters ``theta (B, L)``, their accumulated log-evidence ``log_evidence (B, L)``
-        and the within-candidate log-weights ``log_w_candidate (B, N)``; the group filter:
-        one :class:`~torchmcmcpf.filters.group.GroupState` under ``"group"``); ``None`` for
-        the filters that need none.
+        step, so that a checkpoint of the state alone resumes it: one typed carry per concern
+        (:mod:`torchmcmcpf.filters._carry`), e.g. ``forward``'s last estimate (a
+        :class:`~torchmcmcpf.filters.CarriedEstimate` under ``"estimate"``), PMMHFilter's
+        candidates (a :class:`~torchmcmcpf.filters.PMMHState` under ``"pmmh"``), the group
+        filter's fields (a :class:`~torchmcmcpf.filters.group.GroupState` under ``"group"``);
+        ``None`` for a fresh state.
 
     Example
     -------

@@ -103,7 +103,8 @@ def test_carried_estimate_is_typed_and_old_states_resume():
     rest = filt(scn.measurements[3:], init=old, generator=g)
     assert torch.equal(rest.mean, full.mean[3:]) and torch.equal(rest.state.x, full.state.x)
     bad = half.state._replace(extras={"estimate": e._replace(mean=e.mean[:, :1])})
-    with pytest.raises(ValueError, match=r"state.extras\['estimate'\].mean has shape \(2, 1, 5\), expected \(2, 2, 5\)"):
+    message = r"state.extras\['estimate'\].mean has shape \(2, 1, 5\), expected \(2, 2, 5\)"
+    with pytest.raises(ValueError, match=message):
         filt(scn.measurements, init=bad, generator=g)
     with pytest.raises(ValueError, match=r"state.extras\['estimate'\] must be a CarriedEstimate, got Tensor"):
         filt(scn.measurements, init=half.state._replace(extras={"estimate": e.mean}), generator=g)

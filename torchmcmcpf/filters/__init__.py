@@ -19,10 +19,15 @@ Bind once, step many (:mod:`torchmcmcpf.filters._bound`): each algorithm also ha
 ``bind_<algo>(motion, sensor, settings, existence, *, num_particles, compile) -> Bound`` and
 ``<algo>_bound_step(state, z, bound, *, generator)``, the step with nothing left to resolve;
 ``xxx_step`` is the two in a row, and a ``Filter`` binds once, at construction.
+
+Typed carries (:mod:`torchmcmcpf.filters._carry`): what a state carries besides the weighted
+cloud is one ``NamedTuple`` per concern under one key of ``ParticleState.extras``, checked by
+its type: :class:`CarriedEstimate` (``"estimate"``, ``forward``'s reference for relabelling),
+:class:`PMMHState` (``"pmmh"``), :class:`~torchmcmcpf.filters.group.GroupState` (``"group"``).
 """
 
 from ._bound import Bound
-from .base import Filter
+from .base import CarriedEstimate, Filter
 from .group import GroupMCMCFilter, GroupMCMCSettings, bind_group, group_mcmc_bound_step, group_mcmc_step
 from .ipmcmc import IPMCMCFilter, IPMCMCSettings, bind_ipmcmc, ipmcmc_bound_step, ipmcmc_step
 from .mcmc import MCMCFilter, MCMCSettings, bind_mcmc, mcmc_bound_step, mcmc_step
@@ -37,6 +42,7 @@ from .pmmh import (
     PMMHFilter,
     PMMHResult,
     PMMHSettings,
+    PMMHState,
     ProcessNoiseScale,
     bind_pmmh,
     pmmh,
@@ -56,15 +62,15 @@ from .sir import SIRFilter, SIRSettings, bind_sir, sir_bound_step, sir_step
 # one line per algorithm (module docstring order): its Filter, its settings, its step function,
 # its bind function and its step on the bound object
 __all__ = [
-    "Filter", "Bound",
+    "Filter", "Bound", "CarriedEstimate",
     "SIRFilter", "SIRSettings", "sir_step", "bind_sir", "sir_bound_step",
     "MCMCFilter", "MCMCSettings", "mcmc_step", "bind_mcmc", "mcmc_bound_step",
     "IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_ipmcmc", "ipmcmc_bound_step",
     "GroupMCMCFilter", "GroupMCMCSettings", "group_mcmc_step", "bind_group", "group_mcmc_bound_step",
     "PartitionedSIRFilter", "PartitionedSIRSettings", "partitioned_sir_step", "bind_partitioned_sir",
     "partitioned_sir_bound_step",
-    "PMMHFilter", "PMMHSettings", "pmmh_step", "bind_pmmh", "pmmh_bound_step", "PMMHResult", "ProcessNoiseScale",
-    "pmmh", "sir_log_evidence",
+    "PMMHFilter", "PMMHSettings", "PMMHState", "pmmh_step", "bind_pmmh", "pmmh_bound_step", "PMMHResult",
+    "ProcessNoiseScale", "pmmh", "sir_log_evidence",
     "ResampleMoveFilter", "ResampleMoveSettings", "resample_move_step", "bind_resample_move",
     "resample_move_bound_step",
 ]

@@ -41,7 +41,7 @@ import itertools
 import weakref
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any, ClassVar, NamedTuple, cast
+from typing import Any, ClassVar, cast
 
 import torch
 from torch import nn
@@ -64,7 +64,7 @@ from ..state import (
 )
 from ..typing import Measurement, Tensor
 from ._bound import Bound, Compile, active_prior, check_existence, constructor_signature, settings_from
-from ._carry import carry, check_carries, check_fields, typed_extras
+from ._carry import ESTIMATE, CarriedEstimate, check_carries, typed_extras
 
 __all__ = ["Filter", "CarriedEstimate", "active_prior", "check_existence", "settings_from", "ESTIMATE"]
 
@@ -84,69 +84,6 @@ def _plain(value: Any) -> Any:
     if torch.is_tensor(value) and value.numel() == 1:
         return value.item()
     return repr(value)
-
-
-#: the key of ``ParticleState.extras`` under which ``forward`` carries its last estimate
-#: (:class:`CarriedEstimate`): the reference of the next step's relabelling
-ESTIMATE = "estimate"
-#: the open key under which older states held the estimate's ``present`` flags (converted on resume)
-_PRESENT = "estimate_present"
-
-
-def _estimate_from_keys(extras: dict) -> dict:
-    """An older state's estimate (a tensor under ``"estimate"``, the flags under
-    ``"estimate_present"``) as one :class:`CarriedEstimate`; other ``extras`` unchanged.
-    """
-    if not (torch.is_tensor(extras.get(ESTIMATE)) and _PRESENT in extras):
-        return extras
-    rest = {k: v for k, v in extras.items() if k not in (ESTIMATE, _PRESENT)}
-    return {**rest, ESTIMATE: CarriedEstimate(extras[ESTIMATE], extras[_PRESENT].to(torch.bool))}
-
-
-@carry(ESTIMATE, convert=_estimate_from_keys)
-class CarriedEstimate(NamedTuple):
-    """The estimate ``forward`` carries in a state (``extras["estimate"]``): the reference of
-    the next step's relabelling, so that a resumed run labels its targets as the uninterrupted
-    one does (:meth:`Filter.estimate_targets`).
-
-    Attributes
-    ----------
-    mean : (B, K, D), the last step's estimate of each slot.
-    present : (B, K) bool, the slots it reported (all True without existence).
-
-    Example
-    -------
-    >>> import torch
-    >>> import torchmcmcpf as tp
-    >>> from torchmcmcpf.filters.base import CarriedEstimate
-    >>> filt = tp.SIRFilter(tp.ConstantVelocity(dt=1.0, q=1.0), tp.LinearGaussian.position(noise_std=1.0), 50)
-    >>> result = filt(torch.zeros(3, 2, 2, 2), init=torch.zeros(2, 50, 2, 4), generator=torch.Generator())
-    >>> carried = result.state.extras["estimate"]
-    >>> isinstance(carried, CarriedEstimate), tuple(carried.mean.shape), tuple(carried.present.shape)
-    (True, (2, 2, 4), (2, 2))
-    >>> carried._replace(present=carried.present[:1]).check(result.state)
-    Traceback (most recent call last):
-    ...
-    ValueError: state.extras['estimate'].present has shape (1, 2), expected (2, 2)
-    """
-
-    mean: Tensor
-    present: Tensor
-
-    def check(self, state: ParticleState, name: str = f"state.extras[{ESTIMATE!r}]") -> None:
-        """``mean (B, K, D)`` of the dtype of ``state.x (B, N, K, D)`` and ``present (B, K)``
-        bool, on its device; a ``ValueError`` naming the field and the shapes otherwise.
-        """
-        b, _, k, d = state.x.shape
-        check_fields(name, [("mean", self.mean, (b, k, d), state.x.dtype), ("present", self.present, (b, k), torch.bool)],
-                     state.x.device)
-
-    def as_estimate(self) -> ExistenceEstimate:
-        """The :class:`~torchmcmcpf.state.ExistenceEstimate` it stands for (``exists_prob`` the
-        flags as numbers), the ``reference`` of :meth:`Filter.estimate_targets`.
-        """
-        prob = self.present.to(self.mean.dtype)
-        return ExistenceEstimate(prob, prob.sum(-1), self.mean, self.present)
 
 
 def _maker(keys: list[str]) -> str:

@@ -265,7 +265,11 @@ class PMMHSettings:
         object.__setattr__(self, "ess_threshold", sir.ess_threshold)
 
 
-@carry("pmmh", old_keys=("theta", "log_evidence", "log_w_candidate"))
+#: the key of ``ParticleState.extras`` under which the PMMH filter carries its :class:`PMMHState`
+KEY = "pmmh"
+
+
+@carry(KEY, old_keys=("theta", "log_evidence", "log_w_candidate"))
 class PMMHState(NamedTuple):
     """The sequential PMMH filter's carry (``ParticleState.extras["pmmh"]``): its L candidates,
     run dim first (module docstring, :func:`pmmh_bound_step`).
@@ -408,7 +412,7 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     if n % lc:
         raise ValueError(f"state.x has {n} particles, expected a multiple of num_candidates = {lc}")
     m = n // lc
-    carried = typed_extras(state.extras or {}).get(PMMHState.KEY)
+    carried = typed_extras(state.extras or {}).get(KEY)
     pmmh_state = PMMHState.first(state, settings, generator) if carried is None else carried
     if not isinstance(pmmh_state, PMMHState):
         raise ValueError(f"state.extras['pmmh'] must be a PMMHState, got {type(pmmh_state).__name__}")
@@ -449,7 +453,7 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     log_w_new = occupancy.log().repeat_interleave(m, dim=1) + log_w_c
     new_state = ParticleState(sub.x.reshape(b, n, k, d), log_w_new,
                               None if sub.exists is None else sub.exists.reshape(b, n, k),
-                              {PMMHState.KEY: PMMHState(theta, log_ev_new, log_w_c)})
+                              {KEY: PMMHState(theta, log_ev_new, log_w_c)})
     log_mean_ev = torch.logsumexp(log_ev_new, -1) - torch.logsumexp(log_ev, -1)
     info = StepInfo.make(log_mean_ev, ess=ess(log_w_new), log_evidence=log_mean_ev,
                          acceptance=accepted / (lc - 1),
@@ -497,11 +501,11 @@ class PMMHFilter(Filter):
     compile_seconds = 13.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     #: the candidates carried between steps (:class:`PMMHState` under ``extras["pmmh"]``): a
     #: resumed state must hold them
-    state_extras = frozenset({"pmmh"})
+    state_extras = frozenset({KEY})
     settings_class = PMMHSettings
     bind = staticmethod(bind_pmmh)
     bound_step = staticmethod(pmmh_bound_step)
 
     def carry_sizes(self) -> dict[str, dict[str, Any]]:
         """:meth:`Filter.carry_sizes`: the number of candidates of :class:`PMMHState`."""
-        return {"pmmh": {"num_candidates": self.settings.num_candidates}}
+        return {KEY: {"num_candidates": self.settings.num_candidates}}

@@ -24,10 +24,10 @@ from ...models.group import (
 from ...models.sensors.pixels import ThresholdedPixels
 from ...state import ParticleState
 from ...typing import Tensor
+from .._carry import check_carries
 from ..base import Filter
 from .moves import Models
 from .settings import GroupMCMCSettings, default_chains, estimate_step_bytes
-from .._carry import check_carries
 from .state import KEY, GroupPath, GroupState
 from .step import bind_group, group_mcmc_bound_step
 
