@@ -28,10 +28,12 @@ To give a filter's state a new carry (say a fixed-lag window of five tensors):
    dtype)`` rows and hands them to :func:`check_fields`;
 2. decorate it with ``@carry("window", old_keys=(...))`` (the open keys it replaces, in field
    order, if states were ever saved with them);
-3. set the filter's ``state_extras = frozenset({"window"})`` (an optional carry, present only
-   with some settings: leave it out of ``state_extras`` and check it where the step reads it)
-   and return the sizes it knows from :meth:`Filter.carry_sizes
-   <torchmcmcpf.filters.base.Filter.carry_sizes>` (``{"window": {"lag": L}}``);
+3. set the filter's ``state_extras = frozenset({"window"})`` (a carry present only with some
+   settings: set it on the instance once the settings are bound, ``self.state_extras =
+   frozenset({"window"}) if self.settings.window else frozenset()``, since
+   ``check_resume`` refuses a key the filter does not list) and return the sizes it knows
+   from :meth:`Filter.carry_sizes <torchmcmcpf.filters.base.Filter.carry_sizes>`
+   (``{"window": {"lag": L}}``);
 4. the step reads ``state.extras["window"].paths`` and writes ``{**extras, "window": new}``.
 """
 
