@@ -89,6 +89,12 @@ class ExchangeChains(NamedTuple):
         choice, not another algorithm: with it or without, the chains are the same to
         round-off (tested in float64). Made once per step for the chains, advanced for the
         accepted moves by :func:`with_accepted_amplitudes` only, never recorded in a trace.
+    coords : (B, C, K, r), optional: the slots' resolution coordinates
+        (:meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords` of ``y``) with the
+        exclusion term, so that a move reads them instead of mapping every slot of every
+        chain again (the moved slots' come with the segment's proposals,
+        :attr:`ExchangeProposal.coords`); selected with the state, equal to the recomputed
+        coordinates (tested), never recorded in a trace.
 
     Example
     -------
@@ -122,6 +128,7 @@ class ExchangeChains(NamedTuple):
     source: Tensor | None = None
     log_w_source: Tensor | None = None
     amplitude: Tensor | None = None
+    coords: Tensor | None = None
 
 
 def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None, update: tuple[Tensor, Tensor] | None,
@@ -153,6 +160,10 @@ class ExchangeProposal(NamedTuple):
     log_r : (*L, B, C, M) their ``log r`` at this move's ``epsilon`` (zeros without an
         existence model or re-capture).
     kind : (*L, B, C, M) int8, their proposal components with re-capture, else ``None``.
+    coords : (*L, B, C, M, r), their resolution coordinates
+        (:meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`) when
+        :func:`propose_slots` is given the sensor (the exclusion term), else ``None``: one
+        batched call per segment instead of one per iteration.
 
     Example
     -------
@@ -174,6 +185,7 @@ class ExchangeProposal(NamedTuple):
     exists: Tensor | None
     log_r: Tensor
     kind: Tensor | None
+    coords: Tensor | None = None
 
 
 class ExchangeNoise(NamedTuple):
@@ -249,7 +261,7 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
 def draw_exchange_noise(
     log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, *, dynamics: TargetDynamics,
     generator: torch.Generator, dtype: torch.dtype, z: Measurement | None = None, pairs: Tensor | None = None,
-    exists: Tensor | None = None,
+    exists: Tensor | None = None, found: object = None,
 ) -> ExchangeNoise:
     """Draw the randomness of ``L = num_iterations`` iterations: one slot per iteration
     (uniform over the K slots) or, with ``pairs``, two slots (uniform over the close pairs of
@@ -270,6 +282,8 @@ def draw_exchange_noise(
         inactive (with ``p_same_source``, where either possible source's is), the only place
         a move reads it (:meth:`~torchmcmcpf.models.existence.BirthDeath.can_be_born`); the
         draws are the same.
+    found : optional, the frame's detections for the relocation draws
+        (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per step).
     """
     b, n = log_w.shape
     m = 1 if pairs is None else 2
@@ -313,7 +327,7 @@ def draw_exchange_noise(
         birth = None if drawn is None else BirthNoise(*(t.transpose(0, 1) for t in drawn))
     relocation = dynamics.draw_relocations((b, num_iterations, num_chains, m), z, generator=generator, dtype=dtype,
                                            device=dev, p_propose=None if dynamics.recapture is None or m == 1
-                                           else dynamics.recapture.p_propose_pair)
+                                           else dynamics.recapture.p_propose_pair, found=found)
     if relocation is not None:
         relocation = RelocationNoise(*(t.transpose(0, 1) for t in relocation))
     rho = 0.0 if pairs is None or dynamics.recapture is None else dynamics.recapture.p_same_source
@@ -345,7 +359,7 @@ def pair_source_log_ratio(source: Tensor, log_w_source: Tensor, rho: float) -> T
 
 
 def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | None, *,
-                  dynamics: TargetDynamics) -> ExchangeProposal:
+                  dynamics: TargetDynamics, sensor: SensorModel | None = None) -> ExchangeProposal:
     """The slots that ``noise`` proposes (module docstring): slot ``noise.slot`` of previous
     particle ``noise.source``, propagated by ``dynamics`` with the noise's motion, birth and
     relocation draws, scored at the move's ``epsilon`` (``recapture.p_propose`` for one slot,
@@ -355,6 +369,8 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
     ----------
     noise : :class:`ExchangeNoise` with leading ``(*L, B, C)`` (one iteration or several).
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
+    sensor : optional: the proposed slots' resolution coordinates too
+        (:attr:`ExchangeProposal.coords`, for the exclusion term), in the same call.
 
     Returns
     -------
@@ -371,8 +387,9 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
         torch.take_along_dim(exists_prev.reshape(b, n * k), flat, dim=1).reshape(at.shape).movedim(0, -3)
     recapture = dynamics.recapture
     eps_k = None if recapture is None else (recapture.p_propose if m == 1 else recapture.p_propose_pair)
-    return ExchangeProposal(*dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth, noise.relocation,
-                                                         eps_k))
+    moved, e_new, log_r, kind = dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth,
+                                                            noise.relocation, eps_k)
+    return ExchangeProposal(moved, e_new, log_r, kind, None if sensor is None else sensor.resolution_coords(moved))
 
 
 def exchange_iteration(
@@ -408,7 +425,7 @@ def exchange_iteration(
     accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache, else
     ``None``.
     """
-    y, log_lik, exists, log_r, kind, source, log_w_source, cache = chains
+    y, log_lik, exists, log_r, kind, source, log_w_source, cache, coords = chains
     existence, recapture = dynamics.existence, dynamics.recapture
     k, m = x_prev.shape[-2], noise.slot.shape[-1]
     if (existence is not None or recapture is not None) and log_r is None:
@@ -425,7 +442,7 @@ def exchange_iteration(
     eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
     proposal = noise.proposal if noise.proposal is not None else \
         propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
-    moved, e_new, r_new, kind_new = proposal
+    moved, e_new, r_new, kind_new, coords_new = proposal
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
@@ -441,9 +458,14 @@ def exchange_iteration(
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
     cur_src, cur_lw = source, log_w_source
     cur_u = u_moved = None
-    if exclusion_on(exclusion, sensor):  # the chains' and the moved slots' coordinates, one call
-        u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
-        cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
+    on = exclusion_on(exclusion, sensor)
+    kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
+    if on:
+        if kept:  # read: the chains' from their state, the moved slots' from the segment's proposals
+            cur_u, u_moved = coords, coords_new
+        else:  # the chains' and the moved slots' coordinates, one call
+            u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
+            cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
     update = None
     if cache is not None:  # every moved slot at once, each cell of their boxes counted once
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
@@ -457,7 +479,7 @@ def exchange_iteration(
             cur_ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
         if exclusion is not None and cur_u is not None and u_moved is not None:  # the K - 1 factors of the slot
             log_prior = log_prior + exclusion.log_change(cur_u, u_moved[:, :, j], slot, cur_e, e_n)
-            if j + 1 < m:  # the next slot's factors see this one moved
+            if j + 1 < m or kept:  # the next slot's factors see this one moved (and the state keeps them)
                 cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
         if cur_r is not None:
             r_old = torch.where(here, cur_r, 0.0).sum(-1)
@@ -477,6 +499,6 @@ def exchange_iteration(
     accepted = mh_accept(cur_ll - log_lik + log_prior, noise.u)
     if noise.valid is not None:
         accepted = accepted & noise.valid
-    new = mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind, cur_src, cur_lw),
-                    (y, log_lik, exists, log_r, kind, source, log_w_source))
+    new = mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind, cur_src, cur_lw, None, cur_u if kept else None),
+                    (y, log_lik, exists, log_r, kind, source, log_w_source, None, coords if kept else None))
     return ExchangeChains(*new), accepted, update

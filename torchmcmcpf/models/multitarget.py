@@ -311,31 +311,36 @@ class RelocationNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, ...], sensor: SensorModel, z: object, *, generator: torch.Generator,
-             dtype: torch.dtype, device: torch.device | str | None, p_propose: float = 1.0) -> RelocationNoise:
+             dtype: torch.dtype, device: torch.device | str | None, p_propose: float = 1.0,
+             found: object = None) -> RelocationNoise:
         """Draw for slots of ``shape = (B, *S, K)`` from the frame ``z`` (one per run), for
         proposals with ``epsilon <= p_propose``: ``g`` (a sum over the frame's points or
         peaks) is evaluated for those draws only (``u < p_propose``; 10 % at the default
-        ``epsilon``), the same draws either way.
+        ``epsilon``), the same draws either way. ``found``: the frame's
+        :meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per step
+        (None: the sensor finds them).
         """
         u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
         scored = None if p_propose >= 1.0 else u < p_propose
-        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored)
+        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored,
+                                                    found=found)
         return cls(u, coords, log_ratio)
 
 
 def draw_relocation(recapture: Recapture | None, sensor: SensorModel | None, shape: tuple[int, ...], z: object, *,
                     generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None,
-                    p_propose: float | None = None) -> RelocationNoise | None:
+                    p_propose: float | None = None, found: object = None) -> RelocationNoise | None:
     """:class:`RelocationNoise` for slots of ``shape = (B, *S, K)`` from the frame ``z``, for
     proposals with ``epsilon <= p_propose`` (default ``recapture.p_propose``, that of
-    :func:`relocate`), or None without ``recapture``.
+    :func:`relocate`), or None without ``recapture``; ``found``: the frame's detections made
+    once per step (:meth:`RelocationNoise.draw`).
     """
     if recapture is None:
         return None
     if sensor is None or z is None:
         raise ValueError("recapture needs the sensor and the frame z to draw from the data")
     return RelocationNoise.draw(shape, sensor, z, generator=generator, dtype=dtype, device=device,
-                                p_propose=recapture.p_propose if p_propose is None else p_propose)
+                                p_propose=recapture.p_propose if p_propose is None else p_propose, found=found)
 
 
 #: The component a slot was proposed from (:func:`relocate`): its prior density over its
