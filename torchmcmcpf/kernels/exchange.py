@@ -60,7 +60,7 @@ from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
 from ..resampling import cdf, inverse_cdf, normalize
 from ..typing import Measurement, Tensor
-from .mh import mh_accept, mh_select
+from .mh import mh_accept
 
 __all__ = ["ExchangeChains", "ExchangeNoise", "ExchangeProposal", "draw_exchange_noise", "propose_slots",
            "exchange_iteration", "close_pairs", "with_accepted_amplitudes", "pair_source_log_ratio"]
@@ -449,14 +449,15 @@ def exchange_iteration(
             return r
         return r + (log_q_component(kd, src) - log_q_component(kd, dst)).to(r.dtype)
 
-    cur_y, cur_e, cur_r, cur_kind, cur_ll = y, exists, log_r, kind, log_lik
+    # the proposal's terms first (the slots that move are distinct: each reads its own current
+    # terms), then the accepted moves written into the state, one select per field
+    cur_y, cur_e, cur_ll = y, exists, log_lik
     log_prior = torch.zeros_like(log_lik)
     if rho > 0 and source is not None and log_w_source is not None:  # the pair's sources (module docstring)
         old_source = torch.take_along_dim(source, noise.slot, -1)
         old_log_w = torch.take_along_dim(log_w_source, noise.slot, -1)
         log_prior = log_prior + (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
-    cur_src, cur_lw = source, log_w_source
     cur_u = u_moved = None
     on = exclusion_on(exclusion, sensor)
     kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
@@ -471,34 +472,49 @@ def exchange_iteration(
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
                                                                   exists_n=e_new)
         cur_ll, update = log_lik + delta, (cells, change)
+    heres = []
     for j in range(m):  # M = 1 or 2, static: the moved slots one after the other
         slot = noise.slot[..., j]  # (B, C)
         here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
+        heres.append(here)
         x_n, e_n = moved[:, :, j], None if e_new is None else e_new[:, :, j]
         if cache is None:
             cur_ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
         if exclusion is not None and cur_u is not None and u_moved is not None:  # the K - 1 factors of the slot
             log_prior = log_prior + exclusion.log_change(cur_u, u_moved[:, :, j], slot, cur_e, e_n)
-            if j + 1 < m or kept:  # the next slot's factors see this one moved (and the state keeps them)
+            if j + 1 < m:  # the next slot's factors see this one moved
                 cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
-        if cur_r is not None:
-            r_old = torch.where(here, cur_r, 0.0).sum(-1)
-            if cur_kind is not None and base != eps_k:
-                r_old = convert(r_old, torch.where(here, cur_kind, 0).sum(-1).to(torch.int8), base, eps_k)
-            k_j = None if kind_new is None else kind_new[:, :, j]
+        if log_r is not None:  # the slot's own cached ratio (distinct slots: none moved yet)
+            at = slot.unsqueeze(-1)
+            r_old = torch.take_along_dim(log_r, at, -1).squeeze(-1)
+            if kind is not None and base != eps_k:
+                r_old = convert(r_old, torch.take_along_dim(kind, at, -1).squeeze(-1), base, eps_k)
             log_prior = log_prior + r_new[:, :, j] - r_old
-            cur_r = torch.where(here, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), cur_r)
-            if cur_kind is not None and k_j is not None:
-                cur_kind = torch.where(here, k_j.unsqueeze(-1), cur_kind)
-        cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
-        if cur_e is not None and e_n is not None:
-            cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
-        if cur_src is not None and cur_lw is not None:
-            cur_src = torch.where(here, noise.source[..., j].unsqueeze(-1), cur_src)
-            cur_lw = torch.where(here, noise.log_w_source[..., j].unsqueeze(-1).to(cur_lw.dtype), cur_lw)
+        if j + 1 < m:  # the next slot's likelihood and factors see this one moved
+            if cache is None:
+                cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
+            if cur_e is not None and e_n is not None:
+                cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
     accepted = mh_accept(cur_ll - log_lik + log_prior, noise.u)
     if noise.valid is not None:
         accepted = accepted & noise.valid
-    new = mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind, cur_src, cur_lw, None, cur_u if kept else None),
-                    (y, log_lik, exists, log_r, kind, source, log_w_source, None, coords if kept else None))
-    return ExchangeChains(*new), accepted, update
+    y_out, e_out, r_out, kind_out, src_out, lw_out = y, exists, log_r, kind, source, log_w_source
+    u_out = coords if kept else None
+    for j, here in enumerate(heres):  # each moved slot written where its move is accepted
+        take = here & accepted.unsqueeze(-1)  # (B, C, K)
+        y_out = torch.where(take.unsqueeze(-1), moved[:, :, j].unsqueeze(-2), y_out)
+        if e_out is not None and e_new is not None:
+            e_out = torch.where(take, e_new[:, :, j].unsqueeze(-1), e_out)
+        if r_out is not None:
+            k_j = None if kind_new is None else kind_new[:, :, j]
+            r_out = torch.where(take, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), r_out)
+            if kind_out is not None and k_j is not None:
+                kind_out = torch.where(take, k_j.unsqueeze(-1), kind_out)
+        if src_out is not None and lw_out is not None:
+            src_out = torch.where(take, noise.source[..., j].unsqueeze(-1), src_out)
+            lw_out = torch.where(take, noise.log_w_source[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
+        if u_out is not None and u_moved is not None:
+            u_out = torch.where(take.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), u_out)
+    new = ExchangeChains(y_out, torch.where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
+                         None, u_out)
+    return new, accepted, update
