@@ -568,9 +568,11 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         def one(count: int, close: Tensor | None) -> ExchangeNoise:
             noise = draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
                                         dtype=x_prev.dtype, z=z, pairs=close, exists=exists, found=found)
-            # the segment's proposals in one batched call (an independence proposal)
+            # the segment's proposals in one batched call (an independence proposal); the
+            # iterations read them, not the birth and relocation draws they were made from
             return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics,
-                                                         sensor=sensor if excluding else None))
+                                                         sensor=sensor if excluding else None),
+                                  birth=None, relocation=None)
         at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)
         return SegmentNoise(one(steps, None), one(len(at_pairs), pairs) if at_pairs else None, at_pairs)
 
