@@ -147,7 +147,11 @@ that moves (``sensor.log_likelihood_delta``, the cells of its old and new box), 
 ``sensor.log_likelihood`` of the proposal; with the chains' amplitude cache (grid sensors,
 :class:`~torchmcmcpf.kernels.exchange.ExchangeChains`), a one-slot move reads the
 amplitudes at its two boxes instead of summing the other targets' spreads there, the same
-on every device. On a GPU, the compiled iteration runs each segment (without HMC
+on every device. With the exclusion term the chains also keep their slots' resolution
+coordinates (``ExchangeChains.coords``; the proposed slots' are made with the segment's
+proposals), and the frame's detections, which every draw from the data reads, are found once
+per step (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`): the defaults' terms
+add no per-iteration mapping of the slots and no repeated CLEAN. On a GPU, the compiled iteration runs each segment (without HMC
 refinement) as one CUDA graph (:meth:`~torchmcmcpf.runtime.Program.capture`), the cache's
 advance included: the step then costs the kernels' own time instead of a launch and its
 Python per iteration (H200, Np = 5000, without the cache: 73 to 16 ms per step;

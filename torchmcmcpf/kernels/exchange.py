@@ -486,9 +486,9 @@ def exchange_iteration(
                 cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
         if log_r is not None:  # the slot's own cached ratio (distinct slots: none moved yet)
             at = slot.unsqueeze(-1)
-            r_old = torch.take_along_dim(log_r, at, -1).squeeze(-1)
+            r_old = torch.gather(log_r, -1, at).squeeze(-1)
             if kind is not None and base != eps_k:
-                r_old = convert(r_old, torch.take_along_dim(kind, at, -1).squeeze(-1), base, eps_k)
+                r_old = convert(r_old, torch.gather(kind, -1, at).squeeze(-1), base, eps_k)
             log_prior = log_prior + r_new[:, :, j] - r_old
         if j + 1 < m:  # the next slot's likelihood and factors see this one moved
             if cache is None:

@@ -167,16 +167,18 @@ class Exclusion:
         """
         k = u.shape[-2]
         others = torch.arange(k, device=u.device) != n.unsqueeze(-1)  # (*S, K)
-        u_old = torch.take_along_dim(u, n.reshape(n.shape + (1, 1)), -2)  # (*S, 1, r)
+        u_old = torch.gather(u, -2, n.reshape(n.shape + (1, 1)).expand(n.shape + (1, u.shape[-1])))  # (*S, 1, r)
         # slot n before (row 0) and after (row 1) the move against every slot: one log_phi
         d2 = (u.unsqueeze(-3) - torch.stack([u_old, u_n.unsqueeze(-2)], -3)).square().sum(-1)  # (*S, 2, K)
         if alive is None:
             on = others.unsqueeze(-2)
         else:
-            a_old = torch.take_along_dim(alive, n.unsqueeze(-1), -1)  # (*S, 1)
+            a_old = torch.gather(alive, -1, n.unsqueeze(-1))  # (*S, 1)
             a_new = a_old if alive_n is None else alive_n.unsqueeze(-1)
             on = (others & alive).unsqueeze(-2) & torch.stack([a_old, a_new], -2)  # (*S, 2, K)
-        terms = torch.where(on, self.log_phi(torch.where(on, d2, 1.0)), 0.0)
+        # log_phi is floored (finite, zero slope below the floor at d = 0): the pairs off are
+        # dropped after it, no mask before it (a move pays one select, not two)
+        terms = torch.where(on, self.log_phi(d2), 0.0)
         return (terms[..., 1, :] - terms[..., 0, :]).sum(-1)
 
 
