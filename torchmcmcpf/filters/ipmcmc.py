@@ -151,11 +151,11 @@ on every device. With the exclusion term the chains also keep their slots' resol
 coordinates (``ExchangeChains.coords``; the proposed slots' are made with the segment's
 proposals), and the frame's detections, which every draw from the data reads, are found once
 per step (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`): the defaults' terms
-add no per-iteration mapping of the slots and no repeated CLEAN. On a GPU, the compiled iteration runs each segment (without HMC
-refinement) as one CUDA graph (:meth:`~torchmcmcpf.runtime.Program.capture`), the cache's
-advance included: the step then costs the kernels' own time instead of a launch and its
-Python per iteration (H200, Np = 5000, without the cache: 73 to 16 ms per step;
-benchmarks/README.md).
+add no per-iteration mapping of the slots and no repeated CLEAN. On a GPU, the compiled
+iteration runs each segment (without HMC refinement) as one CUDA graph
+(:meth:`~torchmcmcpf.runtime.Program.capture`), the cache's advance included: the step then
+costs the kernels' own time instead of a launch and its Python per iteration (H200, Np =
+5000, without the cache: 73 to 16 ms per step; benchmarks/README.md).
 """
 
 from __future__ import annotations

@@ -324,8 +324,10 @@ class RelocationNoise(NamedTuple):
         """
         u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
         scored = None if p_propose >= 1.0 else u < p_propose
+        # handed on only when there is something (a sensor that prepares nothing need not take it)
+        extra = {} if found is None else {"found": found}
         coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored,
-                                                    found=found)
+                                                    **extra)
         return cls(u, coords, log_ratio)
 
 
