@@ -147,11 +147,15 @@ that moves (``sensor.log_likelihood_delta``, the cells of its old and new box), 
 ``sensor.log_likelihood`` of the proposal; with the chains' amplitude cache (grid sensors,
 :class:`~torchmcmcpf.kernels.exchange.ExchangeChains`), a one-slot move reads the
 amplitudes at its two boxes instead of summing the other targets' spreads there, the same
-on every device. On a GPU, the compiled iteration runs each segment (without HMC
-refinement) as one CUDA graph (:meth:`~torchmcmcpf.runtime.Program.capture`), the cache's
-advance included: the step then costs the kernels' own time instead of a launch and its
-Python per iteration (H200, Np = 5000, without the cache: 73 to 16 ms per step;
-benchmarks/README.md).
+on every device. With the exclusion term the chains also keep their slots' resolution
+coordinates (``ExchangeChains.coords``; the proposed slots' are made with the segment's
+proposals), and the frame's detections, which every draw from the data reads, are found once
+per step (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`): the defaults' terms
+add no per-iteration mapping of the slots and no repeated CLEAN. On a GPU, the compiled
+iteration runs each segment (without HMC refinement) as one CUDA graph
+(:meth:`~torchmcmcpf.runtime.Program.capture`), the cache's advance included: the step then
+costs the kernels' own time instead of a launch and its Python per iteration (H200, Np =
+5000, without the cache: 73 to 16 ms per step; benchmarks/README.md).
 """
 
 from __future__ import annotations
@@ -185,7 +189,7 @@ from ..kernels.hmc_refine import (
 )
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
-from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture
+from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture, exclusion_on
 from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
@@ -231,7 +235,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
     chains' amplitude cache (:func:`with_accepted_amplitudes`) and, after every ``every``-th,
     by ``refine(chains, i) -> (chains, accepted)`` (the ``i``-th HMC refinement) when given;
     return the final chains, the list of the chains after iterations ``record_from .. L - 1``
-    (references, no copies, without their cache and sources), the number of exchange acceptances per
+    (references, no copies, without their caches and sources), the number of exchange acceptances per
     chain ``(B, C)`` and that of refinements.
     """
     trace = []
@@ -246,7 +250,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
             chains, acc = refine(chains, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
-            trace.append(chains._replace(source=None, log_w_source=None, amplitude=None))
+            trace.append(chains._replace(source=None, log_w_source=None, amplitude=None, coords=None))
     return chains, trace, accepted_count, refined_count
 
 
@@ -532,8 +536,10 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
                                            device=x_prev.device), num_chains)
     x0 = gather_particles(x_prev, start)
     e0 = None if exists is None else gather_particles(exists, start)
-    y, e, log_r, kind = dynamics.propagate_labelled(x0, e0, *dynamics.draw_noise(x0, z, generator=generator),
-                                                    start=True)
+    # the frame's detections (a grid sensor's CLEAN) once per step, for every draw from the data
+    found = None if dynamics.recapture is None else sensor.frame_detections(z)
+    y, e, log_r, kind = dynamics.propagate_labelled(x0, e0, *dynamics.draw_noise(x0, z, generator=generator,
+                                                                                 found=found), start=True)
     # the chains' amplitudes per cell (grid sensors; ExchangeChains.amplitude): a move then
     # reads its two boxes instead of summing the other targets' spreads there
     # two-slot moves: every pair_every-th iteration, over the pairs of slots whose predicted
@@ -544,9 +550,12 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
         log_w_source = torch.take_along_dim(normalize(log_w)[0], start, 1
                                             ).unsqueeze(-1).repeat(1, 1, k)
+    # with the exclusion term the chains keep their slots' resolution coordinates, and each
+    # segment's proposals come with theirs (one batched call): a move maps no slot again
+    excluding = exclusion_on(settings.exclusion, sensor)
     chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
                             None if existence is None and recapture is None else log_r, kind, source, log_w_source,
-                            sensor.amplitude_cache(y, e, z))
+                            sensor.amplitude_cache(y, e, z), sensor.resolution_coords(y) if excluding else None)
     pairs = None
     if pair_every and recapture is not None:
         if exists is None:
@@ -562,9 +571,12 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     def draw(steps: int, offset: int) -> SegmentNoise:
         def one(count: int, close: Tensor | None) -> ExchangeNoise:
             noise = draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
-                                        dtype=x_prev.dtype, z=z, pairs=close, exists=exists)
-            # the segment's proposals in one batched call (an independence proposal)
-            return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics))
+                                        dtype=x_prev.dtype, z=z, pairs=close, exists=exists, found=found)
+            # the segment's proposals in one batched call (an independence proposal); the
+            # iterations read them, not the birth and relocation draws they were made from
+            return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics,
+                                                         sensor=sensor if excluding else None),
+                                  birth=None, relocation=None)
         at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)
         return SegmentNoise(one(steps, None), one(len(at_pairs), pairs) if at_pairs else None, at_pairs)
 
@@ -581,7 +593,8 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
                                             log_prior=log_prior, sensor=sensor, motion=hmc_motion, settings=hmc)
             # every slot may have moved: the amplitudes afresh
             amplitude = None if ch.amplitude is None else sensor.amplitude_cache(y_new, ch.exists, z)
-            return ch._replace(y=y_new, log_lik=ll_new, amplitude=amplitude), acc
+            coords = None if ch.coords is None else sensor.resolution_coords(y_new)
+            return ch._replace(y=y_new, log_lik=ll_new, amplitude=amplitude, coords=coords), acc
 
     done = 0  # iterations run so far (the two-slot schedule counts across segments)
 

@@ -60,7 +60,7 @@ from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
 from ..resampling import cdf, inverse_cdf, normalize
 from ..typing import Measurement, Tensor
-from .mh import mh_accept, mh_select
+from .mh import mh_accept
 
 __all__ = ["ExchangeChains", "ExchangeNoise", "ExchangeProposal", "draw_exchange_noise", "propose_slots",
            "exchange_iteration", "close_pairs", "with_accepted_amplitudes", "pair_source_log_ratio"]
@@ -89,6 +89,12 @@ class ExchangeChains(NamedTuple):
         choice, not another algorithm: with it or without, the chains are the same to
         round-off (tested in float64). Made once per step for the chains, advanced for the
         accepted moves by :func:`with_accepted_amplitudes` only, never recorded in a trace.
+    coords : (B, C, K, r), optional: the slots' resolution coordinates
+        (:meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords` of ``y``) with the
+        exclusion term, so that a move reads them instead of mapping every slot of every
+        chain again (the moved slots' come with the segment's proposals,
+        :attr:`ExchangeProposal.coords`); selected with the state, equal to the recomputed
+        coordinates (tested), never recorded in a trace.
 
     Example
     -------
@@ -122,6 +128,7 @@ class ExchangeChains(NamedTuple):
     source: Tensor | None = None
     log_w_source: Tensor | None = None
     amplitude: Tensor | None = None
+    coords: Tensor | None = None
 
 
 def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None, update: tuple[Tensor, Tensor] | None,
@@ -153,6 +160,10 @@ class ExchangeProposal(NamedTuple):
     log_r : (*L, B, C, M) their ``log r`` at this move's ``epsilon`` (zeros without an
         existence model or re-capture).
     kind : (*L, B, C, M) int8, their proposal components with re-capture, else ``None``.
+    coords : (*L, B, C, M, r), their resolution coordinates
+        (:meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`) when
+        :func:`propose_slots` is given the sensor (the exclusion term), else ``None``: one
+        batched call per segment instead of one per iteration.
 
     Example
     -------
@@ -174,6 +185,7 @@ class ExchangeProposal(NamedTuple):
     exists: Tensor | None
     log_r: Tensor
     kind: Tensor | None
+    coords: Tensor | None = None
 
 
 class ExchangeNoise(NamedTuple):
@@ -249,7 +261,7 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
 def draw_exchange_noise(
     log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, *, dynamics: TargetDynamics,
     generator: torch.Generator, dtype: torch.dtype, z: Measurement | None = None, pairs: Tensor | None = None,
-    exists: Tensor | None = None,
+    exists: Tensor | None = None, found: object = None,
 ) -> ExchangeNoise:
     """Draw the randomness of ``L = num_iterations`` iterations: one slot per iteration
     (uniform over the K slots) or, with ``pairs``, two slots (uniform over the close pairs of
@@ -270,6 +282,8 @@ def draw_exchange_noise(
         inactive (with ``p_same_source``, where either possible source's is), the only place
         a move reads it (:meth:`~torchmcmcpf.models.existence.BirthDeath.can_be_born`); the
         draws are the same.
+    found : optional, the frame's detections for the relocation draws
+        (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per step).
     """
     b, n = log_w.shape
     m = 1 if pairs is None else 2
@@ -313,7 +327,7 @@ def draw_exchange_noise(
         birth = None if drawn is None else BirthNoise(*(t.transpose(0, 1) for t in drawn))
     relocation = dynamics.draw_relocations((b, num_iterations, num_chains, m), z, generator=generator, dtype=dtype,
                                            device=dev, p_propose=None if dynamics.recapture is None or m == 1
-                                           else dynamics.recapture.p_propose_pair)
+                                           else dynamics.recapture.p_propose_pair, found=found)
     if relocation is not None:
         relocation = RelocationNoise(*(t.transpose(0, 1) for t in relocation))
     rho = 0.0 if pairs is None or dynamics.recapture is None else dynamics.recapture.p_same_source
@@ -345,7 +359,7 @@ def pair_source_log_ratio(source: Tensor, log_w_source: Tensor, rho: float) -> T
 
 
 def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | None, *,
-                  dynamics: TargetDynamics) -> ExchangeProposal:
+                  dynamics: TargetDynamics, sensor: SensorModel | None = None) -> ExchangeProposal:
     """The slots that ``noise`` proposes (module docstring): slot ``noise.slot`` of previous
     particle ``noise.source``, propagated by ``dynamics`` with the noise's motion, birth and
     relocation draws, scored at the move's ``epsilon`` (``recapture.p_propose`` for one slot,
@@ -355,6 +369,8 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
     ----------
     noise : :class:`ExchangeNoise` with leading ``(*L, B, C)`` (one iteration or several).
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
+    sensor : optional: the proposed slots' resolution coordinates too
+        (:attr:`ExchangeProposal.coords`, for the exclusion term), in the same call.
 
     Returns
     -------
@@ -371,8 +387,9 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
         torch.take_along_dim(exists_prev.reshape(b, n * k), flat, dim=1).reshape(at.shape).movedim(0, -3)
     recapture = dynamics.recapture
     eps_k = None if recapture is None else (recapture.p_propose if m == 1 else recapture.p_propose_pair)
-    return ExchangeProposal(*dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth, noise.relocation,
-                                                         eps_k))
+    moved, e_new, log_r, kind = dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth,
+                                                            noise.relocation, eps_k)
+    return ExchangeProposal(moved, e_new, log_r, kind, None if sensor is None else sensor.resolution_coords(moved))
 
 
 def exchange_iteration(
@@ -408,7 +425,7 @@ def exchange_iteration(
     accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache, else
     ``None``.
     """
-    y, log_lik, exists, log_r, kind, source, log_w_source, cache = chains
+    y, log_lik, exists, log_r, kind, source, log_w_source, cache, coords = chains
     existence, recapture = dynamics.existence, dynamics.recapture
     k, m = x_prev.shape[-2], noise.slot.shape[-1]
     if (existence is not None or recapture is not None) and log_r is None:
@@ -425,33 +442,41 @@ def exchange_iteration(
     eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
     proposal = noise.proposal if noise.proposal is not None else \
         propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
-    moved, e_new, r_new, kind_new = proposal
+    moved, e_new, r_new, kind_new, coords_new = proposal
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
             return r
         return r + (log_q_component(kd, src) - log_q_component(kd, dst)).to(r.dtype)
 
-    cur_y, cur_e, cur_r, cur_kind, cur_ll = y, exists, log_r, kind, log_lik
+    # the proposal's terms first (the slots that move are distinct: each reads its own current
+    # terms), then the accepted moves written into the state, one select per field
+    cur_y, cur_e, cur_ll = y, exists, log_lik
     log_prior = torch.zeros_like(log_lik)
     if rho > 0 and source is not None and log_w_source is not None:  # the pair's sources (module docstring)
         old_source = torch.take_along_dim(source, noise.slot, -1)
         old_log_w = torch.take_along_dim(log_w_source, noise.slot, -1)
         log_prior = log_prior + (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
-    cur_src, cur_lw = source, log_w_source
     cur_u = u_moved = None
-    if exclusion_on(exclusion, sensor):  # the chains' and the moved slots' coordinates, one call
-        u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
-        cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
+    on = exclusion_on(exclusion, sensor)
+    kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
+    if on:
+        if kept:  # read: the chains' from their state, the moved slots' from the segment's proposals
+            cur_u, u_moved = coords, coords_new
+        else:  # the chains' and the moved slots' coordinates, one call
+            u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
+            cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
     update = None
     if cache is not None:  # every moved slot at once, each cell of their boxes counted once
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
                                                                   exists_n=e_new)
         cur_ll, update = log_lik + delta, (cells, change)
+    heres = []
     for j in range(m):  # M = 1 or 2, static: the moved slots one after the other
         slot = noise.slot[..., j]  # (B, C)
         here = torch.arange(k, device=y.device) == slot.unsqueeze(-1)  # (B, C, K)
+        heres.append(here)
         x_n, e_n = moved[:, :, j], None if e_new is None else e_new[:, :, j]
         if cache is None:
             cur_ll = sensor.log_likelihood_slot(cur_y, x_n, slot, z, cur_ll, exists=cur_e, exists_n=e_n)
@@ -459,24 +484,37 @@ def exchange_iteration(
             log_prior = log_prior + exclusion.log_change(cur_u, u_moved[:, :, j], slot, cur_e, e_n)
             if j + 1 < m:  # the next slot's factors see this one moved
                 cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
-        if cur_r is not None:
-            r_old = torch.where(here, cur_r, 0.0).sum(-1)
-            if cur_kind is not None and base != eps_k:
-                r_old = convert(r_old, torch.where(here, cur_kind, 0).sum(-1).to(torch.int8), base, eps_k)
-            k_j = None if kind_new is None else kind_new[:, :, j]
+        if log_r is not None:  # the slot's own cached ratio (distinct slots: none moved yet)
+            at = slot.unsqueeze(-1)
+            r_old = torch.gather(log_r, -1, at).squeeze(-1)
+            if kind is not None and base != eps_k:
+                r_old = convert(r_old, torch.gather(kind, -1, at).squeeze(-1), base, eps_k)
             log_prior = log_prior + r_new[:, :, j] - r_old
-            cur_r = torch.where(here, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), cur_r)
-            if cur_kind is not None and k_j is not None:
-                cur_kind = torch.where(here, k_j.unsqueeze(-1), cur_kind)
-        cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
-        if cur_e is not None and e_n is not None:
-            cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
-        if cur_src is not None and cur_lw is not None:
-            cur_src = torch.where(here, noise.source[..., j].unsqueeze(-1), cur_src)
-            cur_lw = torch.where(here, noise.log_w_source[..., j].unsqueeze(-1).to(cur_lw.dtype), cur_lw)
+        if j + 1 < m:  # the next slot's likelihood and factors see this one moved
+            if cache is None:
+                cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
+            if cur_e is not None and e_n is not None:
+                cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
     accepted = mh_accept(cur_ll - log_lik + log_prior, noise.u)
     if noise.valid is not None:
         accepted = accepted & noise.valid
-    new = mh_select(accepted, (cur_y, cur_ll, cur_e, cur_r, cur_kind, cur_src, cur_lw),
-                    (y, log_lik, exists, log_r, kind, source, log_w_source))
-    return ExchangeChains(*new), accepted, update
+    y_out, e_out, r_out, kind_out, src_out, lw_out = y, exists, log_r, kind, source, log_w_source
+    u_out = coords if kept else None
+    for j, here in enumerate(heres):  # each moved slot written where its move is accepted
+        take = here & accepted.unsqueeze(-1)  # (B, C, K)
+        y_out = torch.where(take.unsqueeze(-1), moved[:, :, j].unsqueeze(-2), y_out)
+        if e_out is not None and e_new is not None:
+            e_out = torch.where(take, e_new[:, :, j].unsqueeze(-1), e_out)
+        if r_out is not None:
+            k_j = None if kind_new is None else kind_new[:, :, j]
+            r_out = torch.where(take, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), r_out)
+            if kind_out is not None and k_j is not None:
+                kind_out = torch.where(take, k_j.unsqueeze(-1), kind_out)
+        if src_out is not None and lw_out is not None:
+            src_out = torch.where(take, noise.source[..., j].unsqueeze(-1), src_out)
+            lw_out = torch.where(take, noise.log_w_source[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
+        if u_out is not None and u_moved is not None:
+            u_out = torch.where(take.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), u_out)
+    new = ExchangeChains(y_out, torch.where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
+                         None, u_out)
+    return new, accepted, update

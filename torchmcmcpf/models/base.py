@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import weakref
-from typing import ClassVar, Generic, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import torch
 from torch import nn
@@ -420,8 +420,16 @@ class SensorModel(nn.Module, Generic[Z]):
         """Whether this sensor overrides :meth:`resolution_coords` (decided by method)."""
         return type(self).resolution_coords is not SensorModel.resolution_coords
 
+    def frame_detections(self, z: Z) -> Any:
+        """What :meth:`sample_from_data` reads of the frame ``z`` beyond the frame itself (a
+        grid sensor's peaks, found by CLEAN), made once per step by a filter that draws from
+        the data several times and handed to every draw (``found=``); ``None`` (the default):
+        nothing to prepare. A function of ``z`` alone: the draws are the same either way.
+        """
+        return None
+
     def sample_from_data(self, z: Z, shape: tuple[int, ...], *, generator: torch.Generator,
-                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None
+                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None, found: Any = None
                          ) -> tuple[Tensor, Tensor]:
         """Measured coordinates drawn where the frame says targets may be (the data-driven
         density ``g(u | z)`` of :class:`~torchmcmcpf.models.multitarget.Recapture`).
@@ -434,6 +442,8 @@ class SensorModel(nn.Module, Generic[Z]):
             reads it only where it takes the data-driven component); ``log_ratio`` is 0
             elsewhere, so a sensor may skip evaluating ``g`` there. The draws do not depend
             on it.
+        found : optional, :meth:`frame_detections` of ``z`` (made once per step); None: the
+            sensor prepares the frame itself.
 
         Returns
         -------

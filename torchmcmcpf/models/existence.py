@@ -482,11 +482,12 @@ class TargetDynamics(NamedTuple):
     recapture: Recapture | None = None
     sensor: SensorModel | None = None
 
-    def draw_noise(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator
-                   ) -> tuple[Tensor, BirthNoise | None, RelocationNoise | None]:
+    def draw_noise(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator,
+                   found: object = None) -> tuple[Tensor, BirthNoise | None, RelocationNoise | None]:
         """Noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise, with births
         and deaths :class:`BirthNoise` (births near the points of ``z`` when the model draws
-        them so) and, with ``recapture``, :class:`RelocationNoise` drawn from the frame ``z``.
+        them so) and, with ``recapture``, :class:`RelocationNoise` drawn from the frame ``z``
+        (``found``: its detections made once per step, :meth:`draw_relocations`).
         """
         if self.existence is None:
             eps = torch.randn(x.shape[:-1] + (self.motion.noise_dim,), generator=generator, device=x.device,
@@ -495,7 +496,7 @@ class TargetDynamics(NamedTuple):
         else:
             eps, birth = self.existence.draw_noise(x, self.motion, z, generator=generator)
         return eps, birth, self.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
-                                                 device=x.device)
+                                                 device=x.device, found=found)
 
     def draw_births(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator,
                     exists: Tensor | None = None, deferred: bool = False) -> BirthNoise | None:
@@ -508,14 +509,16 @@ class TargetDynamics(NamedTuple):
                                                                    exists=exists, deferred=deferred)
 
     def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
-                         dtype: torch.dtype, device: torch.device | str, p_propose: float | None = None
-                         ) -> RelocationNoise | None:
+                         dtype: torch.dtype, device: torch.device | str, p_propose: float | None = None,
+                         found: object = None) -> RelocationNoise | None:
         """:class:`~torchmcmcpf.models.multitarget.RelocationNoise` for slots of leading
         ``shape (B, *S, K)``, drawn from the frame ``z`` for proposals with ``epsilon <=
-        p_propose`` (default ``recapture.p_propose``); ``None`` without re-capture.
+        p_propose`` (default ``recapture.p_propose``); ``None`` without re-capture. ``found``:
+        the frame's :meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per
+        step and handed to every draw (None: each draw finds them).
         """
         return draw_relocation(self.recapture, self.sensor, shape, z, generator=generator, dtype=dtype, device=device,
-                               p_propose=p_propose)
+                               p_propose=p_propose, found=found)
 
     def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
                   relocation: RelocationNoise | None = None) -> tuple[Tensor, Tensor | None, Tensor]:

@@ -167,16 +167,18 @@ class Exclusion:
         """
         k = u.shape[-2]
         others = torch.arange(k, device=u.device) != n.unsqueeze(-1)  # (*S, K)
-        u_old = torch.take_along_dim(u, n.reshape(n.shape + (1, 1)), -2)  # (*S, 1, r)
+        u_old = torch.gather(u, -2, n.reshape(n.shape + (1, 1)).expand(n.shape + (1, u.shape[-1])))  # (*S, 1, r)
         # slot n before (row 0) and after (row 1) the move against every slot: one log_phi
         d2 = (u.unsqueeze(-3) - torch.stack([u_old, u_n.unsqueeze(-2)], -3)).square().sum(-1)  # (*S, 2, K)
         if alive is None:
             on = others.unsqueeze(-2)
         else:
-            a_old = torch.take_along_dim(alive, n.unsqueeze(-1), -1)  # (*S, 1)
+            a_old = torch.gather(alive, -1, n.unsqueeze(-1))  # (*S, 1)
             a_new = a_old if alive_n is None else alive_n.unsqueeze(-1)
             on = (others & alive).unsqueeze(-2) & torch.stack([a_old, a_new], -2)  # (*S, 2, K)
-        terms = torch.where(on, self.log_phi(torch.where(on, d2, 1.0)), 0.0)
+        # log_phi is floored (finite, zero slope below the floor at d = 0): the pairs off are
+        # dropped after it, no mask before it (a move pays one select, not two)
+        terms = torch.where(on, self.log_phi(d2), 0.0)
         return (terms[..., 1, :] - terms[..., 0, :]).sum(-1)
 
 
@@ -311,31 +313,38 @@ class RelocationNoise(NamedTuple):
 
     @classmethod
     def draw(cls, shape: tuple[int, ...], sensor: SensorModel, z: object, *, generator: torch.Generator,
-             dtype: torch.dtype, device: torch.device | str | None, p_propose: float = 1.0) -> RelocationNoise:
+             dtype: torch.dtype, device: torch.device | str | None, p_propose: float = 1.0,
+             found: object = None) -> RelocationNoise:
         """Draw for slots of ``shape = (B, *S, K)`` from the frame ``z`` (one per run), for
         proposals with ``epsilon <= p_propose``: ``g`` (a sum over the frame's points or
         peaks) is evaluated for those draws only (``u < p_propose``; 10 % at the default
-        ``epsilon``), the same draws either way.
+        ``epsilon``), the same draws either way. ``found``: the frame's
+        :meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per step
+        (None: the sensor finds them).
         """
         u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
         scored = None if p_propose >= 1.0 else u < p_propose
-        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored)
+        # handed on only when there is something (a sensor that prepares nothing need not take it)
+        extra = {} if found is None else {"found": found}
+        coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored,
+                                                    **extra)
         return cls(u, coords, log_ratio)
 
 
 def draw_relocation(recapture: Recapture | None, sensor: SensorModel | None, shape: tuple[int, ...], z: object, *,
                     generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None,
-                    p_propose: float | None = None) -> RelocationNoise | None:
+                    p_propose: float | None = None, found: object = None) -> RelocationNoise | None:
     """:class:`RelocationNoise` for slots of ``shape = (B, *S, K)`` from the frame ``z``, for
     proposals with ``epsilon <= p_propose`` (default ``recapture.p_propose``, that of
-    :func:`relocate`), or None without ``recapture``.
+    :func:`relocate`), or None without ``recapture``; ``found``: the frame's detections made
+    once per step (:meth:`RelocationNoise.draw`).
     """
     if recapture is None:
         return None
     if sensor is None or z is None:
         raise ValueError("recapture needs the sensor and the frame z to draw from the data")
     return RelocationNoise.draw(shape, sensor, z, generator=generator, dtype=dtype, device=device,
-                                p_propose=recapture.p_propose if p_propose is None else p_propose)
+                                p_propose=recapture.p_propose if p_propose is None else p_propose, found=found)
 
 
 #: The component a slot was proposed from (:func:`relocate`): its prior density over its

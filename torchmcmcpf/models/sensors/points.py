@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
@@ -441,7 +442,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         return torch.cat([coords[..., :1], x[..., 1:2], coords[..., 1:2], x[..., 3:]], -1)
 
     def sample_from_data(self, z: PointMeasurement, shape: tuple[int, ...], *, generator: torch.Generator,
-                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None
+                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None, found: Any = None
                          ) -> tuple[Tensor, Tensor]:
         """Positions from ``g(pos | z) = p_u U(area) + (1 - p_u) (1/M) sum_m N(pos; z_m, R)``
         (:func:`log_near_points`; ``p_u`` = :attr:`uniform_weight`): a valid point drawn
@@ -455,6 +456,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`); ``g`` (a sum over the
             ``M`` points) is evaluated there only and ``log_ratio`` is 0 elsewhere. The draws
             themselves do not depend on it.
+        found : ignored: the points are the data, nothing to prepare
+            (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections` is None).
 
         Returns
         -------

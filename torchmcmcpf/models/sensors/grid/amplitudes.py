@@ -83,11 +83,20 @@ def _change(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: T
     firsts = geometry.box_firsts(u)  # (B, P, 2M)
     factors, indicators = neighbour_profiles(geometry, firsts, u, firsts, None)  # (B, P, 2M box, 2M spread, W)
     change = outer_sum(s[:, :, None], factors)  # (B, P, 2M, *V)
-    # cell t of box q repeats a cell of an earlier box j < q where it lies in box j
+    # cell t of box q repeats a cell of an earlier box j < q where it lies in box j: every
+    # pair (q, j < q) in one product of the per-axis indicators (0/1: exact), summed per box q
     once = [torch.ones_like(change[:, :, 0])]
-    for q in range(1, 2 * M):  # 2M boxes, static (2 or 4)
-        seen = torch.stack([box_in_box(indicators, q, j, s[..., :1]) for j in range(q)]).sum(0)
-        once.append((seen == 0).to(change.dtype))
+    if M == 1:
+        once.append((box_in_box(indicators, 1, 0, s[..., :1]) == 0).to(change.dtype))
+    else:
+        qs = [q for q in range(1, 2 * M) for _ in range(q)]  # the pairs (1, 0), (2, 0), (2, 1), ...
+        js = [j for q in range(1, 2 * M) for j in range(q)]
+        ones = torch.ones(s.shape[:2] + (len(qs), 1), dtype=s.dtype, device=s.device)
+        inside = outer_sum(ones, [f[:, :, qs, js][..., None, :] for f in indicators])  # (B, P, pairs, *V)
+        first = 0
+        for q in range(1, 2 * M):  # 2M boxes, static
+            once.append((inside[:, :, first:first + q].sum(2) == 0).to(change.dtype))
+            first += q
     rows = torch.arange(B * P, device=x.device).reshape((B, P) + (1,) * (1 + len(geometry.box_cells))) \
         * geometry.num_cells
     return geometry.flat_cells(firsts, sensor.box_offsets) + rows, change * torch.stack(once, 2), firsts

@@ -126,16 +126,19 @@ def log_data_density(sensor: GridSensorLike, coords: Tensor, centres: Tensor, ma
 
 
 def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
-                     dtype: torch.dtype = torch.float32, scored: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                     dtype: torch.dtype = torch.float32, scored: Tensor | None = None,
+                     found: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Draws ``coords (*shape, n)`` from ``g(u | z)`` and ``log p_0 - log g`` there ``(*shape)``
-    (with ``scored (*shape)`` bool: only there, 0 elsewhere; the draws are the same).
+    (with ``scored (*shape)`` bool: only there, 0 elsewhere; the draws are the same), from the
+    frame's :func:`detections` ``found = (centres, mask)`` when given (made once per step),
+    else found here.
     """
     geometry = sensor.geometry
     B = z.shape[0]
     if not shape or shape[0] != B:
         raise ValueError(f"shape {tuple(shape)} must start with the batch size of z, {B}")
     n, Q = geometry.n_axes, math.prod(shape[1:])
-    centres, mask = detections(sensor, z)
+    centres, mask = detections(sensor, z) if found is None else found
     lo, hi, log_volume = geometry.extent()
     u = torch.rand((B, Q, 2), generator=generator, device=z.device, dtype=torch.float64)
     pick = inverse_cdf(cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, float("-inf"))), u[..., 0])

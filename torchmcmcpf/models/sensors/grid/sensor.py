@@ -487,9 +487,16 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         return data.log_data_density(self, coords, centres, mask)
 
+    def frame_detections(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """The frame's :meth:`detections` ``(centres (B, P, n), mask (B, P))``, what
+        :meth:`sample_from_data` reads of it (``found=``): CLEAN, a loop over the peaks with
+        host syncs, run once per step instead of once per draw.
+        """
+        return data.detections(self, z)
+
     def sample_from_data(self, z: Tensor, shape: tuple[int, ...], *, generator: torch.Generator,
-                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None
-                         ) -> tuple[Tensor, Tensor]:
+                         dtype: torch.dtype = torch.float32, scored: Tensor | None = None,
+                         found: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
         """Measured coordinates from ``g(u | z) = (1 - p_u) (1/P) sum_p N(u; c_p, S) + p_u
         U(grid)``: a peak ``p`` of the frame drawn uniformly (:meth:`detections`: centroids
         ``c_p``; ``S`` diagonal, :attr:`peak_spread` cells per axis), or with probability
@@ -503,13 +510,15 @@ class SeparableGridSensor(SensorModel[Tensor]):
         generator : source of randomness; dtype : of the outputs.
         scored : (B, *S) bool, optional: ``g`` is evaluated where True only, ``log_ratio``
             is 0 elsewhere (the base method); the draws are the same.
+        found : optional, :meth:`frame_detections` of ``z`` (made once per step); None: found
+            here.
 
         Returns
         -------
         coords : (B, *S, n) in the units of :meth:`measurement_coords`;
         log_ratio : (B, *S).
         """
-        return data.sample_from_data(self, z, shape, generator=generator, dtype=dtype, scored=scored)
+        return data.sample_from_data(self, z, shape, generator=generator, dtype=dtype, scored=scored, found=found)
 
     # ---------------------------------------------------------------- checks
     def validate_state(self, x: Tensor, name: str = "x") -> Tensor:
