@@ -55,6 +55,7 @@ from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.mcmc import MCMCFilter
 from ..filters.partitioned import PartitionedSIRFilter, clairvoyant_partitions
+from ..kernels.pair_path import PairPath
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion
 from ..scenarios._common import Scenario
@@ -64,7 +65,7 @@ from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, cell, in_order, option, rows_option
 
-FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
+FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF", "IP-MCMC-PF (pair path)")
 CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
 ROWS = FILTERS + (CLAIRVOYANT,)
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
@@ -105,6 +106,8 @@ def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) ->
                                            recapture=None),
         "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=n // 2, burn_in=burn_in // 2),
         "partitioned PF": PartitionedSIRFilter(motion, sensor, n),
+        "IP-MCMC-PF (pair path)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in,
+                                               pair_path=PairPath()),
     }
 
 
@@ -186,6 +189,9 @@ class Crossing(Study[CrossingSettings]):
                 res = filt(scn.measurements, init=init, generator=gens[name], progress=progress)
             seconds[name] = timer.seconds
             per_run.update(_scores(name, res.mean, scn.truth))
+            if "pair_path_fired" in res.info.extras:  # (T, B): the move's trigger and its effect
+                per_run[f"{name}|pair_path_fired"] = res.info.extras["pair_path_fired"].T
+                per_run[f"{name}|pair_path_moved"] = res.info.extras["pair_path_moved"].T
             per_run.update(_late_check(cfg, name, res.mean, scn, filt.settings.exclusion))
             res = on_far[name](far.measurements, init=coalesced, generator=gens[name])
             weak = far.truth[:, :, 1:]  # (T, B, 1, D)

@@ -103,6 +103,17 @@ probability ``p_same_source`` (the chains then keep each slot's source ``i_j``, 
 move's ratio carries the pair's source term: :mod:`torchmcmcpf.kernels.exchange`, "The
 two-slot move's sources"). ``exclusion=None, recapture=None`` is the paper's target and move.
 
+The pair-path move (optional)
+-----------------------------
+With ``pair_path=PairPath(...)`` (:mod:`torchmcmcpf.kernels.pair_path`; off by default) the
+state keeps each particle's last ``L + 1`` states per slot (each new slot continues the path
+of its source particle's slot, ``ExchangeChains.source``) and the last ``L`` frames; where
+two slots' predicted estimates came within ``distance`` resolution cells in the last ``L``
+frames, every ``every`` steps, a conditional SMC with ancestor sampling re-draws the pair's
+paths over the window for ``num_paths`` of the new particles, invariant for the model's path
+posterior's conditional of the pair (that module's eq. 2). ``extras["pair_path_fired"]``,
+``extras["pair_path_moved"]`` report it.
+
 HMC refinement (optional)
 -------------------------
 With ``hmc=HMCRefine(...)`` (:mod:`torchmcmcpf.kernels.hmc_refine`) every chain also takes
@@ -175,6 +186,7 @@ from ..kernels.exchange import (
     propose_slots,
     with_accepted_amplitudes,
 )
+from ..kernels.pair_path import PAIR_PATH_KEYS, PairPath, pair_path_update
 from ..kernels.hmc_refine import (
     HMCRefine,
     HMCRefineNoise,
@@ -189,7 +201,7 @@ from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_re
 from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
-from .base import Filter, active_prior, check_existence_proposal
+from .base import ESTIMATE, Filter, active_prior, check_existence_proposal
 
 __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_iteration"]
 
@@ -245,7 +257,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
             chains, acc = refine(chains, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
-            trace.append(chains._replace(source=None, log_w_source=None, amplitude=None))
+            trace.append(chains._replace(log_w_source=None, amplitude=None))  # the sources: the pair-path window
     return chains, trace, accepted_count, refined_count
 
 
@@ -383,6 +395,10 @@ class IPMCMCSettings:
 
     existence_proposal : ``(q_birth, q_death)`` or None, as
         :class:`~torchmcmcpf.filters.mcmc.MCMCSettings` (default ``(0.5, 0.1)``).
+    pair_path : :class:`~torchmcmcpf.kernels.pair_path.PairPath` or None (default): the
+        triggered conditional-SMC move on two close slots' paths over the last ``lag`` frames
+        after the chains (module docstring, "The pair-path move"); a known number of
+        targets and a tensor frame only.
 
     Both are turned off for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
@@ -410,6 +426,7 @@ class IPMCMCSettings:
     exclusion: Exclusion | None = Exclusion()
     recapture: Recapture | None = Recapture()
     existence_proposal: tuple[float, float] | None = (0.5, 0.1)
+    pair_path: PairPath | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains", minimum=2))
@@ -428,6 +445,8 @@ class IPMCMCSettings:
         if self.hmc is not None:
             object.__setattr__(self, "recapture", None)  # HMC's target: the prior without relocation
         object.__setattr__(self, "existence_proposal", check_existence_proposal(self.existence_proposal))
+        if self.pair_path is not None and not isinstance(self.pair_path, PairPath):
+            raise ValueError(f"pair_path must be a PairPath or None, got {type(self.pair_path).__name__}")
 
     def check(self, num_particles: int) -> None:
         """``C | N`` with at least 2 kept samples per chain."""
@@ -515,7 +534,8 @@ def ipmcmc_step(
     # estimates are close (fixed for the step: a fixed mixture of invariant kernels)
     pair_every = 0 if recapture is None or k < 2 else recapture.pair_every
     source = log_w_source = None
-    if pair_every and recapture is not None and recapture.p_same_source > 0:  # every slot's source particle
+    if (pair_every and recapture is not None and recapture.p_same_source > 0) or settings.pair_path is not None:
+        # every slot's source particle (the pair-path move's genealogy too)
         source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
         log_w_source = torch.take_along_dim(normalize(log_w)[0], start, 1
                                             ).unsqueeze(-1).repeat(1, 1, k)
@@ -607,6 +627,18 @@ def ipmcmc_step(
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
     log_w_new = torch.full((b, n), -math.log(n), device=x_prev.device, dtype=log_w.dtype)
+    extras_new, reported = None, {}
+    if settings.pair_path is not None:  # the pair-path move on the new particles (module docstring)
+        if existence is not None:
+            raise ValueError("settings.pair_path needs a known number of targets (existence=None)")
+        carried = (state.extras or {}).get(ESTIMATE)
+        centre = weighted_mean(x_prev, log_w) if carried is None else carried
+        centre = motion.propagate(centre, torch.zeros(centre.shape[:-1] + (motion.noise_dim,), dtype=centre.dtype,
+                                                      device=centre.device))
+        source_new = history[5].permute(1, 2, 0, 3).reshape(b, n, k)
+        x_new, extras_new, reported = pair_path_update(state.extras, x_prev, centre, x_new, source_new, z,
+                                                       motion=motion, sensor=sensor, exclusion=settings.exclusion,
+                                                       settings=settings.pair_path, generator=generator)
     acceptance = accepted.mean(-1) / iterations
     dt = acceptance.dtype
     info = StepInfo.make(acceptance, acceptance=acceptance, extras={
@@ -615,7 +647,8 @@ def ipmcmc_step(
     if hmc is not None:  # refinements per run: (burn_in + segment) // every + extensions * (segment // every)
         count = (burn_in + segment) // every + extensions.to(dt) * (segment // every)
         info.extras["acceptance_hmc"] = refined.mean(-1) / count.clamp(min=1)
-    return ParticleState(x_new, log_w_new, exists_new), info
+    info.extras.update({key: value.to(dt) for key, value in reported.items()})
+    return ParticleState(x_new, log_w_new, exists_new, extras_new), info
 
 
 def bind_iteration(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None) -> Callable:
@@ -669,6 +702,7 @@ class IPMCMCFilter(Filter):
 
     compile_seconds = 14.0  # benchmarks/bench_compile.py, 5-target ground radar, 2 CPU cores
     settings_class = IPMCMCSettings
+    optional_state_extras = frozenset(PAIR_PATH_KEYS)  # with settings.pair_path
     settings: IPMCMCSettings
 
     def _check_problem(self) -> None:
