@@ -181,3 +181,29 @@ def test_window_genealogy_and_trigger():
     assert fired == [[1.0, 0.0], [0.0, 0.0], [1.0, 0.0], [0.0, 0.0]]
     assert extras["pair_path_frames"].tolist() == [3, 3]
     assert window_bytes(n, K, 1, 0, lag, 8) == 8 * n * (lag + 1) * K
+
+
+def test_in_the_ipmcmc_filter():
+    """``IPMCMCSettings.pair_path``: the window travels in the state (a resumed run is the
+    same bits), the move fires while the two crossing targets are close, and it reports."""
+    import torchmcmcpf as tp
+    from torchmcmcpf.scenarios.crossing import crossing
+
+    g = torch.Generator().manual_seed(6)
+    scn = crossing(2, 6, 2, generator=g, crossing_step=2)
+    init = scn.initial_particles(40, generator=g)
+    settings = PairPath(lag=4, every=2, num_paths=4, num_particles=4)
+    filt = tp.IPMCMCFilter(scn.motion, scn.sensor, 40, num_chains=4, burn_in=5, pair_path=settings)
+    whole = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(7))
+    fired = whole.info.extras["pair_path_fired"]
+    assert fired.tolist() == [[1.0, 1.0], [0.0, 0.0]] * 3  # close from the start: every second step
+    assert whole.state.extras["pair_path_x"].shape == (2, 40, 5, 2, 5)
+    assert torch.equal(whole.state.extras["pair_path_x"][:, :, -1], whole.state.x)
+    gen = torch.Generator().manual_seed(7)
+    first = filt(scn.measurements[:3], init=init, generator=gen)
+    rest = filt(scn.measurements[3:], init=first.state, generator=gen)
+    assert torch.equal(rest.mean, whole.mean[3:])
+    plain = tp.IPMCMCFilter(scn.motion, scn.sensor, 40, num_chains=4, burn_in=5)
+    assert "pair_path_fired" not in plain(scn.measurements, init=init, generator=g).info.extras
+    with pytest.raises(ValueError, match="pair_path must be"):
+        tp.IPMCMCFilter(scn.motion, scn.sensor, 40, num_chains=4, pair_path=3)

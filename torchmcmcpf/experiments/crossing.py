@@ -46,6 +46,7 @@ the whole study.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -70,6 +71,45 @@ CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its 
 ROWS = FILTERS + (CLAIRVOYANT,)
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
 GAP_ODDS = 3.0  # [nats] a late gap is the model's when its posterior maximum is within this of the truth's
+
+
+def _binomial_cdf(k: int, n: int, p: float) -> float:
+    """``P(X <= k)`` for ``X ~ Binomial(n, p)`` (exact sum, small ``n``)."""
+    return sum(math.comb(n, i) * p ** i * (1.0 - p) ** (n - i) for i in range(0, k + 1)) if k >= 0 else 0.0
+
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper and Pearson 1934) interval of a binomial rate from ``k`` of ``n``:
+    ``(lower, upper)`` with ``P(X >= k | lower) = P(X <= k | upper) = (1 - level) / 2``,
+    by bisection on the exact binomial tail.
+
+    >>> [round(v, 3) for v in clopper_pearson(15, 60)]
+    [0.147, 0.379]
+    """
+    alpha = (1.0 - level) / 2.0
+
+    def solve(f, target):  # f increasing in p on [0, 1]
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = (lo + hi) / 2.0
+            lo, hi = (mid, hi) if f(mid) < target else (lo, mid)
+        return (lo + hi) / 2.0
+
+    lower = 0.0 if k == 0 else solve(lambda p: 1.0 - _binomial_cdf(k - 1, n, p), alpha)
+    upper = 1.0 if k == n else solve(lambda p: -_binomial_cdf(k, n, p), -alpha)
+    return lower, upper
+
+
+def mcnemar_exact(only_first: int, only_second: int) -> float:
+    """Two-sided exact McNemar test of paired binary outcomes: the discordant pairs
+    (``only_first`` runs with the event under the first filter only, ``only_second`` under
+    the second only) against ``Binomial(b + c, 1/2)``; returns the p-value.
+
+    >>> round(mcnemar_exact(6, 0), 4), mcnemar_exact(2, 2)
+    (0.0312, 1.0)
+    """
+    n = only_first + only_second
+    return min(1.0, 2.0 * _binomial_cdf(min(only_first, only_second), n, 0.5)) if n else 1.0
 
 
 @dataclass(frozen=True)
@@ -218,9 +258,16 @@ class Crossing(Study[CrossingSettings]):
             gap = uncovered[:, late].any(-1).any(-1)  # (R,)
             odds, covers = per_run[f"{name}|gap_log_odds"], per_run[f"{name}|gap_map_covers"]
             model = gap & ~covers & (odds <= GAP_ODDS)  # the estimate's maximum about as likely as the truth's
+            fired = per_run.get(f"{name}|pair_path_fired")  # (R, T) with the pair-path move
             results[name] = {
                 "runs": int(cov.shape[0]),
                 "runs_uncovered_late": int(gap.sum()),
+                "runs_uncovered_late_interval": clopper_pearson(int(gap.sum()), int(cov.shape[0])),
+                "gap_per_run": gap,
+                "uncovered_target_steps_late": int(uncovered[:, late].sum()),
+                "pair_path_fire_rate": None if fired is None else fired.double().mean(),
+                "pair_path_moved": None if fired is None else (
+                    (per_run[f"{name}|pair_path_moved"] * fired).sum() / fired.sum().clamp(min=1)).double(),
                 "late_gaps_the_filters": int((gap & ~model).sum()),
                 "late_gaps_the_models": int(model.sum()),
                 "late_gap_log_odds": odds[gap],
@@ -241,6 +288,12 @@ class Crossing(Study[CrossingSettings]):
                 "recaptured_share": None if rec is None else rec.any(1).double().mean(),
                 "recapture_step_median": None if first is None else first.nanmedian(),
             })
+        base = results.get("IP-MCMC-PF")
+        for name, r in results.items():  # paired with the defaults on the same scenes (exact McNemar)
+            if base is not None and name != "IP-MCMC-PF":
+                g0, g1 = base["gap_per_run"], r["gap_per_run"]
+                r["mcnemar_vs_defaults"] = {"only_defaults": int((g0 & ~g1).sum()), "only_this": int((~g0 & g1).sum()),
+                                            "p": mcnemar_exact(int((g0 & ~g1).sum()), int((~g0 & g1).sum()))}
         return results
 
     def summary(self, payload: dict) -> str:
@@ -259,6 +312,16 @@ class Crossing(Study[CrossingSettings]):
                          f"{r['runs_shared_late']} / {r['runs']} | "
                          f"{float(r['matched_rmse']):.2f} | {float(r['identity_switches_per_run']):.2f} | "
                          f"{recaptured} | {r['seconds_per_step']:.3f} |")
+        lines += ["", f"| filter | runs uncovered at t >= {cfg['from_step']} (95 % Clopper-Pearson) | uncovered "
+                      "target-steps | longest gap (steps) | McNemar vs the defaults (only the defaults / only this, "
+                      "p) | pair-path trigger: steps fired (share) | moved paths (share) |", "|---|---|---|---|---|---|---|"]
+        for name, r in payload["results"].items():
+            lo, hi = r["runs_uncovered_late_interval"]
+            mc = r.get("mcnemar_vs_defaults")
+            test = "-" if mc is None else f"{mc['only_defaults']} / {mc['only_this']}, p = {mc['p']:.3g}"
+            lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} ({100 * lo:.0f}-{100 * hi:.0f} %) | "
+                         f"{r['uncovered_target_steps_late']} | {int(max(r['longest_uncovered']))} | {test} | "
+                         f"{cell(r['pair_path_fire_rate'])} | {cell(r['pair_path_moved'])} |")
         return "\n".join(lines) + "\n"
 
     def summarise(self, cfg: CrossingSettings, shards: Shards, out: Path) -> dict:
