@@ -15,7 +15,7 @@ import math
 
 import pytest
 import torch
-from _line import DT, R, LineSensor
+from _line import DT, LineSensor, R
 
 from torchmcmcpf.kernels.pair_path import PairPath, conditional_smc, pair_path_update, window_bytes
 from torchmcmcpf.models.motion import LinearGaussianMotion
@@ -145,7 +145,8 @@ def test_same_seed_same_bits_and_bad_input():
         conditional_smc(path, z.unsqueeze(-1), torch.tensor([[0, 0], [1, 2]]), motion=MOTION, sensor=LineSensor(),
                         generator=torch.Generator())
     with pytest.raises(ValueError, match="frames must be"):
-        conditional_smc(path, z.unsqueeze(-1)[1:], pair, motion=MOTION, sensor=LineSensor(), generator=torch.Generator())
+        conditional_smc(path, z.unsqueeze(-1)[1:], pair, motion=MOTION, sensor=LineSensor(),
+                        generator=torch.Generator())
     with pytest.raises(ValueError, match="path has shape"):
         conditional_smc(path[0], z.unsqueeze(-1), pair, motion=MOTION, sensor=LineSensor(), generator=torch.Generator())
     with pytest.raises(ValueError, match="lag"):

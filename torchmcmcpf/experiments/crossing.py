@@ -319,7 +319,8 @@ class Crossing(Study[CrossingSettings]):
                          f"{recaptured} | {r['seconds_per_step']:.3f} |")
         lines += ["", f"| filter | runs uncovered at t >= {cfg['from_step']} (95 % Clopper-Pearson) | uncovered "
                       "target-steps | longest gap (steps) | McNemar vs the defaults (only the defaults / only this, "
-                      "p) | pair-path trigger: steps fired (share) | moved paths (share) |", "|---|---|---|---|---|---|---|"]
+                      "p) | pair-path trigger: steps fired (share) | moved paths (share) |",
+                  "|---|---|---|---|---|---|---|"]
         for name, r in payload["results"].items():
             lo, hi = r["runs_uncovered_late_interval"]
             mc = r.get("mcnemar_vs_defaults")

@@ -186,7 +186,6 @@ from ..kernels.exchange import (
     propose_slots,
     with_accepted_amplitudes,
 )
-from ..kernels.pair_path import PAIR_PATH_KEYS, PairPath, pair_path_update
 from ..kernels.hmc_refine import (
     HMCRefine,
     HMCRefineNoise,
@@ -195,6 +194,7 @@ from ..kernels.hmc_refine import (
     mixture_log_prior,
     with_exclusion,
 )
+from ..kernels.pair_path import PAIR_PATH_KEYS, PairPath, pair_path_update
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture
@@ -627,7 +627,8 @@ def ipmcmc_step(
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
     log_w_new = torch.full((b, n), -math.log(n), device=x_prev.device, dtype=log_w.dtype)
-    extras_new, reported = None, {}
+    extras_new: dict | None = None
+    reported: dict[str, Tensor] = {}
     if settings.pair_path is not None:  # the pair-path move on the new particles (module docstring)
         if existence is not None:
             raise ValueError("settings.pair_path needs a known number of targets (existence=None)")

@@ -25,8 +25,8 @@ from .exchange import (
 from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
-from .pair_path import PairPath, conditional_smc, pair_path_update
 from .moves import MOVES, init_chains, joint_move, propose_joint, refine_move, refine_slot
+from .pair_path import PairPath, conditional_smc, pair_path_update
 from .random_walk import RandomWalkNoise, log_transition, propose_random_walk, random_walk_move
 
 __all__ = [

@@ -33,7 +33,7 @@ Senecal 2006). The re-capture tail of :class:`~torchmcmcpf.models.multitarget.Re
 (``delta = 1e-3``) is not part of ``f`` here: (2) is the posterior under the motion model
 itself, and a relocation jump inside the window is one of the arrangements it may replace.
 
-The kernel (Andrieu, Doucet and Holenstein 2010, sec. 4.4, conditional SMC; Lindsten,
+The kernel (Andrieu, Doucet and Holenstein 2010, the conditional SMC of particle Gibbs; Lindsten,
 Jordan and Schon 2014, ancestor sampling), ``M`` particles of the pair, the motion model as
 proposal (both slots), the reference path ``x'`` (the particle's current pair path) kept as
 particle ``M - 1``:
@@ -47,8 +47,8 @@ particle ``M - 1``:
 - weights ``log w^m_s = log p(z_s | x^m_s) + log Phi(x^m_s)`` (others at their path);
 - the output path: ``m ~ Cat(w_t)`` traced back through the ancestors.
 
-With ``M >= 2`` the kernel is invariant for (2) for any ``M`` (ADH 2010 Thm. 5;
-LJS 2014 Thm. 1); ancestor sampling lets the output leave the reference's early part.
+With ``M >= 2`` the kernel is invariant for (2) for any ``M`` (the invariance results of both
+papers); ancestor sampling lets the output leave the reference's early part.
 Tested against the exact Gaussian conditional (a Kalman smoother's, by conditioning) on a
 linear-Gaussian model, and against an importance-sampling oracle with exclusion
 (``tests/kernels/test_pair_path.py``).
@@ -82,7 +82,7 @@ from .._validation import check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import cdf, inverse_cdf
-from ..typing import Tensor
+from ..typing import Measurement, Tensor
 
 __all__ = ["PairPath", "conditional_smc", "pair_path_update", "PAIR_PATH_KEYS", "window_bytes"]
 
@@ -220,7 +220,8 @@ def conditional_smc(path: Tensor, frames: Tensor, pair: Tensor, *, motion: Motio
         states.append(x_s)
         ancestors.append(anc)
         prev = x_s
-    assert log_w is not None
+    if log_w is None:  # unreachable: w >= 1 frames were weighed
+        raise ValueError("path has no frame to weigh")
     u = torch.rand((b * p, 1), generator=generator, device=dev, dtype=torch.float64)
     pick = inverse_cdf(cdf(log_w.reshape(b * p, m)), u).reshape(b, p, 1)  # (B, P, 1)
     out = []
@@ -257,7 +258,8 @@ def _fresh(x_prev: Tensor, z: Tensor, lag: int) -> dict:
             "pair_path_clock": torch.full((b,), 1 << 30, dtype=torch.int64, device=x_prev.device)}
 
 
-def pair_path_update(extras: dict | None, x_prev: Tensor, centre: Tensor, x_new: Tensor, source: Tensor, z: Tensor,
+def pair_path_update(extras: dict | None, x_prev: Tensor, centre: Tensor, x_new: Tensor, source: Tensor,
+                     z: Measurement,
                      *, motion: MotionModel, sensor: SensorModel, exclusion: Exclusion | None, settings: PairPath,
                      generator: torch.Generator) -> tuple[Tensor, dict, dict]:
     """One step of the move's bookkeeping and, where it fires, the move (module docstring).
