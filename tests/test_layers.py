@@ -44,7 +44,7 @@ LAYERS: dict[str, int] = {
     "interop": 1,
     "state": 2, "resampling": 2, "diagnostics": 2,
     "models": 3,
-    "kernels": 4, "metrics": 4, "scenarios": 4,
+    "kernels": 4, "kernels.pair_path": 4, "metrics": 4, "scenarios": 4,
     "filters": 5, "plotting": 5, "interop.stonesoup_trackers": 5,
     "experiments": 6, "bench": 6,
     "": 7, "__main__": 7,  # "": the facade torchmcmcpf/__init__ itself (exact match only)

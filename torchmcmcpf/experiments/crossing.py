@@ -27,8 +27,13 @@ Two scenes of the range-doppler-bearing radar of paper 000 (:func:`~torchmcmcpf.
 
 Filters (every one with ``Np`` particles): the IP-MCMC-PF with the library's defaults
 (exclusion and re-capture), the IP-MCMC-PF of paper 000 (``exclusion=None, recapture=None``:
-the factorised target and the plain exchange move), the MCMC-PF with its defaults, and the
-independent-partition PF (with exclusion and re-capture). Next to them, on the crossing scene, the
+the factorised target and the plain exchange move), the MCMC-PF with its defaults, the
+independent-partition PF (with exclusion and re-capture), and the IP-MCMC-PF with the
+triggered pair-path move (:mod:`torchmcmcpf.kernels.pair_path`, ``PairPath()``; issue 50).
+A second table gives per filter the late-gap runs with their 95 % Clopper-Pearson interval,
+the uncovered target-steps at ``t >= from_step``, the longest gap, an exact McNemar test of
+the late-gap runs against the defaults on the same scenes, and the pair-path move's firing
+rate and the share of its re-drawn paths that changed. Next to them, on the crossing scene, the
 *clairvoyant reference* (:func:`~torchmcmcpf.filters.partitioned.clairvoyant_partitions`):
 each target's own PF weighted with the other at its true state, what the data allow a
 tracker that knows the association (it has no coalescence column: it reads the truth and
@@ -46,6 +51,7 @@ the whole study.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -55,6 +61,7 @@ from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
 from ..filters.mcmc import MCMCFilter
 from ..filters.partitioned import PartitionedSIRFilter, clairvoyant_partitions
+from ..kernels.pair_path import PairPath
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion
 from ..scenarios._common import Scenario
@@ -64,11 +71,50 @@ from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, cell, in_order, option, rows_option
 
-FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF")
+FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF", "IP-MCMC-PF (pair path)")
 CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
 ROWS = FILTERS + (CLAIRVOYANT,)
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
 GAP_ODDS = 3.0  # [nats] a late gap is the model's when its posterior maximum is within this of the truth's
+
+
+def _binomial_cdf(k: int, n: int, p: float) -> float:
+    """``P(X <= k)`` for ``X ~ Binomial(n, p)`` (exact sum, small ``n``)."""
+    return sum(math.comb(n, i) * p ** i * (1.0 - p) ** (n - i) for i in range(0, k + 1)) if k >= 0 else 0.0
+
+
+def clopper_pearson(k: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """The exact (Clopper and Pearson 1934) interval of a binomial rate from ``k`` of ``n``:
+    ``(lower, upper)`` with ``P(X >= k | lower) = P(X <= k | upper) = (1 - level) / 2``,
+    by bisection on the exact binomial tail.
+
+    >>> [round(v, 3) for v in clopper_pearson(15, 60)]
+    [0.147, 0.379]
+    """
+    alpha = (1.0 - level) / 2.0
+
+    def solve(f, target):  # f increasing in p on [0, 1]
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = (lo + hi) / 2.0
+            lo, hi = (mid, hi) if f(mid) < target else (lo, mid)
+        return (lo + hi) / 2.0
+
+    lower = 0.0 if k == 0 else solve(lambda p: 1.0 - _binomial_cdf(k - 1, n, p), alpha)
+    upper = 1.0 if k == n else solve(lambda p: -_binomial_cdf(k, n, p), -alpha)
+    return lower, upper
+
+
+def mcnemar_exact(only_first: int, only_second: int) -> float:
+    """Two-sided exact McNemar test of paired binary outcomes: the discordant pairs
+    (``only_first`` runs with the event under the first filter only, ``only_second`` under
+    the second only) against ``Binomial(b + c, 1/2)``; returns the p-value.
+
+    >>> round(mcnemar_exact(6, 0), 4), mcnemar_exact(2, 2)
+    (0.0312, 1.0)
+    """
+    n = only_first + only_second
+    return min(1.0, 2.0 * _binomial_cdf(min(only_first, only_second), n, 0.5)) if n else 1.0
 
 
 @dataclass(frozen=True)
@@ -105,6 +151,8 @@ def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) ->
                                            recapture=None),
         "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=n // 2, burn_in=burn_in // 2),
         "partitioned PF": PartitionedSIRFilter(motion, sensor, n),
+        "IP-MCMC-PF (pair path)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in,
+                                               pair_path=PairPath()),
     }
 
 
@@ -186,6 +234,9 @@ class Crossing(Study[CrossingSettings]):
                 res = filt(scn.measurements, init=init, generator=gens[name], progress=progress)
             seconds[name] = timer.seconds
             per_run.update(_scores(name, res.mean, scn.truth))
+            if "pair_path_fired" in res.info.extras:  # (T, B): the move's trigger and its effect
+                per_run[f"{name}|pair_path_fired"] = res.info.extras["pair_path_fired"].T
+                per_run[f"{name}|pair_path_moved"] = res.info.extras["pair_path_moved"].T
             per_run.update(_late_check(cfg, name, res.mean, scn, filt.settings.exclusion))
             res = on_far[name](far.measurements, init=coalesced, generator=gens[name])
             weak = far.truth[:, :, 1:]  # (T, B, 1, D)
@@ -212,9 +263,16 @@ class Crossing(Study[CrossingSettings]):
             gap = uncovered[:, late].any(-1).any(-1)  # (R,)
             odds, covers = per_run[f"{name}|gap_log_odds"], per_run[f"{name}|gap_map_covers"]
             model = gap & ~covers & (odds <= GAP_ODDS)  # the estimate's maximum about as likely as the truth's
+            fired = per_run.get(f"{name}|pair_path_fired")  # (R, T) with the pair-path move
             results[name] = {
                 "runs": int(cov.shape[0]),
                 "runs_uncovered_late": int(gap.sum()),
+                "runs_uncovered_late_interval": clopper_pearson(int(gap.sum()), int(cov.shape[0])),
+                "gap_per_run": gap,
+                "uncovered_target_steps_late": int(uncovered[:, late].sum()),
+                "pair_path_fire_rate": None if fired is None else fired.double().mean(),
+                "pair_path_moved": None if fired is None else (
+                    (per_run[f"{name}|pair_path_moved"] * fired).sum() / fired.sum().clamp(min=1)).double(),
                 "late_gaps_the_filters": int((gap & ~model).sum()),
                 "late_gaps_the_models": int(model.sum()),
                 "late_gap_log_odds": odds[gap],
@@ -235,6 +293,12 @@ class Crossing(Study[CrossingSettings]):
                 "recaptured_share": None if rec is None else rec.any(1).double().mean(),
                 "recapture_step_median": None if first is None else first.nanmedian(),
             })
+        base = results.get("IP-MCMC-PF")
+        for name, r in results.items():  # paired with the defaults on the same scenes (exact McNemar)
+            if base is not None and name != "IP-MCMC-PF":
+                g0, g1 = base["gap_per_run"], r["gap_per_run"]
+                r["mcnemar_vs_defaults"] = {"only_defaults": int((g0 & ~g1).sum()), "only_this": int((~g0 & g1).sum()),
+                                            "p": mcnemar_exact(int((g0 & ~g1).sum()), int((~g0 & g1).sum()))}
         return results
 
     def summary(self, payload: dict) -> str:
@@ -253,6 +317,17 @@ class Crossing(Study[CrossingSettings]):
                          f"{r['runs_shared_late']} / {r['runs']} | "
                          f"{float(r['matched_rmse']):.2f} | {float(r['identity_switches_per_run']):.2f} | "
                          f"{recaptured} | {r['seconds_per_step']:.3f} |")
+        lines += ["", f"| filter | runs uncovered at t >= {cfg['from_step']} (95 % Clopper-Pearson) | uncovered "
+                      "target-steps | longest gap (steps) | McNemar vs the defaults (only the defaults / only this, "
+                      "p) | pair-path trigger: steps fired (share) | moved paths (share) |",
+                  "|---|---|---|---|---|---|---|"]
+        for name, r in payload["results"].items():
+            lo, hi = r["runs_uncovered_late_interval"]
+            mc = r.get("mcnemar_vs_defaults")
+            test = "-" if mc is None else f"{mc['only_defaults']} / {mc['only_this']}, p = {mc['p']:.3g}"
+            lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} ({100 * lo:.0f}-{100 * hi:.0f} %) | "
+                         f"{r['uncovered_target_steps_late']} | {int(max(r['longest_uncovered']))} | {test} | "
+                         f"{cell(r['pair_path_fire_rate'])} | {cell(r['pair_path_moved'])} |")
         return "\n".join(lines) + "\n"
 
     def summarise(self, cfg: CrossingSettings, shards: Shards, out: Path) -> dict:

@@ -103,6 +103,18 @@ probability ``p_same_source`` (the chains then keep each slot's source ``i_j``, 
 move's ratio carries the pair's source term: :mod:`torchmcmcpf.kernels.exchange`, "The
 two-slot move's sources"). ``exclusion=None, recapture=None`` is the paper's target and move.
 
+The pair-path move (optional)
+-----------------------------
+With ``pair_path=PairPath(...)`` (:mod:`torchmcmcpf.kernels.pair_path`; off by default) the
+state keeps (``extras["pair_path"]``, a :class:`~torchmcmcpf.kernels.pair_path.PairPathWindow`)
+each particle's last ``L + 1`` states per slot (each new slot continues the path
+of its source particle's slot, ``ExchangeChains.source``) and the last ``L`` frames; where
+two slots' predicted estimates came within ``distance`` resolution cells in the last ``L``
+frames, every ``every`` steps, a conditional SMC with ancestor sampling re-draws the pair's
+paths over the window for ``num_paths`` of the new particles, invariant for the model's path
+posterior's conditional of the pair (that module's eq. 2). ``extras["pair_path_fired"]``,
+``extras["pair_path_moved"]`` report it.
+
 HMC refinement (optional)
 -------------------------
 With ``hmc=HMCRefine(...)`` (:mod:`torchmcmcpf.kernels.hmc_refine`) every chain also takes
@@ -187,6 +199,7 @@ from ..kernels.hmc_refine import (
     mixture_log_prior,
     with_exclusion,
 )
+from ..kernels.pair_path import PairPath, PairPathWindow, pair_path_update
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture, exclusion_on
@@ -194,9 +207,14 @@ from ..resampling import gather_particles, normalize, systematic
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
 from ._bound import Bound, Compile, bind, check_existence_proposal
+from ._carry import ESTIMATE, carry
 from .base import Filter
 
 __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_ipmcmc", "ipmcmc_bound_step", "ipmcmc_program"]
+
+#: the key of ``ParticleState.extras`` under which the pair-path move keeps its window
+PAIR_PATH = "pair_path"
+carry(PAIR_PATH)(PairPathWindow)  # a typed carry (filters/_carry.py): checked on resume, loads weights_only
 
 
 class SegmentNoise(NamedTuple):
@@ -250,7 +268,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
             chains, acc = refine(chains, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
-            trace.append(chains._replace(source=None, log_w_source=None, amplitude=None, coords=None))
+            trace.append(chains._replace(log_w_source=None, amplitude=None, coords=None))  # sources: the pair-path window
     return chains, trace, accepted_count, refined_count
 
 
@@ -388,6 +406,10 @@ class IPMCMCSettings:
 
     existence_proposal : ``(q_birth, q_death)`` or None, as
         :class:`~torchmcmcpf.filters.mcmc.MCMCSettings` (default ``(0.5, 0.1)``).
+    pair_path : :class:`~torchmcmcpf.kernels.pair_path.PairPath` or None (default): the
+        triggered conditional-SMC move on two close slots' paths over the last ``lag`` frames
+        after the chains (module docstring, "The pair-path move"); a known number of
+        targets and a tensor frame only.
 
     Both are turned off for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
@@ -415,6 +437,7 @@ class IPMCMCSettings:
     exclusion: Exclusion | None = Exclusion()
     recapture: Recapture | None = Recapture()
     existence_proposal: tuple[float, float] | None = (0.5, 0.1)
+    pair_path: PairPath | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains", minimum=2))
@@ -433,6 +456,8 @@ class IPMCMCSettings:
         if self.hmc is not None:
             object.__setattr__(self, "recapture", None)  # HMC's target: the prior without relocation
         object.__setattr__(self, "existence_proposal", check_existence_proposal(self.existence_proposal))
+        if self.pair_path is not None and not isinstance(self.pair_path, PairPath):
+            raise ValueError(f"pair_path must be a PairPath or None, got {type(self.pair_path).__name__}")
 
     def check(self, num_particles: int) -> None:
         """``C | N`` with at least 2 kept samples per chain."""
@@ -546,7 +571,8 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     # estimates are close (fixed for the step: a fixed mixture of invariant kernels)
     pair_every = 0 if recapture is None or k < 2 else recapture.pair_every
     source = log_w_source = None
-    if pair_every and recapture is not None and recapture.p_same_source > 0:  # every slot's source particle
+    if (pair_every and recapture is not None and recapture.p_same_source > 0) or settings.pair_path is not None:
+        # every slot's source particle (the pair-path move's genealogy too)
         source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
         log_w_source = torch.take_along_dim(normalize(log_w)[0], start, 1
                                             ).unsqueeze(-1).repeat(1, 1, k)
@@ -645,6 +671,20 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
     log_w_new = torch.full((b, n), -math.log(n), device=x_prev.device, dtype=log_w.dtype)
+    extras_new: dict | None = None
+    reported: dict[str, Tensor] = {}
+    if settings.pair_path is not None:  # the pair-path move on the new particles (module docstring)
+        if existence is not None:
+            raise ValueError("settings.pair_path needs a known number of targets (existence=None)")
+        carried = (state.extras or {}).get(ESTIMATE)
+        centre = weighted_mean(x_prev, log_w) if carried is None else carried.mean
+        centre = motion.propagate(centre, torch.zeros(centre.shape[:-1] + (motion.noise_dim,), dtype=centre.dtype,
+                                                      device=centre.device))
+        source_new = history[5].permute(1, 2, 0, 3).reshape(b, n, k)
+        x_new, window, reported = pair_path_update((state.extras or {}).get(PAIR_PATH), x_prev, centre, x_new, source_new, z,
+                                                       motion=motion, sensor=sensor, exclusion=settings.exclusion,
+                                                       settings=settings.pair_path, generator=generator)
+        extras_new = {PAIR_PATH: window}
     acceptance = accepted.mean(-1) / iterations
     dt = acceptance.dtype
     info = StepInfo.make(acceptance, acceptance=acceptance, extras={
@@ -653,7 +693,8 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     if hmc is not None:  # refinements per run: (burn_in + segment) // every + extensions * (segment // every)
         count = (burn_in + segment) // every + extensions.to(dt) * (segment // every)
         info.extras["acceptance_hmc"] = refined.mean(-1) / count.clamp(min=1)
-    return ParticleState(x_new, log_w_new, exists_new), info
+    info.extras.update({key: value.to(dt) for key, value in reported.items()})
+    return ParticleState(x_new, log_w_new, exists_new, extras_new), info
 
 
 def ipmcmc_program(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None,
@@ -710,3 +751,12 @@ class IPMCMCFilter(Filter):
     settings_class = IPMCMCSettings
     bind = staticmethod(bind_ipmcmc)
     bound_step = staticmethod(ipmcmc_bound_step)
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # the pair-path window is carried only with settings.pair_path (filters/_carry.py, step 3)
+        self.state_extras = frozenset({PAIR_PATH}) if self.settings.pair_path is not None else frozenset()
+
+    def carry_sizes(self) -> dict[str, dict[str, Any]]:
+        pair_path = self.settings.pair_path
+        return {} if pair_path is None else {PAIR_PATH: {"lag": pair_path.lag}}

@@ -3,7 +3,8 @@
 noise (:mod:`.chains`), joint draw and per-target refinement (:mod:`.moves`), random walk
 (:mod:`.random_walk`); the IP-MCMC exchange move and its iteration (:mod:`.exchange`);
 Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC refinement move of the MCMC filters
-(:mod:`.hmc_refine`).
+(:mod:`.hmc_refine`); the triggered conditional-SMC move on a pair of slots' recent paths
+(:mod:`.pair_path`).
 
 Every move takes its noise pre-drawn (or an explicit ``generator``) and decides with
 ``torch.where``, so chains, targets and runs are tensor dimensions. (Vocabulary: a *move* is
@@ -25,11 +26,16 @@ from .hmc import HMCInfo, hmc, hmc_transition, leapfrog, value_and_grad
 from .hmc_refine import HMCRefine, HMCRefineNoise, hmc_refine
 from .mh import mh_accept, mh_select
 from .moves import MOVES, init_chains, joint_move, propose_joint, refine_move, refine_slot
+from .pair_path import PairPath, PairPathWindow, conditional_smc, pair_path_update
 from .random_walk import RandomWalkNoise, log_transition, propose_random_walk, random_walk_move
 
 __all__ = [
     "mh_accept",
     "mh_select",
+    "PairPath",
+    "conditional_smc",
+    "pair_path_update",
+    "PairPathWindow",
     "MOVES",
     "ChainState",
     "PreviousCloud",
