@@ -214,7 +214,8 @@ def test_in_the_ipmcmc_filter():
     again = filt(scn.measurements[3:], init=loaded, generator=torch.Generator().manual_seed(7).set_state(gen_state))
     assert torch.equal(again.mean, rest.mean)
     bad = loaded._replace(extras={**loaded.extras, "pair_path": window._replace(since=window.since[:1])})
-    with pytest.raises(ValueError, match=r"state.extras\['pair_path'\].since has shape \(1, 2, 2\), expected \(2, 2, 2\)"):
+    wrong = r"state.extras\['pair_path'\].since has shape \(1, 2, 2\), expected \(2, 2, 2\)"
+    with pytest.raises(ValueError, match=wrong):
         filt(scn.measurements[3:], init=bad, generator=torch.Generator())
     with pytest.raises(ValueError, match="pair_path"):  # a plain IP-MCMC-PF does not take a state with a window
         tp.IPMCMCFilter(scn.motion, scn.sensor, 40, num_chains=4, burn_in=5)(scn.measurements[3:], init=first.state,

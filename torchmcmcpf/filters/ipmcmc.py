@@ -268,7 +268,8 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
             chains, acc = refine(chains, (t + 1) // every - 1)
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
-            trace.append(chains._replace(log_w_source=None, amplitude=None, coords=None))  # sources: the pair-path window
+            # the sources stay: the pair-path window's genealogy
+            trace.append(chains._replace(log_w_source=None, amplitude=None, coords=None))
     return chains, trace, accepted_count, refined_count
 
 
@@ -681,9 +682,10 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         centre = motion.propagate(centre, torch.zeros(centre.shape[:-1] + (motion.noise_dim,), dtype=centre.dtype,
                                                       device=centre.device))
         source_new = history[5].permute(1, 2, 0, 3).reshape(b, n, k)
-        x_new, window, reported = pair_path_update((state.extras or {}).get(PAIR_PATH), x_prev, centre, x_new, source_new, z,
-                                                       motion=motion, sensor=sensor, exclusion=settings.exclusion,
-                                                       settings=settings.pair_path, generator=generator)
+        x_new, window, reported = pair_path_update((state.extras or {}).get(PAIR_PATH), x_prev, centre, x_new,
+                                                   source_new, z, motion=motion, sensor=sensor,
+                                                   exclusion=settings.exclusion, settings=settings.pair_path,
+                                                   generator=generator)
         extras_new = {PAIR_PATH: window}
     acceptance = accepted.mean(-1) / iterations
     dt = acceptance.dtype
@@ -755,8 +757,10 @@ class IPMCMCFilter(Filter):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         # the pair-path window is carried only with settings.pair_path (filters/_carry.py, step 3)
-        self.state_extras = frozenset({PAIR_PATH}) if self.settings.pair_path is not None else frozenset()
+        self.state_extras = (  # type: ignore[misc]  # per instance: a carry only some settings use
+            frozenset({PAIR_PATH}) if self.settings.pair_path is not None else frozenset())
 
     def carry_sizes(self) -> dict[str, dict[str, Any]]:
+        """The pair-path window's ``lag`` (with ``settings.pair_path``; :meth:`Filter.carry_sizes`)."""
         pair_path = self.settings.pair_path
         return {} if pair_path is None else {PAIR_PATH: {"lag": pair_path.lag}}

@@ -169,7 +169,8 @@ class PairPathWindow(NamedTuple):
         """
         b, n, k, d = state.x.shape
         el = self.lag if lag is None else lag
-        rows = [("x", self.x, (b, n, el + 1, k, d), state.x.dtype), ("z", self.z, (b, el) + tuple(self.z.shape[2:]), None),
+        rows = [("x", self.x, (b, n, el + 1, k, d), state.x.dtype),
+                ("z", self.z, (b, el) + tuple(self.z.shape[2:]), None),
                 ("frames", self.frames, (b,), torch.int64), ("since", self.since, (b, k, k), torch.int64),
                 ("clock", self.clock, (b,), torch.int64)]
         for field, t, shape, dtype in rows:
@@ -369,9 +370,9 @@ def pair_path_update(window: PairPathWindow | None, x_prev: Tensor, centre: Tens
     pair = torch.stack([at // k, at % k], -1)  # (R, 2), a < b
     p = min(settings.num_paths, n)
     chosen = torch.arange(p, device=x_new.device) * (n // p)  # a fixed stride
-    window = new["pair_path_x"][runs][:, chosen, lag - frames:]  # (R, P, W + 1, K, D)
+    paths_w = new["pair_path_x"][runs][:, chosen, lag - frames:]  # (R, P, W + 1, K, D)
     zs = new["pair_path_z"][runs][:, lag - frames:].movedim(1, 0)  # (W, R, *G)
-    moved_path, moved = conditional_smc(window, zs, pair, motion=motion, sensor=sensor, exclusion=exclusion,
+    moved_path, moved = conditional_smc(paths_w, zs, pair, motion=motion, sensor=sensor, exclusion=exclusion,
                                         num_particles=settings.num_particles, generator=generator)
     paths = new["pair_path_x"].clone()
     sub = paths[runs]
