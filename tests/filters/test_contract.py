@@ -349,13 +349,17 @@ def no_setup_in_steps(monkeypatch):
     from torchmcmcpf.filters import _bound
     from torchmcmcpf.models.existence import BirthDeath, TargetDynamics
 
+    calls: list[str] = []
+
     def refuse(*args, **kwargs):
+        calls.append("setup")
         raise AssertionError("a step re-derived its setup (TargetDynamics, active_prior or with_proposal)")
 
     def arm():
         monkeypatch.setattr(TargetDynamics, "__new__", refuse)
         monkeypatch.setattr(_bound, "active_prior", refuse)
         monkeypatch.setattr(BirthDeath, "with_proposal", refuse)
+        return calls
     return arm
 
 
@@ -365,18 +369,20 @@ def test_a_step_re_derives_nothing(name, no_setup_in_steps):
     no active_prior and apply no existence proposal (all of it is in ``filt.bound``)."""
     filt, zs, init = build(name)
     state = _first_state(filt, name, init)
-    no_setup_in_steps()
+    calls = no_setup_in_steps()
     state, _ = filt.step(state, zs[0], generator=torch.Generator().manual_seed(0))
     filt.step(state, zs[1], generator=torch.Generator().manual_seed(1))
-    filt(zs, init=init if name != "group" else state, generator=torch.Generator().manual_seed(2))
+    result = filt(zs, init=init if name != "group" else state, generator=torch.Generator().manual_seed(2))
+    assert calls == [] and result.mean.shape[:2] == zs.shape[:2]  # every step ran on the bound setup alone
 
 
 @pytest.mark.parametrize("name", EXISTENCE_FILTERS)
 def test_a_step_with_births_re_derives_nothing(name, no_setup_in_steps):
     motion, sensor, existence, z, init = existence_problem()
     filt = EXISTENCE_FILTERS[name](motion, sensor, existence)
-    no_setup_in_steps()
-    filt(z, init=init, generator=torch.Generator().manual_seed(2))
+    calls = no_setup_in_steps()
+    result = filt(z, init=init, generator=torch.Generator().manual_seed(2))
+    assert calls == [] and result.mean.shape[0] == len(result.info.ess)
 
 
 def _assert_same_step(a, b):
