@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Sequence
-from typing import SupportsFloat
+from typing import Any, SupportsFloat
 
 import torch
 from torch.utils._pytree import tree_flatten
@@ -114,3 +114,19 @@ def measurement_leaves(measurements: object, name: str) -> list[Tensor]:
     if not leaves or not all(torch.is_tensor(t) for t in leaves):
         raise ValueError(f"{name} must be a tensor or a tuple of tensors, got {type(measurements).__name__}")
     return leaves
+
+
+def check_fields(name: str, rows: Sequence[tuple[str, Any, tuple[int | None, ...], torch.dtype | None]],
+                 device: torch.device) -> None:
+    """Check the fields of a carry: each row ``(field, value, shape, dtype)`` must be a tensor of
+    that shape (None: any size), dtype (None: any) and ``device``; a ``ValueError`` naming
+    ``{name}.{field}``, the shape (or dtype and device) seen and the one expected otherwise.
+    The typed carries of the filter state use it (``filters/_carry.py``).
+    """
+    for field, t, shape, dtype in rows:
+        if not torch.is_tensor(t):
+            raise ValueError(f"{name}.{field} is {type(t).__name__}, expected a tensor of shape {shape} "
+                             "(build the state with the filter's init)")
+        check_shape(t, f"{name}.{field}", shape)
+        if (dtype is not None and t.dtype != dtype) or t.device != device:
+            raise ValueError(f"{name}.{field} is {t.dtype} on {t.device}, expected {dtype} on {device}")

@@ -44,7 +44,7 @@ from typing import Any, NamedTuple, Protocol, cast
 
 import torch
 
-from .._validation import check_shape
+from .._validation import check_fields
 from ..state import ExistenceEstimate, ParticleState
 from ..typing import Tensor
 
@@ -105,21 +105,6 @@ def typed_extras(extras: Any) -> Any:
     for convert in _CONVERT.values():
         extras = convert(extras)
     return extras
-
-
-def check_fields(name: str, rows: Sequence[tuple[str, Any, tuple[int | None, ...], torch.dtype]],
-                 device: torch.device) -> None:
-    """Check the fields of a carry: each row ``(field, value, shape, dtype)`` must be a tensor of
-    that shape (None: any size), dtype and ``device``; a ``ValueError`` naming
-    ``{name}.{field}``, the shape (or dtype and device) seen and the one expected otherwise.
-    """
-    for field, t, shape, dtype in rows:
-        if not torch.is_tensor(t):
-            raise ValueError(f"{name}.{field} is {type(t).__name__}, expected a tensor of shape {shape} "
-                             "(build the state with the filter's init)")
-        check_shape(t, f"{name}.{field}", shape)
-        if t.dtype != dtype or t.device != device:
-            raise ValueError(f"{name}.{field} is {t.dtype} on {t.device}, expected {dtype} on {device}")
 
 
 def check_carries(state: ParticleState, sizes: Mapping[str, Mapping[str, Any]] | None = None) -> None:

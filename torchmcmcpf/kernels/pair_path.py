@@ -79,7 +79,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from .._validation import check_positive, check_positive_int, check_shape
+from .._validation import check_fields, check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import cdf, inverse_cdf
@@ -173,13 +173,7 @@ class PairPathWindow(NamedTuple):
                 ("z", self.z, (b, el) + tuple(self.z.shape[2:]), None),
                 ("frames", self.frames, (b,), torch.int64), ("since", self.since, (b, k, k), torch.int64),
                 ("clock", self.clock, (b,), torch.int64)]
-        for field, t, shape, dtype in rows:
-            if not torch.is_tensor(t):
-                raise ValueError(f"{name}.{field} is {type(t).__name__}, expected a tensor of shape {shape}")
-            check_shape(t, f"{name}.{field}", shape)
-            if (dtype is not None and t.dtype != dtype) or t.device != state.x.device:
-                raise ValueError(f"{name}.{field} is {t.dtype} on {t.device}, expected "
-                                 f"{dtype or t.dtype} on {state.x.device}")
+        check_fields(name, rows, state.x.device)
 
 
 def window_bytes(num_particles: int, num_targets: int, dim: int, num_cells: int, lag: int,
