@@ -80,7 +80,7 @@ def test_densest_place_matches_a_direct_count():
     live = torch.rand((b, n, k), generator=g) < 0.6
     slot_of = torch.argsort(torch.rand((b, n, k), generator=g), -1)
     log_w = torch.randn((b, n), generator=g, dtype=torch.float64)
-    cands = _candidates(pos, cutoff, candidates=8)
+    cands = _candidates(pos, cutoff, None, candidates=8)
     at, support = _densest(cands, slot_of, live, log_w)
     pos_l = torch.take_along_dim(pos, slot_of.unsqueeze(-1), 2)  # label order
     w = torch.softmax(log_w, -1)
@@ -156,7 +156,7 @@ def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     """The densest-place candidates take the distances of the first of each run of equal
     particles only (an MCMC chain repeats its state on a rejected move) and copy them to the
     repeats: the same words as taking every particle's."""
-    from torchmcmcpf.state import _candidates, _slot_bits
+    from torchmcmcpf.state import _candidates, _runs, _slot_bits
 
     b, n, k = 3, 400, 4
     pos = torch.rand(b, n, k, 2, generator=gen, dtype=torch.float64) * 500
@@ -165,10 +165,37 @@ def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     src = torch.where(keep, torch.arange(n), 0).cummax(1).values
     pos = torch.take_along_dim(pos, src[:, :, None, None], 1)
     pos[1, 7, 2, 0] = float("nan")  # never equal to anything: a first of its own
-    got = _candidates(pos, 100.0)
+    x = torch.zeros(b, n, k, 4, dtype=torch.float64)
+    x[..., 0], x[..., 2] = pos[..., 0], pos[..., 1]
+    runs = _runs(x, None)
+    assert runs is not None and runs.x.shape[1] < n
+    got = _candidates(pos, 100.0, runs)
     dist = torch.cdist(got.pos.reshape(b, -1, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
     want = _slot_bits((dist <= 100.0).reshape(b, got.pick.numel(), k, n, k))
     assert torch.equal(got.close, want)
+
+
+def test_relabel_order_by_runs_equals_every_particles_own(gen):
+    """The estimate's relabelling searches once per run of equal particles (position and
+    flags) and copies: the same permutations as :func:`relabel_order` on every particle, on a
+    cloud of repeats with flags (a repeat whose flags differ starts a run of its own) and
+    float coordinates (the cost's batched product over fewer rows)."""
+    from torchmcmcpf.state import _relabel_order_runs, _runs, relabel_order
+
+    b, n, k = 3, 500, 5
+    x = torch.randn(b, n, k, 4, generator=gen, dtype=torch.float64) * 60
+    e = torch.rand(b, n, k, generator=gen) < 0.7
+    keep = torch.rand(b, n, generator=gen) < 0.2
+    keep[:, 0] = True
+    src = torch.where(keep, torch.arange(n), 0).cummax(1).values
+    x, e = torch.take_along_dim(x, src[:, :, None, None], 1), torch.take_along_dim(e, src[:, :, None], 1)
+    e[0, 11] = ~e[0, 11]  # flags differ from the particle before: its own run
+    ref, ref_e = x[:, 0] + 5.0, torch.ones(b, k, dtype=torch.bool)
+    runs = _runs(x, e)
+    assert runs is not None and runs.x.shape[1] < n // 2
+    want = relabel_order(x, ref, exists=e, reference_exists=ref_e)
+    assert torch.equal(_relabel_order_runs(x, ref, runs, exists=e, reference_exists=ref_e), want)
+    assert _runs(torch.randn(b, n, k, 4, generator=gen), None) is None  # no repeats: no runs
 
 
 def test_relabelling_a_cloud_with_repeats_labels_each_repeat_as_its_first(gen):

@@ -57,11 +57,15 @@ def test_the_cached_block_follows_the_matrix():
                                atol=1e-12)
 
 
-@pytest.mark.parametrize("d", [1, 2, 3])
+@pytest.mark.parametrize("d", [1, 2, 3, 4])
 def test_squared_norm(d):
-    from torchmcmcpf.models.base import squared_norm
+    """The same bits as ATen's reduction for up to 4 coordinates, float64 and float32, over
+    values of very different sizes (where an other order of the additions would round
+    differently)."""
+    from torchmcmcpf.runtime import squared_norm
 
-    v = torch.randn(3, 7, 2, d, generator=torch.Generator().manual_seed(d), dtype=torch.float64)
-    torch.testing.assert_close(squared_norm(v), v.square().sum(-1), rtol=1e-15, atol=0)
-    if d == 2:  # two terms: the same single addition as the reduction
-        assert torch.equal(squared_norm(v.float()), v.float().square().sum(-1))
+    g = torch.Generator().manual_seed(d)
+    v = torch.randn(10, 200, 2, 10, d, generator=g, dtype=torch.float64) * torch.logspace(-3, 3, d,
+                                                                                          dtype=torch.float64)
+    for t in (v, v.float()):
+        assert torch.equal(squared_norm(t), t.square().sum(-1))

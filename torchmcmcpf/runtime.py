@@ -13,6 +13,7 @@ here, by name, and each answer is written down once with its reason:
 - :func:`compiled_for_cpu`: Inductor-on-CPU layout choices (a buffer of its own, a matmul
   for an outer product);
 - :func:`blocked_linear_map`: the block-diagonal product of the small per-target maps (CPU);
+- :func:`squared_norm`: a sum of squares over a short last dim as explicit additions (CPU);
 - :func:`fused_elementwise`, :func:`generated_reductions`: what compiling changes in the
   numerics (a polynomial fuses; a reduction must keep eager's bits);
 - :class:`Program` and :func:`compile_program`: ``torch.compile(fullgraph=True)`` of a pure
@@ -136,6 +137,23 @@ def blocked_linear_map(x: torch.Tensor) -> bool:
     eager and compiled alike, so the two give the same bits) rather than ``x @ M.mT``.
     """
     return x.device.type == "cpu"
+
+
+def squared_norm(v: torch.Tensor) -> torch.Tensor:
+    """``v.square().sum(-1)`` for a short last dim (2-4 coordinates: a whitened residual, a
+    position, resolution coordinates): ``(..., r) -> (...)``, as explicit additions
+    ``((v_0^2 + v_1^2) + v_2^2) ...``, the order in which ATen reduces up to 4 elements, so the
+    same bits as ``.square().sum(-1)`` there (tested), eager and compiled.
+
+    ATen's CPU sum reduces a float64 last dim of 2 or 3 elements row by row: 0.56-0.7 ms for
+    40,000 rows on one core (the exclusion factors of 2,000 chains), against 0.05 ms for the
+    additions; 1.5 ms for ``(100, 5000, 1, 2)`` float32 against 0.34 (the point SIR step).
+    Differentiable.
+    """
+    out = v[..., 0].square()
+    for i in range(1, v.shape[-1]):  # over the coordinates of one point
+        out = out + v[..., i].square()
+    return out
 
 
 def fused_elementwise() -> bool:

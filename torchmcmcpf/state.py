@@ -16,6 +16,7 @@ import torch
 from torch.utils._pytree import tree_map
 
 from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
+from .runtime import squared_norm
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
@@ -447,7 +448,7 @@ def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
     pos = torch.stack([x[..., X], x[..., Y]], -1).reshape(b, n * k, 2)
     ref = torch.stack([reference[..., X], reference[..., Y]], -1).to(x.dtype)  # (B, K, 2)
     # |p - r|^2 = |p|^2 + |r|^2 - 2 p.r: one batched product, not a (B, N, K, K, 2) difference
-    norms = pos.square().sum(-1, keepdim=True) + ref.square().sum(-1).unsqueeze(1)  # (B, N K, K)
+    norms = squared_norm(pos).unsqueeze(-1) + squared_norm(ref).unsqueeze(1)  # (B, N K, K)
     cost = torch.baddbmm(norms, pos, ref.mT, alpha=-2.0).clamp_(min=0.0, max=cutoff**2).reshape(b, n, k, k)
     if exists is not None or reference_exists is not None:
         e = torch.ones((b, n, k), dtype=torch.bool, device=x.device) if exists is None else exists
@@ -516,6 +517,58 @@ def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Ten
     return label
 
 
+class _Runs(NamedTuple):
+    """The runs of equal consecutive particles of a cloud (an MCMC chain's rejected moves repeat
+    its state: 80 % of an IP-MCMC-PF cloud on the births/deaths scene), for the estimate's
+    per-particle searches, which are functions of a particle alone: made once per cloud
+    (:func:`_runs`), each search then runs on the first particle of each run and copies.
+
+    Attributes
+    ----------
+    firsts : (B, m) int64, the first particle of each run in order, then (beyond the run's own
+        count) any particles, never read; rank : (B, N) int64, the run of each particle.
+    x : (B, m, K, D), exists : (B, m, K) bool or None: those particles.
+    """
+
+    firsts: Tensor
+    rank: Tensor
+    x: Tensor
+    exists: Tensor | None
+
+
+def _runs(x: Tensor, exists: Tensor | None) -> _Runs | None:
+    """:class:`_Runs` of a cloud ``x (B, N, K, D)`` with optional ``exists (B, N, K)``, by
+    position and flags (what the relabelling reads); None where the runs would save less than a
+    fifth (an MCMC-PF cloud of 2-sample chains). One host read (the most runs of a run).
+    """
+    b, n = x.shape[:2]
+    pos = torch.stack([x[..., X], x[..., Y]], -1)
+    first = torch.ones((b, n), dtype=torch.bool, device=x.device)
+    first[:, 1:] = (pos[:, 1:] != pos[:, :-1]).flatten(2).any(-1)  # NaN differs: kept, never merged
+    if exists is not None:
+        first[:, 1:] |= (exists[:, 1:] != exists[:, :-1]).any(-1)
+    rank = first.cumsum(1) - 1  # (B, N)
+    m = int(rank[:, -1].max()) + 1  # one host read
+    if 5 * m >= 4 * n:
+        return None
+    at = torch.where(first, torch.arange(n, device=x.device), n + torch.arange(n, device=x.device))
+    firsts = at.sort(-1).values[:, :m].remainder_(n)  # (B, m)
+    return _Runs(firsts, rank, torch.take_along_dim(x, firsts[:, :, None, None], 1),
+                 None if exists is None else torch.take_along_dim(exists, firsts[:, :, None], 1))
+
+
+def _relabel_order_runs(x: Tensor, reference: Tensor, runs: _Runs | None, **kwargs: Any) -> Tensor:
+    """:func:`relabel_order` of ``x (B, N, K, D)`` (keywords as there, ``exists`` included),
+    computed on the first particle of each of its ``runs`` and copied to the repeats: the same
+    permutations (each a function of its particle, its flags and the reference alone).
+    """
+    if runs is None:
+        return relabel_order(x, reference, **kwargs)
+    kwargs["exists"] = runs.exists
+    order = relabel_order(runs.x, reference, **kwargs)
+    return torch.take_along_dim(order, runs.rank.unsqueeze(-1), 1)
+
+
 class _Candidates(NamedTuple):
     """The candidate places of :func:`_densest` and which slots lie near each, made once per
     cloud: relabelling permutes a particle's slots, never moves them, so the distances do not
@@ -551,37 +604,27 @@ def _slot_bits(flags: Tensor) -> Tensor:
     return (bits.to(dtype) * weights).sum(-1, dtype=dtype)  # distinct powers of 2: an OR
 
 
-def _candidates(pos: Tensor, cutoff: float, candidates: int = 32) -> _Candidates:
+def _candidates(pos: Tensor, cutoff: float, runs: _Runs | None, candidates: int = 32) -> _Candidates:
     """:class:`_Candidates` of the positions ``pos (B, N, K, 2)``: the slots of ``candidates``
     evenly spaced particles.
 
-    A particle equal to the one before it (an MCMC chain's rejected move repeats its state:
-    80 % of an IP-MCMC-PF cloud on the births/deaths scene) has that one's words, so the
-    distances are taken for the first of each run of equal particles only (as many per run as
-    the run with the most) and copied to the repeats, where that saves a fifth: the same words.
+    With ``runs`` (:func:`_runs`: an MCMC cloud whose rejected moves repeat states, 80 % of an
+    IP-MCMC-PF cloud on the births/deaths scene) the distances are taken for the first of each
+    run of equal particles only and copied to the repeats: the same words.
     """
     n = pos.shape[1]
     pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
     b, p, k = pos.shape[0], pick.numel(), pos.shape[2]
     cand = pos[:, pick]  # (B, P, K, 2)
-    first = torch.ones((b, n), dtype=torch.bool, device=pos.device)
-    first[:, 1:] = (pos[:, 1:] != pos[:, :-1]).flatten(2).any(-1)  # NaN differs: kept, never merged
-    rank = first.cumsum(1) - 1  # (B, N): the particle's place among the firsts of its run
-    m = int(rank[:, -1].max()) + 1  # one host read: the most firsts of a run
-    few = 5 * m < 4 * n  # worth the copies below (an MCMC-PF cloud of 2-sample chains is not)
-    m = m if few else n
-    sub = pos
-    if few:  # the firsts of each run in order, then (beyond its own count) any particles: never read
-        at = torch.where(first, torch.arange(n, device=pos.device), n + torch.arange(n, device=pos.device))
-        firsts = at.sort(-1).values[:, :m].remainder_(n)  # (B, m)
-        sub = torch.take_along_dim(pos, firsts[:, :, None, None], 1)  # (B, m, K, 2)
+    sub = pos if runs is None else torch.take_along_dim(pos, runs.firsts[:, :, None, None], 1)  # (B, m, K, 2)
+    m = sub.shape[1]
     # one kernel over every (candidate, slot) pair, differences squared and summed exactly
     # (no |a|^2 + |b|^2 - 2 a.b): 2.8x faster than broadcast differences of the coordinates;
     # each pair's distance alone, so the same values whichever particles are in the call
     dist = torch.cdist(cand.reshape(b, p * k, 2), sub.reshape(b, m * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
     close = _slot_bits((dist <= cutoff).reshape(b, p, k, m, k))  # (B, P, K, m, W)
-    if few:  # each particle the words of its run's first
-        close = close.gather(3, rank[:, None, None, :, None].expand(b, p, k, n, close.shape[-1]))
+    if runs is not None:  # each particle the words of its run's first
+        close = close.gather(3, runs.rank[:, None, None, :, None].expand(b, p, k, n, close.shape[-1]))
     return _Candidates(pick, cand, close)
 
 
@@ -657,6 +700,8 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         best = log_w.argmax(-1)[:, None, None]
         ref = torch.take_along_dim(x, best[..., None], 1).squeeze(1)
         present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
+    # the relabelling's searches once per run of equal particles (an MCMC cloud's repeats)
+    runs = _runs(x, exists) if iterations > 0 and k > 1 else None
     if exists is not None and present is not None and ref is not None and k > 1:
         # labels the reference has no target for: the densest place of the live slots the
         # present labels leave over (relabelled against them first) founds one new label per
@@ -664,10 +709,10 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         # reference gets one label in every particle, not a share of each, and a stray slot
         # of one particle founds none
         ref, present = ref.clone(), present.clone()
-        cands = _candidates(torch.stack([x[..., X], x[..., Y]], -1), cutoff) if iterations > 0 else None
+        cands = _candidates(torch.stack([x[..., X], x[..., Y]], -1), cutoff, runs) if iterations > 0 else None
         for _ in range(k if iterations > 0 else 0):  # one new label a round, while one is found
             assert cands is not None
-            slot_of = relabel_order(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
+            slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff)
             spare = torch.take_along_dim(exists, slot_of, 2) & ~present.unsqueeze(1)  # (B, N, K), label order
             at, support = _densest(cands, slot_of, spare, log_w)
             new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
@@ -684,9 +729,11 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         near = None  # (B, N, K): the slots within the cutoff of their label's reference
         if iterations > 0 and k > 1:
             assert ref is not None  # made above when there are rounds and slots to relabel
-            xr, er = relabel(x, ref, exists=exists, reference_exists=present, cutoff=cutoff)
+            slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff)
+            xr = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)  # as relabel
+            er = None if exists is None else torch.take_along_dim(exists, slot_of, 2)
             pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
-            near = (pos - at.unsqueeze(1).to(pos.dtype)).square().sum(-1) <= cutoff**2
+            near = squared_norm(pos - at.unsqueeze(1).to(pos.dtype)) <= cutoff**2
         if exists is None:
             if near is None:
                 mean = weighted_mean(xr, log_w)

@@ -8,7 +8,7 @@ import torch
 from _kalman import kalman_filter
 from torch.utils._pytree import tree_map
 
-from torchmcmcpf.filters.ipmcmc import IPMCMCFilter
+from torchmcmcpf.filters.ipmcmc import IPMCMCFilter, IPMCMCSettings
 from torchmcmcpf.kernels.exchange import (
     ExchangeChains,
     draw_exchange_noise,
@@ -168,6 +168,26 @@ def test_extensions_follow_rhat_threshold(gen):
     res = mid(zs, init=x0, generator=gen)
     ext, r = res.info.extras["extensions"], res.info.extras["rhat"]
     assert ((ext == 3) | (r < 1.05)).all()  # stopped early only once converged
+
+
+def test_no_convergence_check_keeps_the_fixed_burn_in_particles(gen):
+    """``rhat_method=None``: the particles and acceptance of the rule switched off
+    (``max_extensions=0``), bit for bit, without computing R-hat (its extras NaN, no
+    extensions); a method that is neither a known name nor None is refused by name."""
+    b, n = 3, 40
+    motion, sensor, m0, P0, zs = _lg_problem(gen, b=b, steps=3)
+    x0 = m0.unsqueeze(1) + torch.randn(b, n, 1, 4, generator=gen, dtype=DT) @ torch.linalg.cholesky(P0).mT
+    runs = [IPMCMCFilter(motion, sensor, n, num_chains=4, burn_in=7, rhat_threshold=1e-3, **kw)(
+        zs, init=x0, generator=torch.Generator().manual_seed(5)) for kw in ({"max_extensions": 0},
+                                                                             {"rhat_method": None})]
+    off, none = runs
+    assert torch.equal(off.state.x, none.state.x) and torch.equal(off.info.acceptance, none.info.acceptance)
+    assert torch.isfinite(off.info.extras["rhat"]).all()
+    for key in ("rhat", "rhat_slot", "rhat_dim"):
+        assert torch.isnan(none.info.extras[key]).all()
+    assert (none.info.extras["extensions"] == 0).all()
+    with pytest.raises(ValueError, match="rhat_method must be one of .* or None, got 'nope'"):
+        IPMCMCSettings(rhat_method="nope")
 
 
 def test_rhat_below_threshold_when_mixed(gen):

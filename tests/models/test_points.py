@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.sensors.points import PointFrame, PoissonClutterPoints
 
 AREA = ((0.0, 200.0), (-50.0, 50.0))  # V = 2e4
@@ -147,7 +148,10 @@ def test_intensity_cache_delta_and_updates_follow_the_chains(gen):
             torch.testing.assert_close(delta, ref, rtol=1e-9, atol=1e-9)
             assert bool(here.any())
             accepted = torch.rand(b, c, generator=gen) < 0.5
-            s.update_amplitude_cache(cache, cells, change, accepted)
+            # the entrywise update gives the generic scatter-add's bits
+            generic = SensorModel.update_amplitude_cache(cache.clone(), cells, change, accepted)
+            assert s.update_amplitude_cache(cache, cells, change, accepted) is cache
+            assert torch.equal(cache, generic)
             keep = accepted[..., None, None]
             x = torch.where(keep, x_new, x)
             exists = torch.where(accepted[..., None], e_new, exists)

@@ -390,7 +390,11 @@ class IPMCMCSettings:
         reported).
     max_extensions : at most this many extensions of ``thinning * N / C`` iterations (0
         disables).
-    rhat_method : ``"paper"`` (eq. 13) or ``"gelman-rubin"`` (see :mod:`..diagnostics`).
+    rhat_method : ``"paper"`` (eq. 13), ``"gelman-rubin"`` (see :mod:`..diagnostics`) or
+        ``None``: no convergence check, a fixed ``burn_in`` (no extensions, and no R-hat is
+        computed: the report's extras are NaN). The check relabels the second half of every
+        chain's states: 11 % of a births/deaths step, where it never converges (the
+        births/deaths study runs without it, :mod:`~torchmcmcpf.experiments.septier_birth_death`).
     thinning : keep every ``thinning``-th state after the burn-in (1: the paper's
         consecutive states); ``thinning = K`` makes every kept sample follow one sweep over
         the K slots on average.
@@ -432,7 +436,7 @@ class IPMCMCSettings:
     burn_in: int = 100
     rhat_threshold: float = 1.1
     max_extensions: int = 2
-    rhat_method: str = "paper"
+    rhat_method: str | None = "paper"
     thinning: int = 1
     hmc: HMCRefine | None = None
     exclusion: Exclusion | None = Exclusion()
@@ -447,8 +451,8 @@ class IPMCMCSettings:
             raise ValueError(f"rhat_threshold must be > 0 (math.inf: never extend), got {self.rhat_threshold!r}")
         object.__setattr__(self, "rhat_threshold", float(self.rhat_threshold))
         object.__setattr__(self, "max_extensions", check_positive_int(self.max_extensions, "max_extensions", minimum=0))
-        if self.rhat_method not in RHAT_METHODS:
-            raise ValueError(f"rhat_method must be one of {RHAT_METHODS}, got {self.rhat_method!r}")
+        if self.rhat_method is not None and self.rhat_method not in RHAT_METHODS:
+            raise ValueError(f"rhat_method must be one of {RHAT_METHODS} or None, got {self.rhat_method!r}")
         object.__setattr__(self, "thinning", check_positive_int(self.thinning, "thinning"))
         if self.hmc is not None and not isinstance(self.hmc, HMCRefine):
             raise ValueError(f"hmc must be an HMCRefine or None, got {type(self.hmc).__name__}")
@@ -640,8 +644,9 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         return ch, _unstack(trace), acc, torch.zeros_like(acc)
 
     hmc_noise = None
-    # states before the first window (and before the kept ones) are not recorded
-    record_from = min(_window_start(burn_in + segment), burn_in)
+    # states before the first window (and before the kept ones) are not recorded; without a
+    # check, only the kept ones
+    record_from = burn_in if rhat_method is None else min(_window_start(burn_in + segment), burn_in)
     chains, trace, accepted, refined = run(burn_in + segment, record_from)
     history = _kept(trace, keep, settings.thinning)
     ys = [c[0] for c in trace]  # (B, C, K, D) after iterations record_from, ...: the R-hat window's source
@@ -649,9 +654,13 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
 
     # 3. R-hat on the second half of the iterations, and extensions (all runs iterate, only
     # those that need it update; a run that stops needing never needs again)
-    report = _rhat_report(ys, record_from, rhat_method, sensor.resolved)
+    if rhat_method is None:  # no check: nothing to report
+        nan = torch.full((b,), math.nan, device=x_prev.device, dtype=x_prev.dtype)
+        report = RhatReport(nan, nan, nan)
+    else:
+        report = _rhat_report(ys, record_from, rhat_method, sensor.resolved)
     extensions = torch.zeros(b, dtype=torch.int64, device=x_prev.device)
-    for _ in range(max_extensions if rhat_threshold < math.inf else 0):
+    for _ in range(max_extensions if rhat_threshold < math.inf and rhat_method is not None else 0):
         need = report.max >= rhat_threshold  # (B,)
         if not bool(need.any()):
             break
@@ -664,6 +673,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         ys = ys + [c[0] for c in trace_e]
         accepted = accepted + torch.where(need.unsqueeze(-1), acc_e, torch.zeros_like(acc_e))
         refined = refined + torch.where(need.unsqueeze(-1), ref_e, torch.zeros_like(ref_e))
+        assert rhat_method is not None  # no check: no extensions (the loop's range)
         iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
         report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)

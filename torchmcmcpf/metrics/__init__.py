@@ -23,6 +23,7 @@ from typing import NamedTuple
 import torch
 
 from .._validation import check_positive, check_shape, check_tensor
+from ..runtime import squared_norm
 from ..typing import Tensor, X, Y
 
 __all__ = [
@@ -190,7 +191,7 @@ def match_tracks(estimate: Tensor, truth: Tensor, *, per_step: bool = False
     """
     _check_tracks(estimate, truth)
     diff = _positions(truth)[:, :, :, None, :] - _positions(estimate)[:, :, None, :, :]
-    cost = diff.square().sum(-1)  # (T, B, K, K): truth k vs estimate j
+    cost = squared_norm(diff)  # (T, B, K, K): truth k vs estimate j
     if not per_step:
         cost = cost.sum(0)  # (B, K, K)
     perm = optimal_assignment(cost)

@@ -82,6 +82,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 import torch
 
 from .._validation import check_positive, check_positive_int
+from ..runtime import squared_norm
 from ..typing import Tensor
 
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
@@ -141,7 +142,7 @@ class Exclusion:
         (*S,), dtype of ``u``; differentiable in ``u``.
         """
         k = u.shape[-2]
-        d2 = (u.unsqueeze(-2) - u.unsqueeze(-3)).square().sum(-1)  # (*S, K, K)
+        d2 = squared_norm(u.unsqueeze(-2) - u.unsqueeze(-3))  # (*S, K, K)
         pairs = torch.ones((k, k), dtype=torch.bool, device=u.device).triu(1)
         if alive is not None:
             pairs = pairs & alive.unsqueeze(-1) & alive.unsqueeze(-2)
@@ -169,7 +170,7 @@ class Exclusion:
         others = torch.arange(k, device=u.device) != n.unsqueeze(-1)  # (*S, K)
         u_old = torch.gather(u, -2, n.reshape(n.shape + (1, 1)).expand(n.shape + (1, u.shape[-1])))  # (*S, 1, r)
         # slot n before (row 0) and after (row 1) the move against every slot: one log_phi
-        d2 = (u.unsqueeze(-3) - torch.stack([u_old, u_n.unsqueeze(-2)], -3)).square().sum(-1)  # (*S, 2, K)
+        d2 = squared_norm(u.unsqueeze(-3) - torch.stack([u_old, u_n.unsqueeze(-2)], -3))  # (*S, 2, K)
         if alive is None:
             on = others.unsqueeze(-2)
         else:
@@ -238,7 +239,7 @@ def exclusion_against(exclusion: Exclusion | None, sensor: SensorModel, x: Tenso
     u = sensor.resolution_coords(x)  # (B, *S, K, r)
     u_ref = sensor.resolution_coords(ref)  # (B, K, r)
     u_ref = u_ref.reshape(u_ref.shape[:1] + (1,) * (x.dim() - 3) + u_ref.shape[1:])
-    d2 = (u.unsqueeze(-2) - u_ref.unsqueeze(-3)).square().sum(-1)  # (B, *S, K, K): slot k vs reference l
+    d2 = squared_norm(u.unsqueeze(-2) - u_ref.unsqueeze(-3))  # (B, *S, K, K): slot k vs reference l
     k = x.shape[-2]
     others = ~torch.eye(k, dtype=torch.bool, device=x.device)
     terms = exclusion.log_phi(torch.where(others, d2, torch.ones_like(d2)))

@@ -12,6 +12,7 @@ from typing import NamedTuple
 import torch
 
 from ..._validation import check_positive, check_positive_int
+from ...runtime import squared_norm
 from ...typing import Tensor
 from ..base import Motion
 from .existence import GroupExistence
@@ -245,7 +246,7 @@ class VirtualLeaderMotion(Motion):
         if self.r1 is None or self.r2 is None:  # both or neither (__init__)
             return torch.zeros_like(pos)
         diff = pos.unsqueeze(-2) - pos.unsqueeze(-3)  # (*S, K, K, 2): p_i - p_j
-        d = diff.square().sum(-1).clamp(min=torch.finfo(pos.dtype).tiny).sqrt()  # coincident: 0 force
+        d = squared_norm(diff).clamp(min=torch.finfo(pos.dtype).tiny).sqrt()  # coincident: 0 force
         pair = _same_group(labels) & active.unsqueeze(-1) & active.unsqueeze(-2)
         pair = pair & ~torch.eye(pos.shape[-2], dtype=torch.bool, device=pos.device)
         coef = torch.where(pair, self.r1 / ((d + self.r2) * d), torch.zeros_like(d))

@@ -15,6 +15,7 @@ from torch import nn
 
 from ..._validation import check_positive, check_positive_int
 from ...resampling import cdf, inverse_cdf
+from ...runtime import squared_norm
 from ...typing import Tensor
 from ..existence import _probability
 
@@ -103,7 +104,7 @@ def gaussian_closeness(scale: float, power: float = 2.0) -> Callable[[Tensor, Te
     p = check_positive(power, "power")
 
     def closeness(pi: Tensor, pj: Tensor) -> Tensor:
-        d2 = (pi - pj).square().sum(-1) / s**2
+        d2 = squared_norm(pi - pj) / s**2
         return torch.exp(-0.5 * d2 if p == 2.0 else -0.5 * d2.pow(0.5 * p))
 
     return closeness

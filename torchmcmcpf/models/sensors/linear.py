@@ -11,8 +11,9 @@ import math
 import torch
 
 from ..._validation import check_positive
+from ...runtime import squared_norm
 from ...typing import Tensor
-from ..base import SensorModel, linear_map, squared_norm
+from ..base import SensorModel, linear_map
 
 __all__ = ["LinearGaussian"]
 

@@ -377,6 +377,16 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             rate = rate * exists.unsqueeze(-1)
         return self.clutter_rate / self.volume + rate.sum(-2)
 
+    @staticmethod
+    def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
+        """:meth:`SensorModel.update_amplitude_cache` where ``cells`` are every entry of ``cache``
+        in order (:meth:`log_likelihood_delta_cached`): the accepted changes added entry by
+        entry in place, one addition per entry as the scatter-add makes (the same bits), without
+        its index (a third of the time).
+        """
+        keep = accepted.reshape(accepted.shape + (1,) * (change.dim() - accepted.dim()))
+        return cache.add_(torch.where(keep, change, 0.0))
+
     def log_likelihood_delta_cached(self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: PointMeasurement,
                                     exists: Tensor | None = None, exists_n: Tensor | None = None
                                     ) -> tuple[Tensor, Tensor, Tensor]:
