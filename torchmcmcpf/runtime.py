@@ -14,6 +14,7 @@ here, by name, and each answer is written down once with its reason:
   for an outer product);
 - :func:`blocked_linear_map`: the block-diagonal product of the small per-target maps (CPU);
 - :func:`squared_norm`: a sum of squares over a short last dim as explicit additions (CPU);
+- :func:`guided_search`: categorical draws by a guide table (CPU, eager) or ``searchsorted``;
 - :func:`fused_elementwise`, :func:`generated_reductions`: what compiling changes in the
   numerics (a polynomial fuses; a reduction must keep eager's bits);
 - :class:`Program` and :func:`compile_program`: ``torch.compile(fullgraph=True)`` of a pure
@@ -154,6 +155,14 @@ def squared_norm(v: torch.Tensor) -> torch.Tensor:
     for i in range(1, v.shape[-1]):  # over the coordinates of one point
         out = out + v[..., i].square()
     return out
+
+
+def guided_search(cdf: torch.Tensor, u: torch.Tensor) -> bool:
+    """Whether :func:`~torchmcmcpf.resampling.inverse_cdf` inverts the points ``u (..., M)``
+    with a guide table over ``cdf (..., N)`` (its host reads: eager on a CPU only) rather than
+    ``searchsorted``: where ``M >= 4 N``, so the table (``N`` points of its own) pays.
+    """
+    return not on_cuda(u) and not compiling() and not in_function_transform() and u.shape[-1] >= 4 * cdf.shape[-1]
 
 
 def fused_elementwise() -> bool:
