@@ -393,6 +393,15 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
     return ExchangeProposal(moved, e_new, log_r, kind, None if sensor is None else sensor.resolution_coords(moved))
 
 
+def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor) -> Tensor:
+    """``t (B, C, K, D)`` with row ``slot (B, C)`` set to ``row (B, C, D)`` where ``accepted
+    (B, C)``: a new tensor, the values of ``torch.where`` of the row over the slot's mask.
+    """
+    at = slot.reshape(slot.shape + (1, 1)).expand(slot.shape + (1, t.shape[-1]))  # (B, C, 1, D)
+    keep = torch.where(accepted.reshape(accepted.shape + (1, 1)), row.unsqueeze(-2), torch.gather(t, -2, at))
+    return t.scatter(-2, at, keep)
+
+
 def exchange_iteration(
     chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
     *, dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None,
@@ -503,7 +512,10 @@ def exchange_iteration(
     u_out = coords if kept else None
     for j, here in enumerate(heres):  # each moved slot written where its move is accepted
         take = here & accepted.unsqueeze(-1)  # (B, C, K)
-        y_out = torch.where(take.unsqueeze(-1), moved[:, :, j].unsqueeze(-2), y_out)
+        # the vector fields by a scatter of the moved slot's row (its new or its old value):
+        # the same values as a where over (B, C, K, D), whose mask and row broadcast over
+        # inner dims of 2-5 (3x the time of a copy and a scatter on the CPU)
+        y_out = _write_row(y_out, noise.slot[..., j], moved[:, :, j], accepted)
         if e_out is not None and e_new is not None:
             e_out = torch.where(take, e_new[:, :, j].unsqueeze(-1), e_out)
         if r_out is not None:
@@ -515,7 +527,7 @@ def exchange_iteration(
             src_out = torch.where(take, noise.source[..., j].unsqueeze(-1), src_out)
             lw_out = torch.where(take, noise.log_w_source[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
         if u_out is not None and u_moved is not None:
-            u_out = torch.where(take.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), u_out)
+            u_out = _write_row(u_out, noise.slot[..., j], u_moved[:, :, j], accepted)
     new = ExchangeChains(y_out, torch.where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
                          None, u_out)
     return new, accepted, update
