@@ -277,3 +277,20 @@ def test_radar_data_draws_score_only_where_asked(gen):
     noise = RelocationNoise.draw((2, 50, 3), sensor, z, generator=torch.Generator().manual_seed(2), dtype=DT,
                                  device="cpu", p_propose=0.1)
     assert torch.equal(noise.log_ratio == 0, noise.u >= 0.1)
+
+
+@pytest.mark.parametrize("r", [1, 2, 3])
+def test_pairwise_squared_distances_equal_the_broadcast_form(r):
+    """Coordinate by coordinate, the same values as the squared norm of the broadcast
+    differences (the exclusion factors' bits are those of the form they replace)."""
+    from torchmcmcpf.models.multitarget import pairwise_squared_distances
+    from torchmcmcpf.runtime import squared_norm
+
+    g = torch.Generator().manual_seed(r)
+    a = torch.randn(3, 7, 4, r, generator=g, dtype=torch.float64) * 50
+    b = torch.randn(3, 7, 5, r, generator=g, dtype=torch.float64) * 50
+    want = squared_norm(a.unsqueeze(-2) - b.unsqueeze(-3))  # (3, 7, 4, 5)
+    assert torch.equal(pairwise_squared_distances(a, b), want)
+    assert torch.equal(pairwise_squared_distances(b, a), want.transpose(-1, -2))
+    with pytest.raises(ValueError, match="at least one coordinate"):
+        pairwise_squared_distances(a[..., :0], b[..., :0])
