@@ -539,7 +539,7 @@ class _Runs(NamedTuple):
 def _runs(x: Tensor, exists: Tensor | None) -> _Runs | None:
     """:class:`_Runs` of a cloud ``x (B, N, K, D)`` with optional ``exists (B, N, K)``, by
     position and flags (what the relabelling reads); None where the runs would save less than a
-    fifth (an MCMC-PF cloud of 2-sample chains). One host read (the most runs of a run).
+    fifth (an MCMC-PF cloud of 2-sample chains). One host read (the most runs in one batch row).
     """
     b, n = x.shape[:2]
     pos = torch.stack([x[..., X], x[..., Y]], -1)

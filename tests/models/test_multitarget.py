@@ -283,8 +283,7 @@ def test_radar_data_draws_score_only_where_asked(gen):
 def test_pairwise_squared_distances_equal_the_broadcast_form(r):
     """Coordinate by coordinate, the same values as the squared norm of the broadcast
     differences (the exclusion factors' bits are those of the form they replace)."""
-    from torchmcmcpf.models.multitarget import pairwise_squared_distances
-    from torchmcmcpf.runtime import squared_norm
+    from torchmcmcpf.runtime import pairwise_squared_distances, squared_norm
 
     g = torch.Generator().manual_seed(r)
     a = torch.randn(3, 7, 4, r, generator=g, dtype=torch.float64) * 50

@@ -59,7 +59,7 @@ from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
 from ..resampling import cdf, inverse_cdf, normalize
-from ..runtime import squared_norm
+from ..runtime import pairwise_squared_distances
 from ..typing import Measurement, Tensor
 from .mh import mh_accept
 
@@ -252,7 +252,7 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
     (B, K, K) bool, True for ``i < j`` within ``distance``.
     """
     k = centres.shape[-2]
-    d2 = squared_norm(centres.unsqueeze(-2) - centres.unsqueeze(-3))
+    d2 = pairwise_squared_distances(centres, centres)
     out = (d2 < distance**2) & torch.ones((k, k), dtype=torch.bool, device=centres.device).triu(1)
     if exists is not None:
         out = out & exists.unsqueeze(-1) & exists.unsqueeze(-2)

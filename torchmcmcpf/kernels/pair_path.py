@@ -83,7 +83,7 @@ from .._validation import check_fields, check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import cdf, inverse_cdf
-from ..runtime import squared_norm
+from ..runtime import pairwise_squared_distances
 from ..typing import Measurement, Tensor
 
 __all__ = ["PairPath", "PairPathWindow", "conditional_smc", "pair_path_update", "window_bytes"]
@@ -346,7 +346,7 @@ def pair_path_update(window: PairPathWindow | None, x_prev: Tensor, centre: Tens
         old = _fresh(x_prev, z, lag)
     # the trigger, from the previous cloud's prediction
     u = sensor.resolution_coords(centre)  # (B, K, r)
-    close = squared_norm(u.unsqueeze(-2) - u.unsqueeze(-3)) < settings.distance ** 2
+    close = pairwise_squared_distances(u, u) < settings.distance ** 2
     since = torch.where(close, 0, (old["pair_path_since"] + 1).clamp(max=lag))
     new = _advance({**old, "pair_path_since": since}, x_new, source, z, lag)
     upper = torch.ones((k, k), dtype=torch.bool, device=x_new.device).triu(1)

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import torch
 
 from .._validation import check_positive, check_shape, check_tensor
-from ..runtime import squared_norm
+from ..runtime import pairwise_squared_distances
 from ..typing import Tensor, X, Y
 
 __all__ = [
@@ -190,8 +190,7 @@ def match_tracks(estimate: Tensor, truth: Tensor, *, per_step: bool = False
         estimate[t, b, perm[b, k]]``.
     """
     _check_tracks(estimate, truth)
-    diff = _positions(truth)[:, :, :, None, :] - _positions(estimate)[:, :, None, :, :]
-    cost = squared_norm(diff)  # (T, B, K, K): truth k vs estimate j
+    cost = pairwise_squared_distances(_positions(truth), _positions(estimate))  # (T, B, K, K): truth k vs estimate j
     if not per_step:
         cost = cost.sum(0)  # (B, K, K)
     perm = optimal_assignment(cost)

@@ -82,6 +82,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 import torch
 
 from .._validation import check_positive, check_positive_int
+from ..runtime import pairwise_squared_distances
 from ..typing import Tensor
 
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
@@ -102,22 +103,6 @@ def _probability(value: float, name: str, *, open_low: bool = False) -> float:
         interval = "(0, 1)" if open_low else "[0, 1)"
         raise ValueError(f"{name} must be a probability in {interval}, got {value!r}")
     return v
-
-
-def pairwise_squared_distances(a: Tensor, b: Tensor) -> Tensor:
-    """``|a_i - b_j|^2`` for ``a (*S, I, r)`` and ``b (*S, J, r)`` -> ``(*S, I, J)``, coordinate
-    by coordinate: the values of ``squared_norm(a[..., :, None, :] - b[..., None, :, :])``
-    (each coordinate's difference squared, added in order), without a difference broadcast
-    over an inner dim of ``r = 2-3`` coordinates, which costs 3x the time on the CPU (the
-    exclusion factors of 10,000 MCMC-PF chains).
-    """
-    out = None
-    for c in range(a.shape[-1]):  # over the coordinates
-        sq = (a[..., c].unsqueeze(-1) - b[..., c].unsqueeze(-2)).square()
-        out = sq if out is None else out + sq
-    if out is None:
-        raise ValueError(f"a has shape {tuple(a.shape)}: expected at least one coordinate")
-    return out
 
 
 @dataclass(frozen=True)
