@@ -182,6 +182,18 @@ def guided_search(cdf: torch.Tensor, u: torch.Tensor) -> bool:
     return not on_cuda(u) and not compiling() and not in_function_transform() and u.shape[-1] >= 4 * cdf.shape[-1]
 
 
+def accepted_rows_only(t: torch.Tensor) -> bool:
+    """Whether a chain cache adds the changes of the accepted moves only, their rows picked by
+    ``nonzero`` (a host read: eager on a CPU), rather than every move's change with the
+    rejected ones zeroed (no sync: compiled code, a captured CUDA graph). On the CPU the
+    scatter-add into a cache of 245 MB (the ground radar's 61,248 cells, 500 chains) is bound
+    by its cache misses: 1.40 ms for every row against 0.26 ms for the 30 % accepted
+    (:meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache`; the same bits, a
+    rejected row adding exact zeros).
+    """
+    return not on_cuda(t) and not compiling() and not in_function_transform()
+
+
 def fused_elementwise() -> bool:
     """Whether chains of elementwise operations run fused into one loop (while compiling): a
     polynomial of a few dozen operations then costs about one pass over memory, less than a

@@ -441,6 +441,37 @@ def test_log_likelihood_slot_changes_equal_window_differences(window):
     torch.testing.assert_close(grid_out[..., 1], direct, rtol=1e-10, atol=1e-9)
 
 
+def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
+    """Eager on the CPU the cache adds the accepted moves' rows only (runtime.accepted_rows_only):
+    the same bits as the scatter-add of every row with the rejected ones zeroed (the compiled
+    and CUDA-graph form), on one-slot and two-slot changes with overlapping boxes."""
+    from torchmcmcpf import runtime
+
+    sens = small_sensor()
+    g = torch.Generator().manual_seed(17)
+    xt = target_states([[2790, 2805, 2830]], [[1, 2, -3]], [[0.2, 0.6, -2.0]], [[4, 5, 6]])
+    z = sens.simulate(xt, generator=g)
+    y = particles_near(xt, 12, g).reshape(1, 3, 4, 3, 5)
+    assert runtime.accepted_rows_only(y)
+    for many in (False, True):
+        cache = sens.amplitude_cache(y)
+        slot = torch.randint(3, (1, 3, 4), generator=g)
+        if many:
+            slot = torch.stack([slot, (slot + 1) % 3], -1)
+            x_n = particles_near(xt, 12, g, pos=10.0)[:, :, :2].reshape(1, 3, 4, 2, 5)
+        else:
+            x_n = particles_near(xt, 12, g, pos=10.0)[:, :, 0].reshape(1, 3, 4, 5)
+        _, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, slot, z)
+        for accepted in (torch.rand(1, 3, 4, generator=g) < 0.4, torch.zeros(1, 3, 4, dtype=torch.bool),
+                         torch.ones(1, 3, 4, dtype=torch.bool)):
+            rows = sens.update_amplitude_cache(cache.clone(), cells, change, accepted)
+            with monkeypatch.context() as m:
+                m.setattr(runtime, "accepted_rows_only", lambda t: False)
+                dense = sens.update_amplitude_cache(cache.clone(), cells, change, accepted)
+            assert torch.equal(rows, dense)
+            assert not torch.equal(rows, cache) or not accepted.any()
+
+
 def test_amplitude_cache_delta_and_updates_follow_the_chains():
     """The amplitude cache: equal to the amplitude of the window path (the grid's truncated
     spreads: summing it with the cell log-ratios gives log_likelihood_window); the cached

@@ -340,12 +340,20 @@ class SensorModel(nn.Module, Generic[Z]):
         The one place the chain cache changes. It belongs to the chains (made for them at the
         start of a step, never shared), so adding in place is the functional update ``cache ->
         cache'`` without a copy per iteration (12 MB per run on the ground radar's 61,248 cells
-        and 50 chains: the copy would cost about what the iteration does). One scatter-add of
-        every move's cells, the rejected ones adding exact zeros: no host sync (no
-        ``nonzero``), so it runs inside a captured CUDA graph as well; a sensor gives each
-        cell at most one nonzero change per move, so the result does not depend on the order
-        of the additions.
+        and 50 chains: the copy would cost about what the iteration does). Compiled or on a
+        GPU, one scatter-add of every move's cells, the rejected ones adding exact zeros: no
+        host sync (no ``nonzero``), so it runs inside a captured CUDA graph as well; eager on a
+        CPU, the accepted moves' rows only (:func:`~torchmcmcpf.runtime.accepted_rows_only`:
+        the scatter is bound by its cache misses), the same bits. A sensor gives each cell at
+        most one nonzero change per move, so the result does not depend on the order of the
+        additions.
         """
+        if runtime.accepted_rows_only(cache):  # eager CPU: the accepted rows only, in order (the same bits)
+            rows = accepted.reshape(-1).nonzero().squeeze(-1)
+            flat = accepted.numel()
+            cache.view(-1).index_add_(0, cells.reshape(flat, -1)[rows].reshape(-1),
+                                      change.reshape(flat, -1)[rows].reshape(-1))
+            return cache
         keep = accepted.reshape(accepted.shape + (1,) * (change.dim() - accepted.dim()))
         cache.view(-1).index_add_(0, cells.reshape(-1), torch.where(keep, change, 0.0).reshape(-1))
         return cache
