@@ -182,6 +182,15 @@ def guided_search(cdf: torch.Tensor, u: torch.Tensor) -> bool:
     return not on_cuda(u) and not compiling() and not in_function_transform() and u.shape[-1] >= 4 * cdf.shape[-1]
 
 
+def in_place(x: torch.Tensor) -> bool:
+    """Whether arithmetic on ``x`` may update its own fresh temporaries in place (the same
+    operations, the same bits, fewer buffers: a chain of elementwise passes then stays in the
+    cache): eager code with no gradient to record and no ``torch.func`` transform (the point
+    sensor's intensities, the radar's ``log I0``).
+    """
+    return not (x.requires_grad and torch.is_grad_enabled()) and not in_function_transform() and not compiling()
+
+
 def accepted_rows_only(t: torch.Tensor) -> bool:
     """Whether a chain cache adds the changes of the accepted moves only, their rows picked by
     ``nonzero`` (a host read: eager on a CPU), rather than every move's change with the

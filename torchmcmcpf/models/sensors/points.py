@@ -68,14 +68,6 @@ def _logsumexp_fast(x: Tensor, dim: int) -> Tensor:
     return _exp_(x - maxes).sum(dim).log_().add_(maxes.squeeze(dim))
 
 
-def _plain(x: Tensor) -> bool:
-    """Whether a call on ``x`` may take the in-place paths: no gradient to record, no
-    ``torch.func`` transform, not traced by ``torch.compile``.
-    """
-    return not (x.requires_grad and torch.is_grad_enabled()) and not runtime.in_function_transform() \
-        and not runtime.compiling()
-
-
 @torch.library.custom_op("torchmcmcpf::logsumexp", mutates_args=())
 def _logsumexp(x: Tensor, dim: int) -> Tensor:
     """``torch.logsumexp(x, dim)``, opaque to ``torch.compile``: a compiled kernel calls the
@@ -195,7 +187,7 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     mk = mask.reshape(lead[:-1] + (1, m))
     log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
-    lse = _logsumexp_fast if _plain(log_g) else torch.logsumexp  # the same bits
+    lse = _logsumexp_fast if runtime.in_place(log_g) else torch.logsumexp  # the same bits
     log_near = lse(log_g, -1) - torch.log(n_valid.clamp(min=1))
     log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
     log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
@@ -321,7 +313,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             n_live = exists.to(x.dtype).sum(-1)
         else:
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
-        if _plain(x):  # the clutter row and the terms in one buffer, in place: the same bits
+        if runtime.in_place(x):  # the clutter row and the terms in one buffer, in place: the same bits
             terms = self.log_intensity_terms(x, pts, clutter=log_clutter)  # (B, *S, 1 + K, M)
             if exists is not None:  # + 0 or -inf: a term is never -0 or +inf, so the same values as a where
                 off = torch.zeros(exists.shape, dtype=x.dtype, device=x.device).masked_fill_(~exists, -math.inf)
@@ -372,7 +364,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             return None
         pts, _ = split_points(z)
         terms = self.log_intensity_terms(x, pts).to(torch.float64)
-        rate = _exp_(terms) if _plain(x) else terms.exp()  # (B, *S, K, M); a fresh tensor, the same bits
+        rate = _exp_(terms) if runtime.in_place(x) else terms.exp()  # (B, *S, K, M); a fresh tensor, the same bits
         if exists is not None:
             rate = rate * exists.unsqueeze(-1)
         return self.clutter_rate / self.volume + rate.sum(-2)
