@@ -179,7 +179,7 @@ def guided_search(cdf: torch.Tensor, u: torch.Tensor) -> bool:
     with a guide table over ``cdf (..., N)`` (its host reads: eager on a CPU only) rather than
     ``searchsorted``: where ``M >= 4 N``, so the table (``N`` points of its own) pays.
     """
-    return not on_cuda(u) and not compiling() and not in_function_transform() and u.shape[-1] >= 4 * cdf.shape[-1]
+    return host_reads(u) and u.shape[-1] >= 4 * cdf.shape[-1]
 
 
 def in_place(x: torch.Tensor) -> bool:
@@ -191,14 +191,15 @@ def in_place(x: torch.Tensor) -> bool:
     return not (x.requires_grad and torch.is_grad_enabled()) and not in_function_transform() and not compiling()
 
 
-def accepted_rows_only(t: torch.Tensor) -> bool:
-    """Whether a chain cache adds the changes of the accepted moves only, their rows picked by
-    ``nonzero`` (a host read: eager on a CPU), rather than every move's change with the
-    rejected ones zeroed (no sync: compiled code, a captured CUDA graph). On the CPU the
-    scatter-add into a cache of 245 MB (the ground radar's 61,248 cells, 500 chains) is bound
-    by its cache misses: 1.40 ms for every row against 0.26 ms for the 30 % accepted
-    (:meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache`; the same bits, a
-    rejected row adding exact zeros).
+def host_reads(t: torch.Tensor) -> bool:
+    """Whether code on ``t`` may read the device to pick the entries that need work
+    (``nonzero``, a count): eager on a CPU, where such a read is cheap; never compiled, under
+    a ``torch.func`` transform or on a GPU (no sync: a captured CUDA graph). Used where the
+    work skipped is larger than the read: a chain cache's scatter-add of the accepted moves
+    only (:meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache`: 1.40 against
+    0.26 ms at 30 % accepted, a cache of 245 MB bound by its misses), the radar's ``log I0``
+    tail on its large arguments only (:func:`~torchmcmcpf.models.sensors.radar.log_i0_approx`),
+    the guide table of the source draws (:func:`guided_search`).
     """
     return not on_cuda(t) and not compiling() and not in_function_transform()
 

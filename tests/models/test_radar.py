@@ -141,8 +141,9 @@ def test_log_i0_approx_against_i0e_and_its_gradient():
 
 def test_log_i0_approx_in_place_equals_the_autograd_path():
     """Eager without autograd the polynomial updates its temporaries in place
-    (runtime.in_place): the same bits as the out-of-place path autograd takes, in float32 and
-    float64, on both branches and at their edge."""
+    (runtime.in_place) and takes the large branch at its own arguments only
+    (runtime.host_reads): the same bits as the out-of-place path autograd takes, in float32
+    and float64, on both branches and at their edge, contiguous or strided."""
     g = torch.Generator().manual_seed(5)
     for dtype in (torch.float32, torch.float64):
         u = (torch.randn(50_000, generator=g, dtype=torch.float64) * 8).to(dtype)
@@ -150,6 +151,8 @@ def test_log_i0_approx_in_place_equals_the_autograd_path():
         before, graded = u.clone(), u.clone().requires_grad_()
         assert torch.equal(log_i0_approx(u), log_i0_approx(graded).detach())
         assert torch.equal(u, before)  # the input is not changed
+        t = u.reshape(100, 500).t()  # strided: the large branch over every argument
+        assert torch.equal(log_i0_approx(t), log_i0_approx(graded.reshape(100, 500).t()).detach())
 
 
 def test_snr_convention():
@@ -455,7 +458,7 @@ def test_log_likelihood_slot_changes_equal_window_differences(window):
 
 
 def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
-    """Eager on the CPU the cache adds the accepted moves' rows only (runtime.accepted_rows_only):
+    """Eager on the CPU the cache adds the accepted moves' rows only (runtime.host_reads):
     the same bits as the scatter-add of every row with the rejected ones zeroed (the compiled
     and CUDA-graph form), on one-slot and two-slot changes with overlapping boxes."""
     from torchmcmcpf import runtime
@@ -465,7 +468,7 @@ def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
     xt = target_states([[2790, 2805, 2830]], [[1, 2, -3]], [[0.2, 0.6, -2.0]], [[4, 5, 6]])
     z = sens.simulate(xt, generator=g)
     y = particles_near(xt, 12, g).reshape(1, 3, 4, 3, 5)
-    assert runtime.accepted_rows_only(y)
+    assert runtime.host_reads(y)
     for many in (False, True):
         cache = sens.amplitude_cache(y)
         slot = torch.randint(3, (1, 3, 4), generator=g)
@@ -479,7 +482,7 @@ def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
                          torch.ones(1, 3, 4, dtype=torch.bool)):
             rows = sens.update_amplitude_cache(cache.clone(), cells, change, accepted)
             with monkeypatch.context() as m:
-                m.setattr(runtime, "accepted_rows_only", lambda t: False)
+                m.setattr(runtime, "host_reads", lambda t: False)
                 dense = sens.update_amplitude_cache(cache.clone(), cells, change, accepted)
             assert torch.equal(rows, dense)
             assert not torch.equal(rows, cache) or not accepted.any()

@@ -343,12 +343,12 @@ class SensorModel(nn.Module, Generic[Z]):
         and 50 chains: the copy would cost about what the iteration does). Compiled or on a
         GPU, one scatter-add of every move's cells, the rejected ones adding exact zeros: no
         host sync (no ``nonzero``), so it runs inside a captured CUDA graph as well; eager on a
-        CPU, the accepted moves' rows only (:func:`~torchmcmcpf.runtime.accepted_rows_only`:
+        CPU, the accepted moves' rows only (:func:`~torchmcmcpf.runtime.host_reads`:
         the scatter is bound by its cache misses), the same bits. A sensor gives each cell at
         most one nonzero change per move, so the result does not depend on the order of the
         additions.
         """
-        if runtime.accepted_rows_only(cache):  # eager CPU: the accepted rows only, in order (the same bits)
+        if runtime.host_reads(cache):  # eager CPU: the accepted rows only, in order (the same bits)
             rows = accepted.reshape(-1).nonzero().squeeze(-1)
             flat = accepted.numel()
             cache.view(-1).index_add_(0, cells.reshape(flat, -1)[rows].reshape(-1),

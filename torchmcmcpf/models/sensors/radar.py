@@ -63,8 +63,9 @@ def log_i0_approx(u: Tensor) -> Tensor:
     arithmetic, ``log`` and ``where``: ``torch.compile`` fuses it into one loop (about 10x
     faster than ``torch.special.i0e`` on the CPU); eager it is faster than ``i0e`` only on
     cache-sized tensors (measured in benchmarks/bench_likelihood.py), and without autograd
-    its temporaries are updated in place (:func:`~torchmcmcpf.runtime.in_place`: the same
-    bits, 11 against 12.9 ns an element on 343,000 float32, one thread).
+    its temporaries are updated in place (:func:`~torchmcmcpf.runtime.in_place`) and, on a
+    CPU, the large branch is evaluated at its own arguments only
+    (:func:`~torchmcmcpf.runtime.host_reads`): the same bits.
     """
     own = runtime.in_place(u)
     a = u.abs()
@@ -72,6 +73,13 @@ def log_i0_approx(u: Tensor) -> Tensor:
     t = torch.clamp(a, max=3.75)
     t = t.mul_(1.0 / 3.75).square_() if own else torch.square(t * (1.0 / 3.75))
     p_small = _horner(t, _P_SMALL, own)
+    if own and runtime.host_reads(u) and p_small.is_contiguous():  # the large branch on its arguments only
+        at = (~small).view(-1).nonzero().squeeze(-1)  # (12 % of a radar move's cells)
+        big = a.view(-1)[at]  # >= 3.75 or NaN, where the clamp below is the identity
+        out = p_small.log_()  # + 0.0 where small: the same bits
+        out.view(-1)[at] = _horner(torch.reciprocal(big).mul_(3.75), _P_LARGE, own).log_().add_(
+            big.sub_(torch.log(big).mul_(0.5)))
+        return out
     big = torch.clamp(a, min=3.75)
     del a  # temporaries are dropped as soon as possible: the whole-grid path budgets memory
     r = torch.reciprocal(big, out=t) if own else torch.reciprocal(big)
