@@ -357,6 +357,22 @@ def _crowd_and_spread(g):
     return [(xt, particles_near(xt, 20, g, pos=3.0), most) for xt, most in ((crowd, 4), (spread, 1))]
 
 
+def test_gather_cells_equals_indexing_the_frames():
+    """The boxes' cells gathered along each run's flat frame equal the plain advanced index
+    ``zc.flatten(1)[run, flat_cells]``, per run and with one frame read by every run."""
+    sens = small_sensor(window=2)
+    geometry = sens.geometry
+    g = torch.Generator().manual_seed(23)
+    x = torch.cat([particles_near(xt, 20, g, pos=3.0) for xt, _, _ in _crowd_and_spread(g)])  # (2, 20, 6, 5)
+    firsts = geometry.box_firsts(sens.measurement_coords(x))  # (2, 20, 6) per axis
+    index = geometry.flat_cells(firsts, sens.box_offsets)
+    frames = torch.rand((2,) + tuple(sens.frame_shape), generator=g)
+    got = geometry.gather_cells(frames, firsts, sens.box_offsets)
+    assert got.shape == index.shape
+    assert torch.equal(got, frames.flatten(1)[torch.arange(2).reshape((2,) + (1,) * (index.dim() - 1)), index])
+    assert torch.equal(geometry.gather_cells(frames[:1], firsts, sens.box_offsets), frames.flatten(1)[0][index])
+
+
 def test_neighbour_slots_equal_dense_form():
     """The windowed path and the delta with neighbour slots (the most overlapping boxes of
     the call, eager) equal the dense form (every target summed in every box, forced by
