@@ -197,6 +197,23 @@ def test_slot_coverage_counts_slots_near_each_target():
         tp.metrics.slot_coverage(est, truth, estimate_mask=torch.ones(1, 1, 3, dtype=torch.bool))
 
 
+def test_amplitude_swapped_marks_slots_on_each_others_targets():
+    """The slot of the largest amplitude nearest another target than the strongest, whatever
+    the labels; a NaN estimate is never swapped; a state without an amplitude is refused."""
+    def radar(rows):  # (T, B, K, 5): [x, vx, y, vy, rho]
+        t = torch.tensor(rows, dtype=torch.float64)
+        return torch.stack([t[..., 0], torch.zeros_like(t[..., 0]), t[..., 1], torch.zeros_like(t[..., 0]),
+                            t[..., 2]], -1)
+
+    truth = radar([[[[0.0, 0.0, 12.0], [100.0, 0.0, 6.0]]]] * 3)  # (T = 3, B = 1, 2, 5)
+    est = radar([[[[3.0, 0.0, 12.5], [95.0, 0.0, 6.1]]],  # each slot on its own target
+                 [[[3.0, 0.0, 6.1], [60.0, 5.0, 12.5]]],  # the strong slot nearer the weak target
+                 [[[float("nan"), 0.0, float("nan")], [float("nan"), 0.0, float("nan")]]]])
+    assert tp.metrics.amplitude_swapped(est, truth).tolist() == [[False], [True], [False]]
+    with pytest.raises(ValueError, match="an amplitude"):
+        tp.metrics.amplitude_swapped(est[..., :4], truth[..., :4])
+
+
 def test_longest_run_of_uncovered_steps():
     flags = torch.tensor([[1, 0], [1, 1], [0, 1], [1, 1], [1, 0]], dtype=torch.bool)  # (T = 5, 2)
     assert tp.metrics.longest_run(flags).tolist() == [2, 3]

@@ -32,12 +32,14 @@ independent-partition PF (with exclusion and re-capture), and the IP-MCMC-PF wit
 triggered pair-path move (:mod:`torchmcmcpf.kernels.pair_path`, ``PairPath()``; issue 50).
 A second table gives per filter the late-gap runs with their 95 % Clopper-Pearson interval,
 the uncovered target-steps at ``t >= from_step``, the longest gap, an exact McNemar test of
-the late-gap runs against the defaults on the same scenes, and the pair-path move's firing
-rate and the share of its re-drawn paths that changed. Next to them, on the crossing scene, the
-*clairvoyant reference* (:func:`~torchmcmcpf.filters.partitioned.clairvoyant_partitions`):
-each target's own PF weighted with the other at its true state, what the data allow a
-tracker that knows the association (it has no coalescence column: it reads the truth and
-has no data-driven move).
+the late-gap runs against the defaults on the same scenes, the pair-path move's firing
+rate and the share of its re-drawn paths that changed, and the share of late steps with the
+slots on each other's targets (:func:`~torchmcmcpf.metrics.amplitude_swapped`: the slot of the
+largest amplitude nearest another target) in the late-gap runs and in the others. Next to
+them, on the crossing scene, the *clairvoyant reference*
+(:func:`~torchmcmcpf.filters.partitioned.clairvoyant_partitions`): each target's own PF
+weighted with the other at its true state, what the data allow a tracker that knows the
+association (it has no coalescence column: it reads the truth and has no data-driven move).
 
 Writes ``metrics.json``, ``crossing.png`` (uncovered runs and per-step assignment RMSE over
 time per filter), ``coalescence.png`` (share of runs that have re-captured the weak target
@@ -183,6 +185,11 @@ def _late_check(cfg: CrossingSettings, name: str, mean: Tensor, scn: Scenario, e
     return {f"{name}|gap_log_odds": odds, f"{name}|gap_map_covers": covers}
 
 
+def _share(flags: Tensor, runs: Tensor) -> float:
+    """The mean of ``flags (R, T)`` over the runs where ``runs (R,)`` (NaN for none)."""
+    return float(flags[runs].double().mean()) if bool(runs.any()) else math.nan
+
+
 def _scores(name: str, mean: Tensor, truth: Tensor) -> dict:
     """The crossing scene's per-run figures of one estimate ``mean (T, B, K, D)`` against
     ``truth (T, B, K, D)`` (keys ``"name|coverage"`` ... of :meth:`Crossing.run_shard`).
@@ -264,6 +271,9 @@ class Crossing(Study[CrossingSettings]):
             odds, covers = per_run[f"{name}|gap_log_odds"], per_run[f"{name}|gap_map_covers"]
             model = gap & ~covers & (odds <= GAP_ODDS)  # the estimate's maximum about as likely as the truth's
             fired = per_run.get(f"{name}|pair_path_fired")  # (R, T) with the pair-path move
+            truth = per_run.get("truth")  # (R, T, 2, D); the slots on each other's targets (R, T)
+            swapped = None if truth is None else metrics.amplitude_swapped(
+                per_run[f"{name}|estimate"].movedim(1, 0), truth.movedim(1, 0)).T
             results[name] = {
                 "runs": int(cov.shape[0]),
                 "runs_uncovered_late": int(gap.sum()),
@@ -277,6 +287,9 @@ class Crossing(Study[CrossingSettings]):
                 "late_gaps_the_models": int(model.sum()),
                 "late_gap_log_odds": odds[gap],
                 "runs_shared_late": int((shared[:, late] >= 2).any(-1).any(-1).sum()),
+                # the share of late steps with the slots on each other's targets, gap runs / others
+                "amplitude_swapped_late": (math.nan, math.nan) if swapped is None else
+                tuple(_share(swapped[:, late], runs) for runs in (gap, ~gap)),
                 "longest_uncovered": metrics.longest_run(uncovered.movedim(1, 0)).amax(-1),
                 "uncovered_per_step": uncovered.any(-1).double().mean(0),
                 "matched_rmse_per_step": err.square().mean(0).sqrt(),
@@ -319,15 +332,17 @@ class Crossing(Study[CrossingSettings]):
                          f"{recaptured} | {r['seconds_per_step']:.3f} |")
         lines += ["", f"| filter | runs uncovered at t >= {cfg['from_step']} (95 % Clopper-Pearson) | uncovered "
                       "target-steps | longest gap (steps) | McNemar vs the defaults (only the defaults / only this, "
-                      "p) | pair-path trigger: steps fired (share) | moved paths (share) |",
-                  "|---|---|---|---|---|---|---|"]
+                      "p) | pair-path trigger: steps fired (share) | moved paths (share) | late steps on each other's "
+                      "targets (gap runs / others) |",
+                  "|---|---|---|---|---|---|---|---|"]
         for name, r in payload["results"].items():
             lo, hi = r["runs_uncovered_late_interval"]
             mc = r.get("mcnemar_vs_defaults")
             test = "-" if mc is None else f"{mc['only_defaults']} / {mc['only_this']}, p = {mc['p']:.3g}"
             lines.append(f"| {name} | {r['runs_uncovered_late']} / {r['runs']} ({100 * lo:.0f}-{100 * hi:.0f} %) | "
                          f"{r['uncovered_target_steps_late']} | {int(max(r['longest_uncovered']))} | {test} | "
-                         f"{cell(r['pair_path_fire_rate'])} | {cell(r['pair_path_moved'])} |")
+                         f"{cell(r['pair_path_fire_rate'])} | {cell(r['pair_path_moved'])} | "
+                         f"{' / '.join(cell(v) for v in r['amplitude_swapped_late'])} |")
         return "\n".join(lines) + "\n"
 
     def summarise(self, cfg: CrossingSettings, shards: Shards, out: Path) -> dict:

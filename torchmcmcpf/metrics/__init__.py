@@ -18,13 +18,14 @@ relabels every frame independently (the label-free error of an OSPA-like metric)
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 
 from .._validation import check_positive, check_shape, check_tensor
 from ..runtime import pairwise_squared_distances
-from ..typing import Tensor, X, Y
+from ..typing import RHO, Tensor, X, Y
 
 __all__ = [
     "RMSE",
@@ -41,6 +42,7 @@ __all__ = [
     "gospa_parts",
     "GOSPAParts",
     "slot_coverage",
+    "amplitude_swapped",
     "longest_run",
     "identity_switches",
     "cardinality_error",
@@ -238,6 +240,44 @@ def slot_coverage(estimate: Tensor, truth: Tensor, *, radius: float = 20.0, esti
         check_shape(truth_mask, "truth_mask", tuple(truth.shape[:3]))
         count = torch.where(truth_mask.to(torch.bool), count, torch.zeros_like(count))
     return count
+
+
+def amplitude_swapped(estimate: Tensor, truth: Tensor) -> Tensor:
+    """Whether the slot with the largest estimated amplitude lies nearest (in position) a
+    target other than the strongest one, per step: slots that left an unresolved crossing on
+    each other's paths while each kept its own amplitude (the crossing study's late gaps,
+    docs/tracks.md), whatever the labels.
+
+    Parameters
+    ----------
+    estimate : (T, B, K, D) slot estimates; truth : (T, B, J, D) true states, ``D >= 5`` with
+        the amplitude ``rho`` at index 4 (the radar's layout) and positions at 0 and 2.
+
+    Returns
+    -------
+    (T, B) bool (False where an amplitude or position is NaN).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.metrics import amplitude_swapped
+    >>> truth = torch.tensor([[[[0.0, 0, 0, 0, 12.0], [100.0, 0, 0, 0, 6.0]]]])  # (T, B, J, D)
+    >>> swapped = torch.tensor([[[[0.0, 0, 0, 0, 6.0], [100.0, 0, 0, 0, 12.0]]]])  # each on the other's target
+    >>> amplitude_swapped(truth, truth), amplitude_swapped(swapped, truth)
+    (tensor([[False]]), tensor([[True]]))
+    """
+    check_tensor(estimate, "estimate")
+    check_tensor(truth, "truth")
+    if estimate.dim() != 4 or truth.dim() != 4 or estimate.shape[:2] != truth.shape[:2] or min(
+            estimate.shape[-1], truth.shape[-1]) <= RHO:
+        raise ValueError(f"estimate has shape {tuple(estimate.shape)} and truth {tuple(truth.shape)}, expected "
+                         f"(T, B, K, D) and (T, B, J, D) with the same T, B and D > {RHO} (an amplitude)")
+    strongest = torch.nan_to_num(estimate[..., RHO], nan=-math.inf).argmax(-1, keepdim=True)  # (T, B, 1)
+    at = _positions(torch.take_along_dim(estimate, strongest.unsqueeze(-1), -2))  # (T, B, 1, 2)
+    d = torch.linalg.vector_norm(at - _positions(truth), dim=-1)  # (T, B, J)
+    nearest = torch.nan_to_num(d, nan=math.inf).argmin(-1)
+    known = d.isfinite().any(-1) & estimate[..., RHO].isfinite().any(-1)
+    return known & (nearest != truth[..., RHO].argmax(-1))
 
 
 def longest_run(flags: Tensor) -> Tensor:
