@@ -44,6 +44,27 @@ def test_likelihood_matches_the_formula(gen):
     assert torch.allclose(s.log_likelihood(x, z), s.log_likelihood(x, z, torch.ones_like(exists)))
 
 
+def test_intensity_op_and_the_likelihood_without_clutter(gen):
+    """The intensity's compiled-code op (fake tensor, autograd) gives the eager bits; without
+    clutter the likelihood is the formula by a ``logsumexp`` over the slots (a point far from
+    every live slot gives ``-inf``, not NaN).
+    """
+    from torchmcmcpf.models.sensors.points import _intensity, _intensity_eager
+
+    terms = torch.randn(3, 4, 5, generator=gen, dtype=torch.float64) * 300 - 400
+    alive = (torch.rand(3, 4, generator=gen) < 0.6).double()
+    torch.library.opcheck(_intensity, (terms.clone().requires_grad_(), alive, 0.01))
+    assert torch.equal(_intensity(terms, alive, 0.01), _intensity_eager(terms.clone(), alive, 0.01, in_place=True))
+    s = sensor(clutter_rate=0.0)
+    x = torch.randn(2, 3, 4, 4, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0, 0, 0])
+    exists = torch.ones(2, 3, 4, dtype=torch.bool)
+    z = torch.randn(2, 5, 2, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0])
+    ll = s.log_likelihood(x, z, exists)
+    ref = torch.stack([torch.stack([brute_force(s, x[b, n], z[b], exists[b, n]) for n in range(3)]) for b in range(2)])
+    assert torch.allclose(ll, ref, rtol=1e-10, atol=1e-10)
+    assert s.log_likelihood(x, z, torch.zeros_like(exists)).eq(-math.inf).all()
+
+
 def test_padding_with_mask_changes_nothing(gen):
     s = sensor()
     x = torch.rand(3, 6, 2, 4, generator=gen, dtype=torch.float64) * 100
@@ -189,21 +210,30 @@ def test_data_draws_score_only_where_asked(gen):
     assert torch.equal(none[0], full[0]) and not none[1].any()  # nothing to score: no sum at all
 
 
-def test_fast_exp_and_logsumexp_keep_the_bits(gen):
-    """``_exp_`` (underflowing arguments set to -inf first) and ``_logsumexp_fast`` give
-    torch's own bits, NaN and infinities included; the likelihood's in-place path equals its
-    autograd path bit for bit.
+def test_flushed_exp_and_logsumexp(gen):
+    """``_exp_`` is ``exp`` where it exceeds ``e^FLUSH`` and exactly 0 elsewhere (``-inf``
+    included), NaN and ``+inf`` kept, bit for bit, in place, on a fresh tensor and
+    differentiable (``_exp``); ``_logsumexp_fast`` equals ``torch.logsumexp`` to half an ulp;
+    the likelihood's in-place path equals its autograd path bit for bit.
     """
-    from torchmcmcpf.models.sensors.points import UNDERFLOW, _exp_, _logsumexp_fast
+    from torchmcmcpf.models.sensors.points import FLUSH, _exp, _exp_, _logsumexp_fast
 
     t = torch.cat([torch.randn(4000, generator=gen, dtype=torch.float64) * 500 - 700,
-                   torch.tensor([UNDERFLOW, UNDERFLOW + 1e-9, -745.2, -1e308, -math.inf, math.inf, math.nan, 0.0],
-                                dtype=torch.float64)])
-    assert torch.equal(_exp_(t.clone()).nan_to_num(7.0), t.exp().nan_to_num(7.0))
+                   torch.tensor([FLUSH, FLUSH + 1e-9, FLUSH - 1e-9, -720.0, -745.2, -1e308, -math.inf, math.inf,
+                                 math.nan, 0.0], dtype=torch.float64)])
+    plain = t.exp()
+    expected = torch.where(plain > math.exp(FLUSH) * (1 + 1e-15), plain, 0.0)  # NaN > x is False: NaN kept below
+    expected[t.isnan()] = math.nan
+    assert (expected[:4000] == 0).any() and (expected[:4000] > 0).any()  # both sides of the flush
+    kept = t.clone()
+    for got in (_exp_(t.clone()), _exp_(kept, fresh=True), _exp(t.requires_grad_(False))):
+        assert torch.equal(got.nan_to_num(7.0), expected.nan_to_num(7.0))
+    assert torch.equal(kept.nan_to_num(7.0), t.nan_to_num(7.0))  # fresh: untouched
     v = t[:4000].reshape(40, 5, 20).clone()
     v[0, :, 0] = -math.inf  # a column without any finite term
     v[1, 2, 3] = math.nan
-    assert torch.equal(_logsumexp_fast(v, -2).nan_to_num(7.0), torch.logsumexp(v, -2).nan_to_num(7.0))
+    torch.testing.assert_close(_logsumexp_fast(v, -2), torch.logsumexp(v, -2), rtol=2.0**-53, atol=0.0,
+                               equal_nan=True)
     s = sensor()
     x = torch.randn(2, 30, 4, 4, generator=gen, dtype=torch.float64) * 60 + torch.tensor([100.0, 0, 0, 0])
     exists = torch.rand(2, 30, 4, generator=gen) < 0.6

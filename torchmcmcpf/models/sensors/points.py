@@ -43,25 +43,37 @@ __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
 AreaLike = Tensor | Sequence[Sequence[float]]
 
 
-#: At or below this a float64 (or float32) ``exp`` is exactly 0 (``e^-746 < 2^-1075``, half the
-#: least subnormal). ATen's vectorised ``exp`` is 6x slower on such arguments than on ones in
-#: range and on ``-inf`` only 2x (AMD EPYC, one thread); the far (point, target) pairs of a
-#: frame give them, 40 % of a births/deaths likelihood's terms. :func:`_exp_` sets them to
-#: ``-inf`` first (``torch.threshold``, which keeps NaN): the same values, the same bits.
-UNDERFLOW = -746.0
+#: Below ``e^FLUSH`` (about ``1e-304``, a normal number) an exponential is flushed to 0
+#: (:func:`_exp_`). ATen's vectorised ``exp`` takes a slow path on arguments whose result is
+#: subnormal or 0 (10x on ``-746 < t < -708``, 5x below, 3x on ``-inf``; AMD EPYC, one thread),
+#: and the far (point, target) pairs and the inactive slots of a frame give them: 79 % of a
+#: births/deaths joint draw's terms. Clamped to ``FLUSH`` first, every argument is in range.
+#: A flushed term is below ``1e-304``: beside the clutter floor ``L_C / V`` of an intensity, or
+#: the 1 of a shifted ``logsumexp``, it is below half an ulp.
+FLUSH = -700.0
+_E_FLUSH = float(torch.tensor(FLUSH, dtype=torch.float64).exp())  # ATen's e^FLUSH, what a clamped term gives
 
 
-def _exp_(t: Tensor) -> Tensor:
-    """``t.exp_()`` with the arguments at or below :data:`UNDERFLOW` set to ``-inf`` first (in
-    place; the same bits as ``t.exp()``, without ATen's slow path for underflowing arguments).
+def _exp_(t: Tensor, *, fresh: bool = False) -> Tensor:
+    """``exp(t)`` in place where it exceeds ``e^FLUSH`` (:data:`FLUSH`), exactly 0 elsewhere
+    (``-inf`` included), NaN kept: clamp, ``exp``, then the clamped terms zeroed
+    (``torch.threshold``, which keeps NaN). ``fresh``: on a new tensor, ``t`` untouched.
+    No autograd (in place): :func:`_exp` is the same arithmetic, differentiable.
     """
-    return torch.threshold_(t, UNDERFLOW, -math.inf).exp_()
+    t = t.clamp(min=FLUSH) if fresh else t.clamp_(min=FLUSH)
+    return torch.threshold_(t.exp_(), _E_FLUSH, 0.0)
+
+
+def _exp(t: Tensor) -> Tensor:
+    """:func:`_exp_` out of place, differentiable (the same operations, the same bits)."""
+    return torch.threshold(t.clamp(min=FLUSH).exp(), _E_FLUSH, 0.0)
 
 
 def _logsumexp_fast(x: Tensor, dim: int) -> Tensor:
-    """``torch.logsumexp(x, dim)`` bit for bit (ATen's steps: the maxima, infinite ones set to
-    0, ``exp`` of the differences summed, ``log``, the maxima added back) with :func:`_exp_`:
-    no autograd (its in-place steps), ``x`` not modified.
+    """``torch.logsumexp(x, dim)`` by ATen's steps (the maxima, infinite ones set to 0, ``exp``
+    of the differences summed, ``log``, the maxima added back) with :func:`_exp_`: the terms
+    below ``e^FLUSH`` of the maximum's 1 are dropped, so the same values (to half an ulp; in
+    practice the same bits). No autograd (its in-place steps), ``x`` not modified.
     """
     maxes = x.amax(dim, keepdim=True)
     maxes.masked_fill_(maxes.abs() == math.inf, 0)
@@ -105,7 +117,7 @@ def _intensity_change_eager(rate_terms: Tensor, sign: Tensor, cache: Tensor, mas
     change lambda' - lambda (R, M))``, both float64.
     """
     rate = rate_terms.to(torch.float64)
-    change = (torch.threshold(rate, UNDERFLOW, -math.inf).exp_() * sign.unsqueeze(-1)).sum(-2)  # (R, M), as _exp_
+    change = (_exp_(rate, fresh=True) * sign.unsqueeze(-1)).sum(-2)  # (R, M)
     log_ratio = torch.where(mask, torch.log1p(change / cache), 0.0)
     return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
             ).squeeze(-1), change
@@ -122,6 +134,49 @@ def _intensity_change(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Ten
 @_intensity_change.register_fake
 def _(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
     return cache.sum(-1), torch.empty_like(cache)
+
+
+def _intensity_eager(terms: Tensor, alive: Tensor | None, clutter: float, in_place: bool = False) -> Tensor:
+    """The Poisson intensity at every point, ``lambda_m = L_C / V + sum_k e_k exp(t_km)``:
+    ``terms (..., K, M)`` the slots' ``t = log(L_x N(z_m; H x_k, R))`` (float64), ``alive (...,
+    K)`` float64 0 / 1 or None (every slot), ``clutter`` ``L_C / V > 0`` -> ``(..., M)`` float64.
+    ``in_place``: ``terms`` is a fresh tensor and may be overwritten (no autograd).
+
+    No shift by a maximum is needed: a term is at most ``L_x / (2 pi |R|^1/2)`` (no overflow)
+    and ``lambda_m >= L_C / V > 0`` (no ``log 0``); the terms below ``e^FLUSH`` are dropped
+    (:func:`_exp_`), below half an ulp of the clutter floor.
+    """
+    rate = _exp_(terms) if in_place else _exp(terms)
+    if alive is not None:  # a multiplication, not a mask: a NaN state stays NaN
+        a = alive.unsqueeze(-1)
+        rate = rate.mul_(a) if in_place else rate * a
+    total = rate.sum(-2)
+    return total.add_(clutter) if in_place else total + clutter
+
+
+@torch.library.custom_op("torchmcmcpf::intensity", mutates_args=())
+def _intensity(terms: Tensor, alive: Tensor, clutter: float) -> Tensor:
+    """:func:`_intensity_eager`, opaque to ``torch.compile`` (the same ATen kernels as eager
+    code, so ``compile_step=True`` gives eager's bits: Inductor's ``exp`` differs in the last bit).
+    """
+    return _intensity_eager(terms, alive, clutter)
+
+
+@_intensity.register_fake
+def _(terms: Tensor, alive: Tensor, clutter: float) -> Tensor:
+    return terms.new_empty(terms.shape[:-2] + terms.shape[-1:])
+
+
+def _intensity_context(ctx, inputs, output):
+    ctx.save_for_backward(inputs[0], inputs[1])
+
+
+def _intensity_backward(ctx, grad):
+    terms, alive = ctx.saved_tensors  # d lambda_m / d t_km = e_k exp(t_km), 0 where flushed
+    return grad.unsqueeze(-2) * _exp(terms) * alive.unsqueeze(-1), None, None
+
+
+_intensity.register_autograd(_intensity_backward, setup_context=_intensity_context)
 
 
 def as_area(area: AreaLike, name: str = "area") -> Tensor:
@@ -269,10 +324,9 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         self._log_norm = -math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
 
     # -- likelihood ---------------------------------------------------------------------
-    def log_intensity_terms(self, x: Tensor, z: Tensor, clutter: float | None = None) -> Tensor:
+    def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
         """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
-        -> (B, *S, K, M)``; with ``clutter`` (no autograd: in place) ``(B, *S, 1 + K, M)``,
-        row 0 that value (``log(L_C / V)``, the clutter term of :meth:`log_likelihood`).
+        -> (B, *S, K, M)``, a fresh tensor.
         """
         W = self.W.to(x.dtype)
         pos = _whiten(torch.stack([x[..., X], x[..., Y]], -1), W, self.diagonal)  # (B, *S, K, 2), whitened
@@ -283,15 +337,22 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         r0 = wz[..., 0].reshape(at) - pos[..., 0:1]
         r1 = wz[..., 1].reshape(at) - pos[..., 1:2]
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        if clutter is None:
-            return log_rate + self._log_norm - 0.5 * (r0.square_() + r1.square_())
-        # c - 0.5 s as -0.5 s + c (the same rounding), written after the clutter row
-        out = r0.new_empty(r0.shape[:-2] + (r0.shape[-2] + 1, r0.shape[-1]))
-        out[..., 0, :] = clutter
-        terms = out[..., 1:, :]
-        torch.mul(r0.square_().add_(r1.square_()), -0.5, out=terms)
-        terms.add_(log_rate + self._log_norm)
-        return out
+        if runtime.in_place(x):  # c - 0.5 s as -0.5 s + c (the same rounding), in r0's buffer
+            return r0.square_().add_(r1.square_()).mul_(-0.5).add_(log_rate + self._log_norm)
+        return log_rate + self._log_norm - 0.5 * (r0.square() + r1.square())
+
+    def intensity(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
+        """The Poisson intensity at every point (module docstring; :func:`_intensity_eager`):
+        ``lambda_m = L_C / V + L_x sum_n e_n N(z_m; H x_n, R)``, ``(B, *S, K, D), (B, M, 2),
+        (B, *S, K) -> (B, *S, M)`` float64; needs ``L_C > 0``. Differentiable in ``x``.
+        """
+        terms = self.log_intensity_terms(x, z).to(torch.float64)
+        alive = None if exists is None else exists.to(torch.float64)
+        clutter = self.clutter_rate / self.volume
+        if runtime.generated_reductions():  # compiled: eager's kernels, eager's bits
+            return _intensity(terms, torch.ones(terms.shape[:-1], dtype=terms.dtype, device=terms.device)
+                              if alive is None else alive, clutter)
+        return _intensity_eager(terms, alive, clutter, in_place=runtime.in_place(x))
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
@@ -306,28 +367,25 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         Returns
         -------
         (B, *S). Differentiable in ``x``; a frame with ``M = 0`` gives ``-(L_C + L_x n)``.
+        With clutter (``L_C > 0``) the log of :meth:`intensity`, the chains' cache
+        (:meth:`amplitude_cache`; float64 whatever the dtype of ``x``); without it a
+        ``logsumexp`` over the slots.
         """
         pts, mask = split_points(z)
-        log_clutter = math.log(self.clutter_rate / self.volume) if self.clutter_rate > 0 else -math.inf
         if exists is not None:
             n_live = exists.to(x.dtype).sum(-1)
         else:
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
-        if runtime.in_place(x):  # the clutter row and the terms in one buffer, in place: the same bits
-            terms = self.log_intensity_terms(x, pts, clutter=log_clutter)  # (B, *S, 1 + K, M)
-            if exists is not None:  # + 0 or -inf: a term is never -0 or +inf, so the same values as a where
-                off = torch.zeros(exists.shape, dtype=x.dtype, device=x.device).masked_fill_(~exists, -math.inf)
-                terms[..., 1:, :].add_(off.unsqueeze(-1))
-            per_point = _logsumexp_fast(terms, -2)
+        if self.clutter_rate > 0:
+            lam = self.intensity(x, pts, exists)  # (B, *S, M) float64
+            per_point = lam.log_() if runtime.in_place(x) else lam.log()
         else:
             terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
             if exists is not None:
                 terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
-            clutter = torch.full_like(terms[..., :1, :], log_clutter)  # (B, *S, 1, M)
-            # compiled: through the opaque op, so that a compiled kernel gives eager's bits; with
-            # autograd or a torch.func transform: torch.logsumexp itself (the same values)
+            # compiled: through the opaque op, so that a compiled kernel gives eager's bits
             lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
-            per_point = lse(torch.cat([clutter, terms], -2), -2)  # (B, *S, M)
+            per_point = lse(terms, -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
@@ -336,14 +394,14 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         # own inner reduction adds the M terms in another order: last-bit differences).
         ones = torch.ones(per_point.shape[-1], 1, dtype=per_point.dtype, device=per_point.device)
         total = (per_point.reshape(-1, per_point.shape[-1]) @ ones).reshape(per_point.shape[:-1])
-        return total - (self.clutter_rate + self.detection_rate * n_live)
+        return total.to(x.dtype) - (self.clutter_rate + self.detection_rate * n_live)
 
     # -- the chain cache: each sample's intensity at every point ----------------------------
     sweep_cache = True  # M numbers per sample: cheap beside the K M terms a slot update saves
 
     def amplitude_cache(self, x: Tensor, exists: Tensor | None = None, z: PointMeasurement | None = None
                         ) -> Tensor | None:
-        """Each sample's Poisson intensity at every point of the frame ``z``.
+        """Each sample's Poisson intensity at every point of the frame ``z`` (:meth:`intensity`).
 
             ``lambda_m = L_C / V + L_x sum_n e_n N(z_m; H x_n, R)``   ``(B, *S, M)``, float64,
 
@@ -362,12 +420,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             raise ValueError("z is required: the point sensor's cache holds the intensity at the frame's points")
         if self.clutter_rate <= 0:
             return None
-        pts, _ = split_points(z)
-        terms = self.log_intensity_terms(x, pts).to(torch.float64)
-        rate = _exp_(terms) if runtime.in_place(x) else terms.exp()  # (B, *S, K, M); a fresh tensor, the same bits
-        if exists is not None:
-            rate = rate * exists.unsqueeze(-1)
-        return self.clutter_rate / self.volume + rate.sum(-2)
+        return self.intensity(x, split_points(z)[0], exists)
 
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
