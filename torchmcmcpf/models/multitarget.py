@@ -142,13 +142,14 @@ class Exclusion:
         (*S,), dtype of ``u``; differentiable in ``u``.
         """
         k = u.shape[-2]
-        d2 = pairwise_squared_distances(u, u)  # (*S, K, K)
-        pairs = torch.ones((k, k), dtype=torch.bool, device=u.device).triu(1)
+        i, j = torch.triu_indices(k, k, 1, device=u.device)  # the K (K - 1) / 2 pairs i < j
+        d2 = pairwise_squared_distances(u, u)[..., i, j]  # (*S, P)
+        # log_phi is floored (finite, zero slope at d = 0): the pairs of inactive slots are
+        # dropped after it, as in log_change
+        terms = self.log_phi(d2)
         if alive is not None:
-            pairs = pairs & alive.unsqueeze(-1) & alive.unsqueeze(-2)
-        # the diagonal (d = 0) is masked with a where on the value, so its gradient is 0
-        terms = self.log_phi(torch.where(pairs, d2, torch.ones_like(d2)))
-        return torch.where(pairs, terms, torch.zeros_like(terms)).sum((-2, -1))
+            terms = torch.where(alive[..., i] & alive[..., j], terms, 0.0)
+        return terms.sum(-1)
 
     def log_change(self, u: Tensor, u_n: Tensor, n: Tensor, alive: Tensor | None = None,
                    alive_n: Tensor | None = None) -> Tensor:
