@@ -81,6 +81,29 @@ def test_padding_with_mask_changes_nothing(gen):
     assert torch.allclose(empty, -(5.0 + 2.0 * exists.double().sum(-1)))
 
 
+def test_trim_frame_drops_the_padding_no_run_uses(gen):
+    """A batch's frame loses the trailing columns that no run's mask marks (one past the last
+    valid point anywhere); a column valid in one run stays, and a frame with nothing to drop,
+    or without a mask, is returned as is.
+    """
+    s = sensor()
+    pts = torch.rand(3, 7, 2, generator=gen, dtype=torch.float64) * 100
+    mask = torch.zeros(3, 7, dtype=torch.bool)
+    mask[0, :2], mask[1, 4], mask[2, :1] = True, True, True  # last valid column anywhere: 4
+    trimmed = s.trim_frame(PointFrame(pts, mask))
+    assert torch.equal(trimmed.z, pts[:, :5]) and torch.equal(trimmed.mask, mask[:, :5])
+    x = torch.rand(3, 6, 2, 4, generator=gen, dtype=torch.float64) * 100
+    exists = torch.rand(3, 6, 2, generator=gen) < 0.5
+    assert torch.allclose(s.log_likelihood(x, trimmed, exists), s.log_likelihood(x, PointFrame(pts, mask), exists),
+                          rtol=1e-13, atol=1e-13)
+    full = PointFrame(pts, mask | (torch.arange(7) == 6))
+    assert s.trim_frame(full) is full and s.trim_frame(pts) is pts
+    none = s.trim_frame(PointFrame(pts, torch.zeros_like(mask)))  # no point at all: one masked column left
+    assert none.z.shape == (3, 1, 2) and not none.mask.any()
+    for frame in (none, PointFrame(pts[:, :0], mask[:, :0])):  # and a frame of no column at all
+        assert torch.allclose(s.log_likelihood(x, frame, exists), -(5.0 + 2.0 * exists.double().sum(-1)))
+
+
 def test_likelihood_is_differentiable(gen):
     s = sensor()
     x = (torch.rand(1, 2, 2, 4, generator=gen, dtype=torch.float64) * 50 + 20).requires_grad_()

@@ -594,7 +594,13 @@ class Filter(nn.Module):
     # -- one step ------------------------------------------------------------------------
     def _step(self, state: ParticleState, z: Measurement, generator: torch.Generator
               ) -> tuple[ParticleState, StepInfo]:
-        """One step without checks: :attr:`bound_step` with this filter's :attr:`bound`."""
+        """One step without checks: :attr:`bound_step` with this filter's :attr:`bound`, on
+        the frame without the padding no run uses when eager
+        (:meth:`~torchmcmcpf.models.base.SensorModel.trim_frame`; a compiled step keeps its
+        shapes: a new frame width would compile it again).
+        """
+        if not self._compile_step:
+            z = self.sensor.trim_frame(z)
         return self.bound_step(state, z, self._bound, generator=generator)
 
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator

@@ -302,6 +302,15 @@ class SensorModel(nn.Module, Generic[Z]):
         x_new, e_new = _set_slot(x, x_n, n, exists, exists_n)
         return self.log_likelihood(x_new, z, e_new) - self.log_likelihood(x, z, exists)
 
+    def trim_frame(self, z: Z) -> Z:
+        """The frame ``z`` without the padding that no run of the batch uses, for an eager step
+        (:meth:`~torchmcmcpf.filters.base.Filter.step`): a frame padded to the widest frame of
+        a whole sequence costs every step the padding's arithmetic. The same likelihoods and
+        draws (to round-off: a reduction over fewer zeros may add in another order). The
+        default: ``z`` itself (a frame of fixed shape has no padding).
+        """
+        return z
+
     #: whether a sequential sweep over the slots (the MCMC-PF's refinement) should build the
     #: :meth:`amplitude_cache` for itself: True where the cache is small beside the
     #: likelihood (the point sensor's ``M`` intensities per sample: the births/deaths MCMC-PF
@@ -319,6 +328,15 @@ class SensorModel(nn.Module, Generic[Z]):
         :meth:`log_likelihood_delta_cached`. ``None`` (the default): this sensor keeps none.
         """
         return None
+
+    def log_likelihood_of_cache(self, cache: Tensor, x: Tensor, z: Z, exists: Tensor | None = None) -> Tensor:
+        """:meth:`log_likelihood` of ``x (B, *S, K, D)`` from its :meth:`amplitude_cache`
+        ``cache``, ``(B, *S)``: a sensor whose cache pays for a sweep (:attr:`sweep_cache`) makes
+        the cache and the likelihood of a joint draw's states in one evaluation, and the chains
+        keep the cache. The default: :meth:`log_likelihood` itself (a sensor whose likelihood
+        is a function of its cache overrides it; the point sensor's is the log of it).
+        """
+        return self.log_likelihood(x, z, exists)
 
     def log_likelihood_delta_cached(self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: Z,
                                     exists: Tensor | None = None, exists_n: Tensor | None = None

@@ -372,20 +372,31 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         ``logsumexp`` over the slots.
         """
         pts, mask = split_points(z)
+        if self.clutter_rate > 0:
+            lam = self.intensity(x, pts, exists)  # (B, *S, M) float64
+            return self._sum_over_points(lam.log_() if runtime.in_place(x) else lam.log(), mask, x, exists)
+        terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
+        if exists is not None:
+            terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
+        # compiled: through the opaque op, so that a compiled kernel gives eager's bits
+        lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
+        return self._sum_over_points(lse(terms, -2), mask, x, exists)  # (B, *S, M) summed
+
+    def log_likelihood_of_cache(self, cache: Tensor, x: Tensor, z: PointMeasurement,
+                                exists: Tensor | None = None) -> Tensor:
+        """:meth:`log_likelihood` from the intensities ``cache (B, *S, M)`` of ``x`` (:meth:`amplitude_cache`;
+        ``cache`` is not changed): the same arithmetic after the intensity, the same bits.
+        """
+        return self._sum_over_points(cache.log(), split_points(z)[1], x, exists)
+
+    def _sum_over_points(self, per_point: Tensor, mask: Tensor | None, x: Tensor, exists: Tensor | None) -> Tensor:
+        """``sum_m log lambda_m`` over the valid points minus the expected count ``L_C + L_x
+        n``: ``per_point (B, *S, M)`` the logs, ``mask (B, M)`` or None -> ``(B, *S)``.
+        """
         if exists is not None:
             n_live = exists.to(x.dtype).sum(-1)
         else:
             n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
-        if self.clutter_rate > 0:
-            lam = self.intensity(x, pts, exists)  # (B, *S, M) float64
-            per_point = lam.log_() if runtime.in_place(x) else lam.log()
-        else:
-            terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
-            if exists is not None:
-                terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
-            # compiled: through the opaque op, so that a compiled kernel gives eager's bits
-            lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
-            per_point = lse(terms, -2)  # (B, *S, M)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
@@ -393,8 +404,24 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         # then make the same BLAS call, so ``compile_step=True`` gives eager's bits (Inductor's
         # own inner reduction adds the M terms in another order: last-bit differences).
         ones = torch.ones(per_point.shape[-1], 1, dtype=per_point.dtype, device=per_point.device)
-        total = (per_point.reshape(-1, per_point.shape[-1]) @ ones).reshape(per_point.shape[:-1])
+        total = (per_point.flatten(0, -2) @ ones).reshape(per_point.shape[:-1])  # flatten: M = 0 too
         return total.to(x.dtype) - (self.clutter_rate + self.detection_rate * n_live)
+
+    def trim_frame(self, z: PointMeasurement) -> PointMeasurement:
+        """``PointFrame(z[:, :W], mask[:, :W])`` with ``W`` one past the last point valid in any
+        run, at least 1 (one host read): a sequence's frames are padded to its widest (``M =
+        45`` on the births/deaths scene, 33 valid at most in a step's batch on average), and
+        every term of a step is a ``(..., M)`` tensor. ``z`` itself without a mask or without
+        padding to drop.
+        """
+        pts, mask = split_points(z)
+        if mask is None or mask.shape[-1] <= 1:
+            return z
+        cols = torch.arange(1, mask.shape[-1] + 1, device=mask.device)
+        width = max(1, int(torch.where(mask.any(0), cols, 0).max()))
+        if width == mask.shape[-1]:
+            return z
+        return PointFrame(pts[:, :width].contiguous(), mask[:, :width].contiguous())
 
     # -- the chain cache: each sample's intensity at every point ----------------------------
     sweep_cache = True  # M numbers per sample: cheap beside the K M terms a slot update saves
