@@ -258,3 +258,36 @@ def test_a_new_target_is_reported_the_step_after_it_appears():
     assert float(hits[(0.5, 0.1)][t0 + 1]) >= 0.95, hits
     assert float(false[(0.5, 0.1)]) <= 0.05  # false reports per run and step before it (measured 0.0125)
     assert float(hits[None][t0]) < 0.5 <= float(hits[(0.5, 0.1)][t0]), hits
+
+
+@KINDS
+def test_an_eager_step_drops_the_padding_no_run_uses(kind):
+    """A frame padded beyond its widest run (a sequence's frames share one width) is trimmed
+    before the step (:meth:`PoissonClutterPoints.trim_frame`): the sensor sees the used width
+    only, and the result is the unpadded frame's, bit for bit.
+    """
+    z, _ = data(torch.Generator().manual_seed(0), with_target=True)
+    z = type(z)(z.z[BORN: BORN + 3], z.mask[BORN: BORN + 3])
+    pad = 5
+    padded = type(z)(torch.cat([z.z, torch.full(z.z.shape[:2] + (pad, 2), 1e3, dtype=z.z.dtype)], 2),
+                     torch.cat([z.mask, torch.zeros(z.mask.shape[:2] + (pad,), dtype=torch.bool)], 2))
+    filt = mcmc_filter(kind)
+    widths = []
+    sensor = filt.sensor
+    plain = type(sensor).intensity  # every likelihood and cache of the clutter sensor
+
+    def recording(self, x, pts, exists=None):
+        widths.append(pts.shape[1])
+        return plain(self, x, pts, exists)
+
+    init = torch.zeros(B, N_MCMC, K, 4, dtype=torch.float64)
+    try:
+        type(sensor).intensity = recording
+        a = filt(padded, init=init, generator=torch.Generator().manual_seed(1))
+    finally:
+        type(sensor).intensity = plain
+    cols = torch.arange(1, z.mask.shape[-1] + 1)
+    used = {int(torch.where(z.mask[t].any(0), cols, 0).max()) for t in range(z.mask.shape[0])}
+    assert widths and set(widths) == used, (set(widths), used)
+    b = filt(z, init=init, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(a.state.x, b.state.x) and torch.equal(a.exists_prob, b.exists_prob)

@@ -570,30 +570,67 @@ def test_adapted_random_walk_keeps_the_posterior(gen):
     _assert_pi(chain, post, cloud)
 
 
+def _kept_and_stripped(field, seed, joint, check, exclusion=None):
+    """Two runs of 30 mixture iterations (joint draw with probability ``joint``, else a sweep)
+    from one seed on the births/deaths problem of :func:`_existence_problem`: the first keeps
+    the chain state's cache ``field``, the second drops it before every move. ``check(old,
+    new, move, sensor, z, before)`` sees every iteration of the first run (``before``: a copy
+    of the old chain's ``field`` when a tensor) and returns 1 where it checked the cache;
+    returns the two final chains and the count of checks.
+    """
+    motion, sensor, existence, cloud, z, _, _ = _existence_problem(3.0)
+    dynamics = TargetDynamics(motion, existence)
+    template = cloud.x.new_empty(B, EX_C, K, D)
+    runs, checked = [], 0
+    for strip in (False, True):
+        g = torch.Generator().manual_seed(seed)
+        chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=g, z=z), z, dynamics=dynamics,
+                            sensor=sensor)
+        for move in pick_moves((("joint", joint), ("refine", 1 - joint)), 30, generator=g):
+            if strip:
+                chain = chain._replace(**{field: None})
+            noise = draw_iteration_noise(move, chain.x, dynamics, generator=g, z=z)
+            before = getattr(chain, field)
+            before = before.clone() if torch.is_tensor(before) else None
+            new, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor,
+                                    exclusion=exclusion)
+            checked += 0 if strip else check(chain, new, move, sensor, z, before)
+            chain = new
+        runs.append(chain)
+    return runs, checked
+
+
 def test_joint_draw_cache_of_the_exclusion_keeps_the_bits(gen):
     """The exclusion factor an eager joint draw keeps beside the chain (``ChainState.log_phi``)
     equals ``log Phi`` of the chain's state, is not read once another move replaced the state,
     and leaves every decision as recomputing it would (the same bits, births and deaths on)."""
     from torchmcmcpf.models.multitarget import Exclusion, log_exclusion
 
-    motion, sensor, existence, cloud, z, _, _ = _existence_problem(3.0)
-    dynamics, exclusion = TargetDynamics(motion, existence), Exclusion()
-    template = cloud.x.new_empty(B, EX_C, K, D)
-    runs, kept = [], 0
-    for strip in (False, True):
-        g = torch.Generator().manual_seed(11)
-        chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=g, z=z), z, dynamics=dynamics,
-                            sensor=sensor)
-        for move in pick_moves((("joint", 0.6), ("refine", 0.4)), 30, generator=g):
-            if strip:
-                chain = chain._replace(log_phi=None)
-            noise = draw_iteration_noise(move, chain.x, dynamics, generator=g, z=z)
-            chain, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor,
-                                      exclusion=exclusion)
-            if chain.log_phi is not None and chain.log_phi[0] is chain.x:
-                assert torch.equal(chain.log_phi[2], log_exclusion(exclusion, sensor, chain.x, chain.exists))
-                kept += not strip
-        runs.append(chain)
+    exclusion = Exclusion()
+
+    def check(old, new, move, sensor, z, before):
+        if new.log_phi is None or new.log_phi[0] is not new.x:
+            return 0
+        assert torch.equal(new.log_phi[2], log_exclusion(exclusion, sensor, new.x, new.exists))
+        return 1
+
+    runs, kept = _kept_and_stripped("log_phi", 11, 0.6, check, exclusion)
     assert kept > 5  # the joint draws kept it
     for a, b in zip(runs[0][:7], runs[1][:7]):
         assert (a is None and b is None) or torch.equal(a, b)
+
+
+def test_chains_keep_the_point_intensity_cache(gen):
+    """The point sensor's intensities kept beside the chains (``ChainState.cache``, made by the
+    joint draw with its likelihood, advanced by the sweeps' accepted moves) stay the intensity
+    of the chains' state to round-off, a move leaves its input chain's cache as it was, and
+    the decisions are those of sweeps that make their own cache each time."""
+    def check(old, new, move, sensor, z, before):
+        assert torch.equal(old.cache, before)  # the input chain is not changed
+        torch.testing.assert_close(new.cache, sensor.amplitude_cache(new.x, new.exists, z), rtol=1e-12, atol=0.0)
+        torch.testing.assert_close(new.log_lik, sensor.log_likelihood(new.x, z, new.exists))
+        return int(move == "refine")
+
+    runs, checked = _kept_and_stripped("cache", 12, 0.5, check)
+    assert checked > 5
+    assert torch.equal(runs[0].x, runs[1].x) and torch.equal(runs[0].exists, runs[1].exists)

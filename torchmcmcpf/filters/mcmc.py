@@ -494,7 +494,7 @@ def mcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
                                                                     settings.exclusion, sensor),
                                            sensor=sensor, motion=hmc_motion, settings=hmc)
                 log_lik, terms = evaluate(x_new, z, sensor)
-                chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms)
+                chain = chain._replace(x=x_new, log_lik=log_lik, log_lik_terms=terms, cache=None)
                 hmc_acc, hmc_count = hmc_acc + acc.to(hmc_acc.dtype).mean(1), hmc_count + 1
             if adaptive and m <= burn_in:  # adapt during the burn-in only: frozen for the kept samples
                 moments = moments.update(chain.x)

@@ -12,7 +12,7 @@ one MH transition of every chain, an *iteration* one MCMC iteration of the chain
 *program* what :mod:`torchmcmcpf.runtime` compiles.)
 """
 
-from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, previous_cloud
+from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, evaluate, evaluate_cached, previous_cloud
 from .exchange import (
     ExchangeChains,
     ExchangeNoise,
@@ -44,6 +44,7 @@ __all__ = [
     "RandomWalkNoise",
     "previous_cloud",
     "evaluate",
+    "evaluate_cached",
     "init_chains",
     "propose_joint",
     "joint_move",

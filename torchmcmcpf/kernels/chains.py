@@ -17,7 +17,7 @@ from ..resampling import cdf, inverse_cdf
 from ..typing import Measurement, Tensor
 
 __all__ = ["ChainState", "PreviousCloud", "previous_cloud", "draw_ancestors", "uniforms", "normals", "JointNoise",
-           "RefineNoise", "score_births", "evaluate", "whiten"]
+           "RefineNoise", "score_births", "evaluate", "evaluate_cached", "whiten"]
 
 
 class ChainState(NamedTuple):
@@ -47,6 +47,12 @@ class ChainState(NamedTuple):
         kept by an eager joint draw beside the very tensors ``x`` and ``exists`` it belongs to
         and read only while the chain holds those (a move that replaces ``x`` leaves it
         stale and it is recomputed; :func:`~torchmcmcpf.kernels.moves.joint_move`).
+    cache : (B, C, *E), optional: the sensor's amplitude cache of ``x``
+        (:meth:`~torchmcmcpf.models.base.SensorModel.amplitude_cache`) for a sensor whose cache
+        pays for a sweep (:attr:`~torchmcmcpf.models.base.SensorModel.sweep_cache`: the point
+        sensor's intensities ``(B, C, M)``): made with the likelihood of a joint draw's states
+        (:func:`evaluate_cached`), advanced by the refinement sweep's accepted moves (to round-off the
+        cache of ``x``); ``None`` where a move did not keep it (the sweep then makes its own).
 
     Example
     -------
@@ -76,6 +82,7 @@ class ChainState(NamedTuple):
     exists_prev: Tensor | None = None
     log_ratio: Tensor | None = None
     log_phi: tuple[Tensor, Tensor | None, Tensor] | None = None
+    cache: Tensor | None = None
 
 
 class PreviousCloud(NamedTuple):
@@ -280,6 +287,19 @@ def evaluate(x: Tensor, z: Measurement, sensor: SensorModel, exists: Tensor | No
         terms = sensor.log_likelihood_per_target(x, z)
         return terms.sum(-1), terms
     return sensor.log_likelihood(x, z), None
+
+
+def evaluate_cached(x: Tensor, z: Measurement, sensor: SensorModel, exists: Tensor | None = None
+                    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """:func:`evaluate` with, for a sensor whose cache pays for a sweep
+    (:attr:`~torchmcmcpf.models.base.SensorModel.sweep_cache`), the states' amplitude cache
+    (:attr:`ChainState.cache`) and the likelihood read from it (the same bits): ``(log_lik (B,
+    C), log_lik_terms (B, C, K) or None, cache (B, C, *E) or None)``.
+    """
+    cache = sensor.amplitude_cache(x, exists, z) if sensor.sweep_cache else None
+    if cache is not None:
+        return sensor.log_likelihood_of_cache(cache, x, z, exists), None, cache
+    return (*evaluate(x, z, sensor, exists), None)
 
 
 def whiten(v: Tensor, motion: LinearGaussianMotion) -> Tensor:

@@ -109,7 +109,7 @@ from ..models.existence import TargetDynamics
 from ..models.multitarget import Exclusion, exclusion_change, exclusion_on, log_exclusion
 from ..resampling import gather_particles
 from ..typing import Measurement, Tensor
-from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, draw_ancestors, evaluate
+from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, draw_ancestors, evaluate_cached
 from .mh import mh_accept, mh_select
 
 __all__ = ["MOVES", "init_chains", "propose_joint", "joint_move", "refine_move", "refine_slot"]
@@ -158,8 +158,9 @@ def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, dy
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
     x, exists, log_ratio, _ = dynamics.propagate_labelled(x_prev, exists_prev, noise.eps, noise.birth,
                                                           noise.relocation, start=start)
-    return ChainState(x, x_prev, *evaluate(x, z, sensor, exists), exists, exists_prev,
-                      log_ratio if _carries_ratio(dynamics) else None)
+    log_lik, terms, cache = evaluate_cached(x, z, sensor, exists)
+    return ChainState(x, x_prev, log_lik, terms, exists, exists_prev, log_ratio if _carries_ratio(dynamics) else None,
+                      cache=cache)
 
 
 def init_chains(cloud: PreviousCloud, noise: JointNoise, z: Measurement, *, dynamics: TargetDynamics,
@@ -222,7 +223,7 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
     phi_cand = log_exclusion(exclusion, sensor, cand.x, cand.exists)
     phi = _log_phi(chain, exclusion, sensor)
     accepted = mh_accept(log_alpha + phi_cand - phi, noise.u)
-    new = mh_select(accepted, cand, chain._replace(log_phi=None))
+    new = mh_select(accepted, cand, chain._replace(log_phi=None))  # the cache: a chain without one keeps none
     if exclusion_on(exclusion, sensor) and not torch.compiler.is_compiling():  # eager: keep log Phi of the new state
         new = new._replace(log_phi=(new.x, new.exists, torch.where(accepted, phi_cand, phi)))
     return new, accepted
@@ -353,10 +354,13 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
     x, log_lik, e, log_r = chain.x, chain.log_lik, chain.exists, chain.log_ratio
     if log_r is None:
         r_prop = None
-    # the sweep's own cache of the chains' point intensities (a sensor whose cache pays for a
-    # sweep, SensorModel.sweep_cache): made once, each slot's update then pays for that slot's
-    # terms only, and the accepted changes are added to it (as the IP-MCMC-PF's moves do)
-    cache = sensor.amplitude_cache(x, e, z) if sensor.sweep_cache else None
+    # the chains' cache of their point intensities (a sensor whose cache pays for a sweep,
+    # SensorModel.sweep_cache): kept from the joint draw that made the state (ChainState.cache)
+    # or made here; each slot's update then pays for that slot's terms only, and the accepted
+    # changes are added to it in place (as the IP-MCMC-PF's moves do; a copy of the kept one:
+    # the caller's chain stays as it was)
+    cache = chain.cache.clone() if chain.cache is not None else \
+        sensor.amplitude_cache(x, e, z) if sensor.sweep_cache else None
     flags = []
     for n in range(x.shape[-2]):  # sequential Gibbs sweep: slot n sees slots < n (coupled likelihood)
         args = (x, log_lik, e, log_r, x_prop, e_prop, r_prop, log_ratio, u)
@@ -368,5 +372,5 @@ def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: T
         if cache is not None and update is not None:
             cache = sensor.update_amplitude_cache(cache, *update, acc)
         flags.append(acc)
-    return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_ratio=log_r), \
+    return chain._replace(x=x, log_lik=log_lik, log_lik_terms=None, exists=e, log_ratio=log_r, cache=cache), \
         torch.stack(flags, dim=-1)

@@ -163,7 +163,8 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     log_lik, terms = evaluate(x_prop, z, sensor)
     log_ratio = log_ratio + log_exclusion(exclusion, sensor, x_prop) - log_exclusion(exclusion, sensor, chain.x)
     accepted = mh_accept(log_lik - chain.log_lik + log_ratio, noise.u)
-    new = mh_select(accepted, ChainState(x_prop, chain.x_prev, log_lik, terms), chain._replace(log_phi=None))
+    new = mh_select(accepted, ChainState(x_prop, chain.x_prev, log_lik, terms),
+                    chain._replace(log_phi=None, cache=None))  # no cache kept
     # Gibbs step on the ancestor: inversion of the conditional's CDF with one uniform per chain.
     lj = torch.where(accepted.unsqueeze(-1), lj_prop, lj_cur)
     idx = inverse_cdf(cdf(lj), noise.u_ancestor.unsqueeze(-1))
