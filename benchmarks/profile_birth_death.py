@@ -8,7 +8,7 @@ profiler's inclusive time of the functions that do each part. Run from the repos
 Prints, per filter, the unprofiled time per step and run (wall clock and the process's CPU
 time, which a busy shared machine inflates less) and each part's share of the profiled step
 (profiling inflates the Python-heavy parts a little; the shares are of the profiled total),
-then the IP-MCMC-PF step's arithmetic floor (:func:`floor`). Glibc's allocator is tuned as
+then each step's arithmetic floor (:func:`floor`, :func:`floor_mcmc`). Glibc's allocator is tuned as
 ``python -m torchmcmcpf`` tunes it (large temporaries reuse warm pages).
 """
 
@@ -35,7 +35,9 @@ PARTS = {
         "relabelling and estimation": [("base.py", "_estimate")],
     },
     "MCMC-PF": {
-        "likelihood arithmetic": [("points.py", "log_likelihood")],
+        "likelihood arithmetic": [("points.py", "log_likelihood"), ("points.py", "amplitude_cache"),
+                                  ("points.py", "log_likelihood_of_cache"),
+                                  ("points.py", "log_likelihood_delta_cached")],
         "move bookkeeping": [("mcmc.py", "mcmc_iteration")],
         "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations"),
                                 ("chains.py", "score_births")],
@@ -46,7 +48,9 @@ PARTS = {
 #: filter -> the functions whose time the bookkeeping's inclusive time holds but another part counts
 INNER = {
     "IP-MCMC-PF": [("points.py", "log_likelihood_delta_cached")],
-    "MCMC-PF": [("points.py", "log_likelihood"), ("chains.py", "score_births")],  # the births' ratios: proposals
+    "MCMC-PF": [("points.py", "log_likelihood"), ("points.py", "amplitude_cache"),
+                ("points.py", "log_likelihood_of_cache"), ("points.py", "log_likelihood_delta_cached"),
+                ("chains.py", "score_births")],  # the births' ratios: proposals
 }
 
 
@@ -59,8 +63,32 @@ def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int 
     as single calls of ``torch.rand``, ``torch.exp`` and ``torch.log1p`` on that many float64
     numbers (one thread): what no implementation avoids.
     """
-    g = torch.Generator().manual_seed(0)
     moves = batch * chains * iterations
+    return _timed(23 * moves, int(2.6 * points * moves), points * moves) / batch
+
+
+def floor_mcmc(batch: int = 10, chains: int = 1000, iterations: int = 22, slots: int = 5, points: int = 41,
+               joint: float = 0.75) -> float:
+    """The MCMC-PF step's arithmetic floor at the study's settings (``iterations = burn_in +
+    N / C``), per step and run [s], counted as :func:`floor` counts: a joint draw (probability
+    ``joint``) draws 2 uniforms and per slot 2 motion normals, 5 birth and 7 relocation numbers
+    and evaluates every slot's term at every point (``exp``) and one ``log`` per point; a
+    refinement sweep draws per slot 3 motion and accept numbers and the 12 birth and
+    relocation ones and evaluates per slot its old and new terms at every point and one
+    ``log1p`` per point.
+    """
+    draws, sweeps = joint * batch * chains * iterations, (1 - joint) * batch * chains * iterations
+    randoms = draws * (2 + 14 * slots) + sweeps * 15 * slots
+    exps = (draws * slots + sweeps * 2 * slots) * points
+    logs = (draws + sweeps * slots) * points
+    return _timed(int(randoms), int(exps), int(logs)) / batch
+
+
+def _timed(randoms: int, exps: int, logs: int) -> float:
+    """Seconds for single calls of ``torch.rand``, ``torch.exp`` and ``torch.log1p`` on that
+    many float64 numbers (best of 5 each, the current thread count).
+    """
+    g = torch.Generator().manual_seed(0)
 
     def best(f) -> float:
         times = []
@@ -70,11 +98,10 @@ def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int 
             times.append(time.perf_counter() - start)
         return min(times)
 
-    x = torch.rand(int(2.6 * points * moves), generator=g, dtype=torch.float64)
-    y = torch.rand(points * moves, generator=g, dtype=torch.float64)
-    total = best(lambda: torch.rand(23 * moves, generator=g, dtype=torch.float64)) + best(lambda: torch.exp(x)) \
+    x = torch.rand(exps, generator=g, dtype=torch.float64)
+    y = torch.rand(logs, generator=g, dtype=torch.float64)
+    return best(lambda: torch.rand(randoms, generator=g, dtype=torch.float64)) + best(lambda: torch.exp(x)) \
         + best(lambda: torch.log1p(y))
-    return total / batch
 
 
 def main() -> None:
@@ -113,8 +140,8 @@ def main() -> None:
               f"{1e3 * cpu / b:.1f} ms); profiled step {total / 1e3:.0f} ms")
         for part, v in shares.items():
             print(f"  {part:52s} {100 * v / total:5.1f} %")
-    print(f"\nIP-MCMC-PF floor (random numbers and transcendentals, one thread): {1e3 * floor():.1f} ms per step "
-          "and run")
+    print(f"\nfloors (random numbers and transcendentals, one thread), ms per step and run: IP-MCMC-PF "
+          f"{1e3 * floor():.1f}, MCMC-PF {1e3 * floor_mcmc():.1f}")
 
 
 if __name__ == "__main__":
