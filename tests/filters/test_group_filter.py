@@ -614,11 +614,18 @@ def test_cuda_end_to_end_matches_the_cpu_statistics():
 # ----------------------------------------------------------------------------- typed state, models
 #: sha256 of a few seeded steps' outputs (mean, cov, exists_prob, the state with its GroupState,
 #: the carried estimate, every StepInfo field), recorded with the group filter before its state
-#: became a GroupState and its special cases left the Filter base: the bits must not move
+#: became a GroupState and its special cases left the Filter base: the bits must not move.
+#: The bits are the machine's: oneMKL picks its float64 kernels by the CPU (on an Intel Xeon with
+#: AVX-512 the first set, recorded on 2026-12-04, does not come out: MKL_ENABLE_INSTRUCTIONS moves
+#: the bits there). The second set is that Xeon's, recorded from the landed commit 2432202 on
+#: 2026-12-05 (the first set's code). One set a machine: a change that moves the bits fails on both.
 RECORDED = {
-    "plain": "e9fafe3d058f8b90eac1c4cd60854a84c1daf3e1db1936e8d721d1ec24ad0127",
-    "lag": "c271f4b5031bed73826f9f92169d5039e36e8b932c5abdb2a909974eaddb0179",
-    "sampled": "e78469f56623b3cfde161369573bdc7e34dc575751b1832d7dc5f2337f15920d",
+    "plain": ("e9fafe3d058f8b90eac1c4cd60854a84c1daf3e1db1936e8d721d1ec24ad0127",   # 2026-12-04
+              "d161c4e3b5cb847f2c0f623db2eb4562628bcd24314ff51132126a9e019855bd"),  # Intel Xeon, AVX-512
+    "lag": ("c271f4b5031bed73826f9f92169d5039e36e8b932c5abdb2a909974eaddb0179",
+            "e432e5977abfa2ce9618d8fe4d98dadc13e2076a91cfddd07c61b000a5b818a9"),
+    "sampled": ("e78469f56623b3cfde161369573bdc7e34dc575751b1832d7dc5f2337f15920d",
+                "8c0423b5225545ed13fdd8e308e04075e03d412941aed923942a4b75db8c6162"),
 }
 
 
@@ -642,7 +649,7 @@ def test_bits_match_the_recorded_run(name, kw):
     h = hashlib.sha256()
     for t in tensors:
         h.update(t.contiguous().numpy().tobytes())
-    assert h.hexdigest() == RECORDED[name]
+    assert h.hexdigest() in RECORDED[name]
 
 
 def test_result_saves_loads_with_weights_only_and_resumes(tmp_path):
