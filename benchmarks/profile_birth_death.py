@@ -24,6 +24,10 @@ from torchmcmcpf.experiments.septier_birth_death import BirthDeathSettings, _fil
 from torchmcmcpf.runtime import tune_cpu_allocator
 from torchmcmcpf.scenarios.septier import septier
 
+#: the MCMC-PF's sensor calls: its likelihood part, and inside its bookkeeping's inclusive time
+_MCMC_LIKELIHOOD = [("points.py", "log_likelihood"), ("points.py", "amplitude_cache"),
+                    ("points.py", "log_likelihood_of_cache"), ("points.py", "log_likelihood_delta_cached")]
+
 #: part -> the functions whose inclusive time it is (file suffix, function name)
 PARTS = {
     "IP-MCMC-PF": {
@@ -35,9 +39,7 @@ PARTS = {
         "relabelling and estimation": [("base.py", "_estimate")],
     },
     "MCMC-PF": {
-        "likelihood arithmetic": [("points.py", "log_likelihood"), ("points.py", "amplitude_cache"),
-                                  ("points.py", "log_likelihood_of_cache"),
-                                  ("points.py", "log_likelihood_delta_cached")],
+        "likelihood arithmetic": _MCMC_LIKELIHOOD,
         "move bookkeeping": [("mcmc.py", "mcmc_iteration")],
         "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations"),
                                 ("chains.py", "score_births")],
@@ -48,9 +50,7 @@ PARTS = {
 #: filter -> the functions whose time the bookkeeping's inclusive time holds but another part counts
 INNER = {
     "IP-MCMC-PF": [("points.py", "log_likelihood_delta_cached")],
-    "MCMC-PF": [("points.py", "log_likelihood"), ("points.py", "amplitude_cache"),
-                ("points.py", "log_likelihood_of_cache"), ("points.py", "log_likelihood_delta_cached"),
-                ("chains.py", "score_births")],  # the births' ratios: proposals
+    "MCMC-PF": _MCMC_LIKELIHOOD + [("chains.py", "score_births")],  # the births' ratios: proposals
 }
 
 

@@ -4,9 +4,9 @@ import pytest
 import torch
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
-    # `pytest -n 2` (the README's command): two worker processes on the two cores, one torch
-    # thread each; two threads a worker would spin against the other worker's (small ops 20-100x
-    # slower). Loaded by every worker before any test runs; the notebooks' kernels and the
+    # `pytest -n auto` (the README's command): a worker process a core, one torch thread each;
+    # two threads a worker would spin against the other workers' (small ops 20-100x slower).
+    # Loaded by every worker before any test runs; the notebooks' kernels and the
     # tests' subprocesses inherit the variable.
     os.environ["OMP_NUM_THREADS"] = "1"
     torch.set_num_threads(1)
