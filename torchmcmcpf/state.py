@@ -702,6 +702,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
     # the relabelling's searches once per run of equal particles (an MCMC cloud's repeats)
     runs = _runs(x, exists) if iterations > 0 and k > 1 else None
+    unchanged: Tensor | None = None  # a relabelling order still valid for (ref, present)
     if exists is not None and present is not None and ref is not None and k > 1:
         # labels the reference has no target for: the densest place of the live slots the
         # present labels leave over (relabelled against them first) founds one new label per
@@ -713,6 +714,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         for _ in range(k if iterations > 0 else 0):  # one new label a round, while one is found
             assert cands is not None
             slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff)
+            unchanged = slot_of  # the order for (ref, present) as they are, until a label is founded
             spare = torch.take_along_dim(exists, slot_of, 2) & ~present.unsqueeze(1)  # (B, N, K), label order
             at, support = _densest(cands, slot_of, spare, log_w)
             new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
@@ -723,13 +725,18 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             present = present | onto
             if not bool(found.any()):
                 break
+            unchanged = None
     out = None
     xr, er = x, exists
     for _ in range(max(1, int(iterations))):
         near = None  # (B, N, K): the slots within the cutoff of their label's reference
         if iterations > 0 and k > 1:
             assert ref is not None  # made above when there are rounds and slots to relabel
-            slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff)
+            # the search's last round founded no label: its order is this round's (the same
+            # reference and flags), not searched again
+            slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff) \
+                if unchanged is None else unchanged
+            unchanged = None
             xr = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)  # as relabel
             er = None if exists is None else torch.take_along_dim(exists, slot_of, 2)
             pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
