@@ -154,9 +154,10 @@ def test_relabel_order_matches_the_plain_rule():
 
 def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     """The densest-place candidates take the distances of the first of each run of equal
-    particles only (an MCMC chain repeats its state on a rejected move) and copy them to the
-    repeats: the same words as taking every particle's."""
-    from torchmcmcpf.state import _candidates, _runs, _slot_bits
+    particles only (an MCMC chain repeats its state on a rejected move): each run's words are
+    those of every particle of the run, and the densest place and its support found from them
+    are those found from every particle's own words, bit for bit."""
+    from torchmcmcpf.state import _candidates, _densest, _runs, _slot_bits
 
     b, n, k = 3, 400, 4
     pos = torch.rand(b, n, k, 2, generator=gen, dtype=torch.float64) * 500
@@ -172,7 +173,20 @@ def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     got = _candidates(pos, 100.0, runs)
     dist = torch.cdist(got.pos.reshape(b, -1, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
     want = _slot_bits((dist <= 100.0).reshape(b, got.pick.numel(), k, n, k))
-    assert torch.equal(got.close, want)
+    p = got.pick.numel()
+    assert torch.equal(got.close.gather(3, runs.rank[:, None, None, :, None].expand(b, p, k, n, 1)), want)
+    every = _candidates(pos, 100.0, None)
+    assert every.runs is None and torch.equal(every.close, want)
+    # a relabelling and flags that are one per run (as the estimate's are), uneven weights
+    first_of = runs.rank  # (B, N): each particle's run
+    slot_of = torch.stack([torch.randperm(k, generator=gen) for _ in range(b * runs.x.shape[1])]).reshape(
+        b, -1, k).gather(1, first_of[:, :, None].expand(b, n, k))
+    live = (torch.rand(b, runs.x.shape[1], k, generator=gen) < 0.6).gather(1, first_of[:, :, None].expand(b, n, k))
+    log_w = torch.randn(b, n, generator=gen, dtype=torch.float64)
+    at, support = _densest(got, slot_of, live, log_w)
+    at_every, support_every = _densest(every, slot_of, live, log_w)
+    assert torch.equal(at, at_every) and torch.equal(support, support_every)
+    assert bool((support > 0).all())  # a live slot near somewhere: the test compares found places
 
 
 def test_relabel_order_by_runs_equals_every_particles_own(gen):

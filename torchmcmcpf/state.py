@@ -16,7 +16,7 @@ import torch
 from torch.utils._pytree import tree_map
 
 from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
-from .runtime import squared_norm
+from .runtime import squared_norm, take_along
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
@@ -426,8 +426,8 @@ def relabel(x: Tensor, reference: Tensor, *, exists: Tensor | None = None, refer
         return x, exists
     slot_of = relabel_order(x, reference, exists=exists, reference_exists=reference_exists, cutoff=cutoff,
                             max_sweeps=max_sweeps)
-    x = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)
-    return x, None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+    x = take_along(x, slot_of.unsqueeze(-1), 2)
+    return x, None if exists is None else take_along(exists, slot_of, 2)
 
 
 def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
@@ -480,7 +480,7 @@ def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
     # (cutoff / 4)^2: where two targets are close, the positions alone cannot tell which is
     # which, and a particle's own labels carry their identity through the crossing
     own = torch.arange(k, device=x.device).expand(b, n, k)
-    gain = (torch.take_along_dim(cost, own.unsqueeze(-1), -1) - torch.take_along_dim(cost, label.unsqueeze(-1), -1))
+    gain = (take_along(cost, own.unsqueeze(-1), -1) - take_along(cost, label.unsqueeze(-1), -1))
     label = torch.where((gain.sum((-2, -1)) <= (cutoff / 4) ** 2).unsqueeze(-1), own, label)
     return torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
 
@@ -501,7 +501,7 @@ def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Ten
     for _ in range(sweeps):  # sweeps, not slots
         p, k = act_label.shape
         # [a, c] = cost[a, label[c]]
-        cross = torch.take_along_dim(act_cost, act_label.unsqueeze(-2).expand(p, k, k), -1)
+        cross = take_along(act_cost, act_label.unsqueeze(-2).expand(p, k, k), -1)
         own = torch.diagonal(cross, dim1=-2, dim2=-1)  # (P, K)
         gain = own.unsqueeze(-1) + own.unsqueeze(-2) - cross - cross.mT  # swap a <-> c
         gain = torch.where(pair, gain, torch.zeros_like(gain)).flatten(-2)
@@ -511,7 +511,7 @@ def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Ten
             break
         at, act_cost, act_label, active = at[moving], act_cost[moving], act_label[moving], active[moving]
         a, c = (at // k).unsqueeze(-1), (at % k).unsqueeze(-1)
-        la, lc = torch.take_along_dim(act_label, a, -1), torch.take_along_dim(act_label, c, -1)
+        la, lc = take_along(act_label, a, -1), take_along(act_label, c, -1)
         act_label = act_label.scatter(-1, a, lc).scatter(-1, c, la)
         label = label.index_copy(0, active, act_label)
     return label
@@ -553,8 +553,8 @@ def _runs(x: Tensor, exists: Tensor | None) -> _Runs | None:
         return None
     at = torch.where(first, torch.arange(n, device=x.device), n + torch.arange(n, device=x.device))
     firsts = at.sort(-1).values[:, :m].remainder_(n)  # (B, m)
-    return _Runs(firsts, rank, torch.take_along_dim(x, firsts[:, :, None, None], 1),
-                 None if exists is None else torch.take_along_dim(exists, firsts[:, :, None], 1))
+    return _Runs(firsts, rank, take_along(x, firsts[:, :, None, None], 1),
+                 None if exists is None else take_along(exists, firsts[:, :, None], 1))
 
 
 def _relabel_order_runs(x: Tensor, reference: Tensor, runs: _Runs | None, **kwargs: Any) -> Tensor:
@@ -566,7 +566,7 @@ def _relabel_order_runs(x: Tensor, reference: Tensor, runs: _Runs | None, **kwar
         return relabel_order(x, reference, **kwargs)
     kwargs["exists"] = runs.exists
     order = relabel_order(runs.x, reference, **kwargs)
-    return torch.take_along_dim(order, runs.rank.unsqueeze(-1), 1)
+    return take_along(order, runs.rank.unsqueeze(-1), 1)
 
 
 class _Candidates(NamedTuple):
@@ -578,15 +578,18 @@ class _Candidates(NamedTuple):
     ----------
     pick : (P,) int64, the candidate particles (evenly spaced).
     pos : (B, P, K, 2) their slots' positions, in the particles' own slot order.
-    close : (B, P, K, N, W) integer words, slot ``j``'s bit (:func:`_slot_bits`) set where slot ``k`` of
+    close : (B, P, K, N', W) integer words, slot ``j``'s bit (:func:`_slot_bits`) set where slot ``k`` of
         candidate particle ``p`` lies within ``cutoff`` of slot ``j`` of particle ``n`` (own
         slot orders): one AND per particle and candidate then tests every slot of the
-        particle (``W = 1`` up to 63 slots).
+        particle (``W = 1`` up to 63 slots). ``N' = N``, or with ``runs`` the first particle of
+        each run (``N' = m``; a run's particles have the same words).
+    runs : the :class:`_Runs` the words were taken on, or None (every particle).
     """
 
     pick: Tensor
     pos: Tensor
     close: Tensor
+    runs: _Runs | None
 
 
 def _slot_bits(flags: Tensor) -> Tensor:
@@ -610,22 +613,19 @@ def _candidates(pos: Tensor, cutoff: float, runs: _Runs | None, candidates: int 
 
     With ``runs`` (:func:`_runs`: an MCMC cloud whose rejected moves repeat states, 80 % of an
     IP-MCMC-PF cloud on the births/deaths scene) the distances are taken for the first of each
-    run of equal particles only and copied to the repeats: the same words.
+    run of equal particles only, and :func:`_densest` tests them per run: the same words.
     """
     n = pos.shape[1]
     pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
     b, p, k = pos.shape[0], pick.numel(), pos.shape[2]
     cand = pos[:, pick]  # (B, P, K, 2)
-    sub = pos if runs is None else torch.take_along_dim(pos, runs.firsts[:, :, None, None], 1)  # (B, m, K, 2)
+    sub = pos if runs is None else take_along(pos, runs.firsts[:, :, None, None], 1)  # (B, m, K, 2)
     m = sub.shape[1]
     # one kernel over every (candidate, slot) pair, differences squared and summed exactly
     # (no |a|^2 + |b|^2 - 2 a.b): 2.8x faster than broadcast differences of the coordinates;
     # each pair's distance alone, so the same values whichever particles are in the call
     dist = torch.cdist(cand.reshape(b, p * k, 2), sub.reshape(b, m * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
-    close = _slot_bits((dist <= cutoff).reshape(b, p, k, m, k))  # (B, P, K, m, W)
-    if runs is not None:  # each particle the words of its run's first
-        close = close.gather(3, runs.rank[:, None, None, :, None].expand(b, p, k, n, close.shape[-1]))
-    return _Candidates(pick, cand, close)
+    return _Candidates(pick, cand, _slot_bits((dist <= cutoff).reshape(b, p, k, m, k)), runs)  # (B, P, K, m, W)
 
 
 def _densest(cands: _Candidates, slot_of: Tensor, live: Tensor, log_w: Tensor) -> tuple[Tensor, Tensor]:
@@ -647,18 +647,23 @@ def _densest(cands: _Candidates, slot_of: Tensor, live: Tensor, log_w: Tensor) -
     b, n, k = live.shape
     dtype = cands.pos.dtype
     own_live = torch.zeros_like(live).scatter(2, slot_of, live)  # the particles' own slot order
-    live_bits = _slot_bits(own_live)  # (B, N, W)
-    near = ((cands.close & live_bits[:, None, None]) != 0).any(-1)  # (B, P, K, N): a live slot near
+    runs = cands.runs
+    if runs is not None:  # a run's particles have one state, one order and one set of flags
+        own_live = take_along(own_live, runs.firsts.unsqueeze(-1), 1)  # (B, m, K)
+    live_bits = _slot_bits(own_live)  # (B, N', W)
+    near = ((cands.close & live_bits[:, None, None]) != 0).any(-1)  # (B, P, K, N'): a live slot near
+    if runs is not None:  # each particle the test of its run's first
+        near = near.gather(3, runs.rank[:, None, None, :].expand(b, near.shape[1], k, n))  # (B, P, K, N)
     w = torch.softmax(log_w, -1).to(dtype)
     # w where near, else 0: the values of near * w (w finite, >= 0) without a float copy of near
     support = torch.where(near, w[:, None, None], 0.0).sum(-1)  # (B, P, K), own slot order
     order = slot_of[:, cands.pick]  # (B, P, K): the candidates in label order
-    support = torch.take_along_dim(support, order, -1).reshape(b, -1)
+    support = take_along(support, order, -1).reshape(b, -1)
     support = support.masked_fill(~live[:, cands.pick].reshape(b, -1), 0.0)  # (B, P K)
     best = support.argmax(-1)  # (B,)
-    cand = torch.take_along_dim(cands.pos, order.unsqueeze(-1), 2).reshape(b, -1, 2)
-    at = torch.take_along_dim(cand, best[:, None, None], 1).squeeze(1)
-    return at, torch.take_along_dim(support, best[:, None], 1).squeeze(1)
+    cand = take_along(cands.pos, order.unsqueeze(-1), 2).reshape(b, -1, 2)
+    at = take_along(cand, best[:, None, None], 1).squeeze(1)
+    return at, take_along(support, best[:, None], 1).squeeze(1)
 
 
 def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *,
@@ -698,8 +703,8 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
     if reference is None and iterations > 0 and k > 1:  # one particle's labels are consistent: the heaviest one's
         # (no rounds or one slot: the reference is not read, so not made)
         best = log_w.argmax(-1)[:, None, None]
-        ref = torch.take_along_dim(x, best[..., None], 1).squeeze(1)
-        present = None if exists is None else torch.take_along_dim(exists, best, 1).squeeze(1)
+        ref = take_along(x, best[..., None], 1).squeeze(1)
+        present = None if exists is None else take_along(exists, best, 1).squeeze(1)
     # the relabelling's searches once per run of equal particles (an MCMC cloud's repeats)
     runs = _runs(x, exists) if iterations > 0 and k > 1 else None
     unchanged: Tensor | None = None  # a relabelling order still valid for (ref, present)
@@ -715,7 +720,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             assert cands is not None
             slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff)
             unchanged = slot_of  # the order for (ref, present) as they are, until a label is founded
-            spare = torch.take_along_dim(exists, slot_of, 2) & ~present.unsqueeze(1)  # (B, N, K), label order
+            spare = take_along(exists, slot_of, 2) & ~present.unsqueeze(1)  # (B, N, K), label order
             at, support = _densest(cands, slot_of, spare, log_w)
             new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
             found = (support > 0.5) & (~present).any(-1)  # most of the weight has a slot there
@@ -737,8 +742,8 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff) \
                 if unchanged is None else unchanged
             unchanged = None
-            xr = torch.take_along_dim(x, slot_of.unsqueeze(-1), 2)  # as relabel
-            er = None if exists is None else torch.take_along_dim(exists, slot_of, 2)
+            xr = take_along(x, slot_of.unsqueeze(-1), 2)  # as relabel
+            er = None if exists is None else take_along(exists, slot_of, 2)
             pos, at = torch.stack([xr[..., X], xr[..., Y]], -1), torch.stack([ref[..., X], ref[..., Y]], -1)
             near = squared_norm(pos - at.unsqueeze(1).to(pos.dtype)) <= cutoff**2
         if exists is None:

@@ -204,6 +204,7 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture, exclusion_on
 from ..resampling import gather_particles, normalize, systematic
+from ..runtime import take_along
 from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
 from ..typing import Measurement, Tensor
 from ._bound import Bound, Compile, bind, check_existence_proposal
@@ -354,7 +355,7 @@ def _chains_relabelled(window: Tensor, rounds: int = 2) -> Tensor:
     for _ in range(rounds):
         order = torch.empty((w, b, c, k), dtype=torch.int64, device=window.device)
         order[at_w, at_b, at_c] = relabel_order(distinct, reference[at_b]).squeeze(1)
-        relabelled = torch.take_along_dim(window, order[last, runs, chains].unsqueeze(-1), 3)
+        relabelled = take_along(window, order[last, runs, chains].unsqueeze(-1), 3)
         reference = relabelled.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, d).mean(1)
     return relabelled
 
@@ -579,7 +580,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     if (pair_every and recapture is not None and recapture.p_same_source > 0) or settings.pair_path is not None:
         # every slot's source particle (the pair-path move's genealogy too)
         source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
-        log_w_source = torch.take_along_dim(normalize(log_w)[0], start, 1
+        log_w_source = take_along(normalize(log_w)[0], start, 1
                                             ).unsqueeze(-1).repeat(1, 1, k)
     # with the exclusion term the chains keep their slots' resolution coordinates, and each
     # segment's proposals come with theirs (one batched call): a move maps no slot again

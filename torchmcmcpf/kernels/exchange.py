@@ -59,7 +59,7 @@ from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
 from ..resampling import cdf, inverse_cdf, normalize
-from ..runtime import pairwise_squared_distances
+from ..runtime import pairwise_squared_distances, take_along
 from ..typing import Measurement, Tensor
 from .mh import mh_accept
 
@@ -318,7 +318,7 @@ def draw_exchange_noise(
 
             def flag(particle: Tensor) -> Tensor:
                 at = (particle * exists.shape[-1] + slot.transpose(0, 1)).reshape(b, -1)
-                return torch.take_along_dim(flags, at, 1).reshape(at.shape[:1] + src.shape[1:])
+                return take_along(flags, at, 1).reshape(at.shape[:1] + src.shape[1:])
 
             parent_e = flag(src)
             if pairs is not None and dynamics.recapture is not None and dynamics.recapture.p_same_source > 0:
@@ -335,7 +335,7 @@ def draw_exchange_noise(
     if rho > 0:  # both slots from one particle (drawn last: the other draws are those of rho = 0)
         same = torch.rand(shape, generator=generator, device=dev, dtype=torch.float64) < rho
         source = torch.stack([source[..., 0], torch.where(same, source[..., 0], source[..., 1])], -1)
-    log_w_source = torch.take_along_dim(normalize(log_w)[0], source.movedim(0, 1).reshape(b, -1), 1).reshape(
+    log_w_source = take_along(normalize(log_w)[0], source.movedim(0, 1).reshape(b, -1), 1).reshape(
         (b, num_iterations, num_chains, m)).movedim(1, 0)
     return ExchangeNoise(source, log_w_source, slot, eps, u, birth, relocation, valid)
 
@@ -382,10 +382,10 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
     # runs first, so that one gather per run reads every iteration's and chain's parent
     at = (noise.source * k + noise.slot).movedim(-3, 0)  # (B, *L, C, M)
     flat = at.reshape(b, -1)
-    parent = torch.take_along_dim(x_prev.reshape(b, n * k, d), flat.unsqueeze(-1), dim=1).reshape(at.shape + (d,))
+    parent = take_along(x_prev.reshape(b, n * k, d), flat.unsqueeze(-1), dim=1).reshape(at.shape + (d,))
     parent = parent.movedim(0, -4)
     parent_e = None if exists_prev is None else \
-        torch.take_along_dim(exists_prev.reshape(b, n * k), flat, dim=1).reshape(at.shape).movedim(0, -3)
+        take_along(exists_prev.reshape(b, n * k), flat, dim=1).reshape(at.shape).movedim(0, -3)
     recapture = dynamics.recapture
     eps_k = None if recapture is None else (recapture.p_propose if m == 1 else recapture.p_propose_pair)
     moved, e_new, log_r, kind = dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth,
@@ -464,8 +464,8 @@ def exchange_iteration(
     cur_y, cur_e, cur_ll = y, exists, log_lik
     log_prior = torch.zeros_like(log_lik)
     if rho > 0 and source is not None and log_w_source is not None:  # the pair's sources (module docstring)
-        old_source = torch.take_along_dim(source, noise.slot, -1)
-        old_log_w = torch.take_along_dim(log_w_source, noise.slot, -1)
+        old_source = take_along(source, noise.slot, -1)
+        old_log_w = take_along(log_w_source, noise.slot, -1)
         log_prior = log_prior + (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
     cur_u = u_moved = None

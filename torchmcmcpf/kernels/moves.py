@@ -108,6 +108,7 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import TargetDynamics
 from ..models.multitarget import Exclusion, exclusion_change, exclusion_on, log_exclusion
 from ..resampling import gather_particles
+from ..runtime import take_along
 from ..typing import Measurement, Tensor
 from .chains import ChainState, JointNoise, PreviousCloud, RefineNoise, draw_ancestors, evaluate_cached
 from .mh import mh_accept, mh_select
@@ -320,7 +321,7 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
 
     def pick(t: Tensor) -> Tensor:
         idx = n_t.reshape(n_t.shape + (1,) * (t.dim() - n_t.dim()))
-        return torch.take_along_dim(t, idx, dim=n_t.dim()).squeeze(n_t.dim())
+        return take_along(t, idx, dim=n_t.dim()).squeeze(n_t.dim())
 
     x_n = pick(x_prop)
     e_n = None if e is None or e_prop is None else pick(e_prop)

@@ -83,7 +83,7 @@ from .._validation import check_fields, check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion, log_exclusion
 from ..resampling import cdf, inverse_cdf
-from ..runtime import pairwise_squared_distances
+from ..runtime import pairwise_squared_distances, take_along
 from ..typing import Measurement, Tensor
 
 __all__ = ["PairPath", "PairPathWindow", "conditional_smc", "pair_path_update", "window_bytes"]
@@ -201,7 +201,7 @@ def _set_pair(x: Tensor, pair_x: Tensor, pair: Tensor) -> Tensor:
 def _get_pair(x: Tensor, pair: Tensor) -> Tensor:
     """Slots ``pair (B, 2)`` of ``x (B, *S, K, D)``: ``(B, *S, 2, D)``."""
     idx = pair.reshape((pair.shape[0],) + (1,) * (x.dim() - 3) + (2, 1))
-    return torch.take_along_dim(x, idx, -2)
+    return take_along(x, idx, -2)
 
 
 def conditional_smc(path: Tensor, frames: Tensor, pair: Tensor, *, motion: MotionModel, sensor: SensorModel,
@@ -259,7 +259,7 @@ def conditional_smc(path: Tensor, frames: Tensor, pair: Tensor, *, motion: Motio
             log_as = log_w + motion.log_prob(r_s.unsqueeze(2).expand_as(prev), prev).sum(-1)
             back = inverse_cdf(cdf(log_as.reshape(b * p, m)), u[:, m - 1:])
             anc = torch.cat([free, back], -1).reshape(b, p, m)
-        parent = torch.take_along_dim(prev, anc.reshape(b, p, m, 1, 1), 2)
+        parent = take_along(prev, anc.reshape(b, p, m, 1, 1), 2)
         eps = torch.randn((b, p, m, 2, motion.noise_dim), generator=generator, device=dev, dtype=dt)
         x_s = motion.propagate(parent, eps)
         x_s = torch.where((rows == m - 1).reshape(1, 1, m, 1, 1), r_s.unsqueeze(2), x_s)
@@ -275,8 +275,8 @@ def conditional_smc(path: Tensor, frames: Tensor, pair: Tensor, *, motion: Motio
     pick = inverse_cdf(cdf(log_w.reshape(b * p, m)), u).reshape(b, p, 1)  # (B, P, 1)
     out = []
     for s in range(w, 0, -1):  # trace the chosen particle back through its ancestors
-        out.append(torch.take_along_dim(states[s - 1], pick.reshape(b, p, 1, 1, 1), 2).squeeze(2))
-        pick = torch.take_along_dim(ancestors[s - 1], pick, 2)
+        out.append(take_along(states[s - 1], pick.reshape(b, p, 1, 1, 1), 2).squeeze(2))
+        pick = take_along(ancestors[s - 1], pick, 2)
     new_pair = torch.stack([ref[:, :, 0]] + out[::-1], 2)  # (B, P, W + 1, 2, D)
     moved = (new_pair[:, :, -1] != ref[:, :, -1]).flatten(-2).any(-1)
     return _set_pair(path, new_pair, pair), moved
@@ -290,7 +290,7 @@ def _advance(extras: dict, x_new: Tensor, source: Tensor, z: Tensor, lag: int) -
     b, n, l1, k, d = paths.shape
     by_slot = paths.permute(0, 3, 1, 2, 4)  # (B, K, N, L + 1, D)
     idx = source.permute(0, 2, 1).reshape(b, k, n, 1, 1)
-    inherited = torch.take_along_dim(by_slot, idx, 2).permute(0, 2, 3, 1, 4)  # (B, N, L + 1, K, D)
+    inherited = take_along(by_slot, idx, 2).permute(0, 2, 3, 1, 4)  # (B, N, L + 1, K, D)
     paths = torch.cat([inherited[:, :, 1:], x_new.unsqueeze(2)], 2)
     frames = torch.cat([extras["pair_path_z"][:, 1:], z.unsqueeze(1).to(extras["pair_path_z"].dtype)], 1)
     count = (extras["pair_path_frames"] + 1).clamp(max=lag)

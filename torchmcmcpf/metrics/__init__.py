@@ -24,7 +24,7 @@ from typing import NamedTuple
 import torch
 
 from .._validation import check_positive, check_shape, check_tensor
-from ..runtime import pairwise_squared_distances
+from ..runtime import pairwise_squared_distances, take_along
 from ..typing import RHO, Tensor, X, Y
 
 __all__ = [
@@ -273,7 +273,7 @@ def amplitude_swapped(estimate: Tensor, truth: Tensor) -> Tensor:
         raise ValueError(f"estimate has shape {tuple(estimate.shape)} and truth {tuple(truth.shape)}, expected "
                          f"(T, B, K, D) and (T, B, J, D) with the same T, B and D > {RHO} (an amplitude)")
     strongest = torch.nan_to_num(estimate[..., RHO], nan=-math.inf).argmax(-1, keepdim=True)  # (T, B, 1)
-    at = _positions(torch.take_along_dim(estimate, strongest.unsqueeze(-1), -2))  # (T, B, 1, 2)
+    at = _positions(take_along(estimate, strongest.unsqueeze(-1), -2))  # (T, B, 1, 2)
     d = torch.linalg.vector_norm(at - _positions(truth), dim=-1)  # (T, B, J)
     nearest = torch.nan_to_num(d, nan=math.inf).argmin(-1)
     known = d.isfinite().any(-1) & estimate[..., RHO].isfinite().any(-1)

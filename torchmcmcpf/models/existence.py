@@ -48,6 +48,7 @@ from torch import nn
 
 from .._validation import check_positive
 from ..resampling import cdf, inverse_cdf
+from ..runtime import take_along
 from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
 from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
@@ -336,7 +337,7 @@ class BirthDeath(nn.Module):
         u_pick = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M); none valid: unused
         idx = inverse_cdf(cdf(log_pick), u_pick[..., 0].reshape(b, -1)).reshape(shape)
-        centre = torch.take_along_dim(pts, idx.reshape(b, -1, 1), dim=1).reshape(tuple(shape) + (2,))
+        centre = take_along(pts, idx.reshape(b, -1, 1), dim=1).reshape(tuple(shape) + (2,))
         near = centre + self.birth_std * torch.randn(tuple(shape) + (2,), generator=generator,
                                                      device=device, dtype=dtype)
         use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)

@@ -40,6 +40,7 @@ from ..._validation import (
     check_positive_int,
     check_shape,
 )
+from ...runtime import take_along
 from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
 
@@ -118,7 +119,7 @@ def padded_pair_log_likelihood(pair: Tensor, exists: Tensor | None, mask: Tensor
 
 def _score(square: Tensor, assignment: Tensor) -> Tensor:
     """``sum_k square[..., k, assignment[..., k]]``: (B, *S, P, P), (B, *S, P) -> (B, *S)."""
-    return torch.take_along_dim(square, assignment.unsqueeze(-1), dim=-1).squeeze(-1).sum(-1)
+    return take_along(square, assignment.unsqueeze(-1), dim=-1).squeeze(-1).sum(-1)
 
 
 def metropolis_association(
@@ -184,8 +185,8 @@ def shuffle(z: Tensor, exists: Tensor, *, generator: torch.Generator) -> PointFr
     """
     key = torch.rand(exists.shape, generator=generator, device=z.device, dtype=torch.float64)
     order = torch.argsort(torch.where(exists, key, key + 2.0), dim=-1)
-    zs = torch.take_along_dim(z, order.unsqueeze(-1), dim=-2)
-    mask = torch.take_along_dim(exists, order, dim=-1)
+    zs = take_along(z, order.unsqueeze(-1), dim=-2)
+    mask = take_along(exists, order, dim=-1)
     return PointFrame(torch.where(mask.unsqueeze(-1), zs, torch.zeros_like(zs)), mask)
 
 
@@ -306,7 +307,7 @@ class AssociationSensor(SensorModel[PointMeasurement]):
         zz, mask = split_points(z)
         square, _ = padded_pair_log_likelihood(self.pair_log_likelihood(x, zz), exists, mask)
         k = x.shape[-2]
-        return torch.take_along_dim(square[..., :k, :], assignment[..., :k].unsqueeze(-1), dim=-1).squeeze(-1)
+        return take_along(square[..., :k, :], assignment[..., :k].unsqueeze(-1), dim=-1).squeeze(-1)
 
     # -- simulation and checks -----------------------------------------------------------
     def simulate(self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None

@@ -35,6 +35,7 @@ import torch
 from ... import runtime
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...resampling import cdf, inverse_cdf
+from ...runtime import take_along
 from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
 
@@ -500,8 +501,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         xn = x_n if many else x_n.unsqueeze(-2)  # (B, *S, V, D)
         slot = n.to(device=x.device, dtype=torch.int64)
         slot = (slot if many else slot.unsqueeze(-1)).expand(xn.shape[:-1])
-        x_old = torch.take_along_dim(x, slot.unsqueeze(-1), -2)
-        e_old = torch.ones_like(slot, dtype=torch.bool) if exists is None else torch.take_along_dim(exists, slot, -1)
+        x_old = take_along(x, slot.unsqueeze(-1), -2)
+        e_old = torch.ones_like(slot, dtype=torch.bool) if exists is None else take_along(exists, slot, -1)
         e_new = e_old if exists_n is None else (exists_n if many else exists_n.unsqueeze(-1)).expand(slot.shape)
         terms = self.log_intensity_terms(torch.cat([x_old, xn], -2), pts)  # (B, *S, 2V, M)
         sign = torch.cat([-e_old.to(torch.float64), e_new.to(torch.float64)], -1)  # (B, *S, 2V)
@@ -566,7 +567,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         if m > 0:
             log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M)
             idx = inverse_cdf(cdf(log_pick), u_pick[..., 0])  # (B, P)
-            centre = torch.take_along_dim(pts.to(dtype), idx.unsqueeze(-1), dim=1)
+            centre = take_along(pts.to(dtype), idx.unsqueeze(-1), dim=1)
             L = torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype)
             near = centre + _whiten(eps, L, self.diagonal)  # eps @ L^T
             use = (u_pick[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
@@ -628,8 +629,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         order = torch.argsort(torch.where(mask, key, key + 2.0), dim=-1)
         m = int(mask.sum(-1).max()) if b else 0
         order = order[:, :m]
-        pts = torch.take_along_dim(pts, order.unsqueeze(-1), dim=1)
-        mask = torch.take_along_dim(mask, order, dim=1)
+        pts = take_along(pts, order.unsqueeze(-1), dim=1)
+        mask = take_along(mask, order, dim=1)
         return PointFrame(torch.where(mask.unsqueeze(-1), pts, torch.zeros_like(pts)), mask)
 
     # -- input checks -------------------------------------------------------------------

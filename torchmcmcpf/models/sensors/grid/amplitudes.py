@@ -15,6 +15,7 @@ import math
 
 import torch
 
+from ....runtime import take_along
 from ....typing import Tensor
 from ._protocol import GridSensorLike
 from .delta import box_in_box
@@ -73,10 +74,10 @@ def _change(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: T
     slot = n.to(device=x.device, dtype=torch.int64).expand((B,) + S + ((M,) if many else ())).reshape(B, P, M)
     xf = x.reshape(B, P, K, D)
     e = torch.ones_like(xf[..., 0]) if exists is None else exists.reshape(B, P, K).to(x.dtype)
-    e_old = torch.take_along_dim(e, slot, 2)  # (B, P, M)
+    e_old = take_along(e, slot, 2)  # (B, P, M)
     e_new = e_old if exists_n is None else exists_n.reshape(B, P, M).to(x.dtype)
     # the 2M spreads (and boxes): slot 0 before, after, slot 1 before, after, ...
-    moved = torch.stack([torch.take_along_dim(xf, slot[..., None], 2), x_n.reshape(B, P, M, D)], 3)
+    moved = torch.stack([take_along(xf, slot[..., None], 2), x_n.reshape(B, P, M, D)], 3)
     moved = moved.reshape(B, P, 2 * M, D)
     u = sensor.measurement_coords(moved)  # (B, P, 2M, n)
     s = sensor.signal(moved) * torch.stack([-e_old, e_new], -1).reshape(B, P, 2 * M)  # signed: - old, + new

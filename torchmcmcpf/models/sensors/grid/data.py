@@ -10,6 +10,7 @@ import math
 import torch
 
 from ....resampling import cdf, inverse_cdf
+from ....runtime import take_along
 from ....typing import Tensor
 from ...base import neighbourhood
 from ._protocol import GridSensorLike
@@ -88,7 +89,7 @@ def _clean(sensor: GridSensorLike, stat: Tensor) -> tuple[Tensor, Tensor, Tensor
         found = top > threshold
         if not bool(found.any()):  # the residual only shrinks: no later peak either
             break
-        here = torch.take_along_dim(pos, i.reshape(B, 1, 1), 1)  # (B, 1, n)
+        here = take_along(pos, i.reshape(B, 1, 1), 1)  # (B, 1, n)
         offset = pos - here
         near = (offset.abs() <= 1).all(-1) & cand  # the peak's 3^n neighbourhood
         weight = torch.where(near, (sensor.detection_stat(signal) - 1.0).clamp(min=0.0), 0.0)
@@ -99,7 +100,7 @@ def _clean(sensor: GridSensorLike, stat: Tensor) -> tuple[Tensor, Tensor, Tensor
         taken = torch.where(box & found.unsqueeze(-1), scale.unsqueeze(-1) * _spread(pos, centre, width), 0.0)
         signal = (signal - taken).clamp(min=0.0)
         centres[:, p] = centre
-        cells[:, p] = torch.take_along_dim(at, i.unsqueeze(-1), -1).squeeze(-1)
+        cells[:, p] = take_along(at, i.unsqueeze(-1), -1).squeeze(-1)
         mask[:, p] = found
     return centres, mask, cells
 
@@ -147,7 +148,7 @@ def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], 
     low = torch.tensor(lo, dtype=dtype, device=z.device)
     span = torch.tensor(hi, dtype=dtype, device=z.device) - low
     scale = torch.tensor([sensor.peak_spread * c for c in geometry.cell_sizes], dtype=dtype, device=z.device)
-    near = torch.take_along_dim(centres.to(dtype), pick.unsqueeze(-1), 1) + scale * eps
+    near = take_along(centres.to(dtype), pick.unsqueeze(-1), 1) + scale * eps
     use = (u[..., 1] >= sensor.uniform_weight) & mask.any(-1, keepdim=True)
     coords = torch.where(use.unsqueeze(-1), near, low + span * box)  # (B, Q, n)
     inside = ((coords >= low) & (coords <= low + span)).all(-1)

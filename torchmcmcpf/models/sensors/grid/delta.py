@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import torch
 
+from ....runtime import take_along
 from ....typing import Tensor
 from . import whole
 from ._protocol import GridSensorLike
@@ -65,11 +66,11 @@ def _parts(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int | Tensor, z: T
     P = u.shape[1]
     at = slot[..., None]  # (B, P, 1)
     x_new = x_n.reshape(B, P, 1, D)
-    e_new = torch.take_along_dim(e, at, 2) if exists_n is None else exists_n.reshape(B, P, 1).to(x.dtype)
-    s_old = torch.take_along_dim(s, at, 2)  # (B, P, 1)
+    e_new = take_along(e, at, 2) if exists_n is None else exists_n.reshape(B, P, 1).to(x.dtype)
+    s_old = take_along(s, at, 2)  # (B, P, 1)
     s_new = sensor.signal(x_new) * e_new
     # targets: the K slots, then slot n before (index K) and after (index K + 1) the move
-    u_all = torch.cat([u, torch.take_along_dim(u, at[..., None], 2), sensor.measurement_coords(x_new)], 2)
+    u_all = torch.cat([u, take_along(u, at[..., None], 2), sensor.measurement_coords(x_new)], 2)
     geometry = sensor.geometry
     firsts = geometry.box_firsts(u_all)  # (B, P, K + 2)
     boxes = [f[..., K:] for f in firsts]  # (B, P, 2): old and new box of slot n
@@ -92,7 +93,7 @@ def _box_sums(sensor: GridSensorLike, count: int, u_all: Tensor, s: Tensor, s_ol
     prop = torch.cat([zero, s_new], -1)[:, :, None].expand(B, P, 2, 2)
     if count > 0:
         nb, w = neighbour_index(others, count)  # (B, P, 2q, count)
-        s_nb = torch.take_along_dim(s[:, :, None].expand(B, P, 2, K), nb, -1) * w.to(s.dtype)
+        s_nb = take_along(s[:, :, None].expand(B, P, 2, K), nb, -1) * w.to(s.dtype)
         index = torch.cat([nb, moved], -1)  # (B, P, 2q, count + 2)
         cur, prop = torch.cat([s_nb, cur], -1), torch.cat([s_nb, prop], -1)
     else:

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 import torch
 
 from .... import runtime
+from ....runtime import take_along
 from ....typing import Tensor
 from .geometry import GridGeometry, merge_last
 
@@ -114,7 +115,7 @@ def neighbour_profiles(geometry: GridGeometry, box_firsts: Sequence[Tensor], u: 
 
     def pick(v: Tensor) -> Tensor:  # (..., T) -> (..., Q, M): the selected targets' values per box
         every = v[..., None, :].expand(*v.shape[:-1], Q, v.shape[-1])
-        return every if index is None else torch.take_along_dim(every, index, -1)
+        return every if index is None else take_along(every, index, -1)
 
     per_axis, indicators = [], []
     for a, (bq, fk, W) in enumerate(zip(box_firsts, firsts, geometry.window_sizes)):

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from ....runtime import take_along
 from ....typing import Tensor
 from . import chunks
 from ._protocol import GridSensorLike
@@ -45,7 +46,7 @@ def _box_sums(sensor: GridSensorLike, count: int, u: Tensor, s: Tensor, e: Tenso
         nb, w = neighbour_index(others, count)  # (b, p, J, count)
         index, weight = torch.cat([index, nb], -1), torch.cat([weight, w.to(s.dtype)], -1)
     factors, _ = neighbour_profiles(geometry, firsts, u, firsts, index)  # (b, p, J, M, W) each
-    s_nb = torch.take_along_dim(s[..., None, :].expand(b, p, K, K), index, -1) * weight  # (b, p, J, M)
+    s_nb = take_along(s[..., None, :].expand(b, p, K, K), index, -1) * weight  # (b, p, J, M)
     A = outer_sum(s_nb, factors)  # (b, p, J, *W)
     zw = geometry.gather_cells(zc, firsts, sensor.box_offsets)  # (b, p, J, *W)
     owned = geometry.owned_cells(firsts, e > 0)  # (b, p, J, *W): each cell of the union counted once
