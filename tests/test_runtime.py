@@ -84,3 +84,28 @@ def test_repeating_program_skips_guards_only_for_signatures_it_has_run():
     assert runtime._repeating[0] == 0  # left the loops
     for (x, pair), got in zip(inputs + inputs + inputs[::-1] + inputs[:1], inside):
         torch.testing.assert_close(got, body(x, pair), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("t_shape, i_shape, dim", [
+    ((3, 7, 5, 4), (3, 7, 1, 1), 2),    # a slot's row of each chain, broadcast over the state
+    ((3, 7, 5), (3, 7, 5), -1),         # a permutation of each particle's slots
+    ((1, 7, 5), (3, 2, 5), 1),          # the input broadcast over the batch
+    ((6, 4), (1, 9), 1),                # more picks than entries
+])
+def test_take_along_equals_take_along_dim(t_shape, i_shape, dim):
+    """runtime.take_along gives torch.take_along_dim's values and gradient for non-negative
+    indices, with either side broadcast outside ``dim``; a dims mismatch is a ValueError."""
+    from torchmcmcpf.runtime import take_along
+
+    g = torch.Generator().manual_seed(0)
+    t = torch.randn(t_shape, generator=g, dtype=torch.float64, requires_grad=True)
+    index = torch.randint(t_shape[dim], i_shape, generator=g)
+    want = torch.take_along_dim(t, index, dim)
+    got = take_along(t, index, dim)
+    assert got.shape == want.shape and torch.equal(got, want)
+    w = torch.randn(want.shape, generator=g, dtype=torch.float64)
+    (grad_want,) = torch.autograd.grad((want * w).sum(), t)
+    (grad_got,) = torch.autograd.grad((got * w).sum(), t)
+    assert torch.equal(grad_got, grad_want)
+    with pytest.raises(ValueError, match="same number"):
+        take_along(t, index.flatten(), dim)
