@@ -178,10 +178,10 @@ def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     every = _candidates(pos, 100.0, None)
     assert every.runs is None and torch.equal(every.close, want)
     # a relabelling and flags that are one per run (as the estimate's are), uneven weights
-    first_of = runs.rank  # (B, N): each particle's run
+    run_of = runs.rank[:, :, None].expand(b, n, k)  # each particle's run
     slot_of = torch.stack([torch.randperm(k, generator=gen) for _ in range(b * runs.x.shape[1])]).reshape(
-        b, -1, k).gather(1, first_of[:, :, None].expand(b, n, k))
-    live = (torch.rand(b, runs.x.shape[1], k, generator=gen) < 0.6).gather(1, first_of[:, :, None].expand(b, n, k))
+        b, -1, k).gather(1, run_of)
+    live = (torch.rand(b, runs.x.shape[1], k, generator=gen) < 0.6).gather(1, run_of)
     log_w = torch.randn(b, n, generator=gen, dtype=torch.float64)
     at, support = _densest(got, slot_of, live, log_w)
     at_every, support_every = _densest(every, slot_of, live, log_w)

@@ -144,17 +144,17 @@ def blocked_linear_map(x: torch.Tensor) -> bool:
 def take_along(t: torch.Tensor, index: torch.Tensor, dim: int) -> torch.Tensor:
     """``torch.take_along_dim(t, index, dim)`` for a non-negative ``index`` (the same values
     and gradient): one ``gather`` of the two broadcast against each other outside ``dim``.
-    ``take_along_dim`` also wraps negative indices, a ``remainder`` pass over the index that
-    costs about as much as the gather itself on the CPU (30-50 % of the call for the
-    ``(B, C, K)`` indices of the chains). ``t`` and ``index`` have the same number of dims; a
-    negative index is an error (``gather``'s bounds check), not wrapped.
+    ``take_along_dim`` also wraps negative indices, a ``remainder`` pass over the index (one
+    CPU thread: 48 -> 38 us for a chain's slot row ``(10, 200, 1, 1)`` of ``(10, 200, 5, 4)``,
+    558 -> 131 us for a permutation of ``(10, 2000, 5)``). ``t`` and ``index`` have the same
+    number of dims; a negative index is an error (``gather``'s bounds check), not wrapped.
     """
     if t.dim() != index.dim():
         raise ValueError(f"index has {index.dim()} dims and t {t.dim()}: expected the same number")
     d = dim % t.dim()
-    shape = list(torch.broadcast_shapes(t.shape[:d] + (1,) + t.shape[d + 1:],
-                                        index.shape[:d] + (1,) + index.shape[d + 1:]))
-    shape_t, shape_i = list(shape), list(shape)
+    shape_t = list(torch.broadcast_shapes(t.shape[:d] + (1,) + t.shape[d + 1:],
+                                          index.shape[:d] + (1,) + index.shape[d + 1:]))
+    shape_i = list(shape_t)
     shape_t[d], shape_i[d] = t.shape[d], index.shape[d]
     return torch.gather(t.expand(shape_t), d, index.expand(shape_i))
 
