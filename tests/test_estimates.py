@@ -55,38 +55,28 @@ def test_weighted_cov_float32_keeps_the_spread_of_far_particles():
     np.testing.assert_allclose(got.double().numpy(), ref, rtol=1e-3, atol=1e-3)
 
 
-def test_slot_bits_pack_every_slot_into_words():
-    from torchmcmcpf.state import _slot_bits
-
-    g = torch.Generator().manual_seed(0)
-    for k in (1, 5, 8, 63, 70):
-        flags = torch.rand((3, 4, k), generator=g) < 0.4
-        bits = _slot_bits(flags)
-        width = min(k, 63)
-        assert bits.shape == (3, 4, -(-k // width))
-        unpacked = ((bits.unsqueeze(-1).to(torch.int64) >> torch.arange(width)) & 1).flatten(-2)[..., :k]
-        assert torch.equal(unpacked.bool(), flags)
-
-
 def test_densest_place_matches_a_direct_count():
     """The candidates' support (weight of particles with a live slot within the cutoff) equals
     a per-candidate count written out directly, in label order, with the relabelling applied.
     """
-    from torchmcmcpf.state import _candidates, _densest
+    from torchmcmcpf.state import _densest
 
     g = torch.Generator().manual_seed(1)
-    b, n, k, cutoff = 2, 40, 3, 100.0
+    b, n, k, cutoff = 3, 40, 3, 100.0
     pos = 300.0 * torch.rand((b, n, k, 2), generator=g, dtype=torch.float64)
     live = torch.rand((b, n, k), generator=g) < 0.6
+    live[2] = False  # no live slot in a row: support 0, the first candidate's label-0 slot
+    live[2, 9, 1] = True  # ... then one, off the candidates: still 0
     slot_of = torch.argsort(torch.rand((b, n, k), generator=g), -1)
     log_w = torch.randn((b, n), generator=g, dtype=torch.float64)
-    cands = _candidates(pos, cutoff, None, candidates=8)
-    at, support = _densest(cands, slot_of, live, log_w)
+    at, support = _densest(pos, None, slot_of, live, log_w, cutoff, candidates=8)
+    pick = torch.linspace(0, n - 1, 8).round().to(torch.int64)
     pos_l = torch.take_along_dim(pos, slot_of.unsqueeze(-1), 2)  # label order
     w = torch.softmax(log_w, -1)
+    assert float(support[2]) == 0.0 and torch.equal(at[2], pos_l[2, 0, 0])
     for r in range(b):  # the reference, written out: every candidate in label order
         best, best_at = -1.0, None
-        for p in cands.pick.tolist():
+        for p in pick.tolist():
             for lab in range(k):
                 if not live[r, p, lab]:
                     s = 0.0
@@ -152,12 +142,11 @@ def test_relabel_order_matches_the_plain_rule():
     assert torch.equal(got, _relabel_reference(cost, cutoff))
 
 
-def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
-    """The densest-place candidates take the distances of the first of each run of equal
-    particles only (an MCMC chain repeats its state on a rejected move): each run's words are
-    those of every particle of the run, and the densest place and its support found from them
-    are those found from every particle's own words, bit for bit."""
-    from torchmcmcpf.state import _candidates, _densest, _runs, _slot_bits
+def test_densest_place_of_a_cloud_with_repeats_equals_every_particles_own(gen):
+    """The densest-place search measures the candidates against the first of each run of equal
+    particles only (an MCMC chain repeats its state on a rejected move) and gives each particle
+    its run's test: the place and its support are those found from every particle, bit for bit."""
+    from torchmcmcpf.state import _densest, _runs
 
     b, n, k = 3, 400, 4
     pos = torch.rand(b, n, k, 2, generator=gen, dtype=torch.float64) * 500
@@ -170,21 +159,14 @@ def test_candidates_of_a_cloud_with_repeats_equal_every_particles_own(gen):
     x[..., 0], x[..., 2] = pos[..., 0], pos[..., 1]
     runs = _runs(x, None)
     assert runs is not None and runs.x.shape[1] < n
-    got = _candidates(pos, 100.0, runs)
-    dist = torch.cdist(got.pos.reshape(b, -1, 2), pos.reshape(b, n * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
-    want = _slot_bits((dist <= 100.0).reshape(b, got.pick.numel(), k, n, k))
-    p = got.pick.numel()
-    assert torch.equal(got.close.gather(3, runs.rank[:, None, None, :, None].expand(b, p, k, n, 1)), want)
-    every = _candidates(pos, 100.0, None)
-    assert every.runs is None and torch.equal(every.close, want)
     # a relabelling and flags that are one per run (as the estimate's are), uneven weights
     run_of = runs.rank[:, :, None].expand(b, n, k)  # each particle's run
     slot_of = torch.stack([torch.randperm(k, generator=gen) for _ in range(b * runs.x.shape[1])]).reshape(
         b, -1, k).gather(1, run_of)
     live = (torch.rand(b, runs.x.shape[1], k, generator=gen) < 0.6).gather(1, run_of)
     log_w = torch.randn(b, n, generator=gen, dtype=torch.float64)
-    at, support = _densest(got, slot_of, live, log_w)
-    at_every, support_every = _densest(every, slot_of, live, log_w)
+    at, support = _densest(pos, runs, slot_of, live, log_w, 100.0)
+    at_every, support_every = _densest(pos, None, slot_of, live, log_w, 100.0)
     assert torch.equal(at, at_every) and torch.equal(support, support_every)
     assert bool((support > 0).all())  # a live slot near somewhere: the test compares found places
 

@@ -569,100 +569,64 @@ def _relabel_order_runs(x: Tensor, reference: Tensor, runs: _Runs | None, **kwar
     return take_along(order, runs.rank.unsqueeze(-1), 1)
 
 
-class _Candidates(NamedTuple):
-    """The candidate places of :func:`_densest` and which slots lie near each, made once per
-    cloud: relabelling permutes a particle's slots, never moves them, so the distances do not
-    change from round to round (only which slots are spare and how candidates are labelled).
+def _densest(pos: Tensor, runs: _Runs | None, slot_of: Tensor, live: Tensor, log_w: Tensor, cutoff: float,
+             candidates: int = 32) -> tuple[Tensor, Tensor]:
+    """The densest place of the live slots of a relabelled cloud: among the live slots of
+    ``candidates`` evenly spaced particles, the one with the most weight of live slots within
+    ``cutoff`` (each counted once per particle); ties go to the first in label order.
 
-    Attributes
-    ----------
-    pick : (P,) int64, the candidate particles (evenly spaced).
-    pos : (B, P, K, 2) their slots' positions, in the particles' own slot order.
-    close : (B, P, K, N', W) integer words, slot ``j``'s bit (:func:`_slot_bits`) set where slot ``k`` of
-        candidate particle ``p`` lies within ``cutoff`` of slot ``j`` of particle ``n`` (own
-        slot orders): one AND per particle and candidate then tests every slot of the
-        particle (``W = 1`` up to 63 slots). ``N' = N``, or with ``runs`` the first particle of
-        each run (``N' = m``; a run's particles have the same words).
-    runs : the :class:`_Runs` the words were taken on, or None (every particle).
-    """
-
-    pick: Tensor
-    pos: Tensor
-    close: Tensor
-    runs: _Runs | None
-
-
-def _slot_bits(flags: Tensor) -> Tensor:
-    """Bool ``flags (..., K)`` packed into integer words ``(..., ceil(K / 63))`` (int8 up to 7
-    slots, ..., int64 up to 63 a word): slot ``j`` is bit ``j % 63`` of word ``j // 63``.
-    """
-    k = flags.shape[-1]
-    width = max(1, min(k, 63))
-    words = -(-k // width)
-    pad = torch.zeros(flags.shape[:-1] + (words * width - k,), dtype=torch.bool, device=flags.device)
-    bits = torch.cat([flags, pad], -1).unflatten(-1, (words, width))
-    dtype = next(t for t, top in ((torch.int8, 7), (torch.int16, 15), (torch.int32, 31), (torch.int64, 63))
-                 if width <= top)  # the narrowest word that holds the bits: less memory to read
-    weights = (1 << torch.arange(width, device=flags.device)).to(dtype)
-    return (bits.to(dtype) * weights).sum(-1, dtype=dtype)  # distinct powers of 2: an OR
-
-
-def _candidates(pos: Tensor, cutoff: float, runs: _Runs | None, candidates: int = 32) -> _Candidates:
-    """:class:`_Candidates` of the positions ``pos (B, N, K, 2)``: the slots of ``candidates``
-    evenly spaced particles.
-
-    With ``runs`` (:func:`_runs`: an MCMC cloud whose rejected moves repeat states, 80 % of an
-    IP-MCMC-PF cloud on the births/deaths scene) the distances are taken for the first of each
-    run of equal particles only, and :func:`_densest` tests them per run: the same words.
-    """
-    n = pos.shape[1]
-    pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
-    b, p, k = pos.shape[0], pick.numel(), pos.shape[2]
-    cand = pos[:, pick]  # (B, P, K, 2)
-    sub = pos if runs is None else take_along(pos, runs.firsts[:, :, None, None], 1)  # (B, m, K, 2)
-    m = sub.shape[1]
-    # one kernel over every (candidate, slot) pair, differences squared and summed exactly
-    # (no |a|^2 + |b|^2 - 2 a.b): 2.8x faster than broadcast differences of the coordinates;
-    # each pair's distance alone, so the same values whichever particles are in the call
-    dist = torch.cdist(cand.reshape(b, p * k, 2), sub.reshape(b, m * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
-    return _Candidates(pick, cand, _slot_bits((dist <= cutoff).reshape(b, p, k, m, k)), runs)  # (B, P, K, m, W)
-
-
-def _densest(cands: _Candidates, slot_of: Tensor, live: Tensor, log_w: Tensor) -> tuple[Tensor, Tensor]:
-    """The densest place of the live slots of a relabelled cloud: among the live slots of the
-    candidate particles (:func:`_candidates`), the one with the most weight of live slots
-    within ``cutoff`` (each counted once per particle); ties go to the first in label order.
+    Only the candidates' live slots are measured against the cloud (a few percent of their
+    slots on the births/deaths scene: the spare slots of the estimate's search), each pair's
+    distance alone (:func:`torch.cdist` without the matrix product), so the support of a slot
+    does not depend on which other slots are measured with it.
 
     Parameters
     ----------
-    cands : :class:`_Candidates` of the cloud in its own slot order.
+    pos : (B, N, K, 2) the cloud's positions in its own slot order.
+    runs : the cloud's :class:`_Runs` (the distances are taken to the first particle of each run,
+        and each particle gets its run's test), or None (every particle).
     slot_of : (B, N, K) int64, the relabelling (:func:`relabel_order`: label ``r`` is carried by
         slot ``slot_of[..., r]``); live : (B, N, K) bool in label order; log_w : (B, N).
+    cutoff : [m] > 0; candidates : how many particles offer their slots.
 
     Returns
     -------
     at : (B, 2) that slot's position; support : (B,) the weight of the particles with a live
-    slot within ``cutoff`` of it (0 where no slot is live).
+    slot within ``cutoff`` of it (0 where no slot is live: ``at`` is then the first candidate's
+    label-0 slot).
     """
     b, n, k = live.shape
-    dtype = cands.pos.dtype
+    dtype = pos.dtype
+    pick = torch.linspace(0, n - 1, min(candidates, n), device=pos.device).round().to(torch.int64)
+    p = pick.numel()
     own_live = torch.zeros_like(live).scatter(2, slot_of, live)  # the particles' own slot order
-    runs = cands.runs
-    if runs is not None:  # a run's particles have one state, one order and one set of flags
-        own_live = take_along(own_live, runs.firsts.unsqueeze(-1), 1)  # (B, m, K)
-    live_bits = _slot_bits(own_live)  # (B, N', W)
-    near = ((cands.close & live_bits[:, None, None]) != 0).any(-1)  # (B, P, K, N'): a live slot near
+    cand_live = own_live[:, pick].reshape(b, p * k)
+    s = int(cand_live.sum(-1).max())  # one host read: the most live candidate slots of a batch row
+    # each row's live candidate slots first, in order (a stable sort of the flags); the rest pad
+    idx = torch.argsort((~cand_live).to(torch.uint8), dim=-1, stable=True)[:, :s]  # (B, S)
+    valid = take_along(cand_live, idx, -1)
+    at_own = take_along(pos[:, pick].reshape(b, p * k, 2), idx.unsqueeze(-1), 1)  # (B, S, 2)
+    sub, sub_live = (pos, own_live) if runs is None else \
+        (take_along(pos, runs.firsts[:, :, None, None], 1), take_along(own_live, runs.firsts.unsqueeze(-1), 1))
+    m = sub.shape[1]
+    dist = torch.cdist(at_own, sub.reshape(b, m * k, 2), compute_mode="donot_use_mm_for_euclid_dist")
+    near = ((dist <= cutoff).reshape(b, s, m, k) & sub_live.unsqueeze(1)).any(-1)  # (B, S, m): a live slot near
     if runs is not None:  # each particle the test of its run's first
-        near = near.gather(3, runs.rank[:, None, None, :].expand(b, near.shape[1], k, n))  # (B, P, K, N)
+        near = near.gather(2, runs.rank.unsqueeze(1).expand(b, s, n))  # (B, S, N)
     w = torch.softmax(log_w, -1).to(dtype)
     # w where near, else 0: the values of near * w (w finite, >= 0) without a float copy of near
-    support = torch.where(near, w[:, None, None], 0.0).sum(-1)  # (B, P, K), own slot order
-    order = slot_of[:, cands.pick]  # (B, P, K): the candidates in label order
-    support = take_along(support, order, -1).reshape(b, -1)
-    support = support.masked_fill(~live[:, cands.pick].reshape(b, -1), 0.0)  # (B, P K)
+    found = torch.where(near, w.unsqueeze(1), 0.0).sum(-1).masked_fill(~valid, 0.0)  # (B, S)
+    # into label order (candidate c's own slot j carries label r where slot_of[c, r] = j); the pad
+    # goes to a column past the end, dropped
+    order = slot_of[:, pick]  # (B, P, K)
+    label_of = torch.empty_like(order).scatter_(-1, order, torch.arange(k, device=pos.device).expand(b, p, k))
+    flat = (label_of + k * torch.arange(p, device=pos.device).unsqueeze(-1)).reshape(b, p * k)
+    dest = torch.where(valid, take_along(flat, idx, -1), p * k)
+    support = torch.zeros((b, p * k + 1), dtype=dtype, device=pos.device).scatter_(1, dest, found)[:, :p * k]
     best = support.argmax(-1)  # (B,)
-    cand = take_along(cands.pos, order.unsqueeze(-1), 2).reshape(b, -1, 2)
-    at = take_along(cand, best[:, None, None], 1).squeeze(1)
+    cand, slot = best // k, best % k
+    own = take_along(order.reshape(b, p * k), (k * cand + slot).unsqueeze(-1), -1)  # (B, 1): its own slot
+    at = pos[:, pick].reshape(b, p * k, 2)[torch.arange(b, device=pos.device), (k * cand + own.squeeze(-1))]
     return at, take_along(support, best[:, None], 1).squeeze(1)
 
 
@@ -715,13 +679,12 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
         # reference gets one label in every particle, not a share of each, and a stray slot
         # of one particle founds none
         ref, present = ref.clone(), present.clone()
-        cands = _candidates(torch.stack([x[..., X], x[..., Y]], -1), cutoff, runs) if iterations > 0 else None
+        pos = torch.stack([x[..., X], x[..., Y]], -1)
         for _ in range(k if iterations > 0 else 0):  # one new label a round, while one is found
-            assert cands is not None
             slot_of = _relabel_order_runs(x, ref, runs, exists=exists, reference_exists=present, cutoff=cutoff)
             unchanged = slot_of  # the order for (ref, present) as they are, until a label is founded
             spare = take_along(exists, slot_of, 2) & ~present.unsqueeze(1)  # (B, N, K), label order
-            at, support = _densest(cands, slot_of, spare, log_w)
+            at, support = _densest(pos, runs, slot_of, spare, log_w, cutoff)
             new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
             found = (support > 0.5) & (~present).any(-1)  # most of the weight has a slot there
             onto = found.unsqueeze(-1) & (torch.arange(k, device=x.device) == new.unsqueeze(-1))  # (B, K)
