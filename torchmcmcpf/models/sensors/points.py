@@ -245,11 +245,14 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     dx = wpos[..., 0:1] - wpts[..., 0].reshape(pts_shape)  # (B, *S, M)
     dy = wpos[..., 1:2] - wpts[..., 1].reshape(pts_shape)
     log_norm = float(torch.log(torch.abs(torch.det(W.to(torch.float64))))) - math.log(2 * math.pi)
-    log_g = log_norm - 0.5 * (dx.square_() + dy.square_())
     mk = mask.reshape(lead[:-1] + (1, m))
-    log_g = torch.where(mk, log_g, torch.full_like(log_g, -math.inf))
+    fresh = runtime.in_place(dx)
+    if fresh:  # c - 0.5 s as -0.5 s + c (the same rounding) and the mask, in dx's buffer
+        log_g = dx.square_().add_(dy.square_()).mul_(-0.5).add_(log_norm).masked_fill_(~mk, -math.inf)
+    else:
+        log_g = torch.where(mk, log_norm - 0.5 * (dx.square() + dy.square()), -math.inf)
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
-    lse = _logsumexp_fast if runtime.in_place(log_g) else torch.logsumexp  # the same bits
+    lse = _logsumexp_fast if fresh else torch.logsumexp  # the same bits
     log_near = lse(log_g, -1) - torch.log(n_valid.clamp(min=1))
     log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
     log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
