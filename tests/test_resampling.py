@@ -164,3 +164,32 @@ def test_inverse_cdf_by_guide_table_equals_searchsorted(weights):
         assert guided is not None and torch.equal(guided, want)
     else:
         assert guided is None
+
+
+def test_uniform_pick_equals_the_inverse_cdf_of_equal_weights(gen):
+    """A pick among each row's valid entries (valid ones anywhere, rows with none, float32 and
+    float64 uniforms) gives the indices the inverse CDF of equal weights on them gives, and
+    every valid entry about equally often; the boundaries ``j / n`` go to the upper entry."""
+    from torchmcmcpf.resampling import cdf, inverse_cdf, uniform_pick
+
+    b, m, p = 6, 13, 20000
+    mask = torch.rand(b, m, generator=gen) < 0.5
+    mask[0] = False  # none valid: among all
+    mask[1] = True
+    mask[2, :] = False
+    mask[2, 7] = True  # one valid, not first
+    for dtype in (torch.float32, torch.float64):
+        u = torch.rand(b, p, generator=gen, dtype=dtype)
+        want = inverse_cdf(cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, float("-inf"))), u)
+        got = uniform_pick(mask, u)
+        assert torch.equal(got, want)
+    assert bool(torch.gather(mask, 1, got)[1:].all())  # valid entries only where there are any
+    n = mask[3].sum()
+    counts = torch.bincount(got[3], minlength=m)[mask[3]].double()
+    # each count Binomial(p, 1/n): within 5 standard deviations
+    assert float((counts - p / n).abs().max()) < 5 * math.sqrt(p / n * (1 - 1 / n))
+    edges = torch.tensor([[0.0, 1 / 3, 2 / 3, 1 - 2**-53]], dtype=torch.float64)
+    three = torch.tensor([[False, True, False, True, True]])
+    assert uniform_pick(three, edges).tolist() == [[1, 3, 4, 4]]
+    with pytest.raises(ValueError, match="mask must be"):
+        uniform_pick(torch.zeros(3, 0, dtype=torch.bool), u[:3])

@@ -35,6 +35,7 @@ __all__ = [
     "RESAMPLERS",
     "cdf",
     "inverse_cdf",
+    "uniform_pick",
 ]
 
 
@@ -157,6 +158,36 @@ def inverse_cdf(cdf_: Tensor, u: Tensor) -> Tensor:
             return found
     idx = torch.searchsorted(cdf_, u64, right=True)
     return idx.clamp_(max=cdf_.shape[-1] - 1)
+
+
+def uniform_pick(mask: Tensor, u: Tensor) -> Tensor:
+    """Indices drawn uniformly among the valid entries of each row: the data-driven proposals'
+    pick of a frame's point or detection.
+
+    Entry ``floor(u n)`` of the row's valid indices in order (``n`` of them; a row with none:
+    among all ``M``). The law of ``inverse_cdf(cdf(log_w), u)`` with ``log_w`` 0 where valid,
+    ``-inf`` elsewhere, and the same index except where ``u`` lies within a few ulps of a
+    boundary ``j / n`` (the CDF's cumulative sum rounds there), without a search: a frame's
+    padded columns put their CDF entries in the guide table's last bin, so :func:`inverse_cdf`
+    fell back to a binary search of every point.
+
+    Parameters
+    ----------
+    mask : (B, M) bool, the valid entries, ``M >= 1``; u : (B, P) uniforms in [0, 1).
+
+    Returns
+    -------
+    (B, P) int64 indices into ``M``.
+    """
+    if mask.dim() != 2 or mask.shape[-1] < 1:
+        raise ValueError(f"mask must be (B, M) with M >= 1, got shape {tuple(mask.shape)}")
+    n = mask.sum(-1, keepdim=True)  # (B, 1)
+    none = n == 0
+    # the valid indices first, in order (a stable sort of the flags); a row with none: all, in order
+    order = torch.argsort((~mask & ~none).to(torch.uint8), dim=-1, stable=True)
+    n = torch.where(none, mask.shape[-1], n)
+    j = (u.to(torch.float64) * n).to(torch.int64)  # u >= 0: truncation is the floor
+    return torch.gather(order, -1, torch.minimum(j, n - 1))  # u n rounded up to n: the last
 
 
 #: the guide table's longest scan (entries of the CDF in one of its bins) before

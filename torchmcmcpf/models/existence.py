@@ -47,7 +47,7 @@ import torch
 from torch import nn
 
 from .._validation import check_positive
-from ..resampling import cdf, inverse_cdf
+from ..resampling import uniform_pick
 from ..runtime import take_along
 from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
@@ -335,8 +335,7 @@ class BirthDeath(nn.Module):
         lead = (b,) + (1,) * (len(shape) - 1)
         # pick a valid point uniformly: inversion of the CDF of equal weights on the valid points
         u_pick = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
-        log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M); none valid: unused
-        idx = inverse_cdf(cdf(log_pick), u_pick[..., 0].reshape(b, -1)).reshape(shape)
+        idx = uniform_pick(mask, u_pick[..., 0].reshape(b, -1)).reshape(shape)  # none valid: unused
         centre = take_along(pts, idx.reshape(b, -1, 1), dim=1).reshape(tuple(shape) + (2,))
         near = centre + self.birth_std * torch.randn(tuple(shape) + (2,), generator=generator,
                                                      device=device, dtype=dtype)

@@ -34,7 +34,7 @@ import torch
 
 from ... import runtime
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
-from ...resampling import cdf, inverse_cdf
+from ...resampling import uniform_pick
 from ...runtime import take_along
 from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
@@ -568,8 +568,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         if mask is None:
             mask = torch.ones((b, m), dtype=torch.bool, device=dev)
         if m > 0:
-            log_pick = torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf)  # (B, M)
-            idx = inverse_cdf(cdf(log_pick), u_pick[..., 0])  # (B, P)
+            idx = uniform_pick(mask, u_pick[..., 0])  # (B, P)
             centre = take_along(pts.to(dtype), idx.unsqueeze(-1), dim=1)
             L = torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype)
             near = centre + _whiten(eps, L, self.diagonal)  # eps @ L^T

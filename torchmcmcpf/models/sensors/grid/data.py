@@ -9,7 +9,7 @@ import math
 
 import torch
 
-from ....resampling import cdf, inverse_cdf
+from ....resampling import uniform_pick
 from ....runtime import take_along
 from ....typing import Tensor
 from ...base import neighbourhood
@@ -142,7 +142,7 @@ def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], 
     centres, mask = detections(sensor, z) if found is None else found
     lo, hi, log_volume = geometry.extent()
     u = torch.rand((B, Q, 2), generator=generator, device=z.device, dtype=torch.float64)
-    pick = inverse_cdf(cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, float("-inf"))), u[..., 0])
+    pick = uniform_pick(mask, u[..., 0])
     eps = torch.randn((B, Q, n), generator=generator, device=z.device, dtype=dtype)
     box = torch.rand((B, Q, n), generator=generator, device=z.device, dtype=dtype)
     low = torch.tensor(lo, dtype=dtype, device=z.device)
