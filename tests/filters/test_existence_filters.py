@@ -197,6 +197,24 @@ def test_mcmc_filters_same_seed_same_result(kind):
     assert not torch.equal(a.state.x, c.state.x)
 
 
+@KINDS
+def test_mcmc_filters_in_inference_mode_give_the_same_result(kind):
+    """Under ``torch.inference_mode`` (the births/deaths study's way: no autograd work per
+    operation) a run gives the same bits, and a run resumed from its inference-mode state
+    (never trusted: the full check at the door) the same as one resumed from the plain state."""
+    z, _ = data(torch.Generator().manual_seed(0), with_target=True)
+    z1, z2 = (type(z)(z.z[a:b], z.mask[a:b]) for a, b in ((BORN, BORN + 3), (BORN + 3, BORN + 5)))
+    plain = run_mcmc(kind, z1, torch.Generator().manual_seed(1))
+    with torch.inference_mode():
+        fast = run_mcmc(kind, z1, torch.Generator().manual_seed(1))
+    assert fast.state.x.is_inference() and torch.equal(fast.state.x, plain.state.x)
+    assert torch.equal(fast.exists_prob, plain.exists_prob) and torch.equal(fast.mean, plain.mean)
+    filt = mcmc_filter(kind)
+    again = filt(z2, init=fast.state, generator=torch.Generator().manual_seed(2))  # outside inference mode
+    want = filt(z2, init=plain.state, generator=torch.Generator().manual_seed(2))
+    assert torch.equal(again.state.x, want.state.x) and torch.equal(again.exists_prob, want.exists_prob)
+
+
 def test_mcmc_filters_refuse_bad_existence_settings(gen):
     motion, sensor, existence = models()
     with pytest.raises(ValueError, match="existence"):

@@ -331,7 +331,8 @@ class BirthsAndDeaths(Study[BirthDeathSettings]):
             state, means, probs = init, [], []
             for i, part in enumerate(parts):  # each third resumed from the last one's state: timed apart
                 zi = type(z)(*(a[part.start:part.stop] for a in z))
-                with StepTimer(device, len(part)) as timer:
+                # no gradients: inference mode drops autograd's per-operation work (docs/performance.md)
+                with StepTimer(device, len(part)) as timer, torch.inference_mode():
                     res = filt(zi, init=state, generator=generator, progress=progress)
                 seconds[f"{name}|{i}"] = timer.seconds
                 state = res.state
