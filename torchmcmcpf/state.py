@@ -605,7 +605,8 @@ def _densest(pos: Tensor, runs: _Runs | None, slot_of: Tensor, live: Tensor, log
     # each row's live candidate slots first, in order (a stable sort of the flags); the rest pad
     idx = torch.argsort((~cand_live).to(torch.uint8), dim=-1, stable=True)[:, :s]  # (B, S)
     valid = take_along(cand_live, idx, -1)
-    at_own = take_along(pos[:, pick].reshape(b, p * k, 2), idx.unsqueeze(-1), 1)  # (B, S, 2)
+    cand_pos = pos[:, pick].reshape(b, p * k, 2)  # own slot order
+    at_own = take_along(cand_pos, idx.unsqueeze(-1), 1)  # (B, S, 2)
     sub, sub_live = (pos, own_live) if runs is None else \
         (take_along(pos, runs.firsts[:, :, None, None], 1), take_along(own_live, runs.firsts.unsqueeze(-1), 1))
     m = sub.shape[1]
@@ -626,7 +627,7 @@ def _densest(pos: Tensor, runs: _Runs | None, slot_of: Tensor, live: Tensor, log
     best = support.argmax(-1)  # (B,)
     cand, slot = best // k, best % k
     own = take_along(order.reshape(b, p * k), (k * cand + slot).unsqueeze(-1), -1)  # (B, 1): its own slot
-    at = pos[:, pick].reshape(b, p * k, 2)[torch.arange(b, device=pos.device), (k * cand + own.squeeze(-1))]
+    at = take_along(cand_pos, (k * cand.unsqueeze(-1) + own).unsqueeze(-1), 1).squeeze(1)
     return at, take_along(support, best[:, None], 1).squeeze(1)
 
 
