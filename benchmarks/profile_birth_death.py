@@ -9,7 +9,8 @@ Prints, per filter, the unprofiled time per step and run (wall clock and the pro
 time, which a busy shared machine inflates less) and each part's share of the profiled step
 (profiling inflates the Python-heavy parts a little; the shares are of the profiled total),
 then each step's arithmetic floor (:func:`floor`, :func:`floor_mcmc`). Glibc's allocator is tuned as
-``python -m torchmcmcpf`` tunes it (large temporaries reuse warm pages).
+``python -m torchmcmcpf`` tunes it (large temporaries reuse warm pages), and the filters run
+under ``torch.inference_mode()``, as the study runs them.
 """
 
 from __future__ import annotations
@@ -119,12 +120,13 @@ def main() -> None:
     for name, parts in PARTS.items():
         filt = _filters(cfg, scn.motion, scn.sensor, scn.existence)[name]
         g = torch.Generator().manual_seed(0)
-        state = filt(frames(0, 2), init=init, generator=g).state
-        start, cpu = time.perf_counter(), time.process_time()
-        filt(frames(2, 3), init=state, generator=torch.Generator().manual_seed(1))
-        plain, cpu = time.perf_counter() - start, time.process_time() - cpu
-        with profile(with_stack=True) as prof:
-            filt(frames(3, 4), init=state, generator=torch.Generator().manual_seed(1))
+        with torch.inference_mode():  # as the study runs its filters
+            state = filt(frames(0, 2), init=init, generator=g).state
+            start, cpu = time.perf_counter(), time.process_time()
+            filt(frames(2, 3), init=state, generator=torch.Generator().manual_seed(1))
+            plain, cpu = time.perf_counter() - start, time.process_time() - cpu
+            with profile(with_stack=True) as prof:
+                filt(frames(3, 4), init=state, generator=torch.Generator().manual_seed(1))
         totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
 
         def inclusive(file: str, fn: str) -> float:
