@@ -165,11 +165,11 @@ def uniform_pick(mask: Tensor, u: Tensor) -> Tensor:
     pick of a frame's point or detection.
 
     Entry ``floor(u n)`` of the row's valid indices in order (``n`` of them; a row with none:
-    among all ``M``). The law of ``inverse_cdf(cdf(log_w), u)`` with ``log_w`` 0 where valid,
+    among all ``M``): the law of ``inverse_cdf(cdf(log_w), u)`` with ``log_w`` 0 where valid,
     ``-inf`` elsewhere, and the same index except where ``u`` lies within a few ulps of a
-    boundary ``j / n`` (the CDF's cumulative sum rounds there), without a search: a frame's
-    padded columns put their CDF entries in the guide table's last bin, so :func:`inverse_cdf`
-    fell back to a binary search of every point.
+    boundary ``j / n`` (the CDF's cumulative sum rounds there; near 1 it could name a padded
+    entry, this never does). No search: for such weights :func:`inverse_cdf` does a binary
+    search of every point, since the padded entries fill its guide table's last bin.
 
     Parameters
     ----------
