@@ -259,6 +259,8 @@ def torch_threads_set(threads: int | None) -> Iterator[None]:
 
 def _run_demo(args: argparse.Namespace, out: Path) -> dict:
     """The demo proper, in the output folder ``out``, with its thread count set."""
+    import torch
+
     from . import runtime
     from .metrics import position_rmse, track_loss
     from .scenarios import ground_radar
@@ -272,7 +274,8 @@ def _run_demo(args: argparse.Namespace, out: Path) -> dict:
     note = demo_expectation(args)
     if note:
         print(note, flush=True)
-    with StepTimer(args.device, steps=args.steps) as timer:
+    # no gradients: inference mode drops autograd's per-operation work (docs/performance.md)
+    with StepTimer(args.device, steps=args.steps) as timer, torch.inference_mode():
         result = filt(scenario.measurements, init=init, generator=g, progress=args.progress)
     rmse = position_rmse(result.mean, scenario.truth, match=True)
     lost = track_loss(result.mean, scenario.truth, match=True)
