@@ -216,3 +216,16 @@ def test_compiled_hmc_kernel_on_the_radar_matches_eager():
         means.append(filt(sc.measurements, init=x0, generator=torch.Generator().manual_seed(2)).mean)
     # grid sensors: the fused compiled sums may differ from eager in the last bits (README)
     torch.testing.assert_close(means[1], means[0], rtol=1e-5, atol=1e-3)
+
+
+def test_hmc_under_inference_mode_says_why_it_cannot_run(gen):
+    """HMC takes autograd gradients inside the step: under ``torch.inference_mode()`` it stops
+    with a RuntimeError that says so (not autograd's own message); without the move the filter
+    runs there, and ``torch.no_grad()`` suits the move."""
+    motion, sensor, zs, init, *_ = _linear_problem(gen, 2, 2, 20)
+    with torch.inference_mode(), pytest.raises(RuntimeError, match="inference_mode"):
+        ResampleMoveFilter(motion, sensor, 20, num_hmc_steps=2)(zs, init=init, generator=gen)
+    with torch.inference_mode():
+        ResampleMoveFilter(motion, sensor, 20, num_hmc_steps=0)(zs, init=init, generator=gen)
+    with torch.no_grad():
+        ResampleMoveFilter(motion, sensor, 20, num_hmc_steps=2)(zs, init=init, generator=gen)

@@ -80,10 +80,19 @@ def value_and_grad(log_target: LogTarget, q: Tensor, grad_fn: GradFn | None = No
     -------
     value : (*C), detached.
     grad : (*C, *E), detached.
+
+    Raises
+    ------
+    RuntimeError : under ``torch.inference_mode()`` without ``grad_fn``: the tensors made
+    there cannot enter autograd (``torch.no_grad()`` is fine).
     """
     if grad_fn is not None:
         with torch.no_grad():
             return log_target(q), grad_fn(q)
+    if torch.is_inference_mode_enabled():
+        raise RuntimeError("HMC takes its gradients from autograd, which tensors made under torch.inference_mode() "
+                           "cannot enter: run a filter with an HMC move outside inference mode (torch.no_grad() is "
+                           "fine)")
     with torch.enable_grad():
         q_ = q.detach().requires_grad_(True)
         value = log_target(q_)
