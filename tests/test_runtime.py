@@ -109,3 +109,10 @@ def test_take_along_equals_take_along_dim(t_shape, i_shape, dim):
     assert torch.equal(grad_got, grad_want)
     with pytest.raises(ValueError, match="same number"):
         take_along(t, index.flatten(), dim)
+
+
+def test_flagged_first_puts_the_flagged_entries_first_in_order():
+    from torchmcmcpf.runtime import flagged_first
+
+    flags = torch.tensor([[False, True, False, True, True], [False] * 5, [True] * 5])
+    assert flagged_first(flags).tolist() == [[1, 3, 4, 0, 2], [0, 1, 2, 3, 4], [0, 1, 2, 3, 4]]

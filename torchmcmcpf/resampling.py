@@ -183,8 +183,8 @@ def uniform_pick(mask: Tensor, u: Tensor) -> Tensor:
         raise ValueError(f"mask must be (B, M) with M >= 1, got shape {tuple(mask.shape)}")
     n = mask.sum(-1, keepdim=True)  # (B, 1)
     none = n == 0
-    # the valid indices first, in order (a stable sort of the flags); a row with none: all, in order
-    order = torch.argsort((~mask & ~none).to(torch.uint8), dim=-1, stable=True)
+    # the valid indices first, in order; a row with none: all, in order
+    order = runtime.flagged_first(mask | none)
     n = torch.where(none, mask.shape[-1], n)
     j = (u.to(torch.float64) * n).to(torch.int64)  # u >= 0: truncation is the floor
     return torch.gather(order, -1, torch.minimum(j, n - 1))  # u n rounded up to n: the last

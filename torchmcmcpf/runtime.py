@@ -66,7 +66,7 @@ from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 from ._validation import check_positive_int
 
 __all__ = ["on_cuda", "compiling", "in_function_transform", "neighbour_count", "broadcast_sums", "compiled_for_cpu",
-           "take_along", "blocked_linear_map", "fused_elementwise", "generated_reductions", "Program",
+           "take_along", "flagged_first", "blocked_linear_map", "fused_elementwise", "generated_reductions", "Program",
            "compile_program", "memory_budget", "set_memory_budget", "check_memory_budget", "MIN_MEMORY_BUDGET",
            "available_memory", "allocation_budget", "set_allocation_budget", "check_allocation", "tune_cpu_allocator"]
 
@@ -158,6 +158,14 @@ def take_along(t: torch.Tensor, index: torch.Tensor, dim: int) -> torch.Tensor:
     shape_t[d], shape_i[d] = t.shape[d], index.shape[d]
     return torch.gather(t.expand(shape_t), d, index.expand(shape_i))
 
+
+
+def flagged_first(flags: torch.Tensor) -> torch.Tensor:
+    """The indices of the last dim with the flagged entries first, each part in order (a stable
+    sort of the flags): ``flags (..., P)`` bool -> ``(..., P)`` int64. Cut at a row's count, the
+    flagged entries alone (a frame's valid points, a cloud's live candidate slots).
+    """
+    return torch.argsort((~flags).to(torch.uint8), dim=-1, stable=True)
 
 def squared_norm(v: torch.Tensor) -> torch.Tensor:
     """``v.square().sum(-1)`` for a short last dim (2-4 coordinates: a whitened residual, a

@@ -16,7 +16,7 @@ import torch
 from torch.utils._pytree import tree_map
 
 from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
-from .runtime import squared_norm, take_along
+from .runtime import flagged_first, squared_norm, take_along
 from .typing import Tensor, X, Y
 
 __all__ = ["ParticleState", "StepInfo", "FilterResult", "ExistenceEstimate", "existence_estimate", "stack_infos",
@@ -602,8 +602,7 @@ def _densest(pos: Tensor, runs: _Runs | None, slot_of: Tensor, live: Tensor, log
     own_live = torch.zeros_like(live).scatter(2, slot_of, live)  # the particles' own slot order
     cand_live = own_live[:, pick].reshape(b, p * k)
     s = int(cand_live.sum(-1).max())  # one host read: the most live candidate slots of a batch row
-    # each row's live candidate slots first, in order (a stable sort of the flags); the rest pad
-    idx = torch.argsort((~cand_live).to(torch.uint8), dim=-1, stable=True)[:, :s]  # (B, S)
+    idx = flagged_first(cand_live)[:, :s]  # (B, S): each row's live candidate slots, then padding
     valid = take_along(cand_live, idx, -1)
     cand_pos = pos[:, pick].reshape(b, p * k, 2)  # own slot order
     at_own = take_along(cand_pos, idx.unsqueeze(-1), 1)  # (B, S, 2)

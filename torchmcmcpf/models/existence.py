@@ -333,7 +333,7 @@ class BirthDeath(nn.Module):
         pts = pts.to(dtype)
         n_valid = mask.sum(-1)  # (B,)
         lead = (b,) + (1,) * (len(shape) - 1)
-        # pick a valid point uniformly: inversion of the CDF of equal weights on the valid points
+        # a valid point picked uniformly (resampling.uniform_pick)
         u_pick = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         idx = uniform_pick(mask, u_pick[..., 0].reshape(b, -1)).reshape(shape)  # none valid: unused
         centre = take_along(pts, idx.reshape(b, -1, 1), dim=1).reshape(tuple(shape) + (2,))
