@@ -416,17 +416,17 @@ def _past_log_target(chain: Chain) -> Tensor:
     return chain.prev.log_win + log_g + chain.log_px + chain.log_lik
 
 
-def _pixel_log_q(pos: Tensor, mask: Tensor, n: Tensor, sensor: ThresholdedPixels) -> Tensor:
-    """``log`` of the density uniform over the pixels of ``mask (B, C, HW)`` (``n (B, C)`` of
-    them) at positions ``pos (B, C, 2)``: ``-log(n s^2)`` in a pixel of the mask, ``-inf``
-    elsewhere (and where ``n = 0``): ``-> (B, C)``.
+def _pixel_log_q(pos: Tensor, masks: Tensor, step: Tensor, n: Tensor, sensor: ThresholdedPixels) -> Tensor:
+    """``log`` of the density uniform over the pixels of mask ``masks[b, step[b, c]]`` (``masks
+    (B, W, HW)`` bool, ``step (B, C)``; ``n (B, C)`` pixels) at positions ``pos (B, C, 2)``:
+    ``-log(n s^2)`` in a pixel of the mask, ``-inf`` elsewhere (and where ``n = 0``): ``-> (B, C)``.
     """
     h, w = sensor.shape
     s = sensor.pixel_size
     col, row = torch.floor(pos[..., 0] / s), torch.floor(pos[..., 1] / s)
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long()
-    hit = torch.gather(mask, -1, flat.unsqueeze(-1)).squeeze(-1) & inside & (n > 0)
+    flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long() + step * (h * w)  # (B, C) into (B, W HW)
+    hit = torch.gather(masks.flatten(1), -1, flat) & inside & (n > 0)
     log_q = -torch.log(n.to(pos.dtype).clamp(min=1) * s * s)
     return torch.where(hit, log_q, torch.full_like(log_q, -math.inf))
 
@@ -496,11 +496,12 @@ def window_birth_move(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, 
     birth = torch.gather(births.flatten(-2), -1, pick.unsqueeze(-1)).squeeze(-1) & (n_elig > 0)
     death = torch.gather(deaths.flatten(-2), -1, pick.unsqueeze(-1)).squeeze(-1) & (n_elig > 0)
     n_s = torch.gather(cloud.n_pair, 1, s)  # (B, C)
-    # y ~ uniform over the paired detections of Z_s (a pixel by the shared inverse CDF, then a place in it)
+    # y ~ uniform over the paired detections of Z_s (a pixel by the shared inverse CDF, then a
+    # place in it): every chain's draw searched in each window step's CDF (W searches of a
+    # row, not a copy of a (HW) row per chain), the chain's step s kept
     b, c = s.shape
-    cdf_s = torch.gather(cloud.cdf_pair, 1, s.unsqueeze(-1).expand(b, c, cloud.cdf_pair.shape[-1]))
-    mask_s = torch.gather(cloud.pair, 1, s.unsqueeze(-1).expand(b, c, cloud.pair.shape[-1]))
-    idx = inverse_cdf(cdf_s, noise.y_pix.unsqueeze(-1)).squeeze(-1)
+    idx = torch.gather(inverse_cdf(cloud.cdf_pair, noise.y_pix.unsqueeze(1).expand(b, w, c)), 1,
+                       s.unsqueeze(1)).squeeze(1)  # (B, C)
     width = sensor.shape[1]
     pix = torch.stack([(idx % width).to(noise.y_xy.dtype), (idx // width).to(noise.y_xy.dtype)], -1)
     y_new = (pix + noise.y_xy) * sensor.pixel_size  # (B, C, 2)
@@ -514,7 +515,7 @@ def window_birth_move(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, 
     alive_ex = chain.exists | onehot
     win_alive, pos_alive, log_qx = _alive_path(chain, cloud, models, onehot, s, birth, y, noise.x_eps,
                                                alive_win_ex, alive_ex)
-    log_q = _pixel_log_q(y, mask_s, n_s, sensor) + log_qx
+    log_q = _pixel_log_q(y, cloud.pair, s, n_s, sensor) + log_qx
     # the proposed state: alive from s (a birth) or dead from s (a death; positions to x_death)
     dead = _death_pos(existence, y_new)
     win_exists = torch.where(birth[..., None, None], alive_win_ex, prev.win_exists & ~in_window)
