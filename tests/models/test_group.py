@@ -129,6 +129,21 @@ def test_structure_index_of_any_labelling():
     assert structure_index(torch.tensor([[3, 3, 1, 1], [2, 0, 2, 0]])).tolist() == [3, 6]
 
 
+def test_structure_index_compiled_same_and_without_the_cache_warning():
+    """Under torch.compile the table is built without its cache, whose wrapper Dynamo warns
+    about (every compiled group filter printed the warning); the same indices.
+    """
+    import warnings
+
+    torch._dynamo.reset()
+    labels = torch.tensor([[3, 3, 1, 1], [2, 0, 2, 0], [0, 1, 2, 3], [1, 1, 1, 1]])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        got = torch.compile(structure_index, backend="eager", fullgraph=True)(labels)
+    assert torch.equal(got, structure_index(labels)) and got.tolist() == [3, 6, 14, 0]
+    assert not [w for w in caught if "lru_cache" in str(w.message)]
+
+
 def test_structure_prior_normalised(gen):
     prior = GroupStructurePrior(0.6, 0.05)
     pos = 1000 * torch.rand(3, 5, 4, 2, generator=gen, dtype=torch.float64)

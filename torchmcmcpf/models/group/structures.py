@@ -36,12 +36,14 @@ def bell_number(n: int) -> int:
     return row[0]
 
 
-@functools.cache
-def _structures(n: int) -> tuple[tuple[int, ...], ...]:
+def _rows(n: int) -> tuple[tuple[int, ...], ...]:
     rows: list[tuple[int, ...]] = [(0,)]
     for _ in range(n - 1):
         rows = [r + (j,) for r in rows for j in range(max(r) + 2)]
     return tuple(rows)
+
+
+_structures = functools.cache(_rows)
 
 
 def group_structures(n: int, *, device: torch.device | str | None = None) -> Tensor:
@@ -62,7 +64,10 @@ def group_structures(n: int, *, device: torch.device | str | None = None) -> Ten
     (Bell(n), n) int64.
     """
     check_positive_int(n, "n")
-    return torch.tensor(_structures(n), dtype=torch.int64, device=device)
+    # under torch.compile the rows are built without the cache, whose wrapper Dynamo warns
+    # about; they are the graph's constants either way
+    rows = _rows(n) if torch.compiler.is_compiling() else _structures(n)
+    return torch.tensor(rows, dtype=torch.int64, device=device)
 
 
 def structure_index(labels: Tensor) -> Tensor:
