@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchmcmcpf.models import ConstantVelocity
-from torchmcmcpf.models.existence import BirthDeath
+from torchmcmcpf.models.existence import BirthDeath, BirthNoise
 from torchmcmcpf.models.sensors.points import PointFrame
 from torchmcmcpf.state import ParticleState, existence_estimate
 
@@ -128,29 +128,48 @@ def test_bad_settings_raise(kw, match):
         BirthDeath(args.pop("p_birth"), args.pop("p_death"), args.pop("area"), **args)
 
 
-def test_birth_ratios_are_taken_where_a_slot_can_be_born(gen):
-    """The birth noise scores a candidate (a sum over the frame's points) only where its
-    uniform can turn an inactive slot on (``may_be_born``); the candidates, and every ratio a
-    transition reads, are those of scoring all of them."""
+def test_birth_candidates_are_drawn_where_a_slot_can_be_born(gen):
+    """The birth noise draws a candidate, and scores it (a sum over the frame's points), only
+    where its uniform can turn an inactive slot on (``may_be_born``), each run's candidates
+    packed in order into one block drawn by the dense code; elsewhere ``x_death`` and ratio 0,
+    which no transition reads (NaN there changes nothing)."""
     bd = BirthDeath(0.1, 0.05, AREA, velocity_std=3.0, birth_std=20.0, p_uniform=0.2).double()
     bd = bd.with_proposal((0.3, 0.1))
-    pts = torch.tensor([[[100.0, 100.0], [900.0, 400.0], [0.0, 0.0]]], dtype=torch.float64)
-    frame = PointFrame(pts, torch.tensor([[True, True, False]]))
-    x = torch.zeros(1, 400, 3, 4, dtype=torch.float64)
-    exists = torch.rand(1, 400, 3, generator=gen) < 0.5
+    pts = torch.tensor([[[100.0, 100.0], [900.0, 400.0], [0.0, 0.0]],
+                        [[500.0, 250.0], [0.0, 0.0], [0.0, 0.0]]], dtype=torch.float64)
+    frame = PointFrame(pts, torch.tensor([[True, True, False], [True, False, False]]))
+    x = torch.zeros(2, 400, 3, 4, dtype=torch.float64)
+    exists = torch.rand(2, 400, 3, generator=gen) < 0.5
     motion = ConstantVelocity(1.0, 1.0).double()
     eps, noise = bd.draw_noise(x, motion, frame, generator=torch.Generator().manual_seed(2))
     u = noise.u
-    full_x, full_r = bd._draw_births(u.shape, frame, generator=_after_uniforms(u, motion), dtype=u.dtype,
-                                     device=u.device)
-    assert torch.equal(noise.x, full_x)
     can = bd.may_be_born(u)
     assert 0 < int(can.sum()) < can.numel() and torch.equal(can, u < 0.3)
-    assert torch.equal(noise.log_ratio, torch.where(can, full_r, 0.0))
+    counts = can.flatten(1).sum(-1)
+    assert counts[0] != counts[1]  # two runs' blocks of different lengths
+    width = int(counts.max())
+    block_x, block_r = bd._draw_births((2, width), frame, generator=_after_uniforms(u, motion), dtype=u.dtype,
+                                       device=u.device)
+    for r in range(2):  # the run's candidates, in order, are its block's first columns
+        got = noise.x[r][can[r]]
+        assert torch.equal(got, block_x[r, :int(counts[r])])
+        assert torch.equal(noise.log_ratio[r][can[r]], block_r[r, :int(counts[r])])
+    assert torch.equal(noise.x[~can], bd.x_death.double().expand(int((~can).sum()), 4))
+    assert torch.equal(noise.log_ratio[~can], torch.zeros(int((~can).sum()), dtype=torch.float64))
+    # the ratio is the candidate's own: log p_0 - log q_0 at its position
+    pos = noise.x[..., [0, 2]]
+    assert torch.allclose(noise.log_ratio[can], bd._log_birth_ratio(pos, pts, frame.mask, 20.0)[can])
+    unread = noise._replace(x=torch.where(can.unsqueeze(-1), noise.x, math.nan),
+                            log_ratio=torch.where(can, noise.log_ratio, math.nan))
     for from_prior in (False, True):
-        _, _, log_r = bd.propagate(x, exists, eps, noise, motion=motion, from_prior=from_prior)
-        _, _, ref = bd.propagate(x, exists, eps, noise._replace(log_ratio=full_r), motion=motion, from_prior=from_prior)
-        assert torch.equal(log_r, ref)
+        ref = bd.propagate(x, exists, eps, noise, motion=motion, from_prior=from_prior)
+        got = bd.propagate(x, exists, eps, unread, motion=motion, from_prior=from_prior)
+        assert all(torch.equal(a, b) for a, b in zip(ref, got))
+    # with the ancestors' flags, only their inactive slots draw
+    narrow = BirthNoise.draw(x, bd, frame, generator=torch.Generator().manual_seed(3), exists=exists)
+    drawn = bd.can_be_born(narrow.u, exists)
+    assert torch.equal(narrow.x[~drawn], bd.x_death.double().expand(int((~drawn).sum()), 4))
+    assert bool((narrow.log_ratio[drawn] != 0).all())
 
 
 def _after_uniforms(u, motion):
@@ -159,3 +178,24 @@ def _after_uniforms(u, motion):
     torch.rand(u.shape, generator=g, dtype=u.dtype)
     torch.randn(u.shape + (motion.noise_dim,), generator=g, dtype=u.dtype)
     return g
+
+
+def test_a_simulated_scene_draws_every_slot_candidate():
+    """``BirthDeath.sample`` (the scenes' simulator) draws a newborn candidate for every slot,
+    so a seed's scene does not depend on which slots the filters' draws skip: the same as
+    uniforms, motion noise and every slot's candidate from ``p_0`` drawn in that order."""
+    bd = BirthDeath(0.3, 0.2, AREA, velocity_std=3.0).double()
+    motion = ConstantVelocity(1.0, 1.0).double()
+    x = torch.zeros(2, 50, 3, 4, dtype=torch.float64)
+    exists = torch.rand(2, 50, 3, generator=torch.Generator().manual_seed(0)) < 0.5
+    got_x, got_e = bd.sample(x, exists, motion=motion, generator=torch.Generator().manual_seed(5))
+    g = torch.Generator().manual_seed(5)
+    u = torch.rand(x.shape[:-1], generator=g, dtype=torch.float64)
+    eps = torch.randn(x.shape[:-1] + (motion.noise_dim,), generator=g, dtype=torch.float64)
+    pos = bd.uniform_position(torch.rand(x.shape[:-1] + (2,), generator=g, dtype=torch.float64))
+    vel = torch.randn(x.shape[:-1] + (2,), generator=g, dtype=torch.float64)
+    ref_x, ref_e, _ = bd.propagate(x, exists, eps, BirthNoise(u, bd._newborn(pos, vel), torch.zeros_like(u)),
+                                   motion=motion)
+    born = ref_e & ~exists
+    assert 0 < int(born.sum())
+    assert torch.equal(got_x, ref_x) and torch.equal(got_e, ref_e)

@@ -35,10 +35,8 @@ from ..kernels.chains import (
     JointNoise,
     PreviousCloud,
     RefineNoise,
-    draw_ancestors,
     evaluate,
     previous_cloud,
-    score_births,
 )
 from ..kernels.hmc_refine import (
     HMCRefine,
@@ -53,7 +51,6 @@ from ..kernels.random_walk import RandomWalkNoise, RunningMoments, adapted_step,
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, RelocationNoise, check_exclusion, check_recapture, exclusion_on
-from ..resampling import gather_particles
 from ..runtime import repeating
 from ..state import ParticleState, StepInfo
 from ..typing import Measurement, Tensor
@@ -257,7 +254,8 @@ def pick_moves(moves: tuple[tuple[str, float], ...], count: int, *, generator: t
 
 
 def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
-                         z: Measurement | None = None, relocation: RelocationNoise | None = None) -> MoveNoise:
+                         z: Measurement | None = None, relocation: RelocationNoise | None = None,
+                         cloud: PreviousCloud | None = None, exists_prev: Tensor | None = None) -> MoveNoise:
     """The noise of one MCMC iteration of the move ``move``, drawn in eager code from ``generator``.
 
     Parameters
@@ -268,20 +266,22 @@ def draw_iteration_noise(move: str, x: Tensor, dynamics: TargetDynamics, *, gene
         the motion's noise size; with births and deaths, the birth noise (births may be drawn
         near the points of the frame ``z``); with re-capture, the relocation noise (from ``z``,
         or ``relocation``, leading ``(B, C, K)``, when drawn beforehand: :func:`relocations`).
+    cloud, exists_prev : with births, the previous cloud (a joint draw's ancestors) and the
+        chains' ancestors' flags ``(B, C, K)`` (:attr:`ChainState.exists_prev`, a refinement's):
+        the newborn candidates are then drawn only where an ancestor's slot is inactive (else
+        wherever the existence uniform lets a slot be born; the same kernel either way).
 
     Returns
     -------
     the move's noise NamedTuple (:class:`JointNoise`, :class:`RefineNoise`, :class:`RandomWalkNoise`).
-    With births, the newborns' ratios are left to :func:`mcmc_iteration`, which takes them
-    where the chains' ancestors let a slot be born (:func:`~torchmcmcpf.kernels.chains.score_births`;
-    ``birth.log_ratio`` None until then).
     """
     if move == "random_walk":  # no existence variant (refused with existence)
         return RandomWalkNoise.draw(x, dynamics.motion, generator=generator)
     if move not in ("joint", "refine"):
         raise ValueError(f"move must be one of {list(MOVES)}, got {move!r}")
-    return (JointNoise if move == "joint" else RefineNoise).draw(x, dynamics, generator=generator, z=z,
-                                                                 relocation=relocation, deferred=True)
+    if move == "joint":
+        return JointNoise.draw(x, dynamics, generator=generator, z=z, relocation=relocation, cloud=cloud)
+    return RefineNoise.draw(x, dynamics, generator=generator, z=z, relocation=relocation, exists=exists_prev)
 
 
 #: At most this many slots' relocations are drawn at once by :func:`relocations` (their data
@@ -341,14 +341,6 @@ def mcmc_iteration(
     accepted : (B, C) fraction of the move's accept/reject decisions that accepted (per
         target for ``refine``).
     """
-    # newborns' ratios drawn deferred (draw_iteration_noise): taken now, where the ancestors'
-    # flags let a slot be born (the joint draw's ancestors are the noise's, the refinement's the chain's)
-    if move == "joint" and isinstance(noise, JointNoise) and noise.birth is not None and noise.birth.log_ratio is None:
-        exists_prev = None if cloud.exists is None else \
-            gather_particles(cloud.exists, draw_ancestors(cloud, noise.u_ancestor))
-        noise = score_births(noise, exists_prev, z, dynamics)
-    elif move == "refine" and isinstance(noise, RefineNoise):
-        noise = score_births(noise, chain.exists_prev, z, dynamics)
     if programs is not None:
         fn = programs[move]
         new, acc = (fn(chain, noise, z) if move == "refine" else
@@ -464,8 +456,8 @@ def mcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     iteration = bound.program
     cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
     template = x_prev.new_empty((b, num_chains, k, d))
-    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=generator, z=z), z, dynamics=dynamics,
-                        sensor=sensor)
+    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=generator, z=z, cloud=cloud), z,
+                        dynamics=dynamics, sensor=sensor)
 
     if adaptive:  # start from the prior mixture's per-target covariance (Haario et al. 2001 below)
         prior_cov = prior_covariance(cloud, motion)
@@ -484,7 +476,8 @@ def mcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     with repeating():  # compiled moves: repeats skip Dynamo's guards (runtime.repeating)
         for m, move in enumerate(moves, start=1):
             noise = draw_iteration_noise(move, chain.x, dynamics, generator=generator, z=z,
-                                         relocation=None if move == "random_walk" else next(drawn))
+                                         relocation=None if move == "random_walk" else next(drawn), cloud=cloud,
+                                         exists_prev=chain.exists_prev)
             chain, accepted = iteration(chain, noise, move, cloud, z, scale)
             acc_sum[move] = acc_sum[move] + accepted.sum(1)
             sel_sum[move] = sel_sum[move] + num_chains

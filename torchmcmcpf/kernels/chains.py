@@ -13,11 +13,11 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.motion import LinearGaussianMotion
 from ..models.multitarget import RelocationNoise
-from ..resampling import cdf, inverse_cdf
+from ..resampling import cdf, gather_particles, inverse_cdf
 from ..typing import Measurement, Tensor
 
 __all__ = ["ChainState", "PreviousCloud", "previous_cloud", "draw_ancestors", "uniforms", "normals", "JointNoise",
-           "RefineNoise", "score_births", "evaluate", "evaluate_cached", "whiten"]
+           "RefineNoise", "evaluate", "evaluate_cached", "whiten"]
 
 
 class ChainState(NamedTuple):
@@ -181,16 +181,20 @@ class JointNoise(NamedTuple):
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
              z: Measurement | None = None, relocation: RelocationNoise | None = None,
-             deferred: bool = False) -> JointNoise:
+             cloud: PreviousCloud | None = None) -> JointNoise:
         """Draw for chains shaped like ``x (B, C, K, D)`` (dtype and device of ``x``) moved by
         ``dynamics``: the birth noise only with its existence model, the relocation noise only
         with its re-capture (both from the frame ``z``; ``relocation``, leading ``(B, C, K)``,
-        when it was drawn beforehand). ``deferred``: the newborns' ratios are left to
-        :func:`score_births` (the same draws).
+        when it was drawn beforehand). With the previous ``cloud`` (its flags ``exists``), the
+        newborn candidates only where the drawn ancestor's slot is inactive
+        (:meth:`~torchmcmcpf.models.existence.BirthNoise.draw`).
         """
         b, c, k, _ = x.shape
-        return cls(uniforms((b, c), x, generator), normals((b, c, k, dynamics.motion.noise_dim), x, generator),
-                   uniforms((b, c), x, generator), *_slot_changes(x, dynamics, z, generator, relocation, deferred))
+        u_ancestor = uniforms((b, c), x, generator)
+        eps, u = normals((b, c, k, dynamics.motion.noise_dim), x, generator), uniforms((b, c), x, generator)
+        exists = None if cloud is None or cloud.exists is None or dynamics.existence is None else \
+            gather_particles(cloud.exists, draw_ancestors(cloud, u_ancestor))
+        return cls(u_ancestor, eps, u, *_slot_changes(x, dynamics, z, generator, relocation, exists))
 
 
 class RefineNoise(NamedTuple):
@@ -226,43 +230,29 @@ class RefineNoise(NamedTuple):
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
              z: Measurement | None = None, relocation: RelocationNoise | None = None,
-             deferred: bool = False) -> RefineNoise:
-        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``, ``relocation``,
-        ``deferred``: as :meth:`JointNoise.draw`).
+             exists: Tensor | None = None) -> RefineNoise:
+        """Draw for chains shaped like ``x (B, C, K, D)`` (``dynamics``, ``z``, ``relocation``:
+        as :meth:`JointNoise.draw`; ``exists (B, C, K)``, the flags of the chains' ancestors
+        :attr:`ChainState.exists_prev`: the newborn candidates only where a slot's is inactive).
         """
         slots = x.shape[:-1]  # (B, C, K)
         return cls(normals((*slots, dynamics.motion.noise_dim), x, generator), uniforms(slots, x, generator),
-                   *_slot_changes(x, dynamics, z, generator, relocation, deferred))
+                   *_slot_changes(x, dynamics, z, generator, relocation, exists))
 
 
 def _slot_changes(x: Tensor, dynamics: TargetDynamics, z: Measurement | None, generator: torch.Generator,
-                  relocation: RelocationNoise | None = None, deferred: bool = False
+                  relocation: RelocationNoise | None = None, exists: Tensor | None = None
                   ) -> tuple[BirthNoise | None, RelocationNoise | None]:
     """The noise every move draws after its own, for chains ``x (B, C, K, D)``: the births
-    (with an existence model; their ratios left to :func:`score_births` when ``deferred``),
-    then the relocations (with re-capture; ``relocation`` when drawn beforehand).
+    (with an existence model; candidates where a slot may be born, narrowed by the ancestors'
+    flags ``exists`` when known), then the relocations (with re-capture; ``relocation`` when
+    drawn beforehand).
     """
-    births = dynamics.draw_births(x, z, generator=generator, deferred=deferred)
+    births = dynamics.draw_births(x, z, generator=generator, exists=exists)
     if relocation is None:
         relocation = dynamics.draw_relocations(tuple(x.shape[:-1]), z, generator=generator, dtype=x.dtype,
                                                device=x.device)
     return births, relocation
-
-
-def score_births(noise: JointNoise | RefineNoise, exists_prev: Tensor | None, z: Measurement | None,
-                 dynamics: TargetDynamics) -> JointNoise | RefineNoise:
-    """A move's noise drawn ``deferred`` with its newborns' ratios taken where the slots, whose
-    ancestors carry the flags ``exists_prev (B, C, K)``, can be born
-    (:meth:`~torchmcmcpf.models.existence.BirthDeath.score_births`): an inactive ancestor's
-    slot only, a third to a half of them on the births/deaths scene instead of every slot
-    whose uniform allows a birth. ``noise`` unchanged when it carries its ratios already.
-    """
-    birth = noise.birth
-    if birth is None or birth.log_ratio is not None or dynamics.existence is None:
-        return noise
-    if exists_prev is None:  # no flags: every slot inactive (TargetDynamics.propagate_labelled)
-        exists_prev = torch.zeros(birth.u.shape, dtype=torch.bool, device=birth.u.device)
-    return noise._replace(birth=dynamics.existence.score_births(birth, z, exists_prev))
 
 
 # -- likelihood ------------------------------------------------------------------------------

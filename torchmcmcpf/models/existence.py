@@ -41,14 +41,14 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Sequence
-from typing import NamedTuple, cast
+from typing import NamedTuple
 
 import torch
 from torch import nn
 
 from .._validation import check_positive
 from ..resampling import uniform_pick
-from ..runtime import take_along
+from ..runtime import packed_places, take_along
 from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
 from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
@@ -60,34 +60,31 @@ __all__ = ["BirthDeath", "BirthNoise", "TargetDynamics"]
 class BirthNoise(NamedTuple):
     """Pre-drawn existence noise for every slot: ``u (*S, K)`` uniforms for
     ``e'_n ~ p(. | e_n)``, newborn candidates ``x (*S, K, D)`` from the birth proposal
-    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)`` (taken where a slot can be
-    born, 0 elsewhere; ``None`` until :meth:`BirthDeath.score_births` takes it, for noise drawn
-    ``deferred``).
+    ``q_0`` and their ``log_ratio = log p_0 - log q_0 (*S, K)``, both drawn where a slot can
+    be born (``x_death`` and 0 elsewhere: :meth:`draw`).
     """
 
     u: Tensor
     x: Tensor
-    log_ratio: Tensor  # None at run time until scored, for noise drawn deferred
+    log_ratio: Tensor
 
     @classmethod
     def draw(cls, x: Tensor, existence: BirthDeath, z: PointMeasurement | None, *,
-             generator: torch.Generator, exists: Tensor | None = None, deferred: bool = False) -> BirthNoise:
+             generator: torch.Generator, exists: Tensor | None = None) -> BirthNoise:
         """Draw for slots shaped like ``x (B, *S, K, D)`` (dtype and device of ``x``); births
         near the points of ``z`` when ``existence`` draws them so.
 
-        The ratio (a sum over the frame's points per candidate) is taken only where a move
-        can read it: ``exists (B, *S, K)``, the flags of the slots' ancestors when the draw
-        knows them, narrows that to :meth:`BirthDeath.can_be_born`; ``deferred`` takes none
-        (``log_ratio`` None) for :meth:`BirthDeath.score_births` once the ancestors are known.
-        The draws are the same either way.
+        A candidate is drawn, and its ratio (a sum over the frame's points) taken, only where
+        a move can read it (:meth:`BirthDeath.propagate`): where the uniform lets a slot be
+        born (:meth:`BirthDeath.may_be_born`), narrowed by ``exists (B, *S, K)``, the flags of
+        the slots' ancestors when the draw knows them, to :meth:`BirthDeath.can_be_born`.
         """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
-        scored = torch.zeros(shape, dtype=torch.bool, device=x.device) if deferred else \
-            existence.may_be_born(u) if exists is None else existence.can_be_born(u, exists)
+        where = existence.may_be_born(u) if exists is None else existence.can_be_born(u, exists)
         born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
-                                                 scored=scored)
-        return cls(u, born, cast(Tensor, None) if deferred else log_ratio)
+                                                 where=where)
+        return cls(u, born, log_ratio)
 
 
 def _probability(value: float, name: str) -> float:
@@ -279,46 +276,28 @@ class BirthDeath(nn.Module):
         """
         return self.may_be_born(u) & ~exists
 
-    def score_births(self, birth: BirthNoise, z: PointMeasurement | None, exists: Tensor) -> BirthNoise:
-        """``birth`` drawn ``deferred`` (:meth:`BirthNoise.draw`) with its ``log_ratio`` taken
-        where a slot with the ancestors' flags ``exists (*S, K)`` can be born
-        (:meth:`can_be_born`), 0 elsewhere: the values :meth:`BirthNoise.draw` would have
-        given there, from the candidates' positions (the same arithmetic, the same bits).
-        """
-        shape = tuple(birth.u.shape)
-        dtype, device = birth.x.dtype, birth.x.device
-        if z is None or self.birth_std is None:
-            return birth._replace(log_ratio=torch.zeros(shape, dtype=dtype, device=device))
-        pts, mask = split_points(z)
-        b, m = pts.shape[:2]
-        if m == 0:
-            return birth._replace(log_ratio=torch.zeros(shape, dtype=dtype, device=device))
-        if mask is None:
-            mask = torch.ones((b, m), dtype=torch.bool, device=device)
-        pos = torch.stack([birth.x[..., X], birth.x[..., Y]], -1)
-        scored = self.can_be_born(birth.u, exists)
-        return birth._replace(log_ratio=self._scored_ratio(pos, pts.to(dtype), mask, scored, self.birth_std))
-
-    def _scored_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, scored: Tensor, s: float) -> Tensor:
-        """``log p_0 - log q_0`` of the candidates at ``pos (B, *S, K, 2)`` where ``scored (B,
-        *S, K)``, 0 elsewhere (eager: a host read of the scored count); ``s`` the birth spread.
-        """
-        b = pts.shape[0]
-        rows, cols = scored.reshape(b, -1).nonzero(as_tuple=True)
-        log_ratio = torch.zeros(scored.reshape(b, -1).shape, dtype=pos.dtype, device=pos.device)
-        if rows.numel():
-            log_ratio.index_put_((rows, cols), self._log_birth_ratio(
-                pos.reshape(b, -1, 2)[rows, cols].unsqueeze(1), pts[rows], mask[rows], s).squeeze(1))
-        return log_ratio.reshape(scored.shape)
-
     def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
-                     dtype: torch.dtype, device: torch.device | str | None, scored: Tensor | None = None
+                     dtype: torch.dtype, device: torch.device | str | None, where: Tensor | None = None
                      ) -> tuple[Tensor, Tensor]:
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
-        ``(*shape)``; ``shape = (B, *S, K)``. With ``scored (*shape)`` bool the ratio (a sum
-        over the frame's points per candidate) is taken where it is True only, 0 elsewhere
-        (:meth:`may_be_born`); the candidates are the same.
+        ``(*shape)``; ``shape = (B, *S, K)``. With ``where (*shape)`` bool, drawn and scored
+        there only, ``x_death`` and 0 elsewhere (:meth:`may_be_born`: a half of the slots or
+        fewer on the births/deaths scene, 2 % under the chain's own ``P_B``): the candidates of
+        each run packed into one ``(B, W)`` block (:func:`~torchmcmcpf.runtime.packed_places`,
+        ``W`` the most in a run; one host read), whose ratios read the run's points without
+        gathering them per candidate.
         """
+        if where is not None:
+            b = shape[0]
+            flags = where.reshape(b, -1)
+            width, place = packed_places(flags)
+            born = self.x_death.to(device=device, dtype=dtype).expand(flags.shape + (self.dim,))
+            log_ratio = torch.zeros(flags.shape, dtype=dtype, device=device)
+            if width > 0:
+                block, block_ratio = self._draw_births((b, width), z, generator=generator, dtype=dtype, device=device)
+                born = torch.where(flags.unsqueeze(-1), take_along(block, place.unsqueeze(-1), 1), born)
+                log_ratio = torch.where(flags, take_along(block_ratio, place, 1), log_ratio)
+            return born.reshape(tuple(shape) + (self.dim,)), log_ratio.reshape(tuple(shape))
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         pos = self.uniform_position(u)
         vel_eps = torch.randn(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
@@ -341,11 +320,7 @@ class BirthDeath(nn.Module):
                                                      device=device, dtype=dtype)
         use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)
         pos = torch.where(use_near.unsqueeze(-1), near, pos)
-        if scored is None:
-            return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
-        # the candidates that can be born only (eager: the noise is drawn outside compiled code)
-        return self._newborn(pos, vel_eps), self._scored_ratio(pos, pts, mask, scored.reshape(tuple(shape)),
-                                                               self.birth_std)
+        return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
         """``log U(pos) - log q_0(pos)`` for positions ``(B, *S, K, 2)`` (eq. 64 analogue),
@@ -399,9 +374,6 @@ class BirthDeath(nn.Module):
         plus ``log p(e_k | e_{k-1}) - log q(e_k | e_{k-1})`` when the flags are drawn from
         ``birth_proposal`` / ``death_proposal`` rather than the chain.
         """
-        if birth.log_ratio is None:  # drawn deferred and never scored (BirthNoise.draw)
-            raise ValueError("birth.log_ratio is None: noise drawn deferred needs BirthDeath.score_births before "
-                             "it is propagated")
         q_on = self._p_on(exists, proposal=True)
         exists_next = birth.u.to(torch.float64) < (self._p_on(exists) if from_prior else q_on)
         born = exists_next & ~exists
@@ -435,24 +407,30 @@ class BirthDeath(nn.Module):
         return self.propagate(x, exists, eps, birth, motion=motion)
 
     def draw_noise(self, x: Tensor, motion: MotionModel, z: PointMeasurement | None = None, *,
-                   generator: torch.Generator) -> tuple[Tensor, BirthNoise]:
+                   generator: torch.Generator, every_slot: bool = False) -> tuple[Tensor, BirthNoise]:
         """The noise of one :meth:`propagate` of ``x (B, *S, K, D)``: motion noise
         ``(B, *S, K, noise_dim)`` and :class:`BirthNoise` (existence uniforms, then motion
-        noise, then birth candidates: the order every filter draws in).
+        noise, then birth candidates: the order every filter draws in). The candidates are
+        drawn where a slot may be born (:meth:`may_be_born`), or for ``every_slot``
+        (:meth:`sample`'s simulated scenes, whose draws then do not depend on which slots the
+        filters read).
         """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         eps = torch.randn(shape + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
         born, log_ratio = self._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
-                                            scored=self.may_be_born(u))
+                                            where=None if every_slot else self.may_be_born(u))
         return eps, BirthNoise(u, born, log_ratio)
 
     def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator
                ) -> tuple[Tensor, Tensor]:
         """Draw ``(x_k, e_k) ~ p(. | x_{k-1}, e_{k-1})`` from the prior (births from ``p_0``):
-        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``.
+        ``(B, *S, K, D), (B, *S, K) -> (B, *S, K, D), (B, *S, K)``. A scene's simulator: a
+        newborn candidate for every slot (:meth:`draw_noise` ``every_slot``), so a seed's scene
+        stays the one it has always been.
         """
-        x_next, exists_next, _ = self.propose(x, exists, motion=motion, generator=generator)
+        eps, birth = self.draw_noise(x, motion, generator=generator, every_slot=True)
+        x_next, exists_next, _ = self.propagate(x, exists, eps, birth, motion=motion)
         return x_next, exists_next
 
     def extra_repr(self) -> str:
@@ -499,14 +477,13 @@ class TargetDynamics(NamedTuple):
                                                  device=x.device, found=found)
 
     def draw_births(self, x: Tensor, z: Measurement | None = None, *, generator: torch.Generator,
-                    exists: Tensor | None = None, deferred: bool = False) -> BirthNoise | None:
+                    exists: Tensor | None = None) -> BirthNoise | None:
         """:class:`BirthNoise` for slots shaped like ``x (B, *S, K, D)`` (births near the points
-        of ``z`` when the model draws them so; ``exists``, the ancestors' flags, and
-        ``deferred``: where the ratios are taken, :meth:`BirthNoise.draw`); ``None`` without an
-        existence model.
+        of ``z`` when the model draws them so; ``exists``, the ancestors' flags: where the
+        candidates are drawn, :meth:`BirthNoise.draw`); ``None`` without an existence model.
         """
         return None if self.existence is None else BirthNoise.draw(x, self.existence, z, generator=generator,
-                                                                   exists=exists, deferred=deferred)
+                                                                   exists=exists)
 
     def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
                          dtype: torch.dtype, device: torch.device | str, p_propose: float | None = None,
