@@ -42,8 +42,7 @@ PARTS = {
     "MCMC-PF": {
         "likelihood arithmetic": _MCMC_LIKELIHOOD,
         "move bookkeeping": [("mcmc.py", "mcmc_iteration")],
-        "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations"),
-                                ("chains.py", "score_births")],
+        "noise and proposals": [("mcmc.py", "draw_iteration_noise"), ("mcmc.py", "relocations")],
         "relabelling and estimation": [("base.py", "_estimate")],
     },
 }
@@ -51,7 +50,7 @@ PARTS = {
 #: filter -> the functions whose time the bookkeeping's inclusive time holds but another part counts
 INNER = {
     "IP-MCMC-PF": [("points.py", "log_likelihood_delta_cached")],
-    "MCMC-PF": _MCMC_LIKELIHOOD + [("chains.py", "score_births")],  # the births' ratios: proposals
+    "MCMC-PF": _MCMC_LIKELIHOOD,
 }
 
 
@@ -69,17 +68,19 @@ def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int 
 
 
 def floor_mcmc(batch: int = 10, chains: int = 1000, iterations: int = 22, slots: int = 5, points: int = 41,
-               joint: float = 0.75) -> float:
+               joint: float = 0.75, born: float = 0.25) -> float:
     """The MCMC-PF step's arithmetic floor at the study's settings (``iterations = burn_in +
     N / C``), per step and run [s], counted as :func:`floor` counts: a joint draw (probability
-    ``joint``) draws 2 uniforms and per slot 2 motion normals, 5 birth and 7 relocation numbers
-    and evaluates every slot's term at every point (``exp``) and one ``log`` per point; a
-    refinement sweep draws per slot 3 motion and accept numbers and the 12 birth and
-    relocation ones and evaluates per slot its old and new terms at every point and one
-    ``log1p`` per point.
+    ``joint``) draws 2 uniforms and per slot 2 motion normals, the existence uniform, a
+    newborn candidate's 4 numbers where the slot can be born (a share ``born``: the proposal's
+    0.5 times the half of the slots inactive) and 7 relocation numbers, and evaluates every
+    slot's term at every point (``exp``) and one ``log`` per point; a refinement sweep draws
+    per slot 3 motion and accept numbers and the same birth and relocation ones and evaluates
+    per slot its old and new terms at every point and one ``log1p`` per point.
     """
     draws, sweeps = joint * batch * chains * iterations, (1 - joint) * batch * chains * iterations
-    randoms = draws * (2 + 14 * slots) + sweeps * 15 * slots
+    changes = 1 + 4 * born + 7  # per slot: existence, newborn, relocation
+    randoms = draws * (2 + (2 + changes) * slots) + sweeps * (3 + changes) * slots
     exps = (draws * slots + sweeps * 2 * slots) * points
     logs = (draws + sweeps * slots) * points
     return _timed(int(randoms), int(exps), int(logs)) / batch
@@ -134,8 +135,7 @@ def main() -> None:
 
         total = max(v for key, v in totals.items() if key.endswith("): forward"))
         shares = {part: sum(inclusive(f, fn) for f, fn in where) for part, where in parts.items()}
-        # the iterations' own sensor calls (and the MCMC-PF's birth ratios) are inside the
-        # bookkeeping's inclusive time
+        # the iterations' own sensor calls are inside the bookkeeping's inclusive time
         shares["move bookkeeping"] -= sum(inclusive(f, fn) for f, fn in INNER[name])
         shares["the rest (start, resampling, Python and dispatch)"] = total - sum(shares.values())
         print(f"\n{name}: {1e3 * plain / b:.1f} ms per step and run (B = {b}, unprofiled; CPU time "
