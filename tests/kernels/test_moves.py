@@ -463,9 +463,11 @@ def _existence_discrepancy(chain: ChainState, exact) -> torch.Tensor:
     return (f.mean(1) - exact).abs() / se
 
 
-@pytest.mark.parametrize("xi, birth_std", [(1.0, None), (1.0, 6.0), (0.5, 6.0)],
-                         ids=["joint-prior-births", "joint-births-near-points", "mixture-births-near-points"])
-def test_existence_moves_converge_to_the_exact_posterior(xi, birth_std, gen):
+@pytest.mark.parametrize("xi, birth_std, narrowed", [(1.0, None, False), (1.0, 6.0, False), (0.5, 6.0, False),
+                                                     (0.5, 6.0, True)],
+                         ids=["joint-prior-births", "joint-births-near-points", "mixture-births-near-points",
+                              "mixture-births-where-ancestors-inactive"])
+def test_existence_moves_converge_to_the_exact_posterior(xi, birth_std, narrowed, gen):
     """Joint draw alone, and a mixture dominated by the per-slot refinement, from the prior.
 
     Burn-in bound: the joint draw is an independence sampler with proposal ``q`` and ``pi /
@@ -489,11 +491,14 @@ def test_existence_moves_converge_to_the_exact_posterior(xi, birth_std, gen):
     moves = (("joint", 1.0),) if xi == 1.0 else (("joint", xi), ("refine", 1 - xi))
     template = cloud.x.new_empty(B, EX_C, K, D)
     dynamics = TargetDynamics(motion, existence)
-    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=gen, z=z), z, dynamics=dynamics,
-                        sensor=sensor)
+    # narrowed: the candidates drawn only where the ancestor's slot is inactive, as the filter draws them
+    known = {"cloud": cloud} if narrowed else {}
+    chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=gen, z=z, **known), z,
+                        dynamics=dynamics, sensor=sensor)
     assert float(_existence_discrepancy(chain, exact).max()) > 10  # the start is far from pi
     for move in pick_moves(moves, iters, generator=gen):
-        noise = draw_iteration_noise(move, chain.x, dynamics, generator=gen, z=z)
+        noise = draw_iteration_noise(move, chain.x, dynamics, generator=gen, z=z,
+                                     **(dict(known, exists_prev=chain.exists_prev) if narrowed else {}))
         chain, _ = mcmc_iteration(chain, noise, move=move, cloud=cloud, z=z, dynamics=dynamics, sensor=sensor)
     worst = _existence_discrepancy(chain, exact)
     assert float(worst.max()) <= Z_TOL, dict(zip(EX_STATS, worst.max(0).values.tolist()))
