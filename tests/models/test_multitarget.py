@@ -279,6 +279,40 @@ def test_radar_data_draws_score_only_where_asked(gen):
     assert torch.equal(noise.log_ratio == 0, noise.u >= 0.1)
 
 
+@pytest.mark.parametrize("scene", ["radar", "points"])
+def test_packed_relocations_draw_where_read(scene, gen):
+    """``RelocationNoise.draw(packed=True)`` (the MCMC-PF's): coordinates drawn only where the
+    uniform picks the relocation, each run's packed in order into one block that the sensor
+    draws densely after the uniforms; 0 and ratio 0 elsewhere, which :func:`relocate` never
+    reads (NaN there changes nothing)."""
+    if scene == "radar":
+        scn = ground_radar(3, 2, 2, generator=gen, dtype=DT, snr_db=20.0)
+        z = scn.measurements[0]
+    else:
+        scn = septier(2, 3, generator=gen)
+        z = type(scn.measurements)(*(f[1] for f in scn.measurements))
+    sensor, shape, p = scn.sensor, (2, 60, 3), 0.1
+    noise = RelocationNoise.draw(shape, sensor, z, generator=torch.Generator().manual_seed(2), dtype=DT,
+                                 device="cpu", p_propose=p, packed=True)
+    g = torch.Generator().manual_seed(2)
+    u = torch.rand(shape, generator=g, dtype=DT)
+    assert torch.equal(noise.u, u)
+    flags = u < p
+    counts = flags.flatten(1).sum(-1)
+    assert counts.min() > 0 and counts[0] != counts[1]
+    block, ratio = sensor.sample_from_data(z, (2, int(counts.max())), generator=g, dtype=DT)
+    for r in range(2):
+        assert torch.equal(noise.coords[r][flags[r]], block[r, :int(counts[r])])
+        assert torch.equal(noise.log_ratio[r][flags[r]], ratio[r, :int(counts[r])])
+    assert bool((noise.coords[~flags] == 0).all()) and bool((noise.log_ratio[~flags] == 0).all())
+    x = scn.truth[0][:, :1].unsqueeze(1).expand(2, 60, 3, -1).to(DT)  # one slot state per run, copied
+    unread = noise._replace(coords=torch.where(flags.unsqueeze(-1), noise.coords, math.nan),
+                            log_ratio=torch.where(flags, noise.log_ratio, math.nan))
+    ref, got = relocate(x, None, noise, Recapture(), sensor), relocate(x, None, unread, Recapture(), sensor)
+    assert all(torch.equal(a, b) for a, b in zip(ref, got))
+    assert bool((ref[2] == 2).any())  # some slots relocated
+
+
 @pytest.mark.parametrize("r", [1, 2, 3])
 def test_pairwise_squared_distances_equal_the_broadcast_form(r):
     """Coordinate by coordinate, the same values as the squared norm of the broadcast

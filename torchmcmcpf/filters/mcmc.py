@@ -295,13 +295,15 @@ def relocations(dynamics: TargetDynamics, shape: tuple[int, int, int], count: in
     """The relocation noise of ``count`` iterations for chains' slots ``shape = (B, C, K)``,
     one iteration's after the other, drawn in blocks of iterations (the frame's peaks found
     once per block instead of once per iteration; at most :data:`RELOCATION_BLOCK` slots a
-    block); ``None`` each without re-capture.
+    block), the coordinates for the slots whose uniform picks the relocation only (a tenth at
+    the default ``p_propose``, packed: :meth:`RelocationNoise.draw`); ``None`` each without
+    re-capture.
     """
     per = max(1, RELOCATION_BLOCK // math.prod(shape))
     b, c, k = shape
     for first in range(0, count, per):
         block = dynamics.draw_relocations((b, min(per, count - first), c, k), z, generator=generator, dtype=dtype,
-                                          device=device)
+                                          device=device, packed=True)
         for i in range(min(per, count - first)):  # iterations of the block, not particles
             yield None if block is None else RelocationNoise(*(t[:, i] for t in block))
 

@@ -487,15 +487,16 @@ class TargetDynamics(NamedTuple):
 
     def draw_relocations(self, shape: tuple[int, ...], z: Measurement | None = None, *, generator: torch.Generator,
                          dtype: torch.dtype, device: torch.device | str, p_propose: float | None = None,
-                         found: object = None) -> RelocationNoise | None:
+                         found: object = None, packed: bool = False) -> RelocationNoise | None:
         """:class:`~torchmcmcpf.models.multitarget.RelocationNoise` for slots of leading
         ``shape (B, *S, K)``, drawn from the frame ``z`` for proposals with ``epsilon <=
         p_propose`` (default ``recapture.p_propose``); ``None`` without re-capture. ``found``:
         the frame's :meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per
-        step and handed to every draw (None: each draw finds them).
+        step and handed to every draw (None: each draw finds them); ``packed``: the coordinates
+        drawn where read only (:meth:`~torchmcmcpf.models.multitarget.RelocationNoise.draw`).
         """
         return draw_relocation(self.recapture, self.sensor, shape, z, generator=generator, dtype=dtype, device=device,
-                               p_propose=p_propose, found=found)
+                               p_propose=p_propose, found=found, packed=packed)
 
     def propagate(self, x: Tensor, exists: Tensor | None, eps: Tensor, birth: BirthNoise | None,
                   relocation: RelocationNoise | None = None) -> tuple[Tensor, Tensor | None, Tensor]:

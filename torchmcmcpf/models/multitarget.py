@@ -82,7 +82,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 import torch
 
 from .._validation import check_positive, check_positive_int
-from ..runtime import pairwise_squared_distances
+from ..runtime import packed_places, pairwise_squared_distances, take_along
 from ..typing import Tensor
 
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
@@ -316,15 +316,32 @@ class RelocationNoise(NamedTuple):
     @classmethod
     def draw(cls, shape: tuple[int, ...], sensor: SensorModel, z: object, *, generator: torch.Generator,
              dtype: torch.dtype, device: torch.device | str | None, p_propose: float = 1.0,
-             found: object = None) -> RelocationNoise:
+             found: object = None, packed: bool = False) -> RelocationNoise:
         """Draw for slots of ``shape = (B, *S, K)`` from the frame ``z`` (one per run), for
         proposals with ``epsilon <= p_propose``: ``g`` (a sum over the frame's points or
         peaks) is evaluated for those draws only (``u < p_propose``; 10 % at the default
         ``epsilon``), the same draws either way. ``found``: the frame's
         :meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per step
         (None: the sensor finds them).
+
+        ``packed``: the coordinates themselves are drawn for those slots only, each run's packed
+        in order into one ``(B, W)`` block (:func:`~torchmcmcpf.runtime.packed_places`), and are
+        0 elsewhere (never read: :func:`relocate`). The MCMC-PF draws a relocation for every
+        slot of every move, a tenth of them read, and packs them; the IP-MCMC-PF's draws (one
+        slot a chain and iteration) keep the dense stream its recorded studies ran on.
         """
         u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
+        if packed and p_propose < 1.0:
+            b = shape[0]
+            flags = (u < p_propose).reshape(b, -1)
+            width, place = packed_places(flags)
+            extra = {} if found is None else {"found": found}
+            # at least one column, so that an empty draw still has the coordinates' shape
+            block, block_ratio = sensor.sample_from_data(z, (b, max(width, 1)), generator=generator, dtype=dtype,
+                                                         **extra)
+            coords = torch.where(flags.unsqueeze(-1), take_along(block, place.unsqueeze(-1), 1), 0.0)
+            log_ratio = torch.where(flags, take_along(block_ratio, place, 1), 0.0)
+            return cls(u, coords.reshape(tuple(shape) + coords.shape[-1:]), log_ratio.reshape(tuple(shape)))
         scored = None if p_propose >= 1.0 else u < p_propose
         # handed on only when there is something (a sensor that prepares nothing need not take it)
         extra = {} if found is None else {"found": found}
@@ -335,18 +352,20 @@ class RelocationNoise(NamedTuple):
 
 def draw_relocation(recapture: Recapture | None, sensor: SensorModel | None, shape: tuple[int, ...], z: object, *,
                     generator: torch.Generator, dtype: torch.dtype, device: torch.device | str | None,
-                    p_propose: float | None = None, found: object = None) -> RelocationNoise | None:
+                    p_propose: float | None = None, found: object = None, packed: bool = False
+                    ) -> RelocationNoise | None:
     """:class:`RelocationNoise` for slots of ``shape = (B, *S, K)`` from the frame ``z``, for
     proposals with ``epsilon <= p_propose`` (default ``recapture.p_propose``, that of
     :func:`relocate`), or None without ``recapture``; ``found``: the frame's detections made
-    once per step (:meth:`RelocationNoise.draw`).
+    once per step, ``packed``: the coordinates drawn where read only (:meth:`RelocationNoise.draw`).
     """
     if recapture is None:
         return None
     if sensor is None or z is None:
         raise ValueError("recapture needs the sensor and the frame z to draw from the data")
     return RelocationNoise.draw(shape, sensor, z, generator=generator, dtype=dtype, device=device,
-                                p_propose=recapture.p_propose if p_propose is None else p_propose, found=found)
+                                p_propose=recapture.p_propose if p_propose is None else p_propose, found=found,
+                                packed=packed)
 
 
 #: The component a slot was proposed from (:func:`relocate`): its prior density over its
