@@ -331,20 +331,19 @@ class RelocationNoise(NamedTuple):
         slot a chain and iteration) keep the dense stream its recorded studies ran on.
         """
         u = torch.rand(shape, generator=generator, device=device, dtype=dtype)
+        # handed on only when there is something (a sensor that prepares nothing need not take it)
+        extra = {} if found is None else {"found": found}
         if packed and p_propose < 1.0:
             b = shape[0]
             flags = (u < p_propose).reshape(b, -1)
             width, place = packed_places(flags)
-            extra = {} if found is None else {"found": found}
             # at least one column, so that an empty draw still has the coordinates' shape
             block, block_ratio = sensor.sample_from_data(z, (b, max(width, 1)), generator=generator, dtype=dtype,
-                                                         **extra)
+                                                         scored=None, **extra)
             coords = torch.where(flags.unsqueeze(-1), take_along(block, place.unsqueeze(-1), 1), 0.0)
             log_ratio = torch.where(flags, take_along(block_ratio, place, 1), 0.0)
             return cls(u, coords.reshape(tuple(shape) + coords.shape[-1:]), log_ratio.reshape(tuple(shape)))
         scored = None if p_propose >= 1.0 else u < p_propose
-        # handed on only when there is something (a sensor that prepares nothing need not take it)
-        extra = {} if found is None else {"found": found}
         coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored,
                                                     **extra)
         return cls(u, coords, log_ratio)
