@@ -68,18 +68,19 @@ def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int 
 
 
 def floor_mcmc(batch: int = 10, chains: int = 1000, iterations: int = 22, slots: int = 5, points: int = 41,
-               joint: float = 0.75, born: float = 0.25) -> float:
+               joint: float = 0.75, born: float = 0.25, relocated: float = 0.1) -> float:
     """The MCMC-PF step's arithmetic floor at the study's settings (``iterations = burn_in +
     N / C``), per step and run [s], counted as :func:`floor` counts: a joint draw (probability
     ``joint``) draws 2 uniforms and per slot 2 motion normals, the existence uniform, a
     newborn candidate's 4 numbers where the slot can be born (a share ``born``: the proposal's
-    0.5 times the half of the slots inactive) and 7 relocation numbers, and evaluates every
-    slot's term at every point (``exp``) and one ``log`` per point; a refinement sweep draws
-    per slot 3 motion and accept numbers and the same birth and relocation ones and evaluates
-    per slot its old and new terms at every point and one ``log1p`` per point.
+    0.5 times the half of the slots inactive), the relocation's uniform and its 6 numbers where
+    it picks the relocation (a share ``relocated``, ``p_propose``), and evaluates every slot's
+    term at every point (``exp``) and one ``log`` per point; a refinement sweep draws per slot
+    3 motion and accept numbers and the same birth and relocation ones and evaluates per slot
+    its old and new terms at every point and one ``log1p`` per point.
     """
     draws, sweeps = joint * batch * chains * iterations, (1 - joint) * batch * chains * iterations
-    changes = 1 + 4 * born + 7  # per slot: existence, newborn, relocation
+    changes = 1 + 4 * born + 1 + 6 * relocated  # per slot: existence, newborn, relocation
     randoms = draws * (2 + (2 + changes) * slots) + sweeps * (3 + changes) * slots
     exps = (draws * slots + sweeps * 2 * slots) * points
     logs = (draws + sweeps * slots) * points
