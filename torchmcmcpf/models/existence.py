@@ -48,7 +48,7 @@ from torch import nn
 
 from .._validation import check_positive
 from ..resampling import uniform_pick
-from ..runtime import packed_places, take_along
+from ..runtime import packed_places, take_along, unpacked
 from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
 from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
@@ -295,8 +295,7 @@ class BirthDeath(nn.Module):
             log_ratio = torch.zeros(flags.shape, dtype=dtype, device=device)
             if width > 0:
                 block, block_ratio = self._draw_births((b, width), z, generator=generator, dtype=dtype, device=device)
-                born = torch.where(flags.unsqueeze(-1), take_along(block, place.unsqueeze(-1), 1), born)
-                log_ratio = torch.where(flags, take_along(block_ratio, place, 1), log_ratio)
+                born, log_ratio = unpacked(block, place, flags, born), unpacked(block_ratio, place, flags, log_ratio)
             return born.reshape(tuple(shape) + (self.dim,)), log_ratio.reshape(tuple(shape))
         u = torch.rand(tuple(shape) + (2,), generator=generator, device=device, dtype=dtype)
         pos = self.uniform_position(u)

@@ -82,7 +82,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 import torch
 
 from .._validation import check_positive, check_positive_int
-from ..runtime import packed_places, pairwise_squared_distances, take_along
+from ..runtime import packed_places, pairwise_squared_distances, unpacked
 from ..typing import Tensor
 
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
@@ -340,8 +340,7 @@ class RelocationNoise(NamedTuple):
             # at least one column, so that an empty draw still has the coordinates' shape
             block, block_ratio = sensor.sample_from_data(z, (b, max(width, 1)), generator=generator, dtype=dtype,
                                                          scored=None, **extra)
-            coords = torch.where(flags.unsqueeze(-1), take_along(block, place.unsqueeze(-1), 1), 0.0)
-            log_ratio = torch.where(flags, take_along(block_ratio, place, 1), 0.0)
+            coords, log_ratio = unpacked(block, place, flags, 0.0), unpacked(block_ratio, place, flags, 0.0)
             return cls(u, coords.reshape(tuple(shape) + coords.shape[-1:]), log_ratio.reshape(tuple(shape)))
         scored = None if p_propose >= 1.0 else u < p_propose
         coords, log_ratio = sensor.sample_from_data(z, shape, generator=generator, dtype=dtype, scored=scored,
