@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchmcmcpf.models.base import SensorModel
-from torchmcmcpf.models.sensors.points import PointFrame, PoissonClutterPoints
+from torchmcmcpf.models.sensors.points import PointFrame, PoissonClutterPoints, gauss_exponents
 
 AREA = ((0.0, 200.0), (-50.0, 50.0))  # V = 2e4
 
@@ -227,7 +227,10 @@ def test_data_draws_score_only_where_asked(gen):
     part = s.sample_from_data(z, (3, 5, 4), generator=torch.Generator().manual_seed(1), dtype=torch.float64,
                               scored=scored)
     assert torch.equal(full[0], part[0])
-    assert torch.equal(part[1], torch.where(scored, full[1], 0.0))
+    assert torch.equal(part[1] == 0, ~scored | (full[1] == 0))
+    # the same ratios to round-off: the Gaussians' exponents are one matrix product
+    # (points.gauss_exponents), whose rounding follows the shape BLAS is given
+    torch.testing.assert_close(part[1], torch.where(scored, full[1], 0.0), rtol=1e-13, atol=1e-13)
     none = s.sample_from_data(z, (3, 5, 4), generator=torch.Generator().manual_seed(1), dtype=torch.float64,
                               scored=torch.zeros(3, 5, 4, dtype=torch.bool))
     assert torch.equal(none[0], full[0]) and not none[1].any()  # nothing to score: no sum at all
@@ -281,3 +284,37 @@ def test_diagonal_whitening_equals_the_matrix_product(gen):
     assert torch.equal(_whiten(v, s.W, True), v @ s.W.mT)
     L = torch.linalg.cholesky(s.R)
     assert torch.equal(_whiten(v, L, True), v @ L.mT)
+
+
+# ----------------------------------------------------------------------------- the exponents as a product
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("diagonal", [True, False])
+def test_gauss_exponents_match_the_differences(gen, dtype, diagonal):
+    """``gauss_exponents`` (one matrix product of centred, whitened coordinates) equals
+    ``const - 0.5 |W (h - z)|^2`` taken as differences, in float64 whatever the positions'
+    dtype, on the births/deaths scene's scale (a 5 km square, 10 m noise; exponents down to
+    -1e5), to 8 ulp of the largest centred ``|W (h - c)|^2`` (about ``1.25e5`` here; the
+    expansion cancels it), with ``-inf`` where ``const`` or the mask says so."""
+    area = torch.tensor([[0.0, 5000.0], [0.0, 5000.0]], dtype=torch.float64)
+    R = torch.tensor([[100.0, 0.0], [0.0, 100.0]] if diagonal else [[100.0, 30.0], [30.0, 64.0]], dtype=torch.float64)
+    W = torch.linalg.inv(torch.linalg.cholesky(R))
+    h = (torch.rand(3, 7, 5, 2, generator=gen, dtype=torch.float64) * 5000).to(dtype)
+    pts = torch.rand(3, 9, 2, generator=gen, dtype=torch.float64) * 5000
+    pts[:, 0] = h[:, 0, 0].double() + 3.0  # a point near a position
+    const = torch.randn(3, 7, 5, generator=gen, dtype=torch.float64)
+    const[0, 0, 1] = -math.inf
+    mask = torch.rand(3, 9, generator=gen) < 0.8
+    out = gauss_exponents(h[..., 0], h[..., 1], pts, W=W, diagonal=diagonal, centre=area.mean(-1), const=const,
+                          mask=mask)
+    assert out.shape == (3, 7, 5, 9) and out.dtype == torch.float64
+    r = (h.double().unsqueeze(-2) - pts.reshape(3, 1, 1, 9, 2)) @ W.mT
+    ref = const.unsqueeze(-1) - 0.5 * r.square().sum(-1)
+    ref = torch.where(mask.reshape(3, 1, 1, 9), ref, -math.inf)
+    assert torch.equal(torch.isinf(out), torch.isinf(ref))
+    finite = torch.isfinite(ref)
+    assert ref[finite].min() < -1e4  # far pairs in the check, and a near one
+    assert (ref[finite] > -10).any()
+    centred = torch.cat([h.double().reshape(-1, 2), pts.reshape(-1, 2)]) - area.mean(-1)
+    bound = 8 * torch.finfo(torch.float64).eps * float((centred @ W.mT).square().sum(-1).max())
+    assert bound < 1e-9
+    torch.testing.assert_close(out[finite], ref[finite], rtol=0.0, atol=bound)

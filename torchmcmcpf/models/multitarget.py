@@ -143,7 +143,13 @@ class Exclusion:
         """
         k = u.shape[-2]
         i, j = torch.triu_indices(k, k, 1, device=u.device)  # the K (K - 1) / 2 pairs i < j
-        d2 = pairwise_squared_distances(u, u)[..., i, j]  # (*S, P)
+        d2 = None  # (*S, P): the pairs' squared distances only, coordinate by coordinate (the values of
+        for c in range(u.shape[-1]):  # pairwise_squared_distances at [..., i, j], 0.6 of the time)
+            uc = u[..., c]
+            sq = (uc[..., i] - uc[..., j]).square()
+            d2 = sq if d2 is None else d2 + sq
+        if d2 is None:
+            raise ValueError(f"u has shape {tuple(u.shape)}: expected at least one coordinate")
         # log_phi is floored (finite, zero slope at d = 0): the pairs of inactive slots are
         # dropped after it, as in log_change
         terms = self.log_phi(d2)

@@ -206,6 +206,56 @@ def _whiten(v: Tensor, W: Tensor, diagonal: bool) -> Tensor:
     return v @ W.mT
 
 
+def _whitened_axes(a: Tensor, b: Tensor, W: Tensor, diagonal: bool) -> tuple[Tensor, Tensor]:
+    """The two whitened coordinates of the points ``(a, b)`` (each ``(...)``): the values of
+    ``_whiten(stack([a, b], -1), W, diagonal)`` split by axis.
+    """
+    if diagonal:
+        d = torch.diagonal(W)
+        return a * d[0], b * d[1]
+    return _whiten(torch.stack([a, b], -1), W, diagonal).unbind(-1)
+
+
+def gauss_exponents(a: Tensor, b: Tensor, pts: Tensor, *, W: Tensor, diagonal: bool, centre: Tensor,
+                    const: Tensor | float, mask: Tensor | None = None) -> Tensor:
+    """``const - 0.5 |W (h - z_m)|^2`` for every position ``h = (a, b)`` and point ``z_m``: the
+    exponent of a Gaussian at each (position, point) pair, as one batched matrix product.
+
+    ``a, b`` : (B, *S) the positions' two coordinates (any strides); ``pts`` : (B, M, 2);
+    ``W`` : (2, 2) whitening matrix (``R^{-1} = W^T W``), ``diagonal`` whether it is;
+    ``centre`` : (2,) a point near the data (the area's centre), subtracted from both sides
+    first; ``const`` : a float or ``(B, *S)`` (``-inf`` drops a position: an inactive slot);
+    ``mask`` : (B, M) bool, optional: ``-inf`` at the points off it. Returns ``(B, *S, M)``
+    float64, a fresh tensor, differentiable in ``a``, ``b``.
+
+    With whitened, centred ``p = W (h - c)`` and ``w_m = W (z_m - c)``,
+
+        ``const - 0.5 |p - w_m|^2 = [p, const - 0.5 |p|^2, 1] . [w_m, 1, -0.5 |w_m|^2]``,
+
+    so every pair is one 4-term dot product of a row per position and a column per point
+    (``torch.bmm``): one pass writing the ``(B, *S, M)`` result instead of two differences,
+    two squares and three scalings, each a pass over it (a births/deaths joint draw's ``(B,
+    C, K, M)`` exponents: 4.3 against 9.4 ms for the intensities at ``B = 10``, 1000 chains,
+    one thread). Float64 whatever the dtype of the positions: the expansion cancels
+    ``|p|^2`` against ``2 p . w_m``, to about ``1e-16 |p|^2`` (centred, ``|p|`` is at most
+    the area's half-diagonal in noise units: relative errors of the Gaussians below ``1e-10``).
+    """
+    f64 = torch.float64
+    bsz, m = pts.shape[:2]
+    lead = tuple(a.shape)
+    c = centre.to(device=pts.device, dtype=f64)
+    Wd = W.to(device=pts.device, dtype=f64)
+    p0, p1 = _whitened_axes(a.to(f64) - c[0], b.to(f64) - c[1], Wd, diagonal)  # (B, *S) each
+    w0, w1 = _whitened_axes(pts[..., 0].to(f64) - c[0], pts[..., 1].to(f64) - c[1], Wd, diagonal)  # (B, M)
+    w_half = -0.5 * (w0 * w0 + w1 * w1)
+    if mask is not None:
+        w_half = torch.where(mask, w_half, -math.inf)
+    rows = torch.stack([p0, p1, const - 0.5 * (p0 * p0 + p1 * p1), torch.ones_like(p0)], -1)  # (B, *S, 4)
+    cols = torch.stack([w0, w1, torch.ones_like(w0), w_half], 1)  # (B, 4, M)
+    out = torch.bmm(rows.reshape(bsz, -1, 4), cols)  # (B, prod(S), M)
+    return out.reshape(lead + (m,))
+
+
 def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor, p_uniform: float,
                     area: Tensor, diagonal: bool = False) -> Tensor:
     """``log g(pos)`` of the density "near one of the points, or anywhere".
@@ -236,21 +286,12 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     log_u = torch.where(inside, -log_volume, -math.inf).to(pos.dtype)
     if mask is None:
         mask = torch.ones((b, m), dtype=torch.bool, device=pts.device)
-    Wt = W.to(pos.dtype)
-    # whitened first (W is linear): the residuals are then differences of two whitened
-    # coordinates, one contiguous (B, *S, M) tensor per axis, instead of a (B, *S, M, 2)
-    # difference times W (a 2-column product and a reduction over 2: 3x the time)
-    wpos, wpts = _whiten(pos, Wt, diagonal), _whiten(pts.to(pos.dtype), Wt, diagonal)  # (B, *S, 2), (B, M, 2)
-    pts_shape = lead[:-1] + (1, m)
-    dx = wpos[..., 0:1] - wpts[..., 0].reshape(pts_shape)  # (B, *S, M)
-    dy = wpos[..., 1:2] - wpts[..., 1].reshape(pts_shape)
     log_norm = float(torch.log(torch.abs(torch.det(W.to(torch.float64))))) - math.log(2 * math.pi)
-    mk = mask.reshape(lead[:-1] + (1, m))
-    fresh = runtime.in_place(dx)
-    if fresh:  # c - 0.5 s as -0.5 s + c (the same rounding) and the mask, in dx's buffer
-        log_g = dx.square_().add_(dy.square_()).mul_(-0.5).add_(log_norm).masked_fill_(~mk, -math.inf)
-    else:
-        log_g = torch.where(mk, log_norm - 0.5 * (dx.square() + dy.square()), -math.inf)
+    centre = area.to(torch.float64).mean(-1)
+    log_g = gauss_exponents(pos[..., 0], pos[..., 1], pts, W=W, diagonal=diagonal, centre=centre, const=log_norm,
+                            mask=mask)  # (B, *S, M), -inf off the mask
+    log_g = log_g.to(pos.dtype)
+    fresh = runtime.in_place(pos)
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
     lse = _logsumexp_fast if fresh else torch.logsumexp  # the same bits
     log_near = lse(log_g, -1) - torch.log(n_valid.clamp(min=1))
@@ -328,41 +369,38 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         #: whether ``R`` (so ``W`` and ``L``) is diagonal: whitening and noise then per axis
         self.diagonal = bool((R == torch.diag(torch.diagonal(R))).all())
         self.volume = float((area_t[:, 1] - area_t[:, 0]).prod())
+        #: (2,) float64, the area's centre: subtracted before the Gaussians' exponents are
+        #: expanded into products (:func:`gauss_exponents`), which keeps their round-off small
+        self.register_buffer("centre", area_t.mean(-1), persistent=False)
         self.dim = dim
         self.meas_dim = 2
         self.frame_shape = (None, 2)
         self._log_norm = -math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
 
     # -- likelihood ---------------------------------------------------------------------
-    def log_intensity_terms(self, x: Tensor, z: Tensor) -> Tensor:
+    def log_intensity_terms(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """``log(L_x N(z_m; H x_n, R))`` for every slot and point: ``(B, *S, K, D), (B, M, 2)
-        -> (B, *S, K, M)``, a fresh tensor.
+        -> (B, *S, K, M)`` float64, a fresh tensor (:func:`gauss_exponents`); with ``exists (B,
+        *S, K)`` bool, ``-inf`` for the inactive slots (their terms then vanish from
+        :meth:`intensity` without a pass over them).
         """
-        W = self.W.to(x.dtype)
-        pos = _whiten(torch.stack([x[..., X], x[..., Y]], -1), W, self.diagonal)  # (B, *S, K, 2), whitened
-        wz = _whiten(z.to(x.dtype), W, self.diagonal)
-        at = (wz.shape[0],) + (1,) * (x.dim() - 2) + wz.shape[1:2]  # (B, 1.., 1, M)
-        # L^{-1} (z_m - H x_n) one axis at a time, each a contiguous (B, *S, K, M) tensor (a
-        # (B, *S, K, M, 2) residual read with stride 2 cost twice the time; the same values)
-        r0 = wz[..., 0].reshape(at) - pos[..., 0:1]
-        r1 = wz[..., 1].reshape(at) - pos[..., 1:2]
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
-        if runtime.in_place(x):  # c - 0.5 s as -0.5 s + c (the same rounding), in r0's buffer
-            return r0.square_().add_(r1.square_()).mul_(-0.5).add_(log_rate + self._log_norm)
-        return log_rate + self._log_norm - 0.5 * (r0.square() + r1.square())
+        const: Tensor | float = log_rate + self._log_norm
+        if exists is not None:  # float64: the default dtype of a where between two floats may be float32
+            const = torch.where(exists, torch.tensor(const, dtype=torch.float64, device=exists.device), -math.inf)
+        return gauss_exponents(x[..., X], x[..., Y], z, W=self.W, diagonal=self.diagonal, centre=self.centre,
+                               const=const)
 
     def intensity(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """The Poisson intensity at every point (module docstring; :func:`_intensity_eager`):
         ``lambda_m = L_C / V + L_x sum_n e_n N(z_m; H x_n, R)``, ``(B, *S, K, D), (B, M, 2),
         (B, *S, K) -> (B, *S, M)`` float64; needs ``L_C > 0``. Differentiable in ``x``.
         """
-        terms = self.log_intensity_terms(x, z).to(torch.float64)
-        alive = None if exists is None else exists.to(torch.float64)
+        terms = self.log_intensity_terms(x, z, exists)  # an inactive slot's terms are -inf: rate 0
         clutter = self.clutter_rate / self.volume
         if runtime.generated_reductions():  # compiled: eager's kernels, eager's bits
-            return _intensity(terms, torch.ones(terms.shape[:-1], dtype=terms.dtype, device=terms.device)
-                              if alive is None else alive, clutter)
-        return _intensity_eager(terms, alive, clutter, in_place=runtime.in_place(x))
+            return _intensity(terms, torch.ones(terms.shape[:-1], dtype=terms.dtype, device=terms.device), clutter)
+        return _intensity_eager(terms, None, clutter, in_place=runtime.in_place(x))
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
