@@ -110,36 +110,40 @@ def _logsumexp_backward(ctx, grad):
 _logsumexp.register_autograd(_logsumexp_backward, setup_context=_logsumexp_context)
 
 
-def _intensity_change_eager(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+def _intensity_change_eager(rate_terms: Tensor, moved: int, cache: Tensor, mask: Tensor, in_place: bool = False
+                            ) -> tuple[Tensor, Tensor]:
     """The arithmetic of :meth:`PoissonClutterPoints.log_likelihood_delta_cached` on flat rows:
-    ``rate_terms (R, 2V, M)`` the moved slots' ``log(L_x N(z_m; H x, R))`` (old then new),
-    ``sign (R, 2V)`` float64 (``-e_old``, ``+e_new``), ``cache (R, M)`` float64 intensities,
-    ``mask (R, M)`` bool -> ``(sum over valid points of log(lambda'_m / lambda_m) (R,),
-    change lambda' - lambda (R, M))``, both float64.
+    ``rate_terms (R, 2V, M)`` float64 the moved slots' ``log(L_x e N(z_m; H x, R))`` (old then
+    new, ``-inf`` where the slot is inactive; ``V = moved``), ``cache (R, M)`` float64
+    intensities, ``mask (R, M)`` bool -> ``(sum over valid points of log(lambda'_m / lambda_m)
+    (R,), change lambda' - lambda (R, M))``, both float64. ``in_place``: ``rate_terms`` is a
+    fresh tensor and may be overwritten (no autograd).
     """
-    rate = _exp_(rate_terms.to(torch.float64), fresh=True)
-    # sum_j sign_j rate_j (R, M) written out, j ascending, as ATen's sum adds the rows of a
-    # small middle axis: the same additions in the same order (a zero change's sign aside,
-    # which neither log1p's sum nor the cache's addition sees), without that strided
-    # reduction and the (R, 2V, M) product before it (a third of this function's time)
-    change = rate[:, 0] * sign[:, :1]
-    for j in range(1, rate.shape[1]):  # 2V = 2 or 4 terms: the moved slots' old and new
-        change.add_(rate[:, j] * sign[:, j:j + 1])
+    rate = _exp_(rate_terms, fresh=not in_place)
+    # - sum of the old rates + sum of the new, j ascending, written out (2V = 2 or 4 terms):
+    # an inactive slot's rate is an exact 0, so no sign to multiply (the values of
+    # sum_j sign_j rate_j with sign -e_old, +e_new, a zero change's sign aside)
+    if moved == 1:  # new - old: the value of -old + new, in one pass
+        change = rate[:, 1] - rate[:, 0]
+    else:
+        change = -rate[:, 0]
+        for j in range(1, rate.shape[1]):  # over the moved slots' old and new terms
+            change = change.sub_(rate[:, j]) if j < moved else change.add_(rate[:, j])
     log_ratio = torch.where(mask, torch.log1p(change / cache), 0.0)
     return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
             ).squeeze(-1), change
 
 
 @torch.library.custom_op("torchmcmcpf::intensity_change", mutates_args=())
-def _intensity_change(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+def _intensity_change(rate_terms: Tensor, moved: int, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`_intensity_change_eager`, opaque to ``torch.compile`` (the same ATen kernels as
     eager code: Inductor's ``exp`` and ``log1p`` differ from ATen's in the last bit).
     """
-    return _intensity_change_eager(rate_terms, sign, cache, mask)
+    return _intensity_change_eager(rate_terms, moved, cache, mask)
 
 
 @_intensity_change.register_fake
-def _(rate_terms: Tensor, sign: Tensor, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+def _(rate_terms: Tensor, moved: int, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
     return cache.sum(-1), torch.empty_like(cache)
 
 
@@ -545,13 +549,13 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         x_old = take_along(x, slot.unsqueeze(-1), -2)
         e_old = torch.ones_like(slot, dtype=torch.bool) if exists is None else take_along(exists, slot, -1)
         e_new = e_old if exists_n is None else (exists_n if many else exists_n.unsqueeze(-1)).expand(slot.shape)
-        terms = self.log_intensity_terms(torch.cat([x_old, xn], -2), pts)  # (B, *S, 2V, M)
-        sign = torch.cat([-e_old.to(torch.float64), e_new.to(torch.float64)], -1)  # (B, *S, 2V)
+        # (B, *S, 2V, M), an inactive slot's terms -inf
+        terms = self.log_intensity_terms(torch.cat([x_old, xn], -2), pts, torch.cat([e_old, e_new], -1))
         valid = torch.ones(pts.shape[:2], dtype=torch.bool, device=x.device) if mask is None else mask
         valid = valid.reshape((valid.shape[0],) + (1,) * (len(lead) - 1) + (m,)).expand(lead + (m,))
-        change_fn = _intensity_change if runtime.generated_reductions() else _intensity_change_eager
-        log_ratio, change = change_fn(terms.reshape(-1, *terms.shape[-2:]), sign.reshape(-1, sign.shape[-1]),
-                                      cache.reshape(-1, m), valid.reshape(-1, m))
+        flat = (terms.reshape(-1, *terms.shape[-2:]), xn.shape[-2], cache.reshape(-1, m), valid.reshape(-1, m))
+        log_ratio, change = _intensity_change(*flat) if runtime.generated_reductions() else \
+            _intensity_change_eager(*flat, in_place=runtime.in_place(x))
         born = (e_new.to(x.dtype) - e_old.to(x.dtype)).sum(-1)
         delta = log_ratio.reshape(lead).to(x.dtype) - self.detection_rate * born
         cells = torch.arange(cache.numel(), device=x.device).reshape(cache.shape)
