@@ -220,11 +220,14 @@ def pairwise_squared_distances(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor
     by coordinate: the values of ``squared_norm(a[..., :, None, :] - b[..., None, :, :])``
     (each coordinate's difference squared, added in order), without a difference broadcast
     over an inner dim of ``r = 2-3`` coordinates, which costs 3x the time on the CPU (the
-    exclusion factors of 10,000 MCMC-PF chains).
+    exclusion factors of 10,000 MCMC-PF chains). Each coordinate is made contiguous first: the
+    broadcast difference of two contiguous operands runs ATen's vectorised loop, of two
+    stride-``r`` ones not (0.84 against 1.55 ms for ``(10, 1000, 2, 2)`` against ``(10, 1000,
+    5, 2)``, one thread; the same values).
     """
     out = None
     for c in range(a.shape[-1]):  # over the coordinates
-        sq = (a[..., c].unsqueeze(-1) - b[..., c].unsqueeze(-2)).square()
+        sq = (a[..., c].contiguous().unsqueeze(-1) - b[..., c].contiguous().unsqueeze(-2)).square()
         out = sq if out is None else out + sq
     if out is None:
         raise ValueError(f"a has shape {tuple(a.shape)}: expected at least one coordinate")

@@ -145,7 +145,7 @@ class Exclusion:
         i, j = torch.triu_indices(k, k, 1, device=u.device)  # the K (K - 1) / 2 pairs i < j
         d2 = None  # (*S, P): the pairs' squared distances only, coordinate by coordinate (the values of
         for c in range(u.shape[-1]):  # pairwise_squared_distances at [..., i, j], 0.6 of the time)
-            uc = u[..., c]
+            uc = u[..., c].contiguous()
             sq = (uc[..., i] - uc[..., j]).square()
             d2 = sq if d2 is None else d2 + sq
         if d2 is None:

@@ -70,6 +70,16 @@ def _exp(t: Tensor) -> Tensor:
     return torch.threshold(t.clamp(min=FLUSH).exp(), _E_FLUSH, 0.0)
 
 
+def _rate(t: Tensor, in_place: bool) -> Tensor:
+    """``exp(max(t, FLUSH))``: the exponentials an intensity adds to its clutter floor
+    ``L_C / V > 0``, clamped (the fast path of ``exp``) and not zeroed, a clamped term being
+    below half an ulp of that floor (:data:`FLUSH`): the intensities of :func:`_exp_`, one
+    pass fewer. ``in_place``: ``t`` is a fresh tensor and may be overwritten (no autograd);
+    else differentiable. NaN kept.
+    """
+    return t.clamp_(min=FLUSH).exp_() if in_place else t.clamp(min=FLUSH).exp()
+
+
 def _logsumexp_fast(x: Tensor, dim: int) -> Tensor:
     """``torch.logsumexp(x, dim)`` by ATen's steps (the maxima, infinite ones set to 0, ``exp``
     of the differences summed, ``log``, the maxima added back) with :func:`_exp_`: the terms
@@ -119,10 +129,10 @@ def _intensity_change_eager(rate_terms: Tensor, moved: int, cache: Tensor, mask:
     (R,), change lambda' - lambda (R, M))``, both float64. ``in_place``: ``rate_terms`` is a
     fresh tensor and may be overwritten (no autograd).
     """
-    rate = _exp_(rate_terms, fresh=not in_place)
+    rate = _rate(rate_terms, in_place)
     # - sum of the old rates + sum of the new, j ascending, written out (2V = 2 or 4 terms):
-    # an inactive slot's rate is an exact 0, so no sign to multiply (the values of
-    # sum_j sign_j rate_j with sign -e_old, +e_new, a zero change's sign aside)
+    # an inactive slot's rate is e^FLUSH, below half an ulp of the cache it changes, so no sign
+    # to multiply (the intensities of sum_j sign_j rate_j with sign -e_old, +e_new)
     if moved == 1:  # new - old: the value of -old + new, in one pass
         change = rate[:, 1] - rate[:, 0]
     else:
@@ -154,10 +164,10 @@ def _intensity_eager(terms: Tensor, alive: Tensor | None, clutter: float, in_pla
     ``in_place``: ``terms`` is a fresh tensor and may be overwritten (no autograd).
 
     No shift by a maximum is needed: a term is at most ``L_x / (2 pi |R|^1/2)`` (no overflow)
-    and ``lambda_m >= L_C / V > 0`` (no ``log 0``); the terms below ``e^FLUSH`` are dropped
-    (:func:`_exp_`), below half an ulp of the clutter floor.
+    and ``lambda_m >= L_C / V > 0`` (no ``log 0``); the terms are clamped to ``e^FLUSH``
+    (:func:`_rate`), below half an ulp of the clutter floor.
     """
-    rate = _exp_(terms) if in_place else _exp(terms)
+    rate = _rate(terms, in_place)
     if alive is not None:  # a multiplication, not a mask: a NaN state stays NaN
         a = alive.unsqueeze(-1)
         rate = rate.mul_(a) if in_place else rate * a
