@@ -139,7 +139,11 @@ def _intensity_change_eager(rate_terms: Tensor, moved: int, cache: Tensor, mask:
         change = -rate[:, 0]
         for j in range(1, rate.shape[1]):  # over the moved slots' old and new terms
             change = change.sub_(rate[:, j]) if j < moved else change.add_(rate[:, j])
-    log_ratio = torch.where(mask, torch.log1p(change / cache), 0.0)
+    # log(lambda' / lambda) with lambda' = lambda + change, the cache's next value: ATen's
+    # float64 log1p is not vectorised (2.3 against 0.34 ms for log on 380,000 numbers, one
+    # thread), and the rounding of lambda + change costs at most an ulp of the ratio (about
+    # 1e-16 absolute per point, against log1p's relative 1e-16)
+    log_ratio = torch.where(mask, torch.log((cache + change) / cache), 0.0)
     return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
             ).squeeze(-1), change
 
