@@ -39,7 +39,7 @@ from ...runtime import take_along
 from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
 
-__all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "log_near_points"]
+__all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "gauss_exponents", "log_near_points"]
 
 AreaLike = Tensor | Sequence[Sequence[float]]
 
@@ -231,7 +231,8 @@ def _whitened_axes(a: Tensor, b: Tensor, W: Tensor, diagonal: bool) -> tuple[Ten
     if diagonal:
         d = torch.diagonal(W)
         return a * d[0], b * d[1]
-    return _whiten(torch.stack([a, b], -1), W, diagonal).unbind(-1)
+    w = _whiten(torch.stack([a, b], -1), W, diagonal)
+    return w[..., 0], w[..., 1]
 
 
 def gauss_exponents(a: Tensor, b: Tensor, pts: Tensor, *, W: Tensor, diagonal: bool, centre: Tensor,
@@ -349,6 +350,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
     area: Tensor  #: (2, 2) buffer, ``((x_lo, x_hi), (y_lo, y_hi))``
     R: Tensor  #: (2, 2) buffer, the noise covariance
     W: Tensor  #: (2, 2) buffer, ``L^{-1}`` with ``R = L L^T`` (float64)
+    centre: Tensor  #: (2,) buffer (not saved), the area's centre (:func:`gauss_exponents`)
 
     def __init__(
         self,
