@@ -82,7 +82,7 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 import torch
 
 from .._validation import check_positive, check_positive_int
-from ..runtime import packed_places, pairwise_squared_distances, unpacked
+from ..runtime import packed_places, pairwise_squared_distances, squared_norm, unpacked
 from ..typing import Tensor
 
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
@@ -143,18 +143,17 @@ class Exclusion:
         """
         k = u.shape[-2]
         i, j = torch.triu_indices(k, k, 1, device=u.device)  # the K (K - 1) / 2 pairs i < j
-        d2 = None  # (*S, P): the pairs' squared distances only, coordinate by coordinate (the values of
-        for c in range(u.shape[-1]):  # pairwise_squared_distances at [..., i, j], 0.6 of the time)
-            uc = u[..., c].contiguous()
-            sq = (uc[..., i] - uc[..., j]).square()
-            d2 = sq if d2 is None else d2 + sq
-        if d2 is None:
+        if u.shape[-1] < 1:
             raise ValueError(f"u has shape {tuple(u.shape)}: expected at least one coordinate")
+        # the pairs' squared distances only, (*S, P): the two slots of each pair as rows, their
+        # difference's squares added coordinate by coordinate (the values of
+        # pairwise_squared_distances at [..., i, j], in 0.55 of the time)
+        d2 = squared_norm(u.index_select(-2, i) - u.index_select(-2, j))
         # log_phi is floored (finite, zero slope at d = 0): the pairs of inactive slots are
         # dropped after it, as in log_change
         terms = self.log_phi(d2)
         if alive is not None:
-            terms = torch.where(alive[..., i] & alive[..., j], terms, 0.0)
+            terms = torch.where(alive.index_select(-1, i) & alive.index_select(-1, j), terms, 0.0)
         return terms.sum(-1)
 
     def log_change(self, u: Tensor, u_n: Tensor, n: Tensor, alive: Tensor | None = None,
