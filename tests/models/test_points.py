@@ -52,9 +52,10 @@ def test_intensity_op_and_the_likelihood_without_clutter(gen):
     from torchmcmcpf.models.sensors.points import _intensity, _intensity_eager
 
     terms = torch.randn(3, 4, 5, generator=gen, dtype=torch.float64) * 300 - 400
-    alive = (torch.rand(3, 4, generator=gen) < 0.6).double()
-    torch.library.opcheck(_intensity, (terms.clone().requires_grad_(), alive, 0.01))
-    assert torch.equal(_intensity(terms, alive, 0.01), _intensity_eager(terms.clone(), alive, 0.01, in_place=True))
+    alive = torch.rand(3, 4, generator=gen) < 0.6
+    terms = torch.where(alive.unsqueeze(-1), terms, -math.inf)  # an inactive slot's terms, as the sensor makes them
+    torch.library.opcheck(_intensity, (terms.clone().requires_grad_(), 0.01))
+    assert torch.equal(_intensity(terms, 0.01), _intensity_eager(terms.clone(), 0.01, in_place=True))
     s = sensor(clutter_rate=0.0)
     x = torch.randn(2, 3, 4, 4, generator=gen, dtype=torch.float64) * 20 + torch.tensor([100.0, 0, 0, 0])
     exists = torch.ones(2, 3, 4, dtype=torch.bool)

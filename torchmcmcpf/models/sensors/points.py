@@ -151,7 +151,7 @@ def _intensity_change_eager(rate_terms: Tensor, moved: int, cache: Tensor, mask:
 @torch.library.custom_op("torchmcmcpf::intensity_change", mutates_args=())
 def _intensity_change(rate_terms: Tensor, moved: int, cache: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`_intensity_change_eager`, opaque to ``torch.compile`` (the same ATen kernels as
-    eager code: Inductor's ``exp`` and ``log1p`` differ from ATen's in the last bit).
+    eager code: Inductor's ``exp`` and ``log`` differ from ATen's in the last bit).
     """
     return _intensity_change_eager(rate_terms, moved, cache, mask)
 
@@ -161,44 +161,41 @@ def _(rate_terms: Tensor, moved: int, cache: Tensor, mask: Tensor) -> tuple[Tens
     return cache.sum(-1), torch.empty_like(cache)
 
 
-def _intensity_eager(terms: Tensor, alive: Tensor | None, clutter: float, in_place: bool = False) -> Tensor:
+def _intensity_eager(terms: Tensor, clutter: float, in_place: bool = False) -> Tensor:
     """The Poisson intensity at every point, ``lambda_m = L_C / V + sum_k e_k exp(t_km)``:
-    ``terms (..., K, M)`` the slots' ``t = log(L_x N(z_m; H x_k, R))`` (float64), ``alive (...,
-    K)`` float64 0 / 1 or None (every slot), ``clutter`` ``L_C / V > 0`` -> ``(..., M)`` float64.
-    ``in_place``: ``terms`` is a fresh tensor and may be overwritten (no autograd).
+    ``terms (..., K, M)`` the slots' ``t = log(L_x e_k N(z_m; H x_k, R))`` (float64, ``-inf``
+    for an inactive slot: :meth:`PoissonClutterPoints.log_intensity_terms`), ``clutter`` ``L_C /
+    V > 0`` -> ``(..., M)`` float64. ``in_place``: ``terms`` is a fresh tensor and may be
+    overwritten (no autograd). A NaN state stays NaN.
 
     No shift by a maximum is needed: a term is at most ``L_x / (2 pi |R|^1/2)`` (no overflow)
     and ``lambda_m >= L_C / V > 0`` (no ``log 0``); the terms are clamped to ``e^FLUSH``
     (:func:`_rate`), below half an ulp of the clutter floor.
     """
-    rate = _rate(terms, in_place)
-    if alive is not None:  # a multiplication, not a mask: a NaN state stays NaN
-        a = alive.unsqueeze(-1)
-        rate = rate.mul_(a) if in_place else rate * a
-    total = rate.sum(-2)
+    total = _rate(terms, in_place).sum(-2)
     return total.add_(clutter) if in_place else total + clutter
 
 
 @torch.library.custom_op("torchmcmcpf::intensity", mutates_args=())
-def _intensity(terms: Tensor, alive: Tensor, clutter: float) -> Tensor:
+def _intensity(terms: Tensor, clutter: float) -> Tensor:
     """:func:`_intensity_eager`, opaque to ``torch.compile`` (the same ATen kernels as eager
     code, so ``compile_step=True`` gives eager's bits: Inductor's ``exp`` differs in the last bit).
     """
-    return _intensity_eager(terms, alive, clutter)
+    return _intensity_eager(terms, clutter)
 
 
 @_intensity.register_fake
-def _(terms: Tensor, alive: Tensor, clutter: float) -> Tensor:
+def _(terms: Tensor, clutter: float) -> Tensor:
     return terms.new_empty(terms.shape[:-2] + terms.shape[-1:])
 
 
 def _intensity_context(ctx, inputs, output):
-    ctx.save_for_backward(inputs[0], inputs[1])
+    ctx.save_for_backward(inputs[0])
 
 
 def _intensity_backward(ctx, grad):
-    terms, alive = ctx.saved_tensors  # d lambda_m / d t_km = e_k exp(t_km), 0 where flushed
-    return grad.unsqueeze(-2) * _exp(terms) * alive.unsqueeze(-1), None, None
+    (terms,) = ctx.saved_tensors  # d lambda_m / d t_km = exp(t_km), 0 where clamped (and inactive)
+    return grad.unsqueeze(-2) * _exp(terms), None
 
 
 _intensity.register_autograd(_intensity_backward, setup_context=_intensity_context)
@@ -419,8 +416,8 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         terms = self.log_intensity_terms(x, z, exists)  # an inactive slot's terms are -inf: rate 0
         clutter = self.clutter_rate / self.volume
         if runtime.generated_reductions():  # compiled: eager's kernels, eager's bits
-            return _intensity(terms, torch.ones(terms.shape[:-1], dtype=terms.dtype, device=terms.device), clutter)
-        return _intensity_eager(terms, None, clutter, in_place=runtime.in_place(x))
+            return _intensity(terms, clutter)
+        return _intensity_eager(terms, clutter, in_place=runtime.in_place(x))
 
     def log_likelihood(self, x: Tensor, z: PointMeasurement, exists: Tensor | None = None) -> Tensor:
         """``-(L_C + L_x sum_n e_n) + sum_m log(L_C / V + L_x sum_n e_n N(z_m; H x_n, R))``
