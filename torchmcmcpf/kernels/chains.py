@@ -150,7 +150,9 @@ class JointNoise(NamedTuple):
     """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
     K, noise_dim)`` standard normals (the transition noise of every target), with existence
     ``birth`` (:class:`BirthNoise`) and with re-capture ``relocation``
-    (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`), leading ``(B, C, K)``.
+    (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`), leading ``(B, C, K)``; and
+    ``ancestor (B, C)`` int64, the ancestors ``u_ancestor`` picks in the cloud when the draw
+    read them (the newborn candidates' places), so the move does not search the cloud again.
 
     Example
     -------
@@ -177,6 +179,7 @@ class JointNoise(NamedTuple):
     u: Tensor
     birth: BirthNoise | None = None
     relocation: RelocationNoise | None = None
+    ancestor: Tensor | None = None
 
     @classmethod
     def draw(cls, x: Tensor, dynamics: TargetDynamics, *, generator: torch.Generator,
@@ -192,9 +195,10 @@ class JointNoise(NamedTuple):
         b, c, k, _ = x.shape
         u_ancestor = uniforms((b, c), x, generator)
         eps, u = normals((b, c, k, dynamics.motion.noise_dim), x, generator), uniforms((b, c), x, generator)
-        exists = None if cloud is None or cloud.exists is None or dynamics.existence is None else \
-            gather_particles(cloud.exists, draw_ancestors(cloud, u_ancestor))
-        return cls(u_ancestor, eps, u, *_slot_changes(x, dynamics, z, generator, relocation, exists))
+        a = None if cloud is None or cloud.exists is None or dynamics.existence is None else \
+            draw_ancestors(cloud, u_ancestor)
+        exists = None if a is None or cloud is None else gather_particles(cloud.exists, a)
+        return cls(u_ancestor, eps, u, *_slot_changes(x, dynamics, z, generator, relocation, exists), ancestor=a)
 
 
 class RefineNoise(NamedTuple):

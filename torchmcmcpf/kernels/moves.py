@@ -154,7 +154,7 @@ def _joint_candidate(cloud: PreviousCloud, noise: JointNoise, z: Measurement, dy
     ``(x, exists)`` propagated by ``dynamics`` (one path with or without births and
     re-capture).
     """
-    a = draw_ancestors(cloud, noise.u_ancestor)
+    a = draw_ancestors(cloud, noise.u_ancestor) if noise.ancestor is None else noise.ancestor
     x_prev = gather_particles(cloud.x, a)
     exists_prev = None if cloud.exists is None else gather_particles(cloud.exists, a)
     x, exists, log_ratio, _ = dynamics.propagate_labelled(x_prev, exists_prev, noise.eps, noise.birth,
@@ -298,8 +298,9 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
     x_prop, e_prop, r_prop, log_ratio, u : the proposals of every slot, ``(B, C, K, D)``,
         then ``(B, C, K)`` (``e_prop``, ``r_prop`` or None; ``r_prop`` their ``log r'_n``,
         ``log_ratio`` the difference ``log r'_n - log r_n`` taken against the sweep's start).
-    n : Python int, or (B, C) int64 (the same slot everywhere, as a tensor so that one
-        compiled graph serves every slot).
+    n : Python int (eager: slot n's entries read as views and only they rewritten), or (B, C)
+        int64 (the same slot everywhere, as a tensor so that one compiled graph serves every
+        slot); the same values either way.
     z : the frame; cache : the chains' amplitude cache
         (:meth:`~torchmcmcpf.models.base.SensorModel.amplitude_cache`), optional: the
         proposal's ratio is then read from it (the moved slot's terms only).
@@ -315,32 +316,52 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
     """
     if e is not None and (e_prop is None or r_prop is None or log_r is None):
         raise ValueError("with existence flags e, e_prop, r_prop and log_r must be given too")
-    slots = torch.arange(x.shape[-2], device=x.device)
     n_t = n if isinstance(n, torch.Tensor) else torch.full(log_lik.shape, n, dtype=torch.int64, device=x.device)
-    here = slots == n_t.unsqueeze(-1)  # (B, C, K)
+    if isinstance(n, int):  # the eager sweep: slot n's entries are views, and only they are rewritten
+        x_n, u_n, ratio_n = x_prop[..., n, :], u[..., n], log_ratio[..., n]
+        e_n = None if e is None or e_prop is None else e_prop[..., n]
+    else:  # one compiled graph for every slot: n a tensor
+        here = torch.arange(x.shape[-2], device=x.device) == n_t.unsqueeze(-1)  # (B, C, K)
 
-    def pick(t: Tensor) -> Tensor:
-        idx = n_t.reshape(n_t.shape + (1,) * (t.dim() - n_t.dim()))
-        return take_along(t, idx, dim=n_t.dim()).squeeze(n_t.dim())
+        def pick(t: Tensor) -> Tensor:
+            idx = n_t.reshape(n_t.shape + (1,) * (t.dim() - n_t.dim()))
+            return take_along(t, idx, dim=n_t.dim()).squeeze(n_t.dim())
 
-    x_n = pick(x_prop)
-    e_n = None if e is None or e_prop is None else pick(e_prop)
-    x_cand = torch.where(here.unsqueeze(-1), x_prop, x)
+        x_n, u_n, ratio_n = pick(x_prop), pick(u), pick(log_ratio)
+        e_n = None if e is None or e_prop is None else pick(e_prop)
     update = None
     if cache is not None:  # the moved slot's terms read against the chains' cache
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, x, x_n, n_t, z, exists=e, exists_n=e_n)
         log_lik_cand, update = log_lik + delta, (cells, change)
     else:  # the declared hook: the cells near slot n only for grid sensors, else a full evaluation
         log_lik_cand = sensor.log_likelihood_slot(x, x_n, n, z, log_lik, exists=e, exists_n=e_n)
-    log_alpha = log_lik_cand - log_lik + pick(log_ratio) + exclusion_change(exclusion, sensor, x, x_n, n_t, e, e_n)
-    acc = mh_accept(log_alpha, pick(u))
-    x = mh_select(acc, x_cand, x)
+    log_alpha = log_lik_cand - log_lik + ratio_n + exclusion_change(exclusion, sensor, x, x_n, n_t, e, e_n)
+    acc = mh_accept(log_alpha, u_n)
     log_lik = torch.where(acc, log_lik_cand, log_lik)
+    if isinstance(n, int):  # slot n set to the accepted value, the other slots' entries copied
+        x = _with_slot(x, acc.dim(), n, torch.where(acc.unsqueeze(-1), x_n, x[..., n, :]))
+        if e is not None and e_n is not None:
+            e = _with_slot(e, acc.dim(), n, torch.where(acc, e_n, e[..., n]))
+        if log_r is not None and r_prop is not None:
+            log_r = _with_slot(log_r, acc.dim(), n, torch.where(acc, r_prop[..., n], log_r[..., n]))
+        return x, log_lik, e, log_r, acc, update
+    x = mh_select(acc, torch.where(here.unsqueeze(-1), x_prop, x), x)
     if e is not None and e_prop is not None:
         e = mh_select(acc, torch.where(here, e_prop, e), e)
     if log_r is not None and r_prop is not None:
         log_r = torch.where(acc.unsqueeze(-1) & here, r_prop, log_r)
     return x, log_lik, e, log_r, acc, update
+
+
+def _with_slot(t: Tensor, axis: int, n: int, value: Tensor) -> Tensor:
+    """A copy of ``t`` with entry ``n`` of its slot axis ``axis`` set to ``value`` (``t``'s
+    shape without that axis): the values of ``torch.where(slot == n, value, t)``, one copy and
+    one slot's write instead of a select over every slot with a broadcast condition, which
+    ATen's CPU loop does not vectorise (0.39 against 0.06 ms for ``(10, 1000, 5, 4)``).
+    """
+    out = t.clone()
+    out.select(axis, n).copy_(value)
+    return out
 
 
 def _sequential_sweep(chain: ChainState, x_prop: Tensor, log_ratio: Tensor, u: Tensor, z: Measurement,
