@@ -358,6 +358,27 @@ def test_joint_proposal_shapes_and_ratio(gen):
     torch.testing.assert_close(x, motion.propagate(x_prev, noise.eps))
 
 
+
+def test_normals_drawn_where_flagged_only(gen):
+    """``normals(..., where=)`` draws the flagged rows in order, zeros elsewhere: the flagged
+    rows are the next draws of the generator (so standard normal), and a wrong-shaped flag
+    tensor is refused by name."""
+    from torchmcmcpf.kernels.chains import normals
+
+    like = torch.zeros((), dtype=DT)
+    flags = torch.rand(4, 300, 5, generator=gen) < 0.4
+    g = torch.Generator().manual_seed(11)
+    eps = normals((4, 300, 5, 3), like, g, flags)
+    assert eps.shape == (4, 300, 5, 3) and eps.dtype == DT
+    assert torch.equal(eps[~flags], torch.zeros(int((~flags).sum()), 3, dtype=DT))
+    expected = torch.randn(int(flags.sum()), 3, generator=torch.Generator().manual_seed(11), dtype=DT)
+    assert torch.equal(eps[flags], expected)
+    n = expected.numel()  # about 7,200 numbers: mean within 4 se, variance within 4 se of 1
+    assert abs(float(expected.mean())) < 4 / math.sqrt(n) and abs(float(expected.var()) - 1) < 4 * math.sqrt(2 / n)
+    with pytest.raises(ValueError, match="where has shape"):
+        normals((4, 300, 5, 3), like, g, flags[:, :10])
+
+
 # -- existence: births and deaths --------------------------------------------------------------
 # Exact target (module "Existence" docstring of torchmcmcpf.kernels.moves) on a problem small
 # enough to enumerate: K = 2 slots, N0 = 4 distinct previous particles (every existence
