@@ -214,9 +214,10 @@ class JointNoise(NamedTuple):
         """
         b, c, k, _ = x.shape
         u_ancestor = uniforms((b, c), x, generator)
-        a = None if cloud is None or cloud.exists is None or dynamics.existence is None else \
-            draw_ancestors(cloud, u_ancestor)
-        exists = None if a is None or cloud is None else gather_particles(cloud.exists, a)
+        a = exists = None
+        if cloud is not None and cloud.exists is not None and dynamics.existence is not None:
+            a = draw_ancestors(cloud, u_ancestor)
+            exists = gather_particles(cloud.exists, a)
         eps, u = normals((b, c, k, dynamics.motion.noise_dim), x, generator, exists), uniforms((b, c), x, generator)
         return cls(u_ancestor, eps, u, *_slot_changes(x, dynamics, z, generator, relocation, exists), ancestor=a)
 
