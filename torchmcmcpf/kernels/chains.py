@@ -153,10 +153,10 @@ def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator, where: 
     draw (PyTorch's CPU kernel draws one number at a time: 18-24 ns a number against 4 for
     ``rand``, AMD EPYC, one thread). Elsewhere every row is drawn (the same law).
     """
+    if where is not None and tuple(where.shape) != tuple(shape[:-1]):
+        raise ValueError(f"where has shape {tuple(where.shape)}, expected {tuple(shape[:-1])}")
     if where is None or not host_reads(x):
         return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
-    if tuple(where.shape) != tuple(shape[:-1]):
-        raise ValueError(f"where has shape {tuple(where.shape)}, expected {tuple(shape[:-1])}")
     rows = where.reshape(-1).nonzero().squeeze(-1)
     out = torch.zeros(shape, device=x.device, dtype=x.dtype)
     drawn = torch.randn((rows.numel(), shape[-1]), generator=generator, device=x.device, dtype=x.dtype)
