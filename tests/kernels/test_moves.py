@@ -660,3 +660,47 @@ def test_chains_keep_the_point_intensity_cache(gen):
     runs, checked = _kept_and_stripped("cache", 12, 0.5, check)
     assert checked > 5
     assert torch.equal(runs[0].x, runs[1].x) and torch.equal(runs[0].exists, runs[1].exists)
+
+
+def test_refine_slot_int_and_tensor_slot_agree():
+    """The eager sweep's Python-int slot (views, one slot rewritten) and the compiled program's
+    tensor slot (gathers, selects over every slot) give the same bits: births and deaths in
+    clutter, the point sensor's intensity cache and the exclusion term, every slot in turn."""
+    from torchmcmcpf.kernels.moves import joint_move, refine_slot
+    from torchmcmcpf.models.multitarget import Exclusion
+    from torchmcmcpf.scenarios.septier import septier
+
+    g = torch.Generator().manual_seed(5)
+    scn = septier(2, 2, generator=g)
+    motion, sensor, dynamics = scn.motion, scn.sensor, TargetDynamics(scn.motion, scn.existence)
+    z = type(scn.measurements)(*(t[1] for t in scn.measurements))
+    k = scn.alive.shape[-1]
+    cloud = previous_cloud(torch.zeros(2, 30, k, 4, dtype=DT), torch.full((2, 30), -math.log(30), dtype=DT),
+                           torch.zeros(2, 30, k, dtype=torch.bool), motion=motion)
+    like = cloud.x.new_empty(2, 64, k, 4)
+    chain = init_chains(cloud, JointNoise.draw(like, dynamics, generator=g, z=z, cloud=cloud), z, dynamics=dynamics,
+                        sensor=sensor)
+    for _ in range(4):  # joint draws: chains with newborns, some of them accepted
+        chain, _ = joint_move(chain, JointNoise.draw(like, dynamics, generator=g, z=z, cloud=cloud), cloud=cloud, z=z,
+                              dynamics=dynamics, sensor=sensor)
+    assert chain.exists.any() and not chain.exists.all()
+    noise = RefineNoise.draw(chain.x, dynamics, generator=g, z=z, exists=chain.exists_prev)
+    x_prop, e_prop, r_prop = dynamics.propagate(chain.x_prev, chain.exists_prev, noise.eps, noise.birth,
+                                                noise.relocation)
+    log_ratio = r_prop - chain.log_ratio
+    state = (chain.x, chain.log_lik, chain.exists, chain.log_ratio)
+    cache = sensor.amplitude_cache(chain.x, chain.exists, z)
+    accepted = []
+    for n in range(k):
+        args = (*state, x_prop, e_prop, r_prop, log_ratio, noise.u)
+        by_int = refine_slot(*args, n, z, cache.clone(), sensor=sensor, exclusion=Exclusion())
+        by_tensor = refine_slot(*args, torch.full(chain.log_lik.shape, n), z, cache.clone(), sensor=sensor,
+                                exclusion=Exclusion())
+        for a, b in zip(by_int[:5], by_tensor[:5]):
+            assert torch.equal(a, b)
+        assert all(torch.equal(a, b) for a, b in zip(by_int[5], by_tensor[5]))
+        accepted.append(by_int[4])
+        state = by_int[:4]
+        cache = sensor.update_amplitude_cache(cache, *by_int[5], by_int[4])
+    flags = torch.stack(accepted, -1)
+    assert flags.any() and not flags.all()  # a mix of accepted and rejected updates
