@@ -151,7 +151,10 @@ def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator, where: 
     ancestor's slot is born from its own candidate or stays at ``x_death``). Half the
     births/deaths scene's slots are inactive, and float64 ``randn`` is the step's costliest
     draw (PyTorch's CPU kernel draws one number at a time: 18-24 ns a number against 4 for
-    ``rand``, AMD EPYC, one thread). Elsewhere every row is drawn (the same law).
+    ``rand``, AMD EPYC, one thread). Elsewhere every row is drawn (the same law). The rows are
+    packed over all runs at once, not per run as :func:`~torchmcmcpf.runtime.packed_places`
+    packs the newborns (whose ratios read their run's points): nothing here is per run, and a
+    per-run block is as wide as the fullest run, close to every slot with 10 runs batched.
     """
     if where is not None and tuple(where.shape) != tuple(shape[:-1]):
         raise ValueError(f"where has shape {tuple(where.shape)}, expected {tuple(shape[:-1])}")
@@ -167,7 +170,7 @@ def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator, where: 
 class JointNoise(NamedTuple):
     """Noise of one joint draw: ``u_ancestor (B, C)`` and ``u (B, C)`` uniforms, ``eps (B, C,
     K, noise_dim)`` standard normals (the transition noise of every target; drawn with the
-    cloud's flags, 0 where the ancestor's slot is inactive: :func:`normals`), with existence
+    cloud's flags, eager on a CPU, 0 where the ancestor's slot is inactive: :func:`normals`), with existence
     ``birth`` (:class:`BirthNoise`) and with re-capture ``relocation``
     (:class:`~torchmcmcpf.models.multitarget.RelocationNoise`), leading ``(B, C, K)``; and
     ``ancestor (B, C)`` int64, the ancestors ``u_ancestor`` picks in the cloud when the draw
@@ -224,7 +227,8 @@ class JointNoise(NamedTuple):
 
 class RefineNoise(NamedTuple):
     """Noise of one refinement sweep: ``eps (B, C, K, noise_dim)`` normals (one proposal per
-    slot; with the ancestors' flags and births, 0 where a slot's is inactive: :func:`normals`),
+    slot; with the ancestors' flags and births, eager on a CPU, 0 where a slot's is inactive:
+    :func:`normals`),
     ``u (B, C, K)`` uniforms (one accept/reject per slot) and, as in :class:`JointNoise`,
     ``birth`` and ``relocation``.
 
