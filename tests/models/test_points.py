@@ -272,6 +272,37 @@ def test_flushed_exp_and_logsumexp(gen):
         assert torch.equal(plain, tracked)
 
 
+def test_flushed_exp_in_single_precision(gen):
+    """In float32 ``_exp_`` flushes below ``e^FLUSH_SINGLE`` (``-80``: float32's ``exp`` takes
+    its slow path below about ``-87.3``, where float64's ``-700`` would leave it), is ``exp``
+    above, bit for bit, and the float32 point likelihood matches the float64 one to float32's
+    rounding.
+    """
+    from torchmcmcpf.models.sensors.points import FLUSH, FLUSH_SINGLE, _exp, _exp_, flush_level
+
+    assert flush_level(torch.float64)[0] == FLUSH and flush_level(torch.float32)[0] == FLUSH_SINGLE
+    assert -87.3 < FLUSH_SINGLE and flush_level(torch.float32)[1] > torch.finfo(torch.float32).tiny
+    t = torch.cat([torch.randn(4000, generator=gen) * 60 - 80,
+                   torch.tensor([FLUSH_SINGLE, -79.99, -80.01, -88.0, -104.0, -math.inf, math.inf, math.nan, 0.0])])
+    plain = t.exp()
+    expected = torch.where(t > FLUSH_SINGLE, plain, 0.0)
+    expected[t.isnan()] = math.nan
+    assert (expected[:4000] == 0).any() and (expected[:4000] > 0).any()
+    assert (plain[(t > -87.0) & (t <= FLUSH_SINGLE)] > 0).any()  # a flushed term that plain exp keeps
+    for got in (_exp_(t.clone()), _exp_(t.clone(), fresh=True), _exp(t)):
+        assert got.dtype == torch.float32
+        assert torch.equal(got.nan_to_num(7.0), expected.nan_to_num(7.0))
+    s64 = sensor()
+    x = torch.randn(2, 30, 4, 4, generator=gen, dtype=torch.float64) * 60 + torch.tensor([100.0, 0, 0, 0])
+    exists = torch.rand(2, 30, 4, generator=gen) < 0.6
+    z = PointFrame(torch.randn(2, 9, 2, generator=gen, dtype=torch.float64) * 60 + torch.tensor([100.0, 0]),
+                   torch.rand(2, 9, generator=gen) < 0.8)
+    want = s64.log_likelihood(x, z, exists)
+    got = s64.to(dtype=torch.float32).log_likelihood(x.float(), PointFrame(z.z.float(), z.mask), exists)
+    assert got.dtype == torch.float32
+    torch.testing.assert_close(got.double(), want, rtol=1e-5, atol=1e-4)
+
+
 def test_diagonal_whitening_equals_the_matrix_product(gen):
     """With a diagonal ``R`` the whitening, the resolution coordinates and the data draws take a
     product per axis: the same bits as the matrix products they replace."""
