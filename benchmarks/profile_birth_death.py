@@ -21,7 +21,7 @@ import torch
 from torch.profiler import profile
 
 from torchmcmcpf.experiments._shards import shard_generator
-from torchmcmcpf.experiments.septier_birth_death import BirthDeathSettings, _filters
+from torchmcmcpf.experiments.septier_birth_death import BirthDeathSettings, _filters, our_problem
 from torchmcmcpf.runtime import tune_cpu_allocator
 from torchmcmcpf.scenarios.septier import septier
 
@@ -54,21 +54,24 @@ INNER = {
 }
 
 
-def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int = 41) -> float:
+def floor(batch: int = 10, chains: int = 200, iterations: int = 70, points: int = 41,
+          dtype: torch.dtype = torch.float32) -> float:
     """The IP-MCMC-PF step's arithmetic floor at the study's settings, per step and run [s]:
     the random numbers its ``iterations`` x ``chains`` exchange moves draw (about 23 each:
     source, slot, motion, accept, birth and relocation draws) and the transcendental
     functions they must evaluate (the moved slot's old and new terms at every point, the
     scored data densities, 0.6 of a draw's ``points`` terms, one ``log`` per point), timed
-    as single calls of ``torch.rand``, ``torch.exp`` and ``torch.log`` on that many float64
-    numbers (one thread): what no implementation avoids.
+    as single calls of ``torch.rand``, ``torch.exp`` and ``torch.log`` on that many numbers
+    of ``dtype`` (the study's, :class:`BirthDeathSettings`; one thread): what no
+    implementation avoids.
     """
     moves = batch * chains * iterations
-    return _timed(23 * moves, int(2.6 * points * moves), points * moves) / batch
+    return _timed(23 * moves, int(2.6 * points * moves), points * moves, dtype) / batch
 
 
 def floor_mcmc(batch: int = 10, chains: int = 1000, iterations: int = 22, slots: int = 5, points: int = 41,
-               joint: float = 0.75, born: float = 0.25, relocated: float = 0.1) -> float:
+               joint: float = 0.75, born: float = 0.25, relocated: float = 0.1, dtype: torch.dtype = torch.float32
+               ) -> float:
     """The MCMC-PF step's arithmetic floor at the study's settings (``iterations = burn_in +
     N / C``), per step and run [s], counted as :func:`floor` counts: a joint draw (probability
     ``joint``) draws 2 uniforms and per slot 2 motion normals, the existence uniform, a
@@ -84,12 +87,12 @@ def floor_mcmc(batch: int = 10, chains: int = 1000, iterations: int = 22, slots:
     randoms = draws * (2 + (2 + changes) * slots) + sweeps * (3 + changes) * slots
     exps = (draws * slots + sweeps * 2 * slots) * points
     logs = (draws + sweeps * slots) * points
-    return _timed(int(randoms), int(exps), int(logs)) / batch
+    return _timed(int(randoms), int(exps), int(logs), dtype) / batch
 
 
-def _timed(randoms: int, exps: int, logs: int) -> float:
+def _timed(randoms: int, exps: int, logs: int, dtype: torch.dtype) -> float:
     """Seconds for single calls of ``torch.rand``, ``torch.exp`` and ``torch.log`` on that
-    many float64 numbers (best of 5 each, the current thread count; ``log``, not ``log1p``,
+    many numbers of ``dtype`` (best of 5 each, the current thread count; ``log``, not ``log1p``,
     which ATen does not vectorise in float64: 6.7 against 0.9 ns a number), each writing into a
     buffer it wrote before (``out=``): the arithmetic, not the page faults of a fresh 100 MB
     output, which this machine's memory reclaim made vary 1.75x between runs an hour apart
@@ -105,10 +108,10 @@ def _timed(randoms: int, exps: int, logs: int) -> float:
             times.append(time.perf_counter() - start)
         return min(times)
 
-    x = torch.rand(exps, generator=g, dtype=torch.float64)
-    y = torch.rand(logs, generator=g, dtype=torch.float64)
-    r, ex, ly = torch.empty(randoms, dtype=torch.float64), torch.empty_like(x), torch.empty_like(y)
-    return best(lambda: torch.rand(randoms, generator=g, dtype=torch.float64, out=r)) \
+    x = torch.rand(exps, generator=g, dtype=dtype)
+    y = torch.rand(logs, generator=g, dtype=dtype)
+    r, ex, ly = torch.empty(randoms, dtype=dtype), torch.empty_like(x), torch.empty_like(y)
+    return best(lambda: torch.rand(randoms, generator=g, dtype=dtype, out=r)) \
         + best(lambda: torch.exp(x, out=ex)) + best(lambda: torch.log(y, out=ly))
 
 
@@ -118,14 +121,14 @@ def main() -> None:
     cfg = BirthDeathSettings(stonesoup=False)
     scn = septier(10, 4, generator=shard_generator("cpu", 0, 0))
     b, k = scn.alive.shape[1:]
-    init = torch.zeros((b, cfg.particles, k, 4), dtype=torch.float64)
-    z = scn.measurements
+    motion, sensor, existence, z = our_problem(scn, cfg, torch.device("cpu"))  # in the study's dtype
+    init = torch.zeros((b, cfg.particles, k, 4), dtype=z.z.dtype)
 
     def frames(a: int, e: int):
         return type(z)(*(t[a:e] for t in z))
 
     for name, parts in PARTS.items():
-        filt = _filters(cfg, scn.motion, scn.sensor, scn.existence)[name]
+        filt = _filters(cfg, motion, sensor, existence)[name]
         g = torch.Generator().manual_seed(0)
         with torch.inference_mode():  # as the study runs its filters
             state = filt(frames(0, 2), init=init, generator=g).state
@@ -148,8 +151,9 @@ def main() -> None:
               f"{1e3 * cpu / b:.1f} ms); profiled step {total / 1e3:.0f} ms")
         for part, v in shares.items():
             print(f"  {part:52s} {100 * v / total:5.1f} %")
-    print(f"\nfloors (random numbers and transcendentals, one thread), ms per step and run: IP-MCMC-PF "
-          f"{1e3 * floor():.1f}, MCMC-PF {1e3 * floor_mcmc():.1f}")
+    dtype = z.z.dtype
+    print(f"\nfloors (random numbers and transcendentals in {cfg.dtype}, one thread), ms per step and run: "
+          f"IP-MCMC-PF {1e3 * floor(dtype=dtype):.1f}, MCMC-PF {1e3 * floor_mcmc(dtype=dtype):.1f}")
 
 
 if __name__ == "__main__":

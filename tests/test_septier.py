@@ -56,6 +56,23 @@ def test_filter_resumed_per_third_matches_one_call():
     assert torch.equal(torch.cat(means), whole.mean)
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_our_problem_in_the_study_dtype(dtype):
+    """Our filters get the scene's models and frames in the study's dtype; the scene itself
+    (what Stone Soup and the scores read) stays float64, its frames the same up to rounding.
+    """
+    scn = septier(2, 3, generator=torch.Generator().manual_seed(0))
+    cfg = septier_birth_death.BirthDeathSettings(dtype=dtype, stonesoup=False)
+    motion, sensor, existence, z = septier_birth_death.our_problem(scn, cfg, torch.device("cpu"))
+    want = getattr(torch, dtype)
+    assert z.z.dtype == want and torch.equal(z.mask, scn.measurements.mask)
+    assert scn.measurements.z.dtype == torch.float64 and scn.truth.dtype == torch.float64
+    torch.testing.assert_close(z.z.double(), scn.measurements.z, rtol=1e-6, atol=0.0)
+    assert motion.F.dtype == want and sensor.R.dtype == want and existence.x_death.dtype == want
+    x = existence.sample_birth((2, 5), generator=torch.Generator().manual_seed(1), dtype=want)
+    assert sensor.log_likelihood(x[:, None], PointFrame(z.z[0], z.mask[0])).dtype == want
+
+
 def test_set_scores_on_a_hand_made_step():
     # one step, one run: truths at (0, 0) and (500, 500); reported (3, 4) and (2000, 0)
     truth = torch.tensor([[[[0.0, 0, 0, 0], [500, 0, 500, 0], [0, 0, 0, 0]]]], dtype=torch.float64)
