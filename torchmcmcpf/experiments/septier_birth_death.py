@@ -71,9 +71,9 @@ Precision
 The scenes are simulated in float64 (Stone Soup's NumPy trackers and the scores read them as
 they are); ours filter them in ``--dtype`` (float32 unless asked), their models and frames cast
 once (:func:`our_problem`). Float32 resolves 0.5 mm at 5 km, a thousandth of a step's
-motion noise; the point sensor forms its Gaussian exponents in float64 whatever the dtype
-(:func:`~torchmcmcpf.models.sensors.points.gauss_exponents`) and its chains' intensities in
-float64 whatever the dtype. Half the bytes and twice the lanes of every other pass: on seed
+motion noise; the point sensor forms its Gaussian exponents and its chains' intensities in
+float64 whatever the dtype (:func:`~torchmcmcpf.models.sensors.points.gauss_exponents`).
+Half the bytes and twice the lanes of every other pass: on seed
 0's scenes (2026-12-06, AMD EPYC, one thread, the two in turn) the MCMC-PF step 115 -> 81 ms a
 run, the IP-MCMC-PF 38 -> 29 ms. OSPA float64 -> float32, the full study: seed 0 MCMC-PF 9.5
 -> 9.9 m, IP-MCMC-PF 10.1 -> 10.0, SIR 30.2 -> 27.5; seed 1 10.4 -> 10.2, 8.8 -> 9.8, 26.9 ->
