@@ -204,9 +204,10 @@ def our_problem(scn: SeptierScenario, cfg: BirthDeathSettings, device: torch.dev
     the scores read). Returns ``(motion, sensor, existence, frames)``, frames ``(T, B, M, 2)``.
     """
     dtype = getattr(torch, cfg.dtype)
-    motion, sensor, existence = (m.to(device=device, dtype=dtype) for m in (scn.motion, scn.sensor, scn.existence))
     z = scn.measurements
-    return motion, sensor, existence, PointFrame(z.z.to(device=device, dtype=dtype), z.mask.to(device))
+    return (scn.motion.to(device=device, dtype=dtype), scn.sensor.to(device=device, dtype=dtype),
+            scn.existence.to(device=device, dtype=dtype), PointFrame(z.z.to(device=device, dtype=dtype),
+                                                                     z.mask.to(device)))
 
 
 def _filters(cfg: BirthDeathSettings, motion: MotionModel, sensor: SensorModel, existence: BirthDeath) -> dict:
