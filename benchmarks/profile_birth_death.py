@@ -115,6 +115,44 @@ def _timed(randoms: int, exps: int, logs: int, dtype: torch.dtype) -> float:
         + best(lambda: torch.exp(x, out=ex)) + best(lambda: torch.log(y, out=ly))
 
 
+def profile_step(filt, frames, init: torch.Tensor, parts: dict, inner: list, warm: int = 2
+                 ) -> tuple[float, float, float, dict]:
+    """One filter's step after ``warm`` steps (``frames(a, e)`` the frames ``a .. e - 1``,
+    ``init`` the initial particles, ``B`` runs): the step timed (wall clock and the process's
+    CPU time, ms per step and run), then the next one profiled; ``parts`` and ``inner`` as
+    :data:`PARTS` and :data:`INNER` give them for one filter. Returns ``(ms, cpu ms, profiled
+    ms of the step, share of each part)``, the rest under "the rest (start, resampling, Python
+    and dispatch)". Under ``torch.inference_mode()``, as the studies run their filters.
+    """
+    b = init.shape[0]
+    with torch.inference_mode():
+        state = filt(frames(0, warm), init=init, generator=torch.Generator().manual_seed(0)).state
+        start, cpu = time.perf_counter(), time.process_time()
+        filt(frames(warm, warm + 1), init=state, generator=torch.Generator().manual_seed(1))
+        plain, cpu = time.perf_counter() - start, time.process_time() - cpu
+        with profile(with_stack=True) as prof:
+            filt(frames(warm + 1, warm + 2), init=state, generator=torch.Generator().manual_seed(1))
+    totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
+
+    def inclusive(file: str, fn: str) -> float:
+        return sum(v for key, v in totals.items() if key.endswith(f"): {fn}") and f"/{file}(" in key)
+
+    total = max(v for key, v in totals.items() if key.endswith("): forward"))
+    shares = {part: sum(inclusive(f, fn) for f, fn in where) / total for part, where in parts.items()}
+    # the iterations' own sensor calls are inside the bookkeeping's inclusive time
+    shares["move bookkeeping"] -= sum(inclusive(f, fn) for f, fn in inner) / total
+    shares["the rest (start, resampling, Python and dispatch)"] = 1.0 - sum(shares.values())
+    return 1e3 * plain / b, 1e3 * cpu / b, total / 1e3, shares
+
+
+def report(name: str, ms: float, cpu: float, profiled: float, shares: dict, b: int) -> None:
+    """Print one filter's :func:`profile_step`."""
+    print(f"\n{name}: {ms:.1f} ms per step and run (B = {b}, unprofiled; CPU time {cpu:.1f} ms); profiled step "
+          f"{profiled:.0f} ms")
+    for part, v in shares.items():
+        print(f"  {part:52s} {100 * v:5.1f} %")
+
+
 def main() -> None:
     torch.set_num_threads(1)
     tune_cpu_allocator()  # as `python -m torchmcmcpf reproduce` runs the study (torchmcmcpf.runtime)
@@ -129,28 +167,7 @@ def main() -> None:
 
     for name, parts in PARTS.items():
         filt = _filters(cfg, motion, sensor, existence)[name]
-        g = torch.Generator().manual_seed(0)
-        with torch.inference_mode():  # as the study runs its filters
-            state = filt(frames(0, 2), init=init, generator=g).state
-            start, cpu = time.perf_counter(), time.process_time()
-            filt(frames(2, 3), init=state, generator=torch.Generator().manual_seed(1))
-            plain, cpu = time.perf_counter() - start, time.process_time() - cpu
-            with profile(with_stack=True) as prof:
-                filt(frames(3, 4), init=state, generator=torch.Generator().manual_seed(1))
-        totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
-
-        def inclusive(file: str, fn: str) -> float:
-            return sum(v for key, v in totals.items() if key.endswith(f"): {fn}") and f"/{file}(" in key)
-
-        total = max(v for key, v in totals.items() if key.endswith("): forward"))
-        shares = {part: sum(inclusive(f, fn) for f, fn in where) for part, where in parts.items()}
-        # the iterations' own sensor calls are inside the bookkeeping's inclusive time
-        shares["move bookkeeping"] -= sum(inclusive(f, fn) for f, fn in INNER[name])
-        shares["the rest (start, resampling, Python and dispatch)"] = total - sum(shares.values())
-        print(f"\n{name}: {1e3 * plain / b:.1f} ms per step and run (B = {b}, unprofiled; CPU time "
-              f"{1e3 * cpu / b:.1f} ms); profiled step {total / 1e3:.0f} ms")
-        for part, v in shares.items():
-            print(f"  {part:52s} {100 * v / total:5.1f} %")
+        report(name, *profile_step(filt, frames, init, parts, INNER[name]), b)
     dtype = z.z.dtype
     print(f"\nfloors (random numbers and transcendentals in {cfg.dtype}, one thread), ms per step and run: "
           f"IP-MCMC-PF {1e3 * floor(dtype=dtype):.1f}, MCMC-PF {1e3 * floor_mcmc(dtype=dtype):.1f}")
