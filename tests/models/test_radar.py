@@ -504,14 +504,19 @@ def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
             assert not torch.equal(rows, cache) or not accepted.any()
 
 
-def test_amplitude_cache_delta_and_updates_follow_the_chains():
+@pytest.mark.parametrize("path", ["boxes", "whole grid"])
+def test_amplitude_cache_delta_and_updates_follow_the_chains(path, monkeypatch):
     """The amplitude cache: equal to the amplitude of the window path (the grid's truncated
     spreads: summing it with the cell log-ratios gives log_likelihood_window); the cached
     delta equals log_likelihood_delta with existence flags (births, deaths, moves of
     absent slots), and that of two slots moved at once the difference of two window-path
     evaluations; after 30 accepted / rejected moves of each kind applied in place the cache
     equals the chains' amplitudes afresh; method="grid" keeps no cache; a cache of the wrong shape is
-    refused by name."""
+    refused by name. Each on the moved slots' boxes and on the whole grid
+    (:func:`~torchmcmcpf.models.sensors.grid.amplitudes.whole_grid`, forced either way)."""
+    from torchmcmcpf.models.sensors.grid import amplitudes
+
+    monkeypatch.setattr(amplitudes, "whole_grid", lambda sensor, boxes: path == "whole grid")
     sens = small_sensor()
     g = torch.Generator().manual_seed(16)
     xt = target_states([[2790, 2805, 2830]], [[1, 2, -3]], [[0.2, 0.6, -2.0]], [[4, 5, 6]])
@@ -528,6 +533,8 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
         x_n = particles_near(xt, 12, g, pos=10.0)[:, :, 0].reshape(1, 3, 4, 5)
         e_n = torch.rand(1, 3, 4, generator=g) < 0.6
         delta, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, slot, z, exists, e_n)
+        assert cells.shape == change.shape == ((1, 3, 4, sens.num_cells) if path == "whole grid"
+                                               else (1, 3, 4, 2) + sens.box_cells())
         torch.testing.assert_close(delta, sens.log_likelihood_delta(y, x_n, slot, z, exists, e_n), rtol=1e-10,
                                    atol=1e-9)
         accepted = torch.rand(1, 3, 4, generator=g) < 0.5
@@ -545,7 +552,8 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
         x_n = particles_near(xt, 12, g, pos=10.0)[:, :, :2].reshape(1, 3, 4, 2, 5)
         e_n = torch.rand(1, 3, 4, 2, generator=g) < 0.6
         delta, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, pair, z, exists, e_n)
-        assert cells.shape == change.shape == (1, 3, 4, 4) + sens.box_cells()
+        assert cells.shape == change.shape == ((1, 3, 4, sens.num_cells) if path == "whole grid"
+                                               else (1, 3, 4, 4) + sens.box_cells())
         here = torch.arange(3) == pair[..., None]  # (1, 3, 4, 2, 3)
         y_new = torch.where(here[..., 0, :, None], x_n[..., 0, None, :], y)
         y_new = torch.where(here[..., 1, :, None], x_n[..., 1, None, :], y_new)
@@ -559,7 +567,7 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
         sens.update_amplitude_cache(cache, cells, change, accepted)
         y = torch.where(accepted[..., None, None], y_new, y)
         exists = torch.where(accepted[..., None], e_new, exists)
-    assert overlaps > 10  # the case that needs the boxes' cells counted once is exercised
+    assert overlaps > 10 or path == "whole grid"  # boxes: the case that needs their cells counted once is exercised
     torch.testing.assert_close(cache, sens.amplitude_cache(y, exists), rtol=0, atol=1e-12)
     assert small_sensor(method="grid").amplitude_cache(y) is None
     with pytest.raises(ValueError, match=r"cache has shape \(1, 3, 4, 10\)"):
@@ -568,6 +576,64 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains():
         sens.log_likelihood_delta_cached(cache, y, x_n[..., :4], slot, z)
     with pytest.raises(ValueError, match="exists has shape"):
         sens.amplitude_cache(y, exists[..., :2])
+
+
+def test_whole_grid_when_the_boxes_hold_as_many_cells():
+    """A cached move runs on the whole grid when the grid has no more cells than the move's
+    boxes (2 per moved slot): on the 12 x 9 x 10 test grid (1,080 cells, boxes of 343) a
+    one-slot move keeps its boxes and a two-slot move takes the grid; the crossing's grid (640
+    cells) takes it for both; the ground radar's keeps its boxes.
+    """
+    from torchmcmcpf.models.sensors.grid.amplitudes import whole_grid
+    from torchmcmcpf.scenarios import crossing, ground_radar
+
+    sens = small_sensor()
+    assert sens.num_cells == 1080 and not whole_grid(sens, 2) and whole_grid(sens, 4)
+    cross = crossing(2, 2, 1, generator=torch.Generator().manual_seed(0)).sensor
+    assert cross.num_cells == 640 and whole_grid(cross, 2)
+    radar = ground_radar(2, 2, 1, generator=torch.Generator().manual_seed(0)).sensor
+    assert not whole_grid(radar, 4)
+
+
+@pytest.mark.parametrize("kind", ["radar", "swerling"])
+def test_whole_grid_and_box_paths_give_the_same_likelihood(kind, monkeypatch):
+    """The windowed likelihood of K slots and a one-slot change (int and tensor slot, with
+    births, deaths and absent slots) on the whole grid equal those on the boxes to round-off
+    (float64), on the radar's and Swerling's grids (each path forced).
+    """
+    from torchmcmcpf.models.sensors.grid import amplitudes, delta, window
+    from torchmcmcpf.models.sensors.swerling import AzimuthRangeSwerlingTBD
+
+    g = torch.Generator().manual_seed(21)
+    if kind == "radar":
+        sens = small_sensor()
+        xt = target_states([[2790, 2805, 2830, 2770]], [[1, 2, -3, 0]], [[0.2, 0.6, -2.0, 1.0]], [[4, 5, 6, 3]])
+        x = particles_near(xt, 12, g)
+    else:
+        sens = AzimuthRangeSwerlingTBD.uniform((-7 * DEG, 6 * DEG), (540, 650))
+        a = torch.tensor([-2.0, 0.5, 3.0, 1.0]) * DEG
+        r = torch.tensor([570.0, 600.0, 620.0, 590.0])
+        xt = torch.stack([r * torch.cos(a), torch.ones(4), r * torch.sin(a), torch.ones(4), torch.full((4,), 20.0)],
+                         -1)[None].double()
+        x = xt[:, None] + torch.randn(1, 12, 4, 5, generator=g, dtype=torch.float64) * torch.tensor(
+            [4.0, 1.0, 4.0, 1.0, 0.0], dtype=torch.float64)
+    z = sens.simulate(xt, generator=g)
+    exists = torch.rand(1, 12, 4, generator=g) < 0.7
+    x_n = x[:, :, 1] + torch.randn(1, 12, 5, generator=g, dtype=torch.float64) * torch.tensor(
+        [6.0, 1.0, 6.0, 1.0, 0.0], dtype=torch.float64)
+    e_n = torch.rand(1, 12, generator=g) < 0.6
+    slot = torch.randint(4, (1, 12), generator=g)
+    got = {}
+    for path in ("boxes", "whole grid"):
+        monkeypatch.setattr(amplitudes, "whole_grid", lambda sensor, boxes: path == "whole grid")
+        for module in (delta, window):
+            monkeypatch.setattr(module, "whole_grid", lambda sensor, boxes: path == "whole grid")
+        got[path] = (sens.log_likelihood_window(x, z, exists), sens.log_likelihood_window(x, z),
+                     sens.log_likelihood_delta(x, x_n, 1, z, exists, e_n),
+                     sens.log_likelihood_delta(x, x_n, slot, z, exists, e_n), sens.log_likelihood_delta(x, x_n, 2, z))
+    assert got["boxes"][0].abs().max() > 1.0  # the frame holds the targets
+    for a, b in zip(got["boxes"], got["whole grid"]):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-9)
 
 
 def test_log_likelihood_slot_changes_rejects_bad_input():

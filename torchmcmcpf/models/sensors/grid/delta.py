@@ -6,18 +6,17 @@ overlap them (:meth:`~.sensor.SeparableGridSensor.log_likelihood_delta` states t
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 
 from ....runtime import take_along
 from ....typing import Tensor
 from . import whole
 from ._protocol import GridSensorLike
+from .amplitudes import amplitude_cache, log_likelihood_delta_cached, whole_grid
 from .inputs import check_inputs, check_move, flat_inputs, slots
-from .spread import neighbour_index, neighbour_profiles, outer_sum, with_neighbours
+from .spread import box_in_box, neighbour_index, neighbour_profiles, outer_sum, with_neighbours
 
-__all__ = ["log_likelihood_delta", "box_in_box"]
+__all__ = ["log_likelihood_delta"]
 
 
 def log_likelihood_delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int | Tensor, z: Tensor,
@@ -39,6 +38,10 @@ def log_likelihood_delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int 
         e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
         x_new = torch.where(here[..., None], x_n[..., None, :], x)
         return whole.log_likelihood(sensor, x_new, z, e_new) - whole.log_likelihood(sensor, x, z, e_old)
+    if whole_grid(sensor, 2):  # no more cells than the two boxes: the cache's arithmetic on the whole grid
+        slot = n if torch.is_tensor(n) else torch.tensor(n, device=x.device)
+        return log_likelihood_delta_cached(sensor, amplitude_cache(sensor, x, exists), x, x_n, slot, z, exists,
+                                           exists_n)[0]
     names = [k for k, v in (("n", n if torch.is_tensor(n) else None), ("exists", exists), ("exists_n", exists_n))
              if v is not None]
 
@@ -108,13 +111,3 @@ def _box_sums(sensor: GridSensorLike, count: int, u_all: Tensor, s: Tensor, s_ol
     diff = ratio[:, :, 1] - ratio[:, :, 0]  # (B, P, 2, *W)
     both = box_in_box(indicators, 1, count, s_old)  # (B, P, *W): cells of the new box in the old one
     return diff[:, :, 0].flatten(2).sum(-1) + (diff[:, :, 1] * (1.0 - both)).flatten(2).sum(-1)
-
-
-def box_in_box(indicators: Sequence[Tensor], box: int, spread: int, like: Tensor) -> Tensor:
-    """Which cells of box ``box`` lie in the box of spread ``spread``, ``(B, P, *box_cells)``
-    0/1, from the per-axis indicators ``(B, P, Q boxes, M spreads, W)`` of
-    :func:`~.spread.neighbour_profiles` (a cell lies in a box iff it does on every axis);
-    ``like (B, P, 1)`` gives dtype and device. A move's new box against its old one, or, for
-    a move of several slots, each box against the earlier ones, so that a cell counts once.
-    """
-    return outer_sum(torch.ones_like(like), [f[:, :, box, spread][..., None, :] for f in indicators])

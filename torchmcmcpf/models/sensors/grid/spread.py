@@ -20,7 +20,7 @@ from ....typing import Tensor
 from .geometry import GridGeometry, merge_last
 
 __all__ = ["profiles", "contract", "outer_sum", "neighbour_profiles", "neighbour_index", "with_neighbours",
-           "TERMWISE_MAX"]
+           "box_in_box", "TERMWISE_MAX"]
 
 
 def profiles(geometry: GridGeometry, bins: Sequence[Tensor], u: Tensor) -> list[Tensor]:
@@ -170,3 +170,13 @@ def with_neighbours(cap: int, dense: int, fn: Callable[..., Tensor], prepare: Ca
     return torch.cond(
         most <= cap, lambda *ins: fn(cap, *prepare(*ins)), lambda *ins: fn(dense, *prepare(*ins)), inputs
     )
+
+
+def box_in_box(indicators: Sequence[Tensor], box: int, spread: int, like: Tensor) -> Tensor:
+    """Which cells of box ``box`` lie in the box of spread ``spread``, ``(B, P, *box_cells)``
+    0/1, from the per-axis indicators ``(B, P, Q boxes, M spreads, W)`` of
+    :func:`~.spread.neighbour_profiles` (a cell lies in a box iff it does on every axis);
+    ``like (B, P, 1)`` gives dtype and device. A move's new box against its old one, or, for
+    a move of several slots, each box against the earlier ones, so that a cell counts once.
+    """
+    return outer_sum(torch.ones_like(like), [f[:, :, box, spread][..., None, :] for f in indicators])

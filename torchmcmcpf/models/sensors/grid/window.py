@@ -1,6 +1,8 @@
 """The windowed evaluation, the fast path: the exact log-likelihood of the sensor whose point
 spreads are truncated to each target's box, summed box by box over the union of the boxes
-(:meth:`~.sensor.SeparableGridSensor.log_likelihood_window` states the maths).
+(:meth:`~.sensor.SeparableGridSensor.log_likelihood_window` states the maths), or, on a grid
+with no more cells than the boxes (:func:`~.amplitudes.whole_grid`), the truncated spreads
+summed over the whole grid (a cell outside every box has ratio 0).
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from ....runtime import take_along
 from ....typing import Tensor
 from . import chunks
 from ._protocol import GridSensorLike
+from .amplitudes import amplitude_cache, whole_grid
 from .geometry import materialise
 from .inputs import check_inputs, flat_inputs
 from .spread import neighbour_index, neighbour_profiles, outer_sum, with_neighbours
@@ -68,8 +71,14 @@ def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor 
     xf = x.reshape(B, -1, K, x.shape[-1])  # (B, P, K, D)
     ef = None if exists is None else exists.reshape(B, -1, K)
 
+    grid = whole_grid(sensor, K)
+
     def block(b0: int, b1: int, p0: int, p1: int) -> Tensor:
         inputs = (xf[b0:b1, p0:p1], z[b0:b1]) + (() if ef is None else (ef[b0:b1, p0:p1],))
+        if grid:  # no more cells than the K boxes: the truncated spreads summed on the whole grid
+            A = amplitude_cache(sensor, *inputs[:1], *inputs[2:])  # (b, p, G)
+            zc = sensor.prepare_frame(inputs[1].to(x.dtype)).reshape(A.shape[0], 1, A.shape[-1])
+            return sensor.cell_log_ratio(A, zc).sum(-1)
         return with_neighbours(sensor.max_neighbours, K - 1, lambda c, *a: _box_sums(sensor, c, *a),
                                lambda *a: parts(sensor, *a), inputs)
 
