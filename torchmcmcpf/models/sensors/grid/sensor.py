@@ -408,7 +408,9 @@ class SeparableGridSensor(SensorModel[Tensor]):
         cells : (B, *S, 2M, *box_cells()) int64, flat indices into the ``(B, *S, G)`` cache of
             the cells of each moved slot's old and new box; change : the same shape, ``A' - A``
             there (0 at the cells an earlier box holds, so that each cell changes once), for
-            :meth:`update_amplitude_cache`.
+            :meth:`update_amplitude_cache`. On a grid with no more cells than the ``2M`` boxes
+            (:func:`~.amplitudes.whole_grid`) the move is evaluated on the whole grid, and
+            ``cells``, ``change`` are ``(B, *S, G)``: every cell once.
         """
         return amplitudes.log_likelihood_delta_cached(self, cache, x, x_n, n, z, exists, exists_n)
 
