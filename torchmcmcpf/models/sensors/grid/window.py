@@ -74,11 +74,13 @@ def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor 
     grid = whole_grid(sensor, K)
 
     def block(b0: int, b1: int, p0: int, p1: int) -> Tensor:
-        inputs = (xf[b0:b1, p0:p1], z[b0:b1]) + (() if ef is None else (ef[b0:b1, p0:p1],))
+        xb, zb = xf[b0:b1, p0:p1], z[b0:b1]
+        eb = None if ef is None else ef[b0:b1, p0:p1]
         if grid:  # no more cells than the K boxes: the truncated spreads summed on the whole grid
-            A = amplitude_cache(sensor, *inputs[:1], *inputs[2:])  # (b, p, G)
-            zc = sensor.prepare_frame(inputs[1].to(x.dtype)).reshape(A.shape[0], 1, A.shape[-1])
+            A = amplitude_cache(sensor, xb, eb)  # (b, p, G)
+            zc = sensor.prepare_frame(zb.to(x.dtype)).reshape(A.shape[0], 1, A.shape[-1])
             return sensor.cell_log_ratio(A, zc).sum(-1)
+        inputs = (xb, zb) + (() if eb is None else (eb,))
         return with_neighbours(sensor.max_neighbours, K - 1, lambda c, *a: _box_sums(sensor, c, *a),
                                lambda *a: parts(sensor, *a), inputs)
 
