@@ -25,7 +25,7 @@ from .inputs import check_inputs, check_move, check_state, flat_inputs
 from .slots import truncated_amplitude
 from .spread import box_in_box, neighbour_profiles, outer_sum
 
-__all__ = ["amplitude_cache", "log_likelihood_delta_cached", "whole_grid"]
+__all__ = ["amplitude_cache", "log_likelihood_delta_cached", "log_likelihood_delta_on_grid", "whole_grid"]
 
 
 def amplitude_cache(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) -> Tensor:
@@ -63,21 +63,45 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
     u, s, firsts = _moved(sensor, x, x_n, n, exists, exists_n)
     if whole_grid(sensor, s.shape[-1]):
-        P = s.shape[1]
-        change = truncated_amplitude(sensor.geometry, sensor.all_bins(), u, s, firsts).reshape(B, P, G)
-        A = cache.reshape(B, P, G)
-        zw = sensor.prepare_frame(z.to(x.dtype)).reshape(B, 1, G)
-        cells = torch.arange(B * P * G, device=x.device).reshape(B, P, G)
+        delta, change = _grid_delta(sensor, cache.reshape(B, -1, G), u, s, firsts, z)
+        cells = torch.arange(change.numel(), device=x.device).reshape(change.shape)  # every entry, in order
     else:
         cells, change = _box_change(sensor, u, s, firsts)
         A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
         # the frame's cells gathered, then prepared (per cell): 2M boxes a move, not the whole grid
         zw = sensor.prepare_frame(sensor.geometry.gather_cells(z.to(x.dtype), firsts, sensor.box_offsets))
-    # round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0
-    diff = sensor.cell_log_ratio((A + change).clamp_min(0.0), zw) - sensor.cell_log_ratio(A.clamp_min(0.0), zw)
-    delta = diff.flatten(2).sum(-1)  # each cell counted once: ``change`` is 0 on the repeats
+        delta = _cell_changes(sensor, A, change, zw).flatten(2).sum(-1)  # each cell once: 0 change on repeats
     return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
         change.reshape((B,) + S + change.shape[2:])
+
+
+def log_likelihood_delta_on_grid(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, z: Tensor,
+                                 exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
+    """:func:`log_likelihood_delta_cached`'s whole-grid sum without a cache (the amplitudes of
+    ``x`` made afresh) nor the cells and change it returns for one: ``(B, *S)``. Inputs
+    checked by the caller (:func:`~.delta.log_likelihood_delta`).
+    """
+    u, s, firsts = _moved(sensor, x, x_n, n, exists, exists_n)
+    A = amplitude_cache(sensor, x, exists).reshape(s.shape[0], s.shape[1], -1)
+    return _grid_delta(sensor, A, u, s, firsts, z)[0].reshape(x.shape[:-2])
+
+
+def _cell_changes(sensor: GridSensorLike, A: Tensor, change: Tensor, zw: Tensor) -> Tensor:
+    """Each cell's log-ratio after the move minus before, amplitudes ``A`` and ``A + change``
+    (round-off of the kept sums may leave -1e-7 where a spread left: amplitudes are >= 0).
+    """
+    return sensor.cell_log_ratio((A + change).clamp_min(0.0), zw) - sensor.cell_log_ratio(A.clamp_min(0.0), zw)
+
+
+def _grid_delta(sensor: GridSensorLike, A: Tensor, u: Tensor, s: Tensor, firsts: list[Tensor], z: Tensor
+                ) -> tuple[Tensor, Tensor]:
+    """The move of :func:`_moved` summed over the whole grid from the amplitudes ``A (B, P,
+    G)``: ``(delta (B, P), change (B, P, G))``.
+    """
+    B, P, G = A.shape
+    change = truncated_amplitude(sensor.geometry, sensor.all_bins(), u, s, firsts).reshape(B, P, G)
+    zc = sensor.prepare_frame(z.to(A.dtype)).reshape(B, 1, G)
+    return _cell_changes(sensor, A, change, zc).sum(-1), change
 
 
 def _moved(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,

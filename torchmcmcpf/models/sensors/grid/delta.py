@@ -12,7 +12,7 @@ from ....runtime import take_along
 from ....typing import Tensor
 from . import whole
 from ._protocol import GridSensorLike
-from .amplitudes import amplitude_cache, log_likelihood_delta_cached, whole_grid
+from .amplitudes import log_likelihood_delta_on_grid, whole_grid
 from .inputs import check_inputs, check_move, flat_inputs, slots
 from .spread import box_in_box, neighbour_index, neighbour_profiles, outer_sum, with_neighbours
 
@@ -38,10 +38,9 @@ def log_likelihood_delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int 
         e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
         x_new = torch.where(here[..., None], x_n[..., None, :], x)
         return whole.log_likelihood(sensor, x_new, z, e_new) - whole.log_likelihood(sensor, x, z, e_old)
-    if whole_grid(sensor, 2):  # no more cells than the two boxes: the cache's arithmetic on the whole grid
+    if whole_grid(sensor, 2):  # no more cells than the two boxes: the sum on the whole grid
         slot = n if torch.is_tensor(n) else torch.tensor(n, device=x.device)
-        return log_likelihood_delta_cached(sensor, amplitude_cache(sensor, x, exists), x, x_n, slot, z, exists,
-                                           exists_n)[0]
+        return log_likelihood_delta_on_grid(sensor, x, x_n, slot, z, exists, exists_n)
     names = [k for k, v in (("n", n if torch.is_tensor(n) else None), ("exists", exists), ("exists_n", exists_n))
              if v is not None]
 
