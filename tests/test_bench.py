@@ -33,11 +33,11 @@ def test_bench_quick_writes_table_json_and_plot(tmp_path, capsys, restore_thread
     stored = tmp_path / "stored.json"
     figures = [dict(name="radar-sir", seconds=1e-9, params=dict(N=200, K=2, B=1, compiled=False)),
                dict(name="gone-B7", seconds=1.0, params={})]
-    stored.write_text(json.dumps(dict(schema=bench.SCHEMA, quick=True, figures=figures,
+    stored.write_text(json.dumps(dict(schema=bench.SCHEMA, quick=True, figures=figures, threads=1,
                                       machine=dict(name="Another CPU (64 logical CPUs)"))))
     saved = tmp_path / "ref" / "reference.json"
-    assert main(["bench", "--quick", "--threads", "1", "--out", str(out), "--compare", str(stored),
-                 "--save", str(saved)]) == 0
+    torch.set_num_threads(2)  # not the stored run's count: without --threads, --compare takes the stored one
+    assert main(["bench", "--quick", "--out", str(out), "--compare", str(stored), "--save", str(saved)]) == 0
     result = json.loads((out / "bench.json").read_text())
     assert result["threads"] == 1 and result["quick"] and result["torch"] == torch.__version__
     assert result["device"] and result["device_type"] == "cpu"
@@ -57,6 +57,7 @@ def test_bench_quick_writes_table_json_and_plot(tmp_path, capsys, restore_thread
     assert cmp["source"] == str(stored) and cmp["slower"] == ["radar-sir"] and cmp["only_stored"] == ["gone-B7"]
     assert "mcmc-pf" in cmp["only_now"] and any("machines differ" in w for w in cmp["warnings"])
     printed = capsys.readouterr().out
+    assert printed.startswith(f"--compare: 1 thread, as the stored run {stored} (--threads to change)")
     assert printed.rstrip().splitlines()[-1].startswith(f"vs {stored}: SLOWER: 1 of 1 figures of ours")
     assert "Another CPU (64 logical CPUs)" in printed and "**SLOWER**" in (out / "bench_compare.md").read_text()
     # the saved run is a stored run for a later --compare (without this run's comparison)

@@ -12,7 +12,8 @@
   MCMC-PF steps, point SIR against Stone Soup, scaling in N, K and B); writes ``bench.json``,
   ``bench.md`` and ``bench_scaling.png``. ``--quick``: tiny sizes, seconds. ``--compare
   [FILE]``: each figure's ratio to a stored run (``benchmarks/reference-cpu.json``, written by
-  ``--save``), the slower ones flagged in the closing note.
+  ``--save``), timed at the stored run's thread count unless ``--threads`` says otherwise, the
+  slower ones flagged in the closing note.
 
 Errors are one line on stderr naming the argument (exit status 2): argparse's own, the
 cross-option checks, and any ``ValueError`` the run raises (a study's settings refused by a
@@ -446,14 +447,16 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
             "and ends on one line saying which figures got slower. The stored CPU run is "
             "benchmarks/reference-cpu.json (--compare and --save without FILE use it; "
             "reference-cuda.json with --device cuda): write it on a quiet machine with "
-            "'python -m torchmcmcpf bench --threads 1 --save' and commit it; compare a change with "
-            "'python -m torchmcmcpf bench --threads 1 --compare'."
+            "'python -m torchmcmcpf bench --threads 2 --save' and commit it; compare a change with "
+            "'python -m torchmcmcpf bench --compare', which runs at the stored run's thread count unless "
+            "--threads says otherwise."
         ),
     )
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="device (default: %(default)s)")
     p.add_argument("--quick", action="store_true", help="tiny sizes, eager, one repeat (seconds)")
     p.add_argument("--threads", type=positive_int, default=None,
-                   help="torch.set_num_threads for the run (default: torch's current count); recorded")
+                   help="torch.set_num_threads for the run (default: the stored run's count with --compare, "
+                        "else torch's current count); recorded")
     p.add_argument("--out", type=out_dir, default=Path("results") / "bench",
                    help="output directory (default: results/bench); files of the same name are replaced")
     p.add_argument("--no-stonesoup", action="store_true", help="skip the Stone Soup comparison")
@@ -497,6 +500,17 @@ def _bench_files(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
     return stored, save
 
 
+def _stored_threads(path: Path) -> int | None:
+    """The thread count a stored run was timed at (its ``threads``), or None where it records
+    none: a ``--compare`` without ``--threads`` runs at it, since figures timed at another
+    count differ by the count (one thread against two: 1.1-1.5x on the radar steps).
+    """
+    from .bench import load_result
+
+    threads = load_result(path).get("threads")
+    return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0 else None
+
+
 def _bench(args: argparse.Namespace) -> dict:
     from .bench import SLOWER, comparison_markdown, run, write_result
 
@@ -506,8 +520,14 @@ def _bench(args: argparse.Namespace) -> dict:
         if not torch.cuda.is_available():
             raise SystemExit("error: argument --device: cuda requested but torch.cuda.is_available() is False")
     stored, save = _bench_files(args)
+    threads = args.threads
+    if threads is None and stored is not None:  # like for like: the stored run's thread count
+        threads = _stored_threads(stored)
+        if threads is not None:
+            print(f"--compare: {threads} thread{'s' if threads > 1 else ''}, as the stored run {stored} "
+                  "(--threads to change)", flush=True)
     out = prepare_out(args.out, BENCH_OUTPUTS)
-    result = run(args.device, quick=args.quick, threads=args.threads, out=out, stonesoup=not args.no_stonesoup,
+    result = run(args.device, quick=args.quick, threads=threads, out=out, stonesoup=not args.no_stonesoup,
                  log=lambda line: print(line, flush=True), compare_with=stored, threshold=args.threshold or SLOWER)
     if save is not None:
         stored_run = {k: v for k, v in result.items() if k != "comparison"}

@@ -40,9 +40,9 @@ machine named, and every later run compared with it (:func:`compare`), so that a
 slows a step shows in the closing note of ``bench``::
 
     # once, on a quiet machine (the lead engineer; then commit the file)
-    python -m torchmcmcpf bench --threads 1 --save          # -> benchmarks/reference-cpu.json
-    # after a change
-    python -m torchmcmcpf bench --threads 1 --compare       # <- benchmarks/reference-cpu.json
+    python -m torchmcmcpf bench --threads 2 --save          # -> benchmarks/reference-cpu.json
+    # after a change: at the stored run's thread count (--threads overrides)
+    python -m torchmcmcpf bench --compare                   # <- benchmarks/reference-cpu.json
     python -m torchmcmcpf bench --compare OTHER.json --threshold 1.2
 
 ``--compare`` reads the stored run before anything is timed (a missing, non-JSON or malformed
