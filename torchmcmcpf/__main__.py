@@ -471,19 +471,24 @@ def _bench_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(command=_bench)
 
 
-def _bench_files(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
+def _bench_files(args: argparse.Namespace) -> tuple[Path | None, Path | None, int | None]:
     """``--compare`` and ``--save`` as paths (no FILE: the stored reference of the device),
-    checked before anything is timed: a ``ValueError`` naming the argument otherwise.
+    checked before anything is timed: a ``ValueError`` naming the argument otherwise; and the
+    thread count the stored run was timed at (its ``threads``; None without ``--compare`` or
+    where it records none), at which a ``--compare`` without ``--threads`` runs: figures timed
+    at another count differ by the count (one thread against two: 1.1-1.5x on the radar steps).
     """
     from .bench import load_result, reference_path
 
-    stored = save = None
+    stored = save = stored_threads = None
     if args.compare is not None:
         stored = Path(args.compare) if args.compare else reference_path(args.device)
         try:
-            load_result(stored)
+            threads = load_result(stored).get("threads")
         except ValueError as err:
             raise ValueError(f"argument --compare: {err}") from None
+        if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0:
+            stored_threads = threads
     elif args.threshold is not None:
         raise ValueError("argument --threshold: needs --compare (the stored run to compare with)")
     if args.save is not None:
@@ -497,18 +502,7 @@ def _bench_files(args: argparse.Namespace) -> tuple[Path | None, Path | None]:
                 if not parent.is_dir():
                     raise ValueError(f"argument --save: {str(save)!r} lies under {str(parent)!r}, which is a file")
                 break
-    return stored, save
-
-
-def _stored_threads(path: Path) -> int | None:
-    """The thread count a stored run was timed at (its ``threads``), or None where it records
-    none: a ``--compare`` without ``--threads`` runs at it, since figures timed at another
-    count differ by the count (one thread against two: 1.1-1.5x on the radar steps).
-    """
-    from .bench import load_result
-
-    threads = load_result(path).get("threads")
-    return threads if isinstance(threads, int) and not isinstance(threads, bool) and threads > 0 else None
+    return stored, save, stored_threads
 
 
 def _bench(args: argparse.Namespace) -> dict:
@@ -519,13 +513,12 @@ def _bench(args: argparse.Namespace) -> dict:
 
         if not torch.cuda.is_available():
             raise SystemExit("error: argument --device: cuda requested but torch.cuda.is_available() is False")
-    stored, save = _bench_files(args)
+    stored, save, stored_threads = _bench_files(args)
     threads = args.threads
-    if threads is None and stored is not None:  # like for like: the stored run's thread count
-        threads = _stored_threads(stored)
-        if threads is not None:
-            print(f"--compare: {threads} thread{'s' if threads > 1 else ''}, as the stored run {stored} "
-                  "(--threads to change)", flush=True)
+    if threads is None and stored_threads is not None:  # like for like: the stored run's thread count
+        threads = stored_threads
+        print(f"--compare: {threads} thread{'s' if threads > 1 else ''}, as the stored run {stored} "
+              "(--threads to change)", flush=True)
     out = prepare_out(args.out, BENCH_OUTPUTS)
     result = run(args.device, quick=args.quick, threads=threads, out=out, stonesoup=not args.no_stonesoup,
                  log=lambda line: print(line, flush=True), compare_with=stored, threshold=args.threshold or SLOWER)
