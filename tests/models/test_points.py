@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from torchmcmcpf import runtime
 from torchmcmcpf.models.base import SensorModel
 from torchmcmcpf.models.sensors.points import PointFrame, PoissonClutterPoints, gauss_exponents
 
@@ -167,7 +168,7 @@ def test_bad_settings_raise(kw, match):
 
 
 # ----------------------------------------------------------------------------- the chains' intensity cache
-def test_intensity_cache_delta_and_updates_follow_the_chains(gen):
+def test_intensity_cache_delta_and_updates_follow_the_chains(gen, monkeypatch):
     """The cached one- and two-slot ratios equal the difference of two full evaluations, and
     adding the accepted moves' changes keeps the cache equal to one made afresh (float64)."""
     s = sensor()
@@ -193,10 +194,16 @@ def test_intensity_cache_delta_and_updates_follow_the_chains(gen):
             torch.testing.assert_close(delta, ref, rtol=1e-9, atol=1e-9)
             assert bool(here.any())
             accepted = torch.rand(b, c, generator=gen) < 0.5
-            # the entrywise update gives the generic scatter-add's bits
-            generic = SensorModel.update_amplitude_cache(cache.clone(), cells, change, accepted)
-            assert s.update_amplitude_cache(cache, cells, change, accepted) is cache
-            assert torch.equal(cache, generic)
+            # every entry in order (cells None): the bits of the scatter-add through an index
+            # naming each entry, eager (accepted rows only) and compiled-style (every row)
+            assert cells is None and change.shape == cache.shape
+            every = torch.arange(cache.numel()).reshape(cache.shape)
+            generic = SensorModel.update_amplitude_cache(cache.clone(), every, change, accepted)
+            with monkeypatch.context() as m:
+                m.setattr(runtime, "host_reads", lambda t: False)
+                dense = s.update_amplitude_cache(cache.clone(), None, change, accepted)
+            assert s.update_amplitude_cache(cache, None, change, accepted) is cache
+            assert torch.equal(cache, generic) and torch.equal(cache, dense)
             keep = accepted[..., None, None]
             x = torch.where(keep, x_new, x)
             exists = torch.where(accepted[..., None], e_new, exists)

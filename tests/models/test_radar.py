@@ -473,11 +473,16 @@ def test_log_likelihood_slot_changes_equal_window_differences(window):
     torch.testing.assert_close(grid_out[..., 1], direct, rtol=1e-10, atol=1e-9)
 
 
-def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
+@pytest.mark.parametrize("path", ["boxes", "whole grid"])
+def test_cache_update_of_accepted_rows_equals_the_dense_scatter(path, monkeypatch):
     """Eager on the CPU the cache adds the accepted moves' rows only (runtime.host_reads):
     the same bits as the scatter-add of every row with the rejected ones zeroed (the compiled
-    and CUDA-graph form), on one-slot and two-slot changes with overlapping boxes."""
+    and CUDA-graph form), on one-slot and two-slot changes with overlapping boxes, and on the
+    whole grid (no cells: every entry in order) as through an index naming each entry."""
     from torchmcmcpf import runtime
+    from torchmcmcpf.models.sensors.grid import amplitudes
+
+    monkeypatch.setattr(amplitudes, "whole_grid", lambda sensor, boxes: path == "whole grid")
 
     sens = small_sensor()
     g = torch.Generator().manual_seed(17)
@@ -502,6 +507,9 @@ def test_cache_update_of_accepted_rows_equals_the_dense_scatter(monkeypatch):
                 dense = sens.update_amplitude_cache(cache.clone(), cells, change, accepted)
             assert torch.equal(rows, dense)
             assert not torch.equal(rows, cache) or not accepted.any()
+            if cells is None:
+                every = torch.arange(cache.numel()).reshape(cache.shape)
+                assert torch.equal(rows, sens.update_amplitude_cache(cache.clone(), every, change, accepted))
 
 
 @pytest.mark.parametrize("path", ["boxes", "whole grid"])
@@ -533,8 +541,10 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains(path, monkeypatch):
         x_n = particles_near(xt, 12, g, pos=10.0)[:, :, 0].reshape(1, 3, 4, 5)
         e_n = torch.rand(1, 3, 4, generator=g) < 0.6
         delta, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, slot, z, exists, e_n)
-        assert cells.shape == change.shape == ((1, 3, 4, sens.num_cells) if path == "whole grid"
-                                               else (1, 3, 4, 2) + sens.box_cells())
+        if path == "whole grid":  # every cell of the cache, in order: no index
+            assert cells is None and change.shape == cache.shape
+        else:
+            assert cells.shape == change.shape == (1, 3, 4, 2) + sens.box_cells()
         torch.testing.assert_close(delta, sens.log_likelihood_delta(y, x_n, slot, z, exists, e_n), rtol=1e-10,
                                    atol=1e-9)
         accepted = torch.rand(1, 3, 4, generator=g) < 0.5
@@ -552,8 +562,10 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains(path, monkeypatch):
         x_n = particles_near(xt, 12, g, pos=10.0)[:, :, :2].reshape(1, 3, 4, 2, 5)
         e_n = torch.rand(1, 3, 4, 2, generator=g) < 0.6
         delta, cells, change = sens.log_likelihood_delta_cached(cache, y, x_n, pair, z, exists, e_n)
-        assert cells.shape == change.shape == ((1, 3, 4, sens.num_cells) if path == "whole grid"
-                                               else (1, 3, 4, 4) + sens.box_cells())
+        if path == "whole grid":
+            assert cells is None and change.shape == cache.shape
+        else:
+            assert cells.shape == change.shape == (1, 3, 4, 4) + sens.box_cells()
         here = torch.arange(3) == pair[..., None]  # (1, 3, 4, 2, 3)
         y_new = torch.where(here[..., 0, :, None], x_n[..., 0, None, :], y)
         y_new = torch.where(here[..., 1, :, None], x_n[..., 1, None, :], y_new)
@@ -561,8 +573,9 @@ def test_amplitude_cache_delta_and_updates_follow_the_chains(path, monkeypatch):
         e_new = torch.where(here[..., 1, :], e_n[..., 1:], e_new)
         torch.testing.assert_close(delta, sens.log_likelihood_window(y_new, z, e_new)
                                    - sens.log_likelihood_window(y, z, exists), rtol=1e-10, atol=1e-9)
-        flat = cells.reshape(12, 2, -1)  # per sample: the cells of slot 1's boxes, of slot 2's
-        overlaps += sum(bool(torch.isin(flat[i, 0], flat[i, 1]).any()) for i in range(12))
+        if cells is not None:
+            flat = cells.reshape(12, 2, -1)  # per sample: the cells of slot 1's boxes, of slot 2's
+            overlaps += sum(bool(torch.isin(flat[i, 0], flat[i, 1]).any()) for i in range(12))
         accepted = torch.rand(1, 3, 4, generator=g) < 0.5
         sens.update_amplitude_cache(cache, cells, change, accepted)
         y = torch.where(accepted[..., None, None], y_new, y)

@@ -716,7 +716,7 @@ def ipmcmc_program(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exc
     term bound, ``program(chains, x_prev, exists_prev, z, noise)``, compiled with ``compile``
     (``compile_step=True``), else eager.
     """
-    def iteration(*args: Any) -> tuple[ExchangeChains, Tensor, tuple[Tensor, Tensor] | None]:
+    def iteration(*args: Any) -> tuple[ExchangeChains, Tensor, tuple[Tensor | None, Tensor] | None]:
         return exchange_iteration(*args, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
     return iteration if compile is None else compile(iteration)
 

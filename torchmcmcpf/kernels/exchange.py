@@ -132,8 +132,9 @@ class ExchangeChains(NamedTuple):
     coords: Tensor | None = None
 
 
-def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None, update: tuple[Tensor, Tensor] | None,
-                             accepted: Tensor, sensor: SensorModel) -> ExchangeChains:
+def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None,
+                             update: tuple[Tensor | None, Tensor] | None, accepted: Tensor,
+                             sensor: SensorModel) -> ExchangeChains:
     """``chains`` (the output of :func:`exchange_iteration`) with the amplitude cache of the
     chains before the iteration, ``amplitude``, advanced by the iteration's ``update`` for its
     ``accepted (B, C)`` moves.
@@ -405,7 +406,7 @@ def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor) -> Tensor
 def exchange_iteration(
     chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
     *, dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None,
-) -> tuple[ExchangeChains, Tensor, tuple[Tensor, Tensor] | None]:
+) -> tuple[ExchangeChains, Tensor, tuple[Tensor | None, Tensor] | None]:
     """One exchange/mutation MH iteration of every chain (paper 000 Alg. 2, eq. 12) moving
     ``M`` slots (module docstring), with or without births and deaths, exclusion and
     re-capture (one code path: the slots are propagated by ``dynamics``).

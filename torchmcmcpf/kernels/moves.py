@@ -287,7 +287,7 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
                 e_prop: Tensor | None, r_prop: Tensor | None, log_ratio: Tensor, u: Tensor,
                 n: int | Tensor, z: Measurement, cache: Tensor | None = None, *, sensor: SensorModel,
                 exclusion: Exclusion | None = None
-                ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor, tuple[Tensor, Tensor] | None]:
+                ) -> tuple[Tensor, Tensor, Tensor | None, Tensor | None, Tensor, tuple[Tensor | None, Tensor] | None]:
     """The MH update of one slot ``n`` of the sequential sweep (pure; the program the
     ``compile_step`` of the MCMC filter compiles, once for every slot).
 

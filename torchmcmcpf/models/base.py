@@ -340,40 +340,50 @@ class SensorModel(nn.Module, Generic[Z]):
 
     def log_likelihood_delta_cached(self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: Z,
                                     exists: Tensor | None = None, exists_n: Tensor | None = None
-                                    ) -> tuple[Tensor, Tensor, Tensor]:
+                                    ) -> tuple[Tensor, Tensor | None, Tensor]:
         """:meth:`log_likelihood_delta` read from :meth:`amplitude_cache`, with the cache's
         change: ``(delta (B, *S), cells, change)`` for :meth:`update_amplitude_cache`; one
         slot (``x_n (B, *S, D)``, ``n`` broadcastable to ``(B, *S)``) or ``M`` distinct slots
-        moved at once (``x_n (B, *S, M, D)``, ``n`` and ``exists_n`` ``(B, *S, M)``). Only
-        sensors whose :meth:`amplitude_cache` is not ``None`` implement it.
+        moved at once (``x_n (B, *S, M, D)``, ``n`` and ``exists_n`` ``(B, *S, M)``); ``cells``
+        ``None`` when the change covers every entry of the cache in order (``change`` then of
+        the cache's shape). Only sensors whose :meth:`amplitude_cache` is not ``None``
+        implement it.
         """
         raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
 
     @staticmethod
-    def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
+    def update_amplitude_cache(cache: Tensor, cells: Tensor | None, change: Tensor, accepted: Tensor) -> Tensor:
         """``cache (B, *S, G)`` with the ``change`` of the ``accepted (B, *S)`` moves added at
         their ``cells`` (flat indices into ``cache``, the shape of ``change``, leading ``(B,
-        *S)``; :meth:`log_likelihood_delta_cached`), in place; returns ``cache``.
+        *S)``; :meth:`log_likelihood_delta_cached`), or, with ``cells=None``, entry by entry
+        (``change (B, *S, G)``, every entry of ``cache`` in order: the point sensor's
+        intensities, a grid small enough to be moved on whole), in place; returns ``cache``.
 
         The one place the chain cache changes. It belongs to the chains (made for them at the
         start of a step, never shared), so adding in place is the functional update ``cache ->
         cache'`` without a copy per iteration (12 MB per run on the ground radar's 61,248 cells
         and 50 chains: the copy would cost about what the iteration does). Compiled or on a
-        GPU, one scatter-add of every move's cells, the rejected ones adding exact zeros: no
-        host sync (no ``nonzero``), so it runs inside a captured CUDA graph as well; eager on a
-        CPU, the accepted moves' rows only (:func:`~torchmcmcpf.runtime.host_reads`:
-        the scatter is bound by its cache misses), the same bits. A sensor gives each cell at
-        most one nonzero change per move, so the result does not depend on the order of the
-        additions.
+        GPU, one scatter-add of every move's cells (one add over the whole cache without
+        ``cells``), the rejected ones adding exact zeros: no host sync (no ``nonzero``), so it
+        runs inside a captured CUDA graph as well; eager on a CPU, the accepted moves' rows
+        only (:func:`~torchmcmcpf.runtime.host_reads`: the scatter is bound by its cache
+        misses), the same bits. A sensor gives each cell at most one nonzero change per move,
+        so the result does not depend on the order of the additions.
         """
+        flat = accepted.numel()
         if runtime.host_reads(cache):  # eager CPU: the accepted rows only, in order (the same bits)
             rows = accepted.reshape(-1).nonzero().squeeze(-1)
-            flat = accepted.numel()
-            cache.view(-1).index_add_(0, cells.reshape(flat, -1)[rows].reshape(-1),
-                                      change.reshape(flat, -1)[rows].reshape(-1))
+            added = change.reshape(flat, -1)[rows]
+            if cells is None:  # every entry in order: whole rows, no per-entry index
+                cache.view(flat, -1).index_add_(0, rows, added)
+            else:
+                cache.view(-1).index_add_(0, cells.reshape(flat, -1)[rows].reshape(-1), added.reshape(-1))
             return cache
         keep = accepted.reshape(accepted.shape + (1,) * (change.dim() - accepted.dim()))
-        cache.view(-1).index_add_(0, cells.reshape(-1), torch.where(keep, change, 0.0).reshape(-1))
+        added = torch.where(keep, change, 0.0)
+        if cells is None:
+            return cache.add_(added.reshape(cache.shape))
+        cache.view(-1).index_add_(0, cells.reshape(-1), added.reshape(-1))
         return cache
 
     def log_likelihood_slot_changes(self, ref: Tensor, x: Tensor, z: Z) -> Tensor:

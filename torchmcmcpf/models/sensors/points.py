@@ -532,19 +532,9 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             return None
         return self.intensity(x, split_points(z)[0], exists)
 
-    @staticmethod
-    def update_amplitude_cache(cache: Tensor, cells: Tensor, change: Tensor, accepted: Tensor) -> Tensor:
-        """:meth:`SensorModel.update_amplitude_cache` where ``cells`` are every entry of ``cache``
-        in order (:meth:`log_likelihood_delta_cached`): the accepted changes added entry by
-        entry in place, one addition per entry as the scatter-add makes (the same bits), without
-        its index (a third of the time).
-        """
-        keep = accepted.reshape(accepted.shape + (1,) * (change.dim() - accepted.dim()))
-        return cache.add_(torch.where(keep, change, 0.0))
-
     def log_likelihood_delta_cached(self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: PointMeasurement,
                                     exists: Tensor | None = None, exists_n: Tensor | None = None
-                                    ) -> tuple[Tensor, Tensor, Tensor]:
+                                    ) -> tuple[Tensor, None, Tensor]:
         """:meth:`log_likelihood_delta` from the samples' intensities (:meth:`amplitude_cache`).
 
         With ``lambda'_m = lambda_m - L_x sum_{moved j} (e_j N(z_m; H x_j, R) - e'_j N(z_m; H
@@ -566,8 +556,9 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
 
         Returns
         -------
-        delta : (B, *S) in the dtype of ``x``; cells : (B, *S, M) int64, flat indices of the
-        cache's entries; change : (B, *S, M) float64, ``lambda' - lambda`` there.
+        delta : (B, *S) in the dtype of ``x``; cells : ``None`` (the change covers every entry of
+        the cache, in order: :meth:`update_amplitude_cache`); change : (B, *S, M) float64,
+        ``lambda' - lambda``.
         """
         pts, mask = split_points(z)
         lead, m = tuple(x.shape[:-2]), pts.shape[1]
@@ -589,8 +580,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             _intensity_change_eager(*flat, in_place=runtime.in_place(x))
         born = (e_new.to(x.dtype) - e_old.to(x.dtype)).sum(-1)
         delta = log_ratio.reshape(lead).to(x.dtype) - self.detection_rate * born
-        cells = torch.arange(cache.numel(), device=x.device).reshape(cache.shape)
-        return delta, cells, change.reshape(cache.shape)
+        return delta, None, change.reshape(cache.shape)
 
     # -- the multitarget prior's hooks --------------------------------------------------
     #: weight of the uniform part of the data-driven density (:meth:`sample_from_data`)

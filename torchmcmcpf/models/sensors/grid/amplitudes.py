@@ -50,7 +50,7 @@ def whole_grid(sensor: GridSensorLike, boxes: int) -> bool:
 
 def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor,
                                 z: Tensor, exists: Tensor | None = None, exists_n: Tensor | None = None
-                                ) -> tuple[Tensor, Tensor, Tensor]:
+                                ) -> tuple[Tensor, Tensor | None, Tensor]:
     """The change of a move of one slot or of ``M`` slots read from the cache: ``(delta (B,
     *S), cells, change)`` (:meth:`~.sensor.SeparableGridSensor.log_likelihood_delta_cached`),
     over the ``2M`` boxes or, where :func:`whole_grid` says so, over the whole grid.
@@ -62,15 +62,14 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
     if tuple(cache.shape) != (B,) + S + (G,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
     u, s, firsts = _moved(sensor, x, x_n, n, exists, exists_n)
-    if whole_grid(sensor, s.shape[-1]):
+    if whole_grid(sensor, s.shape[-1]):  # every entry of the cache changes, in order: no cells
         delta, change = _grid_delta(sensor, cache.reshape(B, -1, G), u, s, firsts, z)
-        cells = torch.arange(change.numel(), device=x.device).reshape(change.shape)  # every entry, in order
-    else:
-        cells, change = _box_change(sensor, u, s, firsts)
-        A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
-        # the frame's cells gathered, then prepared (per cell): 2M boxes a move, not the whole grid
-        zw = sensor.prepare_frame(sensor.geometry.gather_cells(z.to(x.dtype), firsts, sensor.box_offsets))
-        delta = _cell_changes(sensor, A, change, zw).flatten(2).sum(-1)  # each cell once: 0 change on repeats
+        return delta.reshape((B,) + S), None, change.reshape(cache.shape)
+    cells, change = _box_change(sensor, u, s, firsts)
+    A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
+    # the frame's cells gathered, then prepared (per cell): 2M boxes a move, not the whole grid
+    zw = sensor.prepare_frame(sensor.geometry.gather_cells(z.to(x.dtype), firsts, sensor.box_offsets))
+    delta = _cell_changes(sensor, A, change, zw).flatten(2).sum(-1)  # each cell once: 0 change on repeats
     return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
         change.reshape((B,) + S + change.shape[2:])
 

@@ -381,7 +381,7 @@ class SeparableGridSensor(SensorModel[Tensor]):
     def log_likelihood_delta_cached(
         self, cache: Tensor, x: Tensor, x_n: Tensor, n: Tensor, z: Tensor,
         exists: Tensor | None = None, exists_n: Tensor | None = None,
-    ) -> tuple[Tensor, Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor | None, Tensor]:
         """:meth:`log_likelihood_delta` read from the samples' amplitudes
         (:meth:`amplitude_cache`) instead of summing the neighbours' spreads, for a move of
         one slot or of ``M`` distinct slots at once: the cells of each moved slot's old and
@@ -409,8 +409,8 @@ class SeparableGridSensor(SensorModel[Tensor]):
             the cells of each moved slot's old and new box; change : the same shape, ``A' - A``
             there (0 at the cells an earlier box holds, so that each cell changes once), for
             :meth:`update_amplitude_cache`. On a grid with no more cells than the ``2M`` boxes
-            (:func:`~.amplitudes.whole_grid`) the move is evaluated on the whole grid, and
-            ``cells``, ``change`` are ``(B, *S, G)``: every cell once.
+            (:func:`~.amplitudes.whole_grid`) the move is evaluated on the whole grid:
+            ``cells`` is ``None`` and ``change`` ``(B, *S, G)``, every cell once, in order.
         """
         return amplitudes.log_likelihood_delta_cached(self, cache, x, x_n, n, z, exists, exists_n)
 
