@@ -32,7 +32,7 @@ import pytest
 import torch
 
 from torchmcmcpf.models.sensors.linear import LinearGaussian
-from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0_approx
+from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0, log_i0_approx
 
 K = 10
 DEG = math.pi / 180
@@ -96,13 +96,17 @@ def _log_i0_exact(u):
     return torch.log(torch.special.i0e(a)) + a
 
 
-@pytest.mark.parametrize("n", [70_000, 17_000_000])  # one delta at C = 50; one windowed call at N = 5000
-@pytest.mark.parametrize("variant", ["i0e-eager", "approx-eager", "approx-compiled"])
+# one delta at C = 50; the crossing MCMC-PF's one-slot change at Np = 2000 (5 runs x 1000
+# chains x 640 cells); one windowed call at N = 5000
+@pytest.mark.parametrize("n", [70_000, 3_200_000, 17_000_000])
+@pytest.mark.parametrize("variant", ["i0e-eager", "approx-eager", "blocks-eager", "approx-compiled"])
 def test_log_i0(benchmark, variant, n):
     """``log I0`` of float32 arguments: ``torch.special.i0e`` (the float64 path) against the
-    Abramowitz-Stegun polynomial used for float32 (:func:`~torchmcmcpf.models.sensors.radar.log_i0_approx`)."""
+    Abramowitz-Stegun polynomial used for float32 (:func:`~torchmcmcpf.models.sensors.radar.log_i0_approx`)
+    in one call, and :func:`~torchmcmcpf.models.sensors.radar.log_i0` (what the sensor calls:
+    eager without autograd, the polynomial block by block, each in the cache)."""
     u = 60 * torch.rand(n, generator=torch.Generator().manual_seed(0))
-    fn = {"i0e-eager": _log_i0_exact, "approx-eager": log_i0_approx,
+    fn = {"i0e-eager": _log_i0_exact, "approx-eager": log_i0_approx, "blocks-eager": log_i0,
           "approx-compiled": torch.compile(log_i0_approx, dynamic=False)}[variant]
     benchmark.group = f"log-i0-{n}"
     fn(u)

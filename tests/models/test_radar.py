@@ -13,6 +13,7 @@ import pytest
 import torch
 from scipy import special, stats
 
+from torchmcmcpf.models.sensors import radar
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0, log_i0_approx
 
 DEG = math.pi / 180
@@ -122,8 +123,8 @@ def test_log_i0_approx_against_i0e_and_its_gradient():
     """Abramowitz-Stegun polynomials (float32 path): |error| <= 5e-7 in log I0 over [0, 1e6]
     (the polynomials' stated bounds, 1.6e-7 relative on I0 below 3.75 and 1.9e-7 absolute on
     sqrt(u) e^-u I0 >= 0.39 above, give <= 4.9e-7), gradient I1/I0 within 2e-6, exactly 0
-    with zero slope at u = 0, even in u; float32 log_i0 uses it on tensors up to 2**20
-    elements (eager), float64 stays exact."""
+    with zero slope at u = 0, even in u; float32 log_i0 uses it (eager with autograd up to
+    2**20 elements), float64 stays exact."""
     u = torch.cat([torch.linspace(0, 10, 20001, dtype=torch.float64), torch.logspace(1, 6, 2001, dtype=torch.float64)])
     exact = torch.log(torch.special.i0e(u)) + u
     assert (log_i0_approx(u) - exact).abs().max() <= 5e-7
@@ -135,8 +136,28 @@ def test_log_i0_approx_against_i0e_and_its_gradient():
     u32 = u.to(torch.float32)
     assert torch.equal(log_i0(u32), log_i0_approx(u32)) and log_i0(u32).dtype == torch.float32
     assert torch.equal(log_i0(u), exact)
-    big = torch.full((2**20 + 1,), 7.5)  # above the eager size limit: i0e, where it is faster
+    big = torch.linspace(0.0, 12.0, 2**20 + 1, requires_grad=True)  # with autograd above 2**20: i0e
     assert torch.equal(log_i0(big), torch.log(torch.special.i0e(big)) + big)
+
+
+def test_log_i0_in_blocks_equals_one_call():
+    """Eager without autograd, float32 log_i0 evaluates the polynomial block by block of
+    _APPROX_BLOCK elements (cache tiling): the values of one log_i0_approx call on the whole
+    tensor, bit for bit, for any shape and strides, whatever mix of the two branches each
+    block holds; within 1e-6 of i0e (the polynomial's 5e-7 and float32's round-off: an ulp
+    of log I0(8) = 5.4 is 4.8e-7)."""
+    g = torch.Generator().manual_seed(3)
+    n = 3 * radar._APPROX_BLOCK + 5  # three full blocks and a tail
+    u = torch.rand(n, generator=g) * 8.0
+    u[: radar._APPROX_BLOCK] *= 0.4  # a block of small arguments only
+    u[5::7] = 3.75
+    one = log_i0_approx(u.clone().requires_grad_()).detach()  # the out-of-place path, one call
+    for v, ref in ((u, one), (u[:-5].reshape(3, 64, -1).transpose(0, 2), one[:-5].reshape(3, 64, -1).transpose(0, 2))):
+        out = log_i0(v)
+        assert out.shape == v.shape and out.dtype == torch.float32
+        assert torch.equal(out, ref)
+    exact = torch.log(torch.special.i0e(u.double())) + u.double()
+    assert (log_i0(u).double() - exact).abs().max() <= 1e-6
 
 
 def test_log_i0_approx_in_place_equals_the_autograd_path():

@@ -91,30 +91,52 @@ def log_i0_approx(u: Tensor) -> Tensor:
     return (p.log_() if own else torch.log(p)) + torch.where(small, 0.0, tail)
 
 
-#: Largest float32 tensor for which eager :func:`log_i0` uses :func:`log_i0_approx`. Measured
-#: (benchmarks/bench_likelihood.py, 2-core CPU): at 7e4 elements (cache-resident) the
-#: polynomial takes 7 ns/element eager against 15 for ``i0e``; at 1.7e7 its ~30 eager passes
-#: over memory take 49 ns/element against 14. Compiled, it is one fused loop at ~1.5
-#: ns/element at any size.
+#: Largest float32 tensor for which eager :func:`log_i0` with autograd uses
+#: :func:`log_i0_approx` (above it ``i0e``, whose graph holds two tensors where the
+#: polynomial's holds about ten).
 _APPROX_MAX_EAGER = 2**20
+
+#: Elements per block, at most, of eager :func:`log_i0` without autograd on tensors of more
+#: than ``2 * _APPROX_BLOCK`` elements (1 MB in float32): the polynomial's two dozen passes
+#: stay in the cache. On the crossing's arguments (7.5 % of them >= 3.75; one thread, AMD
+#: EPYC, 2026-12-07), ns an element for ``i0e`` / the polynomial in one call / in blocks:
+#: 19.1 / 3.4 / 3.4 at 1.6e5 elements, 19.0 / 4.8 / 3.7 at 3.2e6, 26.5 / 11.6 / 5.1 at 1.7e7
+#: (benchmarks/bench_likelihood.py, ``log-i0-*``, on uniform arguments in [0, 60]).
+_APPROX_BLOCK = 2**18
 
 
 def log_i0(u: Tensor) -> Tensor:
     """``log I0(u)``: exact in float64; :func:`log_i0_approx` (error < 5e-7) for lower
-    precisions where it is faster: under ``torch.compile`` and, eager, for tensors of at most
-    ``2**20`` elements (the per-chain evaluations of the MCMC filters).
+    precisions: under ``torch.compile`` one fused loop; eager without autograd block by block
+    of :data:`_APPROX_BLOCK` elements (each block's passes in the cache: the MCMC filters'
+    per-chain evaluations, the SIR's boxes, at any size); eager with autograd on tensors of at
+    most :data:`_APPROX_MAX_EAGER` elements, ``i0e`` above (fewer saved tensors).
 
     The exact form is ``log(i0e(|u|)) + |u|``, stable for any ``u``; the ``|u|`` makes the
     gradient ``I1(u) / I0(u)`` exact everywhere, including ``u = 0`` where ``i0e`` itself has
     a kink (its autograd derivative there would give 1, not 0). Float64 (tests, gradcheck)
     always uses it. The approximation's error is far below the float32 round-off of a
     log-likelihood summed over hundreds of cells, so which form a float32 call uses does
-    not matter numerically.
+    not matter numerically. Blocks are of memory, not of samples: the values are those of
+    one :func:`log_i0_approx` call on the whole tensor, bit for bit.
     """
-    if u.dtype != torch.float64 and (runtime.fused_elementwise() or u.numel() <= _APPROX_MAX_EAGER):
+    if u.dtype == torch.float64:
+        a = u.abs()
+        return torch.log(torch.special.i0e(a)) + a
+    n = u.numel()
+    if runtime.fused_elementwise() or n <= 2 * _APPROX_BLOCK:
         return log_i0_approx(u)
-    a = u.abs()
-    return torch.log(torch.special.i0e(a)) + a
+    if not runtime.in_place(u):
+        if n <= _APPROX_MAX_EAGER:
+            return log_i0_approx(u)
+        a = u.abs()
+        return torch.log(torch.special.i0e(a)) + a
+    flat = u.reshape(-1)
+    out = torch.empty_like(flat)
+    size = -(-n // -(-n // _APPROX_BLOCK) // 64) * 64  # even blocks of whole cache lines
+    for first in range(0, n, size):  # blocks of memory (cache tiling), not of samples
+        out[first:first + size] = log_i0_approx(flat[first:first + size])
+    return out.reshape(u.shape)
 
 
 class RangeDopplerBearingTBD(SeparableGridSensor):
