@@ -69,3 +69,17 @@ def test_squared_norm(d):
                                                                                           dtype=torch.float64)
     for t in (v, v.float()):
         assert torch.equal(squared_norm(t), t.square().sum(-1))
+
+
+def test_block_cached_under_inference_mode_serves_autograd_later():
+    """The block matrix is cached per model matrix: first built under torch.inference_mode(),
+    it is still a normal tensor, so a later call on a tensor that requires grad differentiates
+    (an inference tensor cannot be saved for backward)."""
+    g = torch.Generator().manual_seed(2)
+    M = torch.randn(4, 4, generator=g, dtype=torch.float64)
+    x = torch.randn(3, 16, 1, 4, generator=g, dtype=torch.float64)
+    with torch.inference_mode():
+        linear_map(x, M)
+    y = x.clone().requires_grad_()
+    (grad,) = torch.autograd.grad(linear_map(y, M).sum(), y)
+    torch.testing.assert_close(grad, M.sum(0).expand_as(x), rtol=1e-12, atol=1e-12)

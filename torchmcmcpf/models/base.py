@@ -97,6 +97,8 @@ def _block(M: Tensor, g: int) -> Tensor:
     """``I_g (x) M^T`` ``(g D, g d)``, cached for a matrix that needs no gradient (a model's
     buffer): building it took three of a point SIR step's 85 operations, 10 % of a step at
     B = 1. Rebuilt when ``M`` changes in place (version counter); traced under ``torch.compile``.
+    Made outside ``torch.inference_mode()`` (a normal tensor, which a later call under
+    autograd may use).
     """
     if M.requires_grad or runtime.compiling() or M.is_inference():
         return torch.block_diag(*([M.mT] * g))
@@ -105,7 +107,8 @@ def _block(M: Tensor, g: int) -> Tensor:
         return hit[3]
     if len(_BLOCKS) > 256:  # matrices of dead models
         _BLOCKS.clear()
-    block = torch.block_diag(*([M.mT] * g))
+    with torch.inference_mode(False):
+        block = torch.block_diag(*([M.mT] * g))
     _BLOCKS[id(M)] = (weakref.ref(M), M._version, g, block)
     return block
 

@@ -67,11 +67,15 @@ _PERMS: dict[tuple[int, torch.device], Tensor] = {}
 
 
 def permutations(p: int, device: torch.device | str | None = None) -> Tensor:
-    """All ``p!`` permutations of ``range(p)`` as a ``(p!, p)`` int64 tensor (cached)."""
+    """All ``p!`` permutations of ``range(p)`` as a ``(p!, p)`` int64 tensor (cached; made
+    outside ``torch.inference_mode()`` even when first asked for there, so that a later
+    call under autograd may index with it).
+    """
     key = (p, torch.device(device or "cpu"))
     if key not in _PERMS:
-        _PERMS[key] = torch.tensor(list(itertools.permutations(range(p))), dtype=torch.long,
-                                   device=key[1]).reshape(-1, p)
+        with torch.inference_mode(False):
+            _PERMS[key] = torch.tensor(list(itertools.permutations(range(p))), dtype=torch.long,
+                                       device=key[1]).reshape(-1, p)
     return _PERMS[key]
 
 
