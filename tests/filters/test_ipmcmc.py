@@ -622,3 +622,29 @@ def test_chains_relabelled_relabels_distinct_states_only_with_the_same_result():
     got = _chains_relabelled(window)
     assert not torch.equal(got, window)  # some states were relabelled
     assert torch.equal(got, plain)
+
+
+def test_segment_noise_iterations_keep_their_strides_whatever_the_length():
+    # a compiled iteration guards on its inputs' strides: each iteration's noise has the same
+    # ones for a segment of any length (the R-hat rule's extensions are shorter than the
+    # first segment; the source draws are run-major and moved, so their slices' strides
+    # grew with the length and the program compiled again for them), and the same values
+    from torch.utils._pytree import tree_flatten
+
+    from torchmcmcpf.filters.ipmcmc import SegmentNoise
+
+    dynamics = TargetDynamics(ConstantVelocity(dt=1.0, q=1.0))
+    log_w = torch.full((2, 100), -math.log(100))
+    strides = []
+    for steps in (3, 7):
+        noise = draw_exchange_noise(log_w, steps, 8, 3, dynamics=dynamics, generator=torch.Generator().manual_seed(0),
+                                    dtype=torch.float32)
+        leaves = [leaf for leaf in tree_flatten(noise)[0] if leaf is not None]
+        assert not all(leaf.is_contiguous() for leaf in leaves)  # the case this guards against
+        rows = SegmentNoise(noise).iterations()
+        assert len(rows) == steps
+        for i, row in enumerate(rows):
+            got = [leaf for leaf in tree_flatten(row)[0] if leaf is not None]
+            assert all(torch.equal(a, b[i]) for a, b in zip(got, leaves))
+        strides.append([leaf.stride() for leaf in tree_flatten(rows[-1])[0] if leaf is not None])
+    assert strides[0] == strides[1]

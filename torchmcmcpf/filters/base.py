@@ -119,6 +119,20 @@ def _record(state: ParticleState) -> tuple | None:
     return (weakref.ref(x), x._version, None if e is None else weakref.ref(e), 0 if e is None else e._version)
 
 
+def _inference_tensors(state: ParticleState) -> ParticleState:
+    """``state`` with its tensors made outside ``torch.inference_mode()`` copied inside it
+    (inference tensors; the others as they are). A step under inference mode returns
+    inference tensors, and a compiled program guards on that kind of its inputs (their
+    dispatch keys), so a first state made outside (the initial cloud) would compile every
+    program of the step a second time at the next step (the Table II SIR step: 17 s at N =
+    5000, cold; the MCMC-PF's moves likewise).
+    """
+    def own(t: Any) -> Any:
+        return t.clone() if torch.is_tensor(t) and not t.is_inference() else t
+
+    return tree_map(own, state)
+
+
 def _same(a: tuple, b: tuple) -> bool:
     """The two records name the same live tensors at the same versions."""
     x = a[0]()
@@ -601,6 +615,8 @@ class Filter(nn.Module):
         """
         if not self._compile_step:
             z = self.sensor.trim_frame(z)
+        elif torch.is_inference_mode_enabled():
+            state = _inference_tensors(state)
         return self.bound_step(state, z, self._bound, generator=generator)
 
     def step(self, state: ParticleState, z: Measurement, *, generator: torch.Generator
