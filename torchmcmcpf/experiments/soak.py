@@ -28,7 +28,9 @@ chunk, so memory does not grow with the length):
 
 Filters: the IP-MCMC-PF with the library's defaults (exclusion and re-capture) and as in
 paper 000 (``exclusion=None, recapture=None``), Np particles in ``Np / 10`` chains, burn-in
-``--burn-in``; on the fixed scene also the partitioned PF (Orton and Fitzgerald 2002, with
+``--burn-in``; the MCMC-PF with its defaults (joint draws from the previous cloud, no
+factorised prior), Np particles in ``Np / 2`` chains after half that burn-in, as the
+crossing study runs it; on the fixed scene also the partitioned PF (Orton and Fitzgerald 2002, with
 exclusion and re-capture; :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`) with the same Np,
 a reference of another kind on the same frames (it has no births and deaths). Also: seconds
 per step and the non-finite values in the estimates (must be 0).
@@ -51,6 +53,7 @@ import torch
 
 from .. import metrics
 from ..filters.ipmcmc import IPMCMCFilter
+from ..filters.mcmc import MCMCFilter
 from ..filters.partitioned import PartitionedSIRFilter, clairvoyant_partitions
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
@@ -59,7 +62,7 @@ from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, in_order, option, rows_option
 
-FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)")
+FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF")
 FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
 CLAIRVOYANT = "clairvoyant reference"  # each target's own PF (Np particles) with the others known
 SCENES = ("fixed", "birth-death")
@@ -76,7 +79,7 @@ class SoakSettings(Settings):
     steps: int = option(200, 10, help="time steps")
     every: int = option(20, 5, help="steps per chunk (the reporting period)")
     particles: int = option(500, 100, help="particles Np (a multiple of 10)")
-    burn_in: int = option(100, 20, help="IP-MCMC-PF burn-in")
+    burn_in: int = option(100, 20, help="IP-MCMC-PF burn-in (the MCMC-PF's: half)")
     targets: int = option(10, 3, help="targets (fixed) / slots (birth-death)")
     max_speed: float = option(1.0, 1.0, help="fixed scene: largest target speed [m/s]")
     q: float = option(1.0, 1.0, help="fixed scene: the filters' acceleration noise q [m^2 s^-3] (1: paper 000's; the "
@@ -106,7 +109,9 @@ def _filters(cfg: SoakSettings, motion: MotionModel, sensor: SensorModel, existe
     kw: dict[str, Any] = dict(num_chains=n // 10, burn_in=cfg.burn_in, existence=existence)
     filters: dict[str, Any] = {"IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, **kw),
                                "IP-MCMC-PF (paper)": IPMCMCFilter(motion, sensor, n, exclusion=None, recapture=None,
-                                                                  **kw)}
+                                                                  **kw),
+                               "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=n // 2, burn_in=cfg.burn_in // 2,
+                                                     existence=existence)}
     if existence is None:
         filters["partitioned PF"] = PartitionedSIRFilter(motion, sensor, n)
     return filters
