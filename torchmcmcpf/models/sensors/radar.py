@@ -120,20 +120,16 @@ def log_i0(u: Tensor) -> Tensor:
     not matter numerically. Blocks are of memory, not of samples: the values are those of
     one :func:`log_i0_approx` call on the whole tensor, bit for bit.
     """
-    if u.dtype == torch.float64:
+    n, fused, own = u.numel(), runtime.fused_elementwise(), runtime.in_place(u)
+    if u.dtype == torch.float64 or not (fused or own or n <= _APPROX_MAX_EAGER):  # exact
         a = u.abs()
         return torch.log(torch.special.i0e(a)) + a
-    n = u.numel()
-    if runtime.fused_elementwise() or n <= 2 * _APPROX_BLOCK:
+    if fused or not own or n <= 2 * _APPROX_BLOCK:
         return log_i0_approx(u)
-    if not runtime.in_place(u):
-        if n <= _APPROX_MAX_EAGER:
-            return log_i0_approx(u)
-        a = u.abs()
-        return torch.log(torch.special.i0e(a)) + a
     flat = u.reshape(-1)
     out = torch.empty_like(flat)
-    size = -(-n // -(-n // _APPROX_BLOCK) // 64) * 64  # even blocks of whole cache lines
+    blocks = math.ceil(n / _APPROX_BLOCK)
+    size = 64 * math.ceil(n / blocks / 64)  # even blocks of whole cache lines
     for first in range(0, n, size):  # blocks of memory (cache tiling), not of samples
         out[first:first + size] = log_i0_approx(flat[first:first + size])
     return out.reshape(u.shape)
