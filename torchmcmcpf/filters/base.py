@@ -615,7 +615,7 @@ class Filter(nn.Module):
         """
         if not self._compile_step:
             z = self.sensor.trim_frame(z)
-        elif torch.is_inference_mode_enabled():
+        elif torch.is_inference_mode_enabled() and not state.x.is_inference():  # a first state, made outside
             state = _inference_tensors(state)
         return self.bound_step(state, z, self._bound, generator=generator)
 
