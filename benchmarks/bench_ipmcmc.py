@@ -102,7 +102,8 @@ def test_ipmcmc_step_cuda(benchmark, variant, b):
 
 TERMS = {"paper": dict(exclusion=None, recapture=None), "exclusion": dict(recapture=None),
          "recapture": dict(exclusion=None), "default": {},
-         "default-independent-sources": dict(recapture=Recapture(p_same_source=0.0))}
+         "default-independent-sources": dict(recapture=Recapture(p_same_source=0.0)),
+         "default-joint-pairs": dict(joint_pairs=1.5)}
 
 
 @pytest.mark.parametrize("compiled", [False, True], ids=["eager", "compiled"])
@@ -113,8 +114,9 @@ def test_ipmcmc_step_multitarget_terms(benchmark, scenario, terms, compiled, n):
     paper's factorised target and exchange move, with exclusion only, with re-capture only
     (relocation noise drawn from the frame's peaks, every 10th iteration a two-slot move) and
     with both (the default), and the default with the two-slot move's slots from independent
-    particles (``p_same_source = 0``: no sources kept in the chains), Np = 500 and 5000, 50
-    chains, 10 targets, no R-hat extensions.
+    particles (``p_same_source = 0``: no sources kept in the chains), and the default with joint
+    pairs (``joint_pairs = 1.5``: a paired slot's proposal made in each iteration from its
+    pair's source), Np = 500 and 5000, 50 chains, 10 targets, no R-hat extensions.
     Compare within one run: ``--benchmark-group-by=group``.
     """
     x0 = scenario.initial_particles(n, generator=torch.Generator().manual_seed(1))

@@ -70,10 +70,12 @@ def _ipmcmc_target(x_prev, z, exclusion, delta, log_w=None):
     return base + m[0][:, None] + m[1][None, :]
 
 
-def _mcmc_target(x_prev, z, exclusion, delta):
-    """pi(u) ∝ p(z | u) Phi(u) (1/N) sum_a prod_j [(1 - delta) N(u_j; x_aj, Q) + delta U(u_j)]."""
+def _mcmc_target(x_prev, z, exclusion, delta, log_w=None):
+    """pi(u) ∝ p(z | u) Phi(u) sum_a w^a prod_j [(1 - delta) N(u_j; x_aj, Q) + delta U(u_j)]
+    (uniform weights by default)."""
     base, pieces = _common(x_prev, z, exclusion, delta)
-    joint = torch.logsumexp(pieces[0][:, :, None] + pieces[1][:, None, :], 0)
+    lw = torch.zeros(x_prev.shape[0], dtype=DT) if log_w is None else log_w
+    joint = torch.logsumexp(pieces[0][:, :, None] + pieces[1][:, None, :] + lw[:, None, None], 0)
     return base + joint
 
 
@@ -93,7 +95,7 @@ def _problem():
 LOG_W = torch.tensor([0.6, 0.3, 0.1], dtype=DT).log()
 
 
-def _exchange_chains(exclusion, recapture, *, pair_every, seed, iterations=150, c=6000, x_prev=None):
+def _exchange_chains(exclusion, recapture, *, pair_every, seed, iterations=150, c=6000, x_prev=None, joint=False):
     """Run C chains of the one-slot exchange move with, every ``pair_every``-th iteration, the
     two-slot move (``pair_every = 1``: the two-slot move alone) on the problem (its previous
     particles, or ``x_prev (N, 2, 1)``); the chains start from the proposal. Returns the chains
@@ -110,13 +112,15 @@ def _exchange_chains(exclusion, recapture, *, pair_every, seed, iterations=150, 
     x0 = torch.take_along_dim(xp, src[..., None, None], 1)
     y, _, log_r, kind = dyn.propagate_labelled(x0, None, *dyn.draw_noise(x0, zb, generator=g))
     sources = (src.unsqueeze(-1).expand(b, c, k), LOG_W[src].unsqueeze(-1).expand(b, c, k)) \
-        if recapture is not None and recapture.p_same_source > 0 else (None, None)
+        if recapture is not None and (recapture.p_same_source > 0 or joint) else (None, None)
     chain = ExchangeChains(y, sensor.log_likelihood(y, zb), None, None if recapture is None else log_r, kind,
                            *sources)
     accepted, pair_acc = 0.0, 0.0
     pairs = torch.tensor([[[False, True], [False, False]]])
-    single = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb)
-    double = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, pairs=pairs)
+    partner = torch.tensor([[1, 0]]) if joint else None
+    single = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, partner=partner)
+    double = draw_exchange_noise(log_w, iterations, c, k, dynamics=dyn, generator=g, dtype=DT, z=zb, pairs=pairs,
+                                 partner=partner)
     for t in range(iterations):
         two = (t + 1) % pair_every == 0
         nz = tree_map(lambda a: None if a is None else a[t], double if two else single)
@@ -170,6 +174,29 @@ def test_one_sourced_pairs_need_their_ratio(monkeypatch):
     chain, _, _ = _exchange_chains(None, recapture, pair_every=1, seed=13, x_prev=x_prev)
     mean, se = _sample_moments(chain.y[0, :, :, 0])
     assert ((mean - exact).abs() > 10 * se).any(), (mean, exact, se)
+
+
+@pytest.mark.parametrize("terms", ["recapture", "both"])
+def test_joint_pairs_leave_the_pair_joint_prediction_invariant(terms):
+    """Joint pairs (:mod:`torchmcmcpf.kernels.exchange`, "Joint pairs"): the two slots paired,
+    one-slot moves that keep the pair's source and two-slot moves from one source target the
+    pair's joint prediction ``p(z | u) Phi(u) sum_a w^a prod_j [(1 - delta) f(u_j | x^a_j) +
+    delta p_0(u_j)]`` (the MCMC-PF's), not the product of the marginals. The previous particles
+    are anti-correlated, so the two targets differ by many standard errors (checked: the check
+    can fail), and the chains end with one source per pair."""
+    _, _, _, z = _problem()
+    x_prev = torch.tensor([[0.0, 3.0], [3.0, 0.0], [1.5, 1.5]], dtype=DT).unsqueeze(-1)
+    exclusion = Exclusion(1.5) if terms == "both" else None
+    recapture = Recapture(p_jump=0.2, p_propose=0.3, pair_every=3, p_propose_pair=0.6, p_same_source=0.0)
+    chain, accepted, pair_acc = _exchange_chains(exclusion, recapture, pair_every=3, seed=17, x_prev=x_prev,
+                                                 joint=True)
+    assert 0.1 < accepted < 0.95 and pair_acc > 0.03  # both kernels move the chains
+    assert bool((chain.source[..., 0] == chain.source[..., 1]).all())
+    mean, se = _sample_moments(chain.y[0, :, :, 0])
+    exact = _moments(_mcmc_target(x_prev[..., 0], z[:, 0], exclusion, 0.2, LOG_W))
+    assert ((mean - exact).abs() <= 4.5 * se).all(), (mean, exact, se)
+    factorised = _moments(_ipmcmc_target(x_prev[..., 0], z[:, 0], exclusion, 0.2, LOG_W))
+    assert ((factorised - exact).abs() > 10 * se).any(), (factorised, exact, se)
 
 
 @pytest.mark.parametrize("terms", ["exclusion", "both"])

@@ -73,7 +73,9 @@ from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, cell, in_order, option, rows_option
 
-FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF", "IP-MCMC-PF (pair path)")
+FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF", "IP-MCMC-PF (pair path)",
+           "IP-MCMC-PF (joint pairs)")
+JOINT_PAIRS = 1.5  # [resolution cells] the joint-pairs rows (docs/tracks.md: 1.5 and 3 hold the same runs)
 CLAIRVOYANT = "clairvoyant reference"  # each target's PF with the other at its true state (crossing scene only)
 ROWS = FILTERS + (CLAIRVOYANT,)
 COVER, SHARE, RECAPTURE = 20.0, 10.0, 10.0  # [m]: "uncovered", "shared" and "re-captured" radii
@@ -155,6 +157,8 @@ def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) ->
         "partitioned PF": PartitionedSIRFilter(motion, sensor, n),
         "IP-MCMC-PF (pair path)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in,
                                                pair_path=PairPath()),
+        "IP-MCMC-PF (joint pairs)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in,
+                                                 joint_pairs=JOINT_PAIRS),
     }
 
 

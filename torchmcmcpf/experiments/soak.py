@@ -61,9 +61,11 @@ from ..typing import VX, VY, X, Y
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
 from ._study import Settings, StepTimer, Study, in_order, option, rows_option
+from .crossing import JOINT_PAIRS
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF")
-FIXED_FILTERS = FILTERS + ("partitioned PF",)  # the fixed scene's reference: known number of targets only
+JOINT = "IP-MCMC-PF (joint pairs)"  # known number of targets only
+FIXED_FILTERS = FILTERS + ("partitioned PF", JOINT)  # the fixed scene's: known number of targets only
 CLAIRVOYANT = "clairvoyant reference"  # each target's own PF (Np particles) with the others known
 SCENES = ("fixed", "birth-death")
 ROWS = FIXED_FILTERS + (CLAIRVOYANT,)  # every row (the fixed scene's; the births/deaths scene has FILTERS)
@@ -114,6 +116,7 @@ def _filters(cfg: SoakSettings, motion: MotionModel, sensor: SensorModel, existe
                                                      existence=existence)}
     if existence is None:
         filters["partitioned PF"] = PartitionedSIRFilter(motion, sensor, n)
+        filters[JOINT] = IPMCMCFilter(motion, sensor, n, joint_pairs=JOINT_PAIRS, **kw)
     return filters
 
 

@@ -38,7 +38,8 @@ Compile = Callable[[Callable], Callable] | None
 def active_prior(settings: Any, sensor: SensorModel) -> Any:
     """``settings`` with the multitarget prior's terms the sensor cannot support turned off:
     ``exclusion=None`` for a sensor without ``resolution_coords``, ``recapture=None`` for one
-    without a data-driven proposal (:mod:`torchmcmcpf.models.multitarget`), so that
+    without a data-driven proposal (:mod:`torchmcmcpf.models.multitarget`) and with it the
+    IP-MCMC-PF's ``joint_pairs`` (whose pairs the re-capture's two-slot move re-draws), so that
     ``filt.settings`` says what the filter does. Idempotent.
     """
     changes: dict[str, None] = {}
@@ -46,6 +47,8 @@ def active_prior(settings: Any, sensor: SensorModel) -> Any:
         changes["exclusion"] = None
     if getattr(settings, "recapture", None) is not None and not sensor.data_driven:
         changes["recapture"] = None
+        if getattr(settings, "joint_pairs", None) is not None:
+            changes["joint_pairs"] = None
     return dataclasses.replace(settings, **changes) if changes else settings
 
 

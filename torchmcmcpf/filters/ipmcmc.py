@@ -115,6 +115,18 @@ paths over the window for ``num_paths`` of the new particles, invariant for the 
 posterior's conditional of the pair (that module's eq. 2). ``extras["pair_path_fired"]``,
 ``extras["pair_path_moved"]`` report it.
 
+Joint pairs (optional)
+----------------------
+With ``joint_pairs=d`` two slots whose predicted estimates are each other's nearest within
+``d`` resolution cells (fixed for the step) keep their *joint* prediction, one source particle
+for both, instead of the product of their marginals: the target above with each such pair's
+``m_a(y_a) m_b(y_b)`` replaced by ``sum_i w^i p(y_a | x^i_a) p(y_b | x^i_b)`` (the MCMC-PF's
+prior over the pair). A paired slot's one-slot move then proposes from its pair's current
+source, and the two-slot move (``recapture.pair_every``) runs over these pairs, drawing one
+source for both (:mod:`torchmcmcpf.kernels.exchange`, "Joint pairs"; invariance tested on a
+quadrature target). After an unresolved crossing the factorised prior also holds the
+arrangements that no particle held (docs/tracks.md); the pair's joint prediction does not.
+
 HMC refinement (optional)
 -------------------------
 With ``hmc=HMCRefine(...)`` (:mod:`torchmcmcpf.kernels.hmc_refine`) every chain also takes
@@ -188,6 +200,7 @@ from ..kernels.exchange import (
     close_pairs,
     draw_exchange_noise,
     exchange_iteration,
+    mutual_nearest_pairs,
     propose_slots,
     with_accepted_amplitudes,
 )
@@ -420,6 +433,12 @@ class IPMCMCSettings:
         triggered conditional-SMC move on two close slots' paths over the last ``lag`` frames
         after the chains (module docstring, "The pair-path move"); a known number of
         targets and a tensor frame only.
+    joint_pairs : a distance in resolution cells, or None (default): two slots whose
+        predicted estimates are each other's nearest within it keep their joint prediction
+        (one source for both) instead of the product of their marginals, and the two-slot
+        move runs over these pairs (module docstring, "Joint pairs"). Needs ``recapture``
+        with ``pair_every > 0`` (the move that changes a pair's source), a known number of
+        targets, and no ``hmc``.
 
     Both are turned off for a sensor that cannot support them
     (:func:`~torchmcmcpf.filters.base.active_prior`).
@@ -448,6 +467,7 @@ class IPMCMCSettings:
     recapture: Recapture | None = Recapture()
     existence_proposal: tuple[float, float] | None = (0.5, 0.1)
     pair_path: PairPath | None = None
+    joint_pairs: float | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "num_chains", check_positive_int(self.num_chains, "num_chains", minimum=2))
@@ -468,6 +488,15 @@ class IPMCMCSettings:
         object.__setattr__(self, "existence_proposal", check_existence_proposal(self.existence_proposal))
         if self.pair_path is not None and not isinstance(self.pair_path, PairPath):
             raise ValueError(f"pair_path must be a PairPath or None, got {type(self.pair_path).__name__}")
+        if self.joint_pairs is not None:
+            if isinstance(self.joint_pairs, bool) or not isinstance(self.joint_pairs, (int, float)) \
+                    or not float(self.joint_pairs) > 0:
+                raise ValueError(f"joint_pairs must be a distance > 0 in resolution cells or None, got "
+                                 f"{self.joint_pairs!r}")
+            if self.recapture is None or self.recapture.pair_every == 0 or self.hmc is not None:
+                raise ValueError("joint_pairs needs recapture with pair_every > 0 (the move that changes a pair's "
+                                 f"source) and hmc=None, got recapture={self.recapture!r}, hmc={self.hmc!r}")
+            object.__setattr__(self, "joint_pairs", float(self.joint_pairs))
 
     def check(self, num_particles: int) -> None:
         """``C | N`` with at least 2 kept samples per chain."""
@@ -494,6 +523,8 @@ def bind_ipmcmc(motion: MotionModel, sensor: SensorModel, settings: IPMCMCSettin
             bound.settings.check(num_particles)
         if bound.settings.hmc is not None:
             check_hmc_motion(motion, bound.existence)
+        if bound.settings.joint_pairs is not None and bound.existence is not None:
+            raise ValueError("settings.joint_pairs needs a known number of targets (existence=None)")
 
     return bind(motion, sensor, IPMCMCSettings() if settings is None else settings, existence, check=check,
                 program=lambda b, c: ipmcmc_program(b.dynamics, b.sensor, b.settings.exclusion, c), compile=compile)
@@ -580,8 +611,10 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     # two-slot moves: every pair_every-th iteration, over the pairs of slots whose predicted
     # estimates are close (fixed for the step: a fixed mixture of invariant kernels)
     pair_every = 0 if recapture is None or k < 2 else recapture.pair_every
+    joint = settings.joint_pairs is not None and pair_every > 0
     source = log_w_source = None
-    if (pair_every and recapture is not None and recapture.p_same_source > 0) or settings.pair_path is not None:
+    if (pair_every and recapture is not None and recapture.p_same_source > 0) or settings.pair_path is not None \
+            or joint:
         # every slot's source particle (the pair-path move's genealogy too)
         source = start.unsqueeze(-1).repeat(1, 1, k)  # contiguous, as every later state (one compiled graph)
         log_w_source = take_along(normalize(log_w)[0], start, 1
@@ -592,7 +625,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
                             None if existence is None and recapture is None else log_r, kind, source, log_w_source,
                             sensor.amplitude_cache(y, e, z), sensor.resolution_coords(y) if excluding else None)
-    pairs = None
+    pairs = partner = None
     if pair_every and recapture is not None:
         if exists is None:
             centre, alive = weighted_mean(x_prev, log_w), None
@@ -601,13 +634,21 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
             centre, alive = est.mean, est.present
         centre = motion.propagate(centre, torch.zeros(centre.shape[:-1] + (motion.noise_dim,), dtype=centre.dtype,
                                                       device=centre.device))
-        pairs = close_pairs(sensor.resolution_coords(centre), recapture.pair_distance, alive)
+        if joint and settings.joint_pairs is not None:  # the pairs that keep their joint prediction
+            partner = mutual_nearest_pairs(sensor.resolution_coords(centre), settings.joint_pairs, alive)
+            own = torch.arange(k, device=partner.device)
+            pairs = (partner.unsqueeze(-1) == own) & (own.unsqueeze(-1) < own)  # (B, K, K): i < partner[i]
+        else:
+            pairs = close_pairs(sensor.resolution_coords(centre), recapture.pair_distance, alive)
 
     # 2. burn-in + thinning * S iterations; every thinning-th of the last thinning * S is kept
     def draw(steps: int, offset: int) -> SegmentNoise:
         def one(count: int, close: Tensor | None) -> ExchangeNoise:
             noise = draw_exchange_noise(log_w, count, num_chains, k, dynamics=dynamics, generator=generator,
-                                        dtype=x_prev.dtype, z=z, pairs=close, exists=exists, found=found)
+                                        dtype=x_prev.dtype, z=z, pairs=close, exists=exists, found=found,
+                                        partner=partner)
+            if partner is not None and close is None:  # a paired slot's proposal reads its chain's source
+                return noise
             # the segment's proposals in one batched call (an independence proposal); the
             # iterations read them, not the birth and relocation draws they were made from
             return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics,

@@ -46,6 +46,28 @@ factor ``w^{i_j} w^{i_l}``, and the move's ``log alpha`` gains
 0.5``, ``N = 500``: a repair is taken where the frame favours it by more than that
 (docs/tracks.md has cases either side). The chains keep every
 slot's source and its log-weight (:class:`ExchangeChains`), taken from the move's noise.
+
+Joint pairs
+-----------
+The factorised prior drops the correlation of two slots that the previous cloud holds
+together: after an unresolved crossing the product of their marginals also holds the
+arrangements no particle held (both slots on one target, or each on the other's path with
+its own amplitude), and one frame scores some of them within a few nats of the truth. With
+``partner`` (:func:`mutual_nearest_pairs`: two slots whose predictions are each other's
+nearest within a distance, fixed for the step) the target keeps each such pair's *joint*
+prediction, ``sum_i w^i f~(y_a | x^i_a) f~(y_b | x^i_b)``, and the other slots' marginals:
+the extended target forces one source on the pair,
+
+    ``pi(y, i) ∝ p(z | y) Phi(y) prod_{unpaired j} w^{i_j} f~(y_j | x^{i_j}_j)
+                 prod_{pairs (a, b)} w^{i_a} 1[i_a = i_b] f~(y_a | x^{i_a}_a) f~(y_b | x^{i_a}_b)``,
+
+whose ``i``-marginal is that prior (paper 002 eq. 11's joint prediction over the pair, the
+MCMC-PF's target restricted to it). Its moves: an unpaired slot's as above; a paired slot's
+one-slot move keeps the pair's source (``y'_a ~ q(. | x^{i_b}_a)``, a Metropolis-within-Gibbs
+update of ``y_a`` given ``i``: ``log alpha`` as above, the source unchanged); the two-slot
+move of a pair draws one source ``i ~ w`` for both (``rho = 1``: the pair's proposal
+``w^i q q`` against its factor ``w^i f~ f~``, so no source term). Every state the chains start
+from (both slots of a starting point from one particle) satisfies the constraint.
 """
 
 from __future__ import annotations
@@ -64,7 +86,8 @@ from ..typing import Measurement, Tensor
 from .mh import mh_accept
 
 __all__ = ["ExchangeChains", "ExchangeNoise", "ExchangeProposal", "draw_exchange_noise", "propose_slots",
-           "exchange_iteration", "close_pairs", "with_accepted_amplitudes", "pair_source_log_ratio"]
+           "exchange_iteration", "close_pairs", "mutual_nearest_pairs", "with_accepted_amplitudes",
+           "pair_source_log_ratio"]
 
 
 class ExchangeChains(NamedTuple):
@@ -80,7 +103,7 @@ class ExchangeChains(NamedTuple):
     kind : (B, C, K) int8, the slots' proposal components with re-capture
         (:func:`~torchmcmcpf.models.multitarget.relocate`), else ``None``.
     source : (B, C, K) int64, each slot's source particle ``i_j``, with one-sourced two-slot
-        moves (``p_same_source > 0``; module docstring), else ``None``.
+        moves (``p_same_source > 0``) or joint pairs (module docstring), else ``None``.
     log_w_source : (B, C, K), the normalised log-weight ``log w^{i_j}`` of that source, with
         ``source``, else ``None``.
     amplitude : (B, C, G), optional: the chains' amplitude per cell
@@ -210,6 +233,10 @@ class ExchangeNoise(NamedTuple):
     proposal : :class:`ExchangeProposal` with leading ``(L, B, C)``, optional: the slots
         this noise proposes, made in advance (:func:`propose_slots`); without it each
         iteration makes its own (the same values).
+    partner : (L, B, C, M) int64, optional: with joint pairs (module docstring) each moved
+        slot's partner, the slot itself where it has none. A one-slot move of a paired slot
+        then takes its partner's current source, not ``source`` (so its proposal is made in
+        the iteration), and a two-slot move has one source and no source term.
 
     Example
     -------
@@ -237,6 +264,7 @@ class ExchangeNoise(NamedTuple):
     relocation: RelocationNoise | None = None
     valid: Tensor | None = None
     proposal: ExchangeProposal | None = None
+    partner: Tensor | None = None
 
 
 def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) -> Tensor:
@@ -260,10 +288,49 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
     return out
 
 
+def mutual_nearest_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) -> Tensor:
+    """Each slot's partner under joint pairs (module docstring): the slot whose prediction is
+    its nearest, where that lies within ``distance`` resolution cells and the two are each
+    other's nearest (a matching: every slot has at most one partner); else the slot itself.
+
+    Parameters
+    ----------
+    centres : (B, K, r) resolution coordinates of each slot's predicted estimate.
+    distance : > 0.
+    exists : (B, K) bool, optional: only slots that exist somewhere pair.
+
+    Returns
+    -------
+    (B, K) int64; ``partner[partner[j]] = j`` for every slot.
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.kernels.exchange import mutual_nearest_pairs
+    >>> centres = torch.tensor([[[0.0], [1.0], [1.5], [9.0]]])     # (B, K, r): 1 and 2 closest
+    >>> mutual_nearest_pairs(centres, 2.0).tolist()
+    [[0, 2, 1, 3]]
+    """
+    if not distance > 0:
+        raise ValueError(f"distance must be > 0 resolution cells, got {distance!r}")
+    k = centres.shape[-2]
+    d2 = pairwise_squared_distances(centres, centres)
+    eye = torch.eye(k, dtype=torch.bool, device=centres.device)
+    far = ~(d2 < distance**2) | eye
+    if exists is not None:
+        far = far | ~(exists.unsqueeze(-1) & exists.unsqueeze(-2))
+    d2 = torch.where(far, torch.full_like(d2, float("inf")), d2)
+    nearest = d2.argmin(-1)  # (B, K); any slot where all are far (its row inf), checked below
+    own = torch.arange(k, device=centres.device).expand_as(nearest)
+    mutual = (take_along(nearest, nearest, -1) == own) & torch.isfinite(take_along(d2, nearest.unsqueeze(-1), -1)
+                                                                          ).squeeze(-1)
+    return torch.where(mutual, nearest, own)
+
+
 def draw_exchange_noise(
     log_w: Tensor, num_iterations: int, num_chains: int, num_targets: int, *, dynamics: TargetDynamics,
     generator: torch.Generator, dtype: torch.dtype, z: Measurement | None = None, pairs: Tensor | None = None,
-    exists: Tensor | None = None, found: object = None,
+    exists: Tensor | None = None, found: object = None, partner: Tensor | None = None,
 ) -> ExchangeNoise:
     """Draw the randomness of ``L = num_iterations`` iterations: one slot per iteration
     (uniform over the K slots) or, with ``pairs``, two slots (uniform over the close pairs of
@@ -286,6 +353,10 @@ def draw_exchange_noise(
         draws are the same.
     found : optional, the frame's detections for the relocation draws
         (:meth:`~torchmcmcpf.models.base.SensorModel.frame_detections`, made once per step).
+    partner : (B, K) int64, optional: joint pairs (:func:`mutual_nearest_pairs`; module
+        docstring): the noise carries each moved slot's partner, and a two-slot draw (over
+        ``pairs``, the pairs of ``partner``) takes one source for both slots. No existence
+        model.
     """
     b, n = log_w.shape
     m = 1 if pairs is None else 2
@@ -333,12 +404,21 @@ def draw_exchange_noise(
     if relocation is not None:
         relocation = RelocationNoise(*(t.transpose(0, 1) for t in relocation))
     rho = 0.0 if pairs is None or dynamics.recapture is None else dynamics.recapture.p_same_source
+    carried = None
+    if partner is not None:  # joint pairs: every moved slot's partner; a pair's two slots one source
+        if dynamics.existence is not None:
+            raise ValueError("joint pairs (partner) need a known number of targets (no existence model)")
+        carried = take_along(partner.unsqueeze(0).expand(shape[:2] + (num_targets,)), slot.flatten(2), -1
+                             ).reshape(slot.shape)
+        if pairs is not None:
+            source = source[..., :1].expand(source.shape).contiguous()
+            rho = 0.0
     if rho > 0:  # both slots from one particle (drawn last: the other draws are those of rho = 0)
         same = torch.rand(shape, generator=generator, device=dev, dtype=torch.float64) < rho
         source = torch.stack([source[..., 0], torch.where(same, source[..., 0], source[..., 1])], -1)
     log_w_source = take_along(normalize(log_w)[0], source.movedim(0, 1).reshape(b, -1), 1).reshape(
         (b, num_iterations, num_chains, m)).movedim(1, 0)
-    return ExchangeNoise(source, log_w_source, slot, eps, u, birth, relocation, valid)
+    return ExchangeNoise(source, log_w_source, slot, eps, u, birth, relocation, valid, None, carried)
 
 
 def pair_source_log_ratio(source: Tensor, log_w_source: Tensor, rho: float) -> Tensor:
@@ -443,16 +523,28 @@ def exchange_iteration(
         raise ValueError("with an existence model or re-capture the chains need log_r (got None)")
     if existence is not None and exists is None:
         raise ValueError("with an existence model the chains need exists (got None)")
-    rho = 0.0 if recapture is None or m == 1 else recapture.p_same_source
-    if rho > 0 and (source is None or log_w_source is None):
-        raise ValueError("a two-slot move with p_same_source > 0 needs the chains' source and log_w_source "
-                         "(got None)")
+    joint = noise.partner is not None  # joint pairs (module docstring): no source term
+    rho = 0.0 if recapture is None or m == 1 or joint else recapture.p_same_source
+    if (rho > 0 or joint) and (source is None or log_w_source is None):
+        raise ValueError("a two-slot move with p_same_source > 0 and joint pairs need the chains' source and "
+                         "log_w_source (got None)")
     # this move's epsilon; the chains cache log r at recapture.p_propose, converted by the
     # slots' kinds (models/multitarget.py, log_q_component) where the two differ
     base = None if recapture is None else recapture.p_propose
     eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
-    proposal = noise.proposal if noise.proposal is not None else \
-        propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
+    on = exclusion_on(exclusion, sensor)
+    src_moved, lw_moved = noise.source, noise.log_w_source
+    if joint and m == 1 and source is not None and log_w_source is not None and noise.partner is not None:
+        # a paired slot keeps its pair's source: the proposal depends on the chain, made here
+        paired = noise.partner != noise.slot  # (B, C, 1)
+        src_moved = torch.where(paired, take_along(source, noise.partner, -1), noise.source)
+        lw_moved = torch.where(paired, take_along(log_w_source, noise.partner, -1).to(noise.log_w_source.dtype),
+                               noise.log_w_source)
+        proposal = propose_slots(noise._replace(source=src_moved), x_prev, exists_prev, dynamics=dynamics,
+                                 sensor=sensor if on else None)
+    else:
+        proposal = noise.proposal if noise.proposal is not None else \
+            propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
     moved, e_new, r_new, kind_new, coords_new = proposal
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
@@ -470,7 +562,6 @@ def exchange_iteration(
         log_prior = log_prior + (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
     cur_u = u_moved = None
-    on = exclusion_on(exclusion, sensor)
     kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
     if on:
         if kept:  # read: the chains' from their state, the moved slots' from the segment's proposals
@@ -525,8 +616,8 @@ def exchange_iteration(
             if kind_out is not None and k_j is not None:
                 kind_out = torch.where(take, k_j.unsqueeze(-1), kind_out)
         if src_out is not None and lw_out is not None:
-            src_out = torch.where(take, noise.source[..., j].unsqueeze(-1), src_out)
-            lw_out = torch.where(take, noise.log_w_source[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
+            src_out = torch.where(take, src_moved[..., j].unsqueeze(-1), src_out)
+            lw_out = torch.where(take, lw_moved[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
         if u_out is not None and u_moved is not None:
             u_out = _write_row(u_out, noise.slot[..., j], u_moved[:, :, j], accepted)
     new = ExchangeChains(y_out, torch.where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
