@@ -28,8 +28,10 @@ Two scenes of the range-doppler-bearing radar of paper 000 (:func:`~torchmcmcpf.
 Filters (every one with ``Np`` particles): the IP-MCMC-PF with the library's defaults
 (exclusion and re-capture), the IP-MCMC-PF of paper 000 (``exclusion=None, recapture=None``:
 the factorised target and the plain exchange move), the MCMC-PF with its defaults, the
-independent-partition PF (with exclusion and re-capture), and the IP-MCMC-PF with the
-triggered pair-path move (:mod:`torchmcmcpf.kernels.pair_path`, ``PairPath()``; issue 50).
+independent-partition PF (with exclusion and re-capture), the IP-MCMC-PF with the
+triggered pair-path move (:mod:`torchmcmcpf.kernels.pair_path`, ``PairPath()``; issue 50),
+and the IP-MCMC-PF whose close pairs keep their joint prediction (``joint_pairs=1.5``;
+:mod:`torchmcmcpf.filters.ipmcmc`, "Joint pairs").
 A second table gives per filter the late-gap runs with their 95 % Clopper-Pearson interval,
 the uncovered target-steps at ``t >= from_step``, the longest gap, an exact McNemar test of
 the late-gap runs against the defaults on the same scenes, the pair-path move's firing

@@ -32,7 +32,8 @@ paper 000 (``exclusion=None, recapture=None``), Np particles in ``Np / 10`` chai
 factorised prior), Np particles in ``Np / 2`` chains after half that burn-in, as the
 crossing study runs it; on the fixed scene also the partitioned PF (Orton and Fitzgerald 2002, with
 exclusion and re-capture; :class:`~torchmcmcpf.filters.partitioned.PartitionedSIRFilter`) with the same Np,
-a reference of another kind on the same frames (it has no births and deaths). Also: seconds
+a reference of another kind on the same frames (it has no births and deaths), and the
+IP-MCMC-PF with joint pairs (``joint_pairs=1.5``, as the crossing study runs it). Also: seconds
 per step and the non-finite values in the estimates (must be 0).
 
 Writes ``metrics.json`` and ``soak.png`` (error per chunk for each filter and scene). Shards
