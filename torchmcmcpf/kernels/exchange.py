@@ -281,27 +281,28 @@ def close_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) 
     (B, K, K) bool, True for ``i < j`` within ``distance``.
     """
     k = centres.shape[-2]
+    _, near = _within(centres, distance, exists)
+    return near & torch.ones((k, k), dtype=torch.bool, device=centres.device).triu(1)
+
+
+def _within(centres: Tensor, distance: float, exists: Tensor | None) -> tuple[Tensor, Tensor]:
+    """The squared distances ``(B, K, K)`` between the slots' predictions and which pairs lie
+    within ``distance`` (both existing, where ``exists`` is given), as :func:`close_pairs`
+    takes them.
+    """
     d2 = pairwise_squared_distances(centres, centres)
-    out = (d2 < distance**2) & torch.ones((k, k), dtype=torch.bool, device=centres.device).triu(1)
+    near = d2 < distance**2
     if exists is not None:
-        out = out & exists.unsqueeze(-1) & exists.unsqueeze(-2)
-    return out
+        near = near & exists.unsqueeze(-1) & exists.unsqueeze(-2)
+    return d2, near
 
 
 def mutual_nearest_pairs(centres: Tensor, distance: float, exists: Tensor | None = None) -> Tensor:
     """Each slot's partner under joint pairs (module docstring): the slot whose prediction is
     its nearest, where that lies within ``distance`` resolution cells and the two are each
     other's nearest (a matching: every slot has at most one partner); else the slot itself.
-
-    Parameters
-    ----------
-    centres : (B, K, r) resolution coordinates of each slot's predicted estimate.
-    distance : > 0.
-    exists : (B, K) bool, optional: only slots that exist somewhere pair.
-
-    Returns
-    -------
-    (B, K) int64; ``partner[partner[j]] = j`` for every slot.
+    ``centres (B, K, r)``, ``distance`` and ``exists (B, K)`` as :func:`close_pairs` takes them;
+    returns ``(B, K)`` int64 with ``partner[partner[j]] = j`` for every slot.
 
     Example
     -------
@@ -314,11 +315,8 @@ def mutual_nearest_pairs(centres: Tensor, distance: float, exists: Tensor | None
     if not distance > 0:
         raise ValueError(f"distance must be > 0 resolution cells, got {distance!r}")
     k = centres.shape[-2]
-    d2 = pairwise_squared_distances(centres, centres)
-    eye = torch.eye(k, dtype=torch.bool, device=centres.device)
-    far = ~(d2 < distance**2) | eye
-    if exists is not None:
-        far = far | ~(exists.unsqueeze(-1) & exists.unsqueeze(-2))
+    d2, near = _within(centres, distance, exists)
+    far = ~near | torch.eye(k, dtype=torch.bool, device=centres.device)
     d2 = torch.where(far, torch.full_like(d2, float("inf")), d2)
     nearest = d2.argmin(-1)  # (B, K); any slot where all are far (its row inf), checked below
     own = torch.arange(k, device=centres.device).expand_as(nearest)
