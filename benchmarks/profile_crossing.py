@@ -35,7 +35,7 @@ PARTS = {
         "likelihood arithmetic": _LIKELIHOOD,
         "move bookkeeping": [("exchange.py", "exchange_iteration"), ("exchange.py", "with_accepted_amplitudes")],
         "noise and proposals": [("ipmcmc.py", "draw")],
-        "R-hat": [("ipmcmc.py", "_rhat_report")],
+        "R-hat": [("_convergence.py", "rhat_report")],
         "relabelling and estimation": [("base.py", "_estimate")],
     },
     "MCMC-PF": {

@@ -520,12 +520,12 @@ def test_amplitude_cache_is_a_speed_choice(device, compile_step):
 
 
 def test_rhat_chains_relabelled_recovers_common_labels(gen):
-    """``_chains_relabelled`` undoes per-chain slot permutations exactly: chains whose slots
+    """``chains_relabelled`` undoes per-chain slot permutations exactly: chains whose slots
     hold three well separated targets (300 m apart, unit spread) under different labels get
     back the labels of the unpermuted window, bit for bit, so R-hat on them is R-hat of the
     chains as generated (about 1); on the permuted chains as labelled it is far above 1."""
     from torchmcmcpf.diagnostics import rhat
-    from torchmcmcpf.filters.ipmcmc import _chains_relabelled
+    from torchmcmcpf.filters._convergence import chains_relabelled
     w, b, c, k = 40, 2, 6, 3
     centre = torch.zeros(k, 4, dtype=DT)
     centre[:, 0] = torch.tensor([0.0, 300.0, 600.0], dtype=DT)
@@ -533,9 +533,9 @@ def test_rhat_chains_relabelled_recovers_common_labels(gen):
     window = centre + torch.randn(w, b, c, k, 4, generator=gen, dtype=DT)
     perms = [(0, 1, 2), (1, 0, 2), (2, 1, 0), (0, 2, 1), (1, 2, 0), (2, 0, 1)]
     permuted = torch.stack([window[:, :, i, list(p)] for i, p in enumerate(perms)], 2)
-    assert torch.equal(_chains_relabelled(permuted), window)
+    assert torch.equal(chains_relabelled(permuted), window)
     assert rhat(permuted, chain_dim=2, sample_dim=0).amax() > 10
-    assert rhat(_chains_relabelled(permuted), chain_dim=2, sample_dim=0).amax() < 1.2
+    assert rhat(chains_relabelled(permuted), chain_dim=2, sample_dim=0).amax() < 1.2
 
 
 def test_rhat_is_label_invariant_in_a_step(monkeypatch):
@@ -546,7 +546,7 @@ def test_rhat_is_label_invariant_in_a_step(monkeypatch):
     same cloud unswapped: 1.02-1.11 over these runs, measured); the states as labelled give
     1.6-2.8 on the same random stream. A labelled sensor keeps the slots' labels (the
     linear-Gaussian checks above)."""
-    import torchmcmcpf.filters.ipmcmc as ipmcmc
+    import torchmcmcpf.filters._convergence as _convergence
     from torchmcmcpf.models.sensors.points import PoissonClutterPoints
 
     gen = torch.Generator().manual_seed(0)
@@ -563,7 +563,7 @@ def test_rhat_is_label_invariant_in_a_step(monkeypatch):
     assert sensor.resolved
     _, info = filt.step(filt.init(x_prev), z, generator=torch.Generator().manual_seed(1))
     assert (info.extras["rhat"] < 1.3).all(), info.extras["rhat"]
-    monkeypatch.setattr(ipmcmc, "_chains_relabelled", lambda window: window)
+    monkeypatch.setattr(_convergence, "chains_relabelled", lambda window: window)
     _, raw = filt.step(filt.init(x_prev), z, generator=torch.Generator().manual_seed(1))
     assert (raw.extras["rhat"] > 1.5).all(), raw.extras["rhat"]
 
@@ -598,7 +598,7 @@ def test_point_intensity_cache_is_a_speed_choice():
 def test_chains_relabelled_relabels_distinct_states_only_with_the_same_result():
     """R-hat's relabelling permutes each chain's distinct states and carries the permutation
     over the repeats (rejected moves): the states are those of relabelling every state."""
-    from torchmcmcpf.filters.ipmcmc import _chains_relabelled
+    from torchmcmcpf.filters._convergence import chains_relabelled
     from torchmcmcpf.state import relabel_order
 
     g = torch.Generator().manual_seed(3)
@@ -619,7 +619,7 @@ def test_chains_relabelled_relabels_distinct_states_only_with_the_same_result():
         relabelled = torch.take_along_dim(states, relabel_order(states, reference).unsqueeze(-1), 2)
         reference = relabelled.mean(1)
     plain = relabelled.reshape(b, w, c, k, 4).permute(1, 0, 2, 3, 4)
-    got = _chains_relabelled(window)
+    got = chains_relabelled(window)
     assert not torch.equal(got, window)  # some states were relabelled
     assert torch.equal(got, plain)
 

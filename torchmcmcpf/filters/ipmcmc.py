@@ -45,8 +45,8 @@ chains holding the same targets under different labels (they started from partic
 label-switched cloud, or a two-slot or re-capture move exchanged two targets) have
 converged to the same thing, as has a chain whose labels change within the window; each
 state's slots are therefore permuted to the labels of a reference common to the run
-(``_chains_relabelled``, Stephens 2000), and R-hat compares targets. Chains that agree
-are left as they are. The largest value decides; ``extras["rhat_slot"]`` and
+(:func:`~torchmcmcpf.filters._convergence.chains_relabelled`, Stephens 2000), and R-hat
+compares targets. Chains that agree are left as they are. The largest value decides; ``extras["rhat_slot"]`` and
 ``extras["rhat_dim"]`` say which target and which component drive it (its label after
 relabelling). ``thinning`` (default 1, the paper) only changes which states become
 particles: with ``thinning = K`` each particle follows one sweep over the slots on
@@ -193,7 +193,7 @@ import torch
 from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 
 from .._validation import check_positive_int
-from ..diagnostics import RHAT_METHODS, rhat
+from ..diagnostics import RHAT_METHODS
 from ..kernels.exchange import (
     ExchangeChains,
     ExchangeNoise,
@@ -218,10 +218,11 @@ from ..models.existence import BirthDeath, TargetDynamics
 from ..models.multitarget import Exclusion, Recapture, check_exclusion, check_recapture, exclusion_on
 from ..resampling import gather_particles, normalize, systematic
 from ..runtime import take_along
-from ..state import ParticleState, StepInfo, existence_estimate, relabel_order, weighted_mean
+from ..state import ParticleState, StepInfo, existence_estimate, weighted_mean
 from ..typing import Measurement, Tensor
 from ._bound import Bound, Compile, bind, check_existence_proposal
 from ._carry import ESTIMATE, carry
+from ._convergence import RhatReport, rhat_report, window_start
 from .base import Filter
 
 __all__ = ["IPMCMCFilter", "IPMCMCSettings", "ipmcmc_step", "bind_ipmcmc", "ipmcmc_bound_step", "ipmcmc_program"]
@@ -320,79 +321,6 @@ def _kept(trace: list, keep: int, thinning: int) -> tuple:
     """
     kept = trace[len(trace) - keep * thinning + thinning - 1::thinning]
     return tree_map(lambda *a: None if a[0] is None else torch.stack(a), *kept)
-
-
-class RhatReport(NamedTuple):
-    """R-hat of paper 000 eq. 13 per state component and where it is largest.
-
-    Attributes
-    ----------
-    max : (B,) the largest R-hat over the ``K * D`` components (the stopping rule's value).
-    slot : (B,) int64, the target slot ``k`` of the component that gives ``max``.
-    dim : (B,) int64, its state dimension ``d``.
-    """
-
-    max: Tensor
-    slot: Tensor
-    dim: Tensor
-
-
-def _window_start(total: int) -> int:
-    """First iteration of the R-hat window among ``total`` (the second half, >= 2 states)."""
-    return min(total // 2, total - 2)
-
-
-def _chains_relabelled(window: Tensor, rounds: int = 2) -> Tensor:
-    """The chains' states ``window (W, B, C, K, D)`` with each state's slots permuted to the
-    labels of a reference common to the run, so that R-hat compares targets, not slot labels
-    (module docstring, "Convergence check").
-
-    Stephens (2000): the reference is chain 0's last state, then the mean of the relabelled
-    states (``rounds`` times); :func:`~torchmcmcpf.state.relabel_order` gives each state's
-    permutation. It keeps a state's own labels unless the permutation lowers its
-    squared-distance cost by more than ``(cutoff / 4)^2``, so chains that agree (the usual
-    case with the factorised target) are left as they are, and every state is put in a
-    canonical labelling that does not depend on its chain: R-hat of a label-invariant
-    function of the state.
-    """
-    w, b, c, k, d = window.shape
-    if k < 2:
-        return window
-    # a chain whose move was rejected repeats its state, and an equal state gets the equal
-    # permutation: relabel each chain's distinct states only (a quarter of the window at the
-    # usual acceptance), each against its run's reference, and carry the permutation forward
-    changed = torch.ones((w, b, c), dtype=torch.bool, device=window.device)
-    changed[1:] = (window[1:] != window[:-1]).flatten(-2).any(-1)
-    at_w, at_b, at_c = changed.nonzero(as_tuple=True)  # one host read
-    steps = torch.arange(w, device=window.device).reshape(w, 1, 1)
-    last = torch.where(changed, steps, 0).cummax(0).values  # (W, B, C): the state's last change
-    runs, chains = torch.arange(b, device=window.device).reshape(1, b, 1), torch.arange(c, device=window.device)
-    distinct = window[at_w, at_b, at_c].unsqueeze(1)  # (R, 1, K, D), each its own "run"
-    reference = window[-1, :, 0]
-    for _ in range(rounds):
-        order = torch.empty((w, b, c, k), dtype=torch.int64, device=window.device)
-        order[at_w, at_b, at_c] = relabel_order(distinct, reference[at_b]).squeeze(1)
-        relabelled = take_along(window, order[last, runs, chains].unsqueeze(-1), 3)
-        reference = relabelled.permute(1, 0, 2, 3, 4).reshape(b, w * c, k, d).mean(1)
-    return relabelled
-
-
-def _rhat_report(ys: list, offset: int, method: str, exchangeable: bool) -> RhatReport:
-    """R-hat over chains of the states ``ys`` (a list of ``(B, C, K, D)``, those after
-    iterations ``offset, offset + 1, ...``) of the second half of the iterations run so far
-    (module docstring, "Convergence check"), on relabelled chains where the slots are
-    ``exchangeable`` (a resolved sensor: :attr:`~torchmcmcpf.models.base.SensorModel.resolved`;
-    labelled measurements say which slot is which target).
-    """
-    window = torch.stack(ys[_window_start(offset + len(ys)) - offset:])  # (W, B, C, K, D)
-    if exchangeable:
-        window = _chains_relabelled(window)
-    r = rhat(window, chain_dim=2, sample_dim=0, method=method)  # (B, K, D)
-    flat = r.flatten(1)
-    # NaN-safe argmax: inf/NaN first (a NaN R-hat can only come from a NaN state)
-    score = torch.where(torch.isnan(flat), torch.full_like(flat, float("inf")), flat)
-    at = score.argmax(-1)
-    return RhatReport(score.amax(-1), at // r.shape[-1], at % r.shape[-1])
 
 
 @dataclass(frozen=True)
@@ -692,7 +620,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     hmc_noise = None
     # states before the first window (and before the kept ones) are not recorded; without a
     # check, only the kept ones
-    record_from = burn_in if rhat_method is None else min(_window_start(burn_in + segment), burn_in)
+    record_from = burn_in if rhat_method is None else min(window_start(burn_in + segment), burn_in)
     chains, trace, accepted, refined = run(burn_in + segment, record_from)
     history = _kept(trace, keep, settings.thinning)
     ys = [c[0] for c in trace]  # (B, C, K, D) after iterations record_from, ...: the R-hat window's source
@@ -704,7 +632,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         nan = torch.full((b,), math.nan, device=x_prev.device, dtype=x_prev.dtype)
         report = RhatReport(nan, nan, nan)
     else:
-        report = _rhat_report(ys, record_from, rhat_method, sensor.resolved)
+        report = rhat_report(ys, record_from, rhat_method, sensor.resolved)
     extensions = torch.zeros(b, dtype=torch.int64, device=x_prev.device)
     for _ in range(max_extensions if rhat_threshold < math.inf and rhat_method is not None else 0):
         need = report.max >= rhat_threshold  # (B,)
@@ -723,7 +651,7 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
         report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
-                              for new, old in zip(_rhat_report(ys, record_from, rhat_method, sensor.resolved), report)))
+                              for new, old in zip(rhat_report(ys, record_from, rhat_method, sensor.resolved), report)))
 
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)
     exists_new = None if existence is None else history[2].permute(1, 2, 0, 3).reshape(b, n, k)
