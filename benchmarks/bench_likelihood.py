@@ -7,10 +7,12 @@ Groups are per particle count, so the ratios window / grid / compiled read off o
     pytest benchmarks/bench_likelihood.py --benchmark-group-by=group
     pytest benchmarks/bench_likelihood.py -m "not compile"     # eager only
 
-Variants: ``window`` (neighbour slots: a box sums only the targets whose boxes overlap it),
-``window-dense`` (the same code with ``max_neighbours = K - 1``: every target summed in every
-box, the O(N K^2 W^3) cost of the windowed path before neighbour slots), ``grid`` (the
-whole-grid reference).
+Variants: ``window`` (on the CPU in float32 the C loop of
+:mod:`torchmcmcpf.models.sensors.grid.native`), ``window-tensors`` (the tensor path the loop
+replaced there, and which every other device, dtype and autograd runs: neighbour slots, a box
+sums only the targets whose boxes overlap it), ``window-dense`` (the tensor path with
+``max_neighbours = K - 1``: every target summed in every box, the O(N K^2 W^3) cost of the
+windowed path before neighbour slots), ``grid`` (the whole-grid reference).
 
 Also: ``log I0`` of float32 arguments, ``i0e`` vs the polynomial approximation (eager and
 compiled); the change of the likelihood when one slot of 50 chains moves
@@ -31,6 +33,7 @@ import math
 import pytest
 import torch
 
+from torchmcmcpf.models.sensors.grid import native
 from torchmcmcpf.models.sensors.linear import LinearGaussian
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0, log_i0_approx
 
@@ -57,10 +60,20 @@ def _threads(benchmark):
 
 
 def _sensor_path(sens, path):
-    """The bound method of a variant; ``window-dense`` forces every target into every box."""
+    """The bound method of a variant; ``window-dense`` forces every target into every box,
+    ``window-tensors`` and ``window-dense`` run without the C loop."""
     if path == "window-dense":
         sens.max_neighbours = K - 1
-        path = "window"
+    if path in ("window-tensors", "window-dense"):
+        fn = sens.log_likelihood_window
+
+        def tensors(x, z):
+            lib, native._state["lib"] = native._state.get("lib"), None
+            try:
+                return fn(x, z)
+            finally:
+                native._state["lib"] = lib
+        return tensors
     return getattr(sens, f"log_likelihood_{path}")
 
 
@@ -72,22 +85,22 @@ def _run(benchmark, fn, x, z, rounds):
 
 
 @pytest.mark.parametrize("n", [500, 5000])
-@pytest.mark.parametrize("path", ["window", "window-dense", "grid"])
+@pytest.mark.parametrize("path", ["window", "window-tensors", "window-dense", "grid"])
 def test_likelihood_eager(benchmark, path, n):
     sens, x, z = problem(n)
     benchmark.group = f"radar-likelihood-N{n}-K{K}"
     fn = _sensor_path(sens, path)
-    _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
+    _run(benchmark, fn, x, z, rounds=5 if path.startswith("window") or n <= 500 else 1)
 
 
 @pytest.mark.compile
 @pytest.mark.parametrize("n", [500, 5000])
-@pytest.mark.parametrize("path", ["window", "window-dense", "grid"])
+@pytest.mark.parametrize("path", ["window", "window-tensors", "window-dense", "grid"])
 def test_likelihood_compiled(benchmark, path, n):
     sens, x, z = problem(n)
     benchmark.group = f"radar-likelihood-N{n}-K{K}"
     fn = torch.compile(_sensor_path(sens, path), dynamic=False)
-    _run(benchmark, fn, x, z, rounds=5 if path == "window" or n <= 500 else 1)
+    _run(benchmark, fn, x, z, rounds=5 if path.startswith("window") or n <= 500 else 1)
 
 
 # ----------------------------------------------------------------------------- log I0

@@ -14,6 +14,7 @@ import torch
 from scipy import special, stats
 
 from torchmcmcpf.models.sensors import radar
+from torchmcmcpf.models.sensors.grid import native
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD, log_i0, log_i0_approx
 
 DEG = math.pi / 180
@@ -726,12 +727,13 @@ _PEAK_SCRIPT = textwrap.dedent(
 )
 
 
-def _peak_rss_increase(budget: int, path: str = "grid", particles: int = 100) -> int:
+def _peak_rss_increase(budget: int, path: str = "grid", particles: int = 100, native: bool = False) -> int:
     """Peak resident memory added by one call of ``log_likelihood_<path>`` (2 runs x
-    ``particles`` x 3 targets, Table I grid, float32), measured in a fresh process.
-    MALLOC_MMAP_THRESHOLD_ makes glibc map every block over 64 KiB and unmap it on free, so
-    RSS follows live memory."""
-    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536")
+    ``particles`` x 3 targets, Table I grid, float32), measured in a fresh process, on the
+    tensor path unless ``native`` (the C loop of grid.native, which the windowed path takes
+    on the CPU in float32). MALLOC_MMAP_THRESHOLD_ makes glibc map every block over 64 KiB
+    and unmap it on free, so RSS follows live memory."""
+    env = dict(os.environ, MALLOC_MMAP_THRESHOLD_="65536", TORCHMCMCPF_NATIVE="1" if native else "0")
     out = subprocess.run([sys.executable, "-c", _PEAK_SCRIPT, str(budget), path, str(particles)], env=env,
                          capture_output=True, text=True, timeout=120)
     if out.returncode != 0 and "clear_refs" in out.stderr:
@@ -761,6 +763,17 @@ def test_window_measured_peak_memory_respects_budget():
     chunked = _peak_rss_increase(budget, "window", 3000)
     assert unchunked > 10 * budget
     assert chunked <= budget + 2**20, (chunked, unchunked)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/self/status")
+def test_native_window_needs_no_temporaries():
+    """The C loop keeps one box's cells per thread: 2 x 3000 samples (300 MB of the tensor
+    path's temporaries unchunked) add no more than the inputs' flattened copies (the
+    measured coordinates, amplitudes and flags: about 0.5 MB) and the threads' stacks
+    (1.3 MB measured) whatever the budget."""
+    if not native.available():
+        pytest.skip("no C compiler: the tensor path runs")
+    assert _peak_rss_increase(2**30, "window", 3000, native=True) <= 2 * 2**20
 
 
 # ----------------------------------------------------------------------------- gradients

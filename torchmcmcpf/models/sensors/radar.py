@@ -29,7 +29,7 @@ import torch
 from ... import runtime
 from ..._validation import check_generator, check_positive, check_shape
 from ...typing import RHO, VX, VY, Tensor, X, Y
-from .grid import SeparableGridSensor, lattice, polar
+from .grid import SeparableGridSensor, lattice, native, polar
 
 __all__ = ["RangeDopplerBearingTBD", "log_i0", "log_i0_approx"]
 
@@ -219,6 +219,7 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
                           "bearing_bins": (bearing_bins, bearing_width)},
                          window=window, method=method, memory_budget=memory_budget)
         self.noise_std = check_positive(noise_std, "noise_std")
+        native.available()  # the C loop built (once per machine) or found now, not inside a compiled step
 
     @classmethod
     def uniform(cls, range_limits: tuple[float, float], doppler_limits: tuple[float, float],
@@ -247,6 +248,12 @@ class RangeDopplerBearingTBD(SeparableGridSensor):
     def prepare_frame(self, z: Tensor) -> Tensor:
         """``sqrt(z) / sigma^2``, so that :meth:`cell_log_ratio` is ``-A^2/(2 sigma^2) + log I0(A * zc)``."""
         return torch.sqrt(z) / self.noise_std**2
+
+    def native_ratio(self) -> tuple[str, float]:
+        """:meth:`cell_log_ratio` for the C loop of the windowed path
+        (:mod:`~torchmcmcpf.models.sensors.grid.native`): ``("rician", 1 / (2 sigma^2))``.
+        """
+        return ("rician", 1.0 / (2.0 * self.noise_std**2))
 
     def cell_log_ratio(self, A: Tensor, zc: Tensor) -> Tensor:
         """Rician log ratio per cell: ``-A^2 / (2 sigma^2) + log I0(A sqrt(z) / sigma^2)``.

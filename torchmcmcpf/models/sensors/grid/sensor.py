@@ -138,6 +138,13 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         return z
 
+    def native_ratio(self) -> tuple[str, float] | None:
+        """The cell ratio as the C loop of :mod:`.native` knows it, or ``None`` (the default:
+        every path uses :meth:`cell_log_ratio`). ``("rician", 1 / (2 sigma^2))`` declares
+        ``cell_log_ratio(A, zc) = log I0(A zc) - A^2 / (2 sigma^2)``.
+        """
+        return None
+
     def cell_log_ratio(self, A: Tensor, zc: Tensor) -> Tensor:
         """``log p(z_c | A) - log p(z_c | 0)`` per cell; ``A`` and ``zc = prepare_frame(z)`` at
         the same cells broadcast together. Must be 0 where ``A = 0``.

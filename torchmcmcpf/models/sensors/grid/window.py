@@ -11,7 +11,7 @@ import torch
 
 from ....runtime import take_along
 from ....typing import Tensor
-from . import chunks
+from . import chunks, native
 from ._protocol import GridSensorLike
 from .amplitudes import amplitude_cache, whole_grid
 from .geometry import materialise
@@ -67,6 +67,8 @@ def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor 
     :func:`~.chunks.window_chunk_size` samples (checkpointed under autograd).
     """
     check_inputs(sensor, x, z, exists)
+    if native.applies(sensor, x):  # the radar on the CPU: one C loop per particle
+        return native.log_likelihood(sensor, x, z, exists)
     B, K = x.shape[0], x.shape[-2]
     xf = x.reshape(B, -1, K, x.shape[-1])  # (B, P, K, D)
     ef = None if exists is None else exists.reshape(B, -1, K)

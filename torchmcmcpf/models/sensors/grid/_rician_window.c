@@ -1,0 +1,191 @@
+/* The windowed Rician log-likelihood of a three-axis grid sensor, one particle at a time
+ * (torchmcmcpf.models.sensors.grid.native states the maths and the contract).
+ *
+ * Plain C99, no headers of Python or torch: built once per machine by the host's C compiler
+ * (-O3 -march=native) and called through ctypes with the tensors' data pointers. The cell
+ * loops are written so that the compiler vectorises them (no calls, selects instead of
+ * branches); log is the Cephes single-precision polynomial, exp is libm's (per profile value,
+ * 21 per target, not per cell).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+
+/* Abramowitz and Stegun 9.8.1 and 9.8.2, as torchmcmcpf.models.sensors.radar.log_i0_approx */
+#define P_S0 1.0f
+#define P_S1 3.5156229f
+#define P_S2 3.0899424f
+#define P_S3 1.2067492f
+#define P_S4 0.2659732f
+#define P_S5 0.0360768f
+#define P_S6 0.0045813f
+#define P_L0 0.39894228f
+#define P_L1 0.01328592f
+#define P_L2 0.00225319f
+#define P_L3 (-0.00157565f)
+#define P_L4 0.00916281f
+#define P_L5 (-0.02057706f)
+#define P_L6 0.02635537f
+#define P_L7 (-0.01647633f)
+#define P_L8 0.00392377f
+
+/* natural log of a positive normal float: Cephes logf (relative error about 1e-7) */
+static inline float log_pos(float x) {
+    union { float f; int32_t i; } v = { x };
+    int32_t e = ((v.i >> 23) & 0xff) - 126;
+    v.i = (v.i & 0x007fffff) | 0x3f000000; /* mantissa in [0.5, 1) */
+    float m = v.f;
+    int lo = m < 0.70710678118654752f;
+    e -= lo;
+    m = (lo ? m + m : m) - 1.0f;
+    float z = m * m;
+    float y = 7.0376836292e-2f;
+    y = y * m - 1.1514610310e-1f;
+    y = y * m + 1.1676998740e-1f;
+    y = y * m - 1.2420140846e-1f;
+    y = y * m + 1.4249322787e-1f;
+    y = y * m - 1.6668057665e-1f;
+    y = y * m + 2.0000714765e-1f;
+    y = y * m - 2.4999993993e-1f;
+    y = y * m + 3.3333331174e-1f;
+    y = y * m * z;
+    float fe = (float)e;
+    y += -2.12194440e-4f * fe;
+    y += -0.5f * z;
+    return m + y + 0.693359375f * fe;
+}
+
+/* log I0(v) - a^2 * half_inv_var for one cell; NaN in, NaN out (the (v - v) term) */
+static inline float cell_ratio(float a, float zc, float half_inv_var) {
+    float v = a * zc;
+    float av = fabsf(v);
+    int small = av < 3.75f;
+    float t = (small ? av : 3.75f) * (1.0f / 3.75f); /* selects, not fminf: NaN comes through (v - v) */
+    t = t * t;
+    float ps = ((((((P_S6 * t + P_S5) * t + P_S4) * t + P_S3) * t + P_S2) * t + P_S1) * t + P_S0);
+    float big = small ? 3.75f : av;
+    float r = 3.75f / big;
+    float pl = (((((((P_L8 * r + P_L7) * r + P_L6) * r + P_L5) * r + P_L4) * r + P_L3) * r + P_L2) * r + P_L1) * r
+               + P_L0;
+    /* one log for both branches: log(pl) - log(big) / 2 = log(pl / sqrt(big)) */
+    float li0 = log_pos(small ? ps : pl / sqrtf(big)) + (small ? 0.0f : big);
+    return li0 - a * a * half_inv_var + (v - v);
+}
+
+#define MAX_K 64
+#define MAX_W 32
+
+/* Windowed log-likelihood of particles [p0, p1) of B x P.
+ *   u      (B*P, K, 3) measurement coordinates     s    (B*P, K) amplitudes (times existence)
+ *   live   (B*P, K) uint8                          zc   (B, N0*N1*N2 + 8) prepared frames, each
+ *                                                       padded by 8 floats (rows are copied 8 at a time)
+ *   shape  N0 N1 N2, W0 W1 W2 (box sizes), window   geo  origin, cell size, 1/(sqrt2 width) per axis
+ *   out    (B*P) float
+ * Returns 0, or 1 when K or a box size exceeds the static buffers (the caller checks first).
+ * A non-finite coordinate gives a box at the grid's edge and a NaN result, never a read
+ * outside the frame.
+ */
+int rician_window_loglik(int64_t p0, int64_t p1, int64_t P, int64_t K, const float *u, const float *s,
+                         const uint8_t *live, const float *zc, const int64_t *shape, const double *geo,
+                         int64_t window, double half_inv_var_d, float *out) {
+    const int64_t N[3] = { shape[0], shape[1], shape[2] };
+    const int64_t W[3] = { shape[3], shape[4], shape[5] };
+    if (K > MAX_K || W[0] > MAX_W || W[1] > MAX_W || W[2] > MAX_W) return 1;
+    const int64_t V12 = W[1] * W[2], V = W[0] * V12, G12 = N[1] * N[2], G = N[0] * G12;
+    const float half_inv_var = (float)half_inv_var_d;
+    float prof[MAX_K][3][MAX_W];
+    int64_t first[MAX_K][3];
+    float A[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8], own[MAX_W * MAX_W * MAX_W];
+    float Q[MAX_W * MAX_W], R[MAX_W * MAX_W];
+    for (int64_t q = p0; q < p1; ++q) {
+        const float *uq = u + q * K * 3, *sq = s + q * K;
+        const uint8_t *lq = live + q * K;
+        const float *zq = zc + (q / P) * (G + 8);
+        for (int64_t k = 0; k < K; ++k) {
+            for (int a = 0; a < 3; ++a) {
+                const float c0 = (float)geo[3 * a], dc = (float)geo[3 * a + 1], sc = (float)geo[3 * a + 2];
+                const float ua = uq[3 * k + a];
+                float nearest = nearbyintf((ua - c0) / dc);
+                float f = nearest - (float)window;
+                float hi = (float)(N[a] - W[a]);
+                f = f >= 0.0f ? f : 0.0f; /* NaN -> 0: a cell in the grid; the profiles carry the NaN */
+                f = f <= hi ? f : hi;
+                first[k][a] = (int64_t)f;
+                const float us = ua * sc;
+                for (int64_t t = 0; t < W[a]; ++t) {
+                    const float d = (c0 + dc * (f + (float)t)) * sc - us;
+                    prof[k][a][t] = expf(-(d * d));
+                }
+            }
+        }
+        double total = 0.0;
+        for (int64_t j = 0; j < K; ++j) {
+            if (!lq[j]) continue;
+            for (int64_t c = 0; c < V; ++c) { A[c] = 0.0f; own[c] = 1.0f; }
+            for (int64_t k = 0; k < K; ++k) {
+                if (!lq[k]) continue;
+                int64_t lo[3], hi[3], lag[3];
+                int inside = 1;
+                for (int a = 0; a < 3; ++a) { /* box k's cells in box j's local coordinates */
+                    lag[a] = first[j][a] - first[k][a];
+                    lo[a] = lag[a] < 0 ? -lag[a] : 0;
+                    hi[a] = W[a] - (lag[a] > 0 ? lag[a] : 0);
+                    inside &= lo[a] < hi[a];
+                }
+                if (!inside) continue;
+                /* the intersection's rows on axes 1 and 2 as one block of V12 cells: Q the
+                 * product of box k's two profiles inside it, 0 outside; R 0 inside, 1 outside */
+                for (int64_t c = 0; c < V12; ++c) { Q[c] = 0.0f; R[c] = 1.0f; }
+                const float *p0k = prof[k][0] + lag[0], *p1k = prof[k][1] + lag[1], *p2k = prof[k][2] + lag[2];
+                for (int64_t m = lo[1]; m < hi[1]; ++m)
+                    for (int64_t l = lo[2]; l < hi[2]; ++l) {
+                        Q[m * W[2] + l] = p1k[m] * p2k[l];
+                        R[m * W[2] + l] = 0.0f;
+                    }
+                const float sk = sq[k];
+                for (int64_t i = lo[0]; i < hi[0]; ++i) {
+                    const float si = sk * p0k[i];
+                    float *ai = A + i * V12;
+                    for (int64_t c = 0; c < V12; ++c) ai[c] += si * Q[c];
+                    if (k < j) { /* an earlier live box owns the shared cells */
+                        float *oi = own + i * V12;
+                        for (int64_t c = 0; c < V12; ++c) oi[c] *= R[c];
+                    }
+                }
+            }
+            for (int64_t i = 0; i < W[0]; ++i) /* the frame's rows, 8 floats at a time (padded) */
+                for (int64_t m = 0; m < W[1]; ++m)
+                    for (int64_t l = 0; l < W[2]; l += 8)
+                        memcpy(Z + i * V12 + m * W[2] + l,
+                               zq + (first[j][0] + i) * G12 + (first[j][1] + m) * N[2] + first[j][2] + l,
+                               8 * sizeof(float));
+            float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+            for (int64_t c = 0; c < V; ++c) {
+                const float r = cell_ratio(A[c], Z[c], half_inv_var);
+                acc += own[c] != 0.0f ? r : 0.0f;
+            }
+            total += (double)acc;
+        }
+        out[q] = (float)total;
+    }
+    return 0;
+}
+
+/* The arithmetic floor of the windowed radar step (torchmcmcpf.bench.peers.radar_floor):
+ * boxes x V cells, each one amplitude times a profile value and the Rician log ratio there,
+ * summed; inputs of a few KB (amp (boxes), prof (V), zc (V)), so no memory traffic but the loop's.
+ */
+double rician_floor(int64_t boxes, int64_t V, const float *amp, const float *prof, const float *zc,
+                    double half_inv_var_d) {
+    const float half_inv_var = (float)half_inv_var_d;
+    double total = 0.0;
+    for (int64_t b = 0; b < boxes; ++b) {
+        const float ab = amp[b];
+        float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+        for (int64_t c = 0; c < V; ++c) acc += cell_ratio(ab * prof[c], zc[c], half_inv_var);
+        total += (double)acc;
+    }
+    return total;
+}
