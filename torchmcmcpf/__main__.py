@@ -409,7 +409,7 @@ def headline_table(result: dict) -> str:
 BENCH_OUTPUTS = ("bench.json", "bench.md", "bench_scaling.png", "bench_compare.md")
 #: how long the full ``bench`` takes on 2 quiet cores, as benchmarks/README.md measured it (the
 #: one figure the help, the README and the benchmarks README state)
-BENCH_MINUTES = "4-6"
+BENCH_MINUTES = "3-6"
 
 
 def _ratio_above_1(text: str) -> float:

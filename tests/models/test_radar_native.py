@@ -131,3 +131,58 @@ def test_the_tensor_path_serves_what_the_loop_does_not():
         assert native.applies(sensor, xf)
     vmapped = torch.func.vmap(lambda v: sensor.log_likelihood(v, z))(x.float()[None])
     assert torch.allclose(vmapped[0], sensor.log_likelihood(x.float(), z), rtol=1e-5, atol=1e-3)
+
+
+def table1_move(K: int, M: int, n: int, seed: int):
+    """Table I's grid (101 x 21 x 31 cells: a move's boxes, not the whole grid), ``K`` targets
+    in a cluster, 2 runs of ``n`` chains with dead slots, and a move of ``M`` distinct slots
+    per chain (new states a few cells away, some slots born or killed). Returns ``sensor, x,
+    z, exists, x_n, n_slots, exists_n`` in float32."""
+    sensor = RangeDopplerBearingTBD.uniform((2300, 3300), (-20, 20), (-15 * DEG, 15 * DEG))
+    _, x, _, exists = crowded(K, n, seed)
+    g = torch.Generator().manual_seed(seed + 100)
+    z = sensor.simulate(x[:, 0].float(), generator=g)
+    x = x.float()
+    slots = torch.argsort(torch.rand(2, n, K, generator=g), -1)[..., :M]  # (2, n, M) distinct
+    step = torch.tensor([10.0, 1.0, 10.0, 1.0, 0.3])
+    old = torch.gather(x, 2, slots[..., None].expand(2, n, M, 5))
+    x_n = old + step * torch.randn(2, n, M, 5, generator=g)
+    e_n = torch.rand(2, n, M, generator=g) > 0.3
+    if M == 1:
+        return sensor, x, z, exists, x_n[:, :, 0], slots[..., 0], e_n[..., 0]
+    return sensor, x, z, exists, x_n, slots, e_n
+
+
+@pytest.mark.parametrize("K, M", [(1, 1), (3, 1), (10, 1), (10, 2)])
+def test_native_cached_move_matches_the_tensor_path(K, M, tensor_path):
+    """A move read from the chains' amplitude cache (the IP-MCMC-PF's and the MCMC sweeps'
+    one- and two-slot moves): the same cells, the change and the delta within twice the tensor
+    path's float32 error against float64 (plus 1e-5 / 1e-3). A cell counted in two boxes of
+    the move, or an intersection misplaced, moves the delta by a cell's ratio."""
+    sensor, x, z, exists, x_n, n, e_n = table1_move(K, M, 300, seed=K + M)
+    cache = sensor.amplitude_cache(x, exists, z)
+    with torch.no_grad():
+        ours = sensor.log_likelihood_delta_cached(cache, x, x_n, n, z, exists=exists, exists_n=e_n)
+        theirs = tensor_path(lambda: sensor.log_likelihood_delta_cached(cache, x, x_n, n, z, exists=exists,
+                                                                         exists_n=e_n))
+        cache64 = sensor.amplitude_cache(x.double(), exists, z)
+        exact = sensor.log_likelihood_delta_cached(cache64, x.double(), x_n.double(), n, z, exists=exists,
+                                                   exists_n=e_n)
+    assert native.applies(sensor, x) and ours[1] is not None
+    assert torch.equal(ours[1], theirs[1]) and torch.equal(ours[1], exact[1])
+    for i, floor in ((0, 1e-3), (2, 1e-5)):
+        err_ours = (ours[i].double() - exact[i]).abs().max().item()
+        err_theirs = (theirs[i].double() - exact[i]).abs().max().item()
+        assert ours[i].shape == theirs[i].shape and ours[i].dtype == torch.float32
+        assert err_ours <= 2 * err_theirs + floor, (i, err_ours, err_theirs)
+    assert exact[0].abs().max() > 10
+    # the move's delta is the difference of two windowed evaluations (the tensor path's own test, here for the loop)
+    moved = x.clone()
+    e_after = exists.clone()
+    idx = n if M > 1 else n[..., None]
+    moved.scatter_(2, idx[..., None].expand(*idx.shape, 5), x_n if M > 1 else x_n[:, :, None])
+    e_after.scatter_(2, idx, e_n if M > 1 else e_n[..., None])
+    with torch.no_grad():
+        z64 = z.double()
+        diff = sensor.log_likelihood(moved.double(), z64, e_after) - sensor.log_likelihood(x.double(), z64, exists)
+    torch.testing.assert_close(ours[0].double(), diff, rtol=0, atol=0.05)

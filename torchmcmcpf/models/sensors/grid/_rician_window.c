@@ -73,7 +73,7 @@ static inline float cell_ratio(float a, float zc, float half_inv_var) {
 }
 
 #define MAX_K 64
-#define MAX_W 32
+#define MAX_W 16 /* per box axis: buffers of 16^3 cells on the stack (48 KB), fine for any thread */
 
 /* Windowed log-likelihood of particles [p0, p1) of B x P.
  *   u      (B*P, K, 3) measurement coordinates     s    (B*P, K) amplitudes (times existence)
@@ -188,4 +188,105 @@ double rician_floor(int64_t boxes, int64_t V, const float *amp, const float *pro
         total += (double)acc;
     }
     return total;
+}
+
+/* A move's change of the windowed Rician log-likelihood read from the chains' amplitude cache
+ * (torchmcmcpf.models.sensors.grid.amplitudes.log_likelihood_delta_cached, box form), chains
+ * [p0, p1) of B x P. The move's R = 2M spreads (slot 0 before, after, slot 1 before, ...):
+ *   u      (B*P, R, 3) measurement coordinates     s      (B*P, R) signed amplitudes (- old, + new)
+ *   cache  (B*P, G) each chain's amplitude per cell
+ *   zc, shape, geo, window, half_inv_var as rician_window_loglik
+ * Writes delta (B*P), and per box r of the R boxes its cells' flat index into the cache
+ * (cells (B*P, R, V) int64, q * G + the cell) and the change there (change (B*P, R, V); 0
+ * at the cells an earlier box of the move holds, so each cell changes once). Each cell's
+ * term is ratio(max(A + change, 0)) - ratio(max(A, 0)).
+ */
+int rician_delta_cached(int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
+                        const float *cache, const float *zc, const int64_t *shape, const double *geo,
+                        int64_t window, double half_inv_var_d, float *delta, int64_t *cells, float *change) {
+    const int64_t N[3] = { shape[0], shape[1], shape[2] };
+    const int64_t W[3] = { shape[3], shape[4], shape[5] };
+    if (R > MAX_K || W[0] > MAX_W || W[1] > MAX_W || W[2] > MAX_W) return 1;
+    const int64_t V12 = W[1] * W[2], V = W[0] * V12, G12 = N[1] * N[2], G = N[0] * G12;
+    const float half_inv_var = (float)half_inv_var_d;
+    float prof[MAX_K][3][MAX_W];
+    int64_t first[MAX_K][3];
+    float A[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8], once[MAX_W * MAX_W * MAX_W];
+    float Q[MAX_W * MAX_W], Rm[MAX_W * MAX_W];
+    for (int64_t q = p0; q < p1; ++q) {
+        const float *uq = u + q * R * 3, *sq = s + q * R, *cq = cache + q * G;
+        const float *zq = zc + (q / P) * (G + 8);
+        for (int64_t k = 0; k < R; ++k) {
+            for (int a = 0; a < 3; ++a) {
+                const float c0 = (float)geo[3 * a], dc = (float)geo[3 * a + 1], sc = (float)geo[3 * a + 2];
+                const float ua = uq[3 * k + a];
+                float nearest = nearbyintf((ua - c0) / dc);
+                float f = nearest - (float)window;
+                float hi = (float)(N[a] - W[a]);
+                f = f >= 0.0f ? f : 0.0f;
+                f = f <= hi ? f : hi;
+                first[k][a] = (int64_t)f;
+                const float us = ua * sc;
+                for (int64_t t = 0; t < W[a]; ++t) {
+                    const float d = (c0 + dc * (f + (float)t)) * sc - us;
+                    prof[k][a][t] = expf(-(d * d));
+                }
+            }
+        }
+        double total = 0.0;
+        for (int64_t j = 0; j < R; ++j) {
+            float *ch = change + (q * R + j) * V;
+            int64_t *cl = cells + (q * R + j) * V;
+            for (int64_t c = 0; c < V; ++c) { ch[c] = 0.0f; once[c] = 1.0f; }
+            for (int64_t k = 0; k < R; ++k) {
+                int64_t lo[3], hi[3], lag[3];
+                int inside = 1;
+                for (int a = 0; a < 3; ++a) {
+                    lag[a] = first[j][a] - first[k][a];
+                    lo[a] = lag[a] < 0 ? -lag[a] : 0;
+                    hi[a] = W[a] - (lag[a] > 0 ? lag[a] : 0);
+                    inside &= lo[a] < hi[a];
+                }
+                if (!inside) continue;
+                for (int64_t c = 0; c < V12; ++c) { Q[c] = 0.0f; Rm[c] = 1.0f; }
+                const float *p0k = prof[k][0] + lag[0], *p1k = prof[k][1] + lag[1], *p2k = prof[k][2] + lag[2];
+                for (int64_t m = lo[1]; m < hi[1]; ++m)
+                    for (int64_t l = lo[2]; l < hi[2]; ++l) {
+                        Q[m * W[2] + l] = p1k[m] * p2k[l];
+                        Rm[m * W[2] + l] = 0.0f;
+                    }
+                const float sk = sq[k];
+                for (int64_t i = lo[0]; i < hi[0]; ++i) {
+                    const float si = sk * p0k[i];
+                    float *ci = ch + i * V12;
+                    for (int64_t c = 0; c < V12; ++c) ci[c] += si * Q[c];
+                    if (k < j) {
+                        float *oi = once + i * V12;
+                        for (int64_t c = 0; c < V12; ++c) oi[c] *= Rm[c];
+                    }
+                }
+            }
+            for (int64_t i = 0; i < W[0]; ++i)
+                for (int64_t m = 0; m < W[1]; ++m) {
+                    const int64_t row = (first[j][0] + i) * G12 + (first[j][1] + m) * N[2] + first[j][2];
+                    for (int64_t l = 0; l < W[2]; l += 8)
+                        memcpy(Z + i * V12 + m * W[2] + l, zq + row + l, 8 * sizeof(float));
+                    for (int64_t l = 0; l < W[2]; ++l) {
+                        cl[i * V12 + m * W[2] + l] = q * G + row + l;
+                        A[i * V12 + m * W[2] + l] = cq[row + l];
+                    }
+                }
+            float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+            for (int64_t c = 0; c < V; ++c) {
+                const float d = ch[c] * once[c];
+                ch[c] = d;
+                const float a0 = A[c] < 0.0f ? 0.0f : A[c], a1 = A[c] + d < 0.0f ? 0.0f : A[c] + d;
+                acc += cell_ratio(a1, Z[c], half_inv_var) - cell_ratio(a0, Z[c], half_inv_var);
+            }
+            total += (double)acc;
+        }
+        delta[q] = (float)total;
+    }
+    return 0;
 }

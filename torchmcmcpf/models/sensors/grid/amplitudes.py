@@ -20,6 +20,7 @@ import torch
 
 from ....runtime import take_along
 from ....typing import Tensor
+from . import native
 from ._protocol import GridSensorLike
 from .inputs import check_inputs, check_move, check_state, flat_inputs
 from .slots import truncated_amplitude
@@ -65,6 +66,10 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
     if whole_grid(sensor, s.shape[-1]):  # every entry of the cache changes, in order: no cells
         delta, change = _grid_delta(sensor, cache.reshape(B, -1, G), u, s, firsts, z)
         return delta.reshape((B,) + S), None, change.reshape(cache.shape)
+    if native.applies(sensor, x) and cache.dtype == torch.float32:  # the radar on the CPU: one C loop a chain
+        delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), u, s, z)
+        return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
+            change.reshape((B,) + S + change.shape[2:])
     cells, change = _box_change(sensor, u, s, firsts)
     A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
     # the frame's cells gathered, then prepared (per cell): 2M boxes a move, not the whole grid

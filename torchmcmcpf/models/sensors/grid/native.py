@@ -36,6 +36,7 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -47,14 +48,15 @@ from ....typing import Tensor
 from ._protocol import GridSensorLike
 from .inputs import flat_inputs
 
-__all__ = ["available", "applies", "log_likelihood", "ratio_floor", "FLAGS", "MAX_TARGETS", "MAX_WINDOW"]
+__all__ = ["available", "applies", "log_likelihood", "delta_cached", "ratio_floor", "FLAGS", "MAX_TARGETS",
+           "MAX_WINDOW"]
 
 _SOURCE = Path(__file__).with_name("_rician_window.c")
 #: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
 #: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation)
 FLAGS = ("-O3", "-march=native", "-fopenmp-simd", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC")
 #: the C loop's static buffers: targets per particle and cells per box axis
-MAX_TARGETS, MAX_WINDOW = 64, 32
+MAX_TARGETS, MAX_WINDOW = 64, 16
 #: particles below which one call runs on the calling thread
 _SPLIT_MIN = 512
 
@@ -102,12 +104,15 @@ def _build() -> ctypes.CDLL | None:
                           "the tensor path is used", RuntimeWarning, stacklevel=3)
             return None
     lib = ctypes.CDLL(str(target))
-    fn = lib.rician_window_loglik
-    fn.restype = ctypes.c_int
-    fn.argtypes = [ctypes.c_int64] * 4 + [ctypes.c_void_p] * 6 + [ctypes.c_int64, ctypes.c_double, ctypes.c_void_p]
-    floor = lib.rician_floor
-    floor.restype = ctypes.c_double
-    floor.argtypes = [ctypes.c_int64] * 2 + [ctypes.c_void_p] * 3 + [ctypes.c_double]
+    i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
+    signatures: dict[str, tuple[Any, list[Any]]] = {
+        "rician_window_loglik": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64, ptr]),
+        "rician_delta_cached": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64] + [ptr] * 3),
+        "rician_floor": (f64, [i64] * 2 + [ptr] * 3 + [f64]),
+    }
+    for name, (restype, argtypes) in signatures.items():
+        fn = getattr(lib, name)
+        fn.restype, fn.argtypes = restype, argtypes
     return lib
 
 
@@ -155,21 +160,10 @@ def _loglik(u: Tensor, s: Tensor, live: Tensor, zc: Tensor, shape: list[int], ge
     u, s, live, zc = (t.contiguous() for t in (u, s, live, zc))
     out = torch.empty((B, P), dtype=torch.float32)
     lib: Any = _state["lib"]
-    shape_t = torch.tensor(shape, dtype=torch.int64)
-    geo_t = torch.tensor(geo, dtype=torch.float64)
-    args = [u.data_ptr(), s.data_ptr(), live.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr(),
-            window, half_inv_var, out.data_ptr()]
-    n = B * P
-    parts = max(1, min(torch.get_num_threads(), n // _SPLIT_MIN))
-    bounds = [n * i // parts for i in range(parts + 1)]
-
-    def run(i: int) -> int:
-        return lib.rician_window_loglik(bounds[i], bounds[i + 1], P, K, *args)
-
-    codes = [run(0)] if parts == 1 else list(_pool().map(run, range(parts)))
-    if any(codes):
-        raise ValueError(f"the radar's C loop got K = {K} or a box of {shape[3:]} cells, above its "
-                         f"limits ({MAX_TARGETS}, {MAX_WINDOW})")
+    shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
+    ptrs = [u.data_ptr(), s.data_ptr(), live.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
+    _split(B * P, lambda a, b: lib.rician_window_loglik(a, b, P, K, *ptrs, window, half_inv_var, out.data_ptr()),
+           f"K = {K}")
     return out
 
 
@@ -183,16 +177,83 @@ def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor 
     """The windowed log-likelihood ``(B, *S)`` of ``x (B, *S, K, D)`` on frames ``z (B, *G)``
     by the C loop (when :func:`applies`; the caller checks the inputs).
     """
-    geometry = sensor.geometry
     u, s, e = flat_inputs(sensor, x, exists)  # (B, P, K, 3), (B, P, K) x2
-    zc = torch.nn.functional.pad(sensor.prepare_frame(z.to(x.dtype)).reshape(z.shape[0], -1), (0, 8))  # (B, G + 8)
-    geo = [v for a in range(3) for v in (geometry.origins[a], geometry.cell_sizes[a],
-                                         1.0 / (math.sqrt(2.0) * geometry.widths[a]))]
+    out = _loglik(u, s, (e > 0).to(torch.uint8), _frames(sensor, z), *_geometry(sensor))
+    return out.reshape(x.shape[:-2])
+
+
+def _split(n: int, run: Callable[[int, int], int], what: str) -> None:
+    """``run(first, last)`` over ``[0, n)`` in ``torch.get_num_threads()`` parts (ctypes
+    releases the GIL); a nonzero return is the C loop's "beyond its buffers".
+    """
+    parts = max(1, min(torch.get_num_threads(), n // _SPLIT_MIN))
+    bounds = [n * i // parts for i in range(parts + 1)]
+    codes = [run(0, n)] if parts == 1 else list(_pool().map(lambda i: run(bounds[i], bounds[i + 1]), range(parts)))
+    if any(codes):
+        raise ValueError(f"the radar's C loop got {what}, above its limits ({MAX_TARGETS} spreads, {MAX_WINDOW} "
+                         "cells per box axis)")
+
+
+@torch.library.custom_op("torchmcmcpf::rician_delta_cached", mutates_args=())
+def _delta_cached(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: list[float], window: int,
+                  half_inv_var: float) -> tuple[Tensor, Tensor, Tensor]:
+    """``u (B, P, R, 3)``, ``s (B, P, R)`` (the move's ``R = 2M`` signed spreads), ``cache
+    (B, P, G)``, ``zc (B, G + 8)`` float32 -> ``delta (B, P)``, ``cells (B, P, R, V)`` int64,
+    ``change (B, P, R, V)`` float32 (``V`` a box's cells).
+    """
+    B, P, R = s.shape
+    V = shape[3] * shape[4] * shape[5]
+    u, s, cache, zc = (t.contiguous() for t in (u, s, cache, zc))
+    delta = torch.empty((B, P), dtype=torch.float32)
+    cells = torch.empty((B, P, R, V), dtype=torch.int64)
+    change = torch.empty((B, P, R, V), dtype=torch.float32)
+    lib: Any = _state["lib"]
+    shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
+    ptrs = [u.data_ptr(), s.data_ptr(), cache.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
+    _split(B * P, lambda a, b: lib.rician_delta_cached(a, b, P, R, *ptrs, window, half_inv_var, delta.data_ptr(),
+                                                        cells.data_ptr(), change.data_ptr()), f"{R} spreads")
+    return delta, cells, change
+
+
+@_delta_cached.register_fake
+def _(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: list[float], window: int,
+      half_inv_var: float) -> tuple[Tensor, Tensor, Tensor]:
+    B, P, R = s.shape
+    V = shape[3] * shape[4] * shape[5]
+    return s.new_empty((B, P)), s.new_empty((B, P, R, V), dtype=torch.int64), s.new_empty((B, P, R, V))
+
+
+def _frames(sensor: GridSensorLike, z: Tensor) -> Tensor:
+    """The prepared frames ``(B, G + 8)`` float32, each padded by 8 cells (the loop copies
+    a box's rows 8 floats at a time).
+    """
+    return torch.nn.functional.pad(sensor.prepare_frame(z.to(torch.float32)).reshape(z.shape[0], -1), (0, 8))
+
+
+def _geometry(sensor: GridSensorLike) -> tuple[list[int], list[float], int, float]:
+    """The loop's scalar arguments: cells and box sizes per axis; each axis's origin, cell
+    size and ``1 / (sqrt(2) width)``; the window; ``1 / (2 sigma^2)``.
+    """
+    geometry = sensor.geometry
     ratio = sensor.native_ratio()
     assert ratio is not None
-    out = _loglik(u, s, (e > 0).to(torch.uint8), zc, list(geometry.frame_shape) + list(geometry.window_sizes),
-                  geo, geometry.window, float(ratio[1]))
-    return out.reshape(x.shape[:-2])
+    geo = [v for a in range(3) for v in (geometry.origins[a], geometry.cell_sizes[a],
+                                         1.0 / (math.sqrt(2.0) * geometry.widths[a]))]
+    return list(geometry.frame_shape) + list(geometry.window_sizes), geo, geometry.window, float(ratio[1])
+
+
+def delta_cached(sensor: GridSensorLike, cache: Tensor, u: Tensor, s: Tensor, z: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor]:
+    """A move's change read from the chains' cache by the C loop (box form of
+    :func:`~.amplitudes.log_likelihood_delta_cached`; the caller checks :func:`applies` and
+    the inputs): ``cache (B, P, G)``, the move's spreads ``u (B, P, 2M, 3)``, ``s (B, P,
+    2M)`` (signed), frames ``z (B, *G)`` -> ``delta (B, P)``, ``cells, change (B, P, 2M,
+    *box_cells)``.
+    """
+    shape, geo, window, h = _geometry(sensor)
+    delta, cells, change = _delta_cached(u, s, cache, _frames(sensor, z), shape, geo, window, h)
+    V = tuple(sensor.geometry.box_cells)
+    return delta, cells.reshape(cells.shape[:3] + V), change.reshape(change.shape[:3] + V)
 
 
 def ratio_floor(amp: Tensor, prof: Tensor, zc: Tensor, half_inv_var: float) -> float:
