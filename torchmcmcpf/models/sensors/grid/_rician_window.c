@@ -1,13 +1,16 @@
 /* The windowed Rician log-likelihood of a three-axis grid sensor, one particle at a time
  * (torchmcmcpf.models.sensors.grid.native states the maths and the contract).
  *
- * Plain C99, no headers of Python or torch: built once per machine by the host's C compiler
+ * Plain C99 (with OpenMP where the compiler has it), no headers of Python or torch: built once per machine by the host's C compiler
  * (-O3 -march=native) and called through ctypes with the tensors' data pointers. The cell
  * loops are written so that the compiler vectorises them (no calls, selects instead of
  * branches); log is the Cephes single-precision polynomial, exp is libm's (per profile value,
  * 21 per target, not per cell).
  */
 #include <math.h>
+#ifdef _OPENMP
+#include <omp.h> /* torch's own libgomp when loaded beside it (the same soname): its threads */
+#endif
 #include <stdint.h>
 #include <string.h>
 
@@ -85,7 +88,7 @@ static inline float cell_ratio(float a, float zc, float half_inv_var) {
  * A non-finite coordinate gives a box at the grid's edge and a NaN result, never a read
  * outside the frame.
  */
-int rician_window_loglik(int64_t p0, int64_t p1, int64_t P, int64_t K, const float *u, const float *s,
+static int window_range(int64_t p0, int64_t p1, int64_t P, int64_t K, const float *u, const float *s,
                          const uint8_t *live, const float *zc, const int64_t *shape, const double *geo,
                          int64_t window, double half_inv_var_d, float *out) {
     const int64_t N[3] = { shape[0], shape[1], shape[2] };
@@ -176,7 +179,7 @@ int rician_window_loglik(int64_t p0, int64_t p1, int64_t P, int64_t K, const flo
  * boxes x V cells, each one amplitude times a profile value and the Rician log ratio there,
  * summed; inputs of a few KB (amp (boxes), prof (V), zc (V)), so no memory traffic but the loop's.
  */
-double rician_floor(int64_t boxes, int64_t V, const float *amp, const float *prof, const float *zc,
+static double floor_range(int64_t boxes, int64_t V, const float *amp, const float *prof, const float *zc,
                     double half_inv_var_d) {
     const float half_inv_var = (float)half_inv_var_d;
     double total = 0.0;
@@ -201,7 +204,7 @@ double rician_floor(int64_t boxes, int64_t V, const float *amp, const float *pro
  * at the cells an earlier box of the move holds, so each cell changes once). Each cell's
  * term is ratio(max(A + change, 0)) - ratio(max(A, 0)).
  */
-int rician_delta_cached(int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
+static int delta_range(int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
                         const float *cache, const float *zc, const int64_t *shape, const double *geo,
                         int64_t window, double half_inv_var_d, float *delta, int64_t *cells, float *change) {
     const int64_t N[3] = { shape[0], shape[1], shape[2] };
@@ -289,4 +292,60 @@ int rician_delta_cached(int64_t p0, int64_t p1, int64_t P, int64_t R, const floa
         delta[q] = (float)total;
     }
     return 0;
+}
+
+/* The exported calls: samples [0, n) split evenly over `threads` OpenMP threads (one part per
+ * thread, so each sample's sum is the same whatever the count), on the calling thread when
+ * there are fewer than GRAIN samples a thread or no OpenMP. */
+#define GRAIN 8
+
+#ifdef _OPENMP
+#define SPLIT(n, threads, call)                                                        \
+    {                                                                                  \
+        const int64_t n_ = (n);                                                        \
+        const int nt_ = (int)(threads), go_ = nt_ > 1 && n_ >= 2 * GRAIN;             \
+        _Pragma("omp parallel num_threads(nt_) if (go_)")                              \
+        {                                                                              \
+            const int64_t t_ = omp_get_thread_num(), T_ = omp_get_num_threads();       \
+            const int64_t lo = n_ * t_ / T_, hi = n_ * (t_ + 1) / T_, part = t_;       \
+            (void)part;                                                                \
+            call;                                                                      \
+        }                                                                              \
+    }
+#else
+#define SPLIT(n, threads, call)                 \
+    {                                           \
+        const int64_t lo = 0, hi = (n), part = 0; \
+        (void)part;                             \
+        (void)(threads);                        \
+        call;                                   \
+    }
+#endif
+
+int rician_window_loglik(int64_t n, int64_t threads, int64_t P, int64_t K, const float *u, const float *s,
+                         const uint8_t *live, const float *zc, const int64_t *shape, const double *geo,
+                         int64_t window, double half_inv_var, float *out) {
+    if (K > MAX_K || shape[3] > MAX_W || shape[4] > MAX_W || shape[5] > MAX_W) return 1;
+    SPLIT(n, threads, window_range(lo, hi, P, K, u, s, live, zc, shape, geo, window, half_inv_var, out))
+    return 0;
+}
+
+int rician_delta_cached(int64_t n, int64_t threads, int64_t P, int64_t R, const float *u, const float *s,
+                        const float *cache, const float *zc, const int64_t *shape, const double *geo,
+                        int64_t window, double half_inv_var, float *delta, int64_t *cells, float *change) {
+    if (R > MAX_K || shape[3] > MAX_W || shape[4] > MAX_W || shape[5] > MAX_W) return 1;
+    SPLIT(n, threads, delta_range(lo, hi, P, R, u, s, cache, zc, shape, geo, window, half_inv_var, delta, cells,
+                                  change))
+    return 0;
+}
+
+/* the floor's boxes split likewise; returns the sum (in each part's order, added in part order) */
+double rician_floor(int64_t boxes, int64_t threads, int64_t V, const float *amp, const float *prof, const float *zc,
+                    double half_inv_var) {
+    double parts[256] = { 0.0 };
+    const int64_t T = threads < 1 ? 1 : (threads > 256 ? 256 : threads);
+    SPLIT(boxes, T, parts[part] = floor_range(hi - lo, V, amp + lo, prof, zc, half_inv_var))
+    double total = 0.0;
+    for (int64_t t = 0; t < T; ++t) total += parts[t];
+    return total;
 }

@@ -13,16 +13,20 @@ Stegun 9.8.1-9.8.2, as :func:`~torchmcmcpf.models.sensors.radar.log_i0_approx`) 
 one vectorised loop of the box's cells. Nothing per cell is stored between passes, the
 neighbour sum is over intersections rather than padded neighbour slots, and no cell is
 evaluated twice: the same sum as the tensor path (:func:`~.window.log_likelihood`) to
-float32 round-off (tested against float64), about 5x faster than the compiled tensor path
-on the radar SIR's step (benchmarks/README.md).
+float32 round-off (tested against float64), 4.4x faster than the compiled tensor path on
+the radar SIR's step (benchmarks/README.md). A move read from the chains' amplitude cache
+(:func:`~.amplitudes.log_likelihood_delta_cached`, box form: the IP-MCMC-PF's and the
+MCMC sweeps' moves) runs the same way: the move's signed spreads over its boxes'
+intersections, each cell once, two ratios a cell.
 
 The C source is compiled once per machine by the host's C compiler (``$CC``, else ``cc``;
 ``-O3 -march=native``) into a cache folder (``$TORCHMCMCPF_CACHE``, else
 ``~/.cache/torchmcmcpf``), keyed by the source, the compiler and the CPU, and called through
-``ctypes`` (which releases the GIL: the particles are split over ``torch.get_num_threads()``
-threads). It is a ``torch.library`` custom op, so compiled filters keep one graph. Without a
-compiler, or with ``TORCHMCMCPF_NATIVE=0``, the tensor path runs, the same values to
-round-off; float64, autograd, ``torch.func`` transforms and GPUs always take the tensor path.
+``ctypes``, the samples split evenly over ``torch.get_num_threads()`` of torch's own OpenMP
+threads (each sample's sum is the same whatever the count). The calls are ``torch.library``
+custom ops, so compiled filters keep one graph. Without a compiler, or with
+``TORCHMCMCPF_NATIVE=0``, the tensor path runs, the same values to round-off; float64,
+autograd, ``torch.func`` transforms and GPUs always take the tensor path.
 """
 
 from __future__ import annotations
@@ -36,8 +40,6 @@ import shutil
 import subprocess
 import tempfile
 import warnings
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -53,12 +55,14 @@ __all__ = ["available", "applies", "log_likelihood", "delta_cached", "ratio_floo
 
 _SOURCE = Path(__file__).with_name("_rician_window.c")
 #: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
-#: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation)
-FLAGS = ("-O3", "-march=native", "-fopenmp-simd", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC")
+#: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation).
+#: ``-fopenmp`` first: the loop then runs on torch's own OpenMP threads (its wheel's
+#: ``libgomp.so.1``, already loaded, is the one the loop links to); a compiler without
+#: OpenMP builds it serial (``-fopenmp-simd``: the vector loops only)
+FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC")
+_THREADING = ("-fopenmp", "-fopenmp-simd")
 #: the C loop's static buffers: targets per particle and cells per box axis
 MAX_TARGETS, MAX_WINDOW = 64, 16
-#: particles below which one call runs on the calling thread
-_SPLIT_MIN = 512
 
 _state: dict[str, object] = {}
 
@@ -86,21 +90,25 @@ def _build() -> ctypes.CDLL | None:
         version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError):
         version = ""
-    key = hashlib.sha256(b"\0".join([source, cc.encode(), version.encode(), " ".join(FLAGS).encode(),
+    key = hashlib.sha256(b"\0".join([source, cc.encode(), version.encode(), " ".join(FLAGS + _THREADING).encode(),
                                      _cpu_key().encode()])).hexdigest()[:16]
     folder = Path(os.environ.get("TORCHMCMCPF_CACHE") or Path.home() / ".cache" / "torchmcmcpf")
     target = folder / f"rician_window-{key}.so"
     if not target.exists():
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            with tempfile.TemporaryDirectory(dir=folder) as tmp:
-                built = Path(tmp) / target.name
-                subprocess.run([cc, *FLAGS, str(_SOURCE), "-o", str(built), "-lm"], check=True, capture_output=True,
-                               text=True, timeout=300)
-                os.replace(built, target)  # atomic: concurrent builders leave one whole file
-        except (OSError, subprocess.SubprocessError) as err:
-            detail = getattr(err, "stderr", "") or str(err)
-            warnings.warn(f"torchmcmcpf: building the radar's C loop failed ({detail.strip()[:500]}); "
+        errors = []
+        folder.mkdir(parents=True, exist_ok=True)
+        for threading in _THREADING:
+            try:
+                with tempfile.TemporaryDirectory(dir=folder) as tmp:
+                    built = Path(tmp) / target.name
+                    subprocess.run([cc, *FLAGS, threading, str(_SOURCE), "-o", str(built), "-lm"], check=True,
+                                   capture_output=True, text=True, timeout=300)
+                    os.replace(built, target)  # atomic: concurrent builders leave one whole file
+                break
+            except (OSError, subprocess.SubprocessError) as err:
+                errors.append((getattr(err, "stderr", "") or str(err)).strip()[:300])
+        else:
+            warnings.warn(f"torchmcmcpf: building the radar's C loop failed ({' / '.join(errors)}); "
                           "the tensor path is used", RuntimeWarning, stacklevel=3)
             return None
     lib = ctypes.CDLL(str(target))
@@ -108,7 +116,7 @@ def _build() -> ctypes.CDLL | None:
     signatures: dict[str, tuple[Any, list[Any]]] = {
         "rician_window_loglik": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64, ptr]),
         "rician_delta_cached": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64] + [ptr] * 3),
-        "rician_floor": (f64, [i64] * 2 + [ptr] * 3 + [f64]),
+        "rician_floor": (f64, [i64] * 3 + [ptr] * 3 + [f64]),
     }
     for name, (restype, argtypes) in signatures.items():
         fn = getattr(lib, name)
@@ -140,15 +148,6 @@ def applies(sensor: GridSensorLike, x: Tensor) -> bool:
     )
 
 
-def _pool() -> ThreadPoolExecutor:
-    if "pool" not in _state:
-        _state["pool"] = ThreadPoolExecutor(max_workers=max(1, os.cpu_count() or 1),
-                                            thread_name_prefix="torchmcmcpf-native")
-    pool = _state["pool"]
-    assert isinstance(pool, ThreadPoolExecutor)
-    return pool
-
-
 @torch.library.custom_op("torchmcmcpf::rician_window_loglik", mutates_args=())
 def _loglik(u: Tensor, s: Tensor, live: Tensor, zc: Tensor, shape: list[int], geo: list[float], window: int,
             half_inv_var: float) -> Tensor:
@@ -162,8 +161,8 @@ def _loglik(u: Tensor, s: Tensor, live: Tensor, zc: Tensor, shape: list[int], ge
     lib: Any = _state["lib"]
     shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
     ptrs = [u.data_ptr(), s.data_ptr(), live.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
-    _split(B * P, lambda a, b: lib.rician_window_loglik(a, b, P, K, *ptrs, window, half_inv_var, out.data_ptr()),
-           f"K = {K}")
+    _check(lib.rician_window_loglik(B * P, torch.get_num_threads(), P, K, *ptrs, window, half_inv_var,
+                                    out.data_ptr()), f"K = {K}")
     return out
 
 
@@ -182,14 +181,9 @@ def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor 
     return out.reshape(x.shape[:-2])
 
 
-def _split(n: int, run: Callable[[int, int], int], what: str) -> None:
-    """``run(first, last)`` over ``[0, n)`` in ``torch.get_num_threads()`` parts (ctypes
-    releases the GIL); a nonzero return is the C loop's "beyond its buffers".
-    """
-    parts = max(1, min(torch.get_num_threads(), n // _SPLIT_MIN))
-    bounds = [n * i // parts for i in range(parts + 1)]
-    codes = [run(0, n)] if parts == 1 else list(_pool().map(lambda i: run(bounds[i], bounds[i + 1]), range(parts)))
-    if any(codes):
+def _check(code: int, what: str) -> None:
+    """The C loop's return: nonzero when its buffers are too small for the call."""
+    if code:
         raise ValueError(f"the radar's C loop got {what}, above its limits ({MAX_TARGETS} spreads, {MAX_WINDOW} "
                          "cells per box axis)")
 
@@ -210,8 +204,8 @@ def _delta_cached(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[i
     lib: Any = _state["lib"]
     shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
     ptrs = [u.data_ptr(), s.data_ptr(), cache.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
-    _split(B * P, lambda a, b: lib.rician_delta_cached(a, b, P, R, *ptrs, window, half_inv_var, delta.data_ptr(),
-                                                        cells.data_ptr(), change.data_ptr()), f"{R} spreads")
+    _check(lib.rician_delta_cached(B * P, torch.get_num_threads(), P, R, *ptrs, window, half_inv_var,
+                                   delta.data_ptr(), cells.data_ptr(), change.data_ptr()), f"{R} spreads")
     return delta, cells, change
 
 
@@ -264,13 +258,5 @@ def ratio_floor(amp: Tensor, prof: Tensor, zc: Tensor, half_inv_var: float) -> f
     (:func:`~torchmcmcpf.bench.peers.radar_floor`). Needs :func:`available`.
     """
     lib: Any = _state["lib"]
-    boxes, V = amp.numel(), prof.numel()
-    parts = max(1, min(torch.get_num_threads(), boxes // _SPLIT_MIN))
-    bounds = [boxes * i // parts for i in range(parts + 1)]
-    ptrs = [prof.data_ptr(), zc.data_ptr()]
-
-    def run(i: int) -> float:
-        first = amp.data_ptr() + 4 * bounds[i]
-        return float(lib.rician_floor(bounds[i + 1] - bounds[i], V, first, *ptrs, half_inv_var))
-
-    return sum(_pool().map(run, range(parts))) if parts > 1 else run(0)
+    return float(lib.rician_floor(amp.numel(), torch.get_num_threads(), prof.numel(), amp.data_ptr(), prof.data_ptr(),
+                                  zc.data_ptr(), half_inv_var))
