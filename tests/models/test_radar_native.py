@@ -4,6 +4,10 @@ against the tensor path: the same sum to float32 round-off, checked against floa
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
+import textwrap
 
 import pytest
 import torch
@@ -186,3 +190,27 @@ def test_native_cached_move_matches_the_tensor_path(K, M, tensor_path):
         z64 = z.double()
         diff = sensor.log_likelihood(moved.double(), z64, e_after) - sensor.log_likelihood(x.double(), z64, exists)
     torch.testing.assert_close(ours[0].double(), diff, rtol=0, atol=0.05)
+
+
+def test_without_a_compiler_the_tensor_path_runs(tmp_path):
+    """A machine without a working compiler: one warning naming the fallback, no native op,
+    and the radar's likelihood from the tensor path (in a fresh process: the loop is built
+    once per process)."""
+    script = textwrap.dedent('''
+        import math, warnings, torch
+        from torchmcmcpf.models.sensors.grid import native
+        from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            sensor = RangeDopplerBearingTBD.uniform((2740, 2850), (-8, 8), (-5 * math.pi / 180, 4 * math.pi / 180))
+        x = torch.tensor([[[[2800.0, 1.0, 0.0, 1.0, 4.0]]]])
+        z = sensor.simulate(x[:, 0], generator=torch.Generator().manual_seed(0))
+        print(native.available(), native.applies(sensor, x), bool(torch.isfinite(sensor.log_likelihood(x, z)).all()))
+        print([str(w.message) for w in seen])
+    ''')
+    env = dict(os.environ, CC=str(tmp_path / "no-such-compiler"), TORCHMCMCPF_CACHE=str(tmp_path / "cache"))
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    first, second = out.stdout.strip().splitlines()
+    assert first == "False False True"
+    assert "building the radar's C loop failed" in second and "the tensor path is used" in second

@@ -96,8 +96,11 @@ def _build() -> ctypes.CDLL | None:
     target = folder / f"rician_window-{key}.so"
     if not target.exists():
         errors = []
-        folder.mkdir(parents=True, exist_ok=True)
-        for threading in _THREADING:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            errors.append(f"cannot make {folder}: {err}")
+        for threading in _THREADING if not errors else ():
             try:
                 with tempfile.TemporaryDirectory(dir=folder) as tmp:
                     built = Path(tmp) / target.name
@@ -111,7 +114,12 @@ def _build() -> ctypes.CDLL | None:
             warnings.warn(f"torchmcmcpf: building the radar's C loop failed ({' / '.join(errors)}); "
                           "the tensor path is used", RuntimeWarning, stacklevel=3)
             return None
-    lib = ctypes.CDLL(str(target))
+    try:
+        lib = ctypes.CDLL(str(target))
+    except OSError as err:  # a file another machine's build left, or a damaged one
+        warnings.warn(f"torchmcmcpf: loading the radar's C loop {target} failed ({err}); the tensor path is used",
+                      RuntimeWarning, stacklevel=3)
+        return None
     i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
     signatures: dict[str, tuple[Any, list[Any]]] = {
         "rician_window_loglik": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64, ptr]),
