@@ -63,13 +63,13 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
     if tuple(cache.shape) != (B,) + S + (G,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
     u, s, firsts = _moved(sensor, x, x_n, n, exists, exists_n)
+    if native.applies(sensor, x) and cache.dtype == torch.float32:  # the radar on the CPU: one C loop a chain,
+        delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), u, s, z)  # boxes on any grid
+        return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
+            change.reshape((B,) + S + change.shape[2:])
     if whole_grid(sensor, s.shape[-1]):  # every entry of the cache changes, in order: no cells
         delta, change = _grid_delta(sensor, cache.reshape(B, -1, G), u, s, firsts, z)
         return delta.reshape((B,) + S), None, change.reshape(cache.shape)
-    if native.applies(sensor, x) and cache.dtype == torch.float32:  # the radar on the CPU: one C loop a chain
-        delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), u, s, z)
-        return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
-            change.reshape((B,) + S + change.shape[2:])
     cells, change = _box_change(sensor, u, s, firsts)
     A = cache.reshape(-1).gather(0, cells.reshape(-1)).reshape(change.shape)  # (B, P, 2M, *V)
     # the frame's cells gathered, then prepared (per cell): 2M boxes a move, not the whole grid
