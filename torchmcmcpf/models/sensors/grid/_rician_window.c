@@ -78,93 +78,129 @@ static inline float cell_ratio(float a, float zc, float half_inv_var) {
 #define MAX_K 64
 #define MAX_W 16 /* per box axis: buffers of 16^3 cells on the stack (48 KB), fine for any thread */
 
+/* The grid and its boxes: cells per axis N, box sizes W, a box's cells V = W0 W1 W2 laid out
+ * as W0 rows of V12 = W1 W2 (the last two axes merged, as GridGeometry.box_cells), the frame's
+ * G = N0 N1 N2 cells, and per axis the origin c0, cell size dc and 1 / (sqrt(2) width) sc. */
+typedef struct {
+    int64_t N[3], W[3], V12, V, G12, G, window;
+    float c0[3], dc[3], sc[3];
+} Grid;
+
+/* 0, or 1 when a box is larger than the static buffers */
+static int grid_of(Grid *g, const int64_t *shape, const double *geo, int64_t window) {
+    for (int a = 0; a < 3; ++a) {
+        g->N[a] = shape[a];
+        g->W[a] = shape[3 + a];
+        g->c0[a] = (float)geo[3 * a];
+        g->dc[a] = (float)geo[3 * a + 1];
+        g->sc[a] = (float)geo[3 * a + 2];
+        if (g->W[a] > MAX_W) return 1;
+    }
+    g->V12 = g->W[1] * g->W[2];
+    g->V = g->W[0] * g->V12;
+    g->G12 = g->N[1] * g->N[2];
+    g->G = g->N[0] * g->G12;
+    g->window = window;
+    return 0;
+}
+
+/* Each of K spreads' box (first cell per axis: the nearest cell minus the window, shifted into
+ * the grid, as GridGeometry.box_first) and its per-axis profile over the box (eq. 20, as
+ * spread.neighbour_profiles computes it); uk (K, 3) measurement coordinates. A non-finite
+ * coordinate gives a box at the grid's edge and NaN profiles, never a cell outside the grid. */
+static void boxes_of(const Grid *g, const float *uk, int64_t K, int64_t first[][3], float prof[][3][MAX_W]) {
+    for (int64_t k = 0; k < K; ++k)
+        for (int a = 0; a < 3; ++a) {
+            const float ua = uk[3 * k + a];
+            float f = nearbyintf((ua - g->c0[a]) / g->dc[a]) - (float)g->window;
+            const float hi = (float)(g->N[a] - g->W[a]);
+            f = f >= 0.0f ? f : 0.0f; /* NaN -> 0 */
+            f = f <= hi ? f : hi;
+            first[k][a] = (int64_t)f;
+            const float us = ua * g->sc[a];
+            for (int64_t t = 0; t < g->W[a]; ++t) {
+                const float d = (g->c0[a] + g->dc[a] * (f + (float)t)) * g->sc[a] - us;
+                prof[k][a][t] = expf(-(d * d));
+            }
+        }
+}
+
+/* Adds spread k (amplitude sk, box fk, profiles pk) to the cells of box fj (acc, V cells)
+ * over the two boxes' intersection only, as blocks of the V12 cells of a row: Q holds the
+ * product of k's last two profiles inside the intersection and 0 outside. With `mask`, the
+ * intersection's cells are also set to 0 there (an earlier box holds them). */
+static void add_spread(const Grid *g, const int64_t fj[3], const int64_t fk[3], const float pk[3][MAX_W], float sk,
+                       float *acc, float *mask) {
+    int64_t lo[3], hi[3], lag[3];
+    for (int a = 0; a < 3; ++a) { /* box k's cells in box j's local coordinates */
+        lag[a] = fj[a] - fk[a];
+        lo[a] = lag[a] < 0 ? -lag[a] : 0;
+        hi[a] = g->W[a] - (lag[a] > 0 ? lag[a] : 0);
+        if (lo[a] >= hi[a]) return; /* the boxes do not meet */
+    }
+    float Q[MAX_W * MAX_W], keep[MAX_W * MAX_W];
+    for (int64_t c = 0; c < g->V12; ++c) { Q[c] = 0.0f; keep[c] = 1.0f; }
+    const float *p0 = pk[0] + lag[0], *p1 = pk[1] + lag[1], *p2 = pk[2] + lag[2];
+    for (int64_t m = lo[1]; m < hi[1]; ++m)
+        for (int64_t l = lo[2]; l < hi[2]; ++l) {
+            Q[m * g->W[2] + l] = p1[m] * p2[l];
+            keep[m * g->W[2] + l] = 0.0f;
+        }
+    for (int64_t i = lo[0]; i < hi[0]; ++i) {
+        const float si = sk * p0[i];
+        float *ai = acc + i * g->V12;
+        for (int64_t c = 0; c < g->V12; ++c) ai[c] += si * Q[c];
+        if (mask != NULL) {
+            float *mi = mask + i * g->V12;
+            for (int64_t c = 0; c < g->V12; ++c) mi[c] *= keep[c];
+        }
+    }
+}
+
+/* The frame's cells of box fj into Z (V cells; rows copied 8 floats at a time from the padded
+ * frame zq, so Z has 8 floats to spare); with `row_of` the rows' flat cell offsets, with
+ * `cache` its cells too (A) and their flat index (base + the cell, into cells). */
+static void box_cells_of(const Grid *g, const float *zq, const int64_t fj[3], float *Z, const float *cache,
+                         float *A, int64_t base, int64_t *cells) {
+    for (int64_t i = 0; i < g->W[0]; ++i)
+        for (int64_t m = 0; m < g->W[1]; ++m) {
+            const int64_t row = (fj[0] + i) * g->G12 + (fj[1] + m) * g->N[2] + fj[2], at = i * g->V12 + m * g->W[2];
+            for (int64_t l = 0; l < g->W[2]; l += 8) memcpy(Z + at + l, zq + row + l, 8 * sizeof(float));
+            if (cache != NULL)
+                for (int64_t l = 0; l < g->W[2]; ++l) {
+                    A[at + l] = cache[row + l];
+                    cells[at + l] = base + row + l;
+                }
+        }
+}
+
 /* Windowed log-likelihood of particles [p0, p1) of B x P.
  *   u      (B*P, K, 3) measurement coordinates     s    (B*P, K) amplitudes (times existence)
  *   live   (B*P, K) uint8                          zc   (B, N0*N1*N2 + 8) prepared frames, each
  *                                                       padded by 8 floats (rows are copied 8 at a time)
- *   shape  N0 N1 N2, W0 W1 W2 (box sizes), window   geo  origin, cell size, 1/(sqrt2 width) per axis
  *   out    (B*P) float
- * Returns 0, or 1 when K or a box size exceeds the static buffers (the caller checks first).
- * A non-finite coordinate gives a box at the grid's edge and a NaN result, never a read
- * outside the frame.
+ * Box j sums the live spreads over its intersections with their boxes, masks the cells an
+ * earlier live box holds (each cell of the union counted once), and adds its cells' ratios.
  */
-static int window_range(int64_t p0, int64_t p1, int64_t P, int64_t K, const float *u, const float *s,
-                         const uint8_t *live, const float *zc, const int64_t *shape, const double *geo,
-                         int64_t window, double half_inv_var_d, float *out) {
-    const int64_t N[3] = { shape[0], shape[1], shape[2] };
-    const int64_t W[3] = { shape[3], shape[4], shape[5] };
-    if (K > MAX_K || W[0] > MAX_W || W[1] > MAX_W || W[2] > MAX_W) return 1;
-    const int64_t V12 = W[1] * W[2], V = W[0] * V12, G12 = N[1] * N[2], G = N[0] * G12;
-    const float half_inv_var = (float)half_inv_var_d;
+static void window_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t K, const float *u,
+                         const float *s, const uint8_t *live, const float *zc, float half_inv_var, float *out) {
     float prof[MAX_K][3][MAX_W];
     int64_t first[MAX_K][3];
     float A[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8], own[MAX_W * MAX_W * MAX_W];
-    float Q[MAX_W * MAX_W], R[MAX_W * MAX_W];
     for (int64_t q = p0; q < p1; ++q) {
-        const float *uq = u + q * K * 3, *sq = s + q * K;
+        const float *sq = s + q * K;
         const uint8_t *lq = live + q * K;
-        const float *zq = zc + (q / P) * (G + 8);
-        for (int64_t k = 0; k < K; ++k) {
-            for (int a = 0; a < 3; ++a) {
-                const float c0 = (float)geo[3 * a], dc = (float)geo[3 * a + 1], sc = (float)geo[3 * a + 2];
-                const float ua = uq[3 * k + a];
-                float nearest = nearbyintf((ua - c0) / dc);
-                float f = nearest - (float)window;
-                float hi = (float)(N[a] - W[a]);
-                f = f >= 0.0f ? f : 0.0f; /* NaN -> 0: a cell in the grid; the profiles carry the NaN */
-                f = f <= hi ? f : hi;
-                first[k][a] = (int64_t)f;
-                const float us = ua * sc;
-                for (int64_t t = 0; t < W[a]; ++t) {
-                    const float d = (c0 + dc * (f + (float)t)) * sc - us;
-                    prof[k][a][t] = expf(-(d * d));
-                }
-            }
-        }
+        boxes_of(g, u + q * K * 3, K, first, prof);
         double total = 0.0;
         for (int64_t j = 0; j < K; ++j) {
             if (!lq[j]) continue;
-            for (int64_t c = 0; c < V; ++c) { A[c] = 0.0f; own[c] = 1.0f; }
-            for (int64_t k = 0; k < K; ++k) {
-                if (!lq[k]) continue;
-                int64_t lo[3], hi[3], lag[3];
-                int inside = 1;
-                for (int a = 0; a < 3; ++a) { /* box k's cells in box j's local coordinates */
-                    lag[a] = first[j][a] - first[k][a];
-                    lo[a] = lag[a] < 0 ? -lag[a] : 0;
-                    hi[a] = W[a] - (lag[a] > 0 ? lag[a] : 0);
-                    inside &= lo[a] < hi[a];
-                }
-                if (!inside) continue;
-                /* the intersection's rows on axes 1 and 2 as one block of V12 cells: Q the
-                 * product of box k's two profiles inside it, 0 outside; R 0 inside, 1 outside */
-                for (int64_t c = 0; c < V12; ++c) { Q[c] = 0.0f; R[c] = 1.0f; }
-                const float *p0k = prof[k][0] + lag[0], *p1k = prof[k][1] + lag[1], *p2k = prof[k][2] + lag[2];
-                for (int64_t m = lo[1]; m < hi[1]; ++m)
-                    for (int64_t l = lo[2]; l < hi[2]; ++l) {
-                        Q[m * W[2] + l] = p1k[m] * p2k[l];
-                        R[m * W[2] + l] = 0.0f;
-                    }
-                const float sk = sq[k];
-                for (int64_t i = lo[0]; i < hi[0]; ++i) {
-                    const float si = sk * p0k[i];
-                    float *ai = A + i * V12;
-                    for (int64_t c = 0; c < V12; ++c) ai[c] += si * Q[c];
-                    if (k < j) { /* an earlier live box owns the shared cells */
-                        float *oi = own + i * V12;
-                        for (int64_t c = 0; c < V12; ++c) oi[c] *= R[c];
-                    }
-                }
-            }
-            for (int64_t i = 0; i < W[0]; ++i) /* the frame's rows, 8 floats at a time (padded) */
-                for (int64_t m = 0; m < W[1]; ++m)
-                    for (int64_t l = 0; l < W[2]; l += 8)
-                        memcpy(Z + i * V12 + m * W[2] + l,
-                               zq + (first[j][0] + i) * G12 + (first[j][1] + m) * N[2] + first[j][2] + l,
-                               8 * sizeof(float));
+            for (int64_t c = 0; c < g->V; ++c) { A[c] = 0.0f; own[c] = 1.0f; }
+            for (int64_t k = 0; k < K; ++k)
+                if (lq[k]) add_spread(g, first[j], first[k], prof[k], sq[k], A, k < j ? own : NULL);
+            box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, NULL, NULL, 0, NULL);
             float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
-            for (int64_t c = 0; c < V; ++c) {
+            for (int64_t c = 0; c < g->V; ++c) {
                 const float r = cell_ratio(A[c], Z[c], half_inv_var);
                 acc += own[c] != 0.0f ? r : 0.0f;
             }
@@ -172,7 +208,6 @@ static int window_range(int64_t p0, int64_t p1, int64_t P, int64_t K, const floa
         }
         out[q] = (float)total;
     }
-    return 0;
 }
 
 /* The arithmetic floor of the windowed radar step (torchmcmcpf.bench.peers.radar_floor):
@@ -198,87 +233,29 @@ static double floor_range(int64_t boxes, int64_t V, const float *amp, const floa
  * [p0, p1) of B x P. The move's R = 2M spreads (slot 0 before, after, slot 1 before, ...):
  *   u      (B*P, R, 3) measurement coordinates     s      (B*P, R) signed amplitudes (- old, + new)
  *   cache  (B*P, G) each chain's amplitude per cell
- *   zc, shape, geo, window, half_inv_var as rician_window_loglik
+ *   zc as window_range
  * Writes delta (B*P), and per box r of the R boxes its cells' flat index into the cache
  * (cells (B*P, R, V) int64, q * G + the cell) and the change there (change (B*P, R, V); 0
  * at the cells an earlier box of the move holds, so each cell changes once). Each cell's
  * term is ratio(max(A + change, 0)) - ratio(max(A, 0)).
  */
-static int delta_range(int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
-                        const float *cache, const float *zc, const int64_t *shape, const double *geo,
-                        int64_t window, double half_inv_var_d, float *delta, int64_t *cells, float *change) {
-    const int64_t N[3] = { shape[0], shape[1], shape[2] };
-    const int64_t W[3] = { shape[3], shape[4], shape[5] };
-    if (R > MAX_K || W[0] > MAX_W || W[1] > MAX_W || W[2] > MAX_W) return 1;
-    const int64_t V12 = W[1] * W[2], V = W[0] * V12, G12 = N[1] * N[2], G = N[0] * G12;
-    const float half_inv_var = (float)half_inv_var_d;
+static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
+                        const float *cache, const float *zc, float half_inv_var, float *delta, int64_t *cells,
+                        float *change) {
     float prof[MAX_K][3][MAX_W];
     int64_t first[MAX_K][3];
     float A[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8], once[MAX_W * MAX_W * MAX_W];
-    float Q[MAX_W * MAX_W], Rm[MAX_W * MAX_W];
+    const int64_t V = g->V;
     for (int64_t q = p0; q < p1; ++q) {
-        const float *uq = u + q * R * 3, *sq = s + q * R, *cq = cache + q * G;
-        const float *zq = zc + (q / P) * (G + 8);
-        for (int64_t k = 0; k < R; ++k) {
-            for (int a = 0; a < 3; ++a) {
-                const float c0 = (float)geo[3 * a], dc = (float)geo[3 * a + 1], sc = (float)geo[3 * a + 2];
-                const float ua = uq[3 * k + a];
-                float nearest = nearbyintf((ua - c0) / dc);
-                float f = nearest - (float)window;
-                float hi = (float)(N[a] - W[a]);
-                f = f >= 0.0f ? f : 0.0f;
-                f = f <= hi ? f : hi;
-                first[k][a] = (int64_t)f;
-                const float us = ua * sc;
-                for (int64_t t = 0; t < W[a]; ++t) {
-                    const float d = (c0 + dc * (f + (float)t)) * sc - us;
-                    prof[k][a][t] = expf(-(d * d));
-                }
-            }
-        }
+        const float *sq = s + q * R;
+        boxes_of(g, u + q * R * 3, R, first, prof);
         double total = 0.0;
         for (int64_t j = 0; j < R; ++j) {
             float *ch = change + (q * R + j) * V;
-            int64_t *cl = cells + (q * R + j) * V;
             for (int64_t c = 0; c < V; ++c) { ch[c] = 0.0f; once[c] = 1.0f; }
-            for (int64_t k = 0; k < R; ++k) {
-                int64_t lo[3], hi[3], lag[3];
-                int inside = 1;
-                for (int a = 0; a < 3; ++a) {
-                    lag[a] = first[j][a] - first[k][a];
-                    lo[a] = lag[a] < 0 ? -lag[a] : 0;
-                    hi[a] = W[a] - (lag[a] > 0 ? lag[a] : 0);
-                    inside &= lo[a] < hi[a];
-                }
-                if (!inside) continue;
-                for (int64_t c = 0; c < V12; ++c) { Q[c] = 0.0f; Rm[c] = 1.0f; }
-                const float *p0k = prof[k][0] + lag[0], *p1k = prof[k][1] + lag[1], *p2k = prof[k][2] + lag[2];
-                for (int64_t m = lo[1]; m < hi[1]; ++m)
-                    for (int64_t l = lo[2]; l < hi[2]; ++l) {
-                        Q[m * W[2] + l] = p1k[m] * p2k[l];
-                        Rm[m * W[2] + l] = 0.0f;
-                    }
-                const float sk = sq[k];
-                for (int64_t i = lo[0]; i < hi[0]; ++i) {
-                    const float si = sk * p0k[i];
-                    float *ci = ch + i * V12;
-                    for (int64_t c = 0; c < V12; ++c) ci[c] += si * Q[c];
-                    if (k < j) {
-                        float *oi = once + i * V12;
-                        for (int64_t c = 0; c < V12; ++c) oi[c] *= Rm[c];
-                    }
-                }
-            }
-            for (int64_t i = 0; i < W[0]; ++i)
-                for (int64_t m = 0; m < W[1]; ++m) {
-                    const int64_t row = (first[j][0] + i) * G12 + (first[j][1] + m) * N[2] + first[j][2];
-                    for (int64_t l = 0; l < W[2]; l += 8)
-                        memcpy(Z + i * V12 + m * W[2] + l, zq + row + l, 8 * sizeof(float));
-                    for (int64_t l = 0; l < W[2]; ++l) {
-                        cl[i * V12 + m * W[2] + l] = q * G + row + l;
-                        A[i * V12 + m * W[2] + l] = cq[row + l];
-                    }
-                }
+            for (int64_t k = 0; k < R; ++k) add_spread(g, first[j], first[k], prof[k], sq[k], ch, k < j ? once : NULL);
+            box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, cache + q * g->G, A, q * g->G,
+                         cells + (q * R + j) * V);
             float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
             for (int64_t c = 0; c < V; ++c) {
@@ -291,7 +268,6 @@ static int delta_range(int64_t p0, int64_t p1, int64_t P, int64_t R, const float
         }
         delta[q] = (float)total;
     }
-    return 0;
 }
 
 /* The exported calls: samples [0, n) split evenly over `threads` OpenMP threads (one part per
@@ -322,20 +298,25 @@ static int delta_range(int64_t p0, int64_t p1, int64_t P, int64_t R, const float
     }
 #endif
 
+/* rician_window_loglik, rician_delta_cached: window_range, delta_range over n = B*P samples;
+ * shape N0 N1 N2 W0 W1 W2, geo the axes' (origin, cell size, 1/(sqrt2 width)), window the
+ * box half-width, half_inv_var 1 / (2 sigma^2). Return 0, or 1 when K (R) or a box exceeds
+ * the static buffers (the caller checks first). */
 int rician_window_loglik(int64_t n, int64_t threads, int64_t P, int64_t K, const float *u, const float *s,
                          const uint8_t *live, const float *zc, const int64_t *shape, const double *geo,
                          int64_t window, double half_inv_var, float *out) {
-    if (K > MAX_K || shape[3] > MAX_W || shape[4] > MAX_W || shape[5] > MAX_W) return 1;
-    SPLIT(n, threads, window_range(lo, hi, P, K, u, s, live, zc, shape, geo, window, half_inv_var, out))
+    Grid g;
+    if (K > MAX_K || grid_of(&g, shape, geo, window)) return 1;
+    SPLIT(n, threads, window_range(&g, lo, hi, P, K, u, s, live, zc, (float)half_inv_var, out))
     return 0;
 }
 
 int rician_delta_cached(int64_t n, int64_t threads, int64_t P, int64_t R, const float *u, const float *s,
                         const float *cache, const float *zc, const int64_t *shape, const double *geo,
                         int64_t window, double half_inv_var, float *delta, int64_t *cells, float *change) {
-    if (R > MAX_K || shape[3] > MAX_W || shape[4] > MAX_W || shape[5] > MAX_W) return 1;
-    SPLIT(n, threads, delta_range(lo, hi, P, R, u, s, cache, zc, shape, geo, window, half_inv_var, delta, cells,
-                                  change))
+    Grid g;
+    if (R > MAX_K || grid_of(&g, shape, geo, window)) return 1;
+    SPLIT(n, threads, delta_range(&g, lo, hi, P, R, u, s, cache, zc, (float)half_inv_var, delta, cells, change))
     return 0;
 }
 
