@@ -221,3 +221,33 @@ def test_without_a_compiler_the_tensor_path_runs(tmp_path):
     first, second = out.stdout.strip().splitlines()
     assert first == "False False True"
     assert "building the radar's C loop failed" in second and "the tensor path is used" in second
+
+
+@pytest.mark.parametrize("K, small", [(1, False), (3, False), (10, False), (3, True), (10, True)])
+def test_native_move_without_cache_matches_the_tensor_path(K, small, tensor_path):
+    """A one-slot move without a cache (the MCMC filters' sweeps on the radar): the delta
+    within twice the tensor path's float32 error against float64 plus 1e-3, and equal to the
+    difference of two windowed evaluations; on the small grid the tensor path sums over the
+    whole grid, the loop over the two boxes."""
+    sensor, x, z, exists, x_n, n, e_n = table1_move(K, 1, 300, seed=K + 20, small=small)
+    with torch.no_grad():
+        ours = sensor.log_likelihood_delta(x, x_n, n, z, exists=exists, exists_n=e_n)
+        theirs = tensor_path(lambda: sensor.log_likelihood_delta(x, x_n, n, z, exists=exists, exists_n=e_n))
+        exact = sensor.log_likelihood_delta(x.double(), x_n.double(), n, z, exists=exists, exists_n=e_n)
+        moved = x.double().clone()
+        moved[torch.arange(2)[:, None], torch.arange(300), n] = x_n.double()
+        e_after = exists.clone()
+        e_after[torch.arange(2)[:, None], torch.arange(300), n] = e_n
+        z64 = z.double()
+        diff = sensor.log_likelihood(moved, z64, e_after) - sensor.log_likelihood(x.double(), z64, exists)
+    assert native.applies(sensor, x) and ours.shape == (2, 300) and ours.dtype == torch.float32
+    err_ours = (ours.double() - exact).abs().max().item()
+    err_theirs = (theirs.double() - exact).abs().max().item()
+    assert err_ours <= 2 * err_theirs + 1e-3, (err_ours, err_theirs)
+    assert exact.abs().max() > 10
+    torch.testing.assert_close(ours.double(), diff, rtol=0, atol=0.05)
+    # an int slot, as the sweeps pass it, is the same move
+    with torch.no_grad():
+        fixed = sensor.log_likelihood_delta(x, x_n, 0, z, exists=exists, exists_n=e_n)
+        assert torch.equal(fixed, sensor.log_likelihood_delta(x, x_n, torch.zeros_like(n), z, exists=exists,
+                                                              exists_n=e_n))

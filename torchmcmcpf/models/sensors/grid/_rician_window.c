@@ -125,10 +125,10 @@ static void boxes_of(const Grid *g, const float *uk, int64_t K, int64_t first[][
         }
 }
 
-/* Adds spread k (amplitude sk, box fk, profiles pk) to the cells of box fj (acc, V cells)
- * over the two boxes' intersection only, as blocks of the V12 cells of a row: Q holds the
- * product of k's last two profiles inside the intersection and 0 outside. With `mask`, the
- * intersection's cells are also set to 0 there (an earlier box holds them). */
+/* Adds spread k (amplitude sk, box fk, profiles pk) to the cells of box fj (acc, V cells; none
+ * when NULL) over the two boxes' intersection only, as blocks of the V12 cells of a row: Q
+ * holds the product of k's last two profiles inside the intersection and 0 outside. With
+ * `mask`, the intersection's cells are also set to 0 there (an earlier box holds them). */
 static void add_spread(const Grid *g, const int64_t fj[3], const int64_t fk[3], const float pk[3][MAX_W], float sk,
                        float *acc, float *mask) {
     int64_t lo[3], hi[3], lag[3];
@@ -147,9 +147,11 @@ static void add_spread(const Grid *g, const int64_t fj[3], const int64_t fk[3], 
             keep[m * g->W[2] + l] = 0.0f;
         }
     for (int64_t i = lo[0]; i < hi[0]; ++i) {
-        const float si = sk * p0[i];
-        float *ai = acc + i * g->V12;
-        for (int64_t c = 0; c < g->V12; ++c) ai[c] += si * Q[c];
+        if (acc != NULL) {
+            const float si = sk * p0[i];
+            float *ai = acc + i * g->V12;
+            for (int64_t c = 0; c < g->V12; ++c) ai[c] += si * Q[c];
+        }
         if (mask != NULL) {
             float *mi = mask + i * g->V12;
             for (int64_t c = 0; c < g->V12; ++c) mi[c] *= keep[c];
@@ -270,6 +272,49 @@ static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_
     }
 }
 
+/* The change of the windowed Rician log-likelihood when slot n of each of particles [p0, p1)
+ * moves, without a cache (grid.delta.log_likelihood_delta: the MCMC filters' per-target
+ * sweeps on the radar): u, s, live as window_range (K slots); slot (B*P) int64 the moved
+ * slot; u_new (B*P, 3), s_new (B*P) its new coordinates and amplitude (times existence).
+ * Over the old and the new box of slot n: A the other live slots' spreads plus slot n's old
+ * spread, A' the same with its new one, each cell's ratio(A') - ratio(A); the new box's cells
+ * inside the old box counted once (in the old box). Writes delta (B*P). */
+static void move_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t K, const float *u, const float *s,
+                       const uint8_t *live, const int64_t *slot, const float *u_new, const float *s_new,
+                       const float *zc, float half_inv_var, float *delta) {
+    float prof[MAX_K + 1][3][MAX_W];
+    int64_t first[MAX_K + 1][3];
+    float cur[MAX_W * MAX_W * MAX_W], prop[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8];
+    float once[MAX_W * MAX_W * MAX_W];
+    const int64_t V = g->V;
+    for (int64_t q = p0; q < p1; ++q) {
+        const float *sq = s + q * K;
+        const uint8_t *lq = live + q * K;
+        const int64_t n = slot[q];
+        boxes_of(g, u + q * K * 3, K, first, prof);
+        boxes_of(g, u_new + q * 3, 1, first + K, prof + K); /* the new state: index K */
+        double total = 0.0;
+        for (int r = 0; r < 2; ++r) {
+            const int64_t *fj = first[r == 0 ? n : K];
+            for (int64_t c = 0; c < V; ++c) { cur[c] = 0.0f; once[c] = 1.0f; }
+            for (int64_t k = 0; k < K; ++k)
+                if (k != n && lq[k]) add_spread(g, fj, first[k], prof[k], sq[k], cur, NULL);
+            memcpy(prop, cur, (size_t)V * sizeof(float));
+            add_spread(g, fj, first[n], prof[n], sq[n], cur, r == 1 ? once : NULL);
+            add_spread(g, fj, first[K], prof[K], s_new[q], prop, NULL);
+            box_cells_of(g, zc + (q / P) * (g->G + 8), fj, Z, NULL, NULL, 0, NULL);
+            float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+            for (int64_t c = 0; c < V; ++c) {
+                const float d = cell_ratio(prop[c], Z[c], half_inv_var) - cell_ratio(cur[c], Z[c], half_inv_var);
+                acc += once[c] != 0.0f ? d : 0.0f;
+            }
+            total += (double)acc;
+        }
+        delta[q] = (float)total;
+    }
+}
+
 /* The exported calls: samples [0, n) split evenly over `threads` OpenMP threads (one part per
  * thread, so each sample's sum is the same whatever the count), on the calling thread when
  * there are fewer than GRAIN samples a thread or no OpenMP. */
@@ -317,6 +362,15 @@ int rician_delta_cached(int64_t n, int64_t threads, int64_t P, int64_t R, const 
     Grid g;
     if (R > MAX_K || grid_of(&g, shape, geo, window)) return 1;
     SPLIT(n, threads, delta_range(&g, lo, hi, P, R, u, s, cache, zc, (float)half_inv_var, delta, cells, change))
+    return 0;
+}
+
+int rician_move(int64_t n, int64_t threads, int64_t P, int64_t K, const float *u, const float *s, const uint8_t *live,
+                const int64_t *slot, const float *u_new, const float *s_new, const float *zc, const int64_t *shape,
+                const double *geo, int64_t window, double half_inv_var, float *delta) {
+    Grid g;
+    if (K > MAX_K || grid_of(&g, shape, geo, window)) return 1;
+    SPLIT(n, threads, move_range(&g, lo, hi, P, K, u, s, live, slot, u_new, s_new, zc, (float)half_inv_var, delta))
     return 0;
 }
 

@@ -10,7 +10,7 @@ import torch
 
 from ....runtime import take_along
 from ....typing import Tensor
-from . import whole
+from . import native, whole
 from ._protocol import GridSensorLike
 from .amplitudes import log_likelihood_delta_on_grid, whole_grid
 from .inputs import check_inputs, check_move, flat_inputs, slots
@@ -38,6 +38,8 @@ def log_likelihood_delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int 
         e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
         x_new = torch.where(here[..., None], x_n[..., None, :], x)
         return whole.log_likelihood(sensor, x_new, z, e_new) - whole.log_likelihood(sensor, x, z, e_old)
+    if native.applies(sensor, x):  # the radar on the CPU: one C loop a sample, the two boxes on any grid
+        return native.delta(sensor, x, x_n, slots(n, x), z, exists, exists_n).reshape((B,) + S)
     if whole_grid(sensor, 2):  # no more cells than the two boxes: the sum on the whole grid
         slot = n if torch.is_tensor(n) else torch.tensor(n, device=x.device)
         return log_likelihood_delta_on_grid(sensor, x, x_n, slot, z, exists, exists_n)

@@ -50,7 +50,7 @@ from ....typing import Tensor
 from ._protocol import GridSensorLike
 from .inputs import flat_inputs
 
-__all__ = ["available", "applies", "log_likelihood", "delta_cached", "ratio_floor", "FLAGS", "MAX_TARGETS",
+__all__ = ["available", "applies", "log_likelihood", "delta_cached", "delta", "ratio_floor", "FLAGS", "MAX_TARGETS",
            "MAX_WINDOW"]
 
 _SOURCE = Path(__file__).with_name("_rician_window.c")
@@ -124,6 +124,7 @@ def _build() -> ctypes.CDLL | None:
     signatures: dict[str, tuple[Any, list[Any]]] = {
         "rician_window_loglik": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64, ptr]),
         "rician_delta_cached": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64] + [ptr] * 3),
+        "rician_move": (ctypes.c_int, [i64] * 4 + [ptr] * 9 + [i64, f64, ptr]),
         "rician_floor": (f64, [i64] * 3 + [ptr] * 3 + [f64]),
     }
     for name, (restype, argtypes) in signatures.items():
@@ -223,6 +224,45 @@ def _(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: li
     B, P, R = s.shape
     V = shape[3] * shape[4] * shape[5]
     return s.new_empty((B, P)), s.new_empty((B, P, R, V), dtype=torch.int64), s.new_empty((B, P, R, V))
+
+
+@torch.library.custom_op("torchmcmcpf::rician_move", mutates_args=())
+def _move(u: Tensor, s: Tensor, live: Tensor, slot: Tensor, u_new: Tensor, s_new: Tensor, zc: Tensor,
+          shape: list[int], geo: list[float], window: int, half_inv_var: float) -> Tensor:
+    """``u (B, P, K, 3)``, ``s (B, P, K)``, ``live (B, P, K)`` uint8, ``slot (B, P)`` int64,
+    ``u_new (B, P, 3)``, ``s_new (B, P)``, ``zc (B, G + 8)`` -> ``delta (B, P)``.
+    """
+    B, P, K = s.shape
+    u, s, live, slot, u_new, s_new, zc = (t.contiguous() for t in (u, s, live, slot, u_new, s_new, zc))
+    delta = torch.empty((B, P), dtype=torch.float32)
+    lib: Any = _state["lib"]
+    shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
+    ptrs = [t.data_ptr() for t in (u, s, live, slot, u_new, s_new, zc, shape_t, geo_t)]
+    _check(lib.rician_move(B * P, torch.get_num_threads(), P, K, *ptrs, window, half_inv_var, delta.data_ptr()),
+           f"K = {K}")
+    return delta
+
+
+@_move.register_fake
+def _(u: Tensor, s: Tensor, live: Tensor, slot: Tensor, u_new: Tensor, s_new: Tensor, zc: Tensor,
+      shape: list[int], geo: list[float], window: int, half_inv_var: float) -> Tensor:
+    return s.new_empty(s.shape[:2])
+
+
+def delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, slot: Tensor, z: Tensor, exists: Tensor | None = None,
+          exists_n: Tensor | None = None) -> Tensor:
+    """The change when slot ``slot (B, P)`` (int64) of each sample moves to ``x_n``, without
+    a cache, by the C loop (:func:`~.delta.log_likelihood_delta`'s windowed form; the caller
+    checks :func:`applies` and the inputs): ``x (B, *S, K, D)``, ``x_n (B, *S, D)``,
+    ``exists (B, *S, K)``, ``exists_n (B, *S)`` -> ``(B, P)``.
+    """
+    B, D = x.shape[0], x.shape[-1]
+    u, s, e = flat_inputs(sensor, x, exists)  # (B, P, K, 3), (B, P, K) x2
+    P = u.shape[1]
+    x_new = x_n.reshape(B, P, D)
+    e_new = e.gather(2, slot[..., None])[..., 0] if exists_n is None else exists_n.reshape(B, P).to(x.dtype)
+    return _move(u, s, (e > 0).to(torch.uint8), slot, sensor.measurement_coords(x_new), sensor.signal(x_new) * e_new,
+                 _frames(sensor, z), *_geometry(sensor))
 
 
 def _frames(sensor: GridSensorLike, z: Tensor) -> Tensor:
