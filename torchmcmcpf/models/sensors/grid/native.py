@@ -128,7 +128,11 @@ def _build() -> ctypes.CDLL | None:
         "rician_floor": (f64, [i64] * 3 + [ptr] * 3 + [f64]),
     }
     for name, (restype, argtypes) in signatures.items():
-        fn = getattr(lib, name)
+        fn = getattr(lib, name, None)
+        if fn is None:  # a library of another source under this key: not ours to use
+            warnings.warn(f"torchmcmcpf: {target} has no {name}; the tensor path is used", RuntimeWarning,
+                          stacklevel=3)
+            return None
         fn.restype, fn.argtypes = restype, argtypes
     return lib
 
