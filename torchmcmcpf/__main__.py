@@ -60,8 +60,9 @@ DEMO_DEFAULTS = dict(particles=1000, runs=2, steps=20, targets=10, chains=50, bu
 #: ``demo --quick``: one run of 5 steps, 500 particles (seconds)
 DEMO_QUICK = dict(particles=500, runs=1, steps=5, targets=10, chains=50, burn_in=100)
 #: seconds per step of the IP-MCMC-PF at the two presets, measured on a quiet 2-core CPU
-#: (``--no-progress``, 1 torch thread, 2026-12-01): what the demo announces before it runs
-DEMO_SECONDS_PER_STEP = {"default": 0.48, "quick": 0.22}
+#: (``--no-progress``, 1 torch thread, 2026-12-07, AMD EPYC, with the radar's C loop):
+#: what the demo announces before it runs
+DEMO_SECONDS_PER_STEP = {"default": 0.23, "quick": 0.24}
 DEMO_OUTPUTS = ("metrics.json", "tracks.png")
 FILTER_NAMES = {"ipmcmc": "IP-MCMC-PF", "sir": "SIR PF"}
 
