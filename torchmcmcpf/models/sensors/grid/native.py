@@ -13,8 +13,8 @@ Stegun 9.8.1-9.8.2, as :func:`~torchmcmcpf.models.sensors.radar.log_i0_approx`) 
 one vectorised loop of the box's cells. Nothing per cell is stored between passes, the
 neighbour sum is over intersections rather than padded neighbour slots, and no cell is
 evaluated twice: the same sum as the tensor path (:func:`~.window.log_likelihood`) to
-float32 round-off (tested against float64), 4.4x faster than the compiled tensor path on
-the radar SIR's step (benchmarks/README.md). A move read from the chains' amplitude cache
+float32 round-off (tested against float64); the radar SIR's step 3.3x faster than with the
+compiled tensor path (benchmarks/README.md). A move read from the chains' amplitude cache
 (:func:`~.amplitudes.log_likelihood_delta_cached`, box form: the IP-MCMC-PF's and the
 MCMC sweeps' moves) runs the same way: the move's signed spreads over its boxes'
 intersections, each cell once, two ratios a cell.
