@@ -306,7 +306,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
         ``K * prod(W_a)`` cell log-ratios, independent of the grid size. Blocks of at most
         :meth:`window_chunk_size` samples are processed at a time (checkpointed under
         autograd), so temporaries stay within ``memory_budget``. Arguments and result as
-        :meth:`log_likelihood_grid`.
+        :meth:`log_likelihood_grid`. On the CPU in float32 with no gradient to record, a sensor
+        that declares its ratio (:meth:`native_ratio`: the radar) runs the same sum as one C
+        loop per particle (:mod:`.native`: each overlapping target over the boxes'
+        intersection only, to float32 round-off of the tensor form; no temporaries).
         """
         return window.log_likelihood(self, x, z, exists)
 
