@@ -68,11 +68,8 @@ def _sensor_path(sens, path):
         fn = sens.log_likelihood_window
 
         def tensors(x, z):
-            lib, native._state["lib"] = native._state.get("lib"), None
-            try:
+            with native.tensor_path():
                 return fn(x, z)
-            finally:
-                native._state["lib"] = lib
         return tensors
     return getattr(sens, f"log_likelihood_{path}")
 

@@ -21,11 +21,10 @@ pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: t
 
 
 @pytest.fixture
-def tensor_path(monkeypatch):
+def tensor_path():
     """Within the test, the windowed path runs on tensors (as without a compiler)."""
     def run(fn, *args):
-        with monkeypatch.context() as m:
-            m.setitem(native._state, "lib", None)
+        with native.tensor_path():
             return fn(*args)
     return run
 

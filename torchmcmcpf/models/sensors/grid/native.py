@@ -31,6 +31,7 @@ autograd, ``torch.func`` transforms and GPUs always take the tensor path.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import math
@@ -40,6 +41,7 @@ import shutil
 import subprocess
 import tempfile
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -50,8 +52,8 @@ from ....typing import Tensor
 from ._protocol import GridSensorLike
 from .inputs import flat_inputs
 
-__all__ = ["available", "applies", "log_likelihood", "delta_cached", "delta", "ratio_floor", "FLAGS", "MAX_TARGETS",
-           "MAX_WINDOW"]
+__all__ = ["available", "applies", "tensor_path", "log_likelihood", "delta_cached", "delta", "ratio_floor", "FLAGS",
+           "MAX_TARGETS", "MAX_WINDOW"]
 
 _SOURCE = Path(__file__).with_name("_rician_window.c")
 #: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
@@ -145,6 +147,21 @@ def available() -> bool:
     if "lib" not in _state:
         _state["lib"] = None if os.environ.get("TORCHMCMCPF_NATIVE", "1") == "0" else _build()
     return _state["lib"] is not None
+
+
+@contextlib.contextmanager
+def tensor_path() -> Iterator[None]:
+    """Within the block, every path runs on tensors, as on a machine without a compiler (an
+    A/B of the two forms in one process: benchmarks/bench_likelihood.py, the tests).
+    Compiled code guards on the switch, so a compiled call made inside the block recompiles
+    once outside it.
+    """
+    lib = _state.get("lib")
+    _state["lib"] = None
+    try:
+        yield
+    finally:
+        _state["lib"] = lib
 
 
 def applies(sensor: GridSensorLike, x: Tensor) -> bool:
