@@ -1,6 +1,8 @@
 """Where a births/deaths step goes: the IP-MCMC-PF and the MCMC-PF of
-``reproduce septier-birth-death`` (its full settings, B = 10 runs batched, one thread), one
-step profiled after two warm steps, split into the parts of issue 49 item 1 by the
+``reproduce septier-birth-death`` (its full settings, B = 10 runs batched, one thread, the
+study's first shard of 60 steps), three steps timed and one profiled after 30 steps (half way:
+the scene's targets are born over its first steps, and a step at step 2 costs 0.6x a
+representative one), split into the parts of issue 49 item 1 by the
 profiler's inclusive time of the functions that do each part. Run from the repository root:
 
     python benchmarks/profile_birth_death.py
@@ -115,11 +117,11 @@ def _timed(randoms: int, exps: int, logs: int, dtype: torch.dtype) -> float:
         + best(lambda: torch.exp(x, out=ex)) + best(lambda: torch.log(y, out=ly))
 
 
-def profile_step(filt, frames, init: torch.Tensor, parts: dict, inner: list, warm: int = 2
+def profile_step(filt, frames, init: torch.Tensor, parts: dict, inner: list, warm: int = 30, timed: int = 3
                  ) -> tuple[float, float, float, dict]:
-    """One filter's step after ``warm`` steps (``frames(a, e)`` the frames ``a .. e - 1``,
-    ``init`` the initial particles, ``B`` runs): the step timed (wall clock and the process's
-    CPU time, ms per step and run), then the next one profiled; ``parts`` and ``inner`` as
+    """One filter's steps after ``warm`` steps (``frames(a, e)`` the frames ``a .. e - 1``,
+    ``init`` the initial particles, ``B`` runs): ``timed`` steps timed (wall clock and the
+    process's CPU time, ms per step and run), then the next one profiled; ``parts`` and ``inner`` as
     :data:`PARTS` and :data:`INNER` give them for one filter. Returns ``(ms, cpu ms, profiled
     ms of the step, share of each part)``, the rest under "the rest (start, resampling, Python
     and dispatch)". Under ``torch.inference_mode()``, as the studies run their filters.
@@ -127,11 +129,12 @@ def profile_step(filt, frames, init: torch.Tensor, parts: dict, inner: list, war
     b = init.shape[0]
     with torch.inference_mode():
         state = filt(frames(0, warm), init=init, generator=torch.Generator().manual_seed(0)).state
+        filt(frames(warm, warm + 1), init=state, generator=torch.Generator().manual_seed(1))  # first-call costs
         start, cpu = time.perf_counter(), time.process_time()
-        filt(frames(warm, warm + 1), init=state, generator=torch.Generator().manual_seed(1))
-        plain, cpu = time.perf_counter() - start, time.process_time() - cpu
+        state = filt(frames(warm, warm + timed), init=state, generator=torch.Generator().manual_seed(1)).state
+        plain, cpu = (time.perf_counter() - start) / timed, (time.process_time() - cpu) / timed
         with profile(with_stack=True) as prof:
-            filt(frames(warm + 1, warm + 2), init=state, generator=torch.Generator().manual_seed(1))
+            filt(frames(warm + timed, warm + timed + 1), init=state, generator=torch.Generator().manual_seed(1))
     totals = {e.key: e.cpu_time_total for e in prof.key_averages() if "torchmcmcpf" in e.key}
 
     def inclusive(file: str, fn: str) -> float:
@@ -157,7 +160,7 @@ def main() -> None:
     torch.set_num_threads(1)
     tune_cpu_allocator()  # as `python -m torchmcmcpf reproduce` runs the study (torchmcmcpf.runtime)
     cfg = BirthDeathSettings(stonesoup=False)
-    scn = septier(10, 4, generator=shard_generator("cpu", 0, 0))
+    scn = septier(10, cfg.steps, generator=shard_generator("cpu", 0, 0))  # the study's first shard
     b, k = scn.alive.shape[1:]
     motion, sensor, existence, z = our_problem(scn, cfg, torch.device("cpu"))  # in the study's dtype
     init = torch.zeros((b, cfg.particles, k, 4), dtype=z.z.dtype)

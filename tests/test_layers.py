@@ -7,7 +7,7 @@ still an arrow). ``from .x import name`` is an arrow to module ``x`` (to the pac
 
 The layers, bottom to top; a module imports only its own layer and the layers below:
 
-0. foundations: ``_version``, ``typing``, ``_validation``, ``runtime``;
+0. foundations: ``_version``, ``typing``, ``_validation``, ``runtime``, ``_native`` (the C loops);
 1. exporters: ``interop`` (``_layout``, ``arviz``, ``stonesoup``): they read a result
    through the protocols of ``interop._layout``, so that ``state`` can offer
    ``FilterResult.to_xarray`` / ``to_arviz`` / ``to_stonesoup`` without a circle;
@@ -40,7 +40,7 @@ PACKAGE = "torchmcmcpf"
 
 #: module (or package prefix) -> layer; the longest matching prefix wins (module docstring)
 LAYERS: dict[str, int] = {
-    "_version": 0, "typing": 0, "_validation": 0, "runtime": 0,
+    "_version": 0, "typing": 0, "_validation": 0, "runtime": 0, "_native": 0,
     "interop": 1,
     "state": 2, "resampling": 2, "diagnostics": 2,
     "models": 3,

@@ -33,11 +33,15 @@ from typing import Any
 import torch
 
 from ... import runtime
+from ..._native import available
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...resampling import uniform_pick
 from ...runtime import take_along
 from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
+from . import _points_native as native
+from ._points_native import whiten as _whiten
+from ._points_native import whitened_axes as _whitened_axes
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "gauss_exponents", "log_near_points"]
 
@@ -229,27 +233,6 @@ def as_area(area: AreaLike, name: str = "area") -> Tensor:
     return a
 
 
-def _whiten(v: Tensor, W: Tensor, diagonal: bool) -> Tensor:
-    """``v @ W.mT`` for ``v (..., 2)``; with ``diagonal`` (``W`` diagonal) as one product per axis:
-    each entry of the matrix product is ``v_j W_jj`` plus an exact zero, so the same values for
-    finite ``v`` (no BLAS call on a product of inner size 2, 4x the time on a million rows).
-    """
-    if diagonal:
-        return v * torch.diagonal(W)
-    return v @ W.mT
-
-
-def _whitened_axes(a: Tensor, b: Tensor, W: Tensor, diagonal: bool) -> tuple[Tensor, Tensor]:
-    """The two whitened coordinates of the points ``(a, b)`` (each ``(...)``): the values of
-    ``_whiten(stack([a, b], -1), W, diagonal)`` split by axis.
-    """
-    if diagonal:
-        d = torch.diagonal(W)
-        return a * d[0], b * d[1]
-    w = _whiten(torch.stack([a, b], -1), W, diagonal)
-    return w[..., 0], w[..., 1]
-
-
 def gauss_exponents(a: Tensor, b: Tensor, pts: Tensor, *, W: Tensor, diagonal: bool, centre: Tensor,
                     const: Tensor | float, mask: Tensor | None = None) -> Tensor:
     """``const - 0.5 |W (h - z_m)|^2`` for every position ``h = (a, b)`` and point ``z_m``: the
@@ -322,13 +305,18 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
         mask = torch.ones((b, m), dtype=torch.bool, device=pts.device)
     log_norm = float(torch.log(torch.abs(torch.det(W.to(torch.float64))))) - math.log(2 * math.pi)
     centre = area.to(torch.float64).mean(-1)
-    log_g = gauss_exponents(pos[..., 0], pos[..., 1], pts, W=W, diagonal=diagonal, centre=centre, const=log_norm,
-                            mask=mask)  # (B, *S, M), -inf off the mask
-    log_g = log_g.to(pos.dtype)
-    fresh = runtime.in_place(pos)
     n_valid = mask.sum(-1).to(pos.dtype).reshape(lead)
-    lse = _logsumexp_fast if fresh else torch.logsumexp  # the same bits
-    log_near = lse(log_g, -1) - torch.log(n_valid.clamp(min=1))
+    if native.applies(pos) and m > 0:  # the C loop: one sum a position, no (B, *S, M) tensor
+        q = native.centred(pos[..., 0], pos[..., 1], W, diagonal, centre).reshape(b, -1, 2)
+        w = native.centred(pts[..., 0], pts[..., 1], W, diagonal, centre).transpose(1, 2)  # (B, 2, M)
+        lse_near = native.near(q, w, mask.to(torch.uint8), log_norm).reshape(pos.shape[:-1]).to(pos.dtype)
+    else:
+        log_g = gauss_exponents(pos[..., 0], pos[..., 1], pts, W=W, diagonal=diagonal, centre=centre,
+                                const=log_norm, mask=mask)  # (B, *S, M), -inf off the mask
+        log_g = log_g.to(pos.dtype)
+        lse = _logsumexp_fast if runtime.in_place(pos) else torch.logsumexp  # the same bits
+        lse_near = lse(log_g, -1)
+    log_near = lse_near - torch.log(n_valid.clamp(min=1))
     log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
     log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
     log_q = torch.logaddexp(log_pi + log_u, log_pn + log_near)
@@ -411,6 +399,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         self.meas_dim = 2
         self.frame_shape = (None, 2)
         self._log_norm = -math.log(2 * math.pi) - float(torch.log(torch.diagonal(L)).sum())
+        available()  # the C loops built (once per machine) or found now, not inside a compiled step
 
     # -- likelihood ---------------------------------------------------------------------
     def log_intensity_terms(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
@@ -426,13 +415,33 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         return gauss_exponents(x[..., X], x[..., Y], z, W=self.W, diagonal=self.diagonal, centre=self.centre,
                                const=const)
 
+    def _native_positions(self, a: Tensor, b: Tensor) -> Tensor:
+        """Whitened, centred positions for the C loops: ``a, b (...)`` -> ``(..., 2)`` float64."""
+        return native.centred(a, b, self.W, self.diagonal, self.centre)
+
+    def _native_points(self, pts: Tensor) -> Tensor:
+        """The frame's points for the C loops: ``(B, M, 2)`` -> whitened, centred, by axis ``(B, 2, M)``."""
+        return self._native_positions(pts[..., 0], pts[..., 1]).transpose(1, 2)
+
+    def _native_consts(self, exists: Tensor | None, shape: tuple[int, ...], device: torch.device) -> Tensor:
+        """Each slot's ``log(L_x / (2 pi |R|^1/2))``, ``-inf`` where inactive: ``(..., K)`` float64."""
+        log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
+        const = torch.tensor(log_rate + self._log_norm, dtype=torch.float64, device=device)
+        return const.expand(shape) if exists is None else torch.where(exists, const, -math.inf)
+
     def intensity(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """The Poisson intensity at every point (module docstring; :func:`_intensity_eager`):
         ``lambda_m = L_C / V + L_x sum_n e_n N(z_m; H x_n, R)``, ``(B, *S, K, D), (B, M, 2),
         (B, *S, K) -> (B, *S, M)`` float64; needs ``L_C > 0``. Differentiable in ``x``.
         """
-        terms = self.log_intensity_terms(x, z, exists)  # an inactive slot's terms are -inf: rate 0
         clutter = self.clutter_rate / self.volume
+        if native.applies(x):  # the C loop: no (B, *S, K, M) tensor
+            lead, k = tuple(x.shape[:-2]), x.shape[-2]
+            lam = native.intensity(self._native_positions(x[..., X], x[..., Y]).reshape(lead[0], -1, k, 2),
+                                   self._native_consts(exists, lead + (k,), x.device).reshape(lead[0], -1, k),
+                                   self._native_points(z), clutter)
+            return lam.reshape(lead + (z.shape[1],))
+        terms = self.log_intensity_terms(x, z, exists)  # an inactive slot's terms are -inf: rate 0
         if runtime.generated_reductions():  # compiled: eager's kernels, eager's bits
             return _intensity(terms, clutter)
         return _intensity_eager(terms, clutter, in_place=runtime.in_place(x))
@@ -571,14 +580,22 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         x_old = take_along(x, slot.unsqueeze(-1), -2)
         e_old = torch.ones_like(slot, dtype=torch.bool) if exists is None else take_along(exists, slot, -1)
         e_new = e_old if exists_n is None else (exists_n if many else exists_n.unsqueeze(-1)).expand(slot.shape)
+        valid = torch.ones(pts.shape[:2], dtype=torch.bool, device=x.device) if mask is None else mask
+        born = (e_new.to(x.dtype) - e_old.to(x.dtype)).sum(-1)
+        if native.applies(x):  # the C loop: the moved slots' terms, a log where an intensity changes
+            both, flags = torch.cat([x_old, xn], -2), torch.cat([e_old, e_new], -1)  # (B, *S, 2V, D), (B, *S, 2V)
+            rows = (lead[0], -1, flags.shape[-1])
+            log_ratio, change = native.delta(self._native_positions(both[..., X], both[..., Y]).reshape(rows + (2,)),
+                                             self._native_consts(flags, flags.shape, x.device).reshape(rows),
+                                             self._native_points(pts), valid.to(torch.uint8),
+                                             cache.reshape(lead[0], -1, m))
+            return log_ratio.reshape(lead).to(x.dtype) - self.detection_rate * born, None, change.reshape(cache.shape)
         # (B, *S, 2V, M), an inactive slot's terms -inf
         terms = self.log_intensity_terms(torch.cat([x_old, xn], -2), pts, torch.cat([e_old, e_new], -1))
-        valid = torch.ones(pts.shape[:2], dtype=torch.bool, device=x.device) if mask is None else mask
         valid = valid.reshape((valid.shape[0],) + (1,) * (len(lead) - 1) + (m,)).expand(lead + (m,))
         flat = (terms.reshape(-1, *terms.shape[-2:]), xn.shape[-2], cache.reshape(-1, m), valid.reshape(-1, m))
         log_ratio, change = _intensity_change(*flat) if runtime.generated_reductions() else \
             _intensity_change_eager(*flat, in_place=runtime.in_place(x))
-        born = (e_new.to(x.dtype) - e_old.to(x.dtype)).sum(-1)
         delta = log_ratio.reshape(lead).to(x.dtype) - self.detection_rate * born
         return delta, None, change.reshape(cache.shape)
 

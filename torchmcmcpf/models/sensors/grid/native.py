@@ -19,149 +19,32 @@ compiled tensor path (benchmarks/README.md). A move read from the chains' amplit
 MCMC sweeps' moves) runs the same way: the move's signed spreads over its boxes'
 intersections, each cell once, two ratios a cell.
 
-The C source is compiled once per machine by the host's C compiler (``$CC``, else ``cc``;
-``-O3 -march=native``) into a cache folder (``$TORCHMCMCPF_CACHE``, else
-``~/.cache/torchmcmcpf``), keyed by the source, the compiler and the CPU, and called through
-``ctypes``, the samples split evenly over ``torch.get_num_threads()`` of torch's own OpenMP
-threads (each sample's sum is the same whatever the count). The calls are ``torch.library``
-custom ops, so compiled filters keep one graph. Without a compiler, or with
-``TORCHMCMCPF_NATIVE=0``, the tensor path runs, the same values to round-off; float64,
-autograd, ``torch.func`` transforms and GPUs always take the tensor path.
+The loop is ``torchmcmcpf/_native/rician_window.c``, built with the library's other C loops
+(:mod:`torchmcmcpf._native`: once per machine, ``ctypes``, the samples split over torch's
+OpenMP threads). The calls are ``torch.library`` custom ops, so compiled filters keep one
+graph. Without a compiler, or with ``TORCHMCMCPF_NATIVE=0``, the tensor path runs, the same
+values to round-off; float64, autograd, ``torch.func`` transforms and GPUs always take the
+tensor path.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
-import hashlib
 import math
-import os
-import platform
-import shutil
-import subprocess
-import tempfile
-import warnings
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import torch
 
 from .... import runtime
+from ...._native import available, library, tensor_path
 from ....typing import Tensor
 from ._protocol import GridSensorLike
 from .inputs import flat_inputs
 
-__all__ = ["available", "applies", "tensor_path", "log_likelihood", "delta_cached", "delta", "ratio_floor", "FLAGS",
+__all__ = ["available", "applies", "tensor_path", "log_likelihood", "delta_cached", "delta", "ratio_floor",
            "MAX_TARGETS", "MAX_WINDOW"]
 
-_SOURCE = Path(__file__).with_name("_rician_window.c")
-#: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
-#: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation).
-#: ``-fopenmp`` first: the loop then runs on torch's own OpenMP threads (its wheel's
-#: ``libgomp.so.1``, already loaded, is the one the loop links to); a compiler without
-#: OpenMP builds it serial (``-fopenmp-simd``: the vector loops only)
-FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC")
-_THREADING = ("-fopenmp", "-fopenmp-simd")
 #: the C loop's static buffers: targets per particle and cells per box axis
 MAX_TARGETS, MAX_WINDOW = 64, 16
-
-_state: dict[str, object] = {}
-
-
-def _cpu_key() -> str:
-    """What ``-march=native`` depends on: the CPU's model and flags."""
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-        return "".join(sorted({ln for ln in lines if ln.startswith(("model name", "flags"))}))
-    except OSError:
-        return platform.processor() + platform.machine()
-
-
-def _build() -> ctypes.CDLL | None:
-    """Compile (once per machine and source) and load the C loop; ``None`` with a warning
-    when no compiler is found or the build fails.
-    """
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        warnings.warn("torchmcmcpf: no C compiler found; the radar's windowed likelihood uses the tensor path",
-                      RuntimeWarning, stacklevel=3)
-        return None
-    source = _SOURCE.read_bytes()
-    try:
-        version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60).stdout
-    except (OSError, subprocess.SubprocessError):
-        version = ""
-    key = hashlib.sha256(b"\0".join([source, cc.encode(), version.encode(), " ".join(FLAGS + _THREADING).encode(),
-                                     _cpu_key().encode()])).hexdigest()[:16]
-    folder = Path(os.environ.get("TORCHMCMCPF_CACHE") or Path.home() / ".cache" / "torchmcmcpf")
-    target = folder / f"rician_window-{key}.so"
-    if not target.exists():
-        errors = []
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            errors.append(f"cannot make {folder}: {err}")
-        for threading in _THREADING if not errors else ():
-            try:
-                with tempfile.TemporaryDirectory(dir=folder) as tmp:
-                    built = Path(tmp) / target.name
-                    subprocess.run([cc, *FLAGS, threading, str(_SOURCE), "-o", str(built), "-lm"], check=True,
-                                   capture_output=True, text=True, timeout=300)
-                    os.replace(built, target)  # atomic: concurrent builders leave one whole file
-                break
-            except (OSError, subprocess.SubprocessError) as err:
-                errors.append((getattr(err, "stderr", "") or str(err)).strip()[:300])
-        else:
-            warnings.warn(f"torchmcmcpf: building the radar's C loop failed ({' / '.join(errors)}); "
-                          "the tensor path is used", RuntimeWarning, stacklevel=3)
-            return None
-    try:
-        lib = ctypes.CDLL(str(target))
-    except OSError as err:  # a file another machine's build left, or a damaged one
-        warnings.warn(f"torchmcmcpf: loading the radar's C loop {target} failed ({err}); the tensor path is used",
-                      RuntimeWarning, stacklevel=3)
-        return None
-    i64, ptr, f64 = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double
-    signatures: dict[str, tuple[Any, list[Any]]] = {
-        "rician_window_loglik": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64, ptr]),
-        "rician_delta_cached": (ctypes.c_int, [i64] * 4 + [ptr] * 6 + [i64, f64] + [ptr] * 3),
-        "rician_move": (ctypes.c_int, [i64] * 4 + [ptr] * 9 + [i64, f64, ptr]),
-        "rician_floor": (f64, [i64] * 3 + [ptr] * 3 + [f64]),
-    }
-    for name, (restype, argtypes) in signatures.items():
-        fn = getattr(lib, name, None)
-        if fn is None:  # a library of another source under this key: not ours to use
-            warnings.warn(f"torchmcmcpf: {target} has no {name}; the tensor path is used", RuntimeWarning,
-                          stacklevel=3)
-            return None
-        fn.restype, fn.argtypes = restype, argtypes
-    return lib
-
-
-def available() -> bool:
-    """Whether the C loop is built and loaded (building it on the first call; ``False`` with
-    ``TORCHMCMCPF_NATIVE=0``). Called eagerly when a radar sensor is made, so that compiled
-    code reads a settled answer.
-    """
-    if "lib" not in _state:
-        _state["lib"] = None if os.environ.get("TORCHMCMCPF_NATIVE", "1") == "0" else _build()
-    return _state["lib"] is not None
-
-
-@contextlib.contextmanager
-def tensor_path() -> Iterator[None]:
-    """Within the block, every path runs on tensors, as on a machine without a compiler (an
-    A/B of the two forms in one process: benchmarks/bench_likelihood.py, the tests).
-    Compiled code guards on the switch, so a compiled call made inside the block recompiles
-    once outside it.
-    """
-    lib = _state.get("lib")
-    _state["lib"] = None
-    try:
-        yield
-    finally:
-        _state["lib"] = lib
 
 
 def applies(sensor: GridSensorLike, x: Tensor) -> bool:
@@ -174,7 +57,7 @@ def applies(sensor: GridSensorLike, x: Tensor) -> bool:
         ratio is not None and ratio[0] == "rician" and sensor.n_axes == 3 and x.device.type == "cpu"
         and x.dtype == torch.float32 and not (x.requires_grad and torch.is_grad_enabled())
         and not runtime.in_function_transform() and x.shape[-2] <= MAX_TARGETS
-        and max(sensor.geometry.window_sizes) <= MAX_WINDOW and _state.get("lib") is not None
+        and max(sensor.geometry.window_sizes) <= MAX_WINDOW and library() is not None
     )
 
 
@@ -188,7 +71,7 @@ def _loglik(u: Tensor, s: Tensor, live: Tensor, zc: Tensor, shape: list[int], ge
     B, P, K = s.shape
     u, s, live, zc = (t.contiguous() for t in (u, s, live, zc))
     out = torch.empty((B, P), dtype=torch.float32)
-    lib: Any = _state["lib"]
+    lib: Any = library()
     shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
     ptrs = [u.data_ptr(), s.data_ptr(), live.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
     _check(lib.rician_window_loglik(B * P, torch.get_num_threads(), P, K, *ptrs, window, half_inv_var,
@@ -231,7 +114,7 @@ def _delta_cached(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[i
     delta = torch.empty((B, P), dtype=torch.float32)
     cells = torch.empty((B, P, R, V), dtype=torch.int64)
     change = torch.empty((B, P, R, V), dtype=torch.float32)
-    lib: Any = _state["lib"]
+    lib: Any = library()
     shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
     ptrs = [u.data_ptr(), s.data_ptr(), cache.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
     _check(lib.rician_delta_cached(B * P, torch.get_num_threads(), P, R, *ptrs, window, half_inv_var,
@@ -256,7 +139,7 @@ def _move(u: Tensor, s: Tensor, live: Tensor, slot: Tensor, u_new: Tensor, s_new
     B, P, K = s.shape
     u, s, live, slot, u_new, s_new, zc = (t.contiguous() for t in (u, s, live, slot, u_new, s_new, zc))
     delta = torch.empty((B, P), dtype=torch.float32)
-    lib: Any = _state["lib"]
+    lib: Any = library()
     shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
     ptrs = [t.data_ptr() for t in (u, s, live, slot, u_new, s_new, zc, shape_t, geo_t)]
     _check(lib.rician_move(B * P, torch.get_num_threads(), P, K, *ptrs, window, half_inv_var, delta.data_ptr()),
@@ -326,6 +209,6 @@ def ratio_floor(amp: Tensor, prof: Tensor, zc: Tensor, half_inv_var: float) -> f
     floor of a windowed radar step in this loop's code
     (:func:`~torchmcmcpf.bench.peers.radar_floor`). Needs :func:`available`.
     """
-    lib: Any = _state["lib"]
+    lib: Any = library()
     return float(lib.rician_floor(amp.numel(), torch.get_num_threads(), prof.numel(), amp.data_ptr(), prof.data_ptr(),
                                   zc.data_ptr(), half_inv_var))

@@ -8,11 +8,10 @@
  * 21 per target, not per cell).
  */
 #include <math.h>
-#ifdef _OPENMP
-#include <omp.h> /* torch's own libgomp when loaded beside it (the same soname): its threads */
-#endif
 #include <stdint.h>
 #include <string.h>
+
+#include "split.h"
 
 /* Abramowitz and Stegun 9.8.1 and 9.8.2, as torchmcmcpf.models.sensors.radar.log_i0_approx */
 #define P_S0 1.0f
@@ -314,34 +313,6 @@ static void move_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t
         delta[q] = (float)total;
     }
 }
-
-/* The exported calls: samples [0, n) split evenly over `threads` OpenMP threads (one part per
- * thread, so each sample's sum is the same whatever the count), on the calling thread when
- * there are fewer than GRAIN samples a thread or no OpenMP. */
-#define GRAIN 8
-
-#ifdef _OPENMP
-#define SPLIT(n, threads, call)                                                        \
-    {                                                                                  \
-        const int64_t n_ = (n);                                                        \
-        const int nt_ = (int)(threads), go_ = nt_ > 1 && n_ >= 2 * GRAIN;             \
-        _Pragma("omp parallel num_threads(nt_) if (go_)")                              \
-        {                                                                              \
-            const int64_t t_ = omp_get_thread_num(), T_ = omp_get_num_threads();       \
-            const int64_t lo = n_ * t_ / T_, hi = n_ * (t_ + 1) / T_, part = t_;       \
-            (void)part;                                                                \
-            call;                                                                      \
-        }                                                                              \
-    }
-#else
-#define SPLIT(n, threads, call)                 \
-    {                                           \
-        const int64_t lo = 0, hi = (n), part = 0; \
-        (void)part;                             \
-        (void)(threads);                        \
-        call;                                   \
-    }
-#endif
 
 /* rician_window_loglik, rician_delta_cached: window_range, delta_range over n = B*P samples;
  * shape N0 N1 N2 W0 W1 W2, geo the axes' (origin, cell size, 1/(sqrt2 width)), window the
