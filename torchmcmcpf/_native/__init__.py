@@ -55,7 +55,9 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "points_intensity": (_int, [_i64] * 5 + [_ptr] * 3 + [_f64, _ptr]),
     "points_delta": (_int, [_i64] * 5 + [_ptr] * 7),
     "points_near": (_int, [_i64] * 4 + [_ptr] * 3 + [_f64, _ptr]),
+    "points_log_sum": (_int, [_i64] * 4 + [_ptr] * 3),
     "points_exp": (None, [_i64, _ptr, _ptr]),
+    "points_log": (None, [_i64, _ptr, _ptr]),
 }
 
 _state: dict[str, Any] = {}

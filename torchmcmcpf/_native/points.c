@@ -48,6 +48,43 @@ static inline double exp_flushed(double t) {
     return keep ? y * scale.d : 0.0;
 }
 
+/* log x in float64, vectorisable: x = m 2^e with m in [sqrt(1/2), sqrt(2)), s = (m - 1) / (m + 1),
+ * log m = 2 atanh(s) by its series to s^21 (|s| <= 0.172: truncation below 1e-18 relative), e ln 2
+ * in two parts (fdlibm's split); subnormals scaled by 2^54 first; 0, negatives, inf and NaN as
+ * libm. Error about 2 ulps of the result (tested against torch.log). */
+static inline double log_vec(double x) {
+    const int tiny = x < 2.2250738585072014e-308;
+    union { double d; int64_t i; } v = { tiny ? x * 18014398509481984.0 : x }; /* 2^54 */
+    int64_t e = ((v.i >> 52) & 0x7ff) - 1023 - (tiny ? 54 : 0);
+    v.i = (v.i & 0x000fffffffffffffLL) | 0x3ff0000000000000LL; /* m in [1, 2) */
+    const int high = v.d > 1.4142135623730951;
+    const double m = high ? 0.5 * v.d : v.d;
+    e += high;
+    const double s = (m - 1.0) / (m + 1.0), z = s * s;
+    double y = 1.0 / 21.0;
+    y = y * z + 1.0 / 19.0;
+    y = y * z + 1.0 / 17.0;
+    y = y * z + 1.0 / 15.0;
+    y = y * z + 1.0 / 13.0;
+    y = y * z + 1.0 / 11.0;
+    y = y * z + 1.0 / 9.0;
+    y = y * z + 1.0 / 7.0;
+    y = y * z + 1.0 / 5.0;
+    y = y * z + 1.0 / 3.0;
+    const double fe = (double)e;
+    const double r = fe * 6.93147180369123816490e-01 + (fe * 1.90821492927058770002e-10 + (2.0 * s + 2.0 * s * z * y));
+    /* the special values, by selects (NaN kept through the last one) */
+    const double special = x == 0.0 ? -INFINITY : (x < 0.0 ? NAN : x);
+    return x > 0.0 && x < INFINITY ? r : special;
+}
+
+/* The loops over a sample's M points go LANES at a time, a fixed count the compiler makes one
+ * or two vector operations: a loop of M iterations would be peeled for alignment and finished
+ * by scalar iterations, each a whole exp or log (for M = 41, 160 ns a sample of such overhead,
+ * 4x the vector work). The last, partial block reads the last point again (index clamped) and
+ * drops those lanes. */
+#define LANES 8
+
 /* Adds sign * exp(c - |p - w_m|^2 / 2) to acc[m], m < M; w0, w1 the points' whitened axes */
 static inline void add_terms(int64_t M, const double *w0, const double *w1, const double *p, double c, double sign,
                              double *acc) {
@@ -56,6 +93,33 @@ static inline void add_terms(int64_t M, const double *w0, const double *w1, cons
     for (int64_t m = 0; m < M; ++m) {
         const double d0 = p0 - w0[m], d1 = p1 - w1[m];
         acc[m] += sign * exp_flushed(c - 0.5 * (d0 * d0 + d1 * d1));
+    }
+}
+
+/* out[r] = the sum over the valid points (valid (M)) of log lam_rm for R consecutive rows of M.
+ * The logs of all R M numbers in one flat loop (a loop over one row's 41 points is
+ * peeled and finished by scalar iterations, 4x the vector work), a block of CHUNK at a time. */
+#define CHUNK 4096
+static void sum_logs(int64_t R, int64_t M, const double *lam, const uint8_t *valid, double *out) {
+    double buf[CHUNK];
+    const int64_t rows = M > 0 && M <= CHUNK ? CHUNK / M : 1;
+    for (int64_t r0 = 0; r0 < R; r0 += rows) {
+        const int64_t nr = R - r0 < rows ? R - r0 : rows;
+        for (int64_t r = 0; r < nr; ++r) out[r0 + r] = 0.0;
+        for (int64_t e0 = 0; e0 < nr * M; e0 += CHUNK) { /* one row of more than CHUNK points in parts */
+            const int64_t ne = nr * M - e0 < CHUNK ? nr * M - e0 : CHUNK;
+            const double *l = lam + r0 * M + e0;
+#pragma omp simd
+            for (int64_t e = 0; e < ne; ++e) buf[e] = log_vec(l[e]);
+            const int64_t first = e0 / M;
+            for (int64_t e = 0, r = first, m = e0 - first * M; e < ne; ++r, m = 0) { /* row by row */
+                const int64_t n = ne - e < M - m ? ne - e : M - m;
+                double acc = 0.0;
+                for (int64_t k = 0; k < n; ++k) acc += valid[m + k] ? buf[e + k] : 0.0;
+                out[r0 + r] += acc;
+                e += n;
+            }
+        }
     }
 }
 
@@ -77,18 +141,21 @@ static void intensity_range(int64_t i0, int64_t i1, int64_t P, int64_t K, int64_
 /* points_delta: a move of V slots read from the samples' intensities cache (n, M): p (n, 2V, 2)
  * and c (n, 2V) the old then the new terms' positions and constants; change (n, M) = the new
  * terms minus the old, delta (n) = sum over the valid points (mask (B, M)) of
- * log((cache + change) / cache), a log only where the change is not 0. */
+ * log((cache + change) / cache), a log only where the change is not 0 (or the cache NaN). */
 static void delta_range(int64_t i0, int64_t i1, int64_t P, int64_t V, int64_t M, const double *p, const double *c,
                         const double *w, const uint8_t *mask, const double *cache, double *delta, double *change) {
     for (int64_t i = i0; i < i1; ++i) {
         const int64_t b = i / P;
-        const double *w0 = w + b * 2 * M, *w1 = w0 + M, *lam = cache + i * M;
-        const uint8_t *valid = mask + b * M;
+        const double *w0 = w + b * 2 * M, *w1 = w0 + M;
         double *ch = change + i * M;
         for (int64_t m = 0; m < M; ++m) ch[m] = 0.0;
         for (int64_t j = 0; j < 2 * V; ++j)
             if (c[i * 2 * V + j] != -INFINITY)
                 add_terms(M, w0, w1, p + (i * 2 * V + j) * 2, c[i * 2 * V + j], j < V ? -1.0 : 1.0, ch);
+    }
+    for (int64_t i = i0; i < i1; ++i) { /* a log where a point's intensity changes: about 8 % of them */
+        const double *lam = cache + i * M, *ch = change + i * M;
+        const uint8_t *valid = mask + (i / P) * M;
         double acc = 0.0;
         for (int64_t m = 0; m < M; ++m)
             if (valid[m] && (ch[m] != 0.0 || lam[m] != lam[m])) acc += log((lam[m] + ch[m]) / lam[m]);
@@ -96,11 +163,9 @@ static void delta_range(int64_t i0, int64_t i1, int64_t P, int64_t V, int64_t M,
     }
 }
 
-#define LANES 8 /* positions a block: one vector of doubles on AVX-512, two on AVX2 */
-
 /* points_near: out (n) = log sum over the valid points of exp(c - |q_i - w_m|^2 / 2), q (n, 2);
  * -inf for a run without valid points, NaN for a NaN position. Positions in blocks of LANES of
- * one run, the points in turn (one vector of terms a point). One pass shifted by c (no term
+ * one run, the points in turn (one vector of terms a point, no per-position loop). One pass shifted by c (no term
  * exceeds e^c): where a sum is above e^-600, the terms it flushed (each below e^-700) are
  * below 1e-40 of it; below, a second pass for that position shifted by its largest term. */
 static void near_range(int64_t i0, int64_t i1, int64_t P, int64_t M, const double *q, const double *w,
@@ -150,6 +215,22 @@ static void near_range(int64_t i0, int64_t i1, int64_t P, int64_t M, const doubl
     }
 }
 
+/* points_log_sum: out (n) = sum over the valid points (mask (B, M)) of log lam[i, m], lam (n, M) */
+static void log_sum_range(int64_t i0, int64_t i1, int64_t P, int64_t M, const double *lam, const uint8_t *mask,
+                          double *out) {
+    for (int64_t i = i0; i < i1;) { /* run by run (each its own mask) */
+        const int64_t b = i / P, end = (b + 1) * P < i1 ? (b + 1) * P : i1;
+        sum_logs(end - i, M, lam + i * M, mask + b * M, out + i);
+        i = end;
+    }
+}
+
+int points_log_sum(int64_t n, int64_t threads, int64_t P, int64_t M, const double *lam, const uint8_t *mask,
+                   double *out) {
+    SPLIT(n, threads, log_sum_range(lo, hi, P, M, lam, mask, out))
+    return 0;
+}
+
 int points_intensity(int64_t n, int64_t threads, int64_t P, int64_t K, int64_t M, const double *p, const double *c,
                      const double *w, double clutter, double *lam) {
     SPLIT(n, threads, intensity_range(lo, hi, P, K, M, p, c, w, clutter, lam))
@@ -168,8 +249,13 @@ int points_near(int64_t n, int64_t threads, int64_t P, int64_t M, const double *
     return 0;
 }
 
-/* exp_flushed on n numbers, for its test against libm */
+/* exp_flushed and log_vec on n numbers, for their tests against libm */
 void points_exp(int64_t n, const double *t, double *out) {
 #pragma omp simd
     for (int64_t i = 0; i < n; ++i) out[i] = exp_flushed(t[i]);
+}
+
+void points_log(int64_t n, const double *t, double *out) {
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) out[i] = log_vec(t[i]);
 }

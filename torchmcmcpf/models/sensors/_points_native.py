@@ -14,6 +14,8 @@ tensor stored:
 - :func:`delta`: a move of ``V`` slots read from that cache, the change of every point's
   intensity and ``sum_m log(lambda'_m / lambda_m)``, a ``log`` only where a point's intensity
   changes (a one-slot move leaves most of them exactly as they were: far terms flush);
+- :func:`log_sum`: ``sum_m log lambda_m`` over a run's valid points (the log-likelihood from
+  the intensities), with the loops' vectorised ``log``;
 - :func:`near`: ``logsumexp_m (c - |q - w_m|^2 / 2)`` over a run's valid points, the birth and
   relocation proposals' data density (:func:`~.points.log_near_points`).
 
@@ -34,7 +36,7 @@ from ... import runtime
 from ..._native import library
 from ...typing import Tensor
 
-__all__ = ["applies", "whiten", "whitened_axes", "intensity", "delta", "near"]
+__all__ = ["applies", "whiten", "whitened_axes", "centred", "intensity", "delta", "near", "log_sum", "elementwise"]
 
 
 def applies(x: Tensor) -> bool:
@@ -142,9 +144,29 @@ def _(q: Tensor, w: Tensor, mask: Tensor, c: float) -> Tensor:
     return q.new_empty(tuple(q.shape[:2]))
 
 
-def exp_flushed(t: Tensor) -> Tensor:
-    """The loops' exponential on a float64 CPU tensor (for its test against ``torch.exp``)."""
+@torch.library.custom_op("torchmcmcpf::points_log_sum", mutates_args=())
+def log_sum(lam: Tensor, mask: Tensor) -> Tensor:
+    """``sum_m log lam_m`` over each run's valid points: ``lam (B, P, M)`` float64, ``mask (B,
+    M)`` uint8 -> ``(B, P)`` float64 (the loops' vectorised ``log``).
+    """
+    B, P, M = lam.shape
+    lam, mask = lam.contiguous(), mask.contiguous()
+    out = torch.empty((B, P), dtype=torch.float64)
+    lib: Any = library()
+    lib.points_log_sum(B * P, torch.get_num_threads(), P, M, _n(lam), _n(mask), _n(out))
+    return out
+
+
+@log_sum.register_fake
+def _(lam: Tensor, mask: Tensor) -> Tensor:
+    return lam.new_empty(tuple(lam.shape[:2]))
+
+
+def elementwise(name: str, t: Tensor) -> Tensor:
+    """The loops' ``exp`` (``name = "exp"``, flushed) or ``log`` on a float64 CPU tensor (for
+    their tests against ``torch.exp`` and ``torch.log``).
+    """
     t = t.contiguous()
     out = torch.empty_like(t)
-    library().points_exp(t.numel(), _n(t), _n(out))
+    getattr(library(), f"points_{name}")(t.numel(), _n(t), _n(out))
     return out

@@ -437,8 +437,9 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         clutter = self.clutter_rate / self.volume
         if native.applies(x):  # the C loop: no (B, *S, K, M) tensor
             lead, k = tuple(x.shape[:-2]), x.shape[-2]
-            lam = native.intensity(self._native_positions(x[..., X], x[..., Y]).reshape(lead[0], -1, k, 2),
-                                   self._native_consts(exists, lead + (k,), x.device).reshape(lead[0], -1, k),
+            rows = (lead[0], math.prod(lead[1:]), k)  # explicit: K = 0 or M = 0 too
+            lam = native.intensity(self._native_positions(x[..., X], x[..., Y]).reshape(rows + (2,)),
+                                   self._native_consts(exists, lead + (k,), x.device).reshape(rows),
                                    self._native_points(z), clutter)
             return lam.reshape(lead + (z.shape[1],))
         terms = self.log_intensity_terms(x, z, exists)  # an inactive slot's terms are -inf: rate 0
@@ -465,8 +466,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         """
         pts, mask = split_points(z)
         if self.clutter_rate > 0:
-            lam = self.intensity(x, pts, exists)  # (B, *S, M) float64
-            return self._sum_over_points(lam.log_() if runtime.in_place(x) else lam.log(), mask, x, exists)
+            return self.log_likelihood_of_cache(self.intensity(x, pts, exists), x, z, exists, fresh=True)
         terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
         if exists is not None:
             terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
@@ -475,20 +475,24 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         return self._sum_over_points(lse(terms, -2), mask, x, exists)  # (B, *S, M) summed
 
     def log_likelihood_of_cache(self, cache: Tensor, x: Tensor, z: PointMeasurement,
-                                exists: Tensor | None = None) -> Tensor:
+                                exists: Tensor | None = None, *, fresh: bool = False) -> Tensor:
         """:meth:`log_likelihood` from the intensities ``cache (B, *S, M)`` of ``x`` (:meth:`amplitude_cache`;
-        ``cache`` is not changed): the same arithmetic after the intensity, the same bits.
+        ``cache`` is not changed unless ``fresh``: a temporary the logs may overwrite): the
+        same arithmetic after the intensity, the same bits.
         """
-        return self._sum_over_points(cache.log(), split_points(z)[1], x, exists)
+        mask = split_points(z)[1]
+        if native.applies(x):  # the C loop: one vectorised log a point, summed where valid
+            lead, m = tuple(cache.shape[:-1]), cache.shape[-1]
+            valid = torch.ones((lead[0], m), dtype=torch.uint8) if mask is None else mask.to(torch.uint8)
+            total = native.log_sum(cache.reshape(lead[0], math.prod(lead[1:]), m), valid).reshape(lead)
+            return self._minus_count(total, x, exists)
+        logs = cache.log_() if fresh and runtime.in_place(x) else cache.log()
+        return self._sum_over_points(logs, mask, x, exists)
 
     def _sum_over_points(self, per_point: Tensor, mask: Tensor | None, x: Tensor, exists: Tensor | None) -> Tensor:
         """``sum_m log lambda_m`` over the valid points minus the expected count ``L_C + L_x
         n``: ``per_point (B, *S, M)`` the logs, ``mask (B, M)`` or None -> ``(B, *S)``.
         """
-        if exists is not None:
-            n_live = exists.to(x.dtype).sum(-1)
-        else:
-            n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
             per_point = torch.where(m, per_point, torch.zeros_like(per_point))
@@ -497,6 +501,16 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         # own inner reduction adds the M terms in another order: last-bit differences).
         ones = torch.ones(per_point.shape[-1], 1, dtype=per_point.dtype, device=per_point.device)
         total = (per_point.flatten(0, -2) @ ones).reshape(per_point.shape[:-1])  # flatten: M = 0 too
+        return self._minus_count(total, x, exists)
+
+    def _minus_count(self, total: Tensor, x: Tensor, exists: Tensor | None) -> Tensor:
+        """``total (B, *S)`` (the sum over the points) minus the expected count ``L_C + L_x n``,
+        in the dtype of ``x``.
+        """
+        if exists is not None:
+            n_live = exists.to(x.dtype).sum(-1)
+        else:
+            n_live = torch.full(x.shape[:-2], float(x.shape[-2]), dtype=x.dtype, device=x.device)
         return total.to(x.dtype) - (self.clutter_rate + self.detection_rate * n_live)
 
     def trim_frame(self, z: PointMeasurement) -> PointMeasurement:
@@ -584,11 +598,11 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         born = (e_new.to(x.dtype) - e_old.to(x.dtype)).sum(-1)
         if native.applies(x):  # the C loop: the moved slots' terms, a log where an intensity changes
             both, flags = torch.cat([x_old, xn], -2), torch.cat([e_old, e_new], -1)  # (B, *S, 2V, D), (B, *S, 2V)
-            rows = (lead[0], -1, flags.shape[-1])
+            rows = (lead[0], math.prod(lead[1:]), flags.shape[-1])
             log_ratio, change = native.delta(self._native_positions(both[..., X], both[..., Y]).reshape(rows + (2,)),
                                              self._native_consts(flags, flags.shape, x.device).reshape(rows),
                                              self._native_points(pts), valid.to(torch.uint8),
-                                             cache.reshape(lead[0], -1, m))
+                                             cache.reshape(rows[:2] + (m,)))
             return log_ratio.reshape(lead).to(x.dtype) - self.detection_rate * born, None, change.reshape(cache.shape)
         # (B, *S, 2V, M), an inactive slot's terms -inf
         terms = self.log_intensity_terms(torch.cat([x_old, xn], -2), pts, torch.cat([e_old, e_new], -1))
