@@ -1,6 +1,6 @@
 """Where a crossing step goes: the filters of ``reproduce crossing`` (its full settings, one
-shard of 5 runs batched, one thread, eager as the study runs them), one step profiled after
-two warm steps and split into the parts of issue 49 item 1 as
+shard of 5 runs batched, one thread, eager as the study runs them), three steps timed and one
+profiled after two warm steps and split into the parts of issue 49 item 1 as
 :mod:`profile_birth_death` splits a births/deaths step. Run from the repository root:
 
     python benchmarks/profile_crossing.py
@@ -90,7 +90,7 @@ def main() -> None:
 
     filters = _filters(cfg, scn.motion, scn.sensor)
     for name, parts in PARTS.items():
-        report(name, *profile_step(filters[name], frames, init, parts, INNER[name]), b)
+        report(name, *profile_step(filters[name], frames, init, parts, INNER[name], warm=2, timed=3), b)
     box = math.prod(scn.sensor.geometry.window_sizes)
     print("\nfloors (cell terms, compiled, one thread), ms per step and run:")
     for name in PARTS:

@@ -16,3 +16,36 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 def gen():
     """A fresh, seeded generator: every random draw in the tests goes through one."""
     return torch.Generator().manual_seed(1234)
+
+
+@pytest.fixture
+def at_threads():
+    """``run(fn, n)``: ``fn()`` with torch at ``n`` intra-op threads, the count restored after."""
+    def run(fn, n):
+        threads = torch.get_num_threads()
+        try:
+            torch.set_num_threads(n)
+            return fn()
+        finally:
+            torch.set_num_threads(threads)
+    return run
+
+
+@pytest.fixture
+def count_native_calls(monkeypatch):
+    """``calls = count_native_calls()``: from then on, the names of the C loops' functions
+    called (``torchmcmcpf._native``) are appended to ``calls``."""
+    def start():
+        from torchmcmcpf import _native
+
+        calls = []
+        lib = _native.library()
+
+        class Counted:
+            def __getattr__(self, name):
+                calls.append(name)
+                return getattr(lib, name)
+
+        monkeypatch.setitem(_native._state, "lib", Counted())
+        return calls
+    return start

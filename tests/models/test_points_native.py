@@ -143,35 +143,18 @@ def test_data_density_matches_the_tensor_path(diagonal):
     assert bool((ours[0, -4:-1] > -math.inf).all())  # far, off the area: near terms of -1e5 nats, not -inf
 
 
-def test_same_bits_over_threads_and_inside_a_compiled_graph(monkeypatch):
+def test_same_bits_over_threads_and_inside_a_compiled_graph(at_threads, count_native_calls):
     """Each sample's sums are the same at 1 and 2 threads; a ``fullgraph`` compile of the
     log-likelihood calls the loop (counted) and gives eager's bits."""
     sensor, x, z, exists = scene(7, n=400)
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = sensor.log_likelihood(x, z, exists)
-        torch.set_num_threads(2)
-        two = sensor.log_likelihood(x, z, exists)
-    finally:
-        torch.set_num_threads(threads)
+    one, two = (at_threads(lambda: sensor.log_likelihood(x, z, exists), n) for n in (1, 2))
     assert torch.equal(one, two)
-    calls = []
-
-    class Counted:
-        def __init__(self, lib):
-            self.lib = lib
-
-        def __getattr__(self, name):
-            calls.append(name)
-            return getattr(self.lib, name)
-
     compiled = torch.compile(lambda x, e: sensor.log_likelihood(x, z, e), fullgraph=True)
     compiled(x, exists)
-    monkeypatch.setitem(_native._state, "lib", Counted(_native.library()))
+    calls = count_native_calls()
     out = compiled(x, exists)
     assert "points_intensity" in calls
-    assert torch.equal(out, torch.as_tensor(sensor.log_likelihood(x, z, exists)))
+    assert torch.equal(out, sensor.log_likelihood(x, z, exists))
 
 
 def test_gradients_take_the_tensor_path():

@@ -12,7 +12,6 @@ import textwrap
 import pytest
 import torch
 
-from torchmcmcpf import _native
 from torchmcmcpf.models.sensors.grid import native
 from torchmcmcpf.models.sensors.radar import RangeDopplerBearingTBD
 
@@ -70,7 +69,7 @@ def test_native_matches_the_tensor_path_to_float32_round_off(K, edge, with_exist
     assert exact.abs().max() > 10  # the sums are not trivially small
 
 
-def test_native_equals_itself_over_threads_and_runs_compiled(monkeypatch):
+def test_native_equals_itself_over_threads_and_runs_compiled(at_threads, count_native_calls):
     """Each particle's sum is one thread's: the same bits at one and two threads. Through
     ``torch.compile`` (``fullgraph``: a custom op, no graph break) the loop runs too, on
     coordinates Inductor computed: its ``atan2`` may differ in the last bit, and a box whose
@@ -78,30 +77,11 @@ def test_native_equals_itself_over_threads_and_runs_compiled(monkeypatch):
     up to 4e-3 nats measured on 5 of these 6,000 sums)."""
     sensor, x, z, exists = crowded(5, 3000, seed=3)
     x = x.float()
-    threads = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = sensor.log_likelihood(x, z, exists)
-        torch.set_num_threads(2)
-        two = sensor.log_likelihood(x, z, exists)
-    finally:
-        torch.set_num_threads(threads)
+    one, two = (at_threads(lambda: sensor.log_likelihood(x, z, exists), n) for n in (1, 2))
     assert torch.equal(one, two)
-
-    calls = []
-
-    class Counted:
-        def __init__(self, lib):
-            self.lib = lib
-
-        def __getattr__(self, name):
-            calls.append(name)
-            return getattr(self.lib, name)
-
-    lib = native.library()
     compiled = torch.compile(lambda x, z, e: sensor.log_likelihood(x, z, e), fullgraph=True)
     compiled(x, z, exists)  # compiled with the real library in place
-    monkeypatch.setitem(_native._state, "lib", Counted(lib))
+    calls = count_native_calls()
     out = compiled(x, z, exists)
     assert calls  # the C loop ran inside the compiled graph
     torch.testing.assert_close(out, one, rtol=1e-4, atol=2e-2)
