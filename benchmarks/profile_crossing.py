@@ -1,5 +1,5 @@
 """Where a crossing step goes: the filters of ``reproduce crossing`` (its full settings, one
-shard of 5 runs batched, one thread, eager: ``--no-compile``), three steps timed and one
+shard of 5 runs batched, one thread, eager as the study runs them), three steps timed and one
 profiled after two warm steps and split into the parts of issue 49 item 1 as
 :mod:`profile_birth_death` splits a births/deaths step. Run from the repository root:
 
@@ -78,7 +78,7 @@ def cell_terms(name: str, cfg: CrossingSettings, slots: int, box: int) -> int:
 def main() -> None:
     torch.set_num_threads(1)
     tune_cpu_allocator()  # as `python -m torchmcmcpf reproduce` runs the study (torchmcmcpf.runtime)
-    cfg = CrossingSettings(compile=False)  # eager: the parts are Python functions (the study compiles)
+    cfg = CrossingSettings()
     b = 5  # one shard
     g = shard_generator("cpu", 0, 0)
     scn = crossing(2, 6, b, generator=g)

@@ -50,12 +50,7 @@ runs (5, quick 1), each with the generator of ``(seed, shard index)``; the scene
 from it, then each filter (and the reference) gets a stream of its own for both scenes
 (:func:`~torchmcmcpf.experiments._shards.streams`), so that no filter's figures depend on
 which filters ran before it, and ``--filters`` runs some rows only, each the same bits as in
-the whole study. The filters run compiled (``compile_step=True``; ``--no-compile`` runs them
-eager, as ``--quick`` does): on the crossing a step of the IP-MCMC-PF 1.27x, the MCMC-PF 1.17x
-and the partitioned PF 1.7x faster than eager (2026-12-07, AMD EPYC, one thread), after 2-27 s
-of compiling per filter and process; the radar's coordinates then come from Inductor's
-kernels, whose last bits may differ from eager's, so a run's figures differ from an eager
-run's the way two seeds' do.
+the whole study.
 """
 
 from __future__ import annotations
@@ -78,7 +73,7 @@ from ..scenarios.crossing import crossing
 from ..typing import Tensor
 from ._figures import np_label, pyplot, save_figure
 from ._shards import Shards, streams
-from ._study import Settings, StepTimer, Study, cell, in_order, models_key, option, reused, rows_option
+from ._study import Settings, StepTimer, Study, cell, in_order, option, rows_option
 
 FILTERS = ("IP-MCMC-PF", "IP-MCMC-PF (paper)", "MCMC-PF", "partitioned PF", "IP-MCMC-PF (pair path)",
            "IP-MCMC-PF (joint pairs)")
@@ -143,9 +138,6 @@ class CrossingSettings(Settings):
     from_step: int = option(50, help="first step at which uncovered and shared targets count")
     map_iterations: int = option(1000, 100, cli=False)  # L-BFGS iterations of a late gap's check
     filters: tuple[str, ...] = rows_option(ROWS)
-    compile: bool = option(True, False, help="compile each filter's step (compile_step=True): 1.2-1.7x faster a step "
-                                             "on the CPU after 2-27 s of compiling a filter, once per process (in its "
-                                             "first shard's time); --no-compile runs eager")
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "filters", in_order(ROWS, self.filters))
@@ -157,26 +149,18 @@ class CrossingSettings(Settings):
 
 
 def _filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) -> dict:
-    """Every row's filter on one scene's models, built once per process and reused by the
-    later shards (:func:`~torchmcmcpf.experiments._study.reused`: with ``cfg.compile`` each
-    compiles its step on its first call only).
-    """
-    return reused(("crossing", cfg, models_key(motion, sensor)), lambda: _build_filters(cfg, motion, sensor))
-
-
-def _build_filters(cfg: CrossingSettings, motion: MotionModel, sensor: SensorModel) -> dict:
-    n, burn_in, c = cfg.particles, cfg.burn_in, cfg.compile
+    n, burn_in = cfg.particles, cfg.burn_in
     chains = n // 10
     return {
-        "IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in, compile_step=c),
+        "IP-MCMC-PF": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in),
         "IP-MCMC-PF (paper)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in, exclusion=None,
-                                           recapture=None, compile_step=c),
-        "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=n // 2, burn_in=burn_in // 2, compile_step=c),
-        "partitioned PF": PartitionedSIRFilter(motion, sensor, n, compile_step=c),
+                                           recapture=None),
+        "MCMC-PF": MCMCFilter(motion, sensor, n, num_chains=n // 2, burn_in=burn_in // 2),
+        "partitioned PF": PartitionedSIRFilter(motion, sensor, n),
         "IP-MCMC-PF (pair path)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in,
-                                               pair_path=PairPath(), compile_step=c),
+                                               pair_path=PairPath()),
         "IP-MCMC-PF (joint pairs)": IPMCMCFilter(motion, sensor, n, num_chains=chains, burn_in=burn_in,
-                                                 joint_pairs=JOINT_PAIRS, compile_step=c),
+                                                 joint_pairs=JOINT_PAIRS),
     }
 
 
