@@ -5,9 +5,12 @@ Two sensors have a loop in plain C beside their tensor path, each the same sum t
 - ``rician_window.c``: the radar's windowed Rician likelihood and its moves
   (:mod:`torchmcmcpf.models.sensors.grid.native`);
 - ``points.c``: the point sensor's Gaussian sums, its intensities, cached moves and
-  data-driven densities (:mod:`torchmcmcpf.models.sensors._points_native`).
+  data-driven densities (:mod:`torchmcmcpf.models.sensors._points_native`);
+- ``exclusion.c``: the exclusion factor's change when a slot moves
+  (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_change`).
 
-Both sources (with ``split.h``, the samples' split over threads) are compiled together by the
+The sources (with ``split.h``, the samples' split over threads, and ``vecmath.h``, the
+vectorisable ``exp`` and ``log``) are compiled together by the
 host's C compiler (``$CC``, else ``cc``; ``-O3 -march=native``, OpenMP where it has it, else
 serial) into one library in a cache folder (``$TORCHMCMCPF_CACHE``, else
 ``~/.cache/torchmcmcpf``), keyed by the sources, the compiler, its flags and the CPU, on the
@@ -33,11 +36,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-__all__ = ["available", "library", "tensor_path", "FLAGS"]
+import torch
+
+from .. import runtime
+
+__all__ = ["available", "applies", "library", "tensor_path", "FLAGS"]
 
 _FOLDER = Path(__file__).parent
-#: the sources, compiled together into one library (``split.h`` is part of the key)
-SOURCES = ("rician_window.c", "points.c")
+#: the sources, compiled together into one library (the headers are part of the key)
+SOURCES = ("rician_window.c", "points.c", "exclusion.c")
 #: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
 #: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation).
 #: ``-fopenmp`` first: the loops then run on torch's own OpenMP threads; a compiler without
@@ -58,6 +65,8 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "points_log_sum": (_int, [_i64] * 4 + [_ptr] * 3),
     "points_exp": (None, [_i64, _ptr, _ptr]),
     "points_log": (None, [_i64, _ptr, _ptr]),
+    "exclusion_change": (_int, [_i64] * 4 + [_ptr] * 5 + [_f64, _f64, _ptr]),
+    "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
 }
 
 _state: dict[str, Any] = {}
@@ -89,7 +98,7 @@ def _build() -> ctypes.CDLL | None:
         version = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=60).stdout
     except (OSError, subprocess.SubprocessError):
         version = ""
-    parts = [p.read_bytes() for p in sources + [_FOLDER / "split.h"]]
+    parts = [p.read_bytes() for p in sources + sorted(_FOLDER.glob("*.h"))]
     key = hashlib.sha256(b"\0".join(parts + [cc.encode(), version.encode(), " ".join(FLAGS + _THREADING).encode(),
                                              _cpu_key().encode()])).hexdigest()[:16]
     folder = Path(os.environ.get("TORCHMCMCPF_CACHE") or Path.home() / ".cache" / "torchmcmcpf")
@@ -142,6 +151,16 @@ def library() -> Any:
     not wanted, or inside :func:`tensor_path`.
     """
     return _state.get("lib")
+
+
+def applies(x: torch.Tensor) -> bool:
+    """Whether a float64 C loop serves a call on ``x``: a float32 or float64 CPU tensor, no
+    gradient to record, no ``torch.func`` transform, the loops built (the point sensor's and
+    the exclusion factor's; the radar's has its own rule).
+    """
+    return (x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
+            and not (x.requires_grad and torch.is_grad_enabled()) and not runtime.in_function_transform()
+            and library() is not None)
 
 
 @contextlib.contextmanager

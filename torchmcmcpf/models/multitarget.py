@@ -81,9 +81,11 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 
 import torch
 
+from .._native import applies
 from .._validation import check_positive, check_positive_int
 from ..runtime import packed_places, pairwise_squared_distances, squared_norm, unpacked
 from ..typing import Tensor
+from . import _exclusion_native
 
 if TYPE_CHECKING:  # the sensor protocol is imported by the callers
     from .base import SensorModel
@@ -173,6 +175,16 @@ class Exclusion:
         (*S,).
         """
         k = u.shape[-2]
+        if applies(u):  # the C loop: one sample at a time, no (*S, 2, K) tensor
+            lead = torch.broadcast_shapes(u.shape[:-2], n.shape)
+            rows, r = math.prod(lead), u.shape[-1]
+            flags = None if alive is None else alive.expand(lead + (k,)).reshape(rows, k).to(torch.uint8)
+            new = None if alive_n is None else alive_n.expand(lead).reshape(rows).to(torch.uint8)
+            out = _exclusion_native.change(u.expand(lead + (k, r)).reshape(rows, k, r).double(),
+                                           u_n.expand(lead + (r,)).reshape(rows, r).double(),
+                                           n.expand(lead).reshape(rows).long(), flags, new,
+                                           1.0 / (2.0 * self.scale**2), math.exp(LOG_PHI_FLOOR))
+            return out.reshape(lead).to(u.dtype)
         others = torch.arange(k, device=u.device) != n.unsqueeze(-1)  # (*S, K)
         u_old = torch.gather(u, -2, n.reshape(n.shape + (1, 1)).expand(n.shape + (1, u.shape[-1])))  # (*S, 1, r)
         # slot n before (row 0) and after (row 1) the move against every slot: one log_phi

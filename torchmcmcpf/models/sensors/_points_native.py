@@ -32,20 +32,10 @@ from typing import Any
 
 import torch
 
-from ... import runtime
-from ..._native import library
+from ..._native import applies, library
 from ...typing import Tensor
 
 __all__ = ["applies", "whiten", "whitened_axes", "centred", "intensity", "delta", "near", "log_sum", "elementwise"]
-
-
-def applies(x: Tensor) -> bool:
-    """Whether the C loops serve a call on ``x`` (a state or positions): a float32 or float64
-    CPU tensor, no gradient to record, no ``torch.func`` transform, the loops built.
-    """
-    return (x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64)
-            and not (x.requires_grad and torch.is_grad_enabled()) and not runtime.in_function_transform()
-            and library() is not None)
 
 
 def whiten(v: Tensor, W: Tensor, diagonal: bool) -> Tensor:

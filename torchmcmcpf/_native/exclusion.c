@@ -1,0 +1,60 @@
+/* The exclusion factor's change when one slot moves (torchmcmcpf.models.multitarget.Exclusion,
+ * Khan, Balch and Dellaert 2005: phi(d) = 1 - exp(-d^2 / (2 s^2)), log phi floored), one
+ * sample at a time: the K - 1 pairs of the moved slot before and after, in float64, with no
+ * (S, 2, K) tensor and none of the thirty small ATen calls a move made on tensors.
+ */
+#include <math.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#include "split.h"
+#include "vecmath.h"
+
+/* log phi for a squared distance d2: log(-expm1(-x)), x = max(d2 / (2 s^2), xmin) (xmin =
+ * e^LOG_PHI_FLOOR): below x = 1/2 the series of -expm1(-x) in nested form to x^18 (truncation
+ * below 1e-22 relative), above it 1 - e^-x (no cancellation there); NaN kept. */
+static inline double log_phi(double d2, double inv2s2, double xmin) {
+    double x = d2 * inv2s2;
+    x = x < xmin ? xmin : x;
+    double s = 1.0;
+    for (int k = 18; k >= 2; --k) s = 1.0 - x / (double)k * s;
+    const double v = x < 0.5 ? x * s : 1.0 - exp_flushed(-x);
+    return log_vec(v);
+}
+
+/* exclusion_change: out (n) = sum over the live slots k != slot_i of e_new log phi(|u_n - u_k|^2)
+ * - e_old log phi(|u_old - u_k|^2), u (n, K, r), u_n (n, r), slot (n), alive (n, K) and
+ * alive_n (n) uint8 (NULL: all live; alive_n NULL: the slot's current flag) */
+static void change_range(int64_t i0, int64_t i1, int64_t K, int64_t r, const double *u, const double *u_n,
+                         const int64_t *slot, const uint8_t *alive, const uint8_t *alive_n, double inv2s2, double xmin,
+                         double *out) {
+    for (int64_t i = i0; i < i1; ++i) {
+        const double *ui = u + i * K * r, *un = u_n + i * r, *uo = ui + slot[i] * r;
+        const int e_old = alive == NULL ? 1 : alive[i * K + slot[i]];
+        const int e_new = alive_n == NULL ? e_old : alive_n[i];
+        double acc = 0.0;
+        for (int64_t k = 0; k < K; ++k) {
+            if (k == slot[i] || (alive != NULL && !alive[i * K + k])) continue;
+            double d_old = 0.0, d_new = 0.0;
+            for (int64_t c = 0; c < r; ++c) {
+                const double a = uo[c] - ui[k * r + c], b = un[c] - ui[k * r + c];
+                d_old += a * a;
+                d_new += b * b;
+            }
+            acc += (e_new ? log_phi(d_new, inv2s2, xmin) : 0.0) - (e_old ? log_phi(d_old, inv2s2, xmin) : 0.0);
+        }
+        out[i] = acc;
+    }
+}
+
+int exclusion_change(int64_t n, int64_t threads, int64_t K, int64_t r, const double *u, const double *u_n,
+                     const int64_t *slot, const uint8_t *alive, const uint8_t *alive_n, double inv2s2, double xmin,
+                     double *out) {
+    SPLIT(n, threads, change_range(lo, hi, K, r, u, u_n, slot, alive, alive_n, inv2s2, xmin, out))
+    return 0;
+}
+
+/* log_phi on n squared distances, for its test */
+void exclusion_log_phi(int64_t n, const double *d2, double inv2s2, double xmin, double *out) {
+    for (int64_t i = 0; i < n; ++i) out[i] = log_phi(d2[i], inv2s2, xmin);
+}
