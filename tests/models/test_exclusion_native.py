@@ -60,6 +60,24 @@ def test_log_change_matches_the_tensor_path(dtype, shape, flags):
     torch.testing.assert_close(ours, theirs, rtol=0, atol=atol)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("shape", [(3, 40, 5, 2), (2, 7, 2, 3), (4, 3, 2)])
+@pytest.mark.parametrize("with_flags", [True, False])
+def test_log_factor_matches_the_tensor_path(dtype, shape, with_flags):
+    """A state's whole factor (the joint draws'): against the tensor path, 1e-12 in float64,
+    its round-off in float32, with coincident slots at the floor and dead slots."""
+    g = torch.Generator().manual_seed(sum(shape) + 7)
+    u = (torch.randn(*shape, generator=g, dtype=torch.float64) * 1.5).to(dtype)
+    u[..., 1, :] = torch.where(torch.rand(shape[:-2] + (1,), generator=g) < 0.2, u[..., 0, :], u[..., 1, :])
+    alive = torch.rand(shape[:-1], generator=g) > 0.3 if with_flags else None
+    ex = Exclusion(0.8)
+    ours, theirs = both(lambda: ex.log_factor(u, alive))
+    assert ours.dtype == dtype and ours.shape == shape[:-2]
+    assert float(theirs.abs().max()) > 0.5
+    atol = 1e-12 if dtype == torch.float64 else 4 * torch.finfo(dtype).eps * float(theirs.abs().max())
+    torch.testing.assert_close(ours, theirs, rtol=0, atol=atol)
+
+
 def test_same_bits_threads_compiled_and_gradients(at_threads, count_native_calls):
     """The same bits at 1 and 2 threads and inside a ``fullgraph`` compile (the loop called);
     with a gradient to record the tensor path runs (the loop stands aside); NaN kept."""

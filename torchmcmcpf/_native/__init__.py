@@ -6,8 +6,8 @@ Two sensors have a loop in plain C beside their tensor path, each the same sum t
   (:mod:`torchmcmcpf.models.sensors.grid.native`);
 - ``points.c``: the point sensor's Gaussian sums, its intensities, cached moves and
   data-driven densities (:mod:`torchmcmcpf.models.sensors._points_native`);
-- ``exclusion.c``: the exclusion factor's change when a slot moves
-  (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_change`).
+- ``exclusion.c``: the exclusion factor and its change when a slot moves
+  (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_factor`, ``log_change``).
 
 The sources (with ``split.h``, the samples' split over threads, and ``vecmath.h``, the
 vectorisable ``exp`` and ``log``) are compiled together by the
@@ -66,6 +66,7 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "points_exp": (None, [_i64, _ptr, _ptr]),
     "points_log": (None, [_i64, _ptr, _ptr]),
     "exclusion_change": (_int, [_i64] * 4 + [_ptr] * 5 + [_f64, _f64, _ptr]),
+    "exclusion_factor": (_int, [_i64] * 4 + [_ptr] * 2 + [_f64, _f64, _ptr]),
     "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
 }
 

@@ -1,4 +1,4 @@
-/* The exclusion factor's change when one slot moves (torchmcmcpf.models.multitarget.Exclusion,
+/* The exclusion factor and its change when one slot moves (torchmcmcpf.models.multitarget.Exclusion,
  * Khan, Balch and Dellaert 2005: phi(d) = 1 - exp(-d^2 / (2 s^2)), log phi floored), one
  * sample at a time: the K - 1 pairs of the moved slot before and after, in float64, with no
  * (S, 2, K) tensor and none of the thirty small ATen calls a move made on tensors.
@@ -51,6 +51,35 @@ int exclusion_change(int64_t n, int64_t threads, int64_t K, int64_t r, const dou
                      const int64_t *slot, const uint8_t *alive, const uint8_t *alive_n, double inv2s2, double xmin,
                      double *out) {
     SPLIT(n, threads, change_range(lo, hi, K, r, u, u_n, slot, alive, alive_n, inv2s2, xmin, out))
+    return 0;
+}
+
+/* exclusion_factor: out (n) = sum over the pairs k < l of live slots of log phi(|u_k - u_l|^2),
+ * u (n, K, r), alive (n, K) uint8 (NULL: all live) */
+static void factor_range(int64_t i0, int64_t i1, int64_t K, int64_t r, const double *u, const uint8_t *alive,
+                         double inv2s2, double xmin, double *out) {
+    for (int64_t i = i0; i < i1; ++i) {
+        const double *ui = u + i * K * r;
+        double acc = 0.0;
+        for (int64_t k = 0; k < K; ++k) {
+            if (alive != NULL && !alive[i * K + k]) continue;
+            for (int64_t l = k + 1; l < K; ++l) {
+                if (alive != NULL && !alive[i * K + l]) continue;
+                double d2 = 0.0;
+                for (int64_t c = 0; c < r; ++c) {
+                    const double a = ui[k * r + c] - ui[l * r + c];
+                    d2 += a * a;
+                }
+                acc += log_phi(d2, inv2s2, xmin);
+            }
+        }
+        out[i] = acc;
+    }
+}
+
+int exclusion_factor(int64_t n, int64_t threads, int64_t K, int64_t r, const double *u, const uint8_t *alive,
+                     double inv2s2, double xmin, double *out) {
+    SPLIT(n, threads, factor_range(lo, hi, K, r, u, alive, inv2s2, xmin, out))
     return 0;
 }
 

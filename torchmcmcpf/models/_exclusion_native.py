@@ -1,4 +1,4 @@
-"""The exclusion factor's change when one slot moves, as a C loop (``torchmcmcpf/_native/exclusion.c``).
+"""The exclusion factor and its change when one slot moves, as C loops (``torchmcmcpf/_native/exclusion.c``).
 
 :meth:`~torchmcmcpf.models.multitarget.Exclusion.log_change` on tensors is about thirty ATen
 calls (the moved slot's old and new positions against every slot, ``log phi``, the live
@@ -7,7 +7,9 @@ move, dispatch), on the births/deaths scene's 10,000 chains each a pass over ``(
 tensors (1.5 ms a move). The loop takes one sample at a time in float64, ``log phi`` as
 ``log(-expm1(-x))`` (series below ``x = 1/2``, ``1 - e^-x`` above, the library's vectorised
 ``exp`` and ``log``), floored as :data:`~torchmcmcpf.models.multitarget.LOG_PHI_FLOOR` floors
-it: the same value to round-off (tested against the tensor path in float64). It serves CPU
+it: the same value to round-off (tested against the tensor path in float64); so does the
+whole factor of a state (:meth:`~torchmcmcpf.models.multitarget.Exclusion.log_factor`, the
+joint draws' ``K (K - 1) / 2`` pairs). It serves CPU
 tensors without a gradient to record or a ``torch.func`` transform (:func:`torchmcmcpf._native.applies`).
 """
 
@@ -20,7 +22,7 @@ import torch
 from .._native import library
 from ..typing import Tensor
 
-__all__ = ["change", "log_phi"]
+__all__ = ["change", "factor", "log_phi"]
 
 
 @torch.library.custom_op("torchmcmcpf::exclusion_change", mutates_args=())
@@ -46,6 +48,26 @@ def change(u: Tensor, u_n: Tensor, slot: Tensor, alive: Tensor | None, alive_n: 
 @change.register_fake
 def _(u: Tensor, u_n: Tensor, slot: Tensor, alive: Tensor | None, alive_n: Tensor | None, inv2s2: float,
       xmin: float) -> Tensor:
+    return u.new_empty(u.shape[:1])
+
+
+@torch.library.custom_op("torchmcmcpf::exclusion_factor", mutates_args=())
+def factor(u: Tensor, alive: Tensor | None, inv2s2: float, xmin: float) -> Tensor:
+    """``u (n, K, r)`` float64, ``alive (n, K)`` uint8 or None -> ``(n,)`` float64: the sum
+    over the pairs ``k < l`` of live slots of ``log phi(|u_k - u_l|^2)``.
+    """
+    n, k, r = u.shape
+    u = u.contiguous()
+    alive = None if alive is None else alive.contiguous()
+    out = torch.empty(n, dtype=torch.float64)
+    lib: Any = library()
+    lib.exclusion_factor(n, torch.get_num_threads(), k, r, u.data_ptr(), None if alive is None else alive.data_ptr(),
+                         inv2s2, xmin, out.data_ptr())
+    return out
+
+
+@factor.register_fake
+def _(u: Tensor, alive: Tensor | None, inv2s2: float, xmin: float) -> Tensor:
     return u.new_empty(u.shape[:1])
 
 

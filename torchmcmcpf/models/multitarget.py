@@ -144,9 +144,16 @@ class Exclusion:
         (*S,), dtype of ``u``; differentiable in ``u``.
         """
         k = u.shape[-2]
-        i, j = torch.triu_indices(k, k, 1, device=u.device)  # the K (K - 1) / 2 pairs i < j
         if u.shape[-1] < 1:
             raise ValueError(f"u has shape {tuple(u.shape)}: expected at least one coordinate")
+        if applies(u):  # the C loop: the pairs of one sample at a time, no (*S, P) tensors
+            lead, r = tuple(u.shape[:-2]), u.shape[-1]
+            rows = math.prod(lead)
+            flags = None if alive is None else alive.expand(lead + (k,)).reshape(rows, k).to(torch.uint8)
+            out = _exclusion_native.factor(u.reshape(rows, k, r).double(), flags, 1.0 / (2.0 * self.scale**2),
+                                           math.exp(LOG_PHI_FLOOR))
+            return out.reshape(lead).to(u.dtype)
+        i, j = torch.triu_indices(k, k, 1, device=u.device)  # the K (K - 1) / 2 pairs i < j
         # the pairs' squared distances only, (*S, P): the two slots of each pair as rows, their
         # difference's squares added coordinate by coordinate (the values of
         # pairwise_squared_distances at [..., i, j], in 0.55 of the time)
