@@ -35,7 +35,8 @@ import torch
 from ..._native import applies, library
 from ...typing import Tensor
 
-__all__ = ["applies", "whiten", "whitened_axes", "centred", "intensity", "delta", "near", "log_sum", "elementwise"]
+__all__ = ["applies", "whiten", "whitened_axes", "centred_axes", "centred", "intensity", "delta", "near", "log_sum",
+           "elementwise"]
 
 
 def whiten(v: Tensor, W: Tensor, diagonal: bool) -> Tensor:
@@ -59,12 +60,19 @@ def whitened_axes(a: Tensor, b: Tensor, W: Tensor, diagonal: bool) -> tuple[Tens
     return w[..., 0], w[..., 1]
 
 
-def centred(a: Tensor, b: Tensor, W: Tensor, diagonal: bool, centre: Tensor) -> Tensor:
-    """``W ((a, b) - centre)`` in float64: ``a, b (...)`` -> ``(..., 2)``."""
+def centred_axes(a: Tensor, b: Tensor, W: Tensor, diagonal: bool, centre: Tensor) -> tuple[Tensor, Tensor]:
+    """The two axes of ``W ((a, b) - centre)`` in float64, ``a, b (...)`` -> ``(...)`` each: the
+    whitened, centred coordinates of positions or points, the loops' inputs and the tensor
+    path's (:func:`~.points.gauss_exponents`).
+    """
     f64 = torch.float64
     c = centre.to(device=a.device, dtype=f64)
-    p0, p1 = whitened_axes(a.to(f64) - c[0], b.to(f64) - c[1], W.to(device=a.device, dtype=f64), diagonal)
-    return torch.stack([p0, p1], -1)
+    return whitened_axes(a.to(f64) - c[0], b.to(f64) - c[1], W.to(device=a.device, dtype=f64), diagonal)
+
+
+def centred(a: Tensor, b: Tensor, W: Tensor, diagonal: bool, centre: Tensor) -> Tensor:
+    """:func:`centred_axes` stacked: ``(..., 2)`` float64."""
+    return torch.stack(centred_axes(a, b, W, diagonal, centre), -1)
 
 
 def _n(x: Tensor) -> int:

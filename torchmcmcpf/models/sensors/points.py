@@ -41,7 +41,6 @@ from ...typing import PointFrame, PointMeasurement, Tensor, X, Y, split_points
 from ..base import SensorModel
 from . import _points_native as native
 from ._points_native import whiten as _whiten
-from ._points_native import whitened_axes as _whitened_axes
 
 __all__ = ["PoissonClutterPoints", "PointFrame", "as_area", "gauss_exponents", "log_near_points"]
 
@@ -257,13 +256,10 @@ def gauss_exponents(a: Tensor, b: Tensor, pts: Tensor, *, W: Tensor, diagonal: b
     ``|p|^2`` against ``2 p . w_m``, to about ``1e-16 |p|^2`` (centred, ``|p|`` is at most
     the area's half-diagonal in noise units: relative errors of the Gaussians below ``1e-10``).
     """
-    f64 = torch.float64
     bsz, m = pts.shape[:2]
     lead = tuple(a.shape)
-    c = centre.to(device=pts.device, dtype=f64)
-    Wd = W.to(device=pts.device, dtype=f64)
-    p0, p1 = _whitened_axes(a.to(f64) - c[0], b.to(f64) - c[1], Wd, diagonal)  # (B, *S) each
-    w0, w1 = _whitened_axes(pts[..., 0].to(f64) - c[0], pts[..., 1].to(f64) - c[1], Wd, diagonal)  # (B, M)
+    p0, p1 = native.centred_axes(a, b, W, diagonal, centre)  # (B, *S) each
+    w0, w1 = native.centred_axes(pts[..., 0], pts[..., 1], W, diagonal, centre)  # (B, M)
     w_half = -0.5 * (w0 * w0 + w1 * w1)
     if mask is not None:
         w_half = torch.where(mask, w_half, -math.inf)
