@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import torch
 
+from ._native.select import where
 from .resampling import ess
 from .typing import Tensor
 
@@ -74,8 +75,8 @@ def _rhat_last(x: Tensor, method: str) -> Tensor:
         total = (n - 1) / n * w + b / n
     ratio = total / w
     r = torch.sqrt(ratio)
-    degenerate = torch.where(total > 0, torch.full_like(r, float("inf")), torch.ones_like(r))
-    return torch.where(w > 0, r, degenerate)
+    degenerate = where(total > 0, torch.full_like(r, float("inf")), torch.ones_like(r))
+    return where(w > 0, r, degenerate)
 
 
 def rhat(x: Tensor, *, chain_dim: int, sample_dim: int, method: str = "paper") -> Tensor:
@@ -167,17 +168,17 @@ def chain_ess(x: Tensor, *, chain_dim: int, sample_dim: int) -> Tensor:
     w = chain_var.mean(-1)
     b_over_n = xs.mean(-1).var(-1, correction=1) if c > 1 else torch.zeros_like(w)
     v = (n - 1) / n * w + b_over_n
-    safe_v = torch.where(v > 0, v, torch.ones_like(v))
+    safe_v = where(v > 0, v, torch.ones_like(v))
     rho = 1.0 - (w.unsqueeze(-1) - acov.mean(-2)) / safe_v.unsqueeze(-1)  # (..., n)
     rho = rho.clone()
     rho[..., 0] = 1.0
     m = n // 2
     pairs = rho[..., : 2 * m].reshape(rho.shape[:-1] + (m, 2)).sum(-1)  # P_m (..., m)
     positive = torch.cumprod((pairs > 0).to(pairs.dtype), dim=-1)  # initial positive sequence
-    monotone = torch.cummin(torch.where(positive > 0, pairs, torch.zeros_like(pairs)), dim=-1).values
+    monotone = torch.cummin(where(positive > 0, pairs, torch.zeros_like(pairs)), dim=-1).values
     tau = -1.0 + 2.0 * (monotone * positive).sum(-1)
     # tau >= 1/log10(C n) guard (Stan); with P_0 = 1 + rho_1 > 0 tau is positive anyway
     total = c * n
     tau = tau.clamp(min=1.0 / max(torch.log10(torch.tensor(float(total))).item(), 1.0))
     out = total / tau
-    return torch.where(v > 0, out, torch.full_like(out, float(total)))
+    return where(v > 0, out, torch.full_like(out, float(total)))

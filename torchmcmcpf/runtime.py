@@ -168,36 +168,6 @@ def flagged_first(flags: torch.Tensor) -> torch.Tensor:
     return torch.argsort((~flags).to(torch.uint8), dim=-1, stable=True)
 
 
-def packed_places(flags: torch.Tensor) -> tuple[int, torch.Tensor]:
-    """Where each flagged entry of ``flags (B, P)`` bool lands when every run's flagged entries
-    are packed, in order, to the front of a ``(B, W)`` block: ``W``, the most flagged entries
-    in a run (one host read), and ``place (B, P)`` int64, the entry's column there (0 where not
-    flagged). What is drawn ``(B, W, ...)`` for the flagged entries only is read back at their
-    places by :func:`unpacked`; a run's columns past its own count are never read.
-
-    Example
-    -------
-    >>> import torch
-    >>> width, place = packed_places(torch.tensor([[False, True, True], [True, False, False]]))
-    >>> width, place
-    (2, tensor([[0, 0, 1],
-            [0, 0, 0]]))
-    """
-    rank = flags.to(torch.int64).cumsum(-1)
-    width = int(rank[:, -1].max()) if rank.numel() else 0
-    return width, rank.sub_(1).clamp_(min=0)
-
-
-def unpacked(block: torch.Tensor, place: torch.Tensor, flags: torch.Tensor,
-             fill: torch.Tensor | float) -> torch.Tensor:
-    """A packed ``block (B, W, *E)`` read back at the ``place (B, P)`` of each flagged entry of
-    ``flags (B, P)`` (:func:`packed_places`), ``fill`` (broadcastable to ``(B, P, *E)``)
-    elsewhere: ``-> (B, P, *E)``.
-    """
-    index = place.reshape(place.shape + (1,) * (block.dim() - 2))
-    return torch.where(flags.reshape(index.shape), take_along(block, index, 1), fill)
-
-
 def squared_norm(v: torch.Tensor) -> torch.Tensor:
     """``v.square().sum(-1)`` for a short last dim (2-4 coordinates: a whitened residual, a
     position, resolution coordinates): ``(..., r) -> (...)``, as explicit additions

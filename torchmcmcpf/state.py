@@ -15,6 +15,7 @@ from typing import Any, NamedTuple
 import torch
 from torch.utils._pytree import tree_map
 
+from ._native.select import where
 from .interop import result_to_arviz, result_to_xarray, tracks_to_stonesoup
 from .runtime import flagged_first, squared_norm, take_along
 from .typing import Tensor, X, Y
@@ -289,7 +290,7 @@ def weighted_cov(x: Tensor, log_w: Tensor, mean: Tensor, exists: Tensor | None =
     d = x.permute(0, 2, 3, 1) - mean.unsqueeze(-1)
     if exists is not None:
         live = exists.transpose(1, 2).unsqueeze(2)  # (B, K, 1, N)
-        d = torch.where(live, d, torch.zeros_like(d))  # dead slots hold x_death: no NaN/inf
+        d = where(live, d, torch.zeros_like(d))  # dead slots hold x_death: no NaN/inf
         w = w * live.to(x.dtype)
     num = (d * w) @ d.mT  # (B, K, D, D): sum_n w_n d_n d_n^T, one batched product over n
     num = 0.5 * (num + num.transpose(-1, -2))  # symmetric to the last bit (float rounding of the product)
@@ -377,11 +378,11 @@ def existence_estimate(state: ParticleState, *, threshold: float = 0.5,
     w = torch.softmax(state.log_w, -1).to(state.x.dtype)  # (B, N)
     we = w.unsqueeze(-1) * state.exists.to(w.dtype)  # (B, N, K)
     prob = we.sum(1)  # (B, K)
-    num = torch.einsum("bnk,bnkd->bkd", we, torch.where(state.exists.unsqueeze(-1), state.x,
+    num = torch.einsum("bnk,bnkd->bkd", we, where(state.exists.unsqueeze(-1), state.x,
                                                         torch.zeros_like(state.x)))
     fill = torch.zeros(state.x.shape[-1], dtype=state.x.dtype, device=state.x.device) \
         if x_death is None else x_death.to(state.x)
-    mean = torch.where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
+    mean = where(prob.unsqueeze(-1) > 0, num / prob.clamp(min=torch.finfo(w.dtype).tiny).unsqueeze(-1),
                        fill)
     return ExistenceEstimate(prob, prob.sum(-1), mean, prob > threshold)
 
@@ -454,14 +455,14 @@ def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
         e = torch.ones((b, n, k), dtype=torch.bool, device=x.device) if exists is None else exists
         r = torch.ones((b, k), dtype=torch.bool, device=x.device) if reference_exists is None else reference_exists
         live, present = e.unsqueeze(-1), r[:, None, None, :]
-        cost = torch.where(live & present, cost,
-                           torch.where(live ^ present, torch.full_like(cost, cutoff**2 / 2), torch.zeros_like(cost)))
+        cost = where(live & present, cost,
+                           where(live ^ present, torch.full_like(cost, cutoff**2 / 2), torch.zeros_like(cost)))
     # Where every slot's cheapest label is a different one, that permutation is optimal (each
     # slot at its row minimum): one pass settles most particles. The others (two slots
     # nearest to one label: the targets they hold are close) go through the swap search.
     nearest = cost.argmin(-1)  # (B, N, K)
     distinct = (nearest.sort(-1).values == torch.arange(k, device=x.device)).all(-1)  # (B, N): a permutation
-    label = torch.where(distinct.unsqueeze(-1), nearest, torch.arange(k, device=x.device))
+    label = where(distinct.unsqueeze(-1), nearest, torch.arange(k, device=x.device))
     # No permutation costs less than the sum of the row minima, so a particle whose own labels
     # cost at most (cutoff / 4)^2 more than that keeps them below whatever a search finds:
     # it needs none (most particles of a cloud, and every chain state whose absent slots
@@ -481,7 +482,7 @@ def relabel_order(x: Tensor, reference: Tensor, *, exists: Tensor | None = None,
     # which, and a particle's own labels carry their identity through the crossing
     own = torch.arange(k, device=x.device).expand(b, n, k)
     gain = (take_along(cost, own.unsqueeze(-1), -1) - take_along(cost, label.unsqueeze(-1), -1))
-    label = torch.where((gain.sum((-2, -1)) <= (cutoff / 4) ** 2).unsqueeze(-1), own, label)
+    label = where((gain.sum((-2, -1)) <= (cutoff / 4) ** 2).unsqueeze(-1), own, label)
     return torch.argsort(label, -1)  # label r is carried by particle slot slot_of[r]
 
 
@@ -504,7 +505,7 @@ def _swap_search(cost: Tensor, label: Tensor, cutoff: float, sweeps: int) -> Ten
         cross = take_along(act_cost, act_label.unsqueeze(-2).expand(p, k, k), -1)
         own = torch.diagonal(cross, dim1=-2, dim2=-1)  # (P, K)
         gain = own.unsqueeze(-1) + own.unsqueeze(-2) - cross - cross.mT  # swap a <-> c
-        gain = torch.where(pair, gain, torch.zeros_like(gain)).flatten(-2)
+        gain = where(pair, gain, torch.zeros_like(gain)).flatten(-2)
         best, at = gain.max(-1)  # (P,)
         moving = (best > 1e-9 * cutoff**2).nonzero().squeeze(1)  # one host read a sweep
         if not moving.numel():
@@ -551,7 +552,7 @@ def _runs(x: Tensor, exists: Tensor | None) -> _Runs | None:
     m = int(rank[:, -1].max()) + 1  # one host read
     if 5 * m >= 4 * n:
         return None
-    at = torch.where(first, torch.arange(n, device=x.device), n + torch.arange(n, device=x.device))
+    at = where(first, torch.arange(n, device=x.device), n + torch.arange(n, device=x.device))
     firsts = at.sort(-1).values[:, :m].remainder_(n)  # (B, m)
     return _Runs(firsts, rank, take_along(x, firsts[:, :, None, None], 1),
                  None if exists is None else take_along(exists, firsts[:, :, None], 1))
@@ -615,13 +616,13 @@ def _densest(pos: Tensor, runs: _Runs | None, slot_of: Tensor, live: Tensor, log
         near = near.gather(2, runs.rank.unsqueeze(1).expand(b, s, n))  # (B, S, N)
     w = torch.softmax(log_w, -1).to(dtype)
     # w where near, else 0: the values of near * w (w finite, >= 0) without a float copy of near
-    found = torch.where(near, w.unsqueeze(1), 0.0).sum(-1).masked_fill(~valid, 0.0)  # (B, S)
+    found = where(near, w.unsqueeze(1), 0.0).sum(-1).masked_fill(~valid, 0.0)  # (B, S)
     # into label order (candidate c's own slot j carries label r where slot_of[c, r] = j); the pad
     # goes to a column past the end, dropped
     order = slot_of[:, pick]  # (B, P, K)
     label_of = torch.empty_like(order).scatter_(-1, order, torch.arange(k, device=pos.device).expand(b, p, k))
     flat = (label_of + k * torch.arange(p, device=pos.device).unsqueeze(-1)).reshape(b, p * k)
-    dest = torch.where(valid, take_along(flat, idx, -1), p * k)
+    dest = where(valid, take_along(flat, idx, -1), p * k)
     support = torch.zeros((b, p * k + 1), dtype=dtype, device=pos.device).scatter_(1, dest, found)[:, :p * k]
     best = support.argmax(-1)  # (B,)
     cand, slot = best // k, best % k
@@ -688,8 +689,8 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
             new = (~present).to(torch.int64).argmax(-1)  # (B,): the first absent label
             found = (support > 0.5) & (~present).any(-1)  # most of the weight has a slot there
             onto = found.unsqueeze(-1) & (torch.arange(k, device=x.device) == new.unsqueeze(-1))  # (B, K)
-            ref[..., X] = torch.where(onto, at[:, None, 0].to(ref.dtype), ref[..., X])
-            ref[..., Y] = torch.where(onto, at[:, None, 1].to(ref.dtype), ref[..., Y])
+            ref[..., X] = where(onto, at[:, None, 0].to(ref.dtype), ref[..., X])
+            ref[..., Y] = where(onto, at[:, None, 1].to(ref.dtype), ref[..., Y])
             present = present | onto
             if not bool(found.any()):
                 break
@@ -719,7 +720,7 @@ def relabelled_estimate(state: ParticleState, reference: Tensor | None = None, *
                 # one target), where the label follows them
                 gated = existence_estimate(ParticleState(xr, log_w, near))
                 moved = existence_estimate(ParticleState(xr, log_w, ~near))
-                mean = torch.where((gated.exists_prob >= 0.5).unsqueeze(-1), gated.mean, moved.mean)
+                mean = where((gated.exists_prob >= 0.5).unsqueeze(-1), gated.mean, moved.mean)
             ones = torch.ones((b, k), dtype=x.dtype, device=x.device)
             out = ExistenceEstimate(ones, ones.sum(-1), mean, ones > 0)
         else:

@@ -1,13 +1,15 @@
 """The library's C loops: built once per machine, loaded through ``ctypes``.
 
-Two sensors have a loop in plain C beside their tensor path, each the same sum to round-off:
+Loops in plain C beside the tensor paths, each the same values (to round-off for the sums):
 
 - ``rician_window.c``: the radar's windowed Rician likelihood and its moves
   (:mod:`torchmcmcpf.models.sensors.grid.native`);
 - ``points.c``: the point sensor's Gaussian sums, its intensities, cached moves and
   data-driven densities (:mod:`torchmcmcpf.models.sensors._points_native`);
 - ``exclusion.c``: the exclusion factor and its change when a slot moves
-  (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_factor`, ``log_change``).
+  (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_factor`, ``log_change``);
+- ``select.c``: ``torch.where`` and the read-back of a packed block in one pass
+  (:mod:`torchmcmcpf._native.select`), which every move makes dozens of times an iteration.
 
 The sources (with ``split.h``, the samples' split over threads, and ``vecmath.h``, the
 vectorisable ``exp`` and ``log``) are compiled together by the
@@ -44,7 +46,7 @@ __all__ = ["available", "applies", "library", "tensor_path", "FLAGS"]
 
 _FOLDER = Path(__file__).parent
 #: the sources, compiled together into one library (the headers are part of the key)
-SOURCES = ("rician_window.c", "points.c", "exclusion.c")
+SOURCES = ("rician_window.c", "points.c", "exclusion.c", "select.c")
 #: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
 #: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation).
 #: ``-fopenmp`` first: the loops then run on torch's own OpenMP threads; a compiler without
@@ -68,6 +70,8 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "exclusion_change": (_int, [_i64] * 4 + [_ptr] * 5 + [_f64, _f64, _ptr]),
     "exclusion_factor": (_int, [_i64] * 4 + [_ptr] * 2 + [_f64, _f64, _ptr]),
     "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
+    "select_rows": (_int, [_i64] * 4 + [_ptr] * 2 + [_i64, _ptr, _i64, _ptr]),
+    "unpack_rows": (_int, [_i64] * 6 + [_ptr] * 4 + [_i64, _ptr]),
 }
 
 _state: dict[str, Any] = {}

@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native.select import where
 from ..diagnostics import rhat
 from ..runtime import take_along
 from ..state import relabel_order
@@ -61,7 +62,7 @@ def chains_relabelled(window: Tensor, rounds: int = 2) -> Tensor:
     changed[1:] = (window[1:] != window[:-1]).flatten(-2).any(-1)
     at_w, at_b, at_c = changed.nonzero(as_tuple=True)  # one host read
     steps = torch.arange(w, device=window.device).reshape(w, 1, 1)
-    last = torch.where(changed, steps, 0).cummax(0).values  # (W, B, C): the state's last change
+    last = where(changed, steps, 0).cummax(0).values  # (W, B, C): the state's last change
     runs, chains = torch.arange(b, device=window.device).reshape(1, b, 1), torch.arange(c, device=window.device)
     distinct = window[at_w, at_b, at_c].unsqueeze(1)  # (R, 1, K, D), each its own "run"
     reference = window[-1, :, 0]
@@ -86,6 +87,6 @@ def rhat_report(ys: list, offset: int, method: str, exchangeable: bool) -> RhatR
     r = rhat(window, chain_dim=2, sample_dim=0, method=method)  # (B, K, D)
     flat = r.flatten(1)
     # NaN-safe argmax: inf/NaN first (a NaN R-hat can only come from a NaN state)
-    score = torch.where(torch.isnan(flat), torch.full_like(flat, float("inf")), flat)
+    score = where(torch.isnan(flat), torch.full_like(flat, float("inf")), flat)
     at = score.argmax(-1)
     return RhatReport(score.amax(-1), at // r.shape[-1], at % r.shape[-1])

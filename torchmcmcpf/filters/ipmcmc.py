@@ -192,6 +192,7 @@ from typing import Any, NamedTuple
 import torch
 from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 
+from .._native.select import where
 from .._validation import check_positive_int
 from ..diagnostics import RHAT_METHODS
 from ..kernels.exchange import (
@@ -642,15 +643,15 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         # runs that did not need the extension keep their earlier kept states below
         chains, trace_e, acc_e, ref_e = run(segment)
         hist_e = _kept(trace_e, keep, settings.thinning)
-        history = tuple(None if h is None else torch.where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
+        history = tuple(None if h is None else where(need.reshape((1, b) + (1,) * (h.dim() - 2)), he, h)
                         for he, h in zip(hist_e, history))
         ys = ys + [c[0] for c in trace_e]
-        accepted = accepted + torch.where(need.unsqueeze(-1), acc_e, torch.zeros_like(acc_e))
-        refined = refined + torch.where(need.unsqueeze(-1), ref_e, torch.zeros_like(ref_e))
+        accepted = accepted + where(need.unsqueeze(-1), acc_e, torch.zeros_like(acc_e))
+        refined = refined + where(need.unsqueeze(-1), ref_e, torch.zeros_like(ref_e))
         assert rhat_method is not None  # no check: no extensions (the loop's range)
         iterations = iterations + need.to(iterations.dtype) * segment
         extensions = extensions + need.to(extensions.dtype)
-        report = RhatReport(*(torch.where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
+        report = RhatReport(*(where(need.reshape((b,) + (1,) * (new.dim() - 1)), new, old)
                               for new, old in zip(rhat_report(ys, record_from, rhat_method, sensor.resolved), report)))
 
     x_new = history[0].permute(1, 2, 0, 3, 4).reshape(x_prev.shape)  # (B, C*S, K, D)

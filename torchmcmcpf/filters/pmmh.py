@@ -52,6 +52,7 @@ from typing import Any, NamedTuple
 import torch
 from torch.utils._pytree import tree_map
 
+from .._native.select import where
 from .._validation import as_int, check_generator, check_positive_int, check_shape
 from ..kernels.mh import mh_accept, mh_select
 from ..models.base import MotionModel, SensorModel
@@ -195,8 +196,8 @@ def pmmh(
         prop = theta + std * eps
         lp_prop = log_prior(prop)
         valid = torch.isfinite(lp_prop)
-        ev_prop, aux_prop = evaluate(torch.where(valid.unsqueeze(-1), prop, theta), generator=generator)
-        log_alpha = torch.where(valid, ev_prop + lp_prop - log_ev - lp, torch.full_like(lp, -math.inf))
+        ev_prop, aux_prop = evaluate(where(valid.unsqueeze(-1), prop, theta), generator=generator)
+        log_alpha = where(valid, ev_prop + lp_prop - log_ev - lp, torch.full_like(lp, -math.inf))
         acc = mh_accept(log_alpha, u)
         theta, lp, log_ev, aux = mh_select(acc, (prop, lp_prop, ev_prop, aux_prop), (theta, lp, log_ev, aux))
         accepted_count += acc.to(accepted_count.dtype)
@@ -443,8 +444,8 @@ def pmmh_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     for it in range(lc):
         if it > 0:
             acc = mh_accept(log_ev_new[:, it] - cur_ev, u[:, it])
-            cur = torch.where(acc, torch.full_like(cur, it), cur)
-            cur_ev = torch.where(acc, log_ev_new[:, it], cur_ev)
+            cur = where(acc, torch.full_like(cur, it), cur)
+            cur_ev = where(acc, log_ev_new[:, it], cur_ev)
             accepted = accepted + acc.to(accepted.dtype)
         if it >= burn:
             counts = counts + torch.nn.functional.one_hot(cur, lc).to(counts.dtype)

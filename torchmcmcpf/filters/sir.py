@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from .._native.select import where
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath, BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, exclusion_on, log_exclusion
@@ -97,8 +98,8 @@ def sir_body(x: Tensor, log_w: Tensor, exists: Tensor | None, z: Measurement, ne
         idx = RESAMPLERS[settings.resample_method][1](log_w, u, n)
         if not every_step:
             keep = torch.arange(n, device=x.device).expand_as(idx)
-            idx = torch.where(need.unsqueeze(-1), idx, keep)
-            log_w = torch.where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
+            idx = where(need.unsqueeze(-1), idx, keep)
+            log_w = where(need.unsqueeze(-1), torch.full_like(log_w, -math.log(n)), log_w)
         x = gather_particles(x, idx)
         if exists is not None:
             exists = gather_particles(exists, idx)

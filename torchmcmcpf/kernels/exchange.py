@@ -77,6 +77,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native.select import where
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
@@ -317,12 +318,12 @@ def mutual_nearest_pairs(centres: Tensor, distance: float, exists: Tensor | None
     k = centres.shape[-2]
     d2, near = _within(centres, distance, exists)
     far = ~near | torch.eye(k, dtype=torch.bool, device=centres.device)
-    d2 = torch.where(far, torch.full_like(d2, float("inf")), d2)
+    d2 = where(far, torch.full_like(d2, float("inf")), d2)
     nearest = d2.argmin(-1)  # (B, K); any slot where all are far (its row inf), checked below
     own = torch.arange(k, device=centres.device).expand_as(nearest)
     mutual = (take_along(nearest, nearest, -1) == own) & torch.isfinite(take_along(d2, nearest.unsqueeze(-1), -1)
                                                                           ).squeeze(-1)
-    return torch.where(mutual, nearest, own)
+    return where(mutual, nearest, own)
 
 
 def draw_exchange_noise(
@@ -370,8 +371,8 @@ def draw_exchange_noise(
         valid_run = flat.any(-1)  # (B,)
         # a run without a close pair draws pair (0, 1) and is rejected (valid False)
         fallback = torch.zeros_like(flat).index_fill_(-1, torch.tensor([1], device=dev), True)
-        weights = torch.where(valid_run.unsqueeze(-1), flat, fallback)
-        log_p = torch.where(weights, 0.0, float("-inf")).to(torch.float64)
+        weights = where(valid_run.unsqueeze(-1), flat, fallback)
+        log_p = where(weights, 0.0, float("-inf")).to(torch.float64)
         u_pair = torch.rand((b, num_iterations * num_chains), generator=generator, device=dev, dtype=torch.float64)
         at = inverse_cdf(cdf(log_p), u_pair).reshape(b, num_iterations, num_chains).transpose(0, 1)
         slot = torch.stack([at // num_targets, at % num_targets], -1)
@@ -413,7 +414,7 @@ def draw_exchange_noise(
             rho = 0.0
     if rho > 0:  # both slots from one particle (drawn last: the other draws are those of rho = 0)
         same = torch.rand(shape, generator=generator, device=dev, dtype=torch.float64) < rho
-        source = torch.stack([source[..., 0], torch.where(same, source[..., 0], source[..., 1])], -1)
+        source = torch.stack([source[..., 0], where(same, source[..., 0], source[..., 1])], -1)
     log_w_source = take_along(normalize(log_w)[0], source.movedim(0, 1).reshape(b, -1), 1).reshape(
         (b, num_iterations, num_chains, m)).movedim(1, 0)
     return ExchangeNoise(source, log_w_source, slot, eps, u, birth, relocation, valid, None, carried)
@@ -434,7 +435,7 @@ def pair_source_log_ratio(source: Tensor, log_w_source: Tensor, rho: float) -> T
     """
     log_odds = math.log(rho) - math.log1p(-rho)
     same = source[..., 0] == source[..., 1]
-    return torch.where(same, -torch.nn.functional.softplus(log_odds - log_w_source[..., 1]),
+    return where(same, -torch.nn.functional.softplus(log_odds - log_w_source[..., 1]),
                        torch.zeros_like(log_w_source[..., 1]))
 
 
@@ -477,7 +478,7 @@ def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor) -> Tensor
     (B, C)``: a new tensor, the values of ``torch.where`` of the row over the slot's mask.
     """
     at = slot.reshape(slot.shape + (1, 1)).expand(slot.shape + (1, t.shape[-1]))  # (B, C, 1, D)
-    keep = torch.where(accepted.reshape(accepted.shape + (1, 1)), row.unsqueeze(-2), torch.gather(t, -2, at))
+    keep = where(accepted.reshape(accepted.shape + (1, 1)), row.unsqueeze(-2), torch.gather(t, -2, at))
     return t.scatter(-2, at, keep)
 
 
@@ -535,8 +536,8 @@ def exchange_iteration(
     if joint and m == 1 and source is not None and log_w_source is not None and noise.partner is not None:
         # a paired slot keeps its pair's source: the proposal depends on the chain, made here
         paired = noise.partner != noise.slot  # (B, C, 1)
-        src_moved = torch.where(paired, take_along(source, noise.partner, -1), noise.source)
-        lw_moved = torch.where(paired, take_along(log_w_source, noise.partner, -1).to(noise.log_w_source.dtype),
+        src_moved = where(paired, take_along(source, noise.partner, -1), noise.source)
+        lw_moved = where(paired, take_along(log_w_source, noise.partner, -1).to(noise.log_w_source.dtype),
                                noise.log_w_source)
         proposal = propose_slots(noise._replace(source=src_moved), x_prev, exists_prev, dynamics=dynamics,
                                  sensor=sensor if on else None)
@@ -583,7 +584,7 @@ def exchange_iteration(
         if exclusion is not None and cur_u is not None and u_moved is not None:  # the K - 1 factors of the slot
             log_prior = log_prior + exclusion.log_change(cur_u, u_moved[:, :, j], slot, cur_e, e_n)
             if j + 1 < m:  # the next slot's factors see this one moved
-                cur_u = torch.where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
+                cur_u = where(here.unsqueeze(-1), u_moved[:, :, j].unsqueeze(-2), cur_u)
         if log_r is not None:  # the slot's own cached ratio (distinct slots: none moved yet)
             at = slot.unsqueeze(-1)
             r_old = torch.gather(log_r, -1, at).squeeze(-1)
@@ -592,9 +593,9 @@ def exchange_iteration(
             log_prior = log_prior + r_new[:, :, j] - r_old
         if j + 1 < m:  # the next slot's likelihood and factors see this one moved
             if cache is None:
-                cur_y = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
+                cur_y = where(here.unsqueeze(-1), x_n.unsqueeze(-2), cur_y)
             if cur_e is not None and e_n is not None:
-                cur_e = torch.where(here, e_n.unsqueeze(-1), cur_e)
+                cur_e = where(here, e_n.unsqueeze(-1), cur_e)
     accepted = mh_accept(cur_ll - log_lik + log_prior, noise.u)
     if noise.valid is not None:
         accepted = accepted & noise.valid
@@ -607,17 +608,17 @@ def exchange_iteration(
         # inner dims of 2-5 (3x the time of a copy and a scatter on the CPU)
         y_out = _write_row(y_out, noise.slot[..., j], moved[:, :, j], accepted)
         if e_out is not None and e_new is not None:
-            e_out = torch.where(take, e_new[:, :, j].unsqueeze(-1), e_out)
+            e_out = where(take, e_new[:, :, j].unsqueeze(-1), e_out)
         if r_out is not None:
             k_j = None if kind_new is None else kind_new[:, :, j]
-            r_out = torch.where(take, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), r_out)
+            r_out = where(take, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), r_out)
             if kind_out is not None and k_j is not None:
-                kind_out = torch.where(take, k_j.unsqueeze(-1), kind_out)
+                kind_out = where(take, k_j.unsqueeze(-1), kind_out)
         if src_out is not None and lw_out is not None:
-            src_out = torch.where(take, src_moved[..., j].unsqueeze(-1), src_out)
-            lw_out = torch.where(take, lw_moved[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
+            src_out = where(take, src_moved[..., j].unsqueeze(-1), src_out)
+            lw_out = where(take, lw_moved[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
         if u_out is not None and u_moved is not None:
             u_out = _write_row(u_out, noise.slot[..., j], u_moved[:, :, j], accepted)
-    new = ExchangeChains(y_out, torch.where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
+    new = ExchangeChains(y_out, where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
                          None, u_out)
     return new, accepted, update

@@ -25,6 +25,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native.select import where
 from .._validation import check_generator, check_positive, check_positive_int, check_tensor
 from ..typing import Tensor
 
@@ -235,5 +236,5 @@ def hmc_transition(q: Tensor, value: Tensor, grad: Tensor, p: Tensor, u: Tensor,
     log_alpha = (value_new - kinetic_new) - (value - kinetic)
     accept = torch.log(u) < log_alpha  # NaN -> False: a diverged trajectory is rejected
     sel = accept.reshape(accept.shape + (1,) * len(event))
-    return (torch.where(sel, q_new, q), torch.where(accept, value_new, value), torch.where(sel, grad_new, grad),
+    return (where(sel, q_new, q), where(accept, value_new, value), where(sel, grad_new, grad),
             accept)

@@ -36,6 +36,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native.select import where
 from .._validation import check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthDeath
@@ -215,5 +216,5 @@ def hmc_refine(x: Tensor, log_lik: Tensor, noise: HMCRefineNoise, z: Measurement
     value, grad = value_and_grad(log_target, x)
     x_new, _, _, accepted = hmc_transition(x, value, grad, noise.p, noise.u, log_target=log_target,
                                            step_size=scale, num_leapfrog=settings.num_leapfrog)
-    log_lik_new = torch.where(accepted, sensor.log_likelihood(x_new, z), log_lik)
+    log_lik_new = where(accepted, sensor.log_likelihood(x_new, z), log_lik)
     return x_new, log_lik_new, accepted

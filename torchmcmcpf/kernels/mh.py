@@ -18,6 +18,7 @@ from typing import Any
 import torch
 from torch.utils._pytree import tree_map
 
+from .._native.select import where
 from ..typing import Tensor
 
 __all__ = ["mh_accept", "mh_select"]
@@ -65,7 +66,7 @@ def mh_select(accepted: Tensor, proposal: Any, current: Any) -> Any:
 
     def select(p: Tensor, c: Tensor) -> Tensor:
         flags = accepted.reshape(accepted.shape + (1,) * (c.dim() - accepted.dim()))
-        return torch.where(flags, p, c)
+        return where(flags, p, c)
 
     if torch.is_tensor(current):
         return select(proposal, current)

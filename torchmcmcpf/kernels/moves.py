@@ -104,6 +104,7 @@ from collections.abc import Callable
 
 import torch
 
+from .._native.select import where
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import TargetDynamics
 from ..models.multitarget import Exclusion, exclusion_change, exclusion_on, log_exclusion
@@ -226,7 +227,7 @@ def joint_move(chain: ChainState, noise: JointNoise, *, cloud: PreviousCloud, z:
     accepted = mh_accept(log_alpha + phi_cand - phi, noise.u)
     new = mh_select(accepted, cand, chain._replace(log_phi=None))  # the cache: a chain without one keeps none
     if exclusion_on(exclusion, sensor) and not torch.compiler.is_compiling():  # eager: keep log Phi of the new state
-        new = new._replace(log_phi=(new.x, new.exists, torch.where(accepted, phi_cand, phi)))
+        new = new._replace(log_phi=(new.x, new.exists, where(accepted, phi_cand, phi)))
     return new, accepted
 
 
@@ -276,8 +277,8 @@ def refine_move(chain: ChainState, noise: RefineNoise, *, z: Measurement, dynami
         terms_prop = sensor.log_likelihood_per_target(x_prop, z)
         accepted = mh_accept(terms_prop - chain.log_lik_terms + log_ratio, noise.u)
         x = mh_select(accepted, x_prop, chain.x)
-        terms = torch.where(accepted, terms_prop, chain.log_lik_terms)
-        new_ratio = None if chain.log_ratio is None else torch.where(accepted, ratio_prop, chain.log_ratio)
+        terms = where(accepted, terms_prop, chain.log_lik_terms)
+        new_ratio = None if chain.log_ratio is None else where(accepted, ratio_prop, chain.log_ratio)
         return ChainState(x, chain.x_prev, terms.sum(-1), terms, log_ratio=new_ratio), accepted
     return _sequential_sweep(chain, x_prop, log_ratio, noise.u, z, sensor, e_prop, ratio_prop, exclusion,
                              slot_program)
@@ -337,25 +338,25 @@ def refine_slot(x: Tensor, log_lik: Tensor, e: Tensor | None, log_r: Tensor | No
         log_lik_cand = sensor.log_likelihood_slot(x, x_n, n, z, log_lik, exists=e, exists_n=e_n)
     log_alpha = log_lik_cand - log_lik + ratio_n + exclusion_change(exclusion, sensor, x, x_n, n_t, e, e_n)
     acc = mh_accept(log_alpha, u_n)
-    log_lik = torch.where(acc, log_lik_cand, log_lik)
+    log_lik = where(acc, log_lik_cand, log_lik)
     if isinstance(n, int):  # slot n set to the accepted value, the other slots' entries copied
-        x = _with_slot(x, acc.dim(), n, torch.where(acc.unsqueeze(-1), x_n, x[..., n, :]))
+        x = _with_slot(x, acc.dim(), n, where(acc.unsqueeze(-1), x_n, x[..., n, :]))
         if e is not None and e_n is not None:
-            e = _with_slot(e, acc.dim(), n, torch.where(acc, e_n, e[..., n]))
+            e = _with_slot(e, acc.dim(), n, where(acc, e_n, e[..., n]))
         if log_r is not None and r_prop is not None:
-            log_r = _with_slot(log_r, acc.dim(), n, torch.where(acc, r_prop[..., n], log_r[..., n]))
+            log_r = _with_slot(log_r, acc.dim(), n, where(acc, r_prop[..., n], log_r[..., n]))
         return x, log_lik, e, log_r, acc, update
-    x = mh_select(acc, torch.where(here.unsqueeze(-1), x_prop, x), x)
+    x = mh_select(acc, where(here.unsqueeze(-1), x_prop, x), x)
     if e is not None and e_prop is not None:
-        e = mh_select(acc, torch.where(here, e_prop, e), e)
+        e = mh_select(acc, where(here, e_prop, e), e)
     if log_r is not None and r_prop is not None:
-        log_r = torch.where(acc.unsqueeze(-1) & here, r_prop, log_r)
+        log_r = where(acc.unsqueeze(-1) & here, r_prop, log_r)
     return x, log_lik, e, log_r, acc, update
 
 
 def _with_slot(t: Tensor, axis: int, n: int, value: Tensor) -> Tensor:
     """A copy of ``t`` with entry ``n`` of its slot axis ``axis`` set to ``value`` (``t``'s
-    shape without that axis): the values of ``torch.where(slot == n, value, t)``, one copy and
+    shape without that axis): the values of ``where(slot == n, value, t)``, one copy and
     one slot's write instead of a select over every slot with a broadcast condition, which
     ATen's CPU loop does not vectorise (0.39 against 0.06 ms for ``(10, 1000, 5, 4)``).
     """

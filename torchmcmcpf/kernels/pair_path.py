@@ -79,6 +79,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from .._native.select import where
 from .._validation import check_fields, check_positive, check_positive_int
 from ..models.base import MotionModel, SensorModel
 from ..models.multitarget import Exclusion, log_exclusion
@@ -195,7 +196,7 @@ def _set_pair(x: Tensor, pair_x: Tensor, pair: Tensor) -> Tensor:
     slots = torch.arange(k, device=x.device)
     at_a = (slots == pair[:, :1]).reshape(shape).unsqueeze(-1)
     at_b = (slots == pair[:, 1:]).reshape(shape).unsqueeze(-1)
-    return torch.where(at_a, pair_x[..., 0:1, :], torch.where(at_b, pair_x[..., 1:2, :], x))
+    return where(at_a, pair_x[..., 0:1, :], where(at_b, pair_x[..., 1:2, :], x))
 
 
 def _get_pair(x: Tensor, pair: Tensor) -> Tensor:
@@ -262,7 +263,7 @@ def conditional_smc(path: Tensor, frames: Tensor, pair: Tensor, *, motion: Motio
         parent = take_along(prev, anc.reshape(b, p, m, 1, 1), 2)
         eps = torch.randn((b, p, m, 2, motion.noise_dim), generator=generator, device=dev, dtype=dt)
         x_s = motion.propagate(parent, eps)
-        x_s = torch.where((rows == m - 1).reshape(1, 1, m, 1, 1), r_s.unsqueeze(2), x_s)
+        x_s = where((rows == m - 1).reshape(1, 1, m, 1, 1), r_s.unsqueeze(2), x_s)
         full = _set_pair(path[:, :, s].unsqueeze(2).expand(b, p, m, k, d), x_s, pair)  # (B, P, M, K, D)
         log_w = sensor.log_likelihood(full, frames[s - 1]) + log_exclusion(exclusion, sensor, full)
         log_w = torch.nan_to_num(log_w.to(torch.float64), nan=-math.inf)
@@ -347,19 +348,19 @@ def pair_path_update(window: PairPathWindow | None, x_prev: Tensor, centre: Tens
     # the trigger, from the previous cloud's prediction
     u = sensor.resolution_coords(centre)  # (B, K, r)
     close = pairwise_squared_distances(u, u) < settings.distance ** 2
-    since = torch.where(close, 0, (old["pair_path_since"] + 1).clamp(max=lag))
+    since = where(close, 0, (old["pair_path_since"] + 1).clamp(max=lag))
     new = _advance({**old, "pair_path_since": since}, x_new, source, z, lag)
     upper = torch.ones((k, k), dtype=torch.bool, device=x_new.device).triu(1)
     eligible = (since < lag) & upper  # (B, K, K)
     frames = int(new["pair_path_frames"][0])  # every run has seen the same frames
     fire = eligible.flatten(1).any(-1) & (old["pair_path_clock"] + 1 >= settings.every) & (frames >= 1)
-    new["pair_path_clock"] = torch.where(fire, 0, old["pair_path_clock"] + 1)
+    new["pair_path_clock"] = where(fire, 0, old["pair_path_clock"] + 1)
     report = {"pair_path_fired": fire.to(x_new.dtype), "pair_path_moved": torch.zeros(b, dtype=x_new.dtype,
                                                                                      device=x_new.device)}
     runs = fire.nonzero().squeeze(1)  # one host read; only the runs that fire pay
     if runs.numel() == 0:
         return x_new, PairPathWindow(*(new[key] for key in _KEYS)), report
-    log_p = torch.where(eligible[runs].flatten(1), 0.0, -math.inf).to(torch.float64)
+    log_p = where(eligible[runs].flatten(1), 0.0, -math.inf).to(torch.float64)
     at = inverse_cdf(cdf(log_p), torch.rand((runs.numel(), 1), generator=generator, device=x_new.device,
                                             dtype=torch.float64)).squeeze(1)
     pair = torch.stack([at // k, at % k], -1)  # (R, 2), a < b

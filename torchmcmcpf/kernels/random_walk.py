@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native.select import where
 from ..models.base import MotionModel, SensorModel
 from ..models.motion import LinearGaussianMotion
 from ..models.multitarget import Exclusion, log_exclusion
@@ -166,7 +167,7 @@ def random_walk_move(chain: ChainState, noise: RandomWalkNoise, *, cloud: Previo
     new = mh_select(accepted, ChainState(x_prop, chain.x_prev, log_lik, terms),
                     chain._replace(log_phi=None, cache=None))  # no cache kept
     # Gibbs step on the ancestor: inversion of the conditional's CDF with one uniform per chain.
-    lj = torch.where(accepted.unsqueeze(-1), lj_prop, lj_cur)
+    lj = where(accepted.unsqueeze(-1), lj_prop, lj_cur)
     idx = inverse_cdf(cdf(lj), noise.u_ancestor.unsqueeze(-1))
     return new._replace(x_prev=gather_particles(cloud.x, idx.squeeze(-1))), accepted
 

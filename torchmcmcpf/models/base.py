@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from .. import runtime
+from .._native.select import where
 from .._validation import check_batch, check_finite, check_shape
 from ..typing import Measurement, Tensor
 
@@ -383,7 +384,7 @@ class SensorModel(nn.Module, Generic[Z]):
                 cache.view(-1).index_add_(0, cells.reshape(flat, -1)[rows].reshape(-1), added.reshape(-1))
             return cache
         keep = accepted.reshape(accepted.shape + (1,) * (change.dim() - accepted.dim()))
-        added = torch.where(keep, change, 0.0)
+        added = where(keep, change, 0.0)
         if cells is None:
             return cache.add_(added.reshape(cache.shape))
         cache.view(-1).index_add_(0, cells.reshape(-1), added.reshape(-1))
@@ -539,8 +540,8 @@ def _set_slot(x: Tensor, x_n: Tensor, n: int | Tensor, exists: Tensor | None, ex
     """``x`` with slot ``n`` (int, or (B, *S) int64) set to ``x_n (B, *S, D)`` (and its flag)."""
     slots = torch.arange(x.shape[-2], device=x.device)
     here = slots == (n.unsqueeze(-1) if isinstance(n, torch.Tensor) else n)  # (B, *S, K) or (K,)
-    x_new = torch.where(here.unsqueeze(-1), x_n.unsqueeze(-2), x)
+    x_new = where(here.unsqueeze(-1), x_n.unsqueeze(-2), x)
     if exists is None:
         return x_new, None
     e_n = exists[..., 0] if exists_n is None else exists_n
-    return x_new, torch.where(here, e_n.unsqueeze(-1), exists)
+    return x_new, where(here, e_n.unsqueeze(-1), exists)

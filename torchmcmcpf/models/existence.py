@@ -46,9 +46,10 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
+from .._native.select import packed_places, unpacked, where
 from .._validation import check_positive
 from ..resampling import uniform_pick
-from ..runtime import packed_places, take_along, unpacked
+from ..runtime import take_along
 from ..typing import VX, VY, Measurement, PointMeasurement, Tensor, X, Y, split_points
 from .base import MotionModel, SensorModel
 from .multitarget import Recapture, RelocationNoise, draw_relocation, relocate
@@ -81,9 +82,9 @@ class BirthNoise(NamedTuple):
         """
         shape = x.shape[:-1]
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
-        where = existence.may_be_born(u) if exists is None else existence.can_be_born(u, exists)
+        only = existence.may_be_born(u) if exists is None else existence.can_be_born(u, exists)
         born, log_ratio = existence._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
-                                                 where=where)
+                                                 only=only)
         return cls(u, born, log_ratio)
 
 
@@ -207,7 +208,7 @@ class BirthDeath(nn.Module):
     def log_prob_exists(self, exists_next: Tensor, exists: Tensor) -> Tensor:
         """``log p(e_k | e_{k-1})`` per slot, eq. 25: ``(*S, K), (*S, K) -> (*S, K)``."""
         p_on = self._p_on(exists)
-        return torch.where(exists_next, p_on, 1.0 - p_on).log()
+        return where(exists_next, p_on, 1.0 - p_on).log()
 
     def _p_on(self, exists: Tensor, *, proposal: bool = False) -> Tensor:
         """``p(e_k = 1 | e_{k-1})`` per slot, float64 ``(*S, K)`` (with ``proposal``, the
@@ -217,8 +218,8 @@ class BirthDeath(nn.Module):
             return torch.tensor(p, dtype=torch.float64, device=exists.device)
 
         if proposal:
-            return torch.where(exists, f64(1.0 - self.death_proposal), f64(self.birth_proposal))
-        return torch.where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
+            return where(exists, f64(1.0 - self.death_proposal), f64(self.birth_proposal))
+        return where(exists, f64(1.0 - self.p_death), f64(self.p_birth))
 
     def draw_exists(self, exists: Tensor, u: Tensor) -> Tensor:
         """``e_k ~ p(e_k | e_{k-1})`` (eq. 25) from uniforms ``u`` shaped like ``exists (*S, K)``:
@@ -237,7 +238,7 @@ class BirthDeath(nn.Module):
         return ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
 
     def _log_uniform(self, pos: Tensor) -> Tensor:
-        return torch.where(self._in_area(pos), -self.log_volume, -math.inf).to(pos.dtype)
+        return where(self._in_area(pos), -self.log_volume, -math.inf).to(pos.dtype)
 
     def birth_log_prob(self, x: Tensor) -> Tensor:
         """``log p_0(x)`` of a newborn, eq. 33: ``(*S, K, D) -> (*S, K)`` (the components
@@ -277,19 +278,19 @@ class BirthDeath(nn.Module):
         return self.may_be_born(u) & ~exists
 
     def _draw_births(self, shape: Sequence[int], z: PointMeasurement | None, *, generator: torch.Generator,
-                     dtype: torch.dtype, device: torch.device | str | None, where: Tensor | None = None
+                     dtype: torch.dtype, device: torch.device | str | None, only: Tensor | None = None
                      ) -> tuple[Tensor, Tensor]:
         """Newborn states ``(*shape, D)`` from ``q_0`` (or ``p_0``) and ``log p_0 - log q_0``
-        ``(*shape)``; ``shape = (B, *S, K)``. With ``where (*shape)`` bool, drawn and scored
+        ``(*shape)``; ``shape = (B, *S, K)``. With ``only (*shape)`` bool, drawn and scored
         there only, ``x_death`` and 0 elsewhere (:meth:`may_be_born`: a half of the slots or
         fewer on the births/deaths scene, 2 % under the chain's own ``P_B``): the candidates of
-        each run packed into one ``(B, W)`` block (:func:`~torchmcmcpf.runtime.packed_places`,
+        each run packed into one ``(B, W)`` block (:func:`~torchmcmcpf._native.select.packed_places`,
         ``W`` the most in a run; one host read), whose ratios read the run's points without
         gathering them per candidate.
         """
-        if where is not None:
+        if only is not None:
             b = shape[0]
-            flags = where.reshape(b, -1)
+            flags = only.reshape(b, -1)
             width, place = packed_places(flags)
             born = self.x_death.to(device=device, dtype=dtype).expand(flags.shape + (self.dim,))
             log_ratio = torch.zeros(flags.shape, dtype=dtype, device=device)
@@ -318,7 +319,7 @@ class BirthDeath(nn.Module):
         near = centre + self.birth_std * torch.randn(tuple(shape) + (2,), generator=generator,
                                                      device=device, dtype=dtype)
         use_near = (u_pick[..., 1] >= self.p_uniform) & (n_valid.reshape(lead) > 0)
-        pos = torch.where(use_near.unsqueeze(-1), near, pos)
+        pos = where(use_near.unsqueeze(-1), near, pos)
         return self._newborn(pos, vel_eps), self._log_birth_ratio(pos, pts, mask, self.birth_std)
 
     def _log_birth_ratio(self, pos: Tensor, pts: Tensor, mask: Tensor, s: float) -> Tensor:
@@ -347,8 +348,8 @@ class BirthDeath(nn.Module):
         log_e = self.log_prob_exists(exists_next, exists).to(x.dtype)
         survive = exists & exists_next
         born = ~exists & exists_next
-        log_x = torch.where(survive, motion.log_prob(x_next, x), torch.zeros_like(log_e))
-        log_x = torch.where(born, self.birth_log_prob(x_next), log_x)
+        log_x = where(survive, motion.log_prob(x_next, x), torch.zeros_like(log_e))
+        log_x = where(born, self.birth_log_prob(x_next), log_x)
         return log_e + log_x
 
     def propagate(self, x: Tensor, exists: Tensor, eps: Tensor, birth: BirthNoise, *, motion: MotionModel,
@@ -376,13 +377,13 @@ class BirthDeath(nn.Module):
         q_on = self._p_on(exists, proposal=True)
         exists_next = birth.u.to(torch.float64) < (self._p_on(exists) if from_prior else q_on)
         born = exists_next & ~exists
-        x_next = torch.where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
-        x_next = torch.where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
-        log_ratio = torch.where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
+        x_next = where(born.unsqueeze(-1), birth.x, motion.propagate(x, eps))
+        x_next = where(exists_next.unsqueeze(-1), x_next, self.x_death.to(x.dtype))
+        log_ratio = where(born, birth.log_ratio, torch.zeros_like(birth.log_ratio))
         if self.birth_proposal != self.p_birth or self.death_proposal != self.p_death:
             p_on = self._p_on(exists)
-            log_p = torch.where(exists_next, p_on, 1.0 - p_on).log()
-            log_q = torch.where(exists_next, q_on, 1.0 - q_on).log()
+            log_p = where(exists_next, p_on, 1.0 - p_on).log()
+            log_q = where(exists_next, q_on, 1.0 - q_on).log()
             log_ratio = log_ratio + (log_p - log_q).to(log_ratio.dtype)
         return x_next, exists_next, log_ratio
 
@@ -418,7 +419,7 @@ class BirthDeath(nn.Module):
         u = torch.rand(shape, generator=generator, device=x.device, dtype=x.dtype)
         eps = torch.randn(shape + (motion.noise_dim,), generator=generator, device=x.device, dtype=x.dtype)
         born, log_ratio = self._draw_births(shape, z, generator=generator, dtype=x.dtype, device=x.device,
-                                            where=None if every_slot else self.may_be_born(u))
+                                            only=None if every_slot else self.may_be_born(u))
         return eps, BirthNoise(u, born, log_ratio)
 
     def sample(self, x: Tensor, exists: Tensor, *, motion: MotionModel, generator: torch.Generator

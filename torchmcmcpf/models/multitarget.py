@@ -82,8 +82,9 @@ from typing import TYPE_CHECKING, NamedTuple, TypeGuard
 import torch
 
 from .._native import applies
+from .._native.select import packed_places, unpacked, where
 from .._validation import check_positive, check_positive_int
-from ..runtime import packed_places, pairwise_squared_distances, squared_norm, unpacked
+from ..runtime import pairwise_squared_distances, squared_norm
 from ..typing import Tensor
 from . import _exclusion_native
 
@@ -162,7 +163,7 @@ class Exclusion:
         # dropped after it, as in log_change
         terms = self.log_phi(d2)
         if alive is not None:
-            terms = torch.where(alive.index_select(-1, i) & alive.index_select(-1, j), terms, 0.0)
+            terms = where(alive.index_select(-1, i) & alive.index_select(-1, j), terms, 0.0)
         return terms.sum(-1)
 
     def log_change(self, u: Tensor, u_n: Tensor, n: Tensor, alive: Tensor | None = None,
@@ -204,7 +205,7 @@ class Exclusion:
             on = (others & alive).unsqueeze(-2) & torch.stack([a_old, a_new], -2)  # (*S, 2, K)
         # log_phi is floored (finite, zero slope below the floor at d = 0): the pairs off are
         # dropped after it, no mask before it (a move pays one select, not two)
-        terms = torch.where(on, self.log_phi(d2), 0.0)
+        terms = where(on, self.log_phi(d2), 0.0)
         return (terms[..., 1, :] - terms[..., 0, :]).sum(-1)
 
 
@@ -267,8 +268,8 @@ def exclusion_against(exclusion: Exclusion | None, sensor: SensorModel, x: Tenso
     d2 = pairwise_squared_distances(u, u_ref)  # (B, *S, K, K): slot k vs reference l
     k = x.shape[-2]
     others = ~torch.eye(k, dtype=torch.bool, device=x.device)
-    terms = exclusion.log_phi(torch.where(others, d2, torch.ones_like(d2)))
-    return torch.where(others, terms, torch.zeros_like(terms)).sum(-1)
+    terms = exclusion.log_phi(where(others, d2, torch.ones_like(d2)))
+    return where(others, terms, torch.zeros_like(terms)).sum(-1)
 
 
 @dataclass(frozen=True)
@@ -349,7 +350,7 @@ class RelocationNoise(NamedTuple):
         (None: the sensor finds them).
 
         ``packed``: the coordinates themselves are drawn for those slots only, each run's packed
-        in order into one ``(B, W)`` block (:func:`~torchmcmcpf.runtime.packed_places`), and are
+        in order into one ``(B, W)`` block (:func:`~torchmcmcpf._native.select.packed_places`), and are
         0 elsewhere (never read: :func:`relocate`). The MCMC-PF draws a relocation for every
         slot of every move, a tenth of them read, and packs them; the IP-MCMC-PF's draws (one
         slot a chain and iteration) keep the dense stream its recorded studies ran on.
@@ -405,7 +406,7 @@ def log_q_component(kind: Tensor, p_propose: float) -> Tensor:
     """
     motion = torch.tensor(math.log1p(-p_propose), dtype=torch.float64, device=kind.device)
     jump = torch.tensor(math.log(p_propose), dtype=torch.float64, device=kind.device)
-    return torch.where(kind == MOTION, motion, torch.where(kind == RELOCATED, jump, torch.zeros_like(motion)))
+    return where(kind == MOTION, motion, where(kind == RELOCATED, jump, torch.zeros_like(motion)))
 
 
 def relocate(x: Tensor, survive: Tensor | None, noise: RelocationNoise, recapture: Recapture,
@@ -433,9 +434,9 @@ def relocate(x: Tensor, survive: Tensor | None, noise: RelocationNoise, recaptur
     jump = noise.u < eps
     alive = torch.ones_like(jump) if survive is None else survive
     jump = jump & alive
-    x = torch.where(jump.unsqueeze(-1), sensor.place(x, noise.coords), x)
-    kind = torch.where(jump, RELOCATED, torch.where(alive, MOTION, FIXED)).to(torch.int8)
-    log_free = torch.where(jump, math.log(recapture.p_jump) + noise.log_ratio,
+    x = where(jump.unsqueeze(-1), sensor.place(x, noise.coords), x)
+    kind = where(jump, RELOCATED, where(alive, MOTION, FIXED)).to(torch.int8)
+    log_free = where(jump, math.log(recapture.p_jump) + noise.log_ratio,
                            torch.full_like(noise.log_ratio, math.log1p(-recapture.p_jump)))
     log_r = log_free - log_q_component(kind, eps).to(log_free.dtype)
-    return x, torch.where(alive, log_r, 0.0), kind
+    return x, where(alive, log_r, 0.0), kind

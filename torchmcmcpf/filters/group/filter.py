@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from ..._native.select import where
 from ..._validation import check_positive_int, check_shape
 from ...models.group import (
     GroupExistence,
@@ -141,7 +142,7 @@ class GroupMCMCFilter(Filter):
             labels = torch.arange(k, device=particles.device).expand(b, n, k)
         check_shape(labels, "init.labels", (b, n, k))
         exists = exists.to(torch.bool)
-        x = torch.where(exists.unsqueeze(-1), particles, self.existence.x_death.to(particles))
+        x = where(exists.unsqueeze(-1), particles, self.existence.x_death.to(particles))
         st = pairwise_kalman_init((b, n), k, existence=self.existence, dtype=particles.dtype, device=particles.device)
         w_mean = st.mean.clone()
         w_mean[..., :k] = x[..., 1::2].transpose(-1, -2)

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
+from ..._native.select import where
 from ...kernels.mh import mh_accept, mh_select
 from ...models.group import (
     GroupExistence,
@@ -196,7 +197,7 @@ def _log_px(pos: Tensor, pm: Tensor, S: Tensor, obs: Tensor, free: Tensor, exist
     y = torch.linalg.solve_triangular(L, (pos - pm) * o.unsqueeze(-1), upper=False)
     logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
     log_g = -0.5 * y.square().sum((-1, -2)) - 2 * logdet - o.sum(-1) * LOG_2PI
-    log_p0 = torch.where(free, existence.log_p0_position(pos), torch.zeros_like(pos[..., 0])).sum(-1)
+    log_p0 = where(free, existence.log_p0_position(pos), torch.zeros_like(pos[..., 0])).sum(-1)
     return log_g + log_p0
 
 
@@ -211,8 +212,8 @@ def _log_q0(pos: Tensor, cloud: Cloud, sensor: ThresholdedPixels, existence: Gro
     hit = torch.gather(cloud.beta, 1, flat).reshape(pos.shape[:-1]).to(pos.dtype)
     n = cloud.n_obs.to(pos.dtype).reshape((-1,) + (1,) * (pos.dim() - 2))
     phi = hit / (n.clamp(min=1) * s * s)
-    q = torch.where(n > 0, p_i * log_p0.exp() + (1 - p_i) * phi, log_p0.exp())
-    return torch.where(torch.isfinite(log_p0), q.log(), log_p0)
+    q = where(n > 0, p_i * log_p0.exp() + (1 - p_i) * phi, log_p0.exp())
+    return where(torch.isfinite(log_p0), q.log(), log_p0)
 
 
 def _draw_q0(noise: GroupJointNoise | GroupRefineNoise, cloud: Cloud, sensor: ThresholdedPixels,
@@ -228,13 +229,13 @@ def _draw_q0(noise: GroupJointNoise | GroupRefineNoise, cloud: Cloud, sensor: Th
     in_pixel = (pix + noise.b_xy) * sensor.pixel_size
     n = cloud.n_obs.reshape((-1,) + (1,) * (noise.b_sel.dim() - 1))
     use_uniform = (noise.b_sel < p_i) | (n == 0)
-    return torch.where(use_uniform.unsqueeze(-1), uniform, in_pixel)
+    return where(use_uniform.unsqueeze(-1), uniform, in_pixel)
 
 
 def _birth_ratio(pos: Tensor, free: Tensor, cloud: Cloud, models: Models) -> Tensor:
     """``sum_free log p_0(x_i) - log q_0(x_i)``: ``-> (B, C)``."""
     r = models.existence.log_p0_position(pos) - _log_q0(pos, cloud, models.sensor, models.existence, models.p_i)
-    return torch.where(free, r, torch.zeros_like(r)).sum(-1)
+    return where(free, r, torch.zeros_like(r)).sum(-1)
 
 
 def _draw_structure(log_pg: Tensor, u: Tensor) -> Tensor:
@@ -251,7 +252,7 @@ def _path_step(stats: KalmanStats, pos_p: Tensor, g_p: Tensor, lab_p: Tensor, ex
     """
     tr = models.motion.transition(pos_p, lab_p, lab, ex_p, ex, existence=models.existence)
     log_pred, stats = pairwise_kalman_update(pairwise_kalman_predict(stats, pos_p, tr), pos)
-    log_p0 = torch.where(tr.free_birth, models.existence.log_p0_position(pos), torch.zeros_like(pos[..., 0])).sum(-1)
+    log_p0 = where(tr.free_birth, models.existence.log_p0_position(pos), torch.zeros_like(pos[..., 0])).sum(-1)
     log_pg = models.structure_prior.log_probs(g_p, pos_p, ex_p)
     log_g = torch.gather(log_pg, -1, g.unsqueeze(-1)).squeeze(-1)
     return log_pred + log_p0 + log_g + _log_lik(pos, ex, z, models.sensor), stats
@@ -299,7 +300,7 @@ def make_chain(j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, cloud: Cloud, 
     prev = _prev_of(cloud, j) if win_pos is None else _past(j, win_pos, cloud, models, win_exists)
     labels = cloud.table[g]
     pm, S, obs, free = _predict(prev, labels, exists, models)
-    pos = torch.where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
+    pos = where(exists.unsqueeze(-1), pos, _death_pos(models.existence, pos))
     return Chain(j, g, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
                  _log_px(pos, pm, S, obs, free, models.existence), _gather(cloud.log_wq, j),
                  _birth_ratio(pos, free, cloud, models), pm, S, obs, free, prev)
@@ -309,7 +310,7 @@ def joint_proposal(noise: GroupJointNoise, cloud: Cloud, z: Tensor, models: Mode
     """Algorithm 1 steps 1-4 (eqs. 61-65) for every chain: the proposed state with its caches."""
     existence = models.existence
     use_alpha = noise.mix < models.p_a
-    j = torch.where(use_alpha, inverse_cdf(cloud.cdf_alpha, noise.j), inverse_cdf(cloud.cdf_w, noise.j))
+    j = where(use_alpha, inverse_cdf(cloud.cdf_alpha, noise.j), inverse_cdf(cloud.cdf_w, noise.j))
     prev = _prev_of(cloud, j)
     g = _draw_structure(prev.log_pg, noise.g)
     labels = cloud.table[g]
@@ -319,7 +320,7 @@ def joint_proposal(noise: GroupJointNoise, cloud: Cloud, z: Tensor, models: Mode
     L = torch.linalg.cholesky(S * o.unsqueeze(-1) * o.unsqueeze(-2) + torch.diag_embed(1.0 - o))
     x_obs = pm + L @ noise.eps
     x_born = _draw_q0(noise, cloud, models.sensor, existence, models.p_i)
-    pos = torch.where(obs.unsqueeze(-1), x_obs, torch.where(free.unsqueeze(-1), x_born, _death_pos(existence, pm)))
+    pos = where(obs.unsqueeze(-1), x_obs, where(free.unsqueeze(-1), x_born, _death_pos(existence, pm)))
     return Chain(j, g, labels, exists, pos, _log_lik(pos, exists, z, models.sensor),
                  _log_px(pos, pm, S, obs, free, existence), _gather(cloud.log_wq, j),
                  _birth_ratio(pos, free, cloud, models), pm, S, obs, free, prev)
@@ -360,12 +361,12 @@ def refine_move(chain: Chain, noise: GroupRefineNoise, cloud: Cloud, z: Tensor, 
     for i in range(k):
         onehot = torch.arange(k, device=chain.pos.device) == i
         e_i = existence.draw_exists(prev.exists[..., i], noise.e[..., i])
-        exists = torch.where(onehot, e_i.unsqueeze(-1), chain.exists)
+        exists = where(onehot, e_i.unsqueeze(-1), chain.exists)
         pm, S, obs, free = _predict(prev, chain.labels, exists, models)
         cm, cv = _conditional(chain.pos, pm, S, obs, i)
-        x_i = torch.where(obs[..., i, None], cm + cv.sqrt().unsqueeze(-1) * noise.eps[..., i, :],
-                          torch.where(free[..., i, None], x_born[..., i, :], dead))
-        pos = torch.where(onehot.unsqueeze(-1), x_i.unsqueeze(-2), chain.pos)
+        x_i = where(obs[..., i, None], cm + cv.sqrt().unsqueeze(-1) * noise.eps[..., i, :],
+                          where(free[..., i, None], x_born[..., i, :], dead))
+        pos = where(onehot.unsqueeze(-1), x_i.unsqueeze(-2), chain.pos)
         log_q_fwd = _log_q_slot(x_i, cm, cv, obs[..., i], free[..., i], cloud, models)
         cm0, cv0 = _conditional(chain.pos, chain.pm, chain.S, chain.observed, i)
         log_q_rev = _log_q_slot(chain.pos[..., i, :], cm0, cv0, chain.observed[..., i], chain.free[..., i],
@@ -428,7 +429,7 @@ def _pixel_log_q(pos: Tensor, masks: Tensor, step: Tensor, n: Tensor, sensor: Th
     flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long() + step * (h * w)  # (B, C) into (B, W HW)
     hit = torch.gather(masks.flatten(1), -1, flat) & inside & (n > 0)
     log_q = -torch.log(n.to(pos.dtype).clamp(min=1) * s * s)
-    return torch.where(hit, log_q, torch.full_like(log_q, -math.inf))
+    return where(hit, log_q, torch.full_like(log_q, -math.inf))
 
 
 def _alive_path(chain: Chain, cloud: Cloud, models: Models, onehot: Tensor, s: Tensor, sample: Tensor, y: Tensor,
@@ -458,12 +459,12 @@ def _alive_path(chain: Chain, cloud: Cloud, models: Models, onehot: Tensor, s: T
         cm, cv = _conditional_slot(pos_r, pred.position_mean.contiguous(), pred.position_cov.contiguous(),
                                    tr.observed, onehot)
         own = (pos_r * sel.to(y.dtype)).sum(-2)
-        x = torch.where(sample.unsqueeze(-1), cm + cv.clamp(min=0).sqrt().unsqueeze(-1) * eps[:, :, max(r - 1, 0)],
+        x = where(sample.unsqueeze(-1), cm + cv.clamp(min=0).sqrt().unsqueeze(-1) * eps[:, :, max(r - 1, 0)],
                         own)
         after = s < r
-        log_q = log_q + torch.where(after, _log_normal2(x, cm, cv), torch.zeros_like(cv))
-        x = torch.where(after.unsqueeze(-1), x, torch.where((s == r).unsqueeze(-1), y, own))
-        pos_r = torch.where(sel & (s <= r)[..., None, None], x.unsqueeze(-2), pos_r)
+        log_q = log_q + where(after, _log_normal2(x, cm, cv), torch.zeros_like(cv))
+        x = where(after.unsqueeze(-1), x, where((s == r).unsqueeze(-1), y, own))
+        pos_r = where(sel & (s <= r)[..., None, None], x.unsqueeze(-2), pos_r)
         _, stats = pairwise_kalman_update(pred, pos_r)
         out.append(pos_r)
         pos_p, lab_p, ex_p = pos_r, lab_r, ex_r
@@ -508,7 +509,7 @@ def window_birth_move(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, 
     sel = onehot.unsqueeze(-1)
     y_own = (torch.gather(prev.win_pos, 2, s[:, :, None, None, None].expand(b, c, 1, k, 2)).squeeze(2)
              * sel.to(y_new.dtype)).sum(-2)
-    y = torch.where(birth.unsqueeze(-1), y_new, y_own)
+    y = where(birth.unsqueeze(-1), y_new, y_own)
     # the configuration with slot i alive from s on: proposed (a birth) or the chain's own (a death)
     in_window = (steps.reshape(1, 1, w) >= s.unsqueeze(-1)).unsqueeze(-1) & onehot.unsqueeze(2)  # (B, C, W, K)
     alive_win_ex = prev.win_exists | in_window
@@ -518,11 +519,11 @@ def window_birth_move(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, 
     log_q = _pixel_log_q(y, cloud.pair, s, n_s, sensor) + log_qx
     # the proposed state: alive from s (a birth) or dead from s (a death; positions to x_death)
     dead = _death_pos(existence, y_new)
-    win_exists = torch.where(birth[..., None, None], alive_win_ex, prev.win_exists & ~in_window)
-    exists = torch.where(birth.unsqueeze(-1), alive_ex, chain.exists & ~onehot)
-    win_pos = torch.where(birth[..., None, None, None], win_alive,
-                          torch.where(in_window.unsqueeze(-1), dead, prev.win_pos))
-    pos = torch.where(birth[..., None, None], pos_alive, torch.where(sel, dead, chain.pos))
+    win_exists = where(birth[..., None, None], alive_win_ex, prev.win_exists & ~in_window)
+    exists = where(birth.unsqueeze(-1), alive_ex, chain.exists & ~onehot)
+    win_pos = where(birth[..., None, None, None], win_alive,
+                          where(in_window.unsqueeze(-1), dead, prev.win_pos))
+    pos = where(birth[..., None, None], pos_alive, where(sel, dead, chain.pos))
     new_prev = _past(chain.j, win_pos, cloud, models, win_exists)
     pm, S, obs, free = _predict(new_prev, chain.labels, exists, models)
     prop = chain._replace(exists=exists, pos=pos, log_lik=_log_lik(pos, exists, z, sensor),
@@ -536,7 +537,7 @@ def window_birth_move(chain: Chain, noise: GroupWindowBirthNoise, cloud: Cloud, 
 
     log_rho = (_past_log_target(prop) - _past_log_target(chain)
                + (log_e(win_exists, exists) - log_e(prev.win_exists, chain.exists)).to(y.dtype))
-    log_rho = log_rho + torch.where(birth, -log_q, log_q)
+    log_rho = log_rho + where(birth, -log_q, log_q)
     n_new = torch.stack(_eligible(anchor_ex, win_exists, exists, cloud.n_pair)).any(0).flatten(-2).sum(-1)
     log_rho = log_rho + torch.log(n_elig.to(y.dtype)) - torch.log(n_new.to(y.dtype))  # the pick's 1 / n ratio
     acc = (birth | death) & mh_accept(log_rho, noise.u)
@@ -605,4 +606,4 @@ def _log_q_slot(x_i: Tensor, cm: Tensor, cv: Tensor, obs_i: Tensor, free_i: Tens
     """
     log_n = _log_normal2(x_i, cm, cv)
     log_q0 = _log_q0(x_i.unsqueeze(-2), cloud, models.sensor, models.existence, models.p_i).squeeze(-1)
-    return torch.where(obs_i, log_n, torch.where(free_i, log_q0, torch.zeros_like(log_n)))
+    return where(obs_i, log_n, where(free_i, log_q0, torch.zeros_like(log_n)))

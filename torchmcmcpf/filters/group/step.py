@@ -15,6 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch.utils._pytree import tree_map
 
+from ..._native.select import where
 from ...models.base import neighbourhood
 from ...models.group import (
     GroupExistence,
@@ -121,10 +122,10 @@ def _predictive_log_lik(pm: Tensor, var: Tensor, exists: Tensor, z: Tensor, sens
     hit = torch.gather(z.reshape(b, -1).to(torch.bool), 1, flat.reshape(b, -1)).reshape(flat.shape)
     lr1 = sensor.p_d1 / sensor.p_fa
     lr0 = (1.0 - sensor.p_d1) / (1.0 - sensor.p_fa)
-    lr = torch.where(inside, hit.to(pm.dtype) * (lr1 - lr0) + lr0, torch.ones_like(m2))
+    lr = where(inside, hit.to(pm.dtype) * (lr1 - lr0) + lr0, torch.ones_like(m2))
     e_lr = (m2 * lr).sum((-1, -2)) + (1.0 - m2.sum((-1, -2))).clamp(min=0.0)
     term = torch.log((1.0 - p_death) * e_lr + p_death)
-    return torch.where(exists, term, torch.zeros_like(term)).sum(-1)
+    return where(exists, term, torch.zeros_like(term)).sum(-1)
 
 
 def _log_alpha_lik(v: GroupView, z: Tensor, models: Models, alpha: str, chunk: int = 512) -> Tensor:
@@ -138,7 +139,7 @@ def _log_alpha_lik(v: GroupView, z: Tensor, models: Models, alpha: str, chunk: i
         tr = models.motion.transition(pos, lab, lab, ex, ex, existence=models.existence)
         pred = pairwise_kalman_predict(KalmanStats(v.w_mean[:, sl], v.w_cov[:, sl]), pos, tr)
         if alpha == "mean":
-            pm = torch.where(ex.unsqueeze(-1), pred.position_mean, _death_pos(models.existence, pos))
+            pm = where(ex.unsqueeze(-1), pred.position_mean, _death_pos(models.existence, pos))
             out.append(_log_lik(pm, ex, z, models.sensor))
         else:
             var = torch.diagonal(pred.position_cov, dim1=-2, dim2=-1)
@@ -158,7 +159,7 @@ def make_cloud(state: ParticleState, z: Tensor, *, models: Models, settings: Gro
     zb = z.to(torch.bool)
     if settings.birth == "eq65":  # without a previous frame (or an empty one: the start), the current one
         prev = zb if v.frames.shape[1] == 0 else v.frames[:, -1].to(torch.bool)
-        prev = torch.where(prev.flatten(1).any(-1)[:, None, None], prev, zb)
+        prev = where(prev.flatten(1).any(-1)[:, None, None], prev, zb)
         beta = (zb & _near(prev, 1)).reshape(b, -1)
     else:
         beta = zb.reshape(b, -1)
@@ -183,7 +184,7 @@ def _uniform_cdf(mask: Tensor) -> Tensor:
     entries of each row of ``mask (*S, M)``; uniform over all ``M`` where a row has none (the
     draw is then unused but finite).
     """
-    return cdf(torch.where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf).to(torch.float64))
+    return cdf(where(mask | ~mask.any(-1, keepdim=True), 0.0, -math.inf).to(torch.float64))
 
 
 def _keep(cloud: Cloud, j: Tensor, g: Tensor, exists: Tensor, pos: Tensor, win_pos: Tensor, win_exists: Tensor,

@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 import torch
 
+from ..._native.select import where
 from ..._validation import check_positive, check_positive_int
 from ...typing import Tensor
 from ..existence import BirthDeath
@@ -89,7 +90,7 @@ class GroupExistence(BirthDeath):
         """Log density of the uniform birth position (eq. 32): ``(*S, K, 2) -> (*S, K)``,
         ``-inf`` outside the area (the area check of :class:`BirthDeath`, in ``pos``'s dtype).
         """
-        return torch.where(self._in_area(pos), pos.new_full((), -self.log_volume), pos.new_full((), -math.inf))
+        return where(self._in_area(pos), pos.new_full((), -self.log_volume), pos.new_full((), -math.inf))
 
     def sample_p0_position(self, shape: Sequence[int], *, generator: torch.Generator,
                            dtype: torch.dtype = torch.float64,
@@ -176,8 +177,8 @@ def localised_existence(detected: Tensor, *, p_birth: float, p_death: float, p_d
     out = []
     for t in range(d.shape[-1]):
         prior = p * (1.0 - p_death) + (1.0 - p) * (p_birth * p_here)
-        l1 = torch.where(d[..., t], one * p_d1, one - p_d1)
-        l0 = torch.where(d[..., t], one * p_fa, one - p_fa)
+        l1 = where(d[..., t], one * p_d1, one - p_d1)
+        l0 = where(d[..., t], one * p_fa, one - p_fa)
         p = prior * l1 / (prior * l1 + (1.0 - prior) * l0)
         out.append(p)
     return torch.stack(out, -1) if out else p.new_zeros(d.shape)
@@ -214,7 +215,7 @@ def existence_limit(num_steps: int, *, p_birth: float, p_death: float, p_d1: flo
     codes = torch.arange(2 ** w)
     d = ((codes.unsqueeze(-1) >> torch.arange(w)) & 1).to(torch.bool)  # (2^w, w), every sequence once
     one = torch.ones((), dtype=torch.float64)
-    prob = torch.where(d, one * p_d1, one - p_d1).prod(-1)  # (2^w,)
+    prob = where(d, one * p_d1, one - p_d1).prod(-1)  # (2^w,)
     law = dict(p_birth=p_birth, p_death=p_death, p_d1=p_d1, p_fa=p_fa, p_here=p_here)
     lo = prob @ localised_existence(d, **law, p_alive=0.0)  # (w,): exact from an inactive start
     hi = prob @ localised_existence(d, **law, p_alive=1.0)

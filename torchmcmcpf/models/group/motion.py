@@ -11,6 +11,7 @@ from typing import NamedTuple
 
 import torch
 
+from ..._native.select import where
 from ..._validation import check_positive, check_positive_int
 from ...runtime import squared_norm
 from ...typing import Tensor
@@ -249,7 +250,7 @@ class VirtualLeaderMotion(Motion):
         d = squared_norm(diff).clamp(min=torch.finfo(pos.dtype).tiny).sqrt()  # coincident: 0 force
         pair = _same_group(labels) & active.unsqueeze(-1) & active.unsqueeze(-2)
         pair = pair & ~torch.eye(pos.shape[-2], dtype=torch.bool, device=pos.device)
-        coef = torch.where(pair, self.r1 / ((d + self.r2) * d), torch.zeros_like(d))
+        coef = where(pair, self.r1 / ((d + self.r2) * d), torch.zeros_like(d))
         return (coef.unsqueeze(-1) * diff).sum(-2)
 
     # -- whole configuration (eqs. 13, 24-38) ----------------------------------------------
@@ -415,7 +416,7 @@ class VirtualLeaderMotion(Motion):
                              pos_born=x_next[..., 0::2])
         resid = to_axes(x_next, v_next) - (to_axes(x, v) @ tr.Psi.transpose(-1, -2) + tr.r)
         log_g = _masked_gaussian(resid, tr.Q, tr.random)
-        log_p0 = torch.where(tr.free_birth, existence.log_p0_position(x_next[..., 0::2]),
+        log_p0 = where(tr.free_birth, existence.log_p0_position(x_next[..., 0::2]),
                              torch.zeros((), dtype=x.dtype, device=x.device)).sum(-1)
         return log_g + log_p0
 

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from ..._native.select import where
 from ..._validation import check_positive, check_positive_int
 from ...resampling import cdf, inverse_cdf
 from ...runtime import squared_norm
@@ -90,7 +91,7 @@ def canonical_labels(labels: Tensor) -> Tensor:
     k = labels.shape[-1]
     same = labels.unsqueeze(-1) == labels.unsqueeze(-2)  # (*S, K, K)
     idx = torch.arange(k, device=labels.device)
-    first = torch.where(same, idx, k).amin(-1)  # first member of each target's group
+    first = where(same, idx, k).amin(-1)  # first member of each target's group
     is_first = first == idx  # (*S, K)
     rank = is_first.long().cumsum(-1) - 1  # rank of each first member
     return torch.gather(rank, -1, first)
@@ -176,7 +177,7 @@ class GroupStructurePrior(nn.Module):
         k = pos.shape[-2]
         h = self.closeness(pos.unsqueeze(-2), pos.unsqueeze(-3))  # (*S, K, K)
         both = exists.unsqueeze(-1) & exists.unsqueeze(-2)
-        q = torch.where(both, h.to(pos.dtype), torch.full_like(h, self.p_q, dtype=pos.dtype))
+        q = where(both, h.to(pos.dtype), torch.full_like(h, self.p_q, dtype=pos.dtype))
         q = q.clamp(1e-12, 1 - 1e-12)
         same = _same_group(group_structures(k, device=pos.device)).to(pos.dtype)  # (G, K, K)
         upper = torch.triu(torch.ones(k, k, dtype=pos.dtype, device=pos.device), 1)
@@ -194,7 +195,7 @@ class GroupStructurePrior(nn.Module):
         log_c = math.log1p(-self.p_nc) if self.p_nc < 1 else -math.inf
         dtype, dev = log_pi.dtype, log_pi.device
         return torch.logaddexp(log_c + log_pi,
-                               torch.where(stay, torch.tensor(log_nc, dtype=dtype, device=dev),
+                               where(stay, torch.tensor(log_nc, dtype=dtype, device=dev),
                                            torch.tensor(-math.inf, dtype=dtype, device=dev)))
 
     def log_prob(self, structure: Tensor, structure_prev: Tensor, pos: Tensor, exists: Tensor) -> Tensor:

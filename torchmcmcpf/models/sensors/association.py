@@ -32,6 +32,7 @@ import math
 
 import torch
 
+from ..._native.select import where
 from ..._validation import (
     check_batch,
     check_finite,
@@ -112,12 +113,12 @@ def padded_pair_log_likelihood(pair: Tensor, exists: Tensor | None, mask: Tensor
     square = torch.nn.functional.pad(pair, (0, p - m, 0, p - k))
     both = ex.unsqueeze(-1) & mk.unsqueeze(-2)
     impossible = ex.unsqueeze(-1) & ~mk.unsqueeze(-2)
-    square = torch.where(both, square, torch.zeros_like(square))
-    square = torch.where(impossible, torch.full_like(square, -math.inf), square)
+    square = where(both, square, torch.zeros_like(square))
+    square = where(impossible, torch.full_like(square, -math.inf), square)
     n_a = ex.sum(-1).to(pair.dtype)
     n_v = mk.sum(-1).to(pair.dtype).expand_as(n_a)
     log_count = torch.lgamma(p - n_a + 1) + torch.lgamma(n_v + 1) - torch.lgamma((n_v - n_a).clamp(min=0) + 1)
-    log_count = torch.where(n_a > n_v, torch.full_like(log_count, math.inf), log_count)
+    log_count = where(n_a > n_v, torch.full_like(log_count, math.inf), log_count)
     return square, log_count
 
 
@@ -174,11 +175,11 @@ def metropolis_association(
         delta = (row_i.gather(-1, aj) + row_j.gather(-1, ai) - row_i.gather(-1, ai) - row_j.gather(-1, aj)).squeeze(-1)
         accept = log_u < delta
         swapped = a.scatter(-1, i, aj).scatter(-1, j, ai)
-        a = torch.where(accept.unsqueeze(-1), swapped, a)
-        score = torch.where(accept, score + delta, score)
+        a = where(accept.unsqueeze(-1), swapped, a)
+        score = where(accept, score + delta, score)
         better = score > best_score
-        best = torch.where(better.unsqueeze(-1), a, best)
-        best_score = torch.where(better, score, best_score)
+        best = where(better.unsqueeze(-1), a, best)
+        best_score = where(better, score, best_score)
     return best, a, best_score
 
 
@@ -188,10 +189,10 @@ def shuffle(z: Tensor, exists: Tensor, *, generator: torch.Generator) -> PointFr
     other rows zeroed and masked out. ``exists`` is ``(B, K)`` bool.
     """
     key = torch.rand(exists.shape, generator=generator, device=z.device, dtype=torch.float64)
-    order = torch.argsort(torch.where(exists, key, key + 2.0), dim=-1)
+    order = torch.argsort(where(exists, key, key + 2.0), dim=-1)
     zs = take_along(z, order.unsqueeze(-1), dim=-2)
     mask = take_along(exists, order, dim=-1)
-    return PointFrame(torch.where(mask.unsqueeze(-1), zs, torch.zeros_like(zs)), mask)
+    return PointFrame(where(mask.unsqueeze(-1), zs, torch.zeros_like(zs)), mask)
 
 
 class AssociationSensor(SensorModel[PointMeasurement]):

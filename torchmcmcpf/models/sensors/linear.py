@@ -10,6 +10,7 @@ import math
 
 import torch
 
+from ..._native.select import where
 from ..._validation import check_positive
 from ...runtime import squared_norm
 from ...typing import Tensor
@@ -120,7 +121,7 @@ class LinearGaussian(SensorModel[Tensor]):
         white = wz - linear_map(x, self.WH)  # (B, *S, K, d) = L^{-1} (z - H x)
         per_target = self._log_norm - 0.5 * squared_norm(white)
         if exists is not None:
-            per_target = torch.where(exists, per_target, torch.zeros_like(per_target))
+            per_target = where(exists, per_target, torch.zeros_like(per_target))
         return per_target
 
     def simulate(

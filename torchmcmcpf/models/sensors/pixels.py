@@ -29,6 +29,7 @@ from collections.abc import Sequence
 
 import torch
 
+from ..._native.select import where
 from ..._validation import check_finite, check_positive, check_shape
 from ...typing import Tensor, X, Y
 from ..base import SensorModel
@@ -114,7 +115,7 @@ class ThresholdedPixels(SensorModel[Tensor]):
         if exists is not None:
             inside = inside & exists
         flat = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).long()
-        return torch.where(inside, flat, torch.full_like(flat, -1))
+        return where(inside, flat, torch.full_like(flat, -1))
 
     def log_likelihood(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """Log ratio against "no target" over the occupied pixels (eq. 40).
@@ -140,9 +141,9 @@ class ThresholdedPixels(SensorModel[Tensor]):
         zk = torch.gather(zf, 1, idx.clamp(min=0).reshape(b, -1)).reshape(idx.shape).to(torch.bool)
         dtype = x.dtype if x.is_floating_point() else torch.float64
         log_pd = self.log_p_detect(n, dtype)
-        term = torch.where(zk, log_pd - math.log(self.p_fa),
+        term = where(zk, log_pd - math.log(self.p_fa),
                            torch.log(-torch.expm1(log_pd)) - math.log1p(-self.p_fa))
-        return torch.where(first, term, torch.zeros_like(term)).sum(-1)
+        return where(first, term, torch.zeros_like(term)).sum(-1)
 
     def simulate(self, x: Tensor, *, generator: torch.Generator, exists: Tensor | None = None) -> Tensor:
         """Draw one binary frame per run: ``x (B, K, D) -> (B, H, W)`` bool."""
@@ -150,7 +151,7 @@ class ThresholdedPixels(SensorModel[Tensor]):
         b = idx.shape[0]
         h, w = self.shape
         counts = torch.zeros(b, h * w + 1, dtype=torch.int64, device=x.device)
-        counts.scatter_add_(1, torch.where(idx >= 0, idx, h * w), torch.ones_like(idx))
+        counts.scatter_add_(1, where(idx >= 0, idx, h * w), torch.ones_like(idx))
         p = self.log_p_detect(counts[:, :-1]).exp()
         u = torch.rand(b, h * w, generator=generator, dtype=torch.float64, device=x.device)
         return (u < p).reshape(b, h, w)

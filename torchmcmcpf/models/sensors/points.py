@@ -34,6 +34,7 @@ import torch
 
 from ... import runtime
 from ..._native import available
+from ..._native.select import where
 from ..._validation import check_batch, check_finite, check_positive, check_shape, check_tensor
 from ...resampling import uniform_pick
 from ...runtime import take_along
@@ -134,7 +135,7 @@ def _logsumexp_context(ctx, inputs, output):
 def _logsumexp_backward(ctx, grad):
     x, out = ctx.saved_tensors
     # d/dx logsumexp = softmax; a slice of -inf values (out = -inf) gets no gradient, not NaN
-    soft = torch.exp(x - torch.where(torch.isneginf(out), 0.0, out).unsqueeze(ctx.dim))
+    soft = torch.exp(x - where(torch.isneginf(out), 0.0, out).unsqueeze(ctx.dim))
     return grad.unsqueeze(ctx.dim) * soft, None
 
 
@@ -164,7 +165,7 @@ def _intensity_change_eager(rate_terms: Tensor, moved: int, cache: Tensor, mask:
     # float64 log1p is not vectorised (2.3 against 0.34 ms for log on 380,000 numbers, one
     # thread), and the rounding of lambda + change costs at most an ulp of the ratio (about
     # 1e-16 absolute per point, against log1p's relative 1e-16)
-    log_ratio = torch.where(mask, torch.log((cache + change) / cache), 0.0)
+    log_ratio = where(mask, torch.log((cache + change) / cache), 0.0)
     return (log_ratio @ torch.ones(log_ratio.shape[-1], 1, dtype=log_ratio.dtype, device=log_ratio.device)
             ).squeeze(-1), change
 
@@ -262,7 +263,7 @@ def gauss_exponents(a: Tensor, b: Tensor, pts: Tensor, *, W: Tensor, diagonal: b
     w0, w1 = native.centred_axes(pts[..., 0], pts[..., 1], W, diagonal, centre)  # (B, M)
     w_half = -0.5 * (w0 * w0 + w1 * w1)
     if mask is not None:
-        w_half = torch.where(mask, w_half, -math.inf)
+        w_half = where(mask, w_half, -math.inf)
     rows = torch.stack([p0, p1, const - 0.5 * (p0 * p0 + p1 * p1), torch.ones_like(p0)], -1)  # (B, *S, 4)
     cols = torch.stack([w0, w1, torch.ones_like(w0), w_half], 1)  # (B, 4, M)
     out = torch.bmm(rows.reshape(bsz, -1, 4), cols)  # (B, prod(S), M)
@@ -296,7 +297,7 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     a = area.to(pos.dtype)
     log_volume = float(torch.log(area[:, 1] - area[:, 0]).sum())
     inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
-    log_u = torch.where(inside, -log_volume, -math.inf).to(pos.dtype)
+    log_u = where(inside, -log_volume, -math.inf).to(pos.dtype)
     if mask is None:
         mask = torch.ones((b, m), dtype=torch.bool, device=pts.device)
     log_norm = float(torch.log(torch.abs(torch.det(W.to(torch.float64))))) - math.log(2 * math.pi)
@@ -316,7 +317,7 @@ def log_near_points(pos: Tensor, pts: Tensor, mask: Tensor | None, *, W: Tensor,
     log_pi = math.log(p_uniform) if p_uniform > 0 else -math.inf
     log_pn = math.log1p(-p_uniform) if p_uniform < 1 else -math.inf
     log_q = torch.logaddexp(log_pi + log_u, log_pn + log_near)
-    return torch.where(n_valid > 0, log_q, log_u)
+    return where(n_valid > 0, log_q, log_u)
 
 
 class PoissonClutterPoints(SensorModel[PointMeasurement]):
@@ -407,7 +408,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
         const: Tensor | float = log_rate + self._log_norm
         if exists is not None:  # float64: the default dtype of a where between two floats may be float32
-            const = torch.where(exists, torch.tensor(const, dtype=torch.float64, device=exists.device), -math.inf)
+            const = where(exists, torch.tensor(const, dtype=torch.float64, device=exists.device), -math.inf)
         return gauss_exponents(x[..., X], x[..., Y], z, W=self.W, diagonal=self.diagonal, centre=self.centre,
                                const=const)
 
@@ -423,7 +424,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         """Each slot's ``log(L_x / (2 pi |R|^1/2))``, ``-inf`` where inactive: ``(..., K)`` float64."""
         log_rate = math.log(self.detection_rate) if self.detection_rate > 0 else -math.inf
         const = torch.tensor(log_rate + self._log_norm, dtype=torch.float64, device=device)
-        return const.expand(shape) if exists is None else torch.where(exists, const, -math.inf)
+        return const.expand(shape) if exists is None else where(exists, const, -math.inf)
 
     def intensity(self, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
         """The Poisson intensity at every point (module docstring; :func:`_intensity_eager`):
@@ -465,7 +466,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             return self.log_likelihood_of_cache(self.intensity(x, pts, exists), x, z, exists, fresh=True)
         terms = self.log_intensity_terms(x, pts)  # (B, *S, K, M)
         if exists is not None:
-            terms = torch.where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
+            terms = where(exists.unsqueeze(-1), terms, torch.full_like(terms, -math.inf))
         # compiled: through the opaque op, so that a compiled kernel gives eager's bits
         lse = _logsumexp if runtime.generated_reductions() else torch.logsumexp
         return self._sum_over_points(lse(terms, -2), mask, x, exists)  # (B, *S, M) summed
@@ -491,7 +492,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         """
         if mask is not None:
             m = mask.reshape(mask.shape[:1] + (1,) * (x.dim() - 3) + mask.shape[1:])
-            per_point = torch.where(m, per_point, torch.zeros_like(per_point))
+            per_point = where(m, per_point, torch.zeros_like(per_point))
         # The sum over the points as a product with a column of ones: eager and compiled code
         # then make the same BLAS call, so ``compile_step=True`` gives eager's bits (Inductor's
         # own inner reduction adds the M terms in another order: last-bit differences).
@@ -520,7 +521,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         if mask is None or mask.shape[-1] <= 1:
             return z
         cols = torch.arange(1, mask.shape[-1] + 1, device=mask.device)
-        width = max(1, int(torch.where(mask.any(0), cols, 0).max()))
+        width = max(1, int(where(mask.any(0), cols, 0).max()))
         if width == mask.shape[-1]:
             return z
         return PointFrame(pts[:, :width].contiguous(), mask[:, :width].contiguous())
@@ -663,13 +664,13 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             L = torch.linalg.cholesky(self.R.to(torch.float64)).to(dtype)
             near = centre + _whiten(eps, L, self.diagonal)  # eps @ L^T
             use = (u_pick[..., 1] >= self.uniform_weight) & mask.any(-1, keepdim=True)
-            pos = torch.where(use.unsqueeze(-1), near, pos)
+            pos = where(use.unsqueeze(-1), near, pos)
         a = self.area.to(dtype)
         inside = ((pos >= a[:, 0]) & (pos <= a[:, 1])).all(-1)
         if scored is None:
             log_q = log_near_points(pos, pts, mask, W=self.W, p_uniform=self.uniform_weight, area=self.area,
                                     diagonal=self.diagonal)
-            log_ratio = torch.where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
+            log_ratio = where(inside, -math.log(self.volume) - log_q, -math.inf)  # p_0 = 0 off the area
         else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
             rows, cols = scored.reshape(b, p).nonzero(as_tuple=True)
             log_ratio = torch.zeros((b, p), dtype=dtype, device=dev)
@@ -677,7 +678,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
                 log_q = log_near_points(pos[rows, cols].unsqueeze(1), pts[rows], mask[rows], W=self.W,
                                         p_uniform=self.uniform_weight, area=self.area,
                                         diagonal=self.diagonal).squeeze(1)
-                log_ratio.index_put_((rows, cols), torch.where(inside[rows, cols], -math.log(self.volume) - log_q,
+                log_ratio.index_put_((rows, cols), where(inside[rows, cols], -math.log(self.volume) - log_q,
                                                                -math.inf))
         return pos.reshape(tuple(shape) + (2,)), log_ratio.reshape(tuple(shape))
 
@@ -703,7 +704,7 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
             exists = torch.ones((b, k), dtype=torch.bool, device=dev)
         n_clutter = torch.poisson(torch.full((b,), self.clutter_rate, dtype=torch.float64, device=dev),
                                   generator=generator).long()
-        rate = torch.where(exists, self.detection_rate, 0.0).to(torch.float64)
+        rate = where(exists, self.detection_rate, 0.0).to(torch.float64)
         n_target = torch.poisson(rate, generator=generator).long()  # (B, K)
         c_max, t_max = int(n_clutter.max()), int(n_target.max()) if k else 0
         lo, hi = self.area[:, 0].to(dt), self.area[:, 1].to(dt)
@@ -718,12 +719,12 @@ class PoissonClutterPoints(SensorModel[PointMeasurement]):
         mask = torch.cat([clutter_mask, target_mask], 1)
         # valid points first, in a uniformly random order
         key = torch.rand(mask.shape, generator=generator, device=dev, dtype=torch.float64)
-        order = torch.argsort(torch.where(mask, key, key + 2.0), dim=-1)
+        order = torch.argsort(where(mask, key, key + 2.0), dim=-1)
         m = int(mask.sum(-1).max()) if b else 0
         order = order[:, :m]
         pts = take_along(pts, order.unsqueeze(-1), dim=1)
         mask = take_along(mask, order, dim=1)
-        return PointFrame(torch.where(mask.unsqueeze(-1), pts, torch.zeros_like(pts)), mask)
+        return PointFrame(where(mask.unsqueeze(-1), pts, torch.zeros_like(pts)), mask)
 
     # -- input checks -------------------------------------------------------------------
     def validate(self, z: PointMeasurement, batch_size: int | None = None, name: str = "z") -> PointMeasurement:

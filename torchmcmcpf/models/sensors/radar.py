@@ -27,6 +27,7 @@ from typing import Any
 import torch
 
 from ... import runtime
+from ..._native.select import where
 from ..._validation import check_generator, check_positive, check_shape
 from ...typing import RHO, VX, VY, Tensor, X, Y
 from .grid import SeparableGridSensor, lattice, native, polar
@@ -84,11 +85,11 @@ def log_i0_approx(u: Tensor) -> Tensor:
     del a  # temporaries are dropped as soon as possible: the whole-grid path budgets memory
     r = torch.reciprocal(big, out=t) if own else torch.reciprocal(big)
     del t
-    p = torch.where(small, p_small, _horner(r.mul_(3.75) if own else r * 3.75, _P_LARGE, own))  # 3.75 / |u|
+    p = where(small, p_small, _horner(r.mul_(3.75) if own else r * 3.75, _P_LARGE, own))  # 3.75 / |u|
     del p_small, r
     tail = big.sub_(torch.log(big).mul_(0.5)) if own else big - 0.5 * torch.log(big)
     del big
-    return (p.log_() if own else torch.log(p)) + torch.where(small, 0.0, tail)
+    return (p.log_() if own else torch.log(p)) + where(small, 0.0, tail)
 
 
 #: Largest float32 tensor for which eager :func:`log_i0` with autograd uses

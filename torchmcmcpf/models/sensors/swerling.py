@@ -24,6 +24,7 @@ from typing import Any
 
 import torch
 
+from ..._native.select import where
 from ..._validation import check_finite, check_generator, check_nonnegative, check_positive, check_shape
 from ...typing import RHO, VX, VY, Tensor, X, Y
 from .grid import SeparableGridSensor, lattice, polar
@@ -158,9 +159,9 @@ class AzimuthRangeSwerlingTBD(SeparableGridSensor):
         """
         a = A / self.noise_power
         valid = a > -1.0
-        a = torch.where(valid, a, torch.zeros_like(a))  # keeps the gradient finite off the support
+        a = where(valid, a, torch.zeros_like(a))  # keeps the gradient finite off the support
         out = zc * (a / (1.0 + a)) - torch.log1p(a)
-        return torch.where(valid, out, torch.full_like(out, -math.inf))
+        return where(valid, out, torch.full_like(out, -math.inf))
 
     # ------------------------------------------------------------------ multitarget prior hooks
     def detection_statistic(self, z: Tensor) -> Tensor:

@@ -9,6 +9,7 @@ import math
 
 import torch
 
+from ...._native.select import where
 from ....resampling import uniform_pick
 from ....runtime import take_along
 from ....typing import Tensor
@@ -22,7 +23,7 @@ def peaks(sensor: GridSensorLike, z: Tensor) -> Tensor:
     B, G = z.shape[0], sensor.geometry.num_cells
     _, mask, at = _clean(sensor, sensor.detection_statistic(z))
     out = torch.zeros((B, G + 1), dtype=torch.bool, device=z.device)
-    out.scatter_(1, torch.where(mask, at, G), True)  # a padded peak writes the spare column
+    out.scatter_(1, where(mask, at, G), True)  # a padded peak writes the spare column
     return out[:, :G].reshape(z.shape)
 
 
@@ -69,7 +70,7 @@ def _clean(sensor: GridSensorLike, stat: Tensor) -> tuple[Tensor, Tensor, Tensor
     dev, dtype = stat.device, stat.dtype
     live = neighbourhood(stat, "max", n) > sensor.detection_threshold  # (B, *G)
     C = max(int(live.reshape(B, G).sum(-1).max()), 1)
-    value, at = torch.topk(torch.where(live, stat, float("-inf")).reshape(B, G), C, dim=-1)  # (B, C)
+    value, at = torch.topk(where(live, stat, float("-inf")).reshape(B, G), C, dim=-1)  # (B, C)
     cand = torch.isfinite(value)
     index: list[Tensor] = []
     rest = at
@@ -79,7 +80,7 @@ def _clean(sensor: GridSensorLike, stat: Tensor) -> tuple[Tensor, Tensor, Tensor
     pos = torch.stack(index, -1).to(dtype)  # (B, C, n) cell coordinates
     width = torch.tensor([w / c for w, c in zip(geometry.widths, geometry.cell_sizes)], dtype=dtype, device=dev)
     reach = float(geometry.window)
-    signal = torch.where(cand, sensor.detection_signal(value.clamp(min=0.0)), 0.0)  # the residual (B, C)
+    signal = where(cand, sensor.detection_signal(value.clamp(min=0.0)), 0.0)  # the residual (B, C)
     threshold = float(sensor.detection_signal(torch.tensor(sensor.detection_threshold, dtype=dtype)))
     centres = torch.zeros((B, P, n), dtype=dtype, device=dev)
     cells = torch.zeros((B, P), dtype=torch.int64, device=dev)
@@ -92,12 +93,12 @@ def _clean(sensor: GridSensorLike, stat: Tensor) -> tuple[Tensor, Tensor, Tensor
         here = take_along(pos, i.reshape(B, 1, 1), 1)  # (B, 1, n)
         offset = pos - here
         near = (offset.abs() <= 1).all(-1) & cand  # the peak's 3^n neighbourhood
-        weight = torch.where(near, (sensor.detection_stat(signal) - 1.0).clamp(min=0.0), 0.0)
+        weight = where(near, (sensor.detection_stat(signal) - 1.0).clamp(min=0.0), 0.0)
         centre = (weight.unsqueeze(-1) * pos).sum(1) / weight.sum(-1, keepdim=True).clamp(min=1e-30)  # (B, n)
         # the spread fitted at the centre through the peak cell's residual, cut like the likelihood's
         scale = top / _spread(here, centre, width).squeeze(1)
         box = (offset.abs() <= reach).all(-1)
-        taken = torch.where(box & found.unsqueeze(-1), scale.unsqueeze(-1) * _spread(pos, centre, width), 0.0)
+        taken = where(box & found.unsqueeze(-1), scale.unsqueeze(-1) * _spread(pos, centre, width), 0.0)
         signal = (signal - taken).clamp(min=0.0)
         centres[:, p] = centre
         cells[:, p] = take_along(at, i.unsqueeze(-1), -1).squeeze(-1)
@@ -117,12 +118,12 @@ def log_data_density(sensor: GridSensorLike, coords: Tensor, centres: Tensor, ma
     flat = coords.reshape(B, -1, 1, n)  # (B, Q, 1, n)
     white = (flat - centres.to(coords.dtype).unsqueeze(1)) / scale  # (B, Q, P, n)
     log_n = -0.5 * white.square().sum(-1) - torch.log(scale).sum() - 0.5 * n * math.log(2 * math.pi)
-    log_n = torch.where(mask.unsqueeze(1), log_n, float("-inf"))
+    log_n = where(mask.unsqueeze(1), log_n, float("-inf"))
     count = mask.sum(-1, keepdim=True).to(coords.dtype)  # (B, 1)
     log_near = torch.logsumexp(log_n, -1) - torch.log(count.clamp(min=1.0))  # (B, Q)
     p_u = sensor.uniform_weight
     log_q = torch.logaddexp(torch.full_like(log_near, math.log(p_u) - log_volume), math.log1p(-p_u) + log_near)
-    log_q = torch.where(count > 0, log_q, torch.full_like(log_q, -log_volume))
+    log_q = where(count > 0, log_q, torch.full_like(log_q, -log_volume))
     return log_q.reshape(coords.shape[:-1])
 
 
@@ -150,14 +151,14 @@ def sample_from_data(sensor: GridSensorLike, z: Tensor, shape: tuple[int, ...], 
     scale = torch.tensor([sensor.peak_spread * c for c in geometry.cell_sizes], dtype=dtype, device=z.device)
     near = take_along(centres.to(dtype), pick.unsqueeze(-1), 1) + scale * eps
     use = (u[..., 1] >= sensor.uniform_weight) & mask.any(-1, keepdim=True)
-    coords = torch.where(use.unsqueeze(-1), near, low + span * box)  # (B, Q, n)
+    coords = where(use.unsqueeze(-1), near, low + span * box)  # (B, Q, n)
     inside = ((coords >= low) & (coords <= low + span)).all(-1)
     if scored is None:
-        log_ratio = torch.where(inside, -log_volume - log_data_density(sensor, coords, centres, mask), float("-inf"))
+        log_ratio = where(inside, -log_volume - log_data_density(sensor, coords, centres, mask), float("-inf"))
     else:  # only the draws a move can read (eager: the noise is drawn outside compiled code)
         rows, cols = scored.reshape(B, Q).nonzero(as_tuple=True)
         log_ratio = torch.zeros((B, Q), dtype=dtype, device=z.device)
         if rows.numel():
             log_g = log_data_density(sensor, coords[rows, cols].unsqueeze(1), centres[rows], mask[rows]).squeeze(1)
-            log_ratio.index_put_((rows, cols), torch.where(inside[rows, cols], -log_volume - log_g, float("-inf")))
+            log_ratio.index_put_((rows, cols), where(inside[rows, cols], -log_volume - log_g, float("-inf")))
     return coords.reshape(tuple(shape) + (n,)), log_ratio.reshape(tuple(shape))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 
+from ...._native.select import where
 from ....runtime import take_along
 from ....typing import Tensor
 from . import native, whole
@@ -35,8 +36,8 @@ def log_likelihood_delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: int 
     if sensor.method == "grid":  # consistent with log_likelihood: two reference evaluations
         here = torch.arange(K, device=x.device) == slots(n, x).reshape((B,) + S + (1,))
         e_old = torch.ones(x.shape[:-1], dtype=torch.bool, device=x.device) if exists is None else exists
-        e_new = e_old if exists_n is None else torch.where(here, exists_n[..., None], e_old)
-        x_new = torch.where(here[..., None], x_n[..., None, :], x)
+        e_new = e_old if exists_n is None else where(here, exists_n[..., None], e_old)
+        x_new = where(here[..., None], x_n[..., None, :], x)
         return whole.log_likelihood(sensor, x_new, z, e_new) - whole.log_likelihood(sensor, x, z, e_old)
     if native.applies(sensor, x):  # the radar on the CPU: one C loop a sample, the two boxes on any grid
         return native.delta(sensor, x, x_n, slots(n, x), z, exists, exists_n).reshape((B,) + S)

@@ -19,6 +19,7 @@ from functools import cached_property
 import torch
 
 from .... import runtime
+from ...._native.select import where
 from ...._validation import check_positive
 from ....typing import Tensor
 
@@ -93,10 +94,10 @@ def polar(px: Tensor, py: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     r2 = px * px + py * py
     far = r2 > 1e-12
     one = torch.ones_like(px)
-    sx = torch.where(far, px, one)  # double-where: the unused branch gets no gradient
-    sy = torch.where(far, py, torch.zeros_like(py))
+    sx = where(far, px, one)  # double-where: the unused branch gets no gradient
+    sy = where(far, py, torch.zeros_like(py))
     r = torch.sqrt(sx * sx + sy * sy)
-    return torch.where(far, r, torch.zeros_like(r)), torch.atan2(sy, sx), sx / r, sy / r
+    return where(far, r, torch.zeros_like(r)), torch.atan2(sy, sx), sx / r, sy / r
 
 
 def materialise(t: Tensor) -> Tensor:
@@ -270,7 +271,7 @@ class GridGeometry:
         words = -(-K // self.MASK_BITS)
         i = torch.arange(K, device=live.device)
         # (I, words): target i's bit in its word, as a float
-        bits = torch.where((i // self.MASK_BITS)[:, None] == torch.arange(words, device=live.device),
+        bits = where((i // self.MASK_BITS)[:, None] == torch.arange(words, device=live.device),
                            torch.exp2((i % self.MASK_BITS).float())[:, None], 0.0)
         add = (live[..., None] * bits).to(torch.float32).mT  # (b, p, words, I): live boxes' bits
         earlier = ((i[None, :] < i[:, None]).float() @ bits).int()  # (J, words): boxes i < j

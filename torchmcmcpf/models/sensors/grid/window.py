@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import torch
 
+from ...._native.select import where
 from ....runtime import take_along
 from ....typing import Tensor
 from . import chunks, native
@@ -59,7 +60,7 @@ def _box_sums(sensor: GridSensorLike, count: int, u: Tensor, s: Tensor, e: Tenso
     owned = geometry.owned_cells(firsts, e > 0)  # (b, p, J, *W): each cell of the union counted once
     V = geometry.box_cells
     # one reduction over boxes and cells (fused with the cell terms under torch.compile)
-    return torch.where(owned, sensor.cell_log_ratio(A, zw), 0.0).sum(tuple(range(2, 3 + len(V))))
+    return where(owned, sensor.cell_log_ratio(A, zw), 0.0).sum(tuple(range(2, 3 + len(V))))
 
 
 def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor | None = None) -> Tensor:
