@@ -166,6 +166,32 @@ def test_inverse_cdf_by_guide_table_equals_searchsorted(weights):
         assert guided is None
 
 
+@pytest.mark.parametrize("weights", ["uniform", "random", "peaked"])
+def test_inverse_cdf_with_a_guide_made_once(weights, monkeypatch):
+    """A guide table made once (:func:`guide_table`, the MCMC-PF's previous cloud) serves
+    few points per index too (``M = N / 2``: a joint draw's ancestors): the indices of
+    ``searchsorted``, edges and the CDF's own entries included; weights piled on a few
+    indices fall back to it. ``searchsorted`` is counted, so the table is seen to serve."""
+    g = torch.Generator().manual_seed(5)
+    b, n, m = 3, 400, 200
+    log_w = {"uniform": torch.zeros(b, n, dtype=torch.float64),
+             "random": torch.randn(b, n, generator=g, dtype=torch.float64),
+             "peaked": 8.0 * torch.randn(b, n, generator=g, dtype=torch.float64)}[weights]
+    c = rs.cdf(log_w)
+    guide = rs.guide_table(c)
+    assert guide.lo.shape == (b, n + 1) and guide.padded.shape == (b, n + 1) and guide.scan.dim() == 0
+    u = torch.rand(b, m, generator=g, dtype=torch.float64)
+    u[0, :101] = torch.arange(101, dtype=torch.float64) / n  # bins' left edges
+    u[1, :3] = torch.tensor([0.0, 1.0 - 2.0**-53, 0.5])
+    u[2, :m] = c[2, :m]  # the CDF's own entries
+    want = torch.searchsorted(c, u, right=True).clamp_(max=n - 1)
+    calls = []
+    search = torch.searchsorted
+    monkeypatch.setattr(torch, "searchsorted", lambda *a, **k: calls.append(1) or search(*a, **k))
+    assert torch.equal(rs.inverse_cdf(c, u, guide), want)
+    assert calls == ([] if weights != "peaked" else [1])
+
+
 def test_uniform_pick_equals_the_inverse_cdf_of_equal_weights(gen):
     """A pick among each row's valid entries (valid ones anywhere, rows with none, float32 and
     float64 uniforms) gives the indices the inverse CDF of equal weights on them gives, and
