@@ -200,6 +200,10 @@ def uniform_pick(mask: Tensor, u: Tensor) -> Tensor:
 #: the guide table's longest scan (entries of the CDF in one of its bins) before
 #: :func:`_guided` leaves the points to ``searchsorted`` (weights piled on a few indices)
 GUIDE_SCAN = 6
+#: the fewest points for which a guide table made beforehand pays (:func:`inverse_cdf` with
+#: ``guide``): its lookup is about 30 us of calls (eight passes and two host reads) and 10 ns
+#: a point, ``searchsorted`` 60-70 ns a point into 2,000-5,000 indices (one CPU thread)
+GUIDED_POINTS = 512
 
 
 class Guide(NamedTuple):

@@ -359,6 +359,21 @@ def test_joint_proposal_shapes_and_ratio(gen):
 
 
 
+def test_previous_cloud_guide_draws_the_ancestors_searchsorted_draws(gen):
+    """A cloud that many ancestor draws read (``draws >= GUIDED_POINTS``) carries a guide
+    table, and its draws are the indices ``searchsorted`` gives; a cloud of few draws has none."""
+    from torchmcmcpf.kernels.chains import draw_ancestors
+    from torchmcmcpf.resampling import GUIDED_POINTS, cdf
+
+    log_w = torch.randn(3, 700, generator=gen, dtype=torch.float64)
+    x = torch.zeros(3, 700, 2, 4)
+    guided = previous_cloud(x, log_w, draws=GUIDED_POINTS)
+    assert guided.guide is not None and previous_cloud(x, log_w, draws=GUIDED_POINTS - 1).guide is None
+    u = torch.rand(3, 400, generator=gen)
+    want = torch.searchsorted(cdf(log_w), u.double(), right=True).clamp_(max=699)
+    assert torch.equal(draw_ancestors(guided, u), want)
+
+
 def test_normals_drawn_where_flagged_only(gen):
     """``normals(..., where=)`` draws the flagged rows in order, zeros elsewhere: the flagged
     rows are the next draws of the generator (so standard normal), and a wrong-shaped flag

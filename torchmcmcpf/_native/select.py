@@ -91,11 +91,12 @@ def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Te
     """The C loop's ``torch.where(condition, input, other)``, or None where it does not serve
     (the small calls leave after one size test).
     """
+    if runtime.compiling():  # first: a traced call reads nothing else (no guard on this module's state)
+        return None
     big = condition.numel() >= MIN_ELEMENTS or (isinstance(input, torch.Tensor) and input.numel() >= MIN_ELEMENTS) \
         or (isinstance(other, torch.Tensor) and other.numel() >= MIN_ELEMENTS)
     lib: Any = library()
-    if not big or lib is None or runtime.compiling() or condition.dtype != torch.bool \
-            or condition.device.type != "cpu":
+    if not big or lib is None or condition.dtype != torch.bool or condition.device.type != "cpu":
         return None
     t = input if isinstance(input, torch.Tensor) else other
     if not isinstance(t, torch.Tensor) or t.element_size() not in (1, 2, 4, 8):
@@ -172,10 +173,10 @@ def unpacked(block: torch.Tensor, place: torch.Tensor, flags: torch.Tensor,
     """
     b, p = flags.shape
     shape = (b, p) + tuple(block.shape[2:])
-    lib: Any = library()
-    fill_t = _tensor(fill, block.dtype)
+    lib: Any = None if runtime.compiling() else library()  # traced: nothing else read
+    fill_t = None if lib is None else _tensor(fill, block.dtype)
     if lib is not None and fill_t is not None and math.prod(shape) >= MIN_ELEMENTS and block.device.type == "cpu" \
-            and flags.device.type == "cpu" and block.element_size() in (1, 2, 4, 8) and not runtime.compiling() \
+            and flags.device.type == "cpu" and block.element_size() in (1, 2, 4, 8) \
             and not runtime.in_function_transform() \
             and not (torch.is_grad_enabled() and (block.requires_grad or fill_t.requires_grad)):
         w = math.prod(shape[2:])

@@ -456,7 +456,7 @@ def mcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gener
     scale = None if settings.rw_scale is None or isinstance(settings.rw_scale, str) else torch.tensor(
         settings.rw_scale, device=x_prev.device, dtype=x_prev.dtype)
     iteration = bound.program
-    cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion)
+    cloud = previous_cloud(x_prev, state.log_w, exists, motion=motion, draws=b * num_chains)
     template = x_prev.new_empty((b, num_chains, k, d))
     chain = init_chains(cloud, JointNoise.draw(template, dynamics, generator=generator, z=z, cloud=cloud), z,
                         dynamics=dynamics, sensor=sensor)

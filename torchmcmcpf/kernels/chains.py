@@ -13,7 +13,7 @@ from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.motion import LinearGaussianMotion
 from ..models.multitarget import RelocationNoise
-from ..resampling import Guide, cdf, gather_particles, guide_table, inverse_cdf
+from ..resampling import GUIDED_POINTS, Guide, cdf, gather_particles, guide_table, inverse_cdf
 from ..runtime import host_reads
 from ..typing import Measurement, Tensor
 
@@ -125,18 +125,20 @@ class PreviousCloud(NamedTuple):
 
 
 def previous_cloud(x: Tensor, log_w: Tensor, exists: Tensor | None = None, *,
-                   motion: MotionModel | None = None) -> PreviousCloud:
+                   motion: MotionModel | None = None, draws: int = 0) -> PreviousCloud:
     """Build a :class:`PreviousCloud` from particles ``x (B, N, K, D)``, ``log_w (B, N)`` and
     optionally their existence flags ``exists (B, N, K)``. With a linear-Gaussian ``motion``
     the whitened predicted means are cached, so the random walk does not recompute them at
-    every iteration of the frame; eager on a CPU (:func:`~torchmcmcpf.runtime.host_reads`), so
-    is the guide table of the ancestor draws (:func:`~torchmcmcpf.resampling.guide_table`: an
-    MCMC-PF step's joint draws of 10,000 ancestors among 2,000 particles, 0.1 against 0.7 ms
-    each with ``searchsorted``; the same indices).
+    every iteration of the frame. ``draws``: the ancestors one draw picks (``B C``); from
+    :data:`~torchmcmcpf.resampling.GUIDED_POINTS` of them, eager on a CPU
+    (:func:`~torchmcmcpf.runtime.host_reads`), the guide table of the draws is made too
+    (:func:`~torchmcmcpf.resampling.guide_table`: the births/deaths MCMC-PF's 10,000 ancestors
+    among 2,000 particles in 0.1 against 0.7 ms a draw by ``searchsorted``; the same indices).
     """
     white = whiten(motion.mean(x), motion) if isinstance(motion, LinearGaussianMotion) else None
     c = cdf(log_w)
-    return PreviousCloud(x, log_w, c, exists, white, guide_table(c) if host_reads(x) else None)
+    guided = draws >= GUIDED_POINTS and host_reads(x)
+    return PreviousCloud(x, log_w, c, exists, white, guide_table(c) if guided else None)
 
 
 def draw_ancestors(cloud: PreviousCloud, u: Tensor) -> Tensor:
