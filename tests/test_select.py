@@ -136,6 +136,15 @@ def test_where_without_the_loops_is_aten(count_native_calls):
     _same(got, torch.where(c, a, b))
 
 
+def test_the_first_large_select_loads_the_loops(monkeypatch):
+    monkeypatch.delitem(_native._state, "lib")
+    c = torch.rand(2, MIN_ELEMENTS, generator=G) < 0.5
+    where(c[:, :10], torch.zeros(2, 10), 1.0)
+    assert "lib" not in _native._state  # a small select does not build
+    _same(where(c, torch.zeros(2, MIN_ELEMENTS), 1.0), torch.where(c, torch.zeros(2, MIN_ELEMENTS), 1.0))
+    assert _native._state["lib"] is not None
+
+
 def test_min_elements_counts_the_largest_tensor(count_native_calls):
     n = MIN_ELEMENTS
     c = torch.rand(n, generator=G) < 0.5

@@ -16,7 +16,8 @@ back (:func:`packed_places`) as one gather-and-select.
 Both fall back to ATen (the same values) where the loop does not serve: another device, a
 gradient to record, a ``torch.func`` transform, ``torch.compile`` tracing (Inductor fuses
 its own selects), another broadcast, mixed dtypes, fewer than :data:`MIN_ELEMENTS`
-elements, or the C loops not built (:func:`torchmcmcpf._native.available`).
+elements, or the C loops not built (:func:`torchmcmcpf._native.available`, which the first
+large select calls: it builds the loops once per machine).
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ from typing import Any
 import torch
 
 from .. import runtime
-from . import library
+from . import available, library
 
 __all__ = ["where", "packed_places", "unpacked", "MIN_ELEMENTS"]
 
@@ -95,8 +96,8 @@ def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Te
         return None
     big = condition.numel() >= MIN_ELEMENTS or (isinstance(input, torch.Tensor) and input.numel() >= MIN_ELEMENTS) \
         or (isinstance(other, torch.Tensor) and other.numel() >= MIN_ELEMENTS)
-    lib: Any = library()
-    if not big or lib is None or condition.dtype != torch.bool or condition.device.type != "cpu":
+    lib: Any = library() if big and available() else None  # the first large select builds the loops
+    if lib is None or condition.dtype != torch.bool or condition.device.type != "cpu":
         return None
     t = input if isinstance(input, torch.Tensor) else other
     if not isinstance(t, torch.Tensor) or t.element_size() not in (1, 2, 4, 8):
@@ -173,7 +174,7 @@ def unpacked(block: torch.Tensor, place: torch.Tensor, flags: torch.Tensor,
     """
     b, p = flags.shape
     shape = (b, p) + tuple(block.shape[2:])
-    lib: Any = None if runtime.compiling() else library()  # traced: nothing else read
+    lib: Any = library() if not runtime.compiling() and available() else None  # traced: nothing else read
     fill_t = None if lib is None else _tensor(fill, block.dtype)
     if lib is not None and fill_t is not None and math.prod(shape) >= MIN_ELEMENTS and block.device.type == "cpu" \
             and flags.device.type == "cpu" and block.element_size() in (1, 2, 4, 8) \
