@@ -211,6 +211,17 @@ class Guide(NamedTuple):
     ``lo (..., N + 1)`` int64, the index that the left edge of each bin ``[j / N, (j + 1) /
     N)`` gets (and of 1); ``padded (..., N + 1)`` float64, the CDF with an entry 2 after its
     last (a scan past the end counts nothing); ``scan`` () int64, the most indices a bin spans.
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.resampling import cdf, guide_table, inverse_cdf
+    >>> c = cdf(torch.log(torch.tensor([[0.5, 0.25, 0.25]])))
+    >>> guide = guide_table(c)
+    >>> guide.lo, guide.scan            # the edges 0, 1/3, 2/3 fall at indices 0, 0, 1; the edge 1 past the end
+    (tensor([[0, 0, 1, 3]]), tensor(2))
+    >>> inverse_cdf(c, torch.tensor([[0.1, 0.6, 0.9]]), guide)
+    tensor([[0, 1, 2]])
     """
 
     lo: Tensor
