@@ -61,14 +61,17 @@ def _layouts():
     ]
 
 
-@pytest.mark.parametrize("case", range(len(_layouts())), ids=[name for name, *_ in _layouts()])
-def test_where_is_torch_where_by_the_loop(case, count_native_calls):
-    _, c, a, b = _layouts()[case]
+def _where_by(c, a, b, count_native_calls) -> list[str]:
+    """``where(c, a, b)`` checked against ``torch.where``; the C loop's calls it made."""
     want = torch.where(c, a, b)
     calls = count_native_calls()
-    got = where(c, a, b)
-    assert calls == ["select_rows"]
-    _same(got, want)
+    _same(where(c, a, b), want)
+    return calls
+
+
+@pytest.mark.parametrize("case", range(len(_layouts())), ids=[name for name, *_ in _layouts()])
+def test_where_is_torch_where_by_the_loop(case, count_native_calls):
+    assert _where_by(*_layouts()[case][1:], count_native_calls) == ["select_rows"]
 
 
 @pytest.mark.parametrize("threads", [1, 2])
@@ -95,12 +98,7 @@ def _fallbacks():
 
 @pytest.mark.parametrize("case", range(len(_fallbacks())), ids=[name for name, *_ in _fallbacks()])
 def test_where_falls_back_to_aten(case, count_native_calls):
-    _, c, a, b = _fallbacks()[case]
-    want = torch.where(c, a, b)
-    calls = count_native_calls()
-    got = where(c, a, b)
-    assert calls == []
-    _same(got, want)
+    assert _where_by(*_fallbacks()[case][1:], count_native_calls) == []
 
 
 def test_where_records_gradients_by_aten(count_native_calls):
