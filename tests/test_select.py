@@ -58,6 +58,8 @@ def _layouts():
         ("transposed", slot.unsqueeze(-1), x.transpose(0, 1).contiguous().transpose(0, 1), y),
         ("condition with leading 1s", slot.reshape(1, B * C, K), x0.reshape(1, B * C, K), y0.reshape(B * C, K)),
         ("fewer dims", slot[0].unsqueeze(-1), x[0], y[0]),
+        ("expanded row", slot.unsqueeze(-1), x, torch.randn(D, generator=G).expand(B, C, K, D)),
+        ("expanded over the chains", row[:, :, None, None], torch.randn(B, 1, K, D, generator=G).expand(B, C, K, D), y),
     ]
 
 

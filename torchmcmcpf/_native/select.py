@@ -77,15 +77,17 @@ def _broadcast(*shapes: tuple[int, ...]) -> tuple[int, ...] | None:
 
 def _rows(x: torch.Tensor, shape: tuple[int, ...], j: int, w: int) -> tuple[torch.Tensor, int] | None:
     """``x`` as the loop reads it for an output ``shape`` of rows over the dims before ``j``:
-    the whole operand contiguous (row stride ``w``), or one row repeated (stride 0); None for
-    another broadcast.
+    one row repeated (row stride 0) where ``x`` does not vary over those dims (broadcast, or
+    an ``expand``-ed view: ``x_death`` over every slot), else the whole operand contiguous
+    (row stride ``w``); None for a broadcast within the rows' dims.
     """
     padded = (1,) * (len(shape) - x.dim()) + tuple(x.shape)
-    if padded == shape:
-        return x.contiguous(), w
-    if all(s == 1 for s in padded[:j]):
-        return x.reshape(padded[j:]).expand(shape[j:]).contiguous(), 0
-    return None
+    if padded != shape and not all(s == 1 for s in padded[:j]):
+        return None
+    xe = x.expand(shape)
+    if all(shape[i] == 1 or xe.stride(i) == 0 for i in range(j)):
+        return xe[(0,) * j].contiguous(), 0
+    return xe.contiguous(), w
 
 
 def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Tensor | None:

@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native.select import packed_places, unpacked
 from ..models.base import MotionModel, SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.motion import LinearGaussianMotion
@@ -161,19 +162,22 @@ def normals(shape: Sequence[int], x: Tensor, generator: torch.Generator, where: 
     births/deaths scene's slots are inactive, and float64 ``randn`` is the step's costliest
     draw (PyTorch's CPU kernel draws one number at a time: 18-24 ns a number against 4 for
     ``rand``, AMD EPYC, one thread). Elsewhere every row is drawn (the same law). The rows are
-    packed over all runs at once, not per run as :func:`~torchmcmcpf._native.select.packed_places`
-    packs the newborns (whose ratios read their run's points): nothing here is per run, and a
-    per-run block is as wide as the fullest run, close to every slot with 10 runs batched.
+    packed over all runs at once (one block, :func:`~torchmcmcpf._native.select.packed_places`),
+    not per run as the newborns are (whose ratios read their run's points): nothing here is per
+    run, and a per-run block is as wide as the fullest run, close to every slot with 10 runs
+    batched; read back by :func:`~torchmcmcpf._native.select.unpacked` (one pass: 0.10 against
+    0.38 ms besides the draws for ``(10, 1000, 5, 4)``, one thread).
     """
     if where is not None and tuple(where.shape) != tuple(shape[:-1]):
         raise ValueError(f"where has shape {tuple(where.shape)}, expected {tuple(shape[:-1])}")
     if where is None or not host_reads(x):
         return torch.randn(shape, generator=generator, device=x.device, dtype=x.dtype)
-    rows = where.reshape(-1).nonzero().squeeze(-1)
-    out = torch.zeros(shape, device=x.device, dtype=x.dtype)
-    drawn = torch.randn((rows.numel(), shape[-1]), generator=generator, device=x.device, dtype=x.dtype)
-    out.view(-1, shape[-1]).index_copy_(0, rows, drawn)
-    return out
+    flags = where.reshape(1, -1)
+    count, place = packed_places(flags)  # all rows one block: the flagged rows' places in order
+    drawn = torch.randn((count, shape[-1]), generator=generator, device=x.device, dtype=x.dtype)
+    if count == 0:
+        return torch.zeros(shape, device=x.device, dtype=x.dtype)
+    return unpacked(drawn.unsqueeze(0), place, flags, 0.0).reshape(shape)
 
 
 class JointNoise(NamedTuple):
