@@ -103,6 +103,14 @@ def test_where_falls_back_to_aten(case, count_native_calls):
     assert _where_by(*_fallbacks()[case][1:], count_native_calls) == []
 
 
+def test_where_of_nothing_is_aten_at_any_threshold(monkeypatch, count_native_calls):
+    from torchmcmcpf._native import select
+
+    monkeypatch.setattr(select, "MIN_ELEMENTS", 1)
+    c = torch.rand(3, 0, 4, generator=G) < 0.5
+    assert _where_by(c, torch.zeros(3, 0, 4), torch.tensor(1.0), count_native_calls) == []
+
+
 def test_where_records_gradients_by_aten(count_native_calls):
     x = torch.randn(B, C, K, generator=G, requires_grad=True)
     c = torch.rand(B, C, K, generator=G) < 0.5

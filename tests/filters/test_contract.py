@@ -25,6 +25,7 @@ from torchmcmcpf import (
     LinearGaussian,
     ParticleState,
     StepInfo,
+    _native,
 )
 from torchmcmcpf.filters import (
     GroupMCMCFilter,
@@ -463,3 +464,25 @@ def test_a_filter_pickled_before_binding_once_loads():
     old.__setstate__(d)
     assert old.settings == new.settings and old.bound.motion is old.motion and not old.compile_step
     assert_same(run(old, zs, init, 2), run(new, zs, init, 2))
+
+
+# ----------------------------------------------------------------------------- the library's select
+@pytest.mark.skipif(not _native.available(), reason="the C loops are not built on this machine")
+@pytest.mark.parametrize("name", list(FILTERS) + [f"existence-{n}" for n in EXISTENCE_FILTERS])
+def test_the_select_loop_keeps_every_filters_bits(name, monkeypatch):
+    """Every select of every filter through the C loop (``MIN_ELEMENTS = 1``: the contract's
+    tensors are small) gives the bits of ATen's ``where`` (``torch.where`` everywhere)."""
+    from torchmcmcpf._native import select
+
+    if name.startswith("existence-"):
+        motion, sensor, existence, zs, init = existence_problem()
+        filt = EXISTENCE_FILTERS[name.removeprefix("existence-")](motion, sensor, existence)
+    else:
+        filt, zs, init = build(name)
+    results = []
+    for threshold in (1, 1 << 62):
+        monkeypatch.setattr(select, "MIN_ELEMENTS", threshold)
+        results.append(run(filt, zs, init, 3))
+    assert_same(*results)
+    if name.startswith("existence-"):
+        assert torch.equal(results[0].state.exists, results[1].state.exists)

@@ -110,9 +110,9 @@ def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Te
     if torch.is_grad_enabled() and (a.requires_grad or b.requires_grad):
         return None
     shape = _broadcast(tuple(condition.shape), tuple(a.shape), tuple(b.shape))
-    if shape is None:
+    n = 0 if shape is None else math.prod(shape)
+    if shape is None or n == 0:
         return None
-    n = math.prod(shape)
     c_shape = (1,) * (len(shape) - condition.dim()) + tuple(condition.shape)
     j = len(shape)
     while j > 0 and c_shape[j - 1] == 1:  # the condition's rows: its dims before j
