@@ -100,3 +100,42 @@ def test_same_bits_threads_compiled_and_gradients(at_threads, count_native_calls
     u[1, 2, 0, 0] = math.nan
     bad = ex.log_change(u, u_n, n)
     assert bad[1, 2].isnan() and not bad[0].isnan().any()
+
+
+@pytest.mark.parametrize("k", [2, 5, 10])
+@pytest.mark.parametrize("with_flags", [True, False])
+def test_blocked_sums_are_the_one_at_a_time_sums_to_the_bit(k, with_flags):
+    """The loops gather a block of samples' live pairs, take ``log phi`` of them all at once and
+    sum each sample's in order: over several blocks (1,500 samples), with dead slots, close and
+    coincident pairs (the series) and NaN, the sums are those of the scalar ``log phi``
+    (``native.log_phi``) added pair by pair in order, bit for bit. The coordinates are
+    multiples of 1/64, so every squared distance is exact however the loop adds it."""
+    g = torch.Generator().manual_seed(4)
+    n, r, inv2s2, xmin = 1500, 2, 0.5, math.exp(LOG_PHI_FLOOR)
+    u = torch.randint(0, 384, (n, k, r), generator=g).double() / 64.0
+    u[::7, 1] = u[::7, 0] + 0.125  # pairs within the series' range
+    u[::11, 1] = u[::11, 0]      # coincident
+    u[5, 0, 0] = math.nan
+    alive = (torch.rand(n, k, generator=g) < 0.6) if with_flags else torch.ones(n, k, dtype=torch.bool)
+    slot = torch.randint(0, k, (n,), generator=g)
+    u_n = torch.randint(0, 384, (n, r), generator=g).double() / 64.0
+    alive_n = torch.rand(n, generator=g) < 0.5
+
+    def lphi(a, b):
+        return native.log_phi((a - b).square().sum(-1, keepdim=True), inv2s2, xmin)[..., 0]
+
+    want_f, want_c = torch.zeros(n, dtype=torch.float64), torch.zeros(n, dtype=torch.float64)
+    for i in range(n):  # the reference: one sample, one pair at a time
+        for a in range(k):
+            for b in range(a + 1, k):
+                if alive[i, a] and alive[i, b]:
+                    want_f[i] += lphi(u[i, a], u[i, b])
+            if a != slot[i] and alive[i, a]:
+                new = lphi(u_n[i], u[i, a]) if alive_n[i] else 0.0
+                old = lphi(u[i, slot[i]], u[i, a]) if alive[i, slot[i]] else 0.0
+                want_c[i] += new - old
+    flags = alive.to(torch.uint8) if with_flags else None
+    got_f = native.factor(u, flags, inv2s2, xmin)
+    got_c = native.change(u, u_n, slot, alive.to(torch.uint8), alive_n.to(torch.uint8), inv2s2, xmin)
+    same = lambda x, y: bool(((x == y) | (x.isnan() & y.isnan())).all())  # noqa: E731
+    assert same(got_f, want_f) and same(got_c, want_c)

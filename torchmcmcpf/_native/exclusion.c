@@ -1,7 +1,8 @@
 /* The exclusion factor and its change when one slot moves (torchmcmcpf.models.multitarget.Exclusion,
- * Khan, Balch and Dellaert 2005: phi(d) = 1 - exp(-d^2 / (2 s^2)), log phi floored), one
- * sample at a time: the K - 1 pairs of the moved slot before and after, in float64, with no
- * (S, 2, K) tensor and none of the thirty small ATen calls a move made on tensors.
+ * Khan, Balch and Dellaert 2005: phi(d) = 1 - exp(-d^2 / (2 s^2)), log phi floored): the K - 1
+ * pairs of the moved slot before and after (or a state's K (K - 1) / 2 pairs), in float64, with
+ * no (S, 2, K) tensor and none of the thirty small ATen calls a move made on tensors; the pairs
+ * of a block of samples gathered, their log phi vectorised, each sample's summed in order.
  */
 #include <math.h>
 #include <stddef.h>
@@ -22,28 +23,73 @@ static inline double log_phi(double d2, double inv2s2, double xmin) {
     return log_vec(v);
 }
 
+/* log_phi of n values x (scaled and floored) into out, vectorised: 1 - e^-x and the log over the
+ * whole buffer, the series only where x < 1/2 (the same formulas as log_phi, value by value;
+ * slots are mostly farther apart than that) */
+static void log_phi_buffer(int64_t n, const double *restrict x, double *restrict out) {
+    int small = 0;
+    for (int64_t m = 0; m < n; ++m) {
+        out[m] = 1.0 - exp_flushed(-x[m]);
+        small |= x[m] < 0.5;
+    }
+    if (small)
+        for (int64_t m = 0; m < n; ++m) {
+            if (!(x[m] < 0.5)) continue;
+            double s = 1.0;
+            for (int k = 18; k >= 2; --k) s = 1.0 - x[m] / (double)k * s;
+            out[m] = x[m] * s;
+        }
+    for (int64_t m = 0; m < n; ++m) out[m] = log_vec(out[m]);
+}
+
+static inline double scaled(double d2, double inv2s2, double xmin) {
+    const double x = d2 * inv2s2;
+    return x < xmin ? xmin : x;
+}
+
+/* The loops below gather the live pairs' values of a block of samples in order into one buffer
+ * (at most BUFFER), log_phi them at once, then sum them sample by sample in the same order as
+ * a loop over the live pairs one at a time: the same sums to the bit, the transcendental
+ * functions vectorised (2.2-4.5x; tests/models/test_exclusion_native.py) */
+#define BUFFER 2048
+
 /* exclusion_change: out (n) = sum over the live slots k != slot_i of e_new log phi(|u_n - u_k|^2)
  * - e_old log phi(|u_old - u_k|^2), u (n, K, r), u_n (n, r), slot (n), alive (n, K) and
  * alive_n (n) uint8 (NULL: all live; alive_n NULL: the slot's current flag) */
 static void change_range(int64_t i0, int64_t i1, int64_t K, int64_t r, const double *u, const double *u_n,
                          const int64_t *slot, const uint8_t *alive, const uint8_t *alive_n, double inv2s2, double xmin,
                          double *out) {
-    for (int64_t i = i0; i < i1; ++i) {
-        const double *ui = u + i * K * r, *un = u_n + i * r, *uo = ui + slot[i] * r;
-        const int e_old = alive == NULL ? 1 : alive[i * K + slot[i]];
-        const int e_new = alive_n == NULL ? e_old : alive_n[i];
-        double acc = 0.0;
-        for (int64_t k = 0; k < K; ++k) {
-            if (k == slot[i] || (alive != NULL && !alive[i * K + k])) continue;
-            double d_old = 0.0, d_new = 0.0;
-            for (int64_t c = 0; c < r; ++c) {
-                const double a = uo[c] - ui[k * r + c], b = un[c] - ui[k * r + c];
-                d_old += a * a;
-                d_new += b * b;
+    double buf[BUFFER], lp[BUFFER];
+    int64_t start[BUFFER + 1];
+    const int64_t block = BUFFER / (2 * K) > 0 ? BUFFER / (2 * K) : 1;
+    for (int64_t b0 = i0; b0 < i1; b0 += block) {
+        const int64_t b1 = b0 + block < i1 ? b0 + block : i1;
+        int64_t m = 0;
+        for (int64_t i = b0; i < b1; ++i) { /* each live slot k != slot_i: its new and old x */
+            const double *ui = u + i * K * r, *un = u_n + i * r, *uo = ui + slot[i] * r;
+            start[i - b0] = m;
+            for (int64_t k = 0; k < K; ++k) {
+                if (k == slot[i] || (alive != NULL && !alive[i * K + k])) continue;
+                double d_old = 0.0, d_new = 0.0;
+                for (int64_t c = 0; c < r; ++c) {
+                    const double a = uo[c] - ui[k * r + c], b = un[c] - ui[k * r + c];
+                    d_old += a * a;
+                    d_new += b * b;
+                }
+                buf[m++] = scaled(d_new, inv2s2, xmin);
+                buf[m++] = scaled(d_old, inv2s2, xmin);
             }
-            acc += (e_new ? log_phi(d_new, inv2s2, xmin) : 0.0) - (e_old ? log_phi(d_old, inv2s2, xmin) : 0.0);
         }
-        out[i] = acc;
+        start[b1 - b0] = m;
+        log_phi_buffer(m, buf, lp);
+        for (int64_t i = b0; i < b1; ++i) { /* the sample's live slots, in the order gathered */
+            const int e_old = alive == NULL ? 1 : alive[i * K + slot[i]];
+            const int e_new = alive_n == NULL ? e_old : alive_n[i];
+            double acc = 0.0;
+            for (int64_t q = start[i - b0]; q < start[i - b0 + 1]; q += 2)
+                acc += (e_new ? lp[q] : 0.0) - (e_old ? lp[q + 1] : 0.0);
+            out[i] = acc;
+        }
     }
 }
 
@@ -58,22 +104,36 @@ int exclusion_change(int64_t n, int64_t threads, int64_t K, int64_t r, const dou
  * u (n, K, r), alive (n, K) uint8 (NULL: all live) */
 static void factor_range(int64_t i0, int64_t i1, int64_t K, int64_t r, const double *u, const uint8_t *alive,
                          double inv2s2, double xmin, double *out) {
-    for (int64_t i = i0; i < i1; ++i) {
-        const double *ui = u + i * K * r;
-        double acc = 0.0;
-        for (int64_t k = 0; k < K; ++k) {
-            if (alive != NULL && !alive[i * K + k]) continue;
-            for (int64_t l = k + 1; l < K; ++l) {
-                if (alive != NULL && !alive[i * K + l]) continue;
-                double d2 = 0.0;
-                for (int64_t c = 0; c < r; ++c) {
-                    const double a = ui[k * r + c] - ui[l * r + c];
-                    d2 += a * a;
+    double buf[BUFFER], lp[BUFFER];
+    int64_t start[BUFFER + 1];
+    const int64_t pairs = K * (K - 1) / 2;
+    const int64_t block = pairs > 0 && BUFFER / pairs > 0 ? BUFFER / pairs : 1;
+    for (int64_t b0 = i0; b0 < i1; b0 += block) {
+        const int64_t b1 = b0 + block < i1 ? b0 + block : i1;
+        int64_t m = 0;
+        for (int64_t i = b0; i < b1; ++i) {
+            const double *ui = u + i * K * r;
+            start[i - b0] = m;
+            for (int64_t k = 0; k < K; ++k) {
+                if (alive != NULL && !alive[i * K + k]) continue;
+                for (int64_t l = k + 1; l < K; ++l) {
+                    if (alive != NULL && !alive[i * K + l]) continue;
+                    double d2 = 0.0;
+                    for (int64_t c = 0; c < r; ++c) {
+                        const double a = ui[k * r + c] - ui[l * r + c];
+                        d2 += a * a;
+                    }
+                    buf[m++] = scaled(d2, inv2s2, xmin);
                 }
-                acc += log_phi(d2, inv2s2, xmin);
             }
         }
-        out[i] = acc;
+        start[b1 - b0] = m;
+        log_phi_buffer(m, buf, lp);
+        for (int64_t i = b0; i < b1; ++i) { /* the sample's live pairs, in the order gathered */
+            double acc = 0.0;
+            for (int64_t q = start[i - b0]; q < start[i - b0 + 1]; ++q) acc += lp[q];
+            out[i] = acc;
+        }
     }
 }
 

@@ -147,7 +147,7 @@ class Exclusion:
         k = u.shape[-2]
         if u.shape[-1] < 1:
             raise ValueError(f"u has shape {tuple(u.shape)}: expected at least one coordinate")
-        if applies(u):  # the C loop: the pairs of one sample at a time, no (*S, P) tensors
+        if applies(u):  # the C loop: no (*S, P) tensors
             lead, r = tuple(u.shape[:-2]), u.shape[-1]
             rows = math.prod(lead)
             flags = None if alive is None else alive.expand(lead + (k,)).reshape(rows, k).to(torch.uint8)
@@ -183,7 +183,7 @@ class Exclusion:
         (*S,).
         """
         k = u.shape[-2]
-        if applies(u):  # the C loop: one sample at a time, no (*S, 2, K) tensor
+        if applies(u):  # the C loop: no (*S, 2, K) tensor
             lead = torch.broadcast_shapes(u.shape[:-2], n.shape)
             rows, r = math.prod(lead), u.shape[-1]
             flags = None if alive is None else alive.expand(lead + (k,)).reshape(rows, k).to(torch.uint8)
