@@ -208,3 +208,15 @@ def test_packed_places_order():
     width, place = packed_places(flags)
     assert width == 3
     assert place.tolist() == [[0, 0, 1, 1, 2], [0, 0, 0, 0, 0]]
+
+
+def test_library_code_selects_with_the_library_select():
+    """models, kernels, filters, state, resampling and diagnostics call ``where`` of
+    ``torchmcmcpf._native.select`` (docs/design.md, "One select"), never ``torch.where``."""
+    from pathlib import Path
+
+    root = Path(_native.__file__).resolve().parents[1]
+    files = [p for d in ("models", "kernels", "filters") for p in (root / d).rglob("*.py")]
+    files += [root / f for f in ("state.py", "resampling.py", "diagnostics.py")]
+    offenders = [str(p.relative_to(root)) for p in files if "torch.where(" in p.read_text()]
+    assert offenders == []
