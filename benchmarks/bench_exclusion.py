@@ -5,7 +5,7 @@ path (``torchmcmcpf._native.tensor_path``), through the model's methods the move
 60 % live) and the crossing's (5 runs x 50 chains, 5 slots, all live); float32 states, one
 thread. Compare within one run:
 
-    pytest benchmarks/bench_exclusion.py --benchmark-only --benchmark-group-by=group
+    BENCH_THREADS=1 pytest benchmarks/bench_exclusion.py --benchmark-only --benchmark-group-by=group
 """
 
 import pytest
@@ -19,14 +19,6 @@ SCENES = {"births/deaths (10, 1000, 5)": ((10, 1000), 0.6), "crossing (5, 50, 5)
 PATHS = {"C loop": lambda: torch.no_grad(), "tensors": _native.tensor_path}
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _chains(scene):
     lead, live = SCENES[scene]
     u = torch.rand(lead + (5, 2), generator=G) * 50.0  # resolution coordinates over 50 cells
@@ -36,17 +28,10 @@ def _chains(scene):
 
 @pytest.mark.parametrize("path", list(PATHS))
 @pytest.mark.parametrize("scene", list(SCENES))
-def test_log_factor(benchmark, scene, path):
-    u, alive, _, _ = _chains(scene)
-    benchmark.group = f"log_factor {scene}"
-    with PATHS[path]():
-        benchmark(Exclusion().log_factor, u, alive)
-
-
-@pytest.mark.parametrize("path", list(PATHS))
-@pytest.mark.parametrize("scene", list(SCENES))
-def test_log_change(benchmark, scene, path):
+@pytest.mark.parametrize("method", ["log_factor", "log_change"])
+def test_exclusion(benchmark, method, scene, path):
     u, alive, u_n, n = _chains(scene)
-    benchmark.group = f"log_change {scene}"
+    args = (u, alive) if method == "log_factor" else (u, u_n, n, alive)
+    benchmark.group = f"{method} {scene}"
     with PATHS[path]():
-        benchmark(Exclusion().log_change, u, u_n, n, alive)
+        benchmark(getattr(Exclusion(), method), *args)

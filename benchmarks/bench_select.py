@@ -6,7 +6,7 @@ MCMC-PF's public ``forward`` (``reproduce septier-birth-death``'s filter, B = 10
 after 30) with the loops and with every select left to ATen (``MIN_ELEMENTS`` above every size).
 Compare within one run, one thread:
 
-    pytest benchmarks/bench_select.py --benchmark-only --benchmark-group-by=group
+    BENCH_THREADS=1 pytest benchmarks/bench_select.py --benchmark-only --benchmark-group-by=group
 
 The floor of a select is a copy of its output (``clone``, grouped with it).
 """
@@ -17,7 +17,6 @@ import torch
 from torchmcmcpf._native import select
 from torchmcmcpf.experiments._shards import shard_generator
 from torchmcmcpf.experiments.septier_birth_death import BirthDeathSettings, _filters, our_problem
-from torchmcmcpf.runtime import tune_cpu_allocator
 from torchmcmcpf.scenarios.septier import septier
 
 G = torch.Generator().manual_seed(0)
@@ -30,14 +29,6 @@ LAYOUTS = {
     "flat with a scalar": (SLOT, X[..., 0].contiguous(), 0.0),
 }
 WAYS = {"ours": select.where, "aten": torch.where, "copy (floor)": lambda c, a, b: a.clone()}
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 @pytest.mark.parametrize("way", list(WAYS))
@@ -62,7 +53,6 @@ def test_unpacked(benchmark, way, monkeypatch):
 
 @pytest.mark.parametrize("way", ["ours", "aten"])
 def test_birth_death_mcmc_forward(benchmark, way, monkeypatch):
-    tune_cpu_allocator()
     cfg = BirthDeathSettings(stonesoup=False)
     scn = septier(10, cfg.steps, generator=shard_generator("cpu", 0, 0))  # the study's first shard
     b, k = scn.alive.shape[1:]
