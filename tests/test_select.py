@@ -22,9 +22,9 @@ def _bits(t: torch.Tensor) -> torch.Tensor:
     return t if t.dtype == torch.bool else t.contiguous().view(torch.uint8)
 
 
-def _same(got: torch.Tensor, want: torch.Tensor) -> None:
-    assert got.dtype == want.dtype and got.shape == want.shape
-    assert torch.equal(_bits(got), _bits(want))
+def _same(got: torch.Tensor, want: torch.Tensor) -> bool:
+    """The same dtype, shape and bits."""
+    return got.dtype == want.dtype and got.shape == want.shape and torch.equal(_bits(got), _bits(want))
 
 
 def _state(dtype=torch.float32) -> torch.Tensor:
@@ -67,7 +67,7 @@ def _where_by(c, a, b, count_native_calls) -> list[str]:
     """``where(c, a, b)`` checked against ``torch.where``; the C loop's calls it made."""
     want = torch.where(c, a, b)
     calls = count_native_calls()
-    _same(where(c, a, b), want)
+    assert _same(where(c, a, b), want)
     return calls
 
 
@@ -77,10 +77,13 @@ def test_where_is_torch_where_by_the_loop(case, count_native_calls):
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_where_same_bits_at_any_thread_count(threads, at_threads):
+def test_where_same_bits_at_any_thread_count(threads, at_threads, count_native_calls):
     x, y = torch.randn(40, 4000, 2, generator=G), torch.randn(40, 4000, 2, generator=G)  # above the threaded size
     c = torch.rand(40, 4000, 1, generator=G) < 0.3
-    _same(at_threads(lambda: where(c, x, y), threads), torch.where(c, x, y))
+    want = torch.where(c, x, y)
+    calls = count_native_calls()
+    assert _same(at_threads(lambda: where(c, x, y), threads), want)
+    assert calls == ["select_rows"]
 
 
 def _fallbacks():
@@ -131,8 +134,8 @@ def test_where_under_vmap_and_compile(count_native_calls):
     got = torch.vmap(lambda ci, xi: where(ci, xi, -xi))(c, x)
     compiled = torch.compile(lambda ci, xi: where(ci, xi, -xi), fullgraph=True, backend="eager")(c, x)
     assert calls == []
-    _same(got, torch.where(c, x, -x))
-    _same(compiled, torch.where(c, x, -x))
+    assert _same(got, torch.where(c, x, -x))
+    assert _same(compiled, torch.where(c, x, -x))
 
 
 def test_where_without_the_loops_is_aten(count_native_calls):
@@ -141,7 +144,7 @@ def test_where_without_the_loops_is_aten(count_native_calls):
     with _native.tensor_path():
         got = where(c, a, b)
     assert calls == []
-    _same(got, torch.where(c, a, b))
+    assert _same(got, torch.where(c, a, b))
 
 
 def test_the_first_large_select_loads_the_loops(monkeypatch):
@@ -149,7 +152,7 @@ def test_the_first_large_select_loads_the_loops(monkeypatch):
     c = torch.rand(2, MIN_ELEMENTS, generator=G) < 0.5
     where(c[:, :10], torch.zeros(2, 10), 1.0)
     assert "lib" not in _native._state  # a small select does not build
-    _same(where(c, torch.zeros(2, MIN_ELEMENTS), 1.0), torch.where(c, torch.zeros(2, MIN_ELEMENTS), 1.0))
+    assert _same(where(c, torch.zeros(2, MIN_ELEMENTS), 1.0), torch.where(c, torch.zeros(2, MIN_ELEMENTS), 1.0))
     assert _native._state["lib"] is not None
 
 
@@ -159,7 +162,7 @@ def test_min_elements_counts_the_largest_tensor(count_native_calls):
     calls = count_native_calls()
     where(c[:-1], torch.zeros(n - 1), 1.0)
     assert calls == []
-    _same(where(c, torch.zeros(n), 1.0), torch.where(c, torch.zeros(n), 1.0))
+    assert _same(where(c, torch.zeros(n), 1.0), torch.where(c, torch.zeros(n), 1.0))
     assert calls == ["select_rows"]
 
 
@@ -191,7 +194,7 @@ def test_unpacked_is_a_gather_and_a_select(dims, fill, threads, at_threads, coun
     calls = count_native_calls()
     got = at_threads(lambda: unpacked(block, place, flags, fill), threads)
     assert calls == ["unpack_rows"]
-    _same(got, want)
+    assert _same(got, want)
 
 
 def test_unpacked_falls_back_with_gradients(count_native_calls):
@@ -200,7 +203,7 @@ def test_unpacked_falls_back_with_gradients(count_native_calls):
     calls = count_native_calls()
     got = unpacked(block, place, flags, 0.0)
     assert calls == [] and got.requires_grad
-    _same(got.detach(), _reference(block.detach(), place, flags, 0.0))
+    assert _same(got.detach(), _reference(block.detach(), place, flags, 0.0))
 
 
 def test_packed_places_order():

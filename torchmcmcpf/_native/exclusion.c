@@ -11,21 +11,11 @@
 #include "split.h"
 #include "vecmath.h"
 
-/* log phi for a squared distance d2: log(-expm1(-x)), x = max(d2 / (2 s^2), xmin) (xmin =
- * e^LOG_PHI_FLOOR): below x = 1/2 the series of -expm1(-x) in nested form to x^18 (truncation
- * below 1e-22 relative), above it 1 - e^-x (no cancellation there); NaN kept. */
-static inline double log_phi(double d2, double inv2s2, double xmin) {
-    double x = d2 * inv2s2;
-    x = x < xmin ? xmin : x;
-    double s = 1.0;
-    for (int k = 18; k >= 2; --k) s = 1.0 - x / (double)k * s;
-    const double v = x < 0.5 ? x * s : 1.0 - exp_flushed(-x);
-    return log_vec(v);
-}
-
-/* log_phi of n values x (scaled and floored) into out, vectorised: 1 - e^-x and the log over the
- * whole buffer, the series only where x < 1/2 (the same formulas as log_phi, value by value;
- * slots are mostly farther apart than that) */
+/* log phi of n values x = max(d2 / (2 s^2), xmin) (xmin = e^LOG_PHI_FLOOR; scaled() below) into
+ * out: log(-expm1(-x)), below x = 1/2 by the series of -expm1(-x) in nested form to x^18
+ * (truncation below 1e-22 relative), above it 1 - e^-x (no cancellation there); NaN kept.
+ * Vectorised over the values: 1 - e^-x and the log over the whole buffer, the series only
+ * where x < 1/2 (slots are mostly farther apart than that). */
 static void log_phi_buffer(int64_t n, const double *restrict x, double *restrict out) {
     int small = 0;
     for (int64_t m = 0; m < n; ++m) {
@@ -143,7 +133,12 @@ int exclusion_factor(int64_t n, int64_t threads, int64_t K, int64_t r, const dou
     return 0;
 }
 
-/* log_phi on n squared distances, for its test */
+/* log phi on n squared distances (the loops' own log_phi_buffer), for its test */
 void exclusion_log_phi(int64_t n, const double *d2, double inv2s2, double xmin, double *out) {
-    for (int64_t i = 0; i < n; ++i) out[i] = log_phi(d2[i], inv2s2, xmin);
+    double x[BUFFER];
+    for (int64_t i0 = 0; i0 < n; i0 += BUFFER) {
+        const int64_t m = n - i0 < BUFFER ? n - i0 : BUFFER;
+        for (int64_t i = 0; i < m; ++i) x[i] = scaled(d2[i0 + i], inv2s2, xmin);
+        log_phi_buffer(m, x, out + i0);
+    }
 }

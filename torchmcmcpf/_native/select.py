@@ -90,6 +90,18 @@ def _rows(x: torch.Tensor, shape: tuple[int, ...], j: int, w: int) -> tuple[torc
     return xe.contiguous(), w
 
 
+def _loops(*tensors: torch.Tensor) -> Any:
+    """The C library where its loops may serve a call on ``tensors`` (all on the CPU, no
+    gradient to record, no ``torch.func`` transform), building it on the first such call;
+    None elsewhere. The callers have asked :func:`~torchmcmcpf.runtime.compiling` first.
+    """
+    if runtime.in_function_transform() or any(t.device.type != "cpu" for t in tensors):
+        return None
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return None
+    return library() if available() else None
+
+
 def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Tensor | None:
     """The C loop's ``torch.where(condition, input, other)``, or None where it does not serve
     (the small calls leave after one size test).
@@ -98,16 +110,15 @@ def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Te
         return None
     big = condition.numel() >= MIN_ELEMENTS or (isinstance(input, torch.Tensor) and input.numel() >= MIN_ELEMENTS) \
         or (isinstance(other, torch.Tensor) and other.numel() >= MIN_ELEMENTS)
-    lib: Any = library() if big and available() else None  # the first large select builds the loops
-    if lib is None or condition.dtype != torch.bool or condition.device.type != "cpu":
-        return None
     t = input if isinstance(input, torch.Tensor) else other
-    if not isinstance(t, torch.Tensor) or t.element_size() not in (1, 2, 4, 8):
+    if not big or condition.dtype != torch.bool or not isinstance(t, torch.Tensor) \
+            or t.element_size() not in (1, 2, 4, 8):
         return None
     a, b = _tensor(input, t.dtype), _tensor(other, t.dtype)
-    if a is None or b is None or runtime.in_function_transform():
+    if a is None or b is None:
         return None
-    if torch.is_grad_enabled() and (a.requires_grad or b.requires_grad):
+    lib: Any = _loops(condition, a, b)
+    if lib is None:
         return None
     shape = _broadcast(tuple(condition.shape), tuple(a.shape), tuple(b.shape))
     n = 0 if shape is None else math.prod(shape)
@@ -176,20 +187,16 @@ def unpacked(block: torch.Tensor, place: torch.Tensor, flags: torch.Tensor,
     """
     b, p = flags.shape
     shape = (b, p) + tuple(block.shape[2:])
-    lib: Any = library() if not runtime.compiling() and available() else None  # traced: nothing else read
-    fill_t = None if lib is None else _tensor(fill, block.dtype)
-    if lib is not None and fill_t is not None and math.prod(shape) >= MIN_ELEMENTS and block.device.type == "cpu" \
-            and flags.device.type == "cpu" and block.element_size() in (1, 2, 4, 8) \
-            and not runtime.in_function_transform() \
-            and not (torch.is_grad_enabled() and (block.requires_grad or fill_t.requires_grad)):
-        w = math.prod(shape[2:])
-        rows = _rows(fill_t, shape, 2, w)
-        if rows is not None:
-            out = torch.empty(shape, dtype=block.dtype)
-            blk, f, pl = block.contiguous(), flags.contiguous(), place.contiguous()
-            lib.unpack_rows(b * p, torch.get_num_threads() if out.numel() >= _THREADED else 1, p, block.shape[1], w,
-                            block.element_size(), f.data_ptr(), pl.data_ptr(), blk.data_ptr(), rows[0].data_ptr(),
-                            rows[1], out.data_ptr())
-            return out
+    fill_t = None if runtime.compiling() else _tensor(fill, block.dtype)  # traced: nothing else read
+    big = math.prod(shape) >= MIN_ELEMENTS and block.element_size() in (1, 2, 4, 8)
+    lib: Any = _loops(block, flags, fill_t) if big and fill_t is not None else None
+    rows = None if lib is None or fill_t is None else _rows(fill_t, shape, 2, math.prod(shape[2:]))
+    if rows is not None:
+        out = torch.empty(shape, dtype=block.dtype)
+        blk, f, pl = block.contiguous(), flags.contiguous(), place.contiguous()
+        lib.unpack_rows(b * p, torch.get_num_threads() if out.numel() >= _THREADED else 1, p, block.shape[1],
+                        math.prod(shape[2:]), block.element_size(), f.data_ptr(), pl.data_ptr(), blk.data_ptr(),
+                        rows[0].data_ptr(), rows[1], out.data_ptr())
+        return out
     index = place.reshape(place.shape + (1,) * (block.dim() - 2))
     return torch.where(flags.reshape(index.shape), runtime.take_along(block, index, 1), fill)
