@@ -107,8 +107,8 @@ def test_same_bits_threads_compiled_and_gradients(at_threads, count_native_calls
 def test_blocked_sums_are_the_one_at_a_time_sums_to_the_bit(k, with_flags):
     """The loops gather a block of samples' live pairs, take ``log phi`` of them all at once and
     sum each sample's in order: over several blocks (1,500 samples), with dead slots, close and
-    coincident pairs (the series) and NaN, the sums are those of the scalar ``log phi``
-    (``native.log_phi``) added pair by pair in order, bit for bit. The coordinates are
+    coincident pairs (the series) and NaN, the sums are those of the loops' ``log phi``
+    (``native.log_phi``) of one pair at a time, added pair by pair in order, bit for bit. The coordinates are
     multiples of 1/64, so every squared distance is exact however the loop adds it."""
     g = torch.Generator().manual_seed(4)
     n, r, inv2s2, xmin = 1500, 2, 0.5, math.exp(LOG_PHI_FLOOR)
