@@ -116,3 +116,54 @@ def test_flagged_first_puts_the_flagged_entries_first_in_order():
 
     flags = torch.tensor([[False, True, False, True, True], [False] * 5, [True] * 5])
     assert flagged_first(flags).tolist() == [[1, 3, 4, 0, 2], [0, 1, 2, 3, 4], [0, 1, 2, 3, 4]]
+
+
+@pytest.mark.parametrize("shapes", [
+    ((3, 1, 5), (7, 1)), ((1,), (4, 2)), ((), (2, 3)), ((2, 0), (1,)), ((5, 1, 1), (1, 4, 1), (1, 1, 3)), ((4,),),
+])
+def test_broadcast_shapes_equals_torch(shapes):
+    """runtime.broadcast_shapes gives torch.broadcast_shapes' shape, eager and traced."""
+    from torchmcmcpf.runtime import broadcast_or_none, broadcast_shapes
+
+    want = tuple(torch.broadcast_shapes(*shapes))
+    assert broadcast_shapes(*shapes) == want and broadcast_or_none(*shapes) == want
+    assert torch.compile(lambda x: x.new_zeros(broadcast_shapes(*shapes)), backend="eager")(torch.ones(1)).shape == want
+
+
+def test_broadcast_shapes_raises_torch_error():
+    from torchmcmcpf.runtime import broadcast_or_none, broadcast_shapes
+
+    assert broadcast_or_none((3, 2), (4, 2)) is None
+    with pytest.raises(RuntimeError, match="broadcast"):
+        torch.broadcast_shapes((3, 2), (4, 2))
+    with pytest.raises(RuntimeError, match="broadcast"):
+        broadcast_shapes((3, 2), (4, 2))
+
+
+def test_eager_op_calls_its_function_eager_and_its_op_traced():
+    """runtime.custom_op: an eager call runs the function itself (no dispatcher), a traced
+    call the registered op (a compiled graph holds it, the fake function gives its shape)."""
+    from torchmcmcpf.runtime import custom_op
+
+    calls = []
+
+    @custom_op("torchmcmcpf_test::doubled")
+    def doubled(x: torch.Tensor) -> torch.Tensor:
+        calls.append(torch.compiler.is_compiling())
+        return x * 2
+
+    @doubled.register_fake
+    def _(x):
+        return torch.empty_like(x)
+
+    x = torch.arange(4.0)
+    assert torch.equal(doubled(x), x * 2) and calls == [False]
+    assert torch.equal(doubled.op(x), x * 2) and len(calls) == 2  # the op itself runs the same function
+    gm = []
+
+    def backend(g, inputs):
+        gm.append(g)
+        return g.forward
+
+    assert torch.equal(torch.compile(lambda t: doubled(t) + 1, backend=backend, fullgraph=True)(x), x * 2 + 1)
+    assert any("torchmcmcpf_test.doubled" in str(node.target) for node in gm[0].graph.nodes)

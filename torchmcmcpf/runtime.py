@@ -66,9 +66,10 @@ from torch.utils._pytree import tree_flatten, tree_map, tree_unflatten
 from ._validation import check_positive_int
 
 __all__ = ["on_cuda", "compiling", "in_function_transform", "neighbour_count", "broadcast_sums", "compiled_for_cpu",
-           "take_along", "flagged_first", "blocked_linear_map", "fused_elementwise", "generated_reductions", "Program",
-           "compile_program", "memory_budget", "set_memory_budget", "check_memory_budget", "MIN_MEMORY_BUDGET",
-           "available_memory", "allocation_budget", "set_allocation_budget", "check_allocation", "tune_cpu_allocator"]
+           "broadcast_shapes", "broadcast_or_none", "custom_op", "EagerOp", "take_along", "flagged_first",
+           "blocked_linear_map", "fused_elementwise", "generated_reductions", "Program", "compile_program",
+           "memory_budget", "set_memory_budget", "check_memory_budget", "MIN_MEMORY_BUDGET", "available_memory",
+           "allocation_budget", "set_allocation_budget", "check_allocation", "tune_cpu_allocator"]
 
 
 # ----------------------------------------------------------------------------- the facts
@@ -141,6 +142,29 @@ def blocked_linear_map(x: torch.Tensor) -> bool:
     return x.device.type == "cpu"
 
 
+def broadcast_shapes(*shapes: tuple[int, ...]) -> tuple[int, ...]:
+    """``torch.broadcast_shapes(*shapes)`` for static shapes: the same shape, or its
+    RuntimeError where they do not broadcast, without its checks of symbolic sizes (12 us a
+    call in eager code, 2-4 calls in every MCMC iteration). A traced call takes torch's.
+    """
+    out = broadcast_or_none(*shapes) if not compiling() else None
+    return torch.broadcast_shapes(*shapes) if out is None else out
+
+
+def broadcast_or_none(*shapes: tuple[int, ...]) -> tuple[int, ...] | None:
+    """The shapes broadcast together, or None where they do not."""
+    out = [1] * max((len(s) for s in shapes), default=0)
+    for s in shapes:
+        offset = len(out) - len(s)
+        for i, d in enumerate(s):
+            if d != 1:
+                if out[offset + i] == 1:
+                    out[offset + i] = d
+                elif out[offset + i] != d:
+                    return None
+    return tuple(out)
+
+
 def take_along(t: torch.Tensor, index: torch.Tensor, dim: int) -> torch.Tensor:
     """``torch.take_along_dim(t, index, dim)`` for a non-negative ``index`` (the same values
     and gradient): one ``gather`` of the two broadcast against each other outside ``dim``.
@@ -152,8 +176,7 @@ def take_along(t: torch.Tensor, index: torch.Tensor, dim: int) -> torch.Tensor:
     if t.dim() != index.dim():
         raise ValueError(f"index has {index.dim()} dims and t {t.dim()}: expected the same number")
     d = dim % t.dim()
-    shape_t = list(torch.broadcast_shapes(t.shape[:d] + (1,) + t.shape[d + 1:],
-                                          index.shape[:d] + (1,) + index.shape[d + 1:]))
+    shape_t = list(broadcast_shapes(t.shape[:d] + (1,) + t.shape[d + 1:], index.shape[:d] + (1,) + index.shape[d + 1:]))
     shape_i = list(shape_t)
     shape_t[d], shape_i[d] = t.shape[d], index.shape[d]
     return torch.gather(t.expand(shape_t), d, index.expand(shape_i))
@@ -421,6 +444,46 @@ def repeating() -> Iterator[None]:
         yield
     finally:
         _repeating[0] = previous
+
+
+class EagerOp:
+    """A ``torch.library`` custom op whose eager calls run its function directly: the
+    dispatcher's pass through the op (autograd and device keys, the schema's checks) costs
+    about 8 us a call, which an MCMC iteration of a few hundred chains pays two or three
+    times. A traced call (:func:`compiling`) takes the op, so a compiled graph holds it.
+    Only for ops with no autograd formula, called where nothing needs one (the C loops'
+    ``applies``: no gradient to record, no ``torch.func`` transform).
+
+    Example
+    -------
+    >>> import torch
+    >>> from torchmcmcpf.runtime import custom_op
+    >>> @custom_op("torchmcmcpf_doc::plus_one")
+    ... def plus_one(x: torch.Tensor) -> torch.Tensor:
+    ...     return x + 1
+    >>> plus_one(torch.zeros(2))  # eager: the function itself
+    tensor([1., 1.])
+    >>> plus_one.op(torch.zeros(2))  # the registered op, which a traced call takes
+    tensor([1., 1.])
+    """
+
+    def __init__(self, fn: Callable, op: Any) -> None:
+        self._fn, self.op = fn, op
+
+    def __call__(self, *args: Any, **kwargs: Any) -> Any:
+        """The function's result: directly when eager, through the op when traced."""
+        return self.op(*args, **kwargs) if compiling() else self._fn(*args, **kwargs)
+
+    def register_fake(self, fn: Callable) -> Callable:
+        """The op's fake (meta) function, as ``CustomOpDef.register_fake``."""
+        return self.op.register_fake(fn)
+
+
+def custom_op(name: str) -> Callable[[Callable], EagerOp]:
+    """``torch.library.custom_op(name, mutates_args=())`` as an :class:`EagerOp` (decorator)."""
+    def wrap(fn: Callable) -> EagerOp:
+        return EagerOp(fn, torch.library.custom_op(name, mutates_args=())(fn))
+    return wrap
 
 
 def compile_program(fn: Callable) -> Program:

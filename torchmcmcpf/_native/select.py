@@ -59,22 +59,6 @@ def _tensor(x: Operand, dtype: torch.dtype) -> torch.Tensor | None:
     return torch.tensor(x, dtype=dtype) if ok else None
 
 
-def _broadcast(*shapes: tuple[int, ...]) -> tuple[int, ...] | None:
-    """The shapes broadcast together, or None where they do not (``torch.broadcast_shapes``
-    without its 12 us of checks).
-    """
-    out = [1] * max(len(s) for s in shapes)
-    for s in shapes:
-        offset = len(out) - len(s)
-        for i, d in enumerate(s):
-            if d != 1:
-                if out[offset + i] == 1:
-                    out[offset + i] = d
-                elif out[offset + i] != d:
-                    return None
-    return tuple(out)
-
-
 def _rows(x: torch.Tensor, shape: tuple[int, ...], j: int, w: int) -> tuple[torch.Tensor, int] | None:
     """``x`` as the loop reads it for an output ``shape`` of rows over the dims before ``j``:
     one row repeated (row stride 0) where ``x`` does not vary over those dims (broadcast, or
@@ -120,7 +104,7 @@ def _select(condition: torch.Tensor, input: Operand, other: Operand) -> torch.Te
     lib: Any = _loops(condition, a, b)
     if lib is None:
         return None
-    shape = _broadcast(tuple(condition.shape), tuple(a.shape), tuple(b.shape))
+    shape = runtime.broadcast_or_none(tuple(condition.shape), tuple(a.shape), tuple(b.shape))
     n = 0 if shape is None else math.prod(shape)
     if shape is None or n == 0:
         return None

@@ -22,13 +22,14 @@ from typing import Any
 
 import torch
 
+from .. import runtime
 from .._native import library
 from ..typing import Tensor
 
 __all__ = ["change", "factor", "log_phi"]
 
 
-@torch.library.custom_op("torchmcmcpf::exclusion_change", mutates_args=())
+@runtime.custom_op("torchmcmcpf::exclusion_change")
 def change(u: Tensor, u_n: Tensor, slot: Tensor, alive: Tensor | None, alive_n: Tensor | None, inv2s2: float,
            xmin: float) -> Tensor:
     """``u (n, K, r)``, ``u_n (n, r)`` float64, ``slot (n)`` int64, ``alive (n, K)`` and
@@ -54,7 +55,7 @@ def _(u: Tensor, u_n: Tensor, slot: Tensor, alive: Tensor | None, alive_n: Tenso
     return u.new_empty(u.shape[:1])
 
 
-@torch.library.custom_op("torchmcmcpf::exclusion_factor", mutates_args=())
+@runtime.custom_op("torchmcmcpf::exclusion_factor")
 def factor(u: Tensor, alive: Tensor | None, inv2s2: float, xmin: float) -> Tensor:
     """``u (n, K, r)`` float64, ``alive (n, K)`` uint8 or None -> ``(n,)`` float64: the sum
     over the pairs ``k < l`` of live slots of ``log phi(|u_k - u_l|^2)``.

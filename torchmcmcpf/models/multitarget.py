@@ -84,7 +84,7 @@ import torch
 from .._native import applies
 from .._native.select import packed_places, unpacked, where
 from .._validation import check_positive, check_positive_int
-from ..runtime import pairwise_squared_distances, squared_norm
+from ..runtime import broadcast_shapes, pairwise_squared_distances, squared_norm
 from ..typing import Tensor
 from . import _exclusion_native
 
@@ -184,7 +184,7 @@ class Exclusion:
         """
         k = u.shape[-2]
         if applies(u):  # the C loop: no (*S, 2, K) tensor
-            lead = torch.broadcast_shapes(u.shape[:-2], n.shape)
+            lead = broadcast_shapes(u.shape[:-2], n.shape)
             rows, r = math.prod(lead), u.shape[-1]
             flags = None if alive is None else alive.expand(lead + (k,)).reshape(rows, k).to(torch.uint8)
             new = None if alive_n is None else alive_n.expand(lead).reshape(rows).to(torch.uint8)

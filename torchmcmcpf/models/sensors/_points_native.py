@@ -32,6 +32,7 @@ from typing import Any
 
 import torch
 
+from ... import runtime
 from ..._native import applies, library
 from ...typing import Tensor
 
@@ -79,7 +80,7 @@ def _n(x: Tensor) -> int:
     return x.data_ptr()
 
 
-@torch.library.custom_op("torchmcmcpf::points_intensity", mutates_args=())
+@runtime.custom_op("torchmcmcpf::points_intensity")
 def intensity(p: Tensor, c: Tensor, w: Tensor, clutter: float) -> Tensor:
     """``clutter + sum_k exp(c_k - |p_k - w_m|^2 / 2)`` at every point: ``p (B, P, K, 2)``,
     ``c (B, P, K)`` (``-inf``: an inactive slot), ``w (B, 2, M)`` the runs' whitened, centred
@@ -99,7 +100,7 @@ def _(p: Tensor, c: Tensor, w: Tensor, clutter: float) -> Tensor:
     return c.new_empty(tuple(c.shape[:2]) + (w.shape[-1],))
 
 
-@torch.library.custom_op("torchmcmcpf::points_delta", mutates_args=())
+@runtime.custom_op("torchmcmcpf::points_delta")
 def delta(p: Tensor, c: Tensor, w: Tensor, mask: Tensor, cache: Tensor) -> tuple[Tensor, Tensor]:
     """A move of ``V`` slots read from the intensities ``cache (B, P, M)``: ``p (B, P, 2V, 2)``,
     ``c (B, P, 2V)`` the moved slots' old then new terms (``-inf``: inactive), ``w (B, 2, M)``,
@@ -122,7 +123,7 @@ def _(p: Tensor, c: Tensor, w: Tensor, mask: Tensor, cache: Tensor) -> tuple[Ten
     return c.new_empty(tuple(c.shape[:2])), torch.empty_like(cache)
 
 
-@torch.library.custom_op("torchmcmcpf::points_near", mutates_args=())
+@runtime.custom_op("torchmcmcpf::points_near")
 def near(q: Tensor, w: Tensor, mask: Tensor, c: float) -> Tensor:
     """``log sum_m exp(c - |q - w_m|^2 / 2)`` over each run's valid points: ``q (B, P, 2)``,
     ``w (B, 2, M)`` float64, ``mask (B, M)`` uint8 -> ``(B, P)`` float64 (``-inf`` for a run
@@ -142,7 +143,7 @@ def _(q: Tensor, w: Tensor, mask: Tensor, c: float) -> Tensor:
     return q.new_empty(tuple(q.shape[:2]))
 
 
-@torch.library.custom_op("torchmcmcpf::points_log_sum", mutates_args=())
+@runtime.custom_op("torchmcmcpf::points_log_sum")
 def log_sum(lam: Tensor, mask: Tensor) -> Tensor:
     """``sum_m log lam_m`` over each run's valid points: ``lam (B, P, M)`` float64, ``mask (B,
     M)`` uint8 -> ``(B, P)`` float64 (the loops' vectorised ``log``).

@@ -61,7 +61,7 @@ def applies(sensor: GridSensorLike, x: Tensor) -> bool:
     )
 
 
-@torch.library.custom_op("torchmcmcpf::rician_window_loglik", mutates_args=())
+@runtime.custom_op("torchmcmcpf::rician_window_loglik")
 def _loglik(u: Tensor, s: Tensor, live: Tensor, zc: Tensor, shape: list[int], geo: list[float], window: int,
             half_inv_var: float) -> Tensor:
     """``u (B, P, K, 3)``, ``s (B, P, K)`` float32, ``live (B, P, K)`` uint8, ``zc (B, G + 8)``
@@ -101,7 +101,7 @@ def _check(code: int, what: str) -> None:
                          "cells per box axis)")
 
 
-@torch.library.custom_op("torchmcmcpf::rician_delta_cached", mutates_args=())
+@runtime.custom_op("torchmcmcpf::rician_delta_cached")
 def _delta_cached(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: list[float], window: int,
                   half_inv_var: float) -> tuple[Tensor, Tensor, Tensor]:
     """``u (B, P, R, 3)``, ``s (B, P, R)`` (the move's ``R = 2M`` signed spreads), ``cache
@@ -130,7 +130,7 @@ def _(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: li
     return s.new_empty((B, P)), s.new_empty((B, P, R, V), dtype=torch.int64), s.new_empty((B, P, R, V))
 
 
-@torch.library.custom_op("torchmcmcpf::rician_move", mutates_args=())
+@runtime.custom_op("torchmcmcpf::rician_move")
 def _move(u: Tensor, s: Tensor, live: Tensor, slot: Tensor, u_new: Tensor, s_new: Tensor, zc: Tensor,
           shape: list[int], geo: list[float], window: int, half_inv_var: float) -> Tensor:
     """``u (B, P, K, 3)``, ``s (B, P, K)``, ``live (B, P, K)`` uint8, ``slot (B, P)`` int64,
