@@ -124,6 +124,17 @@ static void boxes_of(const Grid *g, const float *uk, int64_t K, int64_t first[][
         }
 }
 
+/* Whether box j is box k of an earlier index in `among` (or any earlier one, among = NULL):
+ * every cell of such a box is held by that earlier box, so its masked terms are all exactly 0
+ * (A and A' agree there) and the box adds nothing to the sum; NaN cells are the earlier box's. */
+static int repeats_box(const int64_t first[][3], int64_t j, const uint8_t *among) {
+    for (int64_t k = 0; k < j; ++k)
+        if ((among == NULL || among[k]) && first[k][0] == first[j][0] && first[k][1] == first[j][1]
+            && first[k][2] == first[j][2])
+            return 1;
+    return 0;
+}
+
 /* Adds spread k (amplitude sk, box fk, profiles pk) to the cells of box fj (acc, V cells; none
  * when NULL) over the two boxes' intersection only, as blocks of the V12 cells of a row: Q
  * holds the product of k's last two profiles inside the intersection and 0 outside. With
@@ -159,19 +170,19 @@ static void add_spread(const Grid *g, const int64_t fj[3], const int64_t fk[3], 
 }
 
 /* The frame's cells of box fj into Z (V cells; rows copied 8 floats at a time from the padded
- * frame zq, so Z has 8 floats to spare); with `row_of` the rows' flat cell offsets, with
- * `cache` its cells too (A) and their flat index (base + the cell, into cells). */
+ * frame zq, so Z has 8 floats to spare; none when Z is NULL), with `cache` its cells too (A),
+ * and with `cells` their flat index (base + the cell). */
 static void box_cells_of(const Grid *g, const float *zq, const int64_t fj[3], float *Z, const float *cache,
                          float *A, int64_t base, int64_t *cells) {
     for (int64_t i = 0; i < g->W[0]; ++i)
         for (int64_t m = 0; m < g->W[1]; ++m) {
             const int64_t row = (fj[0] + i) * g->G12 + (fj[1] + m) * g->N[2] + fj[2], at = i * g->V12 + m * g->W[2];
-            for (int64_t l = 0; l < g->W[2]; l += 8) memcpy(Z + at + l, zq + row + l, 8 * sizeof(float));
+            if (Z != NULL)
+                for (int64_t l = 0; l < g->W[2]; l += 8) memcpy(Z + at + l, zq + row + l, 8 * sizeof(float));
             if (cache != NULL)
-                for (int64_t l = 0; l < g->W[2]; ++l) {
-                    A[at + l] = cache[row + l];
-                    cells[at + l] = base + row + l;
-                }
+                for (int64_t l = 0; l < g->W[2]; ++l) A[at + l] = cache[row + l];
+            if (cells != NULL)
+                for (int64_t l = 0; l < g->W[2]; ++l) cells[at + l] = base + row + l;
         }
 }
 
@@ -194,7 +205,7 @@ static void window_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64
         boxes_of(g, u + q * K * 3, K, first, prof);
         double total = 0.0;
         for (int64_t j = 0; j < K; ++j) {
-            if (!lq[j]) continue;
+            if (!lq[j] || repeats_box(first, j, lq)) continue;
             for (int64_t c = 0; c < g->V; ++c) { A[c] = 0.0f; own[c] = 1.0f; }
             for (int64_t k = 0; k < K; ++k)
                 if (lq[k]) add_spread(g, first[j], first[k], prof[k], sq[k], A, k < j ? own : NULL);
@@ -253,6 +264,11 @@ static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_
         double total = 0.0;
         for (int64_t j = 0; j < R; ++j) {
             float *ch = change + (q * R + j) * V;
+            if (repeats_box(first, j, NULL)) { /* no change here: an earlier box holds every cell */
+                memset(ch, 0, (size_t)V * sizeof(float));
+                box_cells_of(g, NULL, first[j], NULL, NULL, NULL, q * g->G, cells + (q * R + j) * V);
+                continue;
+            }
             for (int64_t c = 0; c < V; ++c) { ch[c] = 0.0f; once[c] = 1.0f; }
             for (int64_t k = 0; k < R; ++k) add_spread(g, first[j], first[k], prof[k], sq[k], ch, k < j ? once : NULL);
             box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, cache + q * g->G, A, q * g->G,
@@ -293,7 +309,8 @@ static void move_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t
         boxes_of(g, u + q * K * 3, K, first, prof);
         boxes_of(g, u_new + q * 3, 1, first + K, prof + K); /* the new state: index K */
         double total = 0.0;
-        for (int r = 0; r < 2; ++r) {
+        const int same = first[n][0] == first[K][0] && first[n][1] == first[K][1] && first[n][2] == first[K][2];
+        for (int r = 0; r < 2 - same; ++r) { /* the new box, when it is the old one, adds nothing */
             const int64_t *fj = first[r == 0 ? n : K];
             for (int64_t c = 0; c < V; ++c) { cur[c] = 0.0f; once[c] = 1.0f; }
             for (int64_t k = 0; k < K; ++k)

@@ -17,7 +17,9 @@ float32 round-off (tested against float64); the radar SIR's step 3.3x faster tha
 compiled tensor path (benchmarks/README.md). A move read from the chains' amplitude cache
 (:func:`~.amplitudes.log_likelihood_delta_cached`, box form: the IP-MCMC-PF's and the
 MCMC sweeps' moves) runs the same way: the move's signed spreads over its boxes'
-intersections, each cell once, two ratios a cell.
+intersections, each cell once, two ratios a cell. A box that an earlier box of the sample repeats
+(the same cells: a small move's new box is often its old one, and on the crossing's 10 x 8 x 8
+grid 16 boxes of 7 x 7 x 7 cells are all there are) is skipped: its masked terms are all 0.
 
 The loop is ``torchmcmcpf/_native/rician_window.c``, built with the library's other C loops
 (:mod:`torchmcmcpf._native`: once per machine, ``ctypes``, the samples split over torch's
