@@ -62,11 +62,12 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
     G = sensor.geometry.num_cells
     if tuple(cache.shape) != (B,) + S + (G,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
-    u, s, firsts = _moved(sensor, x, x_n, n, exists, exists_n)
+    u, s = _moved(sensor, x, x_n, n, exists, exists_n)
     if native.applies(sensor, x) and cache.dtype == torch.float32:  # the radar on the CPU: one C loop a chain,
         delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), u, s, z)  # boxes on any grid
         return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
             change.reshape((B,) + S + change.shape[2:])
+    firsts = sensor.geometry.box_firsts(u)  # the loop finds its boxes itself
     if whole_grid(sensor, s.shape[-1]):  # every entry of the cache changes, in order: no cells
         delta, change = _grid_delta(sensor, cache.reshape(B, -1, G), u, s, firsts, z)
         return delta.reshape((B,) + S), None, change.reshape(cache.shape)
@@ -85,7 +86,8 @@ def log_likelihood_delta_on_grid(sensor: GridSensorLike, x: Tensor, x_n: Tensor,
     ``x`` made afresh) nor the cells and change it returns for one: ``(B, *S)``. Inputs
     checked by the caller (:func:`~.delta.log_likelihood_delta`).
     """
-    u, s, firsts = _moved(sensor, x, x_n, n, exists, exists_n)
+    u, s = _moved(sensor, x, x_n, n, exists, exists_n)
+    firsts = sensor.geometry.box_firsts(u)
     A = amplitude_cache(sensor, x, exists).reshape(s.shape[0], s.shape[1], -1)
     return _grid_delta(sensor, A, u, s, firsts, z)[0].reshape(x.shape[:-2])
 
@@ -109,11 +111,11 @@ def _grid_delta(sensor: GridSensorLike, A: Tensor, u: Tensor, s: Tensor, firsts:
 
 
 def _moved(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
-           exists_n: Tensor | None) -> tuple[Tensor, Tensor, list[Tensor]]:
+           exists_n: Tensor | None) -> tuple[Tensor, Tensor]:
     """The move's ``2M`` spreads, flat over the samples: their measured coordinates ``u (B, P,
-    2M, n)``, signed amplitudes ``s (B, P, 2M)`` (minus the old spread, plus the new one, times
-    the flags) and box starts ``firsts[a] (B, P, 2M)``, in the order slot 0 before, after, slot
-    1 before, after, ...
+    2M, n)`` and signed amplitudes ``s (B, P, 2M)`` (minus the old spread, plus the new one,
+    times the flags), in the order slot 0 before, after, slot 1 before, after, ... (their
+    boxes: ``sensor.geometry.box_firsts(u)``).
     """
     B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
     S = tuple(x.shape[1:-2])
@@ -129,7 +131,7 @@ def _moved(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Te
     moved = moved.reshape(B, P, 2 * M, D)
     u = sensor.measurement_coords(moved)  # (B, P, 2M, n)
     s = sensor.signal(moved) * torch.stack([-e_old, e_new], -1).reshape(B, P, 2 * M)  # signed: - old, + new
-    return u, s, sensor.geometry.box_firsts(u)
+    return u, s
 
 
 def _box_change(sensor: GridSensorLike, u: Tensor, s: Tensor, firsts: list[Tensor]) -> tuple[Tensor, Tensor]:
