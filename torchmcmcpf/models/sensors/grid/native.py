@@ -31,6 +31,7 @@ tensor path.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any
 
@@ -74,7 +75,7 @@ def _loglik(u: Tensor, s: Tensor, live: Tensor, zc: Tensor, shape: list[int], ge
     u, s, live, zc = (t.contiguous() for t in (u, s, live, zc))
     out = torch.empty((B, P), dtype=torch.float32)
     lib: Any = library()
-    shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
+    shape_t, geo_t = _tables(tuple(shape), tuple(geo))
     ptrs = [u.data_ptr(), s.data_ptr(), live.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
     _check(lib.rician_window_loglik(B * P, torch.get_num_threads(), P, K, *ptrs, window, half_inv_var,
                                     out.data_ptr()), f"K = {K}")
@@ -94,6 +95,14 @@ def log_likelihood(sensor: GridSensorLike, x: Tensor, z: Tensor, exists: Tensor 
     u, s, e = flat_inputs(sensor, x, exists)  # (B, P, K, 3), (B, P, K) x2
     out = _loglik(u, s, (e > 0).to(torch.uint8), _frames(sensor, z), *_geometry(sensor))
     return out.reshape(x.shape[:-2])
+
+
+@functools.lru_cache(maxsize=64)
+def _tables(shape: tuple[int, ...], geo: tuple[float, ...]) -> tuple[Tensor, Tensor]:
+    """The grid's shape (int64) and axes (float64) as the loop reads them, made once per grid
+    (two new tensors a call otherwise). Read only.
+    """
+    return torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
 
 
 def _check(code: int, what: str) -> None:
@@ -117,7 +126,7 @@ def _delta_cached(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[i
     cells = torch.empty((B, P, R, V), dtype=torch.int64)
     change = torch.empty((B, P, R, V), dtype=torch.float32)
     lib: Any = library()
-    shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
+    shape_t, geo_t = _tables(tuple(shape), tuple(geo))
     ptrs = [u.data_ptr(), s.data_ptr(), cache.data_ptr(), zc.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr()]
     _check(lib.rician_delta_cached(B * P, torch.get_num_threads(), P, R, *ptrs, window, half_inv_var,
                                    delta.data_ptr(), cells.data_ptr(), change.data_ptr()), f"{R} spreads")
@@ -142,7 +151,7 @@ def _move(u: Tensor, s: Tensor, live: Tensor, slot: Tensor, u_new: Tensor, s_new
     u, s, live, slot, u_new, s_new, zc = (t.contiguous() for t in (u, s, live, slot, u_new, s_new, zc))
     delta = torch.empty((B, P), dtype=torch.float32)
     lib: Any = library()
-    shape_t, geo_t = torch.tensor(shape, dtype=torch.int64), torch.tensor(geo, dtype=torch.float64)
+    shape_t, geo_t = _tables(tuple(shape), tuple(geo))
     ptrs = [t.data_ptr() for t in (u, s, live, slot, u_new, s_new, zc, shape_t, geo_t)]
     _check(lib.rician_move(B * P, torch.get_num_threads(), P, K, *ptrs, window, half_inv_var, delta.data_ptr()),
            f"K = {K}")
