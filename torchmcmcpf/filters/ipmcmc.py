@@ -289,7 +289,7 @@ def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable
             refined_count = refined_count + acc.to(refined_count.dtype)
         if t >= record_from:
             # the sources stay: the pair-path window's genealogy
-            trace.append(chains._replace(log_w_source=None, amplitude=None, coords=None))
+            trace.append(chains._replace(log_w_source=None, amplitude=None, coords=None, terms=None))
     return chains, trace, accepted_count, refined_count
 
 
@@ -551,9 +551,13 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
     # with the exclusion term the chains keep their slots' resolution coordinates, and each
     # segment's proposals come with theirs (one batched call): a move maps no slot again
     excluding = exclusion_on(settings.exclusion, sensor)
+    amplitude = sensor.amplitude_cache(y, e, z)
+    # what a cached move reads of each slot, kept with the chains (the moved slots' made with
+    # each segment's proposals): a move gathers rows instead of mapping states
+    terms = None if amplitude is None else sensor.move_terms(y, e)
     chains = ExchangeChains(y, sensor.log_likelihood(y, z, e), e,
                             None if existence is None and recapture is None else log_r, kind, source, log_w_source,
-                            sensor.amplitude_cache(y, e, z), sensor.resolution_coords(y) if excluding else None)
+                            amplitude, sensor.resolution_coords(y) if excluding else None, terms)
     pairs = partner = None
     if pair_every and recapture is not None:
         if exists is None:
@@ -581,7 +585,8 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
             # the segment's proposals in one batched call (an independence proposal); the
             # iterations read them, not the birth and relocation draws they were made from
             return noise._replace(proposal=propose_slots(noise, x_prev, exists, dynamics=dynamics,
-                                                         sensor=sensor if excluding else None),
+                                                         sensor=sensor if excluding else None,
+                                                         terms_of=None if terms is None else sensor),
                                   birth=None, relocation=None)
         at_pairs = tuple(t for t in range(steps) if pair_every and (offset + t + 1) % pair_every == 0)
         return SegmentNoise(one(steps, None), one(len(at_pairs), pairs) if at_pairs else None, at_pairs)
@@ -600,7 +605,8 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
             # every slot may have moved: the amplitudes afresh
             amplitude = None if ch.amplitude is None else sensor.amplitude_cache(y_new, ch.exists, z)
             coords = None if ch.coords is None else sensor.resolution_coords(y_new)
-            return ch._replace(y=y_new, log_lik=ll_new, amplitude=amplitude, coords=coords), acc
+            terms_new = None if ch.terms is None else sensor.move_terms(y_new, ch.exists)
+            return ch._replace(y=y_new, log_lik=ll_new, amplitude=amplitude, coords=coords, terms=terms_new), acc
 
     done = 0  # iterations run so far (the two-slot schedule counts across segments)
 

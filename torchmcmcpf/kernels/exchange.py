@@ -120,6 +120,13 @@ class ExchangeChains(NamedTuple):
         chain again (the moved slots' come with the segment's proposals,
         :attr:`ExchangeProposal.coords`); selected with the state, equal to the recomputed
         coordinates (tested), never recorded in a trace.
+    terms : (B, C, K, T), optional, with ``amplitude``: what the sensor's cached move reads
+        of each slot (:meth:`~torchmcmcpf.models.base.SensorModel.move_terms`: the radar's
+        measured coordinates and amplitude), so that a move gathers its slots' rows instead
+        of mapping their states again (the moved slots' come with the segment's proposals,
+        :attr:`ExchangeProposal.terms`); selected with the state, the values of the states
+        mapped afresh (tested; a bearing can differ by an ulp where the batch's layout takes
+        ATen's other ``atan2`` loop), never recorded in a trace.
 
     Example
     -------
@@ -154,6 +161,7 @@ class ExchangeChains(NamedTuple):
     log_w_source: Tensor | None = None
     amplitude: Tensor | None = None
     coords: Tensor | None = None
+    terms: Tensor | None = None
 
 
 def with_accepted_amplitudes(chains: ExchangeChains, amplitude: Tensor | None,
@@ -190,6 +198,9 @@ class ExchangeProposal(NamedTuple):
         (:meth:`~torchmcmcpf.models.base.SensorModel.resolution_coords`) when
         :func:`propose_slots` is given the sensor (the exclusion term), else ``None``: one
         batched call per segment instead of one per iteration.
+    terms : (*L, B, C, M, T), the moved slots'
+        :meth:`~torchmcmcpf.models.base.SensorModel.move_terms` (with their proposed flags)
+        when :func:`propose_slots` is given ``terms_of``, else ``None``.
 
     Example
     -------
@@ -212,6 +223,7 @@ class ExchangeProposal(NamedTuple):
     log_r: Tensor
     kind: Tensor | None
     coords: Tensor | None = None
+    terms: Tensor | None = None
 
 
 class ExchangeNoise(NamedTuple):
@@ -440,7 +452,8 @@ def pair_source_log_ratio(source: Tensor, log_w_source: Tensor, rho: float) -> T
 
 
 def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | None, *,
-                  dynamics: TargetDynamics, sensor: SensorModel | None = None) -> ExchangeProposal:
+                  dynamics: TargetDynamics, sensor: SensorModel | None = None,
+                  terms_of: SensorModel | None = None) -> ExchangeProposal:
     """The slots that ``noise`` proposes (module docstring): slot ``noise.slot`` of previous
     particle ``noise.source``, propagated by ``dynamics`` with the noise's motion, birth and
     relocation draws, scored at the move's ``epsilon`` (``recapture.p_propose`` for one slot,
@@ -452,6 +465,8 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
     x_prev : (B, N, K, D), exists_prev : (B, N, K) or None: the previous particles.
     sensor : optional: the proposed slots' resolution coordinates too
         (:attr:`ExchangeProposal.coords`, for the exclusion term), in the same call.
+    terms_of : optional: the sensor whose :meth:`~torchmcmcpf.models.base.SensorModel.move_terms`
+        of the proposed slots the chains read (:attr:`ExchangeProposal.terms`).
 
     Returns
     -------
@@ -470,7 +485,8 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
     eps_k = None if recapture is None else (recapture.p_propose if m == 1 else recapture.p_propose_pair)
     moved, e_new, log_r, kind = dynamics.propagate_labelled(parent, parent_e, noise.eps, noise.birth,
                                                             noise.relocation, eps_k)
-    return ExchangeProposal(moved, e_new, log_r, kind, None if sensor is None else sensor.resolution_coords(moved))
+    return ExchangeProposal(moved, e_new, log_r, kind, None if sensor is None else sensor.resolution_coords(moved),
+                            None if terms_of is None else terms_of.move_terms(moved, e_new))
 
 
 def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor) -> Tensor:
@@ -515,7 +531,7 @@ def exchange_iteration(
     accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache, else
     ``None``.
     """
-    y, log_lik, exists, log_r, kind, source, log_w_source, cache, coords = chains
+    y, log_lik, exists, log_r, kind, source, log_w_source, cache, coords, terms = chains
     existence, recapture = dynamics.existence, dynamics.recapture
     k, m = x_prev.shape[-2], noise.slot.shape[-1]
     if (existence is not None or recapture is not None) and log_r is None:
@@ -540,11 +556,12 @@ def exchange_iteration(
         lw_moved = where(paired, take_along(log_w_source, noise.partner, -1).to(noise.log_w_source.dtype),
                                noise.log_w_source)
         proposal = propose_slots(noise._replace(source=src_moved), x_prev, exists_prev, dynamics=dynamics,
-                                 sensor=sensor if on else None)
+                                 sensor=sensor if on else None, terms_of=None if terms is None else sensor)
     else:
         proposal = noise.proposal if noise.proposal is not None else \
             propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
-    moved, e_new, r_new, kind_new, coords_new = proposal
+    moved, e_new, r_new, kind_new, coords_new, terms_new = proposal
+    by_terms = cache is not None and terms is not None and terms_new is not None  # rows read, states not mapped
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
@@ -569,7 +586,13 @@ def exchange_iteration(
             u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
             cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
     update = None
-    if cache is not None:  # every moved slot at once, each cell of their boxes counted once
+    if by_terms and cache is not None and terms is not None and terms_new is not None:  # rows, before and after
+        t = terms.shape[-1]
+        old = torch.gather(terms, -2, noise.slot.unsqueeze(-1).expand(noise.slot.shape + (t,)))  # (B, C, M, T)
+        both = torch.stack([old, terms_new], -2).reshape(old.shape[:-2] + (2 * m, t))
+        delta, cells, change = sensor.log_likelihood_delta_terms(cache, both, z)
+        cur_ll, update = log_lik + delta, (cells, change)
+    elif cache is not None:  # every moved slot at once, each cell of their boxes counted once
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
                                                                   exists_n=e_new)
         cur_ll, update = log_lik + delta, (cells, change)
@@ -601,6 +624,7 @@ def exchange_iteration(
         accepted = accepted & noise.valid
     y_out, e_out, r_out, kind_out, src_out, lw_out = y, exists, log_r, kind, source, log_w_source
     u_out = coords if kept else None
+    t_out = terms if by_terms else None
     for j, here in enumerate(heres):  # each moved slot written where its move is accepted
         take = here & accepted.unsqueeze(-1)  # (B, C, K)
         # the vector fields by a scatter of the moved slot's row (its new or its old value):
@@ -619,6 +643,8 @@ def exchange_iteration(
             lw_out = where(take, lw_moved[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
         if u_out is not None and u_moved is not None:
             u_out = _write_row(u_out, noise.slot[..., j], u_moved[:, :, j], accepted)
+        if t_out is not None and terms_new is not None:
+            t_out = _write_row(t_out, noise.slot[..., j], terms_new[:, :, j], accepted)
     new = ExchangeChains(y_out, where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
-                         None, u_out)
+                         None, u_out, t_out)
     return new, accepted, update

@@ -355,6 +355,24 @@ class SensorModel(nn.Module, Generic[Z]):
         """
         raise NotImplementedError(f"{type(self).__name__} keeps no amplitude cache")
 
+    def move_terms(self, x: Tensor, exists: Tensor | None = None) -> Tensor | None:
+        """What :meth:`log_likelihood_delta_terms` reads of each slot, ``(B, *S, K, T)``, so
+        that a chain keeps it beside its states and a move of one slot reads a row instead
+        of mapping the slot's old and new state again (a segment's proposals map theirs in
+        one batched call); ``None`` (the default) where the sensor reads its moves from the
+        states (:meth:`log_likelihood_delta_cached`). Elementwise in the slots: the terms of
+        a slot depend on its state and flag only.
+        """
+        return None
+
+    def log_likelihood_delta_terms(self, cache: Tensor, terms: Tensor, z: Z) -> tuple[Tensor, Tensor | None, Tensor]:
+        """:meth:`log_likelihood_delta_cached` of a move of ``M`` distinct slots from their
+        :meth:`move_terms`: ``terms (B, *S, 2M, T)`` the first moved slot's before and after,
+        then the next's, ...; the same ``(delta, cells, change)``. Only
+        sensors whose :meth:`move_terms` is not ``None`` implement it.
+        """
+        raise NotImplementedError(f"{type(self).__name__} reads its moves from the states")
+
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor | None, change: Tensor, accepted: Tensor) -> Tensor:
         """``cache (B, *S, G)`` with the ``change`` of the ``accepted (B, *S)`` moves added at

@@ -80,6 +80,34 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
         change.reshape((B,) + S + change.shape[2:])
 
 
+def move_terms(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) -> Tensor:
+    """Each slot's measured coordinates and amplitude times its flag, ``x (B, *S, K, D) ->
+    (B, *S, K, n + 1)``: the spreads :func:`_moved` makes of a moved slot (unsigned), for
+    :func:`log_likelihood_delta_terms`.
+    """
+    e = torch.ones_like(x[..., 0]) if exists is None else exists.to(x.dtype)
+    return torch.cat([sensor.measurement_coords(x), (sensor.signal(x) * e).unsqueeze(-1)], -1)
+
+
+def log_likelihood_delta_terms(sensor: GridSensorLike, cache: Tensor, terms: Tensor, z: Tensor
+                               ) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`log_likelihood_delta_cached` by the C loop from the moved slots' :func:`move_terms`
+    ``terms (B, *S, 2M, n + 1)`` (slot 0 before, after, slot 1 before, ...): the spreads'
+    coordinates, and their amplitudes signed (minus before, plus after: a negation, so the
+    same bits as :func:`_moved`'s). The caller made ``terms`` where :func:`~.native.applies`.
+    """
+    B, R = terms.shape[0], terms.shape[-2]
+    S = tuple(terms.shape[1:-2])
+    G = sensor.geometry.num_cells
+    if tuple(cache.shape) != (B,) + S + (G,):
+        raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
+    flat = terms.reshape(B, -1, R, terms.shape[-1])
+    sign = torch.tensor([-1.0, 1.0] * (R // 2), dtype=terms.dtype, device=terms.device)
+    delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), flat[..., :-1], flat[..., -1] * sign, z)
+    return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
+        change.reshape((B,) + S + change.shape[2:])
+
+
 def log_likelihood_delta_on_grid(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, z: Tensor,
                                  exists: Tensor | None = None, exists_n: Tensor | None = None) -> Tensor:
     """:func:`log_likelihood_delta_cached`'s whole-grid sum without a cache (the amplitudes of

@@ -15,7 +15,7 @@ from .... import runtime
 from ...._validation import check_nonnegative, check_positive, check_positive_int, check_shape
 from ....typing import Tensor
 from ...base import SensorModel
-from . import amplitudes, chunks, data, delta, slots, whole, window
+from . import amplitudes, chunks, data, delta, native, slots, whole, window
 from .geometry import GridGeometry, uniform_bins
 
 __all__ = ["SeparableGridSensor"]
@@ -423,6 +423,24 @@ class SeparableGridSensor(SensorModel[Tensor]):
             ``cells`` is ``None`` and ``change`` ``(B, *S, G)``, every cell once, in order.
         """
         return amplitudes.log_likelihood_delta_cached(self, cache, x, x_n, n, z, exists, exists_n)
+
+    def move_terms(self, x: Tensor, exists: Tensor | None = None) -> Tensor | None:
+        """Each slot's measured coordinates and amplitude times its flag, ``(B, *S, K, n +
+        1)``, where the C loop serves the cached moves (:func:`~.native.applies`; else
+        ``None``): what :meth:`log_likelihood_delta_terms` reads. :mod:`.amplitudes`.
+        """
+        if self.method == "grid" or not native.applies(self, x):
+            return None
+        return amplitudes.move_terms(self, x, exists)
+
+    def log_likelihood_delta_terms(self, cache: Tensor, terms: Tensor, z: Tensor
+                                   ) -> tuple[Tensor, Tensor | None, Tensor]:
+        """:meth:`log_likelihood_delta_cached` from the moved slots' :meth:`move_terms`
+        ``(B, *S, 2M, n + 1)`` (each slot before, then after), by the C loop: the same values
+        as from the states (the same bits where the terms are the states' mapped in the same
+        layout).
+        """
+        return amplitudes.log_likelihood_delta_terms(self, cache, terms, z)
 
     # ---------------------------------------------------------------- multitarget prior hooks
     #: Threshold of the data-driven proposal on :meth:`detection_statistic`: a noise-only
