@@ -77,7 +77,7 @@ from typing import NamedTuple
 
 import torch
 
-from .._native.select import where
+from .._native.select import MIN_ELEMENTS, where
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
 from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
@@ -489,10 +489,17 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
                             None if terms_of is None else terms_of.move_terms(moved, e_new))
 
 
-def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor) -> Tensor:
+def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor, take: Tensor) -> Tensor:
     """``t (B, C, K, D)`` with row ``slot (B, C)`` set to ``row (B, C, D)`` where ``accepted
-    (B, C)``: a new tensor, the values of ``torch.where`` of the row over the slot's mask.
+    (B, C)`` (``take (B, C, K)``: the slot's place where accepted): a new tensor, the values of
+    ``torch.where(take[..., None], row[..., None, :], t)``. That select, its mask and row
+    broadcast over the inner dim, costs 3x a copy on the CPU: a large ``t`` (the births/deaths
+    chains) is written by a gather, a select of the row and a scatter instead; a small one
+    (under :data:`~torchmcmcpf._native.select.MIN_ELEMENTS`) by the one select (five calls
+    fewer).
     """
+    if t.numel() < MIN_ELEMENTS:
+        return where(take.unsqueeze(-1), row.unsqueeze(-2), t)
     at = slot.reshape(slot.shape + (1, 1)).expand(slot.shape + (1, t.shape[-1]))  # (B, C, 1, D)
     keep = where(accepted.reshape(accepted.shape + (1, 1)), row.unsqueeze(-2), torch.gather(t, -2, at))
     return t.scatter(-2, at, keep)
@@ -627,10 +634,8 @@ def exchange_iteration(
     t_out = terms if by_terms else None
     for j, here in enumerate(heres):  # each moved slot written where its move is accepted
         take = here & accepted.unsqueeze(-1)  # (B, C, K)
-        # the vector fields by a scatter of the moved slot's row (its new or its old value):
-        # the same values as a where over (B, C, K, D), whose mask and row broadcast over
-        # inner dims of 2-5 (3x the time of a copy and a scatter on the CPU)
-        y_out = _write_row(y_out, noise.slot[..., j], moved[:, :, j], accepted)
+        # the vector fields by their moved slot's row (its new or its old value): _write_row
+        y_out = _write_row(y_out, noise.slot[..., j], moved[:, :, j], accepted, take)
         if e_out is not None and e_new is not None:
             e_out = where(take, e_new[:, :, j].unsqueeze(-1), e_out)
         if r_out is not None:
@@ -642,9 +647,9 @@ def exchange_iteration(
             src_out = where(take, src_moved[..., j].unsqueeze(-1), src_out)
             lw_out = where(take, lw_moved[..., j].unsqueeze(-1).to(lw_out.dtype), lw_out)
         if u_out is not None and u_moved is not None:
-            u_out = _write_row(u_out, noise.slot[..., j], u_moved[:, :, j], accepted)
+            u_out = _write_row(u_out, noise.slot[..., j], u_moved[:, :, j], accepted, take)
         if t_out is not None and terms_new is not None:
-            t_out = _write_row(t_out, noise.slot[..., j], terms_new[:, :, j], accepted)
+            t_out = _write_row(t_out, noise.slot[..., j], terms_new[:, :, j], accepted, take)
     new = ExchangeChains(y_out, where(accepted, cur_ll, log_lik), e_out, r_out, kind_out, src_out, lw_out,
                          None, u_out, t_out)
     return new, accepted, update

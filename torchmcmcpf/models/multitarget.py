@@ -186,11 +186,16 @@ class Exclusion:
         if applies(u):  # the C loop: no (*S, 2, K) tensor
             lead = broadcast_shapes(u.shape[:-2], n.shape)
             rows, r = math.prod(lead), u.shape[-1]
-            flags = None if alive is None else alive.expand(lead + (k,)).reshape(rows, k).to(torch.uint8)
-            new = None if alive_n is None else alive_n.expand(lead).reshape(rows).to(torch.uint8)
-            out = _exclusion_native.change(u.expand(lead + (k, r)).reshape(rows, k, r).double(),
-                                           u_n.expand(lead + (r,)).reshape(rows, r).double(),
-                                           n.expand(lead).reshape(rows).long(), flags, new,
+
+            def flat(t: Tensor, inner: tuple[int, ...], dtype: torch.dtype) -> Tensor:
+                # (rows, *inner) in dtype: no expand where t has the shape already (a call each)
+                t = t if tuple(t.shape) == lead + inner else t.expand(lead + inner)
+                return t.reshape((rows,) + inner).to(dtype)
+
+            out = _exclusion_native.change(flat(u, (k, r), torch.float64), flat(u_n, (r,), torch.float64),
+                                           flat(n, (), torch.int64),
+                                           None if alive is None else flat(alive, (k,), torch.uint8),
+                                           None if alive_n is None else flat(alive_n, (), torch.uint8),
                                            1.0 / (2.0 * self.scale**2), math.exp(LOG_PHI_FLOOR))
             return out.reshape(lead).to(u.dtype)
         others = torch.arange(k, device=u.device) != n.unsqueeze(-1)  # (*S, K)
