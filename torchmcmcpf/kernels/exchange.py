@@ -517,7 +517,9 @@ def exchange_iteration(
     :meth:`SensorModel.log_likelihood_delta_cached` of all ``M`` moved slots at once (the
     amplitudes at their old and new boxes read, not summed from the neighbours' spreads; a
     cell the boxes share counted once), and the cache's change is returned: the iteration is
-    pure, and :func:`with_accepted_amplitudes` advances the cache for the accepted moves.
+    pure, and :func:`with_accepted_amplitudes` advances the cache for the accepted moves. With
+    the chains' ``terms`` and the proposal's, the sensor reads the moved slots' rows
+    (:meth:`SensorModel.log_likelihood_delta_terms`) instead of their states.
     Without a cache it is scored by the declared hook :meth:`SensorModel.log_likelihood_slot`,
     slot after slot: a sensor that overrides ``log_likelihood_delta`` gives each ratio from the
     cells near the old and new position of the slot only, carried as ``log_lik + delta``; any
