@@ -492,7 +492,7 @@ def propose_slots(noise: ExchangeNoise, x_prev: Tensor, exists_prev: Tensor | No
 def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor, take: Tensor) -> Tensor:
     """``t (B, C, K, D)`` with row ``slot (B, C)`` set to ``row (B, C, D)`` where ``accepted
     (B, C)`` (``take (B, C, K)``: the slot's place where accepted): a new tensor, the values of
-    ``torch.where(take[..., None], row[..., None, :], t)``. That select, its mask and row
+    ``where(take[..., None], row[..., None, :], t)``. That select, its mask and row
     broadcast over the inner dim, costs 3x a copy on the CPU: a large ``t`` (the births/deaths
     chains) is written by a gather, a select of the row and a scatter instead; a small one
     (under :data:`~torchmcmcpf._native.select.MIN_ELEMENTS`) by the one select (five calls
