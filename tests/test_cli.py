@@ -401,7 +401,7 @@ def test_demo_quick_states_its_expected_duration(tmp_path, capsys):
     assert main(["demo", "--quick", "--out", out, "--no-progress"]) == 0
     s = json.loads((out / "metrics.json").read_text())["settings"]
     assert (s["runs"], s["steps"], s["particles"], s["chains"], s["targets"]) == (1, 5, 500, 50, 10)
-    assert "expected: about 1 s of filtering (0.24 s per step) on a quiet 2-core CPU" in capsys.readouterr().out
+    assert "expected: about 0.4 s of filtering (0.08 s per step) on a quiet 2-core CPU" in capsys.readouterr().out
     # explicit sizes win over the preset; no time is promised for them
     assert main(["demo", "--quick", "--steps", "2", "--particles", "100", "--chains", "10", "--targets", "2",
                  "--out", out, "--no-progress"]) == 0
@@ -416,7 +416,7 @@ def test_demo_warns_when_the_cores_are_busy(monkeypatch):
     monkeypatch.setattr(cli.os, "getloadavg", lambda: (9.0, 9.0, 9.0))
     monkeypatch.setattr(cli.os, "cpu_count", lambda: 2)
     note = cli.demo_expectation(args)
-    assert "expected: about 5 s of filtering" in note and "load average 9.0 on 2 cores" in note
+    assert "expected: about 3 s of filtering" in note and "load average 9.0 on 2 cores" in note
     assert "--threads 1 avoids most of it" in note
     args.threads = 1
     assert "--threads 1" not in cli.demo_expectation(args)

@@ -60,9 +60,10 @@ DEMO_DEFAULTS = dict(particles=1000, runs=2, steps=20, targets=10, chains=50, bu
 #: ``demo --quick``: one run of 5 steps, 500 particles (seconds)
 DEMO_QUICK = dict(particles=500, runs=1, steps=5, targets=10, chains=50, burn_in=100)
 #: seconds per step of the IP-MCMC-PF at the two presets, measured on a quiet 2-core CPU
-#: (``--no-progress``, 1 torch thread, 2026-12-07, AMD EPYC, with the radar's C loop):
-#: what the demo announces before it runs
-DEMO_SECONDS_PER_STEP = {"default": 0.23, "quick": 0.24}
+#: (``--no-progress``, 1 torch thread, 2026-12-07 23:30 UTC, AMD EPYC, with the radar's C
+#: loop and the MCMC iteration's overhead cut: 0.14-0.16 and 0.07-0.08 in four runs, against
+#: 0.24-0.25 and 0.26-0.28 for the code of that afternoon): what the demo announces before it runs
+DEMO_SECONDS_PER_STEP = {"default": 0.15, "quick": 0.08}
 DEMO_OUTPUTS = ("metrics.json", "tracks.png")
 FILTER_NAMES = {"ipmcmc": "IP-MCMC-PF", "sir": "SIR PF"}
 
@@ -139,8 +140,10 @@ def demo_expectation(args: argparse.Namespace) -> str | None:
     for name, preset in (("quick", DEMO_QUICK), ("default", DEMO_DEFAULTS)):
         if args.filter == "ipmcmc" and all(getattr(args, k) == v for k, v in preset.items()):
             per_step = DEMO_SECONDS_PER_STEP[name]
-            lines.append(f"expected: about {per_step * args.steps:.0f} s of filtering ({per_step:.2f} s per step) "
-                         "on a quiet 2-core CPU")
+            total = per_step * args.steps
+            lines.append(f"expected: about {total:.1f} s of filtering" if total < 1 else
+                         f"expected: about {total:.0f} s of filtering")
+            lines[-1] += f" ({per_step:.2f} s per step) on a quiet 2-core CPU"
             break
     load, cores = load_average()
     if load > cores and (args.threads or torch_threads()) > 1:
