@@ -167,3 +167,10 @@ def test_eager_op_calls_its_function_eager_and_its_op_traced():
 
     assert torch.equal(torch.compile(lambda t: doubled(t) + 1, backend=backend, fullgraph=True)(x), x * 2 + 1)
     assert any("torchmcmcpf_test.doubled" in str(node.target) for node in gm[0].graph.nodes)
+    # a fake tensor (shape propagation outside torch.compile) takes the op's fake function
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    before = len(calls)
+    with FakeTensorMode() as mode:
+        out = doubled(mode.from_tensor(x))
+    assert out.shape == x.shape and len(calls) == before

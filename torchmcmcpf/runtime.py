@@ -450,7 +450,8 @@ class EagerOp:
     """A ``torch.library`` custom op whose eager calls run its function directly: the
     dispatcher's pass through the op (autograd and device keys, the schema's checks) costs
     about 8 us a call, which an MCMC iteration of a few hundred chains pays two or three
-    times. A traced call (:func:`compiling`) takes the op, so a compiled graph holds it.
+    times. A traced call (:func:`compiling`) or one on a tensor subclass (fake tensors) takes
+    the op, so a compiled or exported graph holds it.
     Only for ops with no autograd formula, called where nothing needs one (the C loops'
     ``applies``: no gradient to record, no ``torch.func`` transform).
 
@@ -471,8 +472,12 @@ class EagerOp:
         self._fn, self.op = fn, op
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        """The function's result: directly when eager, through the op when traced."""
-        return self.op(*args, **kwargs) if compiling() else self._fn(*args, **kwargs)
+        """The function's result: directly on plain tensors when eager, through the op when
+        traced or on a tensor subclass (a fake tensor of ``torch.export``, a user's subclass).
+        """
+        if compiling() or any(isinstance(a, torch.Tensor) and type(a) is not torch.Tensor for a in args):
+            return self.op(*args, **kwargs)
+        return self._fn(*args, **kwargs)
 
     def register_fake(self, fn: Callable) -> Callable:
         """The op's fake (meta) function, as ``CustomOpDef.register_fake``."""
