@@ -327,3 +327,17 @@ def test_pairwise_squared_distances_equal_the_broadcast_form(r):
     assert torch.equal(pairwise_squared_distances(b, a), want.transpose(-1, -2))
     with pytest.raises(ValueError, match="at least one coordinate"):
         pairwise_squared_distances(a[..., :0], b[..., :0])
+
+
+def test_log_q_ratio_is_the_difference_of_the_components():
+    """``log_q_ratio(kind, a, b)``, the conversion of a cached ``log r`` between two moves'
+    ``epsilon``, is ``log_q_component(kind, a) - log_q_component(kind, b)`` to the bit for every
+    kind, float64, in the kind's shape."""
+    from torchmcmcpf.models.multitarget import FIXED, MOTION, RELOCATED, log_q_component, log_q_ratio
+
+    kind = torch.tensor([[FIXED, MOTION, RELOCATED], [RELOCATED, RELOCATED, MOTION]], dtype=torch.int8)
+    for a, b in ((0.1, 0.3), (0.3, 0.1), (0.05, 0.05), (1e-3, 0.5)):
+        got = log_q_ratio(kind, a, b)
+        want = log_q_component(kind, a) - log_q_component(kind, b)
+        assert got.dtype == torch.float64 and got.shape == kind.shape and torch.equal(got, want)
+    assert log_q_ratio(kind, 0.1, 0.3)[0, 0] == 0 and log_q_ratio(kind, 0.1, 0.3)[0, 1] != 0

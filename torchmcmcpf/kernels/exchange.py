@@ -80,7 +80,7 @@ import torch
 from .._native.select import MIN_ELEMENTS, where
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
-from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_component
+from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_ratio
 from ..resampling import cdf, inverse_cdf, normalize
 from ..runtime import pairwise_squared_distances, take_along
 from ..typing import Measurement, Tensor
@@ -553,7 +553,7 @@ def exchange_iteration(
         raise ValueError("a two-slot move with p_same_source > 0 and joint pairs need the chains' source and "
                          "log_w_source (got None)")
     # this move's epsilon; the chains cache log r at recapture.p_propose, converted by the
-    # slots' kinds (models/multitarget.py, log_q_component) where the two differ
+    # slots' kinds (models/multitarget.py, log_q_ratio) where the two differ
     base = None if recapture is None else recapture.p_propose
     eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
     on = exclusion_on(exclusion, sensor)
@@ -575,7 +575,7 @@ def exchange_iteration(
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
             return r
-        return r + (log_q_component(kd, src) - log_q_component(kd, dst)).to(r.dtype)
+        return r + log_q_ratio(kd, src, dst).to(r.dtype)
 
     # the proposal's terms first (the slots that move are distinct: each reads its own current
     # terms), then the accepted moves written into the state, one select per field

@@ -93,7 +93,7 @@ if TYPE_CHECKING:  # the sensor protocol is imported by the callers
 
 __all__ = ["Exclusion", "check_exclusion", "check_recapture", "Recapture", "RelocationNoise", "LOG_PHI_FLOOR",
            "relocate", "exclusion_on", "log_exclusion", "exclusion_change", "exclusion_against", "draw_relocation",
-           "log_q_component", "FIXED", "MOTION", "RELOCATED"]
+           "log_q_component", "log_q_ratio", "FIXED", "MOTION", "RELOCATED"]
 
 #: Lower bound of ``log phi(d)`` (``phi = e^-50``): two coincident slots get a finite, very low
 #: exclusion factor, so moves away from them have finite acceptance ratios (never NaN).
@@ -409,9 +409,23 @@ def log_q_component(kind: Tensor, p_propose: float) -> Tensor:
     so that kernels with different ``epsilon`` (the one- and two-slot moves) score the same
     chain state exactly. ``kind (*S, K)`` int8 -> ``(*S, K)`` float64.
     """
-    motion = torch.tensor(math.log1p(-p_propose), dtype=torch.float64, device=kind.device)
-    jump = torch.tensor(math.log(p_propose), dtype=torch.float64, device=kind.device)
-    return where(kind == MOTION, motion, where(kind == RELOCATED, jump, torch.zeros_like(motion)))
+    return _by_kind(kind, math.log1p(-p_propose), math.log(p_propose))
+
+
+def log_q_ratio(kind: Tensor, p_from: float, p_to: float) -> Tensor:
+    """``log_q_component(kind, p_from) - log_q_component(kind, p_to)``, the same values (each
+    kind's difference taken in float64 once, not per slot): what converts a slot's cached
+    ``log r`` between two moves' ``epsilon``. ``kind (*S, K)`` int8 -> ``(*S, K)`` float64.
+    """
+    return _by_kind(kind, math.log1p(-p_from) - math.log1p(-p_to), math.log(p_from) - math.log(p_to))
+
+
+def _by_kind(kind: Tensor, motion: float, jump: float) -> Tensor:
+    """``motion`` where ``kind`` is :data:`MOTION`, ``jump`` where :data:`RELOCATED`, 0
+    elsewhere, float64.
+    """
+    zero = torch.zeros(kind.shape, dtype=torch.float64, device=kind.device)
+    return where(kind == MOTION, motion, where(kind == RELOCATED, jump, zero))
 
 
 def relocate(x: Tensor, survive: Tensor | None, noise: RelocationNoise, recapture: Recapture,
