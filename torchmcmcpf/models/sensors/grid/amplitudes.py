@@ -62,11 +62,10 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
     G = sensor.geometry.num_cells
     if tuple(cache.shape) != (B,) + S + (G,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
-    u, s = _moved(sensor, x, x_n, n, exists, exists_n)
+    terms = _moved_terms(sensor, x, x_n, n, exists, exists_n)
     if native.applies(sensor, x) and cache.dtype == torch.float32:  # the radar on the CPU: one C loop a chain,
-        delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), u, s, z)  # boxes on any grid
-        return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
-            change.reshape((B,) + S + change.shape[2:])
+        return _native_delta(sensor, cache, terms, z)  # boxes on any grid
+    u, s = _signed(terms)
     firsts = sensor.geometry.box_firsts(u)  # the loop finds its boxes itself
     if whole_grid(sensor, s.shape[-1]):  # every entry of the cache changes, in order: no cells
         delta, change = _grid_delta(sensor, cache.reshape(B, -1, G), u, s, firsts, z)
@@ -82,7 +81,7 @@ def log_likelihood_delta_cached(sensor: GridSensorLike, cache: Tensor, x: Tensor
 
 def move_terms(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) -> Tensor:
     """Each slot's measured coordinates and amplitude times its flag, ``x (B, *S, K, D) ->
-    (B, *S, K, n + 1)``: the spreads :func:`_moved` makes of a moved slot (unsigned), for
+    (B, *S, K, n + 1)``: a move's spreads, unsigned (:func:`_moved_terms`), for
     :func:`log_likelihood_delta_terms`.
     """
     e = torch.ones_like(x[..., 0]) if exists is None else exists.to(x.dtype)
@@ -92,18 +91,22 @@ def move_terms(sensor: GridSensorLike, x: Tensor, exists: Tensor | None = None) 
 def log_likelihood_delta_terms(sensor: GridSensorLike, cache: Tensor, terms: Tensor, z: Tensor
                                ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`log_likelihood_delta_cached` by the C loop from the moved slots' :func:`move_terms`
-    ``terms (B, *S, 2M, n + 1)`` (slot 0 before, after, slot 1 before, ...): the spreads'
-    coordinates, and their amplitudes signed (minus before, plus after: a negation, so the
-    same bits as :func:`_moved`'s). The caller made ``terms`` where :func:`~.native.applies`.
+    ``terms (B, *S, 2M, n + 1)`` (slot 0 before, after, slot 1 before, ...). The caller made
+    ``terms`` where :func:`~.native.applies`.
     """
-    B, R = terms.shape[0], terms.shape[-2]
-    S = tuple(terms.shape[1:-2])
-    G = sensor.geometry.num_cells
+    B, S, G = terms.shape[0], tuple(terms.shape[1:-2]), sensor.geometry.num_cells
     if tuple(cache.shape) != (B,) + S + (G,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
-    flat = terms.reshape(B, -1, R, terms.shape[-1])
-    sign = torch.tensor([-1.0, 1.0] * (R // 2), dtype=terms.dtype, device=terms.device)
-    delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, G), flat[..., :-1], flat[..., -1] * sign, z)
+    return _native_delta(sensor, cache, terms, z)
+
+
+def _native_delta(sensor: GridSensorLike, cache: Tensor, terms: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The C loop's move from ``terms (B, *S, 2M, n + 1)`` and ``cache (B, *S, G)``, shaped
+    as :func:`log_likelihood_delta_cached` returns it.
+    """
+    B, S, R = terms.shape[0], tuple(terms.shape[1:-2]), terms.shape[-2]
+    u, s = _signed(terms.reshape(B, -1, R, terms.shape[-1]))
+    delta, cells, change = native.delta_cached(sensor, cache.reshape(B, -1, cache.shape[-1]), u, s, z)
     return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
         change.reshape((B,) + S + change.shape[2:])
 
@@ -141,9 +144,16 @@ def _grid_delta(sensor: GridSensorLike, A: Tensor, u: Tensor, s: Tensor, firsts:
 def _moved(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
            exists_n: Tensor | None) -> tuple[Tensor, Tensor]:
     """The move's ``2M`` spreads, flat over the samples: their measured coordinates ``u (B, P,
-    2M, n)`` and signed amplitudes ``s (B, P, 2M)`` (minus the old spread, plus the new one,
-    times the flags), in the order slot 0 before, after, slot 1 before, after, ... (their
-    boxes: ``sensor.geometry.box_firsts(u)``).
+    2M, n)`` and signed amplitudes ``s (B, P, 2M)`` (:func:`_signed` of :func:`_moved_terms`;
+    their boxes: ``sensor.geometry.box_firsts(u)``).
+    """
+    return _signed(_moved_terms(sensor, x, x_n, n, exists, exists_n))
+
+
+def _moved_terms(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Tensor | None,
+                 exists_n: Tensor | None) -> Tensor:
+    """The :func:`move_terms` of a move's ``2M`` spreads, flat over the samples, ``(B, P, 2M,
+    n + 1)``, in the order slot 0 before, after, slot 1 before, after, ...
     """
     B, K, D = x.shape[0], x.shape[-2], x.shape[-1]
     S = tuple(x.shape[1:-2])
@@ -156,10 +166,16 @@ def _moved(sensor: GridSensorLike, x: Tensor, x_n: Tensor, n: Tensor, exists: Te
     e_old = take_along(e, slot, 2)  # (B, P, M)
     e_new = e_old if exists_n is None else exists_n.reshape(B, P, M).to(x.dtype)
     moved = torch.stack([take_along(xf, slot[..., None], 2), x_n.reshape(B, P, M, D)], 3)
-    moved = moved.reshape(B, P, 2 * M, D)
-    u = sensor.measurement_coords(moved)  # (B, P, 2M, n)
-    s = sensor.signal(moved) * torch.stack([-e_old, e_new], -1).reshape(B, P, 2 * M)  # signed: - old, + new
-    return u, s
+    return move_terms(sensor, moved.reshape(B, P, 2 * M, D), torch.stack([e_old, e_new], -1).reshape(B, P, 2 * M))
+
+
+def _signed(terms: Tensor) -> tuple[Tensor, Tensor]:
+    """A move's spreads from their :func:`move_terms` ``(..., 2M, n + 1)`` (each slot before,
+    then after): the coordinates ``(..., 2M, n)`` and the amplitudes signed, minus before and
+    plus after, ``(..., 2M)`` (a negation: exact).
+    """
+    sign = torch.tensor([-1.0, 1.0] * (terms.shape[-2] // 2), dtype=terms.dtype, device=terms.device)
+    return terms[..., :-1], terms[..., -1] * sign
 
 
 def _box_change(sensor: GridSensorLike, u: Tensor, s: Tensor, firsts: list[Tensor]) -> tuple[Tensor, Tensor]:
