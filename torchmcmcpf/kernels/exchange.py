@@ -595,7 +595,7 @@ def exchange_iteration(
             u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
             cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
     update = None
-    if by_terms and cache is not None and terms is not None and terms_new is not None:  # rows, before and after
+    if cache is not None and terms is not None and terms_new is not None:  # by_terms: the rows, before and after
         t = terms.shape[-1]
         old = torch.gather(terms, -2, noise.slot.unsqueeze(-1).expand(noise.slot.shape + (t,)))  # (B, C, M, T)
         both = torch.stack([old, terms_new], -2).reshape(old.shape[:-2] + (2 * m, t))
