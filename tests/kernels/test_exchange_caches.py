@@ -138,3 +138,117 @@ def test_point_sensor_prepares_nothing():
     a = scn.sensor.sample_from_data(z, (2, 5), generator=torch.Generator().manual_seed(1))
     b = scn.sensor.sample_from_data(z, (2, 5), generator=torch.Generator().manual_seed(1), found=None)
     assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def _tensor_path_only():
+    """The exchange iteration without its one-call C commit (the tensor path throughout)."""
+    from unittest import mock
+
+    from torchmcmcpf.kernels import _exchange_native
+
+    return mock.patch.object(_exchange_native, "applies", lambda *tensors: False)
+
+
+def _counting_commits():
+    """Counts the one-call commits made inside the block (``calls[0]``)."""
+    from unittest import mock
+
+    from torchmcmcpf.kernels import _exchange_native
+
+    calls, commit = [0], _exchange_native.commit
+
+    def counted(*args, **kwargs):
+        calls[0] += 1
+        return commit(*args, **kwargs)
+
+    return calls, mock.patch.object(_exchange_native, "commit", counted)
+
+
+def test_one_call_iteration_is_the_tensor_path_to_the_bit():
+    """The one-slot exchange iteration's C commit (the MH decision with exclusion and
+    re-capture, every chain field written, the cache advanced in place) gives the tensor
+    path's chains, decisions and amplitude cache to the bit, one- and two-slot moves mixed
+    (the two-slot ones stay on tensors)."""
+    from torchmcmcpf.models.sensors.grid import native
+
+    if not native.available():
+        pytest.skip("no C compiler: no one-call iteration")
+    sensor, dynamics, z, x_prev, y = _problem(dtype=torch.float32)
+    calls, counting = _counting_commits()
+    with counting:
+        fast, acc_fast = _iterations(sensor, dynamics, z, x_prev, y, keep_coords=True, keep_terms=True)
+    assert calls[0] == 18  # the 24 iterations' one-slot moves (every 4th is a two-slot move)
+    with _tensor_path_only():
+        slow, acc_slow = _iterations(sensor, dynamics, z, x_prev, y, keep_coords=True, keep_terms=True)
+    assert torch.equal(acc_fast, acc_slow)
+    assert 0.02 < float(acc_fast.double().mean()) < 0.98  # both decisions are covered
+    for a, b in zip(fast, slow):
+        for name in ("y", "log_lik", "log_r", "kind", "source", "log_w_source", "coords", "terms", "amplitude"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
+
+
+@pytest.mark.parametrize("terms", [{}, {"exclusion": None, "recapture": None}, {"joint_pairs": 1.5}],
+                         ids=["defaults", "paper", "joint pairs"])
+def test_filters_with_the_one_call_iteration_are_the_same_bits(terms):
+    """The IP-MCMC-PF on the crossing (its defaults, paper 000's target, joint pairs) gives
+    the same particles and estimates with the one-call iteration as on tensors."""
+    from torchmcmcpf.filters import IPMCMCFilter
+    from torchmcmcpf.models.sensors.grid import native
+    from torchmcmcpf.scenarios.crossing import crossing
+
+    if not native.available():
+        pytest.skip("no C compiler: no one-call iteration")
+    scn = crossing(2, 5, 2, generator=torch.Generator().manual_seed(0))
+    init = scn.initial_particles(100, generator=torch.Generator().manual_seed(1))
+    filt = IPMCMCFilter(scn.motion, scn.sensor, 100, num_chains=10, burn_in=20, **terms)
+    calls, counting = _counting_commits()
+    with torch.inference_mode(), counting:
+        fast = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2))
+    assert calls[0] > 100
+    with torch.inference_mode(), _tensor_path_only():
+        slow = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2))
+    assert torch.equal(fast.mean, slow.mean) and torch.equal(fast.state.x, slow.state.x)
+    assert torch.equal(fast.state.log_w, slow.state.log_w)
+
+
+def test_delta_rows_read_in_the_loop_equal_the_gathered_rows():
+    """The radar's one-slot move read from the chains' rows inside its C loop equals the rows
+    gathered and interleaved (the base method): the same change, cells and cache change."""
+    from torchmcmcpf.models.base import SensorModel
+    from torchmcmcpf.models.sensors.grid import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    sensor, dynamics, z, x_prev, y = _problem(dtype=torch.float32)
+    g = torch.Generator().manual_seed(11)
+    terms = sensor.move_terms(y)
+    slot = torch.randint(0, y.shape[-2], y.shape[:2] + (1,), generator=g)
+    moved = y.gather(2, slot[..., None].expand(slot.shape + (y.shape[-1],))) \
+        + 30.0 * torch.randn(slot.shape + (y.shape[-1],), generator=g)
+    terms_new = sensor.move_terms(moved)
+    cache = sensor.amplitude_cache(y)
+    ours = sensor.log_likelihood_delta_rows(cache, terms, slot, terms_new, z)
+    gathered = SensorModel.log_likelihood_delta_rows(sensor, cache, terms, slot, terms_new, z)
+    assert ours[0].shape == y.shape[:2] and bool((ours[0] != 0).any())
+    for a, b in zip(ours, gathered):
+        assert torch.equal(a, b)
+
+
+def test_prepared_frames_follow_the_frame():
+    """The radar loop's prepared frames are reused for the same unmodified frame only: a frame
+    changed in place, or another tensor, is prepared afresh."""
+    from torchmcmcpf.models.sensors.grid import native
+
+    if not native.available():
+        pytest.skip("no C compiler")
+    sensor, _, z, _, _ = _problem(dtype=torch.float32)
+    z = z.clone()
+    first = native._frames(sensor, z)
+    assert native._frames(sensor, z) is first  # reused
+    z.mul_(2.0)
+    again = native._frames(sensor, z)
+    assert again is not first
+    fresh = torch.nn.functional.pad(sensor.prepare_frame(z).reshape(z.shape[0], -1), (0, 8))
+    assert torch.equal(again, fresh)
+    other = z.clone()
+    assert native._frames(sensor, other) is not again

@@ -8,13 +8,15 @@ Loops in plain C beside the tensor paths, each the same values (to round-off for
   data-driven densities (:mod:`torchmcmcpf.models.sensors._points_native`);
 - ``exclusion.c``: the exclusion factor and its change when a slot moves
   (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_factor`, ``log_change``);
+- ``exchange.c``: the exchange move's iteration after its likelihood change (the MH decision,
+  the chains' fields and cache written) in one call (:mod:`torchmcmcpf.kernels._exchange_native`);
 - ``select.c``: ``torch.where`` and the read-back of a packed block in one pass
   (:mod:`torchmcmcpf._native.select`), which every move makes dozens of times an iteration.
 
-The sources (with ``split.h``, the samples' split over threads, and ``vecmath.h``, the
-vectorisable ``exp`` and ``log``) are compiled together by the
-host's C compiler (``$CC``, else ``cc``; ``-O3 -march=native``, OpenMP where it has it, else
-serial) into one library in a cache folder (``$TORCHMCMCPF_CACHE``, else
+The sources (with ``split.h``, the samples' split over threads, ``vecmath.h``, the
+vectorisable ``exp`` and ``log``, and ``exclusion.h``, the exclusion's loops that two sources
+share) are compiled together by the host's C compiler (``$CC``, else ``cc``; ``-O3
+-march=native``, OpenMP where it has it, else serial) into one library in a cache folder (``$TORCHMCMCPF_CACHE``, else
 ``~/.cache/torchmcmcpf``), keyed by the sources, the compiler, its flags and the CPU, on the
 first :func:`available` call. The calls split their samples evenly over
 ``torch.get_num_threads()`` of torch's own OpenMP threads (the wheel's ``libgomp.so.1``,
@@ -46,7 +48,7 @@ __all__ = ["available", "applies", "library", "tensor_path", "FLAGS"]
 
 _FOLDER = Path(__file__).parent
 #: the sources, compiled together into one library (the headers are part of the key)
-SOURCES = ("rician_window.c", "points.c", "exclusion.c", "select.c")
+SOURCES = ("rician_window.c", "points.c", "exclusion.c", "exchange.c", "select.c")
 #: compiler flags: vectorised selects need ``-fno-trapping-math``, inlined ``sqrtf``
 #: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation).
 #: ``-fopenmp`` first: the loops then run on torch's own OpenMP threads; a compiler without
@@ -59,6 +61,7 @@ _i64, _ptr, _f64, _int = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double, ctype
 SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "rician_window_loglik": (_int, [_i64] * 4 + [_ptr] * 6 + [_i64, _f64, _ptr]),
     "rician_delta_cached": (_int, [_i64] * 4 + [_ptr] * 6 + [_i64, _f64] + [_ptr] * 3),
+    "rician_delta_rows": (_int, [_i64] * 4 + [_ptr] * 7 + [_i64, _f64] + [_ptr] * 3),
     "rician_move": (_int, [_i64] * 4 + [_ptr] * 9 + [_i64, _f64, _ptr]),
     "rician_floor": (_f64, [_i64] * 3 + [_ptr] * 3 + [_f64]),
     "points_intensity": (_int, [_i64] * 5 + [_ptr] * 3 + [_f64, _ptr]),
@@ -70,6 +73,8 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "exclusion_change": (_int, [_i64] * 4 + [_ptr] * 5 + [_f64, _f64, _ptr]),
     "exclusion_factor": (_int, [_i64] * 4 + [_ptr] * 2 + [_f64, _f64, _ptr]),
     "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
+    "exchange_commit": (_int, [_i64] * 3 + [_ptr] * 7 + [_i64, _f64, _f64] + [_ptr] * 2 + [_i64] + [_ptr] * 7
+                        + [_i64] + [_ptr] * 2),
     "select_rows": (_int, [_i64] * 4 + [_ptr] * 2 + [_i64, _ptr, _i64, _ptr]),
     "unpack_rows": (_int, [_i64] * 6 + [_ptr] * 4 + [_i64, _ptr]),
 }

@@ -251,39 +251,59 @@ static double floor_range(int64_t boxes, int64_t V, const float *amp, const floa
  * at the cells an earlier box of the move holds, so each cell changes once). Each cell's
  * term is ratio(max(A + change, 0)) - ratio(max(A, 0)).
  */
-static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
-                        const float *cache, const float *zc, float half_inv_var, float *delta, int64_t *cells,
-                        float *change) {
+/* The cached move's change of sample q (rician_delta_cached below): uq (R, 3), sq (R) its
+ * spreads; writes its cells and change (R, V) and returns the sum. */
+static float delta_sample(const Grid *g, int64_t q, int64_t P, int64_t R, const float *uq, const float *sq,
+                          const float *cache, const float *zc, float half_inv_var, int64_t *cells, float *change) {
     float prof[MAX_K][3][MAX_W];
     int64_t first[MAX_K][3];
     float A[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8], once[MAX_W * MAX_W * MAX_W];
     const int64_t V = g->V;
-    for (int64_t q = p0; q < p1; ++q) {
-        const float *sq = s + q * R;
-        boxes_of(g, u + q * R * 3, R, first, prof);
-        double total = 0.0;
-        for (int64_t j = 0; j < R; ++j) {
-            float *ch = change + (q * R + j) * V;
-            if (repeats_box(first, j, NULL)) { /* no change here: an earlier box holds every cell */
-                memset(ch, 0, (size_t)V * sizeof(float));
-                box_cells_of(g, NULL, first[j], NULL, NULL, NULL, q * g->G, cells + (q * R + j) * V);
-                continue;
-            }
-            for (int64_t c = 0; c < V; ++c) { ch[c] = 0.0f; once[c] = 1.0f; }
-            for (int64_t k = 0; k < R; ++k) add_spread(g, first[j], first[k], prof[k], sq[k], ch, k < j ? once : NULL);
-            box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, cache + q * g->G, A, q * g->G,
-                         cells + (q * R + j) * V);
-            float acc = 0.0f;
-#pragma omp simd reduction(+ : acc)
-            for (int64_t c = 0; c < V; ++c) {
-                const float d = ch[c] * once[c];
-                ch[c] = d;
-                const float a0 = A[c] < 0.0f ? 0.0f : A[c], a1 = A[c] + d < 0.0f ? 0.0f : A[c] + d;
-                acc += cell_ratio(a1, Z[c], half_inv_var) - cell_ratio(a0, Z[c], half_inv_var);
-            }
-            total += (double)acc;
+    boxes_of(g, uq, R, first, prof);
+    double total = 0.0;
+    for (int64_t j = 0; j < R; ++j) {
+        float *ch = change + (q * R + j) * V;
+        if (repeats_box(first, j, NULL)) { /* no change here: an earlier box holds every cell */
+            memset(ch, 0, (size_t)V * sizeof(float));
+            box_cells_of(g, NULL, first[j], NULL, NULL, NULL, q * g->G, cells + (q * R + j) * V);
+            continue;
         }
-        delta[q] = (float)total;
+        for (int64_t c = 0; c < V; ++c) { ch[c] = 0.0f; once[c] = 1.0f; }
+        for (int64_t k = 0; k < R; ++k) add_spread(g, first[j], first[k], prof[k], sq[k], ch, k < j ? once : NULL);
+        box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, cache + q * g->G, A, q * g->G,
+                     cells + (q * R + j) * V);
+        float acc = 0.0f;
+#pragma omp simd reduction(+ : acc)
+        for (int64_t c = 0; c < V; ++c) {
+            const float d = ch[c] * once[c];
+            ch[c] = d;
+            const float a0 = A[c] < 0.0f ? 0.0f : A[c], a1 = A[c] + d < 0.0f ? 0.0f : A[c] + d;
+            acc += cell_ratio(a1, Z[c], half_inv_var) - cell_ratio(a0, Z[c], half_inv_var);
+        }
+        total += (double)acc;
+    }
+    return (float)total;
+}
+
+static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t R, const float *u, const float *s,
+                        const float *cache, const float *zc, float half_inv_var, float *delta, int64_t *cells,
+                        float *change) {
+    for (int64_t q = p0; q < p1; ++q)
+        delta[q] = delta_sample(g, q, P, R, u + q * R * 3, s + q * R, cache, zc, half_inv_var, cells, change);
+}
+
+/* delta_range for one-slot moves read from rows (torchmcmcpf.models.sensors.grid.native.delta_rows):
+ * terms (B*P, K, 4) each slot's measurement coordinates and amplitude (times existence), slot
+ * (B*P) int64 the moved slot, terms_new (B*P, 4) its row after the move: the spreads of
+ * delta_range with R = 2, u = (the slot's coordinates, the new ones), s = (-its amplitude, the
+ * new amplitude) (the negation exact, as amplitudes._signed makes them). */
+static void rows_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t K, const float *terms,
+                       const int64_t *slot, const float *terms_new, const float *cache, const float *zc,
+                       float half_inv_var, float *delta, int64_t *cells, float *change) {
+    for (int64_t q = p0; q < p1; ++q) {
+        const float *old = terms + (q * K + slot[q]) * 4, *now = terms_new + q * 4;
+        const float u[6] = { old[0], old[1], old[2], now[0], now[1], now[2] }, s[2] = { old[3] * -1.0f, now[3] };
+        delta[q] = delta_sample(g, q, P, 2, u, s, cache, zc, half_inv_var, cells, change);
     }
 }
 
@@ -350,6 +370,17 @@ int rician_delta_cached(int64_t n, int64_t threads, int64_t P, int64_t R, const 
     Grid g;
     if (R > MAX_K || grid_of(&g, shape, geo, window)) return 1;
     SPLIT(n, threads, delta_range(&g, lo, hi, P, R, u, s, cache, zc, (float)half_inv_var, delta, cells, change))
+    return 0;
+}
+
+int rician_delta_rows(int64_t n, int64_t threads, int64_t P, int64_t K, const float *terms, const int64_t *slot,
+                      const float *terms_new, const float *cache, const float *zc, const int64_t *shape,
+                      const double *geo, int64_t window, double half_inv_var, float *delta, int64_t *cells,
+                      float *change) {
+    Grid g;
+    if (grid_of(&g, shape, geo, window)) return 1;
+    SPLIT(n, threads, rows_range(&g, lo, hi, P, K, terms, slot, terms_new, cache, zc, (float)half_inv_var, delta,
+                                 cells, change))
     return 0;
 }
 

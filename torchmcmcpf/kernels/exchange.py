@@ -80,10 +80,11 @@ import torch
 from .._native.select import MIN_ELEMENTS, where
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
-from ..models.multitarget import Exclusion, RelocationNoise, exclusion_on, log_q_ratio
+from ..models.multitarget import LOG_PHI_FLOOR, Exclusion, RelocationNoise, exclusion_on, log_q_ratio
 from ..resampling import cdf, inverse_cdf, normalize
 from ..runtime import pairwise_squared_distances, take_along
 from ..typing import Measurement, Tensor
+from . import _exchange_native
 from .mh import mh_accept
 
 __all__ = ["ExchangeChains", "ExchangeNoise", "ExchangeProposal", "draw_exchange_noise", "propose_slots",
@@ -505,6 +506,41 @@ def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor, take: Ten
     return t.scatter(-2, at, keep)
 
 
+def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangeProposal, delta: Tensor, cells: Tensor,
+              change: Tensor, exclusion: Exclusion | None, source: Tensor | None, log_w_source: Tensor | None
+              ) -> tuple[ExchangeChains, Tensor, None]:
+    """:func:`exchange_iteration`'s one-slot move after the likelihood's change ``delta``
+    (``cells``, ``change`` its cache update) in one C call (:mod:`._exchange_native`): the
+    same chains, decisions and cache as the tensor path; the cache advanced in place, so the
+    returned chains carry it and the update is ``None``. ``exclusion`` only where the chains
+    keep their coordinates; ``source``, ``log_w_source`` the moved slot's (B, C, 1).
+    """
+    y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
+    moved, _, r_new, kind_new, coords_new, terms_new = proposal
+    assert cache is not None
+    # each field with the moved slot's new row, in a fixed order; None where the chains lack it
+    rows = {"y": (y, moved[:, :, 0]),
+            "log_r": None if log_r is None or r_new is None else (log_r, r_new[:, :, 0]),
+            "kind": None if kind is None or kind_new is None else (kind, kind_new[:, :, 0]),
+            "source": None if src is None or lw is None or source is None or log_w_source is None
+            else (src, source[..., 0]),
+            "log_w_source": None if src is None or lw is None or source is None or log_w_source is None
+            else (lw, log_w_source[..., 0].to(lw.dtype)),
+            "coords": None if exclusion is None or coords is None or coords_new is None
+            else (coords, coords_new[:, :, 0]),
+            "terms": None if terms is None or terms_new is None else (terms, terms_new[:, :, 0])}
+    fields = {name: pair for name, pair in rows.items() if pair is not None}
+    u, u_new = fields["coords"] if "coords" in fields else (None, None)
+    r, r_row = fields["log_r"] if "log_r" in fields else (None, None)
+    ll, accepted, out = _exchange_native.commit(
+        log_lik, delta, noise.u, noise.valid, noise.slot[..., 0], u, u_new,
+        1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, r, r_row, list(fields.values()), cache, cells,
+        change)
+    new = dict(zip(fields, out))
+    return ExchangeChains(new["y"], ll, None, new.get("log_r", log_r), new.get("kind", kind), new.get("source", src),
+                          new.get("log_w_source", lw), cache, new.get("coords"), new.get("terms")), accepted, None
+
+
 def exchange_iteration(
     chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement, noise: ExchangeNoise,
     *, dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None = None,
@@ -534,11 +570,16 @@ def exchange_iteration(
         (motion, optionally births and deaths and re-capture); sensor : the SensorModel;
         exclusion : the exclusion term, optional.
 
+    A one-slot move read from the chains' terms on float32 CPU tensors without existence
+    flags, eager, runs its rest in one C call after the likelihood's change
+    (:mod:`._exchange_native`: the decision, the fields and the cache; the same bits).
+
     Returns
     -------
-    chains : the new :class:`ExchangeChains`, without their ``amplitude`` (None);
-    accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache, else
-    ``None``.
+    chains : the new :class:`ExchangeChains`, without their ``amplitude`` (None), but after
+    the one C call, which advanced the cache in place: then the chains carry it;
+    accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache (None
+    after the one C call), else ``None``.
     """
     y, log_lik, exists, log_r, kind, source, log_w_source, cache, coords, terms = chains
     existence, recapture = dynamics.existence, dynamics.recapture
@@ -571,6 +612,16 @@ def exchange_iteration(
             propose_slots(noise, x_prev, exists_prev, dynamics=dynamics)
     moved, e_new, r_new, kind_new, coords_new, terms_new = proposal
     by_terms = cache is not None and terms is not None and terms_new is not None  # rows read, states not mapped
+    kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
+    update = None
+    if cache is not None and terms is not None and terms_new is not None:  # by_terms: the moved slots' rows
+        delta, cells, change = sensor.log_likelihood_delta_rows(cache, terms, noise.slot, terms_new, z)
+        if (m == 1 and cells is not None and exists is None and e_new is None and (kept or not on)
+                and _exchange_native.applies(log_lik, delta, noise.u, cache, log_r, r_new, coords, coords_new)
+                and cache.is_contiguous()):  # the rest of the iteration in one C call
+            return _one_call(chains, noise, proposal, delta, cells, change, exclusion if kept else None,
+                             src_moved, lw_moved)
+        update = (cells, change)
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
@@ -587,20 +638,14 @@ def exchange_iteration(
         log_prior = log_prior + (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
                                  - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
     cur_u = u_moved = None
-    kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
     if on:
         if kept:  # read: the chains' from their state, the moved slots' from the segment's proposals
             cur_u, u_moved = coords, coords_new
         else:  # the chains' and the moved slots' coordinates, one call
             u_all = sensor.resolution_coords(torch.cat([y, moved], -2))
             cur_u, u_moved = u_all[..., :k, :], u_all[..., k:, :]
-    update = None
-    if cache is not None and terms is not None and terms_new is not None:  # by_terms: the rows, before and after
-        t = terms.shape[-1]
-        old = torch.gather(terms, -2, noise.slot.unsqueeze(-1).expand(noise.slot.shape + (t,)))  # (B, C, M, T)
-        both = torch.stack([old, terms_new], -2).reshape(old.shape[:-2] + (2 * m, t))
-        delta, cells, change = sensor.log_likelihood_delta_terms(cache, both, z)
-        cur_ll, update = log_lik + delta, (cells, change)
+    if update is not None:  # by_terms, above
+        cur_ll = log_lik + delta
     elif cache is not None:  # every moved slot at once, each cell of their boxes counted once
         delta, cells, change = sensor.log_likelihood_delta_cached(cache, y, moved, noise.slot, z, exists=exists,
                                                                   exists_n=e_new)

@@ -373,6 +373,19 @@ class SensorModel(nn.Module, Generic[Z]):
         """
         raise NotImplementedError(f"{type(self).__name__} reads its moves from the states")
 
+    def log_likelihood_delta_rows(self, cache: Tensor, terms: Tensor, slot: Tensor, terms_new: Tensor, z: Z
+                                  ) -> tuple[Tensor, Tensor | None, Tensor]:
+        """:meth:`log_likelihood_delta_terms` of a move of the ``M`` distinct slots ``slot (B,
+        *S, M)`` (int64) of states whose :meth:`move_terms` are ``terms (B, *S, K, T)``, to
+        the rows ``terms_new (B, *S, M, T)``: the slots' rows gathered before the move,
+        interleaved with the new ones. A sensor may read the rows in its own loop (the radar's
+        C loop does for ``M = 1``); the same ``(delta, cells, change)``.
+        """
+        t, m = terms.shape[-1], slot.shape[-1]
+        old = torch.gather(terms, -2, slot.unsqueeze(-1).expand(slot.shape + (t,)))  # (B, *S, M, T)
+        return self.log_likelihood_delta_terms(cache, torch.stack([old, terms_new], -2).reshape(
+            old.shape[:-2] + (2 * m, t)), z)
+
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor | None, change: Tensor, accepted: Tensor) -> Tensor:
         """``cache (B, *S, G)`` with the ``change`` of the ``accepted (B, *S)`` moves added at

@@ -100,6 +100,23 @@ def log_likelihood_delta_terms(sensor: GridSensorLike, cache: Tensor, terms: Ten
     return _native_delta(sensor, cache, terms, z)
 
 
+def log_likelihood_delta_rows(sensor: GridSensorLike, cache: Tensor, terms: Tensor, slot: Tensor, terms_new: Tensor,
+                              z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`log_likelihood_delta_terms` of one-slot moves from the rows ``terms (B, *S, K, 4)``
+    at ``slot (B, *S, 1)`` to ``terms_new (B, *S, 1, 4)``, the old row read in the C loop
+    (:func:`.native.delta_rows`): the same values as the rows gathered and interleaved.
+    """
+    B, S, K, T = terms.shape[0], tuple(terms.shape[1:-2]), terms.shape[-2], terms.shape[-1]
+    G = sensor.geometry.num_cells
+    if tuple(cache.shape) != (B,) + S + (G,):
+        raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
+    P = math.prod(S)
+    delta, cells, change = native.delta_rows(sensor, cache.reshape(B, P, G), terms.reshape(B, P, K, T),
+                                             slot.reshape(B, P).to(torch.int64), terms_new.reshape(B, P, T), z)
+    return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
+        change.reshape((B,) + S + change.shape[2:])
+
+
 def _native_delta(sensor: GridSensorLike, cache: Tensor, terms: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The C loop's move from ``terms (B, *S, 2M, n + 1)`` and ``cache (B, *S, G)``, shaped
     as :func:`log_likelihood_delta_cached` returns it.

@@ -442,6 +442,16 @@ class SeparableGridSensor(SensorModel[Tensor]):
         """
         return amplitudes.log_likelihood_delta_terms(self, cache, terms, z)
 
+    def log_likelihood_delta_rows(self, cache: Tensor, terms: Tensor, slot: Tensor, terms_new: Tensor, z: Tensor
+                                  ) -> tuple[Tensor, Tensor | None, Tensor]:
+        """:meth:`log_likelihood_delta_terms` of the rows ``terms`` at ``slot (B, *S, M)``
+        moved to ``terms_new (B, *S, M, n + 1)``; a one-slot move's rows read in the C loop
+        (no gathered copy; the same values).
+        """
+        if slot.shape[-1] != 1 or terms.shape[-1] != 4:
+            return super().log_likelihood_delta_rows(cache, terms, slot, terms_new, z)
+        return amplitudes.log_likelihood_delta_rows(self, cache, terms, slot, terms_new, z)
+
     # ---------------------------------------------------------------- multitarget prior hooks
     #: Threshold of the data-driven proposal on :meth:`detection_statistic`: a noise-only
     #: cell exceeds it with probability ``exp(-10) = 4.5e-5`` (about 3 cells of the ground
