@@ -86,6 +86,25 @@ def test_repeating_program_skips_guards_only_for_signatures_it_has_run():
         torch.testing.assert_close(got, body(x, pair), rtol=0, atol=0)
 
 
+@pytest.mark.compile
+def test_program_runs_eagerly_where_eager_when_says():
+    """A Program's ``eager_when(*args)``: a CPU call for which it is true runs the function
+    eagerly (nothing traced), any other call the compiled program."""
+    from torchmcmcpf.runtime import compile_program
+
+    traced = []
+
+    def body(x):
+        traced.append(torch.compiler.is_compiling())
+        return x + 1.0
+
+    prog = compile_program(body)
+    prog.eager_when = lambda x: bool(x.shape[0] == 2)
+    assert torch.equal(prog(torch.zeros(2)), torch.ones(2)) and traced == [False]
+    assert torch.equal(prog(torch.zeros(3)), torch.ones(3)) and traced[1:] == [True]  # compiled (its side effect)
+    assert torch.equal(prog(torch.zeros(2)), torch.ones(2)) and traced[2:] == [False]
+
+
 @pytest.mark.parametrize("t_shape, i_shape, dim", [
     ((3, 7, 5, 4), (3, 7, 1, 1), 2),    # a slot's row of each chain, broadcast over the state
     ((3, 7, 5), (3, 7, 5), -1),         # a permutation of each particle's slots

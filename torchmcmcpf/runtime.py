@@ -346,6 +346,8 @@ class Program:
     def __init__(self, fn: Callable):
         fn = _own_code(fn)
         self._fn = fn
+        #: a CPU call for which ``eager_when(*args)`` is true runs ``fn`` eagerly (:meth:`__call__`)
+        self.eager_when: Callable[..., bool] | None = None
         self._plain = torch.compile(fn, fullgraph=True, dynamic=False)
         self._graphed: Callable | None = None
         self._inside = False  # warming up or capturing a loop: the plain program, no nested graphs
@@ -355,9 +357,13 @@ class Program:
     def __call__(self, *args: Any) -> Any:
         """``fn(*args)``, compiled; on CUDA tensors one CUDA graph replay (class docstring).
         Inside :func:`repeating` a CPU call of a signature called before in the same loop
-        skips Dynamo's guard evaluation.
+        skips Dynamo's guard evaluation. A CPU call for which ``eager_when(*args)`` is true
+        runs ``fn`` eagerly: where its eager form is the faster (the IP-MCMC-PF's one-slot
+        iteration in C calls, :mod:`torchmcmcpf.kernels._exchange_native`).
         """
         if self._inside or not _first_on_cuda(args):
+            if self.eager_when is not None and not self._inside and self.eager_when(*args):
+                return self._fn(*args)
             loop = _repeating[0]
             if loop:
                 if self._seen[0] != loop:

@@ -252,3 +252,28 @@ def test_prepared_frames_follow_the_frame():
     assert torch.equal(again, fresh)
     other = z.clone()
     assert native._frames(sensor, other) is not again
+
+
+@pytest.mark.compile
+def test_a_compiled_filter_runs_its_one_slot_moves_in_the_c_calls():
+    """``compile_step=True`` on the CPU: the one-slot iterations run eagerly in their C calls
+    (``Program.eager_when``: faster than the compiled graph), the two-slot ones compiled; the
+    filter's one-slot decisions are then the eager filter's, so its acceptance matches it
+    where the compiled two-slot moves decide alike."""
+    from torchmcmcpf.filters import IPMCMCFilter
+    from torchmcmcpf.models.sensors.grid import native
+    from torchmcmcpf.scenarios.crossing import crossing
+
+    if not native.available():
+        pytest.skip("no C compiler: no one-call iteration")
+    scn = crossing(2, 3, 2, generator=torch.Generator().manual_seed(0))
+    init = scn.initial_particles(100, generator=torch.Generator().manual_seed(1))
+    results = []
+    for compile_step in (True, False):
+        filt = IPMCMCFilter(scn.motion, scn.sensor, 100, num_chains=10, burn_in=20, compile_step=compile_step)
+        calls, counting = _counting_commits()
+        with torch.inference_mode(), counting:
+            results.append(filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2)))
+        assert calls[0] >= 3 * 27  # 3 steps of at least 30 iterations, every 10th a two-slot move
+    compiled, eager = results
+    torch.testing.assert_close(compiled.info.acceptance, eager.info.acceptance, rtol=0, atol=0.02)

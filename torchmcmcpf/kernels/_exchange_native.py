@@ -30,13 +30,14 @@ __all__ = ["applies", "commit"]
 
 
 def applies(*tensors: Tensor | None) -> bool:
-    """Whether :func:`commit` serves an iteration on these tensors: float32 CPU tensors where
-    a C loop serves (:func:`torchmcmcpf._native.applies`: no gradient, no ``torch.func``
-    transform, the loops built), outside ``torch.compile``'s tracing (Inductor compiles the
-    tensor path).
+    """Whether :func:`commit` serves an iteration on these tensors: float32 CPU tensors (or
+    None), the first where a C loop serves (:func:`torchmcmcpf._native.applies`: no gradient,
+    no ``torch.func`` transform, the loops built; the others are the same chains' and
+    proposals'), outside ``torch.compile``'s tracing (Inductor compiles the tensor path).
     """
-    return (not runtime.compiling() and _native.library() is not None
-            and all(t is None or (_native.applies(t) and t.dtype == torch.float32) for t in tensors))
+    first = tensors[0]
+    return (first is not None and _native.applies(first) and not runtime.compiling()
+            and all(t is None or (t.dtype == torch.float32 and t.device.type == "cpu") for t in tensors))
 
 
 def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coords: Tensor | None,
@@ -48,14 +49,14 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
     Parameters
     ----------
     log_lik, delta, u : (B, C) float32: the chains' log-likelihood, the move's change, the
-        MH uniforms; valid : (B, C) bool or None; slot : (B, C) int64, the moved slot.
+        MH uniforms; valid : (B, C) bool or None; slot : (B, C, 1) int64, the moved slot.
     coords : (B, C, K, r) float32 or None (no exclusion term): the chains' resolution
-        coordinates; coords_new : (B, C, r) the moved slot's; scale, log_phi_floor: the
+        coordinates; coords_new : (B, C, 1, r) the moved slot's; scale, log_phi_floor: the
         exclusion's width and ``log phi`` floor.
     log_r : (B, C, K) float32 or None (no re-capture): each slot's cached log ratio; r_new :
-        (B, C) the moved slot's.
-    fields : ``(field (B, C, K, ...), row (B, C, ...))`` pairs: each chain field and the moved
-        slot's new row (same dtype).
+        (B, C, 1) the moved slot's.
+    fields : ``(field (B, C, K, ...), row (B, C, 1, ...))`` pairs: each chain field and the
+        moved slot's new row (same dtype).
     cache : (B, C, G) float32, advanced in place; cells, change : (B, C, ...) the move's flat
         cells into ``cache`` and their change (:meth:`~.SensorModel.log_likelihood_delta_cached`).
 

@@ -106,15 +106,10 @@ def log_likelihood_delta_rows(sensor: GridSensorLike, cache: Tensor, terms: Tens
     at ``slot (B, *S, 1)`` to ``terms_new (B, *S, 1, 4)``, the old row read in the C loop
     (:func:`.native.delta_rows`): the same values as the rows gathered and interleaved.
     """
-    B, S, K, T = terms.shape[0], tuple(terms.shape[1:-2]), terms.shape[-2], terms.shape[-1]
-    G = sensor.geometry.num_cells
-    if tuple(cache.shape) != (B,) + S + (G,):
-        raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
-    P = math.prod(S)
-    delta, cells, change = native.delta_rows(sensor, cache.reshape(B, P, G), terms.reshape(B, P, K, T),
-                                             slot.reshape(B, P).to(torch.int64), terms_new.reshape(B, P, T), z)
-    return delta.reshape((B,) + S), cells.reshape((B,) + S + cells.shape[2:]), \
-        change.reshape((B,) + S + change.shape[2:])
+    lead = tuple(terms.shape[:-2])
+    if tuple(cache.shape) != lead + (sensor.geometry.num_cells,):
+        raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {lead + (sensor.geometry.num_cells,)}")
+    return native.delta_rows(sensor, cache, terms, slot.to(torch.int64), terms_new, z)
 
 
 def _native_delta(sensor: GridSensorLike, cache: Tensor, terms: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
