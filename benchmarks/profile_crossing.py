@@ -27,7 +27,8 @@ from torchmcmcpf.scenarios.crossing import crossing
 #: the grid sensor's calls: a filter's likelihood part, and inside its bookkeeping's inclusive time
 _LIKELIHOOD = [("sensor.py", "log_likelihood"), ("sensor.py", "amplitude_cache"),
                ("sensor.py", "log_likelihood_delta_cached"), ("sensor.py", "log_likelihood_delta"),
-               ("sensor.py", "log_likelihood_slot_changes"), ("sensor.py", "log_likelihood_delta_terms")]
+               ("sensor.py", "log_likelihood_slot_changes"), ("sensor.py", "log_likelihood_delta_terms"),
+               ("sensor.py", "log_likelihood_delta_rows")]
 
 #: filter -> part -> the functions whose inclusive time it is (file suffix, function name)
 PARTS = {

@@ -61,7 +61,7 @@ _i64, _ptr, _f64, _int = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double, ctype
 SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "rician_window_loglik": (_int, [_i64] * 4 + [_ptr] * 6 + [_i64, _f64, _ptr]),
     "rician_delta_cached": (_int, [_i64] * 4 + [_ptr] * 6 + [_i64, _f64] + [_ptr] * 3),
-    "rician_delta_rows": (_int, [_i64] * 4 + [_ptr] * 7 + [_i64, _f64] + [_ptr] * 3),
+    "rician_delta_rows": (_int, [_i64] * 5 + [_ptr] * 7 + [_i64, _f64] + [_ptr] * 3),
     "rician_move": (_int, [_i64] * 4 + [_ptr] * 9 + [_i64, _f64, _ptr]),
     "rician_floor": (_f64, [_i64] * 3 + [_ptr] * 3 + [_f64]),
     "points_intensity": (_int, [_i64] * 5 + [_ptr] * 3 + [_f64, _ptr]),
@@ -73,7 +73,7 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "exclusion_change": (_int, [_i64] * 4 + [_ptr] * 5 + [_f64, _f64, _ptr]),
     "exclusion_factor": (_int, [_i64] * 4 + [_ptr] * 2 + [_f64, _f64, _ptr]),
     "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
-    "exchange_commit": (_int, [_i64] * 3 + [_ptr] * 7 + [_i64, _f64, _f64] + [_ptr] * 2 + [_i64] + [_ptr] * 7
+    "exchange_commit": (_int, [_i64] * 4 + [_ptr] * 8 + [_i64, _f64, _f64] + [_ptr] * 3 + [_i64] + [_ptr] * 7
                         + [_i64] + [_ptr] * 2),
     "select_rows": (_int, [_i64] * 4 + [_ptr] * 2 + [_i64, _ptr, _i64, _ptr]),
     "unpack_rows": (_int, [_i64] * 6 + [_ptr] * 4 + [_i64, _ptr]),

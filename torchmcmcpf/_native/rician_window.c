@@ -292,18 +292,26 @@ static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_
         delta[q] = delta_sample(g, q, P, R, u + q * R * 3, s + q * R, cache, zc, half_inv_var, cells, change);
 }
 
-/* delta_range for one-slot moves read from rows (torchmcmcpf.models.sensors.grid.native.delta_rows):
+/* delta_range for moves of M distinct slots read from rows (torchmcmcpf.models.sensors.grid.native.delta_rows):
  * terms (B*P, K, 4) each slot's measurement coordinates and amplitude (times existence), slot
- * (B*P) int64 the moved slot, terms_new (B*P, 4) its row after the move: the spreads of
- * delta_range with R = 2, u = (the slot's coordinates, the new ones), s = (-its amplitude, the
- * new amplitude) (the negation exact, as amplitudes._signed makes them). */
-static void rows_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t K, const float *terms,
+ * (B*P, M) int64 the moved slots, terms_new (B*P, M, 4) their rows after the move: the spreads
+ * of delta_range with R = 2M, each slot's before, then after (amplitudes._moved_terms' order),
+ * the amplitude before negated (exact, as amplitudes._signed makes it). */
+static void rows_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t K, int64_t M, const float *terms,
                        const int64_t *slot, const float *terms_new, const float *cache, const float *zc,
                        float half_inv_var, float *delta, int64_t *cells, float *change) {
+    float u[MAX_K * 3], s[MAX_K];
     for (int64_t q = p0; q < p1; ++q) {
-        const float *old = terms + (q * K + slot[q]) * 4, *now = terms_new + q * 4;
-        const float u[6] = { old[0], old[1], old[2], now[0], now[1], now[2] }, s[2] = { old[3] * -1.0f, now[3] };
-        delta[q] = delta_sample(g, q, P, 2, u, s, cache, zc, half_inv_var, cells, change);
+        for (int64_t j = 0; j < M; ++j) {
+            const float *old = terms + (q * K + slot[q * M + j]) * 4, *now = terms_new + (q * M + j) * 4;
+            for (int c = 0; c < 3; ++c) {
+                u[6 * j + c] = old[c];
+                u[6 * j + 3 + c] = now[c];
+            }
+            s[2 * j] = old[3] * -1.0f;
+            s[2 * j + 1] = now[3];
+        }
+        delta[q] = delta_sample(g, q, P, 2 * M, u, s, cache, zc, half_inv_var, cells, change);
     }
 }
 
@@ -373,13 +381,13 @@ int rician_delta_cached(int64_t n, int64_t threads, int64_t P, int64_t R, const 
     return 0;
 }
 
-int rician_delta_rows(int64_t n, int64_t threads, int64_t P, int64_t K, const float *terms, const int64_t *slot,
-                      const float *terms_new, const float *cache, const float *zc, const int64_t *shape,
-                      const double *geo, int64_t window, double half_inv_var, float *delta, int64_t *cells,
-                      float *change) {
+int rician_delta_rows(int64_t n, int64_t threads, int64_t P, int64_t K, int64_t M, const float *terms,
+                      const int64_t *slot, const float *terms_new, const float *cache, const float *zc,
+                      const int64_t *shape, const double *geo, int64_t window, double half_inv_var, float *delta,
+                      int64_t *cells, float *change) {
     Grid g;
-    if (grid_of(&g, shape, geo, window)) return 1;
-    SPLIT(n, threads, rows_range(&g, lo, hi, P, K, terms, slot, terms_new, cache, zc, (float)half_inv_var, delta,
+    if (2 * M > MAX_K || grid_of(&g, shape, geo, window)) return 1;
+    SPLIT(n, threads, rows_range(&g, lo, hi, P, K, M, terms, slot, terms_new, cache, zc, (float)half_inv_var, delta,
                                  cells, change))
     return 0;
 }

@@ -1,15 +1,15 @@
-"""The exchange move's one-slot iteration after its likelihood change, in one C call
+"""The exchange move's iteration after its likelihood change, in one C call
 (``torchmcmcpf/_native/exchange.c``).
 
 :func:`~torchmcmcpf.kernels.exchange.exchange_iteration` on tensors makes forty to a hundred
-ATen calls an iteration after the sensor's change (the exclusion factors' change, the slot's
-re-capture ratio, the MH test, one select per chain field, the cache's scatter-add), each
+ATen calls an iteration after the sensor's change (the exclusion factors' change, the slots'
+re-capture ratios, the MH test, one select per chain field, the cache's scatter-add), each
 2-4 us of dispatch on tensors of a few hundred numbers: most of an eager iteration on the
 radar scenes, whose likelihood change is one C call. :func:`commit` does the same arithmetic
 in one call, operation by operation in the same float32 order (the exclusion's change by the
 same C loop as :meth:`~torchmcmcpf.models.multitarget.Exclusion.log_change`, ``log u`` by
 ATen as :func:`~torchmcmcpf.kernels.mh.mh_accept` takes it): the same chains, decisions and
-cache to the bit (tests/kernels/test_exchange_native.py). The fields are new tensors, as the
+cache to the bit (tests/kernels/test_exchange_caches.py). The fields are new tensors, as the
 tensor path returns them (the chains a segment records are not written later); the cache
 advances in place, as :meth:`~torchmcmcpf.models.base.SensorModel.update_amplitude_cache`
 does. Eager CPU only (:func:`applies`).
@@ -40,36 +40,40 @@ def applies(*tensors: Tensor | None) -> bool:
             and all(t is None or (t.dtype == torch.float32 and t.device.type == "cpu") for t in tensors))
 
 
-def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coords: Tensor | None,
-           coords_new: Tensor | None, scale: float, log_phi_floor: float, log_r: Tensor | None,
-           r_new: Tensor | None, fields: list[tuple[Tensor, Tensor]], cache: Tensor, cells: Tensor, change: Tensor
-           ) -> tuple[Tensor, Tensor, list[Tensor]]:
-    """One-slot exchange moves of ``(B, C)`` chains decided and written in one call.
+def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, src_term: Tensor | None,
+           coords: Tensor | None, coords_new: Tensor | None, scale: float, log_phi_floor: float,
+           log_r: Tensor | None, r_new: Tensor | None, r_old: Tensor | None, fields: list[tuple[Tensor, Tensor]],
+           cache: Tensor, cells: Tensor, change: Tensor) -> tuple[Tensor, Tensor, list[Tensor]]:
+    """Exchange moves of ``M`` distinct slots of ``(B, C)`` chains decided and written in one
+    call.
 
     Parameters
     ----------
     log_lik, delta, u : (B, C) float32: the chains' log-likelihood, the move's change, the
-        MH uniforms; valid : (B, C) bool or None; slot : (B, C, 1) int64, the moved slot.
+        MH uniforms; valid : (B, C) bool or None; slot : (B, C, M) int64, the moved slots.
+    src_term : (B, C) float32 or None: the pair's source term of the move's prior ratio
+        (:func:`~.exchange.pair_source_log_ratio`, new minus old).
     coords : (B, C, K, r) float32 or None (no exclusion term): the chains' resolution
-        coordinates; coords_new : (B, C, 1, r) the moved slot's; scale, log_phi_floor: the
+        coordinates; coords_new : (B, C, M, r) the moved slots'; scale, log_phi_floor: the
         exclusion's width and ``log phi`` floor.
     log_r : (B, C, K) float32 or None (no re-capture): each slot's cached log ratio; r_new :
-        (B, C, 1) the moved slot's.
-    fields : ``(field (B, C, K, ...), row (B, C, 1, ...))`` pairs: each chain field and the
-        moved slot's new row (same dtype).
+        (B, C, M) the moved slots'; r_old : (B, C, M) the moved slots' cached ratios converted
+        to this move's ``epsilon``, or None (``M = 1``: read from ``log_r``).
+    fields : ``(field (B, C, K, ...), rows (B, C, M, ...))`` pairs: each chain field and the
+        moved slots' new rows (same dtype).
     cache : (B, C, G) float32, advanced in place; cells, change : (B, C, ...) the move's flat
         cells into ``cache`` and their change (:meth:`~.SensorModel.log_likelihood_delta_cached`).
 
     Returns
     -------
     log_lik : (B, C) the chains' new log-likelihood; accepted : (B, C) bool; the new fields
-        (each slot's row the new one where accepted).
+        (each moved slot's row the new one where accepted).
     """
-    n, k = log_lik.numel(), fields[0][0].shape[2]
+    n, k, m = log_lik.numel(), fields[0][0].shape[2], slot.shape[-1]
     log_u = torch.log(u)  # mh_accept's log u, the same call
     log_lik, delta, log_u, slot, cells, change = (t.contiguous() for t in (log_lik, delta, log_u, slot, cells, change))
-    valid, coords, coords_new, log_r, r_new = (None if t is None else t.contiguous()
-                                               for t in (valid, coords, coords_new, log_r, r_new))
+    valid, src_term, coords, coords_new, log_r, r_new, r_old = (
+        None if t is None else t.contiguous() for t in (valid, src_term, coords, coords_new, log_r, r_new, r_old))
     srcs = [f.contiguous() for f, _ in fields]
     rows = [r.contiguous() for _, r in fields]
     dsts = [torch.empty_like(f) for f in srcs]
@@ -83,14 +87,14 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
 
     widths = (ctypes.c_int64 * nf)(*(math.prod(f.shape[3:]) * f.element_size() for f in srcs))
     lib: Any = _native.library()
+    r = 0 if coords is None else coords.shape[-1]
     code = lib.exchange_commit(
-        n, torch.get_num_threads(), k, at(log_lik), at(delta), at(log_u),
-        None if valid is None else valid.view(torch.uint8).data_ptr(), at(slot), at(coords), at(coords_new),
-        0 if coords is None else coords.shape[-1], 1.0 / (2.0 * scale**2), math.exp(log_phi_floor), at(log_r),
-        at(r_new), nf, ptr(*(t.data_ptr() for t in srcs)), ptr(*(t.data_ptr() for t in dsts)),
-        ptr(*(t.data_ptr() for t in rows)), widths, cache.data_ptr(), at(cells), at(change), cells.numel() // n,
-        ll_out.data_ptr(), accepted.data_ptr())
+        n, torch.get_num_threads(), k, m, at(log_lik), at(delta), at(log_u),
+        None if valid is None else valid.view(torch.uint8).data_ptr(), at(slot), at(src_term), at(coords),
+        at(coords_new), r, 1.0 / (2.0 * scale**2), math.exp(log_phi_floor), at(log_r), at(r_new), at(r_old), nf,
+        ptr(*(t.data_ptr() for t in srcs)), ptr(*(t.data_ptr() for t in dsts)), ptr(*(t.data_ptr() for t in rows)),
+        widths, cache.data_ptr(), at(cells), at(change), cells.numel() // n, ll_out.data_ptr(), accepted.data_ptr())
     if code:
-        raise ValueError(f"the exchange's C loop got K = {k} slots or {coords.shape[-1] if coords is not None else 0} "
-                         "resolution coordinates, above its limits (1024, 4)")
+        raise ValueError(f"the exchange's C loop got K = {k} slots, M = {m} moved or {r} resolution coordinates, "
+                         "above its limits (1024, 4, 4)")
     return ll_out, accepted.view(torch.bool), dsts

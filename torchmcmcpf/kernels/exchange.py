@@ -73,6 +73,7 @@ from (both slots of a starting point from one particle) satisfies the constraint
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -508,34 +509,42 @@ def _write_row(t: Tensor, slot: Tensor, row: Tensor, accepted: Tensor, take: Ten
 
 def one_call_serves(chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor | None, z: Measurement,
                     noise: ExchangeNoise) -> bool:
-    """Whether :func:`exchange_iteration` on these arguments (its positional ones) runs its
-    one-slot move's rest in one C call (its docstring): a one-slot move of chains that keep
-    their move terms and an amplitude cache, without existence flags, eager on float32 CPU
-    tensors. A compiled IP-MCMC-PF runs such iterations eagerly
-    (:attr:`~torchmcmcpf.runtime.Program.eager_when`): 0.25 ms against 0.57 for the compiled
-    graph on bench's radar scene (Np = 5000, 50 chains, 2 threads; benchmarks/README.md).
+    """Whether :func:`exchange_iteration` on these arguments (its positional ones) runs the
+    rest of its move in one C call (its docstring): chains that keep their move terms and an
+    amplitude cache, without existence flags, eager on float32 CPU tensors. A compiled
+    IP-MCMC-PF runs such iterations eagerly (:attr:`~torchmcmcpf.runtime.Program.eager_when`):
+    a one-slot iteration 0.26 ms against 0.58 for the compiled graph on bench's radar scene
+    (Np = 5000, 50 chains, 2 threads; benchmarks/README.md).
     """
-    return (noise.slot.shape[-1] == 1 and chains.terms is not None and chains.amplitude is not None
-            and chains.exists is None and _exchange_native.applies(chains.log_lik))
+    return chains.terms is not None and chains.amplitude is not None and chains.exists is None \
+        and _exchange_native.applies(chains.log_lik)
 
 
 def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangeProposal, delta: Tensor, cells: Tensor,
-              change: Tensor, exclusion: Exclusion | None, source: Tensor | None, log_w_source: Tensor | None
+              change: Tensor, exclusion: Exclusion | None, source: Tensor | None, log_w_source: Tensor | None,
+              src_term: Tensor | None, convert: Callable[..., Tensor], base: float | None, eps_k: float | None
               ) -> tuple[ExchangeChains, Tensor, None]:
-    """:func:`exchange_iteration`'s one-slot move after the likelihood's change ``delta``
+    """:func:`exchange_iteration`'s move of ``M`` slots after the likelihood's change ``delta``
     (``cells``, ``change`` its cache update) in one C call (:mod:`._exchange_native`): the
     same chains, decisions and cache as the tensor path; the cache advanced in place, so the
     returned chains carry it and the update is ``None``. ``exclusion`` only where the chains
-    keep their coordinates; ``source``, ``log_w_source`` the moved slot's (B, C, 1).
+    keep their coordinates; ``source``, ``log_w_source`` the moved slots' (B, C, M);
+    ``src_term`` the pair's source term; ``convert(r, kind, src, dst)`` a cached ``log r``
+    between two ``epsilon`` (the chains cache it at ``base``, this move's is ``eps_k``).
     """
     y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
     moved, _, r_new, kind_new, coords_new, terms_new = proposal
     assert cache is not None
-    # each field the chains have, with the moved slot's new row (M = 1: its (B, C, 1, ...)
-    # proposal is the row), in a fixed order
+    m = noise.slot.shape[-1]
+    # each field the chains have, with the moved slots' new rows (their (B, C, M, ...)
+    # proposals), in a fixed order; log r written at the chains' epsilon
     fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
+    r_old = None
     if log_r is not None and r_new is not None:
-        fields["log_r"] = (log_r, r_new)
+        fields["log_r"] = (log_r, convert(r_new, kind_new, eps_k, base))
+        if m > 1:  # the moved slots' cached ratios at this move's epsilon (one slot: read in C)
+            r_old = convert(torch.gather(log_r, -1, noise.slot), None if kind is None else torch.gather(
+                kind, -1, noise.slot), base, eps_k)
     if kind is not None and kind_new is not None:
         fields["kind"] = (kind, kind_new)
     if src is not None and lw is not None and source is not None and log_w_source is not None:
@@ -545,11 +554,10 @@ def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangePr
     if terms is not None and terms_new is not None:
         fields["terms"] = (terms, terms_new)
     u, u_new = fields["coords"] if "coords" in fields else (None, None)
-    r, r_row = fields["log_r"] if "log_r" in fields else (None, None)
     ll, accepted, out = _exchange_native.commit(
-        log_lik, delta, noise.u, noise.valid, noise.slot, u, u_new,
-        1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, r, r_row, list(fields.values()), cache, cells,
-        change)
+        log_lik, delta, noise.u, noise.valid, noise.slot, src_term, u, u_new,
+        1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, log_r if "log_r" in fields else None,
+        r_new if "log_r" in fields else None, r_old, list(fields.values()), cache, cells, change)
     new = dict(zip(fields, out))
     return ExchangeChains(new["y"], ll, None, new.get("log_r", log_r), new.get("kind", kind), new.get("source", src),
                           new.get("log_w_source", lw), cache, new.get("coords"), new.get("terms")), accepted, None
@@ -584,8 +592,8 @@ def exchange_iteration(
         (motion, optionally births and deaths and re-capture); sensor : the SensorModel;
         exclusion : the exclusion term, optional.
 
-    A one-slot move read from the chains' terms on float32 CPU tensors without existence
-    flags, eager, runs its rest in one C call after the likelihood's change
+    A move read from the chains' terms on float32 CPU tensors without existence flags,
+    eager, runs its rest in one C call after the likelihood's change
     (:mod:`._exchange_native`: the decision, the fields and the cache; the same bits).
 
     Returns
@@ -627,30 +635,38 @@ def exchange_iteration(
     moved, e_new, r_new, kind_new, coords_new, terms_new = proposal
     by_terms = cache is not None and terms is not None and terms_new is not None  # rows read, states not mapped
     kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
-    update = None
-    if cache is not None and terms is not None and terms_new is not None:  # by_terms: the moved slots' rows
-        delta, cells, change = sensor.log_likelihood_delta_rows(cache, terms, noise.slot, terms_new, z)
-        if (m == 1 and cells is not None and exists is None and e_new is None and (kept or not on)
-                and _exchange_native.applies(log_lik, delta, noise.u, cache, log_r, r_new, coords, coords_new)
-                and cache.is_contiguous()):  # the rest of the iteration in one C call
-            return _one_call(chains, noise, proposal, delta, cells, change, exclusion if kept else None,
-                             src_moved, lw_moved)
-        update = (cells, change)
 
     def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
         if kd is None or src is None or dst is None or src == dst:
             return r
         return r + log_q_ratio(kd, src, dst).to(r.dtype)
 
+    def source_term() -> Tensor | None:  # the pair's sources (module docstring), new minus old
+        if rho > 0 and source is not None and log_w_source is not None:
+            return (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
+                    - pair_source_log_ratio(take_along(source, noise.slot, -1), take_along(log_w_source, noise.slot,
+                                                                                          -1), rho))
+        return None
+
+    update = None
+    if cache is not None and terms is not None and terms_new is not None:  # by_terms: the moved slots' rows
+        delta, cells, change = sensor.log_likelihood_delta_rows(cache, terms, noise.slot, terms_new, z)
+        if (cells is not None and exists is None and e_new is None and (kept or not on)
+                and _exchange_native.applies(log_lik, delta, noise.u, cache, log_r, r_new, coords, coords_new)
+                and cache.is_contiguous()):  # the rest of the iteration in one C call
+            pair = source_term()
+            return _one_call(chains, noise, proposal, delta, cells, change, exclusion if kept else None,
+                             src_moved, lw_moved, None if pair is None else pair.to(log_lik.dtype), convert,
+                             base, eps_k)
+        update = (cells, change)
+
     # the proposal's terms first (the slots that move are distinct: each reads its own current
     # terms), then the accepted moves written into the state, one select per field
     cur_y, cur_e, cur_ll = y, exists, log_lik
     log_prior = torch.zeros_like(log_lik)
-    if rho > 0 and source is not None and log_w_source is not None:  # the pair's sources (module docstring)
-        old_source = take_along(source, noise.slot, -1)
-        old_log_w = take_along(log_w_source, noise.slot, -1)
-        log_prior = log_prior + (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
-                                 - pair_source_log_ratio(old_source, old_log_w, rho)).to(log_prior.dtype)
+    pair = source_term()
+    if pair is not None:
+        log_prior = log_prior + pair.to(log_prior.dtype)
     cur_u = u_moved = None
     if on:
         if kept:  # read: the chains' from their state, the moved slots' from the segment's proposals

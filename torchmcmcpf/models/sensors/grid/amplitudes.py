@@ -102,9 +102,10 @@ def log_likelihood_delta_terms(sensor: GridSensorLike, cache: Tensor, terms: Ten
 
 def log_likelihood_delta_rows(sensor: GridSensorLike, cache: Tensor, terms: Tensor, slot: Tensor, terms_new: Tensor,
                               z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`log_likelihood_delta_terms` of one-slot moves from the rows ``terms (B, *S, K, 4)``
-    at ``slot (B, *S, 1)`` to ``terms_new (B, *S, 1, 4)``, the old row read in the C loop
-    (:func:`.native.delta_rows`): the same values as the rows gathered and interleaved.
+    """:func:`log_likelihood_delta_terms` of moves of ``M`` distinct slots from the rows ``terms
+    (B, *S, K, 4)`` at ``slot (B, *S, M)`` to ``terms_new (B, *S, M, 4)``, the old rows read in
+    the C loop (:func:`.native.delta_rows`): the same values as the rows gathered and
+    interleaved.
     """
     lead = tuple(terms.shape[:-2])
     if tuple(cache.shape) != lead + (sensor.geometry.num_cells,):

@@ -145,30 +145,30 @@ def _(u: Tensor, s: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: li
 @runtime.custom_op("torchmcmcpf::rician_delta_rows")
 def _delta_rows(terms: Tensor, slot: Tensor, terms_new: Tensor, cache: Tensor, zc: Tensor, shape: list[int],
                 geo: list[float], window: int, half_inv_var: float) -> tuple[Tensor, Tensor, Tensor]:
-    """``terms (B, *S, K, 4)``, ``slot (B, *S, 1)`` int64, ``terms_new (B, *S, 1, 4)``, ``cache
-    (B, *S, G)``, ``zc (B, G + 8)`` float32 -> :func:`_delta_cached`'s outputs for the one-slot
-    moves (``R = 2``: the slot's row before, ``terms_new`` after), ``delta (B, *S)``, ``cells,
-    change (B, *S, 2, V)``.
+    """``terms (B, *S, K, 4)``, ``slot (B, *S, M)`` int64, ``terms_new (B, *S, M, 4)``, ``cache
+    (B, *S, G)``, ``zc (B, G + 8)`` float32 -> :func:`_delta_cached`'s outputs for the moves of
+    ``M`` slots (``R = 2M``: each slot's row before, its ``terms_new`` after), ``delta (B,
+    *S)``, ``cells, change (B, *S, 2M, V)``.
     """
-    lead, K, V = tuple(slot.shape[:-1]), terms.shape[-2], shape[3] * shape[4] * shape[5]
+    lead, K, M, V = tuple(slot.shape[:-1]), terms.shape[-2], slot.shape[-1], shape[3] * shape[4] * shape[5]
     n = math.prod(lead)
     terms, slot, terms_new, cache, zc = (t.contiguous() for t in (terms, slot, terms_new, cache, zc))
     delta = torch.empty(lead, dtype=torch.float32)
-    cells = torch.empty(lead + (2, V), dtype=torch.int64)
-    change = torch.empty(lead + (2, V), dtype=torch.float32)
+    cells = torch.empty(lead + (2 * M, V), dtype=torch.int64)
+    change = torch.empty(lead + (2 * M, V), dtype=torch.float32)
     lib: Any = library()
     shape_t, geo_t = _tables(tuple(shape), tuple(geo))
     ptrs = [t.data_ptr() for t in (terms, slot, terms_new, cache, zc, shape_t, geo_t)]
-    _check(lib.rician_delta_rows(n, torch.get_num_threads(), n // zc.shape[0], K, *ptrs, window, half_inv_var,
-                                 delta.data_ptr(), cells.data_ptr(), change.data_ptr()), "a box")
+    _check(lib.rician_delta_rows(n, torch.get_num_threads(), n // zc.shape[0], K, M, *ptrs, window, half_inv_var,
+                                 delta.data_ptr(), cells.data_ptr(), change.data_ptr()), f"{2 * M} spreads")
     return delta, cells, change
 
 
 @_delta_rows.register_fake
 def _(terms: Tensor, slot: Tensor, terms_new: Tensor, cache: Tensor, zc: Tensor, shape: list[int], geo: list[float],
       window: int, half_inv_var: float) -> tuple[Tensor, Tensor, Tensor]:
-    lead, V = tuple(slot.shape[:-1]), shape[3] * shape[4] * shape[5]
-    return (terms.new_empty(lead), terms.new_empty(lead + (2, V), dtype=torch.int64), terms.new_empty(lead + (2, V)))
+    lead, R, V = tuple(slot.shape[:-1]), 2 * slot.shape[-1], shape[3] * shape[4] * shape[5]
+    return (terms.new_empty(lead), terms.new_empty(lead + (R, V), dtype=torch.int64), terms.new_empty(lead + (R, V)))
 
 
 @runtime.custom_op("torchmcmcpf::rician_move")
@@ -265,12 +265,13 @@ def delta_cached(sensor: GridSensorLike, cache: Tensor, u: Tensor, s: Tensor, z:
 
 def delta_rows(sensor: GridSensorLike, cache: Tensor, terms: Tensor, slot: Tensor, terms_new: Tensor, z: Tensor
                ) -> tuple[Tensor, Tensor, Tensor]:
-    """:func:`delta_cached` of one-slot moves read from the chains' rows in the loop (the
-    caller checks :func:`applies` and the inputs): ``cache (B, *S, G)``, ``terms (B, *S, K,
-    4)`` the chains' :func:`~.amplitudes.move_terms`, ``slot (B, *S, 1)`` int64, ``terms_new
-    (B, *S, 1, 4)`` the moved slot's after the move, frames ``z (B, *G)`` -> ``delta (B,
-    *S)``, ``cells, change (B, *S, 2, *box_cells)``: the values of :func:`delta_cached` on
-    the spreads of ``terms`` gathered at ``slot`` and ``terms_new`` (tested to the bit).
+    """:func:`delta_cached` of moves of ``M`` distinct slots read from the chains' rows in the
+    loop (the caller checks :func:`applies` and the inputs): ``cache (B, *S, G)``, ``terms (B,
+    *S, K, 4)`` the chains' :func:`~.amplitudes.move_terms`, ``slot (B, *S, M)`` int64,
+    ``terms_new (B, *S, M, 4)`` the moved slots' after the move, frames ``z (B, *G)`` ->
+    ``delta (B, *S)``, ``cells, change (B, *S, 2M, *box_cells)``: the values of
+    :func:`delta_cached` on the spreads of ``terms`` gathered at ``slot`` interleaved with
+    ``terms_new`` (tested to the bit).
     """
     shape, geo, window, h = _geometry(sensor)
     delta, cells, change = _delta_rows(terms, slot, terms_new, cache, _frames(sensor, z), shape, geo, window, h)

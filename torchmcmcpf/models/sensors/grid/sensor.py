@@ -445,10 +445,10 @@ class SeparableGridSensor(SensorModel[Tensor]):
     def log_likelihood_delta_rows(self, cache: Tensor, terms: Tensor, slot: Tensor, terms_new: Tensor, z: Tensor
                                   ) -> tuple[Tensor, Tensor | None, Tensor]:
         """:meth:`log_likelihood_delta_terms` of the rows ``terms`` at ``slot (B, *S, M)``
-        moved to ``terms_new (B, *S, M, n + 1)``; a one-slot move's rows read in the C loop
-        (no gathered copy; the same values).
+        moved to ``terms_new (B, *S, M, n + 1)``, the rows read in the C loop (no gathered
+        copy; the same values).
         """
-        if slot.shape[-1] != 1 or terms.shape[-1] != 4:
+        if terms.shape[-1] != 4:
             return super().log_likelihood_delta_rows(cache, terms, slot, terms_new, z)
         return amplitudes.log_likelihood_delta_rows(self, cache, terms, slot, terms_new, z)
 
