@@ -599,9 +599,10 @@ def exchange_iteration(
     Returns
     -------
     chains : the new :class:`ExchangeChains`, without their ``amplitude`` (None), but after
-    the one C call, which advanced the cache in place: then the chains carry it;
-    accepted : (B, C) bool; update : ``(cells, change)`` with an ``amplitude`` cache (None
-    after the one C call), else ``None``.
+        the one C call, which advanced the cache in place: then the chains carry it.
+    accepted : (B, C) bool.
+    update : ``(cells, change)`` with an ``amplitude`` cache (None after the one C call),
+        else ``None``.
     """
     y, log_lik, exists, log_r, kind, source, log_w_source, cache, coords, terms = chains
     existence, recapture = dynamics.existence, dynamics.recapture
