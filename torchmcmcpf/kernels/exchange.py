@@ -583,6 +583,10 @@ def exchange_iteration(
     cells near the old and new position of the slot only, carried as ``log_lik + delta``; any
     other sensor scores the whole proposal with ``log_likelihood``.
 
+    A move read from the chains' terms on float32 CPU tensors without existence flags,
+    eager, runs its rest in one C call after the likelihood's change
+    (:mod:`._exchange_native`: the decision, the fields and the cache; the same bits).
+
     Parameters
     ----------
     chains : :class:`ExchangeChains` ``(B, C, ...)``.
@@ -591,10 +595,6 @@ def exchange_iteration(
     dynamics : :class:`~torchmcmcpf.models.existence.TargetDynamics`, the slots' joint model
         (motion, optionally births and deaths and re-capture); sensor : the SensorModel;
         exclusion : the exclusion term, optional.
-
-    A move read from the chains' terms on float32 CPU tensors without existence flags,
-    eager, runs its rest in one C call after the likelihood's change
-    (:mod:`._exchange_native`: the decision, the fields and the cache; the same bits).
 
     Returns
     -------
