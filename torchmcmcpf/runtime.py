@@ -358,8 +358,8 @@ class Program:
         """``fn(*args)``, compiled; on CUDA tensors one CUDA graph replay (class docstring).
         Inside :func:`repeating` a CPU call of a signature called before in the same loop
         skips Dynamo's guard evaluation. A CPU call for which ``eager_when(*args)`` is true
-        runs ``fn`` eagerly: where its eager form is the faster (the IP-MCMC-PF's one-slot
-        iteration in C calls, :mod:`torchmcmcpf.kernels._exchange_native`).
+        runs ``fn`` eagerly: where its eager form is the faster (the IP-MCMC-PF's iteration
+        in two C calls, :mod:`torchmcmcpf.kernels._exchange_native`).
         """
         if self._inside or not _first_on_cuda(args):
             if self.eager_when is not None and not self._inside and self.eager_when(*args):

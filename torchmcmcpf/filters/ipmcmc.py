@@ -705,7 +705,7 @@ def ipmcmc_program(dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exc
     if compile is None:
         return iteration
     program = compile(iteration)
-    if isinstance(program, Program):  # a one-slot move in its C calls beats the compiled graph
+    if isinstance(program, Program):  # a move in its two C calls beats the compiled graph
         program.eager_when = one_call_serves
     return program
 

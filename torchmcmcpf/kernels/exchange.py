@@ -650,7 +650,7 @@ def exchange_iteration(
         return None
 
     update = None
-    if cache is not None and terms is not None and terms_new is not None:  # by_terms: the moved slots' rows
+    if by_terms and cache is not None and terms is not None and terms_new is not None:  # the moved slots' rows
         delta, cells, change = sensor.log_likelihood_delta_rows(cache, terms, noise.slot, terms_new, z)
         if (cells is not None and exists is None and e_new is None and (kept or not on)
                 and _exchange_native.applies(log_lik, delta, noise.u, cache, log_r, r_new, coords, coords_new)

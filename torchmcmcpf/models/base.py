@@ -379,7 +379,7 @@ class SensorModel(nn.Module, Generic[Z]):
         *S, M)`` (int64) of states whose :meth:`move_terms` are ``terms (B, *S, K, T)``, to
         the rows ``terms_new (B, *S, M, T)``: the slots' rows gathered before the move,
         interleaved with the new ones. A sensor may read the rows in its own loop (the radar's
-        C loop does for ``M = 1``); the same ``(delta, cells, change)``.
+        C loop does); the same ``(delta, cells, change)``.
         """
         t, m = terms.shape[-1], slot.shape[-1]
         old = torch.gather(terms, -2, slot.unsqueeze(-1).expand(slot.shape + (t,)))  # (B, *S, M, T)
