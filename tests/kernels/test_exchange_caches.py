@@ -277,3 +277,17 @@ def test_a_compiled_filter_runs_its_one_slot_moves_in_the_c_calls():
         assert calls[0] >= 3 * 30  # 3 steps of at least 30 iterations
     compiled, eager = results
     assert torch.equal(compiled.mean, eager.mean) and torch.equal(compiled.state.x, eager.state.x)
+
+
+def test_commit_refuses_rows_of_another_dtype():
+    """The one-call commit copies rows as bytes: a row of another dtype or shape than its
+    field is a ValueError naming both, not a silent reinterpretation."""
+    from torchmcmcpf.kernels import _exchange_native
+
+    b, c, k = 1, 2, 3
+    log_lik = torch.zeros(b, c)
+    cache, cells, change = torch.zeros(b, c, 4), torch.zeros(b, c, 1, dtype=torch.int64), torch.zeros(b, c, 1)
+    y, row = torch.zeros(b, c, k, 5), torch.zeros(b, c, 1, 5, dtype=torch.float64)
+    with pytest.raises(ValueError, match="dtype and row shape"):
+        _exchange_native.commit(log_lik, log_lik, log_lik + 0.5, None, torch.zeros(b, c, 1, dtype=torch.int64), None,
+                                None, None, 1.0, -50.0, None, None, None, [(y, row)], cache, cells, change)

@@ -74,6 +74,9 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
     log_lik, delta, log_u, slot, cells, change = (t.contiguous() for t in (log_lik, delta, log_u, slot, cells, change))
     valid, src_term, coords, coords_new, log_r, r_new, r_old = (
         None if t is None else t.contiguous() for t in (valid, src_term, coords, coords_new, log_r, r_new, r_old))
+    if any(f.dtype != r.dtype or f.shape[3:] != r.shape[3:] for f, r in fields):  # rows copied as bytes
+        raise ValueError("each field's rows must have its dtype and row shape, got "
+                         f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
     srcs = [f.contiguous() for f, _ in fields]
     rows = [r.contiguous() for _, r in fields]
     dsts = [torch.empty_like(f) for f in srcs]
