@@ -210,9 +210,9 @@ def delta(sensor: GridSensorLike, x: Tensor, x_n: Tensor, slot: Tensor, z: Tenso
                  _frames(sensor, z), *_geometry(sensor))
 
 
-#: the last prepared frames, ``(z, its version, the sensor's ratio, its type) -> frames``
-#: (:func:`_frames`)
-_last_frames: dict[str, Any] = {}
+#: ``[(a weak reference to z, (its version, the sensor's type and ratio), the prepared frames)]``:
+#: the last call's (:func:`_frames`), one tuple read and written whole (threads see a whole entry)
+_last_frames: list[tuple[Any, tuple, Tensor] | None] = [None]
 
 
 def _frames(sensor: GridSensorLike, z: Tensor) -> Tensor:
@@ -228,12 +228,12 @@ def _frames(sensor: GridSensorLike, z: Tensor) -> Tensor:
     key = None
     if not runtime.compiling() and type(z) is torch.Tensor and not z.is_inference():
         key = (z._version, type(sensor), sensor.native_ratio())
-        last = _last_frames.get("z")
-        if last is not None and last() is z and _last_frames["key"] == key:
-            return _last_frames["frames"]
+        last = _last_frames[0]
+        if last is not None and last[0]() is z and last[1] == key:
+            return last[2]
     frames = torch.nn.functional.pad(sensor.prepare_frame(z.to(torch.float32)).reshape(z.shape[0], -1), (0, 8))
     if key is not None:
-        _last_frames.update(z=weakref.ref(z), key=key, frames=frames)
+        _last_frames[0] = (weakref.ref(z), key, frames)
     return frames
 
 
