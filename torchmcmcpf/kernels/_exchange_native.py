@@ -37,7 +37,7 @@ def applies(*tensors: Tensor | None) -> bool:
     """
     first = tensors[0]
     return (first is not None and _native.applies(first) and not runtime.compiling()
-            and all(t is None or (t.dtype == torch.float32 and t.device.type == "cpu") for t in tensors))
+            and all(t is None or (t.dtype is torch.float32 and t.device.type == "cpu") for t in tensors))
 
 
 def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, src_term: Tensor | None,
@@ -74,7 +74,10 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
     log_lik, delta, log_u, slot, cells, change = (t.contiguous() for t in (log_lik, delta, log_u, slot, cells, change))
     valid, src_term, coords, coords_new, log_r, r_new, r_old = (
         None if t is None else t.contiguous() for t in (valid, src_term, coords, coords_new, log_r, r_new, r_old))
-    if any(f.dtype != r.dtype or f.shape[3:] != r.shape[3:] for f, r in fields):  # rows copied as bytes
+    nf = len(fields)
+    # each field's row in bytes; its rows must have its dtype and as many elements (copied as bytes)
+    width = [f.element_size() * (f.numel() // (n * k)) for f, _ in fields]
+    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // (n * m)) != w for (f, r), w in zip(fields, width)):
         raise ValueError("each field's rows must have its dtype and row shape, got "
                          f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
     srcs = [f.contiguous() for f, _ in fields]
@@ -82,21 +85,21 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
     dsts = [torch.empty_like(f) for f in srcs]
     ll_out = torch.empty_like(log_lik)
     accepted = torch.empty(log_lik.shape, dtype=torch.uint8)
-    nf = len(fields)
-    ptr = ctypes.c_void_p * nf
 
     def at(t: Tensor | None) -> int | None:
         return None if t is None else t.data_ptr()
 
-    widths = (ctypes.c_int64 * nf)(*(math.prod(f.shape[3:]) * f.element_size() for f in srcs))
+    # the fields' sources, outputs and rows in one array of pointers
+    ptrs = (ctypes.c_void_p * (3 * nf))(*[t.data_ptr() for group in (srcs, dsts, rows) for t in group])
+    step = ctypes.sizeof(ctypes.c_void_p) * nf
     lib: Any = _native.library()
     r = 0 if coords is None else coords.shape[-1]
     code = lib.exchange_commit(
         n, torch.get_num_threads(), k, m, at(log_lik), at(delta), at(log_u),
         None if valid is None else valid.view(torch.uint8).data_ptr(), at(slot), at(src_term), at(coords),
         at(coords_new), r, 1.0 / (2.0 * scale**2), math.exp(log_phi_floor), at(log_r), at(r_new), at(r_old), nf,
-        ptr(*(t.data_ptr() for t in srcs)), ptr(*(t.data_ptr() for t in dsts)), ptr(*(t.data_ptr() for t in rows)),
-        widths, cache.data_ptr(), at(cells), at(change), cells.numel() // n, ll_out.data_ptr(), accepted.data_ptr())
+        ptrs, ctypes.addressof(ptrs) + step, ctypes.addressof(ptrs) + 2 * step, (ctypes.c_int64 * nf)(*width),
+        cache.data_ptr(), at(cells), at(change), cells.numel() // n, ll_out.data_ptr(), accepted.data_ptr())
     if code:
         raise ValueError(f"the exchange's C loop got K = {k} slots, M = {m} moved or {r} resolution coordinates, "
                          "above its limits (1024, 4, 4)")
