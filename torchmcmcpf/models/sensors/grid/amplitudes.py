@@ -94,9 +94,7 @@ def log_likelihood_delta_terms(sensor: GridSensorLike, cache: Tensor, terms: Ten
     ``terms (B, *S, 2M, n + 1)`` (slot 0 before, after, slot 1 before, ...). The caller made
     ``terms`` where :func:`~.native.applies`.
     """
-    B, S, G = terms.shape[0], tuple(terms.shape[1:-2]), sensor.geometry.num_cells
-    if tuple(cache.shape) != (B,) + S + (G,):
-        raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {(B,) + S + (G,)}")
+    _check_cache(sensor, cache, tuple(terms.shape[:-2]))
     return _native_delta(sensor, cache, terms, z)
 
 
@@ -107,10 +105,14 @@ def log_likelihood_delta_rows(sensor: GridSensorLike, cache: Tensor, terms: Tens
     the C loop (:func:`.native.delta_rows`): the same values as the rows gathered and
     interleaved.
     """
-    lead = tuple(terms.shape[:-2])
+    _check_cache(sensor, cache, tuple(terms.shape[:-2]))
+    return native.delta_rows(sensor, cache, terms, slot.to(torch.int64), terms_new, z)
+
+
+def _check_cache(sensor: GridSensorLike, cache: Tensor, lead: tuple[int, ...]) -> None:
+    """A ValueError unless ``cache`` is ``(*lead, G)``, the samples' cells."""
     if tuple(cache.shape) != lead + (sensor.geometry.num_cells,):
         raise ValueError(f"cache has shape {tuple(cache.shape)}, expected {lead + (sensor.geometry.num_cells,)}")
-    return native.delta_rows(sensor, cache, terms, slot.to(torch.int64), terms_new, z)
 
 
 def _native_delta(sensor: GridSensorLike, cache: Tensor, terms: Tensor, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
