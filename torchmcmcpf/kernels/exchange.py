@@ -652,9 +652,10 @@ def exchange_iteration(
     update = None
     if by_terms and cache is not None and terms is not None and terms_new is not None:  # the moved slots' rows
         delta, cells, change = sensor.log_likelihood_delta_rows(cache, terms, noise.slot, terms_new, z)
+        # the rest of the iteration in one C call
         if (one_call_serves(chains, x_prev, exists_prev, z, noise) and cells is not None and e_new is None
                 and (kept or not on) and cache.is_contiguous()
-                and _exchange_native.applies(delta, noise.u, cache, log_r, r_new, coords, coords_new)):  # the rest of the iteration in one C call
+                and _exchange_native.applies(delta, noise.u, cache, log_r, r_new, coords, coords_new)):
             pair = source_term()
             return _one_call(chains, noise, proposal, delta, cells, change, exclusion if kept else None,
                              src_moved, lw_moved, None if pair is None else pair.to(log_lik.dtype), convert,
