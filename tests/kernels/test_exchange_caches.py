@@ -150,18 +150,24 @@ def _tensor_path_only():
 
 
 def _counting_commits():
-    """Counts the one-call commits made inside the block (``calls[0]``)."""
+    """Counts the iterations the C calls serve inside the block: ``calls[0]`` one-call commits,
+    ``calls[1]`` iterations of segment runs (``exchange_run``)."""
     from unittest import mock
 
     from torchmcmcpf.kernels import _exchange_native
 
-    calls, commit = [0], _exchange_native.commit
+    calls, commit, segment = [0, 0], _exchange_native.commit, _exchange_native.segment
 
     def counted(*args, **kwargs):
         calls[0] += 1
         return commit(*args, **kwargs)
 
-    return calls, mock.patch.object(_exchange_native, "commit", counted)
+    def counted_segment(*args, **kwargs):
+        calls[1] += args[1].shape[0]  # u (L, B, C)
+        return segment(*args, **kwargs)
+
+    patches = mock.patch.multiple(_exchange_native, commit=counted, segment=counted_segment)
+    return calls, patches
 
 
 def test_one_call_iteration_is_the_tensor_path_to_the_bit():
@@ -178,7 +184,7 @@ def test_one_call_iteration_is_the_tensor_path_to_the_bit():
     calls, counting = _counting_commits()
     with counting:
         fast, acc_fast = _iterations(sensor, dynamics, z, x_prev, y, keep_coords=True, keep_terms=True)
-    assert calls[0] == 24  # every iteration, one- and two-slot moves (every 4th)
+    assert calls == [24, 0]  # every iteration, one- and two-slot moves (every 4th)
     with _tensor_path_only():
         slow, acc_slow = _iterations(sensor, dynamics, z, x_prev, y, keep_coords=True, keep_terms=True)
     assert torch.equal(acc_fast, acc_slow)
@@ -205,7 +211,13 @@ def test_filters_with_the_one_call_iteration_are_the_same_bits(terms):
     calls, counting = _counting_commits()
     with torch.inference_mode(), counting:
         fast = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2))
-    assert calls[0] > 100
+    # the runs of one-slot moves in segment calls, the two-slot moves (every 10th) in commits;
+    # joint pairs' one-slot moves read their chain's pair (made in the iteration): commits
+    commits, runs = calls
+    if "joint_pairs" in terms:
+        assert commits > 100 and runs == 0
+    else:
+        assert runs > 100 and (commits > 10 if terms.get("recapture", True) is not None else commits == 0)
     with torch.inference_mode(), _tensor_path_only():
         slow = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2))
     assert torch.equal(fast.mean, slow.mean) and torch.equal(fast.state.x, slow.state.x)
@@ -274,7 +286,7 @@ def test_a_compiled_filter_runs_its_one_slot_moves_in_the_c_calls():
         calls, counting = _counting_commits()
         with torch.inference_mode(), counting:
             results.append(filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2)))
-        assert calls[0] >= 3 * 30  # 3 steps of at least 30 iterations
+        assert sum(calls) >= 3 * 30  # 3 steps of at least 30 iterations
     compiled, eager = results
     assert torch.equal(compiled.mean, eager.mean) and torch.equal(compiled.state.x, eager.state.x)
 
@@ -291,3 +303,66 @@ def test_commit_refuses_rows_of_another_dtype():
     with pytest.raises(ValueError, match="dtype and row shape"):
         _exchange_native.commit(log_lik, log_lik, log_lik + 0.5, None, torch.zeros(b, c, 1, dtype=torch.int64), None,
                                 None, None, 1.0, -50.0, None, None, None, [(y, row)], cache, cells, change)
+
+
+def _run_problem(steps=12):
+    """float32 chains with every field a run writes (coordinates, terms, ratios, kinds,
+    sources) and ``steps`` one-slot iterations' noise with the segment's proposals."""
+    sensor, dynamics, z, x_prev, y = _problem(dtype=torch.float32)
+    b, n, k, _ = x_prev.shape
+    c = y.shape[1]
+    log_w = torch.full((b, n), -math.log(n))
+    source = torch.arange(c).reshape(1, c, 1).repeat(b, 1, k)
+    chains = ExchangeChains(y, sensor.log_likelihood(y, z), None, torch.zeros(y.shape[:-1]),
+                            torch.ones(y.shape[:-1], dtype=torch.int8), source, torch.full(y.shape[:-1], -math.log(n)),
+                            sensor.amplitude_cache(y), sensor.resolution_coords(y), sensor.move_terms(y))
+    noise = draw_exchange_noise(log_w, steps, c, k, dynamics=dynamics, generator=torch.Generator().manual_seed(8),
+                                dtype=torch.float32, z=z)
+    noise = noise._replace(proposal=propose_slots(noise, x_prev, None, dynamics=dynamics, sensor=sensor,
+                                                  terms_of=sensor), birth=None, relocation=None)
+    return sensor, dynamics, z, x_prev, chains, noise
+
+
+def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
+    """``exchange_run`` (a run of one-slot iterations in one C call: the radar's change by its
+    C entry, then the commit, chain by chain) gives the chains, amplitude cache, acceptances
+    and recorded trace of the iterations one by one on tensors, to the bit."""
+    from torchmcmcpf.kernels.exchange import exchange_run, run_serves
+    from torchmcmcpf.models.sensors.grid import native
+
+    if not native.available():
+        pytest.skip("no C compiler: no runs in C")
+    sensor, dynamics, z, x_prev, chains, noise = _run_problem()
+    exclusion, steps, record = Exclusion(), noise.u.shape[0], 5
+    assert run_serves(chains, z, noise, sensor=sensor, exclusion=exclusion)
+    fast, count, trace = exchange_run(chains._replace(amplitude=chains.amplitude.clone()), z, noise, sensor=sensor,
+                                      exclusion=exclusion, record_from=record)
+    slow, accepted, kept = chains._replace(amplitude=chains.amplitude.clone()), [], []
+    with _tensor_path_only():
+        for t in range(steps):
+            nz = type(noise)(*(None if v is None else (v[t] if torch.is_tensor(v) else type(v)(*(
+                None if a is None else a[t] for a in v))) for v in noise))
+            new, acc, update = exchange_iteration(slow, x_prev, None, z, nz, dynamics=dynamics, sensor=sensor,
+                                                  exclusion=exclusion)
+            slow = with_accepted_amplitudes(new, slow.amplitude, update, acc, sensor)
+            accepted.append(acc)
+            kept.append(slow)
+    assert torch.equal(count, torch.stack(accepted).sum(0).to(count.dtype))
+    assert 0.02 < float(count.mean()) / steps < 0.98  # both decisions are covered
+    for name in ("y", "log_lik", "log_r", "kind", "source", "log_w_source", "coords", "terms", "amplitude"):
+        assert torch.equal(getattr(fast, name), getattr(slow, name)), name
+    assert trace.y.shape[0] == steps - record and trace.exists is None and trace.amplitude is None
+    for name in ("y", "log_lik", "log_r", "kind", "source"):
+        assert torch.equal(getattr(trace, name), torch.stack([getattr(ch, name) for ch in kept[record:]])), name
+
+
+def test_runs_serve_only_sensors_with_a_c_entry():
+    """Without the sensor's C entry (the tensor path) ``run_serves`` is false and
+    ``exchange_run`` refuses with a ValueError, rather than running another arithmetic."""
+    from torchmcmcpf.kernels.exchange import exchange_run, run_serves
+
+    sensor, _, z, _, chains, noise = _run_problem(steps=2)
+    with _tensor_path_only():
+        assert not run_serves(chains, z, noise, sensor=sensor, exclusion=Exclusion())
+        with pytest.raises(ValueError, match="run_serves"):
+            exchange_run(chains, z, noise, sensor=sensor, exclusion=Exclusion())

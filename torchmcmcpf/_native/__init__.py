@@ -9,7 +9,9 @@ Loops in plain C beside the tensor paths, each the same values (to round-off for
 - ``exclusion.c``: the exclusion factor and its change when a slot moves
   (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_factor`, ``log_change``);
 - ``exchange.c``: the exchange move's iteration after its likelihood change (the MH decision,
-  the chains' fields and cache written) in one call (:mod:`torchmcmcpf.kernels._exchange_native`);
+  the chains' fields and cache written) in one call, and a segment's one-slot iterations with
+  the sensor's change (a :class:`RowsLoop`) in one call
+  (:mod:`torchmcmcpf.kernels._exchange_native`);
 - ``select.c``: ``torch.where`` and the read-back of a packed block in one pass
   (:mod:`torchmcmcpf._native.select`), which every move makes dozens of times an iteration.
 
@@ -38,13 +40,13 @@ import tempfile
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
 from .. import runtime
 
-__all__ = ["available", "applies", "library", "tensor_path", "FLAGS"]
+__all__ = ["available", "applies", "library", "tensor_path", "FLAGS", "RowsLoop"]
 
 _FOLDER = Path(__file__).parent
 #: the sources, compiled together into one library (the headers are part of the key)
@@ -75,11 +77,32 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
     "exchange_commit": (_int, [_i64] * 4 + [_ptr] * 8 + [_i64, _f64, _f64] + [_ptr] * 3 + [_i64] + [_ptr] * 7
                         + [_i64] + [_ptr] * 2),
+    "exchange_segment": (_int, [_i64] * 4 + [_ptr] * 6 + [_i64, _f64, _f64] + [_ptr] * 2 + [_i64] + [_ptr] * 8
+                         + [_i64] + [_ptr] * 4 + [_i64] + [_ptr] * 3),
+    "rician_rows_context_size": (_i64, []),
+    "rician_rows_context": (_int, [_ptr, _i64, _ptr, _ptr, _ptr, _i64, _f64]),
+    "rician_rows_one": (ctypes.c_float, [_ptr, _i64, _i64] + [_ptr] * 6),
     "select_rows": (_int, [_i64] * 4 + [_ptr] * 2 + [_i64, _ptr, _i64, _ptr]),
     "unpack_rows": (_int, [_i64] * 6 + [_ptr] * 4 + [_i64, _ptr]),
 }
 
 _state: dict[str, Any] = {}
+
+
+class RowsLoop(NamedTuple):
+    """A sensor's change of one sample's move read from its rows, as a C entry that another C
+    loop calls sample by sample (:meth:`~torchmcmcpf.models.base.SensorModel.delta_rows_loop`;
+    the exchange segment's loop, ``exchange.c``): ``fn`` the entry's address (``float fn(ctx,
+    q, M, terms_q, slot_q, terms_new_q, cache, cells_q, change_q)``, ``exchange.c``'s
+    ``rows_delta``), ``context`` its argument (a buffer the entry reads), ``cells`` the cells a
+    moved slot's box holds (a move of ``M`` slots writes ``2 M cells`` cells and changes), and
+    ``keep`` the tensors the context points into (held while the loop lives).
+    """
+
+    fn: int
+    context: Any
+    cells: int
+    keep: tuple
 
 
 def _cpu_key() -> str:

@@ -252,9 +252,9 @@ static double floor_range(int64_t boxes, int64_t V, const float *amp, const floa
  * term is ratio(max(A + change, 0)) - ratio(max(A, 0)).
  */
 /* The cached move's change of sample q (rician_delta_cached below): uq (R, 3), sq (R) its
- * spreads; writes its cells and change (R, V) and returns the sum. */
+ * spreads; writes its cells and change, cq and hq (R, V), and returns the sum. */
 static float delta_sample(const Grid *g, int64_t q, int64_t P, int64_t R, const float *uq, const float *sq,
-                          const float *cache, const float *zc, float half_inv_var, int64_t *cells, float *change) {
+                          const float *cache, const float *zc, float half_inv_var, int64_t *cq, float *hq) {
     float prof[MAX_K][3][MAX_W];
     int64_t first[MAX_K][3];
     float A[MAX_W * MAX_W * MAX_W], Z[MAX_W * MAX_W * MAX_W + 8], once[MAX_W * MAX_W * MAX_W];
@@ -262,16 +262,15 @@ static float delta_sample(const Grid *g, int64_t q, int64_t P, int64_t R, const 
     boxes_of(g, uq, R, first, prof);
     double total = 0.0;
     for (int64_t j = 0; j < R; ++j) {
-        float *ch = change + (q * R + j) * V;
+        float *ch = hq + j * V;
         if (repeats_box(first, j, NULL)) { /* no change here: an earlier box holds every cell */
             memset(ch, 0, (size_t)V * sizeof(float));
-            box_cells_of(g, NULL, first[j], NULL, NULL, NULL, q * g->G, cells + (q * R + j) * V);
+            box_cells_of(g, NULL, first[j], NULL, NULL, NULL, q * g->G, cq + j * V);
             continue;
         }
         for (int64_t c = 0; c < V; ++c) { ch[c] = 0.0f; once[c] = 1.0f; }
         for (int64_t k = 0; k < R; ++k) add_spread(g, first[j], first[k], prof[k], sq[k], ch, k < j ? once : NULL);
-        box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, cache + q * g->G, A, q * g->G,
-                     cells + (q * R + j) * V);
+        box_cells_of(g, zc + (q / P) * (g->G + 8), first[j], Z, cache + q * g->G, A, q * g->G, cq + j * V);
         float acc = 0.0f;
 #pragma omp simd reduction(+ : acc)
         for (int64_t c = 0; c < V; ++c) {
@@ -289,30 +288,39 @@ static void delta_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_
                         const float *cache, const float *zc, float half_inv_var, float *delta, int64_t *cells,
                         float *change) {
     for (int64_t q = p0; q < p1; ++q)
-        delta[q] = delta_sample(g, q, P, R, u + q * R * 3, s + q * R, cache, zc, half_inv_var, cells, change);
+        delta[q] = delta_sample(g, q, P, R, u + q * R * 3, s + q * R, cache, zc, half_inv_var, cells + q * R * g->V,
+                                change + q * R * g->V);
 }
 
 /* delta_range for moves of M distinct slots read from rows (torchmcmcpf.models.sensors.grid.native.delta_rows):
  * terms (B*P, K, 4) each slot's measurement coordinates and amplitude (times existence), slot
  * (B*P, M) int64 the moved slots, terms_new (B*P, M, 4) their rows after the move: the spreads
  * of delta_range with R = 2M, each slot's before, then after (amplitudes._moved_terms' order),
- * the amplitude before negated (exact, as amplitudes._signed makes it). */
+ * the amplitude before negated (exact, as amplitudes._signed makes it). rows_sample is one
+ * sample's: terms_q (K, 4), slot_q (M), terms_new_q (M, 4), cells and change cq, hq (2M, V). */
+static float rows_sample(const Grid *g, int64_t q, int64_t P, int64_t M, const float *terms_q, const int64_t *slot_q,
+                         const float *terms_new_q, const float *cache, const float *zc, float half_inv_var,
+                         int64_t *cq, float *hq) {
+    float u[MAX_K * 3], s[MAX_K];
+    for (int64_t j = 0; j < M; ++j) {
+        const float *old = terms_q + slot_q[j] * 4, *now = terms_new_q + j * 4;
+        for (int c = 0; c < 3; ++c) {
+            u[6 * j + c] = old[c];
+            u[6 * j + 3 + c] = now[c];
+        }
+        s[2 * j] = old[3] * -1.0f;
+        s[2 * j + 1] = now[3];
+    }
+    return delta_sample(g, q, P, 2 * M, u, s, cache, zc, half_inv_var, cq, hq);
+}
+
 static void rows_range(const Grid *g, int64_t p0, int64_t p1, int64_t P, int64_t K, int64_t M, const float *terms,
                        const int64_t *slot, const float *terms_new, const float *cache, const float *zc,
                        float half_inv_var, float *delta, int64_t *cells, float *change) {
-    float u[MAX_K * 3], s[MAX_K];
-    for (int64_t q = p0; q < p1; ++q) {
-        for (int64_t j = 0; j < M; ++j) {
-            const float *old = terms + (q * K + slot[q * M + j]) * 4, *now = terms_new + (q * M + j) * 4;
-            for (int c = 0; c < 3; ++c) {
-                u[6 * j + c] = old[c];
-                u[6 * j + 3 + c] = now[c];
-            }
-            s[2 * j] = old[3] * -1.0f;
-            s[2 * j + 1] = now[3];
-        }
-        delta[q] = delta_sample(g, q, P, 2 * M, u, s, cache, zc, half_inv_var, cells, change);
-    }
+    const int64_t RV = 2 * M * g->V;
+    for (int64_t q = p0; q < p1; ++q)
+        delta[q] = rows_sample(g, q, P, M, terms + q * K * 4, slot + q * M, terms_new + q * M * 4, cache, zc,
+                               half_inv_var, cells + q * RV, change + q * RV);
 }
 
 /* The change of the windowed Rician log-likelihood when slot n of each of particles [p0, p1)
@@ -410,4 +418,33 @@ double rician_floor(int64_t boxes, int64_t threads, int64_t V, const float *amp,
     double total = 0.0;
     for (int64_t t = 0; t < T; ++t) total += parts[t];
     return total;
+}
+
+/* rows_sample for a caller's own loop (the exchange segment's, exchange.c): a context made
+ * once per frame by rician_rows_context (the grid, P samples a frame, the prepared frames zc,
+ * 1 / (2 sigma^2); rician_rows_context_size bytes) and the call for sample q, whose result is
+ * rician_delta_rows' for that sample to the bit. */
+typedef struct {
+    Grid g;
+    int64_t P;
+    const float *zc;
+    float half_inv_var;
+} RowsContext;
+
+int64_t rician_rows_context_size(void) { return (int64_t)sizeof(RowsContext); }
+
+int rician_rows_context(void *ctx, int64_t P, const float *zc, const int64_t *shape, const double *geo,
+                        int64_t window, double half_inv_var) {
+    RowsContext *c = (RowsContext *)ctx;
+    if (grid_of(&c->g, shape, geo, window)) return 1;
+    c->P = P;
+    c->zc = zc;
+    c->half_inv_var = (float)half_inv_var;
+    return 0;
+}
+
+float rician_rows_one(const void *ctx, int64_t q, int64_t M, const float *terms_q, const int64_t *slot_q,
+                      const float *terms_new_q, const float *cache, int64_t *cq, float *hq) {
+    const RowsContext *c = (const RowsContext *)ctx;
+    return rows_sample(&c->g, q, c->P, M, terms_q, slot_q, terms_new_q, cache, c->zc, c->half_inv_var, cq, hq);
 }

@@ -201,9 +201,11 @@ from ..kernels.exchange import (
     close_pairs,
     draw_exchange_noise,
     exchange_iteration,
+    exchange_run,
     mutual_nearest_pairs,
     one_call_serves,
     propose_slots,
+    run_serves,
     with_accepted_amplitudes,
 )
 from ..kernels.hmc_refine import (
@@ -253,20 +255,26 @@ class SegmentNoise(NamedTuple):
         compiled again for the R-hat rule's extensions: 4 programs in the first step instead
         of 2, 36 s cold for Np = 500, 10 targets).
         """
-        def unbind(x: Any, length: int) -> list:
-            # the rows of a tree of NamedTuples of tensors and None, built field by field
-            # (torch's generic tree_unflatten cost 30 us an iteration, 6 % of an eager radar step)
-            if x is None:
-                return [None] * length
-            if isinstance(x, torch.Tensor):
-                return list(x.contiguous().unbind(0))
-            return [type(x)(*row) for row in zip(*(unbind(field, length) for field in x))]
-
-        out = unbind(self.single, self.single.u.shape[0])
-        if self.pair is not None:
-            for t, noise in zip(self.at_pairs, unbind(self.pair, self.pair.u.shape[0])):
-                out[t] = noise
+        out = _rows(self.single, self.single.u.shape[0])
+        for t, noise in self.pairs().items():
+            out[t] = noise
         return out
+
+    def pairs(self) -> dict[int, ExchangeNoise]:
+        """The two-slot iterations' noise by their position in the segment (leading ``(B, C)``)."""
+        return {} if self.pair is None else dict(zip(self.at_pairs, _rows(self.pair, self.pair.u.shape[0])))
+
+
+def _rows(x: Any, length: int) -> list:
+    """The rows of a tree of NamedTuples of tensors (leading ``length``) and None, built field
+    by field (torch's generic ``tree_unflatten`` cost 30 us an iteration, 6 % of an eager radar
+    step), each tensor unbound from a contiguous copy.
+    """
+    if x is None:
+        return [None] * length
+    if isinstance(x, torch.Tensor):
+        return list(x.contiguous().unbind(0))
+    return [type(x)(*row) for row in zip(*(_rows(field, length) for field in x))]
 
 
 def _run_chains(chains: ExchangeChains, noise: SegmentNoise, iteration: Callable, sensor: SensorModel,
@@ -311,6 +319,40 @@ def _segment(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x
 
     chains, trace, accepted, _ = _run_chains(chains, noise, step, sensor, record_from=record_from)
     return chains, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *trace), accepted
+
+
+def _segment_runs(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x_prev: Tensor,
+                  exists: Tensor | None, z: Measurement, record_from: int, sensor: SensorModel,
+                  exclusion: Exclusion | None) -> tuple[ExchangeChains, ExchangeChains, Tensor]:
+    """:func:`_segment` with each run of one-slot iterations between the two-slot ones in one
+    C call (:func:`~torchmcmcpf.kernels.exchange.exchange_run`, where
+    :func:`~torchmcmcpf.kernels.exchange.run_serves`): the same chains, trace and
+    acceptances to the bit, no Python between a run's iterations.
+    """
+    length, pairs = noise.single.u.shape[0], noise.pairs()
+    accepted = torch.zeros_like(chains.log_lik)
+    pieces: list[ExchangeChains] = []
+    t = 0
+    while t < length:
+        if t in pairs:  # a two-slot iteration: the program, as in _run_chains
+            new, acc, update = iteration(chains, x_prev, exists, z, pairs[t])
+            chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
+            accepted = accepted + acc.to(accepted.dtype)
+            if t >= record_from:
+                pieces.append(ExchangeChains._make((None if a is None else a.unsqueeze(0) for a in chains._replace(
+                    log_w_source=None, amplitude=None, coords=None, terms=None))))
+            t += 1
+            continue
+        end = min([p for p in pairs if p > t], default=length)
+        part = tree_map(lambda a: None if a is None else a[t:end], noise.single)
+        chains, acc, trace = exchange_run(chains, z, part, sensor=sensor, exclusion=exclusion,
+                                          record_from=max(record_from - t, 0))
+        accepted = accepted + acc
+        if end > record_from:
+            pieces.append(trace)
+        t = end
+    trace = ExchangeChains._make(None if parts[0] is None else torch.cat(parts) for parts in zip(*pieces))
+    return chains, trace, accepted
 
 
 def _unstack(stacked: ExchangeChains) -> list[ExchangeChains]:
@@ -625,7 +667,11 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         # a compiled iteration runs the segment through its capture: one CUDA graph on a GPU
         capture = getattr(iteration, "capture", None)
         args = (chains, noise, x_prev, exists, z, record_from, sensor)
-        ch, trace, acc = capture(_segment, *args) if capture is not None else _segment(iteration, *args)
+        if run_serves(chains, z, noise.single, sensor=sensor, exclusion=settings.exclusion):
+            # the runs of one-slot iterations in C calls (eager CPU: faster than the compiled graph)
+            ch, trace, acc = _segment_runs(iteration, *args, exclusion=settings.exclusion)
+        else:
+            ch, trace, acc = capture(_segment, *args) if capture is not None else _segment(iteration, *args)
         return ch, _unstack(trace), acc, torch.zeros_like(acc)
 
     hmc_noise = None

@@ -26,7 +26,7 @@ import torch
 from .. import _native, runtime
 from ..typing import Tensor
 
-__all__ = ["applies", "commit"]
+__all__ = ["applies", "commit", "segment"]
 
 
 def applies(*tensors: Tensor | None) -> bool:
@@ -104,3 +104,80 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
         raise ValueError(f"the exchange's C loop got K = {k} slots, M = {m} moved or {r} resolution coordinates, "
                          "above its limits (1024, 4, 4)")
     return ll_out, accepted.view(torch.bool), dsts
+
+
+def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coords: Tensor | None,
+            coords_new: Tensor | None, scale: float, log_phi_floor: float, log_r: Tensor | None, r_new: Tensor | None,
+            fields: list[tuple[Tensor, Tensor]], terms_at: int, cache: Tensor, loop: _native.RowsLoop, record: int,
+            recorded: list[bool]) -> tuple[Tensor, list[Tensor], list[Tensor | None], Tensor, Tensor]:
+    """``L`` one-slot exchange iterations of ``(B, C)`` chains in one call: each iteration's
+    change by the sensor's entry ``loop`` (:meth:`~.SensorModel.delta_rows_loop`), then
+    :func:`commit`'s arithmetic, chain by chain (the chains are independent: split over the
+    threads once), the same bits as ``L`` calls of the two.
+
+    Parameters
+    ----------
+    log_lik : (B, C) float32; u : (L, B, C) the MH uniforms; valid : (L, B, C) bool or None;
+        slot : (L, B, C, 1) int64.
+    coords : (B, C, K, r) or None, coords_new : (L, B, C, 1, r); scale, log_phi_floor: as
+        :func:`commit`. log_r : (B, C, K) or None, r_new : (L, B, C, 1).
+    fields : ``(field (B, C, K, ...), rows (L, B, C, 1, ...))`` pairs (:func:`commit`'s, each
+        iteration's rows); ``fields[terms_at]`` the chains' move terms ``(B, C, K, 4)``, read by
+        ``loop``. coords and log_r, where given, are fields too (their rows the same tensors).
+    cache : (B, C, G) float32 contiguous, advanced in place.
+    record : the first iteration whose chains are recorded; recorded : per field, whether.
+
+    Returns
+    -------
+    log_lik : (B, C); the fields after the ``L`` iterations (new tensors); the recorded fields'
+        traces ``(L - record, B, C, K, ...)`` (None where not recorded); the log-likelihood's
+        ``(L - record, B, C)``; the acceptances per chain ``(B, C)`` float32.
+    """
+    L = u.shape[0]
+    n, k = log_lik.numel(), fields[0][0].shape[2]
+    if slot.shape[-1] != 1:
+        raise ValueError(f"a segment moves one slot an iteration, got slot of shape {tuple(slot.shape)}")
+    width = [f.element_size() * (f.numel() // (n * k)) for f, _ in fields]
+    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // (n * L)) != w for (f, r), w in zip(fields, width)):
+        raise ValueError("each field's rows must have its dtype and row shape, got "
+                         f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
+    # log u as mh_accept takes it, one ATen call an iteration (its loops round by position)
+    log_u = torch.stack([torch.log(t) for t in u.contiguous().unbind(0)])
+    own = [f.clone(memory_format=torch.contiguous_format) for f, _ in fields]  # written in place
+    rows = [r.contiguous() for _, r in fields]
+    ll = log_lik.clone(memory_format=torch.contiguous_format)
+    rec = max(L - record, 0)
+    traces = [torch.empty((rec,) + f.shape, dtype=f.dtype) if keep else None for f, keep in zip(own, recorded)]
+    ll_trace = torch.empty((rec,) + ll.shape, dtype=ll.dtype)
+    count = torch.zeros(ll.shape, dtype=torch.float32)
+    rv = 2 * loop.cells
+    delta, accepted = torch.empty(n, dtype=torch.float32), torch.empty(n, dtype=torch.uint8)
+    cells, change = torch.empty((n, rv), dtype=torch.int64), torch.empty((n, rv), dtype=torch.float32)
+    slot, valid8 = slot.contiguous(), None if valid is None else valid.contiguous().view(torch.uint8)
+    coords_new, r_new = (None if t is None else t.contiguous() for t in (coords_new, r_new))
+    own_coords = own_log_r = None  # the chains' own buffers of the fields the exclusion and ratios read
+    for (f, _), o in zip(fields, own):
+        own_coords = o if f is coords else own_coords
+        own_log_r = o if f is log_r else own_log_r
+    if (coords is None) != (own_coords is None) or (log_r is None) != (own_log_r is None):
+        raise ValueError("coords and log_r must be among the fields where given")
+    ptrs = (ctypes.c_void_p * (3 * len(own)))(*[t.data_ptr() for t in own + rows],
+                                                *[0 if t is None else t.data_ptr() for t in traces])
+    step = ctypes.sizeof(ctypes.c_void_p) * len(own)
+
+    def at(t: Tensor | None) -> int | None:
+        return None if t is None else t.data_ptr()
+
+    lib: Any = _native.library()
+    r = 0 if coords is None else coords.shape[-1]
+    code = lib.exchange_segment(
+        n, torch.get_num_threads(), L, k, ll.data_ptr(), log_u.data_ptr(), at(valid8), slot.data_ptr(),
+        at(own_coords), at(coords_new), r, 1.0 / (2.0 * scale**2), math.exp(log_phi_floor), at(own_log_r), at(r_new),
+        len(own), ptrs, ctypes.addressof(ptrs) + step, (ctypes.c_int64 * len(own))(*width), own[terms_at].data_ptr(),
+        rows[terms_at].data_ptr(), cache.data_ptr(), loop.fn, ctypes.addressof(loop.context), rv, delta.data_ptr(),
+        cells.data_ptr(), change.data_ptr(), accepted.data_ptr(), min(record, L), ctypes.addressof(ptrs) + 2 * step,
+        ll_trace.data_ptr(), count.data_ptr())
+    if code:
+        raise ValueError(f"the exchange segment's C loop got {len(own)} fields or {r} resolution coordinates, above "
+                         "its limits (16, 4)")
+    return ll, own, traces, ll_trace, count

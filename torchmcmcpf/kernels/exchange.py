@@ -89,8 +89,8 @@ from . import _exchange_native
 from .mh import mh_accept
 
 __all__ = ["ExchangeChains", "ExchangeNoise", "ExchangeProposal", "draw_exchange_noise", "propose_slots",
-           "exchange_iteration", "one_call_serves", "close_pairs", "mutual_nearest_pairs", "with_accepted_amplitudes",
-           "pair_source_log_ratio"]
+           "exchange_iteration", "exchange_run", "run_serves", "one_call_serves", "close_pairs",
+           "mutual_nearest_pairs", "with_accepted_amplitudes", "pair_source_log_ratio"]
 
 
 class ExchangeChains(NamedTuple):
@@ -518,6 +518,101 @@ def one_call_serves(chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor 
     """
     return chains.terms is not None and chains.amplitude is not None and chains.exists is None \
         and _exchange_native.applies(chains.log_lik)
+
+
+def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorModel, exclusion: Exclusion | None
+                ) -> dict[str, tuple[Tensor, Tensor]] | None:
+    """:func:`exchange_run`'s chain fields with their rows (leading ``L``), in :func:`_one_call`'s
+    order, where it serves these chains and noise (:func:`run_serves`), else None.
+    """
+    y, log_lik, exists, log_r, kind, src, lw, cache, coords, terms = chains
+    proposal = noise.proposal
+    if (proposal is None or noise.partner is not None or noise.slot.shape[-1] != 1 or proposal.exists is not None
+            or terms is None or proposal.terms is None or cache is None or not cache.is_contiguous()
+            or not (chains.amplitude is not None and exists is None and _exchange_native.applies(log_lik))):
+        return None
+    moved, _, r_new, kind_new, coords_new, terms_new = proposal
+    on = exclusion_on(exclusion, sensor)
+    kept = on and coords is not None and coords_new is not None
+    if on and not kept:
+        return None
+    fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
+    if log_r is not None and r_new is not None:  # one slot: at the chains' epsilon
+        fields["log_r"] = (log_r, r_new)
+    if kind is not None and kind_new is not None:
+        fields["kind"] = (kind, kind_new)
+    if src is not None and lw is not None and noise.source is not None and noise.log_w_source is not None:
+        fields.update(source=(src, noise.source), log_w_source=(lw, noise.log_w_source.to(lw.dtype)))
+    if kept and coords is not None and coords_new is not None:
+        fields["coords"] = (coords, coords_new)
+    if terms_new is None:
+        return None
+    fields["terms"] = (terms, terms_new)
+    # a recorded field that would not change (no rows): the tensor path then records it as it is
+    if any(t is not None and name not in fields for name, t in (("log_r", log_r), ("kind", kind), ("source", src))):
+        return None
+    if not _exchange_native.applies(log_lik, noise.u, cache, log_r, r_new, coords, coords_new):
+        return None
+    return fields
+
+
+def run_serves(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, sensor: SensorModel,
+               exclusion: Exclusion | None = None) -> bool:
+    """Whether :func:`exchange_run` serves a run of one-slot iterations of these chains on
+    this noise (leading ``L``): the conditions of the one C call (:func:`one_call_serves`:
+    move terms, an amplitude cache, no existence flags, eager float32 CPU), one slot an
+    iteration, the segment's proposals made, no joint pairs, and a sensor with a C entry for
+    its change (:meth:`~torchmcmcpf.models.base.SensorModel.delta_rows_loop`).
+    """
+    return (_run_fields(chains, noise, sensor, exclusion) is not None and chains.terms is not None
+            and sensor.delta_rows_loop(chains.terms, z) is not None)
+
+
+def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, sensor: SensorModel,
+                 exclusion: Exclusion | None = None, record_from: int = 0
+                 ) -> tuple[ExchangeChains, Tensor, ExchangeChains]:
+    """``L`` one-slot iterations of :func:`exchange_iteration` (each followed by the cache's
+    advance, :func:`with_accepted_amplitudes`) in one C call (:func:`._exchange_native.segment`:
+    the sensor's change of each chain's move by its C entry, then the rest of the move, chain
+    by chain, every iteration): the same chains, decisions and cache to the bit, with no
+    Python between the iterations. Where :func:`run_serves`.
+
+    Parameters
+    ----------
+    chains : :class:`ExchangeChains` ``(B, C, ...)`` with their amplitude cache (advanced in
+        place) and move terms; z : the frame; noise : :class:`ExchangeNoise` of ``L``
+        iterations (leading ``(L, B, C)``) with the segment's proposals.
+    sensor, exclusion : as :func:`exchange_iteration`'s.
+    record_from : the first iteration whose chains are recorded.
+
+    Returns
+    -------
+    chains : after the ``L`` iterations (the cache the same tensor); accepted : (B, C) float32,
+        the acceptances per chain; trace : :class:`ExchangeChains` of the chains after
+        iterations ``record_from .. L - 1`` (leading ``L - record_from``: ``y``, ``log_lik``,
+        ``log_r``, ``kind``, ``source``; the rest None), as the iterations' loop records them.
+    """
+    fields = _run_fields(chains, noise, sensor, exclusion)
+    terms, cache = chains.terms, chains.amplitude
+    loop = None if fields is None or terms is None else sensor.delta_rows_loop(terms, z)
+    if fields is None or loop is None or cache is None:
+        raise ValueError("exchange_run does not serve these chains and noise (run_serves)")
+    names = list(fields)
+    recorded = [name in ("y", "log_r", "kind", "source") for name in names]
+    coords = fields["coords"] if "coords" in fields else (None, None)
+    assert noise.proposal is not None
+    ll, own, traces, ll_trace, count = _exchange_native.segment(
+        chains.log_lik, noise.u, noise.valid, noise.slot, coords[0], coords[1],
+        1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, chains.log_r if "log_r" in fields else None,
+        noise.proposal.log_r if "log_r" in fields else None, list(fields.values()), names.index("terms"), cache, loop,
+        record_from, recorded)
+    new, trace = dict(zip(names, own)), dict(zip(names, traces))
+    assert trace["y"] is not None
+    out = ExchangeChains(new["y"], ll, None, new.get("log_r", chains.log_r), new.get("kind", chains.kind),
+                         new.get("source", chains.source), new.get("log_w_source", chains.log_w_source), cache,
+                         new.get("coords"), new["terms"])
+    return out, count, ExchangeChains(trace["y"], ll_trace, None, trace.get("log_r"), trace.get("kind"),
+                                      trace.get("source"))
 
 
 def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangeProposal, delta: Tensor, cells: Tensor,

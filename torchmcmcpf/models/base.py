@@ -15,6 +15,7 @@ import torch
 from torch import nn
 
 from .. import runtime
+from .._native import RowsLoop
 from .._native.select import where
 from .._validation import check_batch, check_finite, check_shape
 from ..typing import Measurement, Tensor
@@ -385,6 +386,17 @@ class SensorModel(nn.Module, Generic[Z]):
         old = torch.gather(terms, -2, slot.unsqueeze(-1).expand(slot.shape + (t,)))  # (B, *S, M, T)
         return self.log_likelihood_delta_terms(cache, torch.stack([old, terms_new], -2).reshape(
             old.shape[:-2] + (2 * m, t)), z)
+
+    def delta_rows_loop(self, terms: Tensor, z: Z) -> RowsLoop | None:
+        """:meth:`log_likelihood_delta_rows` of one sample as a C entry
+        (:class:`~torchmcmcpf._native.RowsLoop`), for a kernel whose own C loop calls it sample
+        by sample (the IP-MCMC-PF's runs of one-slot moves,
+        :func:`~torchmcmcpf.kernels.exchange.exchange_run`), for samples whose
+        :meth:`move_terms` are ``terms (B, *S, K, T)`` on frames ``z``; ``None`` (the default)
+        where the sensor has no such entry. The same values as
+        :meth:`log_likelihood_delta_rows` to the bit.
+        """
+        return None
 
     @staticmethod
     def update_amplitude_cache(cache: Tensor, cells: Tensor | None, change: Tensor, accepted: Tensor) -> Tensor:

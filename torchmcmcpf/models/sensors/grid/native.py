@@ -31,6 +31,7 @@ tensor path.
 
 from __future__ import annotations
 
+import ctypes
 import functools
 import math
 import weakref
@@ -39,12 +40,12 @@ from typing import Any
 import torch
 
 from .... import runtime
-from ...._native import available, library, tensor_path
+from ...._native import RowsLoop, available, library, tensor_path
 from ....typing import Tensor
 from ._protocol import GridSensorLike
 from .inputs import flat_inputs
 
-__all__ = ["available", "applies", "tensor_path", "log_likelihood", "delta_cached", "delta", "ratio_floor",
+__all__ = ["available", "applies", "tensor_path", "log_likelihood", "delta_cached", "delta", "rows_loop", "ratio_floor",
            "MAX_TARGETS", "MAX_WINDOW"]
 
 #: the C loop's static buffers: targets per particle and cells per box axis
@@ -277,6 +278,23 @@ def delta_rows(sensor: GridSensorLike, cache: Tensor, terms: Tensor, slot: Tenso
     delta, cells, change = _delta_rows(terms, slot, terms_new, cache, _frames(sensor, z), shape, geo, window, h)
     V = tuple(sensor.geometry.box_cells)
     return delta, cells.view(cells.shape[:-1] + V), change.view(change.shape[:-1] + V)
+
+
+def rows_loop(sensor: GridSensorLike, z: Tensor, samples: int) -> RowsLoop:
+    """:func:`delta_rows` as a C entry for another C loop, one sample a call
+    (:class:`~torchmcmcpf._native.RowsLoop`): ``samples`` samples per frame of ``z (B, *G)``
+    (the caller checks :func:`applies`). The same values as :func:`delta_rows` to the bit.
+    """
+    shape, geo, window, h = _geometry(sensor)
+    frames = _frames(sensor, z)
+    shape_t, geo_t = _tables(tuple(shape), tuple(geo))
+    lib: Any = library()
+    context = ctypes.create_string_buffer(int(lib.rician_rows_context_size()))
+    if lib.rician_rows_context(context, samples, frames.data_ptr(), shape_t.data_ptr(), geo_t.data_ptr(), window, h):
+        _check(1, f"boxes of {shape[3:]} cells")
+    fn = ctypes.cast(lib.rician_rows_one, ctypes.c_void_p).value
+    assert fn is not None
+    return RowsLoop(fn, context, math.prod(sensor.geometry.box_cells), (frames, shape_t, geo_t))
 
 
 def ratio_floor(amp: Tensor, prof: Tensor, zc: Tensor, half_inv_var: float) -> float:

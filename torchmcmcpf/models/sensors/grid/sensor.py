@@ -12,6 +12,7 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from .... import runtime
+from ...._native import RowsLoop
 from ...._validation import check_nonnegative, check_positive, check_positive_int, check_shape
 from ....typing import Tensor
 from ...base import SensorModel
@@ -451,6 +452,15 @@ class SeparableGridSensor(SensorModel[Tensor]):
         if terms.shape[-1] != 4:
             return super().log_likelihood_delta_rows(cache, terms, slot, terms_new, z)
         return amplitudes.log_likelihood_delta_rows(self, cache, terms, slot, terms_new, z)
+
+    def delta_rows_loop(self, terms: Tensor, z: Tensor) -> RowsLoop | None:
+        """:meth:`log_likelihood_delta_rows`' C loop as an entry for another C loop
+        (:func:`.native.rows_loop`) where it serves these rows (:meth:`move_terms`' ``(B, *S,
+        K, 4)``), else ``None``.
+        """
+        if terms.shape[-1] != 4 or not native.applies(self, terms):
+            return None
+        return native.rows_loop(self, z, terms[..., 0, 0].numel() // z.shape[0])
 
     # ---------------------------------------------------------------- multitarget prior hooks
     #: Threshold of the data-driven proposal on :meth:`detection_statistic`: a noise-only
