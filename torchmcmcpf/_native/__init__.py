@@ -55,7 +55,8 @@ SOURCES = ("rician_window.c", "points.c", "exclusion.c", "exchange.c", "select.c
 #: ``-fno-math-errno``; neither changes a finite result (no fast-math reassociation).
 #: ``-fopenmp`` first: the loops then run on torch's own OpenMP threads; a compiler without
 #: OpenMP builds them serial (``-fopenmp-simd``: the vector loops only)
-FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC")
+FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fno-trapping-math", "-fno-tree-loop-distribute-patterns", "-shared",
+         "-fPIC")
 _THREADING = ("-fopenmp", "-fopenmp-simd")
 
 _i64, _ptr, _f64, _int = ctypes.c_int64, ctypes.c_void_p, ctypes.c_double, ctypes.c_int
