@@ -339,8 +339,8 @@ def _segment_runs(iteration: Callable, chains: ExchangeChains, noise: SegmentNoi
             chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
             accepted = accepted + acc.to(accepted.dtype)
             if t >= record_from:
-                pieces.append(ExchangeChains._make((None if a is None else a.unsqueeze(0) for a in chains._replace(
-                    log_w_source=None, amplitude=None, coords=None, terms=None))))
+                pieces.append(ExchangeChains._make(None if a is None else a.unsqueeze(0) for a in chains._replace(
+                    log_w_source=None, amplitude=None, coords=None, terms=None)))
             t += 1
             continue
         end = min([p for p in pairs if p > t], default=length)
