@@ -516,6 +516,13 @@ def one_call_serves(chains: ExchangeChains, x_prev: Tensor, exists_prev: Tensor 
     a one-slot iteration 0.26 ms against 0.58 for the compiled graph on bench's radar scene
     (Np = 5000, 50 chains, 2 threads; benchmarks/README.md).
     """
+    return _in_c(chains)
+
+
+def _in_c(chains: ExchangeChains) -> bool:
+    """Chains whose moves the C calls serve: move terms and an amplitude cache kept, no
+    existence flags, eager on float32 CPU tensors.
+    """
     return chains.terms is not None and chains.amplitude is not None and chains.exists is None \
         and _exchange_native.applies(chains.log_lik)
 
@@ -525,11 +532,10 @@ def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorMode
     """:func:`exchange_run`'s chain fields with their rows (leading ``L``), in :func:`_one_call`'s
     order, where it serves these chains and noise (:func:`run_serves`), else None.
     """
-    y, log_lik, exists, log_r, kind, src, lw, cache, coords, terms = chains
+    y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
     proposal = noise.proposal
-    if (proposal is None or noise.partner is not None or noise.slot.shape[-1] != 1 or proposal.exists is not None
-            or terms is None or proposal.terms is None or cache is None or not cache.is_contiguous()
-            or not (chains.amplitude is not None and exists is None and _exchange_native.applies(log_lik))):
+    if (not _in_c(chains) or proposal is None or noise.partner is not None or noise.slot.shape[-1] != 1
+            or proposal.exists is not None or terms is None or cache is None or not cache.is_contiguous()):
         return None
     moved, _, r_new, kind_new, coords_new, terms_new = proposal
     on = exclusion_on(exclusion, sensor)
