@@ -211,13 +211,13 @@ def test_filters_with_the_one_call_iteration_are_the_same_bits(terms):
     calls, counting = _counting_commits()
     with torch.inference_mode(), counting:
         fast = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2))
-    # the runs of one-slot moves in segment calls, the two-slot moves (every 10th) in commits;
-    # joint pairs' one-slot moves read their chain's pair (made in the iteration): commits
+    # every iteration in segment calls; joint pairs' one-slot moves read their chain's pair
+    # (made in the iteration): commits
     commits, runs = calls
     if "joint_pairs" in terms:
         assert commits > 100 and runs == 0
     else:
-        assert runs > 100 and (commits > 10 if terms.get("recapture", True) is not None else commits == 0)
+        assert runs > 100 and commits == 0
     with torch.inference_mode(), _tensor_path_only():
         slow = filt(scn.measurements, init=init, generator=torch.Generator().manual_seed(2))
     assert torch.equal(fast.mean, slow.mean) and torch.equal(fast.state.x, slow.state.x)
@@ -305,9 +305,10 @@ def test_commit_refuses_rows_of_another_dtype():
                                 None, None, 1.0, -50.0, None, None, None, [(y, row)], cache, cells, change)
 
 
-def _run_problem(steps=12):
+def _run_problem(steps=12, pairs=False):
     """float32 chains with every field a run writes (coordinates, terms, ratios, kinds,
-    sources) and ``steps`` one-slot iterations' noise with the segment's proposals."""
+    sources) and ``steps`` iterations' noise with the segment's proposals: one-slot moves, or
+    with ``pairs`` two-slot ones (every pair of slots close)."""
     sensor, dynamics, z, x_prev, y = _problem(dtype=torch.float32)
     b, n, k, _ = x_prev.shape
     c = y.shape[1]
@@ -316,11 +317,47 @@ def _run_problem(steps=12):
     chains = ExchangeChains(y, sensor.log_likelihood(y, z), None, torch.zeros(y.shape[:-1]),
                             torch.ones(y.shape[:-1], dtype=torch.int8), source, torch.full(y.shape[:-1], -math.log(n)),
                             sensor.amplitude_cache(y), sensor.resolution_coords(y), sensor.move_terms(y))
+    close = close_pairs(sensor.resolution_coords(x_prev.mean(1)), 1e3) if pairs else None
     noise = draw_exchange_noise(log_w, steps, c, k, dynamics=dynamics, generator=torch.Generator().manual_seed(8),
-                                dtype=torch.float32, z=z)
+                                dtype=torch.float32, z=z, pairs=close)
     noise = noise._replace(proposal=propose_slots(noise, x_prev, None, dynamics=dynamics, sensor=sensor,
                                                   terms_of=sensor), birth=None, relocation=None)
     return sensor, dynamics, z, x_prev, chains, noise
+
+
+def _tensor_path_steps(chains, noise, x_prev, z, sensor, dynamics, exclusion):
+    """The tensor path's iterations one by one: the chains after each (with a copy of the
+    cache), the decisions and each iteration's log acceptance ratio (read from its MH test)."""
+    from unittest import mock
+
+    from torchmcmcpf.kernels import exchange
+    from torchmcmcpf.kernels.mh import mh_accept
+
+    seen = []
+
+    def reading(log_alpha, u):
+        seen.append(log_alpha)
+        return mh_accept(log_alpha, u)
+
+    kept, accepted = [], []
+    with _tensor_path_only(), mock.patch.object(exchange, "mh_accept", reading):
+        for t in range(noise.u.shape[0]):
+            nz = type(noise)(*(None if v is None else (v[t] if torch.is_tensor(v) else type(v)(*(
+                None if a is None else a[t] for a in v))) for v in noise))
+            new, acc, update = exchange_iteration(chains, x_prev, None, z, nz, dynamics=dynamics, sensor=sensor,
+                                                  exclusion=exclusion)
+            chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
+            kept.append(chains._replace(amplitude=chains.amplitude.clone()))  # the cache moves in place
+            accepted.append(acc)
+    return kept, torch.stack(accepted), torch.stack(seen)
+
+
+def _at_the_boundary(noise, log_alpha, accepted):
+    """``noise`` with each uniform 1e-3 nats on the side of its chain's log acceptance ratio
+    that keeps the decision: the same decisions on the tensor path, and any change of a
+    ratio by more than 1e-3 (a term left out or mis-read) flips one."""
+    shift = torch.where(accepted, -1e-3, 1e-3)
+    return noise._replace(u=torch.exp((log_alpha + shift).clamp(-80.0, 80.0)))
 
 
 def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
@@ -334,20 +371,16 @@ def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
         pytest.skip("no C compiler: no runs in C")
     sensor, dynamics, z, x_prev, chains, noise = _run_problem()
     exclusion, steps, record = Exclusion(), noise.u.shape[0], 5
-    assert run_serves(chains, z, noise, sensor=sensor, exclusion=exclusion)
-    fast, count, trace = exchange_run(chains._replace(amplitude=chains.amplitude.clone()), z, noise, sensor=sensor,
-                                      exclusion=exclusion, record_from=record)
-    slow, accepted, kept = chains._replace(amplitude=chains.amplitude.clone()), [], []
-    with _tensor_path_only():
-        for t in range(steps):
-            nz = type(noise)(*(None if v is None else (v[t] if torch.is_tensor(v) else type(v)(*(
-                None if a is None else a[t] for a in v))) for v in noise))
-            new, acc, update = exchange_iteration(slow, x_prev, None, z, nz, dynamics=dynamics, sensor=sensor,
-                                                  exclusion=exclusion)
-            slow = with_accepted_amplitudes(new, slow.amplitude, update, acc, sensor)
-            accepted.append(acc)
-            kept.append(slow)
-    assert torch.equal(count, torch.stack(accepted).sum(0).to(count.dtype))
+    fresh = lambda: chains._replace(amplitude=chains.amplitude.clone())  # noqa: E731 (the cache moves in place)
+    _, accepted, log_alpha = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
+    noise = _at_the_boundary(noise, log_alpha, accepted)
+    kept, at_boundary, _ = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
+    assert torch.equal(at_boundary, accepted)  # the same decisions, each 1e-3 nats from flipping
+    slow = kept[-1]
+    assert run_serves(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+    fast, count, trace = exchange_run(fresh(), z, noise, dynamics=dynamics, sensor=sensor, exclusion=exclusion,
+                                      record_from=record)
+    assert torch.equal(count, accepted.sum(0).to(count.dtype))
     assert 0.02 < float(count.mean()) / steps < 0.98  # both decisions are covered
     for name in ("y", "log_lik", "log_r", "kind", "source", "log_w_source", "coords", "terms", "amplitude"):
         assert torch.equal(getattr(fast, name), getattr(slow, name)), name
@@ -361,8 +394,39 @@ def test_runs_serve_only_sensors_with_a_c_entry():
     ``exchange_run`` refuses with a ValueError, rather than running another arithmetic."""
     from torchmcmcpf.kernels.exchange import exchange_run, run_serves
 
-    sensor, _, z, _, chains, noise = _run_problem(steps=2)
+    sensor, dynamics, z, _, chains, noise = _run_problem(steps=2)
     with _tensor_path_only():
-        assert not run_serves(chains, z, noise, sensor=sensor, exclusion=Exclusion())
+        assert not run_serves(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=Exclusion())
         with pytest.raises(ValueError, match="run_serves"):
-            exchange_run(chains, z, noise, sensor=sensor, exclusion=Exclusion())
+            exchange_run(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=Exclusion())
+
+
+def test_two_slot_moves_in_their_c_call_are_the_tensor_path_to_the_bit():
+    """A two-slot move in its own C call (the pair's source term read from the chains first,
+    the cached ratios converted between the moves' epsilon by kind in the loop) gives the
+    tensor path's chains, cache and decisions to the bit, move after move; a run of several
+    such moves is refused (its source term reads the chains before each)."""
+    from torchmcmcpf.kernels.exchange import exchange_run
+    from torchmcmcpf.models.sensors.grid import native
+
+    if not native.available():
+        pytest.skip("no C compiler: no runs in C")
+    sensor, dynamics, z, x_prev, chains, noise = _run_problem(steps=10, pairs=True)
+    assert noise.slot.shape[-1] == 2 and dynamics.recapture.p_propose_pair != dynamics.recapture.p_propose
+    exclusion = Exclusion()
+    with pytest.raises(ValueError, match="one at a time"):
+        exchange_run(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+    fresh = lambda: chains._replace(amplitude=chains.amplitude.clone())  # noqa: E731 (the cache moves in place)
+    _, accepted, log_alpha = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
+    noise = _at_the_boundary(noise, log_alpha, accepted)
+    kept, at_boundary, _ = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
+    assert torch.equal(at_boundary, accepted)  # the same decisions, each 1e-3 nats from flipping
+    fast = fresh()
+    for t, slow in enumerate(kept):
+        part = type(noise)(*(None if v is None else (v[t:t + 1] if torch.is_tensor(v) else type(v)(*(
+            None if a is None else a[t:t + 1] for a in v))) for v in noise))
+        fast, count, _ = exchange_run(fast, z, part, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+        assert torch.equal(count, accepted[t].to(count.dtype))
+        for name in ("y", "log_lik", "log_r", "kind", "source", "log_w_source", "coords", "terms", "amplitude"):
+            assert torch.equal(getattr(fast, name), getattr(slow, name)), (t, name)
+    assert 0.02 < float(accepted.double().mean()) < 0.98  # both decisions are covered

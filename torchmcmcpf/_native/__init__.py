@@ -79,7 +79,7 @@ SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "exclusion_log_phi": (None, [_i64, _ptr, _f64, _f64, _ptr]),
     "exchange_commit": (_int, [_i64] * 4 + [_ptr] * 8 + [_i64, _f64, _f64] + [_ptr] * 3 + [_i64] + [_ptr] * 7
                         + [_i64] + [_ptr] * 2),
-    "exchange_segment": (_int, [_i64] * 4 + [_ptr] * 6 + [_i64, _f64, _f64] + [_ptr] * 2 + [_i64] + [_ptr] * 8
+    "exchange_segment": (_int, [_i64] * 5 + [_ptr] * 7 + [_i64, _f64, _f64] + [_ptr] * 5 + [_i64] + [_ptr] * 8
                          + [_i64] + [_ptr] * 4 + [_i64] + [_ptr] * 3),
     "rician_rows_context_size": (_i64, []),
     "rician_rows_context": (_int, [_ptr, _i64, _ptr, _ptr, _ptr, _i64, _f64]),

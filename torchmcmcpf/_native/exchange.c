@@ -106,20 +106,26 @@ typedef float (*rows_delta)(const void *ctx, int64_t q, int64_t M, const float *
 
 #define MAX_F 16 /* chain fields */
 
-/* L one-slot iterations (M = 1) of chains [p0, p1): chain by chain, iteration after iteration, the sensor's change (fn) and commit_range on the chains' own fields, in place;
- * after iteration t >= record, each recorded field's rows (trace[f] non-NULL, (L - record, n,
- * K, width[f] bytes)) and log_lik (ll_trace, (L - record, n)) copied out; count (n) += the
- * acceptances. The per-iteration inputs have leading (L, n): log_u, valid, slot, coords_new
- * (L, n, r), r_new, row[f] (L, n, width[f] bytes), terms_new (L, n, 4). delta (n), cells and
- * change (n, RV), accepted (n): scratch. Each chain's arithmetic is exchange_commit's and the
- * sensor's call's for that chain, in the iterations' order: the same bits as L calls. */
-static void segment_range(int64_t p0, int64_t p1, int64_t n, int64_t L, int64_t K, float *log_lik,
-                          const float *log_u, const uint8_t *valid, const int64_t *slot, float *coords,
-                          const float *coords_new, int64_t r, double inv2s2, double xmin, float *log_r,
-                          const float *r_new, int64_t nf, void *const *field, const void *const *row,
-                          const int64_t *width, const float *terms, const float *terms_new, float *cache,
-                          rows_delta fn, const void *ctx, int64_t RV, float *delta, int64_t *cells, float *change,
-                          uint8_t *accepted, int64_t record, void *const *trace, float *ll_trace, float *count) {
+/* L iterations of M-slot moves of chains [p0, p1), chain by chain, iteration after iteration:
+ * the sensor's change (fn) and commit_range on the chains' own fields, in place; after
+ * iteration t >= record, each recorded field's rows (trace[f] non-NULL, (L - record, n, K,
+ * width[f] bytes)) and log_lik (ll_trace, (L - record, n)) copied out; count (n) += the
+ * acceptances. The per-iteration inputs have leading (L, n): log_u, valid, slot (L, n, M),
+ * src_term (or NULL), coords_new (L, n, M, r), r_new (L, n, M) at the move's epsilon, row[f]
+ * (L, n, M, width[f] bytes), terms_new (L, n, M, 4). With conv (3 floats, by the slots' kind
+ * int8 (n, K): FIXED, MOTION, RELOCATED) each moved slot's cached ratio is converted to the
+ * move's epsilon as kernels.exchange's convert does, log_r + conv[kind] in float32, into
+ * r_old (n, M); without, read as it is. delta (n), cells and change (n, RV), accepted (n):
+ * scratch. Each chain's arithmetic is exchange_commit's and the sensor's call's for that
+ * chain, in the iterations' order: the same bits as L calls of the two. */
+static void segment_range(int64_t p0, int64_t p1, int64_t n, int64_t L, int64_t K, int64_t M, float *log_lik,
+                          const float *log_u, const uint8_t *valid, const int64_t *slot, const float *src_term,
+                          float *coords, const float *coords_new, int64_t r, double inv2s2, double xmin, float *log_r,
+                          const float *r_new, const int8_t *kind, const float *conv, float *r_old, int64_t nf,
+                          void *const *field, const void *const *row, const int64_t *width, const float *terms,
+                          const float *terms_new, float *cache, rows_delta fn, const void *ctx, int64_t RV,
+                          float *delta, int64_t *cells, float *change, uint8_t *accepted, int64_t record,
+                          void *const *trace, float *ll_trace, float *count) {
     const void *rows_t[MAX_F];
     /* one chain at a time through all L iterations: its cache rows near its slots stay in the
      * core's caches between its moves (blocks of 64 chains measured the same or 5 % slower) */
@@ -127,15 +133,23 @@ static void segment_range(int64_t p0, int64_t p1, int64_t n, int64_t L, int64_t 
     for (int64_t b0 = p0; b0 < p1; b0 += block) {
         const int64_t b1 = b0 + block < p1 ? b0 + block : p1;
         for (int64_t t = 0; t < L; ++t) {
-            const int64_t *st = slot + t * n;
+            const int64_t *st = slot + t * n * M;
             for (int64_t q = b0; q < b1; ++q)
-                delta[q] = fn(ctx, q, 1, terms + q * K * 4, st + q, terms_new + (t * n + q) * 4, cache, cells + q * RV,
-                              change + q * RV);
-            for (int64_t f = 0; f < nf; ++f) rows_t[f] = (const char *)row[f] + t * n * width[f];
-            commit_range(b0, b1, K, 1, log_lik, delta, log_u + t * n, valid == NULL ? NULL : valid + t * n, st, NULL,
-                         coords, coords == NULL ? NULL : coords_new + t * n * r, r, inv2s2, xmin, log_r,
-                         log_r == NULL ? NULL : r_new + t * n, NULL, nf, (const void *const *)field, field, rows_t,
-                         width, cache, cells, change, RV, log_lik, accepted);
+                delta[q] = fn(ctx, q, M, terms + q * K * 4, st + q * M, terms_new + (t * n + q) * M * 4, cache,
+                              cells + q * RV, change + q * RV);
+            if (conv != NULL)
+                for (int64_t q = b0; q < b1; ++q)
+                    for (int64_t j = 0; j < M; ++j) {
+                        const int64_t at = q * K + st[q * M + j];
+                        const float c = kind[at] == 1 ? conv[1] : kind[at] == 2 ? conv[2] : conv[0];
+                        r_old[q * M + j] = log_r[at] + c;
+                    }
+            for (int64_t f = 0; f < nf; ++f) rows_t[f] = (const char *)row[f] + t * n * M * width[f];
+            commit_range(b0, b1, K, M, log_lik, delta, log_u + t * n, valid == NULL ? NULL : valid + t * n, st,
+                         src_term == NULL ? NULL : src_term + t * n, coords,
+                         coords == NULL ? NULL : coords_new + t * n * M * r, r, inv2s2, xmin, log_r,
+                         log_r == NULL ? NULL : r_new + t * n * M, conv == NULL ? NULL : r_old, nf,
+                         (const void *const *)field, field, rows_t, width, cache, cells, change, RV, log_lik, accepted);
             for (int64_t q = b0; q < b1; ++q) count[q] += (float)accepted[q];
             if (t < record) continue;
             for (int64_t f = 0; f < nf; ++f) {
@@ -144,21 +158,26 @@ static void segment_range(int64_t p0, int64_t p1, int64_t n, int64_t L, int64_t 
                 memcpy((char *)trace[f] + ((t - record) * n + b0) * w, (const char *)field[f] + b0 * w,
                        (size_t)((b1 - b0) * w));
             }
-            if (ll_trace != NULL) memcpy(ll_trace + (t - record) * n + b0, log_lik + b0, (size_t)(b1 - b0) * sizeof(float));
+            if (ll_trace != NULL)
+                memcpy(ll_trace + (t - record) * n + b0, log_lik + b0, (size_t)(b1 - b0) * sizeof(float));
         }
     }
 }
 
-int exchange_segment(int64_t n, int64_t threads, int64_t L, int64_t K, float *log_lik, const float *log_u,
-                     const uint8_t *valid, const int64_t *slot, float *coords, const float *coords_new, int64_t r,
-                     double inv2s2, double xmin, float *log_r, const float *r_new, int64_t nf, void *const *field,
+int exchange_segment(int64_t n, int64_t threads, int64_t L, int64_t K, int64_t M, float *log_lik, const float *log_u,
+                     const uint8_t *valid, const int64_t *slot, const float *src_term, float *coords,
+                     const float *coords_new, int64_t r, double inv2s2, double xmin, float *log_r, const float *r_new,
+                     const int8_t *kind, const float *conv, float *r_old, int64_t nf, void *const *field,
                      const void *const *row, const int64_t *width, const float *terms, const float *terms_new,
                      float *cache, rows_delta fn, const void *ctx, int64_t RV, float *delta, int64_t *cells,
                      float *change, uint8_t *accepted, int64_t record, void *const *trace, float *ll_trace,
                      float *count) {
-    if (nf > MAX_F || (coords != NULL && (r > MAX_R || K > BUFFER / 2))) return 1;
-    SPLIT(n, threads, segment_range(lo, hi, n, L, K, log_lik, log_u, valid, slot, coords, coords_new, r, inv2s2, xmin,
-                                    log_r, r_new, nf, field, row, width, terms, terms_new, cache, fn, ctx, RV, delta,
-                                    cells, change, accepted, record, trace, ll_trace, count))
+    if (nf > MAX_F || M > MAX_M || (coords != NULL && (r > MAX_R || K > BUFFER / 2))
+        || (conv != NULL && (kind == NULL || log_r == NULL)))
+        return 1;
+    SPLIT(n, threads, segment_range(lo, hi, n, L, K, M, log_lik, log_u, valid, slot, src_term, coords, coords_new, r,
+                                    inv2s2, xmin, log_r, r_new, kind, conv, r_old, nf, field, row, width, terms,
+                                    terms_new, cache, fn, ctx, RV, delta, cells, change, accepted, record, trace,
+                                    ll_trace, count))
     return 0;
 }

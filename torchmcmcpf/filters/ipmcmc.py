@@ -323,19 +323,24 @@ def _segment(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x
 
 def _segment_runs(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x_prev: Tensor,
                   exists: Tensor | None, z: Measurement, record_from: int, sensor: SensorModel,
-                  exclusion: Exclusion | None) -> tuple[ExchangeChains, ExchangeChains, Tensor]:
-    """:func:`_segment` with each run of one-slot iterations between the two-slot ones in one
-    C call (:func:`~torchmcmcpf.kernels.exchange.exchange_run`, where
-    :func:`~torchmcmcpf.kernels.exchange.run_serves`): the same chains, trace and
-    acceptances to the bit, no Python between a run's iterations.
+                  exclusion: Exclusion | None, dynamics: TargetDynamics
+                  ) -> tuple[ExchangeChains, ExchangeChains, Tensor]:
+    """:func:`_segment` in C calls (:func:`~torchmcmcpf.kernels.exchange.exchange_run`, where
+    :func:`~torchmcmcpf.kernels.exchange.run_serves`): each run of one-slot iterations between
+    the two-slot ones in one call, each two-slot iteration in one (its source term read from
+    the chains first); the same chains, trace and acceptances to the bit, no Python between
+    a run's iterations.
     """
-    length, pairs = noise.single.u.shape[0], noise.pairs()
+    length, at_pairs = noise.single.u.shape[0], noise.at_pairs
+    pairs = None if noise.pair is None or not run_serves(chains, z, noise.pair, dynamics=dynamics, sensor=sensor,
+                                                          exclusion=exclusion) else noise.pair
+    pair_rows = noise.pairs() if at_pairs and pairs is None else {}
     accepted = torch.zeros_like(chains.log_lik)
     pieces: list[ExchangeChains] = []
     t = 0
     while t < length:
-        if t in pairs:  # a two-slot iteration: the program, as in _run_chains
-            new, acc, update = iteration(chains, x_prev, exists, z, pairs[t])
+        if t in pair_rows:  # a two-slot iteration the runs do not serve: the program, as in _run_chains
+            new, acc, update = iteration(chains, x_prev, exists, z, pair_rows[t])
             chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
             accepted = accepted + acc.to(accepted.dtype)
             if t >= record_from:
@@ -343,9 +348,13 @@ def _segment_runs(iteration: Callable, chains: ExchangeChains, noise: SegmentNoi
                     log_w_source=None, amplitude=None, coords=None, terms=None)))
             t += 1
             continue
-        end = min([p for p in pairs if p > t], default=length)
-        part = _part(noise.single, t, end)
-        chains, acc, trace = exchange_run(chains, z, part, sensor=sensor, exclusion=exclusion,
+        if t in at_pairs:  # a two-slot iteration in its own call (its source term first)
+            i = at_pairs.index(t)
+            part, end = _part(pairs, i, i + 1), t + 1
+        else:
+            end = min([p for p in at_pairs if p > t], default=length)
+            part = _part(noise.single, t, end)
+        chains, acc, trace = exchange_run(chains, z, part, dynamics=dynamics, sensor=sensor, exclusion=exclusion,
                                           record_from=max(record_from - t, 0))
         accepted = accepted + acc
         if end > record_from:
@@ -676,9 +685,9 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         # a compiled iteration runs the segment through its capture: one CUDA graph on a GPU
         capture = getattr(iteration, "capture", None)
         args = (chains, noise, x_prev, exists, z, record_from, sensor)
-        if run_serves(chains, z, noise.single, sensor=sensor, exclusion=settings.exclusion):
-            # the runs of one-slot iterations in C calls (eager CPU: faster than the compiled graph)
-            ch, trace, acc = _segment_runs(iteration, *args, exclusion=settings.exclusion)
+        if run_serves(chains, z, noise.single, dynamics=dynamics, sensor=sensor, exclusion=settings.exclusion):
+            # the iterations in C calls (eager CPU: faster than the compiled graph)
+            ch, trace, acc = _segment_runs(iteration, *args, exclusion=settings.exclusion, dynamics=dynamics)
         else:
             ch, trace, acc = capture(_segment, *args) if capture is not None else _segment(iteration, *args)
         return ch, _unstack(trace), acc, torch.zeros_like(acc)

@@ -106,24 +106,31 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
     return ll_out, accepted.view(torch.bool), dsts
 
 
-def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coords: Tensor | None,
-            coords_new: Tensor | None, scale: float, log_phi_floor: float, log_r: Tensor | None, r_new: Tensor | None,
+def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, src_term: Tensor | None,
+            coords: Tensor | None, coords_new: Tensor | None, scale: float, log_phi_floor: float,
+            log_r: Tensor | None, r_new: Tensor | None, kind: Tensor | None, conv: Tensor | None,
             fields: list[tuple[Tensor, Tensor]], terms_at: int, cache: Tensor, loop: _native.RowsLoop, record: int,
             recorded: list[bool]) -> tuple[Tensor, list[Tensor], list[Tensor | None], Tensor, Tensor]:
-    """``L`` one-slot exchange iterations of ``(B, C)`` chains in one call: each iteration's
-    change by the sensor's entry ``loop`` (:meth:`~.SensorModel.delta_rows_loop`), then
-    :func:`commit`'s arithmetic, chain by chain (the chains are independent: split over the
-    threads once), the same bits as ``L`` calls of the two.
+    """``L`` exchange iterations of ``(B, C)`` chains moving ``M`` slots each in one call: each
+    iteration's change by the sensor's entry ``loop`` (:meth:`~.SensorModel.delta_rows_loop`),
+    then :func:`commit`'s arithmetic, chain by chain (the chains are independent: split over
+    the threads once), the same bits as ``L`` calls of the two.
 
     Parameters
     ----------
     log_lik : (B, C) float32; u : (L, B, C) the MH uniforms; valid : (L, B, C) bool or None;
-        slot : (L, B, C, 1) int64.
-    coords : (B, C, K, r) or None, coords_new : (L, B, C, 1, r); scale, log_phi_floor: as
-        :func:`commit`. log_r : (B, C, K) or None, r_new : (L, B, C, 1).
-    fields : ``(field (B, C, K, ...), rows (L, B, C, 1, ...))`` pairs (:func:`commit`'s, each
+        slot : (L, B, C, M) int64; src_term : (L, B, C) float32 or None, the pair's source
+        term (:func:`commit`'s).
+    coords : (B, C, K, r) or None, coords_new : (L, B, C, M, r); scale, log_phi_floor: as
+        :func:`commit`. log_r : (B, C, K) or None, r_new : (L, B, C, M) at the move's
+        ``epsilon``.
+    kind, conv : with ``M > 1`` and moves at another ``epsilon`` than the chains cache: the
+        chains' kinds (B, C, K) int8 and the conversion by kind (3,) float32 (the float32
+        values of :func:`~torchmcmcpf.models.multitarget.log_q_ratio` of kinds 0, 1, 2), else
+        None. Both are fields too, where given.
+    fields : ``(field (B, C, K, ...), rows (L, B, C, M, ...))`` pairs (:func:`commit`'s, each
         iteration's rows); ``fields[terms_at]`` the chains' move terms ``(B, C, K, 4)``, read by
-        ``loop``. coords and log_r, where given, are fields too (their rows the same tensors).
+        ``loop``. coords, log_r and kind, where given, are fields too.
     cache : (B, C, G) float32 contiguous, advanced in place.
     record : the first iteration whose chains are recorded; recorded : per field, whether.
 
@@ -133,12 +140,11 @@ def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coor
         traces ``(L - record, B, C, K, ...)`` (None where not recorded); the log-likelihood's
         ``(L - record, B, C)``; the acceptances per chain ``(B, C)`` float32.
     """
-    L = u.shape[0]
+    L, m = u.shape[0], slot.shape[-1]
     n, k = log_lik.numel(), fields[0][0].shape[2]
-    if slot.shape[-1] != 1:
-        raise ValueError(f"a segment moves one slot an iteration, got slot of shape {tuple(slot.shape)}")
     width = [f.element_size() * (f.numel() // (n * k)) for f, _ in fields]
-    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // (n * L)) != w for (f, r), w in zip(fields, width)):
+    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // (n * L * m)) != w
+           for (f, r), w in zip(fields, width)):
         raise ValueError("each field's rows must have its dtype and row shape, got "
                          f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
     # log u as mh_accept takes it, one ATen call an iteration (its loops round by position)
@@ -150,17 +156,19 @@ def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coor
     traces = [torch.empty((rec,) + f.shape, dtype=f.dtype) if keep else None for f, keep in zip(own, recorded)]
     ll_trace = torch.empty((rec,) + ll.shape, dtype=ll.dtype)
     count = torch.zeros(ll.shape, dtype=torch.float32)
-    rv = 2 * loop.cells
+    rv = 2 * m * loop.cells
     delta, accepted = torch.empty(n, dtype=torch.float32), torch.empty(n, dtype=torch.uint8)
     cells, change = torch.empty((n, rv), dtype=torch.int64), torch.empty((n, rv), dtype=torch.float32)
+    r_old = torch.empty((n, m), dtype=torch.float32)
     slot, valid8 = slot.contiguous(), None if valid is None else valid.contiguous().view(torch.uint8)
-    coords_new, r_new = (None if t is None else t.contiguous() for t in (coords_new, r_new))
-    own_coords = own_log_r = None  # the chains' own buffers of the fields the exclusion and ratios read
+    src_term, coords_new, r_new, conv = (None if t is None else t.contiguous() for t in (src_term, coords_new, r_new,
+                                                                                          conv))
+    mine: dict[int, Tensor] = {}  # the chains' own buffers of the fields the loop reads
     for (f, _), o in zip(fields, own):
-        own_coords = o if f is coords else own_coords
-        own_log_r = o if f is log_r else own_log_r
-    if (coords is None) != (own_coords is None) or (log_r is None) != (own_log_r is None):
-        raise ValueError("coords and log_r must be among the fields where given")
+        mine[id(f)] = o
+    if any(t is not None and id(t) not in mine for t in (coords, log_r, kind)):
+        raise ValueError("coords, log_r and kind must be among the fields where given")
+    own_coords, own_log_r, own_kind = (None if t is None else mine[id(t)] for t in (coords, log_r, kind))
     ptrs = (ctypes.c_void_p * (3 * len(own)))(*[t.data_ptr() for t in own + rows],
                                                 *[0 if t is None else t.data_ptr() for t in traces])
     step = ctypes.sizeof(ctypes.c_void_p) * len(own)
@@ -171,13 +179,14 @@ def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, coor
     lib: Any = _native.library()
     r = 0 if coords is None else coords.shape[-1]
     code = lib.exchange_segment(
-        n, torch.get_num_threads(), L, k, ll.data_ptr(), log_u.data_ptr(), at(valid8), slot.data_ptr(),
-        at(own_coords), at(coords_new), r, 1.0 / (2.0 * scale**2), math.exp(log_phi_floor), at(own_log_r), at(r_new),
-        len(own), ptrs, ctypes.addressof(ptrs) + step, (ctypes.c_int64 * len(own))(*width), own[terms_at].data_ptr(),
+        n, torch.get_num_threads(), L, k, m, ll.data_ptr(), log_u.data_ptr(), at(valid8), slot.data_ptr(),
+        at(src_term), at(own_coords), at(coords_new), r, 1.0 / (2.0 * scale**2), math.exp(log_phi_floor),
+        at(own_log_r), at(r_new), at(own_kind), at(conv), r_old.data_ptr(), len(own), ptrs,
+        ctypes.addressof(ptrs) + step, (ctypes.c_int64 * len(own))(*width), own[terms_at].data_ptr(),
         rows[terms_at].data_ptr(), cache.data_ptr(), loop.fn, ctypes.addressof(loop.context), rv, delta.data_ptr(),
         cells.data_ptr(), change.data_ptr(), accepted.data_ptr(), min(record, L), ctypes.addressof(ptrs) + 2 * step,
         ll_trace.data_ptr(), count.data_ptr())
     if code:
-        raise ValueError(f"the exchange segment's C loop got {len(own)} fields or {r} resolution coordinates, above "
-                         "its limits (16, 4)")
+        raise ValueError(f"the exchange segment's C loop got {len(own)} fields, M = {m} moved, {r} resolution "
+                         "coordinates or a conversion without kinds, above its limits (16, 4, 4)")
     return ll, own, traces, ll_trace, count

@@ -73,7 +73,6 @@ from (both slots of a starting point from one particle) satisfies the constraint
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -527,68 +526,89 @@ def _in_c(chains: ExchangeChains) -> bool:
         and _exchange_native.applies(chains.log_lik)
 
 
-def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorModel, exclusion: Exclusion | None
-                ) -> dict[str, tuple[Tensor, Tensor]] | None:
-    """:func:`exchange_run`'s chain fields with their rows (leading ``L``), in :func:`_one_call`'s
-    order, where it serves these chains and noise (:func:`run_serves`), else None.
+class _Run(NamedTuple):
+    """What :func:`exchange_run` hands the C loop: the chain fields with their rows (leading
+    ``L``) in :func:`_one_call`'s order, the chains' ``log r`` conversion to the move's
+    ``epsilon`` (by kind; None: none) and the pair's source term's ``rho`` (0: none).
+    """
+
+    fields: dict[str, tuple[Tensor, Tensor]]
+    conv: Tensor | None
+    rho: float
+
+
+def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorModel, exclusion: Exclusion | None,
+                dynamics: TargetDynamics) -> _Run | None:
+    """:func:`exchange_run`'s plan where it serves these chains and noise (:func:`run_serves`),
+    else None.
     """
     y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
-    proposal = noise.proposal
-    if (not _in_c(chains) or proposal is None or noise.partner is not None or noise.slot.shape[-1] != 1
-            or proposal.exists is not None or terms is None or cache is None or not cache.is_contiguous()):
+    proposal, m = noise.proposal, noise.slot.shape[-1]
+    if (not _in_c(chains) or proposal is None or noise.partner is not None or proposal.exists is not None
+            or terms is None or cache is None or not cache.is_contiguous() or dynamics.existence is not None):
         return None
     moved, _, r_new, kind_new, coords_new, terms_new = proposal
     on = exclusion_on(exclusion, sensor)
     kept = on and coords is not None and coords_new is not None
-    if on and not kept:
+    if (on and not kept) or terms_new is None:
+        return None
+    # exchange_iteration's epsilon and rho (one slot: the chains' epsilon, no source term)
+    recapture = dynamics.recapture
+    base = None if recapture is None else recapture.p_propose
+    eps_k = None if recapture is None else (base if m == 1 else recapture.p_propose_pair)
+    rho = 0.0 if recapture is None or m == 1 else recapture.p_same_source
+    if rho > 0 and (src is None or lw is None):
         return None
     fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
-    if log_r is not None and r_new is not None:  # one slot: at the chains' epsilon
-        fields["log_r"] = (log_r, r_new)
+    conv = None
+    if log_r is not None and r_new is not None:  # written at the chains' epsilon
+        fields["log_r"] = (log_r, _convert(r_new, kind_new, eps_k, base))
+        if m > 1 and kind is not None and base is not None and eps_k is not None and base != eps_k:
+            conv = log_q_ratio(torch.arange(3, dtype=torch.int8), base, eps_k).to(log_r.dtype)
     if kind is not None and kind_new is not None:
         fields["kind"] = (kind, kind_new)
     if src is not None and lw is not None and noise.source is not None and noise.log_w_source is not None:
         fields.update(source=(src, noise.source), log_w_source=(lw, noise.log_w_source.to(lw.dtype)))
     if kept and coords is not None and coords_new is not None:
         fields["coords"] = (coords, coords_new)
-    if terms_new is None:
-        return None
     fields["terms"] = (terms, terms_new)
     # a recorded field that would not change (no rows): the tensor path then records it as it is
     if any(t is not None and name not in fields for name, t in (("log_r", log_r), ("kind", kind), ("source", src))):
         return None
     if not _exchange_native.applies(log_lik, noise.u, cache, log_r, r_new, coords, coords_new):
         return None
-    return fields
+    return _Run(fields, conv, rho)
 
 
-def run_serves(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, sensor: SensorModel,
-               exclusion: Exclusion | None = None) -> bool:
-    """Whether :func:`exchange_run` serves a run of one-slot iterations of these chains on
-    this noise (leading ``L``): the conditions of the one C call (:func:`one_call_serves`:
-    move terms, an amplitude cache, no existence flags, eager float32 CPU), one slot an
-    iteration, the segment's proposals made, no joint pairs, and a sensor with a C entry for
-    its change (:meth:`~torchmcmcpf.models.base.SensorModel.delta_rows_loop`).
+def run_serves(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, dynamics: TargetDynamics,
+               sensor: SensorModel, exclusion: Exclusion | None = None) -> bool:
+    """Whether :func:`exchange_run` serves iterations of these chains on this noise (leading
+    ``L``): the conditions of the one C call (:func:`one_call_serves`: move terms, an
+    amplitude cache, no existence flags, eager float32 CPU), the segment's proposals made, no
+    joint pairs, and a sensor with a C entry for its change
+    (:meth:`~torchmcmcpf.models.base.SensorModel.delta_rows_loop`).
     """
-    return (_run_fields(chains, noise, sensor, exclusion) is not None and chains.terms is not None
+    return (_run_fields(chains, noise, sensor, exclusion, dynamics) is not None and chains.terms is not None
             and sensor.delta_rows_loop(chains.terms, z) is not None)
 
 
-def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, sensor: SensorModel,
-                 exclusion: Exclusion | None = None, record_from: int = 0
+def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, dynamics: TargetDynamics,
+                 sensor: SensorModel, exclusion: Exclusion | None = None, record_from: int = 0
                  ) -> tuple[ExchangeChains, Tensor, ExchangeChains]:
-    """``L`` one-slot iterations of :func:`exchange_iteration` (each followed by the cache's
-    advance, :func:`with_accepted_amplitudes`) in one C call (:func:`._exchange_native.segment`:
-    the sensor's change of each chain's move by its C entry, then the rest of the move, chain
-    by chain, every iteration): the same chains, decisions and cache to the bit, with no
-    Python between the iterations. Where :func:`run_serves`.
+    """``L`` iterations of :func:`exchange_iteration` (each followed by the cache's advance,
+    :func:`with_accepted_amplitudes`) in one C call (:func:`._exchange_native.segment`: the
+    sensor's change of each chain's move by its C entry, then the rest of the move, chain by
+    chain, every iteration): the same chains, decisions and cache to the bit, with no Python
+    between the iterations. Where :func:`run_serves`. Two-slot moves with a source term
+    (``p_same_source > 0``) one at a time (``L = 1``): the term reads the chains' sources
+    before the move, by ATen's ``softplus`` (its vector and scalar loops round by position).
 
     Parameters
     ----------
     chains : :class:`ExchangeChains` ``(B, C, ...)`` with their amplitude cache (advanced in
         place) and move terms; z : the frame; noise : :class:`ExchangeNoise` of ``L``
         iterations (leading ``(L, B, C)``) with the segment's proposals.
-    sensor, exclusion : as :func:`exchange_iteration`'s.
+    dynamics, sensor, exclusion : as :func:`exchange_iteration`'s.
     record_from : the first iteration whose chains are recorded.
 
     Returns
@@ -598,20 +618,31 @@ def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *
         iterations ``record_from .. L - 1`` (leading ``L - record_from``: ``y``, ``log_lik``,
         ``log_r``, ``kind``, ``source``; the rest None), as the iterations' loop records them.
     """
-    fields = _run_fields(chains, noise, sensor, exclusion)
+    run = _run_fields(chains, noise, sensor, exclusion, dynamics)
     terms, cache = chains.terms, chains.amplitude
-    loop = None if fields is None or terms is None else sensor.delta_rows_loop(terms, z)
-    if fields is None or loop is None or cache is None:
+    loop = None if run is None or terms is None else sensor.delta_rows_loop(terms, z)
+    if run is None or loop is None or cache is None:
         raise ValueError("exchange_run does not serve these chains and noise (run_serves)")
+    fields, conv, rho = run
+    length = noise.u.shape[0]
+    src_term = None
+    if rho > 0:
+        if length != 1:
+            raise ValueError(f"two-slot moves with a source term run one at a time, got {length} iterations")
+        assert noise.source is not None and noise.log_w_source is not None
+        first = noise._replace(source=noise.source[0].contiguous(), log_w_source=noise.log_w_source[0].contiguous(),
+                               slot=noise.slot[0].contiguous())
+        pair = _source_term(first, chains.source, chains.log_w_source, rho)
+        src_term = None if pair is None else pair.to(chains.log_lik.dtype).unsqueeze(0)
     names = list(fields)
     recorded = [name in ("y", "log_r", "kind", "source") for name in names]
     coords = fields["coords"] if "coords" in fields else (None, None)
     assert noise.proposal is not None
     ll, own, traces, ll_trace, count = _exchange_native.segment(
-        chains.log_lik, noise.u, noise.valid, noise.slot, coords[0], coords[1],
+        chains.log_lik, noise.u, noise.valid, noise.slot, src_term, coords[0], coords[1],
         1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, chains.log_r if "log_r" in fields else None,
-        noise.proposal.log_r if "log_r" in fields else None, list(fields.values()), names.index("terms"), cache, loop,
-        record_from, recorded)
+        noise.proposal.log_r if "log_r" in fields else None, chains.kind if conv is not None else None, conv,
+        list(fields.values()), names.index("terms"), cache, loop, record_from, recorded)
     new, trace = dict(zip(names, own)), dict(zip(names, traces))
     assert trace["y"] is not None
     out = ExchangeChains(new["y"], ll, None, new.get("log_r", chains.log_r), new.get("kind", chains.kind),
@@ -621,17 +652,39 @@ def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *
                                       trace.get("source"))
 
 
+def _convert(r: Tensor, kind: Tensor | None, src: float | None, dst: float | None) -> Tensor:
+    """A cached ``log r`` at ``epsilon = src`` converted to ``dst`` by the slots' ``kind``
+    (:func:`~torchmcmcpf.models.multitarget.log_q_ratio`, added in ``r``'s dtype).
+    """
+    if kind is None or src is None or dst is None or src == dst:
+        return r
+    return r + log_q_ratio(kind, src, dst).to(r.dtype)
+
+
+def _source_term(noise: ExchangeNoise, source: Tensor | None, log_w_source: Tensor | None, rho: float
+                 ) -> Tensor | None:
+    """The pair's source term of a two-slot move (module docstring), new minus old: the
+    moved slots' from ``noise`` (one iteration, leading ``(B, C)``), the chains' ``source``
+    and ``log_w_source`` at the moved slots; None without one (``rho = 0``).
+    """
+    if rho > 0 and source is not None and log_w_source is not None:
+        return (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
+                - pair_source_log_ratio(take_along(source, noise.slot, -1), take_along(log_w_source, noise.slot, -1),
+                                        rho))
+    return None
+
+
 def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangeProposal, delta: Tensor, cells: Tensor,
               change: Tensor, exclusion: Exclusion | None, source: Tensor | None, log_w_source: Tensor | None,
-              src_term: Tensor | None, convert: Callable[..., Tensor], base: float | None, eps_k: float | None
+              src_term: Tensor | None, base: float | None, eps_k: float | None
               ) -> tuple[ExchangeChains, Tensor, None]:
     """:func:`exchange_iteration`'s move of ``M`` slots after the likelihood's change ``delta``
     (``cells``, ``change`` its cache update) in one C call (:mod:`._exchange_native`): the
     same chains, decisions and cache as the tensor path; the cache advanced in place, so the
     returned chains carry it and the update is ``None``. ``exclusion`` only where the chains
     keep their coordinates; ``source``, ``log_w_source`` the moved slots' (B, C, M);
-    ``src_term`` the pair's source term; ``convert(r, kind, src, dst)`` a cached ``log r``
-    between two ``epsilon`` (the chains cache it at ``base``, this move's is ``eps_k``).
+    ``src_term`` the pair's source term; ``base`` the ``epsilon`` at which the chains cache
+    ``log r``, ``eps_k`` this move's (:func:`_convert`).
     """
     y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
     moved, _, r_new, kind_new, coords_new, terms_new = proposal
@@ -642,9 +695,9 @@ def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangePr
     fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
     r_old = None
     if log_r is not None and r_new is not None:
-        fields["log_r"] = (log_r, convert(r_new, kind_new, eps_k, base))
+        fields["log_r"] = (log_r, _convert(r_new, kind_new, eps_k, base))
         if m > 1:  # the moved slots' cached ratios at this move's epsilon (one slot: read in C)
-            r_old = convert(torch.gather(log_r, -1, noise.slot), None if kind is None else torch.gather(
+            r_old = _convert(torch.gather(log_r, -1, noise.slot), None if kind is None else torch.gather(
                 kind, -1, noise.slot), base, eps_k)
     if kind is not None and kind_new is not None:
         fields["kind"] = (kind, kind_new)
@@ -738,17 +791,8 @@ def exchange_iteration(
     by_terms = cache is not None and terms is not None and terms_new is not None  # rows read, states not mapped
     kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
 
-    def convert(r: Tensor, kd: Tensor | None, src: float | None, dst: float | None) -> Tensor:
-        if kd is None or src is None or dst is None or src == dst:
-            return r
-        return r + log_q_ratio(kd, src, dst).to(r.dtype)
-
     def source_term() -> Tensor | None:  # the pair's sources (module docstring), new minus old
-        if rho > 0 and source is not None and log_w_source is not None:
-            return (pair_source_log_ratio(noise.source, noise.log_w_source, rho)
-                    - pair_source_log_ratio(take_along(source, noise.slot, -1), take_along(log_w_source, noise.slot,
-                                                                                          -1), rho))
-        return None
+        return _source_term(noise, source, log_w_source, rho)
 
     update = None
     if by_terms and cache is not None and terms is not None and terms_new is not None:  # the moved slots' rows
@@ -759,7 +803,7 @@ def exchange_iteration(
                 and _exchange_native.applies(delta, noise.u, cache, log_r, r_new, coords, coords_new)):
             pair = source_term()
             return _one_call(chains, noise, proposal, delta, cells, change, exclusion if kept else None,
-                             src_moved, lw_moved, None if pair is None else pair.to(log_lik.dtype), convert,
+                             src_moved, lw_moved, None if pair is None else pair.to(log_lik.dtype),
                              base, eps_k)
         update = (cells, change)
 
@@ -799,7 +843,7 @@ def exchange_iteration(
             at = slot.unsqueeze(-1)
             r_old = torch.gather(log_r, -1, at).squeeze(-1)
             if kind is not None and base != eps_k:
-                r_old = convert(r_old, torch.gather(kind, -1, at).squeeze(-1), base, eps_k)
+                r_old = _convert(r_old, torch.gather(kind, -1, at).squeeze(-1), base, eps_k)
             log_prior = log_prior + r_new[:, :, j] - r_old
         if j + 1 < m:  # the next slot's likelihood and factors see this one moved
             if cache is None:
@@ -820,7 +864,7 @@ def exchange_iteration(
             e_out = where(take, e_new[:, :, j].unsqueeze(-1), e_out)
         if r_out is not None:
             k_j = None if kind_new is None else kind_new[:, :, j]
-            r_out = where(take, convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), r_out)
+            r_out = where(take, _convert(r_new[:, :, j], k_j, eps_k, base).unsqueeze(-1), r_out)
             if kind_out is not None and k_j is not None:
                 kind_out = where(take, k_j.unsqueeze(-1), kind_out)
         if src_out is not None and lw_out is not None:
