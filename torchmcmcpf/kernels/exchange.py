@@ -542,15 +542,17 @@ def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorMode
     """:func:`exchange_run`'s plan where it serves these chains and noise (:func:`run_serves`),
     else None.
     """
-    y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
+    log_lik, log_r, kind, src, lw, cache, coords, terms = (chains.log_lik, chains.log_r, chains.kind, chains.source,
+                                                           chains.log_w_source, chains.amplitude, chains.coords,
+                                                           chains.terms)
     proposal, m = noise.proposal, noise.slot.shape[-1]
     if (not _in_c(chains) or proposal is None or noise.partner is not None or proposal.exists is not None
             or terms is None or cache is None or not cache.is_contiguous() or dynamics.existence is not None):
         return None
-    moved, _, r_new, kind_new, coords_new, terms_new = proposal
+    r_new, coords_new = proposal.log_r, proposal.coords
     on = exclusion_on(exclusion, sensor)
     kept = on and coords is not None and coords_new is not None
-    if (on and not kept) or terms_new is None:
+    if (on and not kept) or proposal.terms is None:
         return None
     # exchange_iteration's epsilon and rho (one slot: the chains' epsilon, no source term)
     recapture = dynamics.recapture
@@ -559,19 +561,11 @@ def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorMode
     rho = 0.0 if recapture is None or m == 1 else recapture.p_same_source
     if rho > 0 and (src is None or lw is None):
         return None
-    fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
+    fields = _move_fields(chains, proposal, noise.source, noise.log_w_source, kept, base, eps_k)
     conv = None
-    if log_r is not None and r_new is not None:  # written at the chains' epsilon
-        fields["log_r"] = (log_r, _convert(r_new, kind_new, eps_k, base))
-        if m > 1 and kind is not None and base is not None and eps_k is not None and base != eps_k:
-            conv = log_q_ratio(torch.arange(3, dtype=torch.int8), base, eps_k).to(log_r.dtype)
-    if kind is not None and kind_new is not None:
-        fields["kind"] = (kind, kind_new)
-    if src is not None and lw is not None and noise.source is not None and noise.log_w_source is not None:
-        fields.update(source=(src, noise.source), log_w_source=(lw, noise.log_w_source.to(lw.dtype)))
-    if kept and coords is not None and coords_new is not None:
-        fields["coords"] = (coords, coords_new)
-    fields["terms"] = (terms, terms_new)
+    if "log_r" in fields and m > 1 and kind is not None and base is not None and eps_k is not None \
+            and base != eps_k:
+        conv = log_q_ratio(torch.arange(3, dtype=torch.int8), base, eps_k).to(fields["log_r"][0].dtype)
     # a recorded field that would not change (no rows): the tensor path then records it as it is
     if any(t is not None and name not in fields for name, t in (("log_r", log_r), ("kind", kind), ("source", src))):
         return None
@@ -652,6 +646,31 @@ def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *
                                       trace.get("source"))
 
 
+def _move_fields(chains: ExchangeChains, proposal: ExchangeProposal, source: Tensor | None,
+                 log_w_source: Tensor | None, with_coords: bool, base: float | None, eps_k: float | None
+                 ) -> dict[str, tuple[Tensor, Tensor]]:
+    """The chain fields a move writes, each with the moved slots' new rows (the proposal's,
+    leading ``(*L, B, C, M)``), in a fixed order: ``y``; ``log_r`` (written at the chains'
+    ``epsilon`` ``base``, the move's is ``eps_k``); ``kind``; ``source`` and ``log_w_source``
+    (the moved slots' ``source``, ``log_w_source``); ``coords`` (where ``with_coords``);
+    ``terms``; each where the chains and the proposal have it.
+    """
+    y, _, _, log_r, kind, src, lw, _, coords, terms = chains
+    moved, _, r_new, kind_new, coords_new, terms_new = proposal
+    fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
+    if log_r is not None and r_new is not None:
+        fields["log_r"] = (log_r, _convert(r_new, kind_new, eps_k, base))
+    if kind is not None and kind_new is not None:
+        fields["kind"] = (kind, kind_new)
+    if src is not None and lw is not None and source is not None and log_w_source is not None:
+        fields.update(source=(src, source), log_w_source=(lw, log_w_source.to(lw.dtype)))
+    if with_coords and coords is not None and coords_new is not None:
+        fields["coords"] = (coords, coords_new)
+    if terms is not None and terms_new is not None:
+        fields["terms"] = (terms, terms_new)
+    return fields
+
+
 def _convert(r: Tensor, kind: Tensor | None, src: float | None, dst: float | None) -> Tensor:
     """A cached ``log r`` at ``epsilon = src`` converted to ``dst`` by the slots' ``kind``
     (:func:`~torchmcmcpf.models.multitarget.log_q_ratio`, added in ``r``'s dtype).
@@ -686,27 +705,16 @@ def _one_call(chains: ExchangeChains, noise: ExchangeNoise, proposal: ExchangePr
     ``src_term`` the pair's source term; ``base`` the ``epsilon`` at which the chains cache
     ``log r``, ``eps_k`` this move's (:func:`_convert`).
     """
-    y, log_lik, _, log_r, kind, src, lw, cache, coords, terms = chains
-    moved, _, r_new, kind_new, coords_new, terms_new = proposal
+    log_lik, log_r, kind, src, lw, cache = (chains.log_lik, chains.log_r, chains.kind, chains.source,
+                                            chains.log_w_source, chains.amplitude)
+    r_new = proposal.log_r
     assert cache is not None
     m = noise.slot.shape[-1]
-    # each field the chains have, with the moved slots' new rows (their (B, C, M, ...)
-    # proposals), in a fixed order; log r written at the chains' epsilon
-    fields: dict[str, tuple[Tensor, Tensor]] = {"y": (y, moved)}
+    fields = _move_fields(chains, proposal, source, log_w_source, exclusion is not None, base, eps_k)
     r_old = None
-    if log_r is not None and r_new is not None:
-        fields["log_r"] = (log_r, _convert(r_new, kind_new, eps_k, base))
-        if m > 1:  # the moved slots' cached ratios at this move's epsilon (one slot: read in C)
-            r_old = _convert(torch.gather(log_r, -1, noise.slot), None if kind is None else torch.gather(
-                kind, -1, noise.slot), base, eps_k)
-    if kind is not None and kind_new is not None:
-        fields["kind"] = (kind, kind_new)
-    if src is not None and lw is not None and source is not None and log_w_source is not None:
-        fields.update(source=(src, source), log_w_source=(lw, log_w_source.to(lw.dtype)))
-    if exclusion is not None and coords is not None and coords_new is not None:
-        fields["coords"] = (coords, coords_new)
-    if terms is not None and terms_new is not None:
-        fields["terms"] = (terms, terms_new)
+    if log_r is not None and "log_r" in fields and m > 1:  # the moved slots' at this move's epsilon (M = 1: in C)
+        r_old = _convert(torch.gather(log_r, -1, noise.slot), None if kind is None else torch.gather(
+            kind, -1, noise.slot), base, eps_k)
     u, u_new = fields["coords"] if "coords" in fields else (None, None)
     ll, accepted, out = _exchange_native.commit(
         log_lik, delta, noise.u, noise.valid, noise.slot, src_term, u, u_new,
@@ -791,9 +799,6 @@ def exchange_iteration(
     by_terms = cache is not None and terms is not None and terms_new is not None  # rows read, states not mapped
     kept = on and coords is not None and coords_new is not None  # the chains keep their coordinates
 
-    def source_term() -> Tensor | None:  # the pair's sources (module docstring), new minus old
-        return _source_term(noise, source, log_w_source, rho)
-
     update = None
     if by_terms and cache is not None and terms is not None and terms_new is not None:  # the moved slots' rows
         delta, cells, change = sensor.log_likelihood_delta_rows(cache, terms, noise.slot, terms_new, z)
@@ -801,7 +806,7 @@ def exchange_iteration(
         if (one_call_serves(chains, x_prev, exists_prev, z, noise) and cells is not None and e_new is None
                 and (kept or not on) and cache.is_contiguous()
                 and _exchange_native.applies(delta, noise.u, cache, log_r, r_new, coords, coords_new)):
-            pair = source_term()
+            pair = _source_term(noise, source, log_w_source, rho)
             return _one_call(chains, noise, proposal, delta, cells, change, exclusion if kept else None,
                              src_moved, lw_moved, None if pair is None else pair.to(log_lik.dtype),
                              base, eps_k)
@@ -811,7 +816,7 @@ def exchange_iteration(
     # terms), then the accepted moves written into the state, one select per field
     cur_y, cur_e, cur_ll = y, exists, log_lik
     log_prior = torch.zeros_like(log_lik)
-    pair = source_term()
+    pair = _source_term(noise, source, log_w_source, rho)
     if pair is not None:
         log_prior = log_prior + pair.to(log_prior.dtype)
     cur_u = u_moved = None
