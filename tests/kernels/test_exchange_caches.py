@@ -163,7 +163,7 @@ def _counting_commits():
         return commit(*args, **kwargs)
 
     def counted_segment(*args, **kwargs):
-        calls[1] += args[1].shape[0]  # u (L, B, C)
+        calls[1] += args[7].u.shape[0]  # the segment's iterations (single: leading L)
         return segment(*args, **kwargs)
 
     patches = mock.patch.multiple(_exchange_native, commit=counted, segment=counted_segment)
@@ -325,9 +325,16 @@ def _run_problem(steps=12, pairs=False):
     return sensor, dynamics, z, x_prev, chains, noise
 
 
-def _tensor_path_steps(chains, noise, x_prev, z, sensor, dynamics, exclusion):
-    """The tensor path's iterations one by one: the chains after each (with a copy of the
-    cache), the decisions and each iteration's log acceptance ratio (read from its MH test)."""
+def _rows_of(noise, t):
+    """Iteration ``t`` of a noise with leading ``L`` (leading ``(B, C)``)."""
+    return type(noise)(*(None if v is None else (v[t] if torch.is_tensor(v) else type(v)(*(
+        None if a is None else a[t] for a in v))) for v in noise))
+
+
+def _tensor_path_steps(chains, iterations, x_prev, z, sensor, dynamics, exclusion):
+    """The tensor path's iterations (a list of one iteration's noise each) one by one: the
+    chains after each (with a copy of the cache), the decisions and each iteration's log
+    acceptance ratio (read from its MH test)."""
     from unittest import mock
 
     from torchmcmcpf.kernels import exchange
@@ -341,9 +348,7 @@ def _tensor_path_steps(chains, noise, x_prev, z, sensor, dynamics, exclusion):
 
     kept, accepted = [], []
     with _tensor_path_only(), mock.patch.object(exchange, "mh_accept", reading):
-        for t in range(noise.u.shape[0]):
-            nz = type(noise)(*(None if v is None else (v[t] if torch.is_tensor(v) else type(v)(*(
-                None if a is None else a[t] for a in v))) for v in noise))
+        for nz in iterations:
             new, acc, update = exchange_iteration(chains, x_prev, None, z, nz, dynamics=dynamics, sensor=sensor,
                                                   exclusion=exclusion)
             chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
@@ -352,12 +357,12 @@ def _tensor_path_steps(chains, noise, x_prev, z, sensor, dynamics, exclusion):
     return kept, torch.stack(accepted), torch.stack(seen)
 
 
-def _at_the_boundary(noise, log_alpha, accepted):
-    """``noise`` with each uniform 1e-3 nats on the side of its chain's log acceptance ratio
-    that keeps the decision: the same decisions on the tensor path, and any change of a
-    ratio by more than 1e-3 (a term left out or mis-read) flips one."""
+def _at_the_boundary(log_alpha, accepted):
+    """Uniforms each 1e-3 nats on the side of its chain's log acceptance ratio that keeps the
+    decision: the same decisions on the tensor path, and any change of a ratio by more than
+    1e-3 (a term left out or misread) flips one."""
     shift = torch.where(accepted, -1e-3, 1e-3)
-    return noise._replace(u=torch.exp((log_alpha + shift).clamp(-80.0, 80.0)))
+    return torch.exp((log_alpha + shift).clamp(-80.0, 80.0))
 
 
 def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
@@ -372,9 +377,11 @@ def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
     sensor, dynamics, z, x_prev, chains, noise = _run_problem()
     exclusion, steps, record = Exclusion(), noise.u.shape[0], 5
     fresh = lambda: chains._replace(amplitude=chains.amplitude.clone())  # noqa: E731 (the cache moves in place)
-    _, accepted, log_alpha = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
-    noise = _at_the_boundary(noise, log_alpha, accepted)
-    kept, at_boundary, _ = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
+    _, accepted, log_alpha = _tensor_path_steps(fresh(), [_rows_of(noise, t) for t in range(steps)], x_prev, z,
+                                                sensor, dynamics, exclusion)
+    noise = noise._replace(u=_at_the_boundary(log_alpha, accepted))
+    kept, at_boundary, _ = _tensor_path_steps(fresh(), [_rows_of(noise, t) for t in range(steps)], x_prev, z,
+                                              sensor, dynamics, exclusion)
     assert torch.equal(at_boundary, accepted)  # the same decisions, each 1e-3 nats from flipping
     slow = kept[-1]
     assert run_serves(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
@@ -401,32 +408,42 @@ def test_runs_serve_only_sensors_with_a_c_entry():
             exchange_run(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=Exclusion())
 
 
-def test_two_slot_moves_in_their_c_call_are_the_tensor_path_to_the_bit():
-    """A two-slot move in its own C call (the pair's source term read from the chains first,
-    the cached ratios converted between the moves' epsilon by kind in the loop) gives the
-    tensor path's chains, cache and decisions to the bit, move after move; a run of several
-    such moves is refused (its source term reads the chains before each)."""
-    from torchmcmcpf.kernels.exchange import exchange_run
+def test_a_segment_with_two_slot_moves_is_the_iterations_to_the_bit():
+    """A segment in C calls, runs of one-slot moves with two-slot ones between them (each after
+    its source term read from the chains; the cached ratios converted between the moves'
+    epsilon by kind in the loop), gives the tensor path's chains, cache, acceptances and
+    recorded trace to the bit; the trace recorded from an iteration inside a run."""
+    from torchmcmcpf.kernels.exchange import exchange_run, run_serves
     from torchmcmcpf.models.sensors.grid import native
 
     if not native.available():
         pytest.skip("no C compiler: no runs in C")
-    sensor, dynamics, z, x_prev, chains, noise = _run_problem(steps=10, pairs=True)
-    assert noise.slot.shape[-1] == 2 and dynamics.recapture.p_propose_pair != dynamics.recapture.p_propose
-    exclusion = Exclusion()
-    with pytest.raises(ValueError, match="one at a time"):
-        exchange_run(chains, z, noise, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
+    sensor, dynamics, z, x_prev, chains, single = _run_problem(steps=10)
+    pairs = _run_problem(steps=3, pairs=True)[-1]
+    at_pairs, record, exclusion = (2, 5, 9), 4, Exclusion()
+    assert pairs.slot.shape[-1] == 2 and dynamics.recapture.p_propose_pair != dynamics.recapture.p_propose
+
+    def iterations(single, pairs):
+        return [_rows_of(pairs, at_pairs.index(t)) if t in at_pairs else _rows_of(single, t) for t in range(10)]
+
     fresh = lambda: chains._replace(amplitude=chains.amplitude.clone())  # noqa: E731 (the cache moves in place)
-    _, accepted, log_alpha = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
-    noise = _at_the_boundary(noise, log_alpha, accepted)
-    kept, at_boundary, _ = _tensor_path_steps(fresh(), noise, x_prev, z, sensor, dynamics, exclusion)
+    _, accepted, log_alpha = _tensor_path_steps(fresh(), iterations(single, pairs), x_prev, z, sensor, dynamics,
+                                                exclusion)
+    u = _at_the_boundary(log_alpha, accepted)
+    single = single._replace(u=torch.stack([single.u[t] if t in at_pairs else u[t] for t in range(10)]))
+    pairs = pairs._replace(u=u[list(at_pairs)])
+    kept, at_boundary, _ = _tensor_path_steps(fresh(), iterations(single, pairs), x_prev, z, sensor, dynamics,
+                                              exclusion)
     assert torch.equal(at_boundary, accepted)  # the same decisions, each 1e-3 nats from flipping
-    fast = fresh()
-    for t, slow in enumerate(kept):
-        part = type(noise)(*(None if v is None else (v[t:t + 1] if torch.is_tensor(v) else type(v)(*(
-            None if a is None else a[t:t + 1] for a in v))) for v in noise))
-        fast, count, _ = exchange_run(fast, z, part, dynamics=dynamics, sensor=sensor, exclusion=exclusion)
-        assert torch.equal(count, accepted[t].to(count.dtype))
-        for name in ("y", "log_lik", "log_r", "kind", "source", "log_w_source", "coords", "terms", "amplitude"):
-            assert torch.equal(getattr(fast, name), getattr(slow, name)), (t, name)
     assert 0.02 < float(accepted.double().mean()) < 0.98  # both decisions are covered
+    assert bool(accepted[list(at_pairs)].any())  # a two-slot move accepted
+    served = dict(dynamics=dynamics, sensor=sensor, exclusion=exclusion, pairs=pairs)
+    assert run_serves(chains, z, single, **served)
+    fast, count, trace = exchange_run(fresh(), z, single, at_pairs=at_pairs, record_from=record, **served)
+    assert torch.equal(count, accepted.sum(0).to(count.dtype))
+    for name in ("y", "log_lik", "log_r", "kind", "source", "log_w_source", "coords", "terms", "amplitude"):
+        assert torch.equal(getattr(fast, name), getattr(kept[-1], name)), name
+    for name in ("y", "log_lik", "log_r", "kind", "source"):
+        assert torch.equal(getattr(trace, name), torch.stack([getattr(ch, name) for ch in kept[record:]])), name
+    with pytest.raises(ValueError, match="at_pairs"):
+        exchange_run(fresh(), z, single, at_pairs=(2, 5), **served)

@@ -321,58 +321,6 @@ def _segment(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x
     return chains, tree_map(lambda *a: None if a[0] is None else torch.stack(a), *trace), accepted
 
 
-def _segment_runs(iteration: Callable, chains: ExchangeChains, noise: SegmentNoise, x_prev: Tensor,
-                  exists: Tensor | None, z: Measurement, record_from: int, sensor: SensorModel,
-                  exclusion: Exclusion | None, dynamics: TargetDynamics
-                  ) -> tuple[ExchangeChains, ExchangeChains, Tensor]:
-    """:func:`_segment` in C calls (:func:`~torchmcmcpf.kernels.exchange.exchange_run`, where
-    :func:`~torchmcmcpf.kernels.exchange.run_serves`): each run of one-slot iterations between
-    the two-slot ones in one call, each two-slot iteration in one (its source term read from
-    the chains first); the same chains, trace and acceptances to the bit, no Python between
-    a run's iterations.
-    """
-    length, at_pairs = noise.single.u.shape[0], noise.at_pairs
-    pairs = None if noise.pair is None or not run_serves(chains, z, noise.pair, dynamics=dynamics, sensor=sensor,
-                                                          exclusion=exclusion) else noise.pair
-    pair_rows = noise.pairs() if at_pairs and pairs is None else {}
-    accepted = torch.zeros_like(chains.log_lik)
-    pieces: list[ExchangeChains] = []
-    t = 0
-    while t < length:
-        if t in pair_rows:  # a two-slot iteration the runs do not serve: the program, as in _run_chains
-            new, acc, update = iteration(chains, x_prev, exists, z, pair_rows[t])
-            chains = with_accepted_amplitudes(new, chains.amplitude, update, acc, sensor)
-            accepted = accepted + acc.to(accepted.dtype)
-            if t >= record_from:
-                pieces.append(ExchangeChains._make(None if a is None else a.unsqueeze(0) for a in chains._replace(
-                    log_w_source=None, amplitude=None, coords=None, terms=None)))
-            t += 1
-            continue
-        if t in at_pairs:  # a two-slot iteration in its own call (its source term first)
-            i = at_pairs.index(t)
-            part, end = _part(pairs, i, i + 1), t + 1
-        else:
-            end = min([p for p in at_pairs if p > t], default=length)
-            part = _part(noise.single, t, end)
-        chains, acc, trace = exchange_run(chains, z, part, dynamics=dynamics, sensor=sensor, exclusion=exclusion,
-                                          record_from=max(record_from - t, 0))
-        accepted = accepted + acc
-        if end > record_from:
-            pieces.append(trace)
-        t = end
-    trace = ExchangeChains._make(None if parts[0] is None else torch.cat(parts) for parts in zip(*pieces))
-    return chains, trace, accepted
-
-
-def _part(x: Any, start: int, end: int) -> Any:
-    """Iterations ``start .. end - 1`` of a tree of NamedTuples of tensors (leading ``L``) and
-    None, views (torch's generic ``tree_map`` took 0.2 ms a call, 20 calls a step).
-    """
-    if x is None or isinstance(x, torch.Tensor):
-        return None if x is None else x[start:end]
-    return type(x)(*(_part(field, start, end) for field in x))
-
-
 def _unstack(stacked: ExchangeChains) -> list[ExchangeChains]:
     """A stacked trace (:func:`_segment`) -> the list of chains (views)."""
     length = next(t for t in stacked if t is not None).shape[0]
@@ -685,9 +633,11 @@ def ipmcmc_bound_step(state: ParticleState, z: Measurement, bound: Bound, *, gen
         # a compiled iteration runs the segment through its capture: one CUDA graph on a GPU
         capture = getattr(iteration, "capture", None)
         args = (chains, noise, x_prev, exists, z, record_from, sensor)
-        if run_serves(chains, z, noise.single, dynamics=dynamics, sensor=sensor, exclusion=settings.exclusion):
+        served = dict(dynamics=dynamics, sensor=sensor, exclusion=settings.exclusion, pairs=noise.pair)
+        if run_serves(chains, z, noise.single, **served):
             # the iterations in C calls (eager CPU: faster than the compiled graph)
-            ch, trace, acc = _segment_runs(iteration, *args, exclusion=settings.exclusion, dynamics=dynamics)
+            ch, acc, trace = exchange_run(chains, z, noise.single, at_pairs=noise.at_pairs, record_from=record_from,
+                                          **served)
         else:
             ch, trace, acc = capture(_segment, *args) if capture is not None else _segment(iteration, *args)
         return ch, _unstack(trace), acc, torch.zeros_like(acc)

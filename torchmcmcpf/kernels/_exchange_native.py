@@ -19,14 +19,15 @@ from __future__ import annotations
 
 import ctypes
 import math
-from typing import Any
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import torch
 
 from .. import _native, runtime
 from ..typing import Tensor
 
-__all__ = ["applies", "commit", "segment"]
+__all__ = ["applies", "commit", "segment", "Moves"]
 
 
 def applies(*tensors: Tensor | None) -> bool:
@@ -106,33 +107,57 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
     return ll_out, accepted.view(torch.bool), dsts
 
 
-def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, src_term: Tensor | None,
-            coords: Tensor | None, coords_new: Tensor | None, scale: float, log_phi_floor: float,
-            log_r: Tensor | None, r_new: Tensor | None, kind: Tensor | None, conv: Tensor | None,
-            fields: list[tuple[Tensor, Tensor]], terms_at: int, cache: Tensor, loop: _native.RowsLoop, record: int,
-            recorded: list[bool]) -> tuple[Tensor, list[Tensor], list[Tensor | None], Tensor, Tensor]:
-    """``L`` exchange iterations of ``(B, C)`` chains moving ``M`` slots each in one call: each
-    iteration's change by the sensor's entry ``loop`` (:meth:`~.SensorModel.delta_rows_loop`),
-    then :func:`commit`'s arithmetic, chain by chain (the chains are independent: split over
-    the threads once), the same bits as ``L`` calls of the two.
+class Moves(NamedTuple):
+    """One kind of move of a segment (:func:`segment`): ``L`` iterations of ``(B, C)`` chains
+    moving ``M`` slots each.
+
+    Attributes
+    ----------
+    u : (L, B, C) float32, the MH uniforms; valid : (L, B, C) bool or None; slot : (L, B, C, M)
+        int64.
+    rows : per chain field of :func:`segment`, the moved slots' new rows ``(L, B, C, M, ...)``
+        (the field's dtype).
+    coords : (L, B, C, M, r) or None, their resolution coordinates (the exclusion term);
+        log_r : (L, B, C, M) or None, their ratios at the move's ``epsilon``.
+    conv : (3,) float32 or None: the chains' cached ratios converted to the move's ``epsilon``
+        by kind (the float32 values of :func:`~torchmcmcpf.models.multitarget.log_q_ratio` of
+        kinds 0, 1, 2), else read as they are.
+    """
+
+    u: Tensor
+    valid: Tensor | None
+    slot: Tensor
+    rows: list[Tensor]
+    coords: Tensor | None
+    log_r: Tensor | None
+    conv: Tensor | None
+
+
+def segment(log_lik: Tensor, fields: list[Tensor], at: dict[str, int], cache: Tensor, loop: _native.RowsLoop,
+            scale: float, log_phi_floor: float, single: Moves, pairs: Moves | None, at_pairs: tuple[int, ...],
+            record: int, recorded: list[bool], source_term: Callable[[list[Tensor], int], Tensor | None]
+            ) -> tuple[Tensor, list[Tensor], list[Tensor | None], Tensor, Tensor]:
+    """The ``L`` iterations of a segment of ``(B, C)`` chains in C calls: each run of one-slot
+    iterations (``single``) between the two-slot ones (``pairs``, at positions ``at_pairs``)
+    in one call, each two-slot iteration in one after its source term; in each, the change
+    by the sensor's entry ``loop`` (:meth:`~.SensorModel.delta_rows_loop`), then
+    :func:`commit`'s arithmetic, chain by chain (the chains are independent: split over the
+    threads once), on buffers made once for the segment: the same bits as ``L`` calls of the
+    two.
 
     Parameters
     ----------
-    log_lik : (B, C) float32; u : (L, B, C) the MH uniforms; valid : (L, B, C) bool or None;
-        slot : (L, B, C, M) int64; src_term : (L, B, C) float32 or None, the pair's source
-        term (:func:`commit`'s).
-    coords : (B, C, K, r) or None, coords_new : (L, B, C, M, r); scale, log_phi_floor: as
-        :func:`commit`. log_r : (B, C, K) or None, r_new : (L, B, C, M) at the move's
-        ``epsilon``.
-    kind, conv : with ``M > 1`` and moves at another ``epsilon`` than the chains cache: the
-        chains' kinds (B, C, K) int8 and the conversion by kind (3,) float32 (the float32
-        values of :func:`~torchmcmcpf.models.multitarget.log_q_ratio` of kinds 0, 1, 2), else
-        None. Both are fields too, where given.
-    fields : ``(field (B, C, K, ...), rows (L, B, C, M, ...))`` pairs (:func:`commit`'s, each
-        iteration's rows); ``fields[terms_at]`` the chains' move terms ``(B, C, K, 4)``, read by
-        ``loop``. coords, log_r and kind, where given, are fields too.
-    cache : (B, C, G) float32 contiguous, advanced in place.
+    log_lik : (B, C) float32; fields : the chain fields ``(B, C, K, ...)`` the moves write
+        (:func:`commit`'s), ``at`` the positions of ``"terms"`` (the move terms ``(B, C, K,
+        4)`` ``loop`` reads) and, where the moves read them, ``"coords"``, ``"log_r"``,
+        ``"kind"``.
+    cache : (B, C, G) float32 contiguous, advanced in place; scale, log_phi_floor: as
+        :func:`commit`.
+    single : :class:`Moves` of one slot, leading ``L`` (its rows at ``at_pairs`` unread);
+        pairs : :class:`Moves` of two slots, leading ``len(at_pairs)``, or None.
     record : the first iteration whose chains are recorded; recorded : per field, whether.
+    source_term : ``source_term(own, i) -> (B, C) float32 or None``, the ``i``-th two-slot
+        move's source term from the chains' current fields ``own``.
 
     Returns
     -------
@@ -140,53 +165,90 @@ def segment(log_lik: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, src_
         traces ``(L - record, B, C, K, ...)`` (None where not recorded); the log-likelihood's
         ``(L - record, B, C)``; the acceptances per chain ``(B, C)`` float32.
     """
-    L, m = u.shape[0], slot.shape[-1]
-    n, k = log_lik.numel(), fields[0][0].shape[2]
-    width = [f.element_size() * (f.numel() // (n * k)) for f, _ in fields]
-    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // (n * L * m)) != w
-           for (f, r), w in zip(fields, width)):
-        raise ValueError("each field's rows must have its dtype and row shape, got "
-                         f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
-    # log u as mh_accept takes it, one ATen call an iteration (its loops round by position)
-    log_u = torch.stack([torch.log(t) for t in u.contiguous().unbind(0)])
-    own = [f.clone(memory_format=torch.contiguous_format) for f, _ in fields]  # written in place
-    rows = [r.contiguous() for _, r in fields]
+    length = single.u.shape[0]
+    n, k = log_lik.numel(), fields[0].shape[2]
+    width = [f.element_size() * (f.numel() // (n * k)) for f in fields]
+    for moves in (single,) if pairs is None else (single, pairs):
+        per = n * moves.u.shape[0] * moves.slot.shape[-1]  # rows of each field
+        both = list(zip(fields, moves.rows))
+        if any(f.dtype != r.dtype or r.element_size() * (r.numel() // per) != w for (f, r), w in zip(both, width)):
+            raise ValueError("each field's rows must have its dtype and row shape, got "
+                             f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in both]}")
+    own = [f.clone(memory_format=torch.contiguous_format) for f in fields]  # written in place
     ll = log_lik.clone(memory_format=torch.contiguous_format)
-    rec = max(L - record, 0)
+    rec = max(length - record, 0)
     traces = [torch.empty((rec,) + f.shape, dtype=f.dtype) if keep else None for f, keep in zip(own, recorded)]
     ll_trace = torch.empty((rec,) + ll.shape, dtype=ll.dtype)
     count = torch.zeros(ll.shape, dtype=torch.float32)
-    rv = 2 * m * loop.cells
+    rv = 2 * (1 if pairs is None else 2) * loop.cells  # the cells a chain's move changes, at most
     delta, accepted = torch.empty(n, dtype=torch.float32), torch.empty(n, dtype=torch.uint8)
     cells, change = torch.empty((n, rv), dtype=torch.int64), torch.empty((n, rv), dtype=torch.float32)
-    r_old = torch.empty((n, m), dtype=torch.float32)
-    slot, valid8 = slot.contiguous(), None if valid is None else valid.contiguous().view(torch.uint8)
-    src_term, coords_new, r_new, conv = (None if t is None else t.contiguous() for t in (src_term, coords_new, r_new,
-                                                                                          conv))
-    mine: dict[int, Tensor] = {}  # the chains' own buffers of the fields the loop reads
-    for (f, _), o in zip(fields, own):
-        mine[id(f)] = o
-    if any(t is not None and id(t) not in mine for t in (coords, log_r, kind)):
-        raise ValueError("coords, log_r and kind must be among the fields where given")
-    own_coords, own_log_r, own_kind = (None if t is None else mine[id(t)] for t in (coords, log_r, kind))
-    ptrs = (ctypes.c_void_p * (3 * len(own)))(*[t.data_ptr() for t in own + rows],
-                                                *[0 if t is None else t.data_ptr() for t in traces])
-    step = ctypes.sizeof(ctypes.c_void_p) * len(own)
-
-    def at(t: Tensor | None) -> int | None:
-        return None if t is None else t.data_ptr()
-
+    r_old = torch.empty((n, 2), dtype=torch.float32)
+    # log u as mh_accept takes it, one ATen call an iteration (its loops round by position)
+    u_single = single.u.contiguous()
+    u_pairs = None if pairs is None else pairs.u.contiguous()
+    where_pair = dict(zip(at_pairs, range(len(at_pairs))))
+    log_u = torch.stack([torch.log(u_pairs[where_pair[t]] if t in where_pair and u_pairs is not None else u_single[t])
+                         for t in range(length)])
     lib: Any = _native.library()
-    r = 0 if coords is None else coords.shape[-1]
-    code = lib.exchange_segment(
-        n, torch.get_num_threads(), L, k, m, ll.data_ptr(), log_u.data_ptr(), at(valid8), slot.data_ptr(),
-        at(src_term), at(own_coords), at(coords_new), r, 1.0 / (2.0 * scale**2), math.exp(log_phi_floor),
-        at(own_log_r), at(r_new), at(own_kind), at(conv), r_old.data_ptr(), len(own), ptrs,
-        ctypes.addressof(ptrs) + step, (ctypes.c_int64 * len(own))(*width), own[terms_at].data_ptr(),
-        rows[terms_at].data_ptr(), cache.data_ptr(), loop.fn, ctypes.addressof(loop.context), rv, delta.data_ptr(),
-        cells.data_ptr(), change.data_ptr(), accepted.data_ptr(), min(record, L), ctypes.addressof(ptrs) + 2 * step,
-        ll_trace.data_ptr(), count.data_ptr())
-    if code:
-        raise ValueError(f"the exchange segment's C loop got {len(own)} fields, M = {m} moved, {r} resolution "
-                         "coordinates or a conversion without kinds, above its limits (16, 4, 4)")
+    threads, ctx = torch.get_num_threads(), ctypes.addressof(loop.context)
+    inv2s2, xmin = 1.0 / (2.0 * scale**2), math.exp(log_phi_floor)
+    own_ptrs = [t.data_ptr() for t in own]
+    terms_at, coords_at, log_r_at, kind_at = at["terms"], at.get("coords"), at.get("log_r"), at.get("kind")
+    r = 0 if coords_at is None else own[coords_at].shape[-1]
+    widths = (ctypes.c_int64 * len(own))(*width)
+
+    def flat(moves: Moves) -> tuple:
+        """The moves' tensors, contiguous, and each one's bytes an iteration."""
+        tensors = [moves.valid.contiguous().view(torch.uint8) if moves.valid is not None else None,
+                   moves.slot.contiguous(), None if moves.coords is None else moves.coords.contiguous(),
+                   None if moves.log_r is None else moves.log_r.contiguous()] + [t.contiguous() for t in moves.rows]
+        return tensors, [None if t is None else math.prod(t.shape[1:]) * t.element_size() for t in tensors]
+
+    single_flat = flat(single)
+    pairs_flat = None if pairs is None else flat(pairs)
+
+    def call(moves: Moves, flats: tuple, first: int, start: int, steps: int, src: Tensor | None) -> None:
+        """``steps`` iterations of ``moves`` from its iteration ``first``: the segment's
+        iterations ``start ..``.
+        """
+        tensors, step = flats
+
+        def ptr(i: int) -> int | None:
+            t = tensors[i]
+            return None if t is None else t.data_ptr() + first * step[i]
+
+        row_ptrs = [ptr(4 + f) for f in range(len(own))]
+        local = max(record - start, 0)  # the first recorded of this call's iterations
+        base = max(start, record) - record  # its row in the traces
+        trace_ptrs = [0 if t is None else t.data_ptr() + base * math.prod(t.shape[1:]) * t.element_size()
+                      for t in traces]
+        ptrs = (ctypes.c_void_p * (3 * len(own)))(*own_ptrs, *row_ptrs, *trace_ptrs)
+        size = ctypes.sizeof(ctypes.c_void_p) * len(own)
+        m = moves.slot.shape[-1]
+        code = lib.exchange_segment(
+            n, threads, steps, k, m, ll.data_ptr(), log_u.data_ptr() + start * n * 4, ptr(0), ptr(1),
+            None if src is None else src.data_ptr(), None if coords_at is None else own_ptrs[coords_at], ptr(2), r,
+            inv2s2, xmin, None if log_r_at is None else own_ptrs[log_r_at], ptr(3),
+            None if kind_at is None or moves.conv is None else own_ptrs[kind_at],
+            None if moves.conv is None else moves.conv.data_ptr(), r_old.data_ptr(), len(own), ptrs,
+            ctypes.addressof(ptrs) + size, widths, own_ptrs[terms_at], row_ptrs[terms_at], cache.data_ptr(),
+            loop.fn, ctx, 2 * m * loop.cells, delta.data_ptr(), cells.data_ptr(), change.data_ptr(),
+            accepted.data_ptr(), min(local, steps), ctypes.addressof(ptrs) + 2 * size,
+            ll_trace.data_ptr() + base * n * 4, count.data_ptr())
+        if code:
+            raise ValueError(f"the exchange segment's C loop got {len(own)} fields, M = {m} moved, {r} resolution "
+                             "coordinates or a conversion without kinds, above its limits (16, 4, 4)")
+
+    t = 0
+    while t < length:
+        if t in where_pair and pairs is not None and pairs_flat is not None:
+            i = where_pair[t]
+            src = source_term(own, i)
+            call(pairs, pairs_flat, i, t, 1, None if src is None else src.to(torch.float32).contiguous())
+            t += 1
+            continue
+        end = min([p for p in at_pairs if p > t], default=length)
+        call(single, single_flat, t, t, end - t, None)
+        t = end
     return ll, own, traces, ll_trace, count

@@ -77,6 +77,7 @@ from typing import NamedTuple
 
 import torch
 
+from .._native import RowsLoop
 from .._native.select import MIN_ELEMENTS, where
 from ..models.base import SensorModel
 from ..models.existence import BirthNoise, TargetDynamics
@@ -575,33 +576,53 @@ def _run_fields(chains: ExchangeChains, noise: ExchangeNoise, sensor: SensorMode
 
 
 def run_serves(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, dynamics: TargetDynamics,
-               sensor: SensorModel, exclusion: Exclusion | None = None) -> bool:
-    """Whether :func:`exchange_run` serves iterations of these chains on this noise (leading
-    ``L``): the conditions of the one C call (:func:`one_call_serves`: move terms, an
-    amplitude cache, no existence flags, eager float32 CPU), the segment's proposals made, no
-    joint pairs, and a sensor with a C entry for its change
-    (:meth:`~torchmcmcpf.models.base.SensorModel.delta_rows_loop`).
+               sensor: SensorModel, exclusion: Exclusion | None = None, pairs: ExchangeNoise | None = None) -> bool:
+    """Whether :func:`exchange_run` serves a segment of these chains on this noise (leading
+    ``L``; ``pairs`` its two-slot moves): the conditions of the one C call
+    (:func:`one_call_serves`: move terms, an amplitude cache, no existence flags, eager
+    float32 CPU), the segment's proposals made, no joint pairs, and a sensor with a C entry
+    for its change (:meth:`~torchmcmcpf.models.base.SensorModel.delta_rows_loop`).
     """
-    return (_run_fields(chains, noise, sensor, exclusion, dynamics) is not None and chains.terms is not None
-            and sensor.delta_rows_loop(chains.terms, z) is not None)
+    return _plan(chains, z, noise, pairs, dynamics, sensor, exclusion) is not None
+
+
+def _plan(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, pairs: ExchangeNoise | None,
+          dynamics: TargetDynamics, sensor: SensorModel, exclusion: Exclusion | None
+          ) -> tuple[_Run, _Run | None, RowsLoop] | None:
+    """:func:`exchange_run`'s plans of its one- and two-slot moves and the sensor's entry, or
+    None where it does not serve them.
+    """
+    single = _run_fields(chains, noise, sensor, exclusion, dynamics)
+    double = None if pairs is None else _run_fields(chains, pairs, sensor, exclusion, dynamics)
+    if single is None or noise.slot.shape[-1] != 1 or chains.terms is None or (
+            pairs is not None and (double is None or list(double.fields) != list(single.fields))):
+        return None
+    loop = sensor.delta_rows_loop(chains.terms, z)
+    return None if loop is None else (single, double, loop)
 
 
 def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *, dynamics: TargetDynamics,
-                 sensor: SensorModel, exclusion: Exclusion | None = None, record_from: int = 0
+                 sensor: SensorModel, exclusion: Exclusion | None = None, pairs: ExchangeNoise | None = None,
+                 at_pairs: tuple[int, ...] = (), record_from: int = 0
                  ) -> tuple[ExchangeChains, Tensor, ExchangeChains]:
-    """``L`` iterations of :func:`exchange_iteration` (each followed by the cache's advance,
-    :func:`with_accepted_amplitudes`) in one C call (:func:`._exchange_native.segment`: the
-    sensor's change of each chain's move by its C entry, then the rest of the move, chain by
-    chain, every iteration): the same chains, decisions and cache to the bit, with no Python
-    between the iterations. Where :func:`run_serves`. Two-slot moves with a source term
-    (``p_same_source > 0``) one at a time (``L = 1``): the term reads the chains' sources
-    before the move, by ATen's ``softplus`` (its vector and scalar loops round by position).
+    """A segment's ``L`` iterations of :func:`exchange_iteration` (each followed by the cache's
+    advance, :func:`with_accepted_amplitudes`) in C calls (:func:`._exchange_native.segment`):
+    each run of one-slot iterations between the two-slot ones in one call, chain by chain
+    through every iteration of the run (the sensor's change of each chain's move by its C
+    entry, then the rest of the move), each two-slot iteration in one after its source term
+    (``p_same_source > 0``: read from the chains by ATen's ``softplus``, whose vector and
+    scalar loops round by position); the buffers made once for the segment. The same chains,
+    decisions and cache to the bit, with no Python between a run's iterations. Where
+    :func:`run_serves`.
 
     Parameters
     ----------
     chains : :class:`ExchangeChains` ``(B, C, ...)`` with their amplitude cache (advanced in
-        place) and move terms; z : the frame; noise : :class:`ExchangeNoise` of ``L``
-        iterations (leading ``(L, B, C)``) with the segment's proposals.
+        place) and move terms; z : the frame.
+    noise : :class:`ExchangeNoise` of the ``L`` iterations' one-slot moves (leading ``(L, B,
+        C)``) with the segment's proposals; pairs : that of the two-slot moves (leading
+        ``(len(at_pairs), B, C)``), made at the iterations ``at_pairs`` (whose ``noise`` is
+        unread), or None.
     dynamics, sensor, exclusion : as :func:`exchange_iteration`'s.
     record_from : the first iteration whose chains are recorded.
 
@@ -612,31 +633,36 @@ def exchange_run(chains: ExchangeChains, z: Measurement, noise: ExchangeNoise, *
         iterations ``record_from .. L - 1`` (leading ``L - record_from``: ``y``, ``log_lik``,
         ``log_r``, ``kind``, ``source``; the rest None), as the iterations' loop records them.
     """
-    run = _run_fields(chains, noise, sensor, exclusion, dynamics)
-    terms, cache = chains.terms, chains.amplitude
-    loop = None if run is None or terms is None else sensor.delta_rows_loop(terms, z)
-    if run is None or loop is None or cache is None:
-        raise ValueError("exchange_run does not serve these chains and noise (run_serves)")
-    fields, conv, rho = run
-    length = noise.u.shape[0]
-    src_term = None
-    if rho > 0:
-        if length != 1:
-            raise ValueError(f"two-slot moves with a source term run one at a time, got {length} iterations")
-        assert noise.source is not None and noise.log_w_source is not None
-        first = noise._replace(source=noise.source[0].contiguous(), log_w_source=noise.log_w_source[0].contiguous(),
-                               slot=noise.slot[0].contiguous())
-        pair = _source_term(first, chains.source, chains.log_w_source, rho)
-        src_term = None if pair is None else pair.to(chains.log_lik.dtype).unsqueeze(0)
-    names = list(fields)
-    recorded = [name in ("y", "log_r", "kind", "source") for name in names]
-    coords = fields["coords"] if "coords" in fields else (None, None)
-    assert noise.proposal is not None
+    plan = _plan(chains, z, noise, pairs, dynamics, sensor, exclusion)
+    cache = chains.amplitude
+    if plan is None or cache is None or (pairs is None) != (not at_pairs) or (
+            pairs is not None and pairs.u.shape[0] != len(at_pairs)):
+        raise ValueError("exchange_run does not serve these chains and noise (run_serves), or pairs and at_pairs "
+                         f"disagree (at_pairs {at_pairs})")
+    single, double, loop = plan
+    names = list(single.fields)
+    at: dict[str, int] = {name: names.index(name) for name in ("terms", "coords", "log_r", "kind") if name in names}
+
+    def moves(noise_: ExchangeNoise, run: _Run) -> _exchange_native.Moves:
+        assert noise_.proposal is not None
+        return _exchange_native.Moves(noise_.u, noise_.valid, noise_.slot, [rows for _, rows in run.fields.values()],
+                                      noise_.proposal.coords if "coords" in at else None,
+                                      noise_.proposal.log_r if "log_r" in at else None, run.conv)
+
+    def source_term(own: list[Tensor], i: int) -> Tensor | None:
+        if pairs is None or double is None or double.rho <= 0 or "source" not in names:
+            return None
+        assert pairs.source is not None and pairs.log_w_source is not None
+        first = pairs._replace(source=pairs.source[i].contiguous(), log_w_source=pairs.log_w_source[i].contiguous(),
+                               slot=pairs.slot[i].contiguous())
+        term = _source_term(first, own[names.index("source")], own[names.index("log_w_source")], double.rho)
+        return None if term is None else term.to(chains.log_lik.dtype)
+
     ll, own, traces, ll_trace, count = _exchange_native.segment(
-        chains.log_lik, noise.u, noise.valid, noise.slot, src_term, coords[0], coords[1],
-        1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, chains.log_r if "log_r" in fields else None,
-        noise.proposal.log_r if "log_r" in fields else None, chains.kind if conv is not None else None, conv,
-        list(fields.values()), names.index("terms"), cache, loop, record_from, recorded)
+        chains.log_lik, [field for field, _ in single.fields.values()], at, cache, loop,
+        1.0 if exclusion is None else exclusion.scale, LOG_PHI_FLOOR, moves(noise, single),
+        None if pairs is None or double is None else moves(pairs, double), at_pairs, record_from,
+        [name in ("y", "log_r", "kind", "source") for name in names], source_term)
     new, trace = dict(zip(names, own)), dict(zip(names, traces))
     assert trace["y"] is not None
     out = ExchangeChains(new["y"], ll, None, new.get("log_r", chains.log_r), new.get("kind", chains.kind),
