@@ -256,13 +256,10 @@ class SegmentNoise(NamedTuple):
         of 2, 36 s cold for Np = 500, 10 targets).
         """
         out = _rows(self.single, self.single.u.shape[0])
-        for t, noise in self.pairs().items():
-            out[t] = noise
+        if self.pair is not None:
+            for t, noise in zip(self.at_pairs, _rows(self.pair, self.pair.u.shape[0])):
+                out[t] = noise
         return out
-
-    def pairs(self) -> dict[int, ExchangeNoise]:
-        """The two-slot iterations' noise by their position in the segment (leading ``(B, C)``)."""
-        return {} if self.pair is None else dict(zip(self.at_pairs, _rows(self.pair, self.pair.u.shape[0])))
 
 
 def _rows(x: Any, length: int) -> list:
