@@ -369,7 +369,7 @@ def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
     """``exchange_run`` (a run of one-slot iterations in one C call: the radar's change by its
     C entry, then the commit, chain by chain) gives the chains, amplitude cache, acceptances
     and recorded trace of the iterations one by one on tensors, to the bit."""
-    from torchmcmcpf.kernels.exchange import exchange_run, run_serves
+    from torchmcmcpf.kernels.exchange_segment import exchange_run, run_serves
     from torchmcmcpf.models.sensors.grid import native
 
     if not native.available():
@@ -399,7 +399,7 @@ def test_a_run_of_one_slot_moves_is_the_iterations_to_the_bit():
 def test_runs_serve_only_sensors_with_a_c_entry():
     """Without the sensor's C entry (the tensor path) ``run_serves`` is false and
     ``exchange_run`` refuses with a ValueError, rather than running another arithmetic."""
-    from torchmcmcpf.kernels.exchange import exchange_run, run_serves
+    from torchmcmcpf.kernels.exchange_segment import exchange_run, run_serves
 
     sensor, dynamics, z, _, chains, noise = _run_problem(steps=2)
     with _tensor_path_only():
@@ -413,7 +413,7 @@ def test_a_segment_with_two_slot_moves_is_the_iterations_to_the_bit():
     its source term read from the chains; the cached ratios converted between the moves'
     epsilon by kind in the loop), gives the tensor path's chains, cache, acceptances and
     recorded trace to the bit; the trace recorded from an iteration inside a run."""
-    from torchmcmcpf.kernels.exchange import exchange_run, run_serves
+    from torchmcmcpf.kernels.exchange_segment import exchange_run, run_serves
     from torchmcmcpf.models.sensors.grid import native
 
     if not native.available():

@@ -9,9 +9,9 @@ Loops in plain C beside the tensor paths, each the same values (to round-off for
 - ``exclusion.c``: the exclusion factor and its change when a slot moves
   (:meth:`torchmcmcpf.models.multitarget.Exclusion.log_factor`, ``log_change``);
 - ``exchange.c``: the exchange move's iteration after its likelihood change (the MH decision,
-  the chains' fields and cache written) in one call, and a segment's one-slot iterations with
-  the sensor's change (a :class:`RowsLoop`) in one call
-  (:mod:`torchmcmcpf.kernels._exchange_native`);
+  the chains' fields and cache written) in one call, and a segment's iterations with the
+  sensor's change (a :class:`RowsLoop`) in one call per run of one-slot moves or two-slot move
+  (:mod:`torchmcmcpf.kernels._exchange_native`, :mod:`torchmcmcpf.kernels.exchange_segment`);
 - ``select.c``: ``torch.where`` and the read-back of a packed block in one pass
   (:mod:`torchmcmcpf._native.select`), which every move makes dozens of times an iteration.
 

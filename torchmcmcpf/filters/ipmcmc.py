@@ -201,13 +201,12 @@ from ..kernels.exchange import (
     close_pairs,
     draw_exchange_noise,
     exchange_iteration,
-    exchange_run,
     mutual_nearest_pairs,
     one_call_serves,
     propose_slots,
-    run_serves,
     with_accepted_amplitudes,
 )
+from ..kernels.exchange_segment import exchange_run, run_serves
 from ..kernels.hmc_refine import (
     HMCRefine,
     HMCRefineNoise,

@@ -1,7 +1,8 @@
 """Pure, batched Markov kernels, one move per kind: Metropolis-Hastings accept/reject
 (:mod:`.mh`); the moves of the sequential MCMC particle filter, by concern: chain states and
 noise (:mod:`.chains`), joint draw and per-target refinement (:mod:`.moves`), random walk
-(:mod:`.random_walk`); the IP-MCMC exchange move and its iteration (:mod:`.exchange`);
+(:mod:`.random_walk`); the IP-MCMC exchange move and its iteration (:mod:`.exchange`), a segment of its iterations
+in C calls (:mod:`.exchange_segment`);
 Hamiltonian Monte Carlo (:mod:`.hmc`) and the HMC refinement move of the MCMC filters
 (:mod:`.hmc_refine`); the triggered conditional-SMC move on a pair of slots' recent paths
 (:mod:`.pair_path`).

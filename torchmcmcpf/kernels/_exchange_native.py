@@ -41,6 +41,18 @@ def applies(*tensors: Tensor | None) -> bool:
             and all(t is None or (t.dtype is torch.float32 and t.device.type == "cpu") for t in tensors))
 
 
+def _row_widths(fields: list[tuple[Tensor, Tensor]], rows: int, new_rows: int) -> list[int]:
+    """Each ``(field, new rows)`` pair's row in bytes (``rows`` rows a field, ``new_rows`` new
+    ones): the loops copy rows as bytes, so a ValueError unless the new rows have the field's
+    dtype and row shape.
+    """
+    width = [f.element_size() * (f.numel() // rows) for f, _ in fields]
+    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // new_rows) != w for (f, r), w in zip(fields, width)):
+        raise ValueError("each field's rows must have its dtype and row shape, got "
+                         f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
+    return width
+
+
 def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot: Tensor, src_term: Tensor | None,
            coords: Tensor | None, coords_new: Tensor | None, scale: float, log_phi_floor: float,
            log_r: Tensor | None, r_new: Tensor | None, r_old: Tensor | None, fields: list[tuple[Tensor, Tensor]],
@@ -77,10 +89,7 @@ def commit(log_lik: Tensor, delta: Tensor, u: Tensor, valid: Tensor | None, slot
         None if t is None else t.contiguous() for t in (valid, src_term, coords, coords_new, log_r, r_new, r_old))
     nf = len(fields)
     # each field's row in bytes; its rows must have its dtype and as many elements (copied as bytes)
-    width = [f.element_size() * (f.numel() // (n * k)) for f, _ in fields]
-    if any(f.dtype != r.dtype or r.element_size() * (r.numel() // (n * m)) != w for (f, r), w in zip(fields, width)):
-        raise ValueError("each field's rows must have its dtype and row shape, got "
-                         f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in fields]}")
+    width = _row_widths(fields, n * k, n * m)
     srcs = [f.contiguous() for f, _ in fields]
     rows = [r.contiguous() for _, r in fields]
     dsts = [torch.empty_like(f) for f in srcs]
@@ -167,13 +176,9 @@ def segment(log_lik: Tensor, fields: list[Tensor], at: dict[str, int], cache: Te
     """
     length = single.u.shape[0]
     n, k = log_lik.numel(), fields[0].shape[2]
-    width = [f.element_size() * (f.numel() // (n * k)) for f in fields]
-    for moves in (single,) if pairs is None else (single, pairs):
-        per = n * moves.u.shape[0] * moves.slot.shape[-1]  # rows of each field
-        both = list(zip(fields, moves.rows))
-        if any(f.dtype != r.dtype or r.element_size() * (r.numel() // per) != w for (f, r), w in zip(both, width)):
-            raise ValueError("each field's rows must have its dtype and row shape, got "
-                             f"{[(f.dtype, tuple(f.shape), r.dtype, tuple(r.shape)) for f, r in both]}")
+    width = _row_widths(list(zip(fields, single.rows)), n * k, n * length * single.slot.shape[-1])
+    if pairs is not None:
+        _row_widths(list(zip(fields, pairs.rows)), n * k, n * pairs.u.shape[0] * pairs.slot.shape[-1])
     own = [f.clone(memory_format=torch.contiguous_format) for f in fields]  # written in place
     ll = log_lik.clone(memory_format=torch.contiguous_format)
     rec = max(length - record, 0)

@@ -391,7 +391,7 @@ class SensorModel(nn.Module, Generic[Z]):
         """:meth:`log_likelihood_delta_rows` of one sample as a C entry
         (:class:`~torchmcmcpf._native.RowsLoop`), for a kernel whose own C loop calls it sample
         by sample (the IP-MCMC-PF's runs of one-slot moves,
-        :func:`~torchmcmcpf.kernels.exchange.exchange_run`), for samples whose
+        :func:`~torchmcmcpf.kernels.exchange_segment.exchange_run`), for samples whose
         :meth:`move_terms` are ``terms (B, *S, K, T)`` on frames ``z``; ``None`` (the default)
         where the sensor has no such entry. The same values as
         :meth:`log_likelihood_delta_rows` to the bit.
